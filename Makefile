@@ -1,0 +1,31 @@
+# One-command set-up: `make test` and `make demo` create .venv in this folder and install everything.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN     = $(VENV)/bin
+ifeq ($(OS),Windows_NT)
+BIN     = $(VENV)/Scripts
+endif
+STAMP   = $(VENV)/.installed
+
+.PHONY: test demo install bench clean
+
+$(STAMP): requirements.txt requirements-dev.txt pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -r requirements-dev.txt
+	$(BIN)/python -m pip install --quiet --no-deps -e .
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+test: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+demo: $(STAMP)
+	MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS)
+
+bench: $(STAMP)
+	$(BIN)/python -m bench $(BENCH_ARGS)
+
+clean:
+	rm -rf $(VENV) .pytest_cache

@@ -1,0 +1,97 @@
+"""Where the synthetic field puts each file: ODM's names for ODM's outputs, plus inputs and the truth.
+
+This is the contract between the generator and every test, benchmark and the demo; keep the names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class FieldPaths:
+    root: Path
+
+    # -- what ODM leaves behind (DESIGN §2) -------------------------------------------------------
+    @property
+    def images(self) -> Path:            # raw distorted JPEGs with EXIF (GPS included), ODM's input
+        return self.root / "images"
+
+    @property
+    def reconstruction(self) -> Path:
+        return self.root / "opensfm" / "reconstruction.json"
+
+    @property
+    def topocentric_reconstruction(self) -> Path:
+        return self.root / "opensfm" / "reconstruction.topocentric.json"
+
+    @property
+    def undistorted_reconstruction(self) -> Path:
+        return self.root / "opensfm" / "undistorted" / "reconstruction.json"
+
+    @property
+    def undistorted_images(self) -> Path:  # <image name>.tif
+        return self.root / "opensfm" / "undistorted" / "images"
+
+    @property
+    def dsm(self) -> Path:
+        return self.root / "odm_dem" / "dsm.tif"
+
+    @property
+    def dtm(self) -> Path:
+        return self.root / "odm_dem" / "dtm.tif"
+
+    @property
+    def orthophoto(self) -> Path:         # RGBA
+        return self.root / "odm_orthophoto" / "odm_orthophoto.tif"
+
+    @property
+    def coords(self) -> Path:
+        return self.root / "odm_georeferencing" / "coords.txt"
+
+    # -- other inputs ------------------------------------------------------------------------------
+    @property
+    def multispectral(self) -> Path:      # band 1 red, band 2 near-infrared (reflectance 0..1)
+        return self.root / "multispectral" / "multispectral.tif"
+
+    @property
+    def images_nogps(self) -> Path:       # the raw images with the GPS IFD removed (module 0's input)
+        return self.root / "images_nogps"
+
+    @property
+    def gnss_log(self) -> Path:           # paper's events.txt: TAB, header "Timestamp X Y Z", UTM
+        return self.root / "gnss" / "events.txt"
+
+    @property
+    def gcp_survey(self) -> Path:         # id,x,y,z in the field CRS (EPSG in truth/field.json)
+        return self.root / "gcp" / "gcp_survey.csv"
+
+    # -- ground truth ------------------------------------------------------------------------------
+    @property
+    def truth(self) -> Path:
+        return self.root / "truth"
+
+    @property
+    def field_json(self) -> Path:         # crs (EPSG), offset, clock offset, gsd, preset, seed, camera
+        return self.truth / "field.json"
+
+    @property
+    def plants_csv(self) -> Path:         # id,x,y,z,height,radius (map CRS; z = ground height)
+        return self.truth / "plants.csv"
+
+    @property
+    def boxes_raw(self) -> Path:          # COCO: every visible plant in every raw image
+        return self.truth / "boxes_raw.json"
+
+    @property
+    def boxes_undistorted(self) -> Path:  # COCO: every visible plant in every undistorted image
+        return self.truth / "boxes_undistorted.json"
+
+    @property
+    def map_boxes(self) -> Path:          # CSV: id,xmin,ymin,xmax,ymax (map CRS), plant's box on the map
+        return self.truth / "map_boxes.csv"
+
+    @property
+    def gcp_pixels(self) -> Path:         # CSV: gcp_id,image,u,v (raw image pixels)
+        return self.truth / "gcp_pixels.csv"

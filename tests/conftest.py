@@ -1,0 +1,44 @@
+"""Shared fixtures. The synthetic fields are generated once per test session."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("MATCHPLANT_QUIET", "1")
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="session")
+def data_dir() -> Path:
+    return DATA
+
+
+@pytest.fixture(scope="session")
+def tiny_field(tmp_path_factory):
+    """The ``tiny`` synthetic field (seed 0): an ODM-shaped project with exact truth. Read-only: copy
+    what a test changes."""
+    from matchplant.simfield import generate_field
+    from matchplant.simfield.layout import FieldPaths
+
+    root = tmp_path_factory.mktemp("tiny_field")
+    generate_field(preset="tiny", seed=0, out=root)
+    return FieldPaths(root)
+
+
+def xvfb_available() -> bool:
+    return shutil.which("Xvfb") is not None or shutil.which("xvfb-run") is not None
+
+
+def run_in_xvfb(code: str, timeout: int = 120) -> subprocess.CompletedProcess:
+    """Run Python ``code`` in a real (TkAgg) window on a virtual display; the code must close itself."""
+    env = dict(os.environ, MPLBACKEND="TkAgg")
+    return subprocess.run(["xvfb-run", "-a", sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=timeout)
