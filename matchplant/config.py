@@ -156,7 +156,7 @@ def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> An
             raise _unknown_key(str(key), names, prefix, source)
     kwargs = {}
     for name, value in data.items():
-        key = f"{prefix}{name}"
+        key = f"{prefix}.{name}" if prefix else str(name)
         typ = hints[name]
         if is_dataclass(typ):
             if value is None:
@@ -164,9 +164,14 @@ def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> An
             if not isinstance(value, dict):
                 raise ConfigError(f"config key '{key}' must be a section of 'key: value' lines ({source})",
                                   fix=f"indent the settings of '{key}' under it")
-            kwargs[name] = _build(typ, value, prefix=key + ".", source=source, base=base)
+            kwargs[name] = _build(typ, value, prefix=key, source=source, base=base)
         else:
             kwargs[name] = _coerce(value, typ, key, source, base)
+    for f in fields(cls):
+        # defaults go through the same conversion: a default path is relative to the config file too
+        if f.name not in kwargs and f.default is not MISSING and f.default is not None:
+            key = f"{prefix}.{f.name}" if prefix else f.name
+            kwargs[f.name] = _coerce(f.default, hints[f.name], key, "defaults", base)
     try:
         return cls(**kwargs)
     except ConfigError:
@@ -262,7 +267,7 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
     if is_dataclass(typ):
         if not isinstance(value, dict):
             raise bad("a section of 'key: value' lines")
-        return _build(typ, value, prefix=key + ".", source=source, base=base)
+        return _build(typ, value, prefix=key, source=source, base=base)
     return value
 
 

@@ -59,8 +59,12 @@ class Surface:
             with rasterio.open(path) as src:
                 if bounds is not None:
                     win = from_bounds(*bounds, transform=src.transform)
-                    win = win.round_offsets("floor").round_lengths("ceil")
-                    win = win.intersection(rasterio.windows.Window(0, 0, src.width, src.height))
+                    # whole pixels, one extra on each side so bilinear sampling at the edge has neighbours
+                    col0, row0 = int(np.floor(win.col_off)) - 1, int(np.floor(win.row_off)) - 1
+                    col1 = int(np.ceil(win.col_off + win.width)) + 1
+                    row1 = int(np.ceil(win.row_off + win.height)) + 1
+                    win = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0).intersection(
+                        rasterio.windows.Window(0, 0, src.width, src.height))
                     transform = src.window_transform(win)
                     arr = src.read(band, window=win, masked=True)
                 else:
@@ -88,11 +92,16 @@ class Surface:
         ys = (t.f, t.f + h * t.e)
         return min(xs), min(ys), max(xs), max(ys)
 
+    def _pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Map coordinates to fractional (column, row), pixel corners at integers."""
+        i = self._inv
+        return i.a * x + i.b * y + i.c, i.d * x + i.e * y + i.f
+
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height at map points; NaN outside the raster or where every neighbour is a hole."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
-        col, row = self._inv * (x, y)
+        col, row = self._pixel(x, y)
         rows, cols = self.data.shape
         outside = (col < 0) | (col > cols) | (row < 0) | (row > rows) | ~np.isfinite(col) | ~np.isfinite(row)
         cf = np.where(outside, 0.0, col - 0.5)
@@ -117,7 +126,7 @@ class Surface:
         return z
 
     def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        col, row = self._inv * (np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+        col, row = self._pixel(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
         rows, cols = self.data.shape
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
 
