@@ -47,6 +47,9 @@ class ModuleSpec:
     # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text")
     flags: dict[str, tuple[str, str]] = field(default_factory=dict)
     output_key: str = "output_dir"
+    # when set, the positional argument fills this key instead of naming a config file
+    # (``matchplant run pipeline.yaml``)
+    positional_key: str | None = None
 
 
 def resolve_module(name: str) -> ModuleSpec:
@@ -70,7 +73,11 @@ def resolve_module(name: str) -> ModuleSpec:
 def build_parser(spec: ModuleSpec) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"matchplant {spec.name}",
                                 description=(spec.config.__doc__ or "").strip().split("\n")[0])
-    p.add_argument("config_file", nargs="?", type=Path, help="YAML config (same as --config)")
+    if spec.positional_key:
+        p.add_argument("positional", nargs="?", metavar=spec.positional_key.upper(),
+                       help=f"sets '{spec.positional_key}'")
+    else:
+        p.add_argument("config_file", nargs="?", type=Path, help="YAML config (same as --config)")
     p.add_argument("--config", "-c", type=Path, help="YAML config file")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key (repeatable), e.g. --set tile_size=512")
@@ -119,10 +126,13 @@ def _run(spec: ModuleSpec, args: argparse.Namespace, default_config: Path | None
         path = save_config(spec.config(), args.write_config)
         print(f"wrote {path}")
         return 0
-    if args.config and args.config_file:
+    positional_config = getattr(args, "config_file", None)
+    if args.config and positional_config:
         raise ConfigError("give the config once: either as the first argument or with --config")
-    config_path = args.config or args.config_file or default_config
+    config_path = args.config or positional_config or default_config
     overrides = list(args.overrides)
+    if getattr(args, "positional", None):
+        overrides.insert(0, f"{spec.positional_key}={args.positional}")
     for key, value in vars(args).items():
         if key.startswith("flag__") and value is not None:
             overrides.append(f"{key[len('flag__'):]}={value}")
