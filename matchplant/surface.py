@@ -3,13 +3,19 @@
 Only the window that is needed is read from the file. Nodata (ODM writes -9999) and NaN are holes:
 bilinear interpolation renormalises over the valid neighbours, so hole edges stay usable, and a ray that
 meets the surface inside a hole is reported, not placed on an invented height.
+
+The per-ray work (march until the first crossing, then refine) is a loop with an early exit, which numpy
+cannot vectorise without evaluating every ray over the whole height range; it is compiled with numba,
+and one bilinear rule (:func:`_bilinear`) serves both sampling and intersection.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from .errors import InputError
@@ -22,6 +28,174 @@ STATUS_TEXT = {
     NODATA: "ray meets the ground in a DSM nodata area",
     NO_HIT: "no intersection with the DSM (camera below the surface?)",
 }
+_REFINE_ITERATIONS = 60  # bisection steps at most
+_REFINE_TOLERANCE = 1e-9  # metres along the ray at which bisection stops
+_BLOCK = 8  # cells per side of the blocks whose maxima let rays skip empty space
+
+
+def _block_max(data: np.ndarray, block: int) -> np.ndarray:
+    """Highest cell of each block and its 8 neighbours; +inf where a block holds a hole, so rays march
+    through holes cell by cell and are reported, not skipped."""
+    from scipy.ndimage import maximum_filter
+
+    rows, cols = data.shape
+    br, bc = -(-rows // block), -(-cols // block)
+    padded = np.full((br * block, bc * block), -np.inf)
+    padded[:rows, :cols] = np.where(np.isnan(data), np.inf, data)
+    blocks = padded.reshape(br, block, bc, block).max(axis=(1, 3))
+    return np.ascontiguousarray(maximum_filter(blocks, size=3, mode="nearest"))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear(data, inv, x, y):
+    """Height at map (x, y); NaN outside the raster or when all four neighbours are holes.
+
+    ``inv`` = (a, b, c, d, e, f) of the inverse affine: col = a x + b y + c, row = d x + e y + f, with
+    pixel corners at integers, so pixel centres are at +0.5.
+    """
+    rows, cols = data.shape
+    col = inv[0] * x + inv[1] * y + inv[2]
+    row = inv[3] * x + inv[4] * y + inv[5]
+    if not (col >= 0.0 and col <= cols and row >= 0.0 and row <= rows):
+        return math.nan
+    cf = col - 0.5
+    rf = row - 0.5
+    c0 = min(max(int(math.floor(cf)), 0), max(cols - 2, 0))
+    r0 = min(max(int(math.floor(rf)), 0), max(rows - 2, 0))
+    c1 = min(c0 + 1, cols - 1)
+    r1 = min(r0 + 1, rows - 1)
+    fc = min(max(cf - c0, 0.0), 1.0)
+    fr = min(max(rf - r0, 0.0), 1.0)
+    total = 0.0
+    weight = 0.0
+    w = (1.0 - fr) * (1.0 - fc)
+    v = data[r0, c0]
+    if not math.isnan(v):
+        total += v * w
+        weight += w
+    w = (1.0 - fr) * fc
+    v = data[r0, c1]
+    if not math.isnan(v):
+        total += v * w
+        weight += w
+    w = fr * (1.0 - fc)
+    v = data[r1, c0]
+    if not math.isnan(v):
+        total += v * w
+        weight += w
+    w = fr * fc
+    v = data[r1, c1]
+    if not math.isnan(v):
+        total += v * w
+        weight += w
+    if weight > 1e-9:
+        return total / weight
+    return math.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_many(data, inv, x, y, out):
+    for i in range(x.size):
+        out[i] = _bilinear(data, inv, x[i], y[i])
+
+
+@numba.njit(cache=True, nogil=True)
+def _inside(data, inv, x, y):
+    rows, cols = data.shape
+    col = inv[0] * x + inv[1] * y + inv[2]
+    row = inv[3] * x + inv[4] * y + inv[5]
+    return col >= 0.0 and col <= cols and row >= 0.0 and row <= rows
+
+
+@numba.njit(cache=True, nogil=True)
+def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
+    """Fine march from ``s_from`` to ``s_to`` in ``n`` steps; bisect the first crossing.
+
+    Returns (s_hit or NaN, last f, status) so the caller can continue after this segment.
+    """
+    ox, oy, oz = o[0], o[1], o[2]
+    dx, dy, dz = d[0], d[1], d[2]
+    step = (s_to - s_from) / n
+    prev_s = s_from
+    for k in range(1, n + 1):
+        s = s_from + k * step
+        x = ox + s * dx
+        y = oy + s * dy
+        f = oz + s * dz - _bilinear(data, inv, x, y) - clearance
+        if math.isnan(f):
+            if status == 4:
+                status = 2 if not _inside(data, inv, x, y) else 3
+        elif prev_f > 0.0 and f <= 0.0:
+            a = prev_s
+            b = s
+            tol = _REFINE_TOLERANCE / math.sqrt(dx * dx + dy * dy + dz * dz)
+            for _ in range(_REFINE_ITERATIONS):
+                if b - a < tol:
+                    break
+                m = 0.5 * (a + b)
+                fm = oz + m * dz - _bilinear(data, inv, ox + m * dx, oy + m * dy) - clearance
+                if fm > 0.0:
+                    a = m
+                else:
+                    b = m  # a hole between two valid samples counts as below: the hit stays at its edge
+            return 0.5 * (a + b), f, 0
+        prev_f = f
+        prev_s = s
+    return math.nan, prev_f, status
+
+
+@numba.njit(cache=True, nogil=True)
+def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, clearance, max_steps, out_s, out_status):
+    """For each ray: skip, a block at a time, the stretches where it stays above the highest cell of the
+    3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps; bisect the first
+    step from above ``clearance`` to at or below it."""
+    margin = 0.01 + 1e-6 * (abs(zmax) + abs(zmin))
+    nbr, nbc = block_max.shape
+    for i in range(d.shape[0]):
+        oz, dz = o[i, 2], d[i, 2]
+        out_s[i] = math.nan
+        if not dz < -1e-12:
+            out_status[i] = 1  # NOT_DOWNWARD
+            continue
+        s = max(0.0, (oz - (zmax + clearance + margin)) / -dz)
+        s_end = (oz - (zmin - margin)) / -dz
+        if not s_end > s:
+            out_status[i] = 4  # NO_HIT
+            continue
+        horiz = max(math.sqrt(d[i, 0] ** 2 + d[i, 1] ** 2), 1e-12)
+        coarse = block * pixel / horiz  # ray length that moves one block horizontally
+        fine = 0.5 * pixel / horiz
+        status = 4
+        prev_f = math.nan
+        steps = 0
+        while s < s_end and steps < max_steps:
+            s_next = min(s + coarse, s_end)
+            x = o[i, 0] + s * d[i, 0]
+            y = o[i, 1] + s * d[i, 1]
+            col = inv[0] * x + inv[1] * y + inv[2]
+            row = inv[3] * x + inv[4] * y + inv[5]
+            bc = int(math.floor(col / block))
+            br = int(math.floor(row / block))
+            top = math.inf
+            if 0 <= br < nbr and 0 <= bc < nbc:
+                top = block_max[br, bc]
+            elif status == 4:
+                status = 2  # outside the raster here; it may still come in later
+            if oz + s_next * dz - clearance > top:
+                s = s_next  # the whole stretch is above the surface around it
+                prev_f = math.nan
+                steps += 1
+                continue
+            n = max(1, int(math.ceil((s_next - s) / fine)))
+            if math.isnan(prev_f):
+                prev_f = oz + s * dz - _bilinear(data, inv, x, y) - clearance
+            hit, prev_f, status = _crossing(data, inv, o[i], d[i], clearance, s, s_next, n, prev_f, status)
+            steps += n
+            if status == 0:
+                out_s[i] = hit
+                break
+            s = s_next
+        out_status[i] = status
 
 
 @dataclass
@@ -36,20 +210,22 @@ class Surface:
         if abs(t.b) > 1e-12 or abs(t.d) > 1e-12:
             raise InputError("rotated rasters are not supported", path=self.path,
                              fix="warp the raster to a north-up grid (gdalwarp)")
-        self.data = np.asarray(self.data, dtype=float)
-        self._inv = ~t
+        self.data = np.ascontiguousarray(self.data, dtype=np.float64)
+        i = ~t
+        self._inv = np.array([i.a, i.b, i.c, i.d, i.e, i.f], dtype=np.float64)
         finite = self.data[np.isfinite(self.data)]
         if finite.size == 0:
             raise InputError("the elevation raster holds no valid data in the area of interest", path=self.path,
                              fix="check that the DSM covers the images (same CRS, same field)")
         self.zmin, self.zmax = float(finite.min()), float(finite.max())
+        self._block_max = _block_max(self.data, _BLOCK)
 
     @classmethod
     def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None,
              band: int = 1) -> "Surface":
         """Read ``path`` (only the window covering ``bounds = (xmin, ymin, xmax, ymax)``, if given)."""
         import rasterio
-        from rasterio.windows import from_bounds
+        from rasterio.windows import Window, from_bounds
 
         path = Path(path)
         if not path.is_file():
@@ -63,8 +239,8 @@ class Surface:
                     col0, row0 = int(np.floor(win.col_off)) - 1, int(np.floor(win.row_off)) - 1
                     col1 = int(np.ceil(win.col_off + win.width)) + 1
                     row1 = int(np.ceil(win.row_off + win.height)) + 1
-                    win = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0).intersection(
-                        rasterio.windows.Window(0, 0, src.width, src.height))
+                    win = Window(col0, row0, col1 - col0, row1 - row0).intersection(
+                        Window(0, 0, src.width, src.height))
                     transform = src.window_transform(win)
                     arr = src.read(band, window=win, masked=True)
                 else:
@@ -92,121 +268,41 @@ class Surface:
         ys = (t.f, t.f + h * t.e)
         return min(xs), min(ys), max(xs), max(ys)
 
-    def _pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Map coordinates to fractional (column, row), pixel corners at integers."""
-        i = self._inv
-        return i.a * x + i.b * y + i.c, i.d * x + i.e * y + i.f
-
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height at map points; NaN outside the raster or where every neighbour is a hole."""
-        x = np.asarray(x, dtype=float)
-        y = np.asarray(y, dtype=float)
-        col, row = self._pixel(x, y)
-        rows, cols = self.data.shape
-        outside = (col < 0) | (col > cols) | (row < 0) | (row > rows) | ~np.isfinite(col) | ~np.isfinite(row)
-        cf = np.where(outside, 0.0, col - 0.5)
-        rf = np.where(outside, 0.0, row - 0.5)
-        c0 = np.clip(np.floor(cf), 0, max(cols - 2, 0)).astype(np.intp)
-        r0 = np.clip(np.floor(rf), 0, max(rows - 2, 0)).astype(np.intp)
-        c1 = np.minimum(c0 + 1, cols - 1)
-        r1 = np.minimum(r0 + 1, rows - 1)
-        fc = np.clip(cf - c0, 0.0, 1.0)
-        fr = np.clip(rf - r0, 0.0, 1.0)
-        total = np.zeros_like(fc)
-        weight = np.zeros_like(fc)
-        for rr, cc, w in ((r0, c0, (1 - fr) * (1 - fc)), (r0, c1, (1 - fr) * fc),
-                          (r1, c0, fr * (1 - fc)), (r1, c1, fr * fc)):
-            v = self.data[rr, cc]
-            ok = np.isfinite(v)
-            total += np.where(ok, v, 0.0) * w
-            weight += np.where(ok, w, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            z = np.where(weight > 1e-9, total / weight, np.nan)
-        z[outside] = np.nan
-        return z
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        out = np.empty(x.shape, dtype=np.float64)
+        _sample_many(self.data, self._inv, np.ascontiguousarray(x).ravel(), np.ascontiguousarray(y).ravel(),
+                     out.reshape(-1))
+        return out
 
     def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        col, row = self._pixel(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+        i = self._inv
+        x = np.asarray(x, dtype=float)
+        y = np.asarray(y, dtype=float)
+        col, row = i[0] * x + i[1] * y + i[2], i[3] * x + i[4] * y + i[5]
         rows, cols = self.data.shape
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, *, max_samples: int = 4_000_000,
-                  max_steps: int = 20_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def intersect(self, origins: np.ndarray, directions: np.ndarray, *, clearance: float = 0.0,
+                  max_steps: int = 200_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of straight rays (in the raster's CRS) with the surface.
 
-        Marches each ray in half-pixel horizontal steps between the heights of the highest and lowest
-        valid cell (so slopes and plant edges are found, not a flat plane), then bisects the bracket.
-        Returns ``points (N, 3)``, ``s (N,)`` (the ray parameter) and ``status (N,)``
-        (:data:`STATUS_TEXT`); points without a hit are NaN.
+        Each ray is marched in half-pixel horizontal steps between the heights of the highest and lowest
+        valid cell (so slopes and plant edges are found, not a flat plane), and the first bracket is
+        bisected. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray
+        that grazes a plant's top (the edge of its silhouette) then stays on the plant instead of
+        continuing to the ground behind it. Returns ``points (N, 3)``, ``s (N,)`` (the ray parameter)
+        and ``status (N,)`` (:data:`STATUS_TEXT`); points without a hit are NaN.
         """
-        o = np.asarray(origins, dtype=float).reshape(-1, 3)
-        d = np.asarray(directions, dtype=float).reshape(-1, 3)
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
         if o.shape[0] == 1 and d.shape[0] > 1:
             o = np.repeat(o, d.shape[0], axis=0)
-        n = d.shape[0]
-        s_out = np.full(n, np.nan)
-        status = np.full(n, NO_HIT, dtype=np.int8)
-        down = d[:, 2] < -1e-12
-        status[~down] = NOT_DOWNWARD
-        idx = np.flatnonzero(down)
-        if idx.size == 0:
-            return np.full((n, 3), np.nan), s_out, status
-        margin = 0.01 + 1e-6 * (abs(self.zmax) + abs(self.zmin))
-        dz = -d[idx, 2]
-        s_top = np.maximum(0.0, (o[idx, 2] - (self.zmax + margin)) / dz)
-        s_bot = (o[idx, 2] - (self.zmin - margin)) / dz
-        horiz = np.hypot(d[idx, 0], d[idx, 1])
-        step = 0.5 * self.pixel_size / np.maximum(horiz, 1e-12)
-        steps = np.clip(np.ceil((s_bot - s_top) / step).astype(np.int64) + 1, 2, max_steps)
-        valid = s_bot > s_top
-        status[idx[~valid]] = NO_HIT
-        order = np.argsort(steps, kind="stable")
-        start = 0
-        while start < order.size:
-            k = int(steps[order[start]])
-            count = max(1, max_samples // max(k, 1))
-            # rays sorted by step count: the chunk's largest count bounds its memory
-            sel = order[start:start + count]
-            k = int(steps[sel].max())
-            sel = sel[valid[sel]]
-            start += count
-            if sel.size == 0:
-                continue
-            self._march(o[idx[sel]], d[idx[sel]], s_top[sel], s_bot[sel], k, idx[sel], s_out, status)
-        points = o + s_out[:, None] * d
-        return points, s_out, status
-
-    def _march(self, o, d, s0, s1, k, where, s_out, status) -> None:
-        t = np.linspace(0.0, 1.0, k)
-        s = s0[:, None] + (s1 - s0)[:, None] * t[None, :]
-        px = o[:, None, 0] + s * d[:, None, 0]
-        py = o[:, None, 1] + s * d[:, None, 1]
-        pz = o[:, None, 2] + s * d[:, None, 2]
-        f = pz - self.sample(px, py)
-        above = f > 0
-        below = f <= 0
-        cross = above[:, :-1] & below[:, 1:]
-        has = cross.any(axis=1)
-        first = np.argmax(cross, axis=1)
-        rows = np.arange(f.shape[0])
-        # rays without a crossing: say why
-        nan = ~np.isfinite(f)
-        outside = ~self.inside(px, py)
-        miss = ~has
-        status[where[miss & (outside & nan).any(axis=1)]] = OUTSIDE
-        status[where[miss & (nan & ~outside).any(axis=1)]] = NODATA
-        if not has.any():
-            return
-        r = rows[has]
-        a = s[r, first[has]]
-        b = s[r, first[has] + 1]
-        oo, dd = o[has], d[has]
-        for _ in range(60):
-            m = 0.5 * (a + b)
-            p = oo + m[:, None] * dd
-            fm = p[:, 2] - self.sample(p[:, 0], p[:, 1])
-            up = fm > 0
-            a = np.where(up, m, a)
-            b = np.where(up, b, m)
-        s_out[where[has]] = 0.5 * (a + b)
-        status[where[has]] = HIT
+        o = np.ascontiguousarray(o)
+        s = np.empty(d.shape[0], dtype=np.float64)
+        status = np.empty(d.shape[0], dtype=np.int8)
+        _intersect_many(self.data, self._inv, self._block_max, _BLOCK, self.zmin, self.zmax, self.pixel_size,
+                        o, d, float(clearance), int(max_steps), s, status)
+        points = o + s[:, None] * d
+        return points, s, status
