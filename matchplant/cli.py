@@ -44,8 +44,9 @@ class ModuleSpec:
     config: type
     run: Callable[[Any], Any]
     gui: Callable[[Any, Path | None], Any] | None = None
-    # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text")
-    flags: dict[str, tuple[str, str]] = field(default_factory=dict)
+    # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text"); a third item makes it a
+    # switch without a value: "--resume" -> ("resume", "help", "true") means --set resume=true
+    flags: dict[str, tuple[str, ...]] = field(default_factory=dict)
     output_key: str = "output_dir"
     # when set, the positional argument fills this key instead of naming a config file
     # (``matchplant run pipeline.yaml``)
@@ -87,8 +88,11 @@ def build_parser(spec: ModuleSpec) -> argparse.ArgumentParser:
                    help="write a commented config with every key and its default, then exit")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug messages")
     p.add_argument("--quiet", action="store_true", help="only warnings and errors on the console")
-    for flag, (key, text) in spec.flags.items():
-        p.add_argument(flag, dest=f"flag__{key}", default=None, metavar=key.split(".")[-1].upper(), help=text)
+    for flag, (key, text, *const) in spec.flags.items():
+        if const:
+            p.add_argument(flag, dest=f"flag__{key}", default=None, action="store_const", const=const[0], help=text)
+        else:
+            p.add_argument(flag, dest=f"flag__{key}", default=None, metavar=key.split(".")[-1].upper(), help=text)
     return p
 
 

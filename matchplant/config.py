@@ -384,6 +384,8 @@ def to_dict_value(v: Any) -> Any:
         return [to_dict_value(x) for x in v]
     if isinstance(v, list):
         return [to_dict_value(x) for x in v]
+    if is_dataclass(v):  # a list of sections (e.g. several dates of rasters)
+        return to_dict(v)
     return v
 
 

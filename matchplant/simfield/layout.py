@@ -13,6 +13,9 @@ from pathlib import Path
 class FieldPaths:
     root: Path
 
+    def __post_init__(self):
+        object.__setattr__(self, "root", Path(self.root))  # accept a str too
+
     # -- what ODM leaves behind (DESIGN §2) -------------------------------------------------------
     @property
     def images(self) -> Path:            # raw distorted JPEGs with EXIF (GPS included), ODM's input
@@ -95,3 +98,16 @@ class FieldPaths:
     @property
     def gcp_pixels(self) -> Path:         # CSV: gcp_id,image,u,v (raw image pixels)
         return self.truth / "gcp_pixels.csv"
+
+    # -- extra truth (added by the generator; not part of an ODM project) --------------------------
+    @property
+    def plant_ids(self) -> Path:          # GeoTIFF int32 on the DSM grid: plant id, 0 soil, -1 weed, -2 GCP
+        return self.truth / "plant_ids.tif"
+
+    @property
+    def masks_raw(self) -> Path:          # <image name>.png: uint16 plant id of every rendered raw pixel
+        return self.truth / "masks_raw"
+
+    @property
+    def masks_undistorted(self) -> Path:  # <image name>.png: uint16 plant id of every undistorted pixel
+        return self.truth / "masks_undistorted"

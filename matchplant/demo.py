@@ -1,0 +1,278 @@
+"""``make demo``: MatchPlant end to end on a generated field, without a screen, with a report.
+
+1. generates the ``small`` synthetic field (an ODM-shaped project with exact ground truth);
+2. writes ``pipeline.yaml`` chaining modules 0 to 9 and runs it with ``matchplant run`` (ODM's outputs
+   come from the generator; the ground-truth boxes stand in for hand annotation; a CPU-sized detector
+   trains for a few minutes);
+3. writes ``report.md`` with the coverage map, training curves, AP, the projected plants over the
+   orthophoto, and per-plant height and NDVI against the truth.
+
+Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .errors import MatchPlantError
+from .io import write_text
+from .log import get_logger, setup_console
+
+log = get_logger("demo")
+
+
+def pipeline_spec(field: Path, crs: str, *, epochs: int, pretrained: str, tile: int) -> dict:
+    """The demo's pipeline: every module, each reading the files the one before wrote."""
+    return {
+        "output_dir": ".",
+        "field": str(field),
+        "crs": crs,
+        "steps": [
+            {"name": "0_gps", "module": "gps_embed",
+             "config": {"images": "${field}/images_nogps", "gnss_log": "${field}/gnss/events.txt",
+                        "log_crs": "${crs}"}},
+            {"name": "1_gcp", "module": "gcp_finder",
+             "config": {"images": "${0_gps.output_dir}/images", "survey": "${field}/gcp/gcp_survey.csv",
+                        "survey_crs": "${crs}", "auto": True}},
+            {"name": "2_odm", "module": "odm_runner",
+             "config": {"project_dir": "${field}", "check_only": True}},
+            {"name": "3_select", "module": "min_img_finder",
+             "config": {"project_dir": "${field}"}},
+            {"name": "4_annotate", "module": "bbox_drawer",
+             "config": {"images": "${3_select.output_dir}/images",
+                        "import_coco": "${field}/truth/boxes_undistorted.json", "min_score": 0.0}},
+            {"name": "5_tiles", "module": "img_splitter",
+             "config": {"images": "${3_select.output_dir}/images",
+                        "annotations": "${4_annotate.output_dir}/annotations.json",
+                        "tile_size": tile, "overlap": 64, "negative_share": 0.2}},
+            {"name": "6_train", "module": "train",
+             "config": {"train_json": "${5_tiles.output_dir}/train.json",
+                        "val_json": "${5_tiles.output_dir}/val.json",
+                        "model": {"architecture": "fasterrcnn_mobilenet_v3_large_fpn", "pretrained": pretrained,
+                                  "min_size": tile, "max_size": tile},
+                        "epochs": epochs, "batch_size": 4, "num_workers": 0, "warmup_iters": 20,
+                        "step_size": max(epochs - 2, 1), "save_every": 0, "lr": {"backbone": 0.02, "fpn": 0.02,
+                                                                                  "rpn": 0.02, "roi_heads": 0.02}}},
+            {"name": "7_detect", "module": "model_test",
+             "config": {"checkpoint": "${6_train.output_dir}/checkpoints/best.pt",
+                        "evaluate": {"dataset_json": "${5_tiles.output_dir}/test.json"},
+                        "detect": {"images": "${field}/opensfm/undistorted/images", "tile_size": tile,
+                                   "overlap": 64}}},
+            {"name": "8_plants", "module": "project_boxes",
+             "config": {"project": "${field}", "predictions": "${7_detect.output_dir}/predictions.json",
+                        "mode": "both", "evaluate": {"reference": "${field}/truth/map_boxes.csv"}}},
+            {"name": "9_stats", "module": "stat_extractor",
+             "config": {"polygons": "${8_plants.output_dir}/plants.gpkg",
+                        "rasters": {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
+                                    "multispectral": "${field}/multispectral/multispectral.tif"}}},
+        ],
+    }
+
+
+def _pearson(a: np.ndarray, b: np.ndarray) -> float:
+    if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return float("nan")
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def compare_with_truth(out: Path, field: Path) -> dict:
+    """Per-plant height and NDVI of the projected plants against the truth, matched by position."""
+    import geopandas as gpd
+    from scipy.spatial import cKDTree
+
+    from .config import load_config
+    from .stats import SPEC as STATS
+
+    plants = gpd.read_file(out / "8_plants" / "plants.gpkg")
+    stats = {}
+    with open(out / "9_stats" / "stats.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+            stats[str(row[next(iter(row))])] = row
+    truth = {}
+    with open(field / "truth" / "plants.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+            truth[int(row["id"])] = row
+    tid = np.array(list(truth))
+    txy = np.array([[float(truth[i]["x"]), float(truth[i]["y"])] for i in tid])
+    tree = cKDTree(txy)
+    id_col = next(c for c in ("plant_id", "id") if c in plants.columns)
+    cent = np.column_stack([plants.geometry.centroid.x, plants.geometry.centroid.y])
+    dist, idx = tree.query(cent, distance_upper_bound=0.15)
+    # truth NDVI: the same statistics over the true plant boxes (the generator's plant reflectance)
+    truth_cfg = load_config(STATS.config, None, [
+        f"polygons={field / 'truth' / 'map_boxes.csv'}", f"output_dir={out / 'report' / 'truth_stats'}",
+        f"polygons_crs={json.loads((field / 'truth' / 'field.json').read_text())['crs']}",
+        f"rasters.multispectral={field / 'multispectral' / 'multispectral.tif'}", "write_polygons=false"])
+    STATS.run(truth_cfg)
+    truth_ndvi = {}
+    with open(out / "report" / "truth_stats" / "stats.csv", newline="") as fh:
+        for row in csv.DictReader(fh):
+            key = next(iter(row))
+            truth_ndvi[int(float(row[key]))] = float(row["ndvi_mean"])
+    rows = []
+    for k, pid in enumerate(plants[id_col]):
+        if not np.isfinite(dist[k]):
+            continue
+        t = int(tid[idx[k]])
+        s = stats.get(str(pid))
+        if s is None or not s.get("chm_max"):
+            continue
+        rows.append((float(truth[t]["height"]), float(s["chm_max"]), truth_ndvi.get(t, np.nan), float(s["ndvi_mean"])))
+    arr = np.array(rows, dtype=float).reshape(-1, 4)
+    ok = np.isfinite(arr).all(axis=1)
+    arr = arr[ok]
+    result = {"plants_projected": int(len(plants)), "plants_true": int(len(truth)),
+              "matched_to_truth": int(len(arr)),
+              "height_r": _pearson(arr[:, 0], arr[:, 1]), "height_mae_m": float(np.mean(np.abs(arr[:, 1] - arr[:, 0]))),
+              "height_bias_m": float(np.mean(arr[:, 1] - arr[:, 0])),
+              "ndvi_r": _pearson(arr[:, 2], arr[:, 3]), "ndvi_mae": float(np.mean(np.abs(arr[:, 3] - arr[:, 2])))}
+    _scatter(out / "report" / "traits_vs_truth.png", arr)
+    return result
+
+
+def _scatter(path: Path, arr: np.ndarray) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    for ax, (i, j), name in ((axes[0], (0, 1), "height (m): CHM max"), (axes[1], (2, 3), "NDVI mean")):
+        ax.scatter(arr[:, i], arr[:, j], s=8, alpha=0.6)
+        lo, hi = np.nanmin(arr[:, [i, j]]), np.nanmax(arr[:, [i, j]])
+        ax.plot([lo, hi], [lo, hi], "k--", lw=1)
+        ax.set_xlabel(f"truth {name}")
+        ax.set_ylabel(f"MatchPlant {name}")
+        ax.set_title(f"r = {_pearson(arr[:, i], arr[:, j]):.3f}, n = {len(arr)}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
+    def load(p: Path) -> dict:
+        return json.loads(p.read_text()) if p.is_file() else {}
+
+    metrics = load(out / "7_detect" / "metrics.json")
+    evaluation = load(out / "8_plants" / "evaluation.json")
+    summary = load(out / "6_train" / "training_summary.json")
+    selection = load(out / "3_select" / "selection.json")
+    gps = load(out / "0_gps" / "match_summary.json")
+
+    def fig(rel: str, caption: str) -> str:
+        return f"![{caption}](../{rel})\n\n*{caption}*\n" if (out / rel).is_file() else f"*({caption}: not produced)*\n"
+
+    def num(d: dict, *keys, fmt="{:.3f}") -> str:
+        for k in keys:
+            v = d.get(k) if isinstance(d, dict) else None
+            if isinstance(v, dict):
+                d = v
+                continue
+            if isinstance(v, (int, float)):
+                return fmt.format(v)
+        return "n/a"
+
+    lines = [
+        "# MatchPlant demo report", "",
+        f"Generated {time.strftime('%Y-%m-%d %H:%M')} on the `small` synthetic field (`{field}`).", "",
+        "## Steps", "", "| step | result | seconds |", "|---|---|---|",
+    ]
+    for name, (status, secs) in timings.items():
+        lines.append(f"| {name} | {status} | {secs:.1f} |")
+    lines += ["", "## Georeferencing (module 0)", "",
+              f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
+              f"estimated clock offset {gps.get('clock_offset_s', 'n/a')} s.", "",
+              "## Coverage (module 3)", "",
+              f"Selected images: {len(selection.get('selected', [])) if selection else 'n/a'}.", "",
+              fig("3_select/coverage.png", "footprints of the selected undistorted images over the field"),
+              "## Detector (modules 6 and 7)", "",
+              f"Test AP50 = {num(metrics, 'AP50')}, AP = {num(metrics, 'AP')} "
+              f"(trained {summary.get('epochs_completed', summary.get('epochs', 'n/a'))} epochs on the CPU).", "",
+              fig("6_train/training_curves.png", "training loss and validation AP"),
+              "## Plants on the map (module 8)", "",
+              f"Reference plants matched: {num(evaluation, 'share_matched', 'matched_share', fmt='{:.1%}')}; "
+              f"with IoU > 0.5: {num(evaluation, 'share_iou_above', 'share_above_threshold', fmt='{:.1%}')}; "
+              f"median IoU {num(evaluation, 'median_iou')}.", "",
+              fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
+              "## Per-plant traits against the truth (module 9)", "",
+              f"Plants projected: {compare.get('plants_projected')}, true plants: {compare.get('plants_true')}, "
+              f"matched by position: {compare.get('matched_to_truth')}.", "",
+              "| trait | Pearson r | mean absolute error | bias |", "|---|---|---|---|",
+              f"| height (CHM max vs true height) | {compare.get('height_r', float('nan')):.3f} | "
+              f"{compare.get('height_mae_m', float('nan')):.3f} m | {compare.get('height_bias_m', float('nan')):+.3f} m |",
+              f"| NDVI (mean over predicted vs true plant box) | {compare.get('ndvi_r', float('nan')):.3f} | "
+              f"{compare.get('ndvi_mae', float('nan')):.3f} | |", "",
+              fig("report/traits_vs_truth.png", "per-plant height and NDVI against the truth"), ""]
+    path = out / "report" / "report.md"
+    write_text(path, "\n".join(lines))
+    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, "traits": compare,
+                                                              "detector": metrics, "projection": evaluation},
+                                                             indent=1, default=str))
+    return path
+
+
+def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = 6, pretrained: str = "none",
+             tile: int = 512, from_step: str = "") -> Path:
+    from .pipeline import PipelineConfig, read_pipeline, run_pipeline
+    from .simfield import generate_field
+
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    field = out / "field"
+    t0 = time.time()
+    meta = field / "truth" / "field.json"
+    if not (meta.is_file() and json.loads(meta.read_text()).get("preset") == preset
+            and json.loads(meta.read_text()).get("seed") == seed):
+        log.info("generating the '%s' synthetic field (seed %d) ...", preset, seed)
+        generate_field(preset=preset, seed=seed, out=field)
+    t_field = time.time() - t0
+    crs = json.loads(meta.read_text())["crs"]
+    pipe = out / "pipeline.yaml"
+    write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
+               + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, pretrained=pretrained, tile=tile),
+                                sort_keys=False))
+    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step))
+    timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
+    for name in read_pipeline(pipe)[1]:
+        stamp = out / ".pipeline" / f"{name.name}.json"
+        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
+        timings[name.name] = (results.get(name.name, "?"), secs)
+    compare = compare_with_truth(out, field)
+    report = write_report(out, field, timings, compare)
+    log.info("report: %s (%.1f min in all)", report, (time.time() - t0) / 60)
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
+    p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
+    p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--epochs", type=int, default=6, help="training epochs (CPU: about 30 s each on 'small')")
+    p.add_argument("--pretrained", default="none", choices=("none", "imagenet", "coco"),
+                   help="starting weights (coco needs internet once; none trains from scratch)")
+    p.add_argument("--from", dest="from_step", default="", help="re-run from this step on (e.g. 6_train)")
+    p.add_argument("--debug", action="store_true")
+    args = p.parse_args(argv)
+    setup_console()
+    try:
+        run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, pretrained=args.pretrained,
+                 from_step=args.from_step)
+    except MatchPlantError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
