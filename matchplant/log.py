@@ -35,11 +35,23 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at the time (test runners and GUIs replace it)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value):
+        pass
+
+
 def setup_console(level: int = logging.INFO) -> logging.Logger:
     logger = get_logger()
     logger.setLevel(logging.DEBUG)
     if not any(getattr(h, "_matchplant_console", False) for h in logger.handlers):
-        handler = logging.StreamHandler(sys.stderr)
+        handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("%(message)s"))
         handler._matchplant_console = True  # type: ignore[attr-defined]
         logger.addHandler(handler)
