@@ -47,16 +47,18 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-def setup_console(level: int = logging.INFO) -> logging.Logger:
+def setup_console(level: int | None = logging.INFO) -> logging.Logger:
+    """Attach the console handler once; ``level=None`` keeps the level already chosen (e.g. --quiet)."""
     logger = get_logger()
     logger.setLevel(logging.DEBUG)
     if not any(getattr(h, "_matchplant_console", False) for h in logger.handlers):
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("%(message)s"))
         handler._matchplant_console = True  # type: ignore[attr-defined]
+        handler.setLevel(logging.INFO if level is None else level)
         logger.addHandler(handler)
     for h in logger.handlers:
-        if getattr(h, "_matchplant_console", False):
+        if getattr(h, "_matchplant_console", False) and level is not None:
             h.setLevel(level)
     logger.propagate = False
     return logger
@@ -66,7 +68,7 @@ def start_run_log(output_dir: str | Path, module: str, config: Any = None) -> Pa
     """Attach a file handler for this run and record the configuration and package versions."""
     from .config import to_dict
 
-    logger = setup_console()
+    logger = setup_console(level=None)
     for h in list(logger.handlers):
         if getattr(h, "_matchplant_run", False):
             logger.removeHandler(h)

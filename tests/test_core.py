@@ -323,3 +323,20 @@ def test_odm_project_on_synthetic_field(tiny_field):
 def test_errors_format():
     e = MatchPlantError("bad thing", path="x/y.tif", fix="do this")
     assert str(e) == "bad thing\n  file: x/y.tif\n  fix:  do this"
+
+
+def test_quiet_keeps_info_off_the_console(tmp_path, capsys, monkeypatch):
+    import matchplant.cli as cli
+
+    def run(cfg):
+        from matchplant.log import get_logger
+        get_logger("demo").info("chatter")
+        get_logger("demo").warning("important")
+
+    monkeypatch.setattr(cli, "resolve_module", lambda name: _spec(run))
+    (tmp_path / "imgs").mkdir()
+    p = write(tmp_path, f"images: imgs\noutput_dir: {tmp_path / 'o'}\n")
+    assert run_module("demo", [str(p), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "important" in err and "chatter" not in err
+    assert "chatter" in next((tmp_path / "o" / "logs").glob("*.log")).read_text()  # the log file has it all
