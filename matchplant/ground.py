@@ -15,21 +15,26 @@ from .reconstruction import Shot
 from .surface import HIT, Surface
 
 
-def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface) -> tuple[np.ndarray, np.ndarray]:
-    """Map points (N, 3) where the rays through pixels ``uv`` (N, 2) meet the DSM, and a status per ray."""
+def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface, *,
+                     clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Map points (N, 3) where the rays through pixels ``uv`` (N, 2) meet the DSM, and a status per ray.
+
+    ``clearance`` > 0: a ray stops where it first comes within that many metres above the surface
+    (:meth:`Surface.intersect`), so a ray grazing a plant's top stays on the plant.
+    """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     dirs = shot.ray_directions(uv)
     c = shot.center
     if frame.is_affine:
         origin = frame.to_map(c[None, :])
-        points, _, status = surface.intersect(origin, dirs)
+        points, _, status = surface.intersect(origin, dirs, clearance=clearance)
         return points, status
     # Non-affine frame: a straight map-space ray through the centre and a point near the ground...
     c_map = frame.to_map(c[None, :])[0]
     reach = max(c_map[2] - surface.zmin, 1.0) / np.maximum(-dirs[:, 2], 1e-3)
     far_map = frame.to_map(c[None, :] + reach[:, None] * dirs)
     map_dirs = (far_map - c_map) / reach[:, None]
-    points, s, status = surface.intersect(c_map[None, :], map_dirs)
+    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance)
     # ...then secant steps on the exact curve s -> frame.to_map(c + s * dir).
     ok = status == HIT
     if ok.any():
@@ -37,7 +42,7 @@ def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface)
 
         def g(sv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             p = frame.to_map(c[None, :] + sv[:, None] * d)
-            return p, p[:, 2] - surface.sample(p[:, 0], p[:, 1])
+            return p, p[:, 2] - surface.sample(p[:, 0], p[:, 1]) - clearance
 
         s0 = s[ok]
         s1 = s0 + 1e-3
