@@ -1,0 +1,267 @@
+"""Module 7: COCO evaluation equal to pycocotools, tiled detection that finds each plant once."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matchplant.coco import make_annotation, new_dataset, read_predictions, write_dataset
+from matchplant.config import load_config
+from matchplant.detection_eval import coco_evaluate, matches_at_iou50, operating_point
+from matchplant.detection_model import build_detector, save_checkpoint
+from matchplant.detection_synth import make_photo, make_tiles
+from matchplant.errors import ConfigError, InputError
+from matchplant.model_test import (ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts)
+from matchplant.train import TrainConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """An (untrained) small detector saved as a module 6 checkpoint: the file contract, not accuracy."""
+    cfg = load_config(TrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+                                          "model.pretrained=none", "model.min_size=64", "model.max_size=128"],
+                      check_paths=False, strict=False)
+    torch.manual_seed(0)
+    model = build_detector(cfg.model, 2)
+    with torch.no_grad():  # every box scores about 0.01: below the usual 0.05 cut
+        model.roi_heads.box_predictor.cls_score.bias.copy_(torch.tensor([2.5, -2.5]))
+    path = tmp_path_factory.mktemp("ck") / "model.pt"
+    return save_checkpoint(path, model, cfg.model, ["plant"], [1], epoch=1)
+
+
+def pycocotools_direct(gt_path: Path, results: list[dict], max_dets: int) -> np.ndarray:
+    """pycocotools' 12 numbers. Its summarize() takes AP (IoU .50:.95) at maxDets=100 whatever maxDets
+    says (-1 when 100 is not among them); that one is taken here from its accumulated precision the way
+    summarize() averages it, at ``max_dets``."""
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        gt = COCO(str(gt_path))
+        ev = COCOeval(gt, gt.loadRes(results), "bbox")
+        ev.params.maxDets = [1, 10, max_dets]
+        ev.evaluate()
+        ev.accumulate()
+        ev.summarize()
+    stats = ev.stats.copy()
+    if max_dets != 100:
+        p = ev.eval["precision"][:, :, :, 0, -1]
+        stats[0] = p[p > -1].mean() if (p > -1).any() else -1
+    return stats
+
+
+def test_folder_config_and_help():
+    cfg = load_config(ModelTestConfig, ROOT / "7_model_test" / "test_config.yaml", check_paths=False)
+    assert cfg.evaluate.max_detections > 100 and cfg.evaluate.operating_threshold == 0.5
+    r = subprocess.run([sys.executable, str(ROOT / "7_model_test" / "model_test.py"), "--help"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0 and "--config" in r.stdout
+
+
+def test_coco_evaluation_equals_pycocotools_and_dense_maxdets(tmp_path):
+    """Noisy detections on a dense dataset (150 plants on one image): our numbers are pycocotools' own,
+    and maxDets above 100 matters."""
+    rng = np.random.default_rng(0)
+    ds = new_dataset(["plant"])
+    ann = 1
+    for img_id, n in ((1, 150), (2, 20), (3, 0)):
+        ds["images"].append({"id": img_id, "file_name": f"t{img_id}.png", "width": 2000, "height": 2000})
+        for _ in range(n):
+            x, y = rng.uniform(0, 1900, 2)
+            w, h = rng.uniform(8, 90, 2)  # small and medium plants
+            ds["annotations"].append(make_annotation(ann, img_id, [x, y, w, h]))
+            ann += 1
+    gt_path = write_dataset(tmp_path / "gt.json", ds)
+    results = []
+    for a in ds["annotations"]:
+        if rng.random() < 0.85:  # found, with some box noise
+            x, y, w, h = a["bbox"]
+            results.append({"image_id": a["image_id"], "category_id": 1, "score": float(rng.uniform(0.3, 1)),
+                            "bbox": [x + rng.normal(0, 0.05 * w), y + rng.normal(0, 0.05 * h), w, h]})
+    for img_id in (1, 2, 3):  # false positives
+        for _ in range(10):
+            results.append({"image_id": img_id, "category_id": 1, "score": float(rng.uniform(0, 0.6)),
+                            "bbox": [*rng.uniform(0, 1900, 2), 30.0, 30.0]})
+    stats, ev = coco_evaluate(ds, results, max_dets=300)
+    direct = pycocotools_direct(gt_path, results, 300)
+    ours = [stats[k] if stats[k] is not None else -1 for k in stats]
+    assert ours == pytest.approx(list(direct), abs=1e-12)
+    assert stats["AP_small"] is not None and stats["AP_medium"] is not None and stats["AP_large"] is None
+    # with maxDets 100 our AP is pycocotools' summarize() output itself
+    at100, _ = coco_evaluate(ds, results, max_dets=100)
+    direct100 = pycocotools_direct(gt_path, results, 100)
+    assert [v if v is not None else -1 for v in at100.values()] == pytest.approx(list(direct100), abs=1e-12)
+    # COCO's default cap of 100 loses plants on the dense image
+    assert direct100[8] < stats["AR_max"] - 0.1 and direct100[1] < stats["AP50"]
+    # precision / recall at a threshold from COCOeval's matches, checked against a direct count
+    scores, hits, n_gt = matches_at_iou50(ev)
+    assert n_gt == 170 and len(scores) == len(results)
+    op = operating_point(scores, hits, n_gt, 0.5)
+    found = sum(1 for r in results[:len(results) - 30] if r["score"] >= 0.5)  # noisy true boxes have IoU > 0.5
+    fps = sum(1 for r in results[len(results) - 30:] if r["score"] >= 0.5)
+    assert (op["tp"], op["fp"], op["fn"]) == (found, fps, 170 - found)
+    assert op["f1"] == pytest.approx(2 * op["precision"] * op["recall"] / (op["precision"] + op["recall"]))
+
+
+def test_evaluate_writes_metrics_figures_and_matches_pycocotools(checkpoint, tmp_path):
+    tiles = make_tiles(tmp_path / "tiles", n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1,
+                       name="test.json")
+    out = tmp_path / "out"
+    from matchplant.cli import run_module
+    code = run_module("model_test", ["--set", f"checkpoint={checkpoint}", "--set", f"evaluate.dataset_json={tiles}",
+                                     "--set", f"output_dir={out}", "--set", "evaluate.drawn_images=2",
+                                     "--set", "device=cpu"])
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    for name in ("pr_curve.png", "score_histogram.png"):
+        assert (out / name).stat().st_size > 1000
+    assert len(list((out / "drawn").glob("*.png"))) == 2
+    preds = read_predictions(out / "test_predictions.json")
+    assert all({"source_image", "x0", "y0"} <= set(im) for im in preds["images"])
+    # no threshold before COCOeval: boxes scoring below 0.05 are all there
+    assert metrics["detections"] == len(preds["predictions"]) > 0
+    assert max(p["score"] for p in preds["predictions"]) < 0.05
+    results = [{k: p[k] for k in ("image_id", "category_id", "bbox", "score")} for p in preds["predictions"]]
+    direct = pycocotools_direct(tiles, results, metrics["max_detections"])
+    ours = [v if v is not None else -1 for v in metrics["coco"].values()]
+    assert ours == pytest.approx(list(direct), abs=1e-12)
+    assert set(metrics["at_threshold"]) >= {"precision", "recall", "f1", "threshold"}
+
+
+# -- tiled detection ------------------------------------------------------------------------------------
+
+
+def oracle(truth: np.ndarray, origins_seen: list):
+    """A perfect detector: each plant's box clipped to the tile (cut plants give partial boxes)."""
+    def predict(tiles):
+        out = []
+        for tile in tiles:
+            x0, y0 = origins_seen.pop(0)
+            th, tw = tile.shape[:2]
+            b = truth - [x0, y0, x0, y0]
+            b = np.clip(b, 0, [tw, th, tw, th])
+            keep = ((b[:, 2] - b[:, 0]) > 1) & ((b[:, 3] - b[:, 1]) > 1)
+            out.append((b[keep], np.full(keep.sum(), 0.9), np.ones(keep.sum(), dtype=int)))
+        return out
+    return predict
+
+
+def test_tiled_detection_finds_each_cut_plant_once(tmp_path):
+    truth = make_photo(tmp_path / "photo.png", 700, 520, n_plants=60, radius=(8, 14), seed=3)
+    img = np.zeros((520, 700, 3), np.uint8)
+    tile, overlap = 200, 48  # overlap larger than the largest plant (28 px)
+    xs, ys = tile_starts(700, tile, overlap), tile_starts(520, tile, overlap)
+    assert xs == [0, 152, 304, 456, 500] and ys == [0, 152, 304, 320]
+    origins = [(x, y) for y in ys for x in xs]
+    # how many plants do tile borders cut? (the test must contain some)
+    cut = sum(any((b[0] < x + tile < b[2]) or (b[0] < x < b[2]) for x in xs) for b in truth)
+    assert cut >= 10
+    boxes, scores, labels = detect_image(img, oracle(truth, list(origins)), tile_size=tile, overlap=overlap,
+                                         batch_size=3)
+    assert len(boxes) == len(truth)
+    # each true plant matched by exactly one box, the whole box
+    from torchvision.ops import box_iou
+    iou = box_iou(torch.as_tensor(truth), torch.as_tensor(boxes)).numpy()
+    assert (iou.max(axis=1) > 0.99).all() and ((iou > 0.5).sum(axis=1) == 1).all()
+    # without the merge every cut plant would be counted several times
+    raw = sum(len(b) for b, _, _ in oracle(truth, list(origins))([np.zeros((tile, tile, 3))] * len(origins)))
+    assert raw > len(truth) + cut
+
+
+def test_merge_keeps_plants_larger_than_the_overlap():
+    # one plant cut in two tiles with no whole view, and a whole plant with a duplicate from another tile
+    boxes = np.array([[90, 10, 100, 40], [100, 10, 130, 40], [10, 10, 30, 30], [10.5, 10, 30, 30]], float)
+    keep = merge_tile_boxes(boxes, np.array([0.9, 0.8, 0.95, 0.7]), np.ones(4, int),
+                            np.array([True, True, False, False]))
+    assert sorted(keep.tolist()) == [0, 1, 2]
+
+
+def test_detect_on_new_images_writes_predictions_for_module_8(checkpoint, tmp_path):
+    make_photo(tmp_path / "imgs" / "DJI_0001.JPG.tif", 300, 200, n_plants=10, seed=1)
+    make_photo(tmp_path / "imgs" / "DJI_0002.JPG.tif", 150, 260, n_plants=5, seed=2)
+    (tmp_path / "imgs" / "notes.txt").write_text("not an image")
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"])
+    run(cfg)
+    preds = read_predictions(tmp_path / "out" / "predictions.json")
+    assert [im["file_name"] for im in preds["images"]] == ["DJI_0001.JPG.tif", "DJI_0002.JPG.tif"]
+    for im in preds["images"]:
+        assert im["source_image"] == im["file_name"] and im["x0"] == 0 and im["y0"] == 0
+    assert preds["predictions"] and preds["categories"][0]["name"] == "plant"
+    sizes = {im["id"]: (im["width"], im["height"]) for im in preds["images"]}
+    assert sizes == {1: (300, 200), 2: (150, 260)}
+    for p in preds["predictions"]:
+        w, h = sizes[p["image_id"]]
+        x, y, bw, bh = p["bbox"]
+        assert -0.01 <= x and x + bw <= w + 0.01 and -0.01 <= y and y + bh <= h + 0.01
+    assert len(list((tmp_path / "out" / "detections").glob("*.png"))) == 2
+
+
+def test_errors(checkpoint, tmp_path):
+    with pytest.raises(ConfigError, match="nothing to do"):
+        load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}"])
+    with pytest.raises(ConfigError, match="overlap"):
+        load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path}",
+                                            "detect.tile_size=100", "detect.overlap=100"])
+    (tmp_path / "empty").mkdir()
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'empty'}",
+                                              f"output_dir={tmp_path / 'o'}"])
+    with pytest.raises(InputError, match="no images"):
+        run(cfg)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    cfg.checkpoint = tmp_path / "bad.pt"
+    with pytest.raises(InputError, match="checkpoint"):
+        run(cfg)
+
+
+# -- the synthetic field: module 5's tiles feed module 6, and tiled detection on a whole photo ------------
+
+
+def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
+    from matchplant.coco import read_dataset
+    from matchplant.detection_data import CocoDetection, read_image
+    from matchplant.tiling import TilingConfig, run as run_tiling
+
+    truth = read_dataset(tiny_field.boxes_undistorted)
+    sizes = np.asarray([a["bbox"][2:] for a in truth["annotations"]])
+    overlap = int(sizes.max()) + 4  # more than the largest plant
+    tiling = load_config(TilingConfig, None, [f"images={tiny_field.undistorted_images}",
+                                              f"annotations={tiny_field.boxes_undistorted}",
+                                              f"output_dir={tmp_path / 'tiles'}", "tile_size=192",
+                                              f"overlap={overlap}", "negative_share=1", "workers=1"])
+    run_tiling(tiling)
+    ds = CocoDetection(tmp_path / "tiles" / "train.json")  # module 5's layout is found as it is
+    image, target = ds[0]
+    assert image.shape[0] == 3 and image.shape[1:] == (ds.images[0]["height"], ds.images[0]["width"])
+    assert all(p is not None for p in ds.paths)
+
+    im = truth["images"][0]
+    photo = read_image(tiny_field.undistorted_images / im["file_name"])
+    gt = np.asarray([a["bbox"] for a in truth["annotations"] if a["image_id"] == im["id"]], float)
+    gt[:, 2:] += gt[:, :2]
+    xs, ys = tile_starts(photo.shape[1], 192, overlap), tile_starts(photo.shape[0], 192, overlap)
+    origins = [(x, y) for y in ys for x in xs]
+    assert len(origins) > 1
+    boxes, _, _ = detect_image(photo, oracle(gt, list(origins)), tile_size=192, overlap=overlap)
+    from torchvision.ops import box_iou
+    iou = box_iou(torch.as_tensor(gt), torch.as_tensor(boxes)).numpy()
+    assert len(boxes) == len(gt) and (iou.max(axis=1) > 0.99).all()
