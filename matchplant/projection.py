@@ -306,10 +306,30 @@ def _settle(points: np.ndarray, status: np.ndarray, cam: np.ndarray, surface: Su
     start = points[ok]
     d = start - cam
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    hit, _, st = surface.intersect(start, d)
-    drop = (st == HIT) & (start[:, 2] - hit[:, 2] <= 2 * clearance)
+    # only the stretch of the ray over which it sinks 2 x clearance matters: sample it about once per DSM
+    # cell (the bilinear surface is linear within a cell) instead of following grazing rays to the soil
+    depth = 2 * clearance
+    s_max = depth / np.maximum(-d[:, 2], 1e-9)
+    horiz = s_max * np.hypot(d[:, 0], d[:, 1])
+    k = int(min(400, max(2, np.ceil(horiz.max(initial=0.0) / surface.pixel_size) + 1)))
+    s = s_max[:, None] * (np.arange(1, k + 1) / k)[None, :]
+    p = start[:, None, :] + s[..., None] * d[:, None, :]
+    f = p[..., 2] - surface.sample(p[..., 0], p[..., 1])
+    below = f <= 0  # NaN (a hole) never counts as a crossing
+    drop = below.any(axis=1)
+    if not drop.any():
+        return points
+    # the crossing, linearly between the last sample above and the first at or below the surface
+    # (a cell or less apart: the bilinear surface is nearly straight there, sub-millimetre error)
+    rows = np.flatnonzero(drop)
+    first = below[rows].argmax(axis=1)
+    s1, f1 = s[rows, first], f[rows, first]
+    s0 = np.where(first > 0, s[rows, np.maximum(first - 1, 0)], 0.0)
+    f0 = np.where(first > 0, f[rows, np.maximum(first - 1, 0)], clearance)
+    w = np.clip(np.where(f0 - f1 > 0, f0 / np.where(f0 - f1 > 0, f0 - f1, 1.0), 1.0), 0.0, 1.0)
+    s_hit = s0 + w * (s1 - s0)
     out = points.copy()
-    out[ok[drop]] = hit[drop]
+    out[ok[rows]] = start[rows] + s_hit[:, None] * d[rows]
     return out
 
 
@@ -451,9 +471,18 @@ class _Surfaces:
     """The DSM read once over every image's rays when that fits in memory, else per image."""
 
     def __init__(self, path: Path, crs):
+        import rasterio
+
         self.path, self.crs = path, crs
-        self.z_lo, self.z_hi = _approx_heights(path)
         self._whole: Surface | None = None
+        with rasterio.open(path) as src:
+            small = src.width * src.height <= MAX_SURFACE_CELLS
+        if small:  # the whole DSM fits: read it once, its heights bound the rays
+            self._whole = Surface.open(path)
+            pad = 1.0 + 0.2 * (self._whole.zmax - self._whole.zmin)
+            self.z_lo, self.z_hi = self._whole.zmin - pad, self._whole.zmax + pad
+        else:
+            self.z_lo, self.z_hi = _approx_heights(path)
 
     def prepare(self, all_bounds: list[np.ndarray | None]) -> None:
         import rasterio
@@ -464,6 +493,8 @@ class _Surfaces:
         if dsm_crs is not None and self.crs is not None and not CRS.from_user_input(dsm_crs).equals(self.crs):
             raise InputError(f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}", path=self.path,
                              fix="use the DSM of this ODM project (or reproject it to the project's CRS)")
+        if self._whole is not None:
+            return
         if any(b is None for b in all_bounds):
             self._whole = Surface.open(self.path)
             return
@@ -614,27 +645,18 @@ def iou_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def overlapping_pairs(a: np.ndarray, b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index pairs of overlapping boxes and their IoU (within one set when ``b`` is None, i < j)."""
-    from scipy.spatial import cKDTree
+    import shapely
 
     same = b is None
     b = a if same else b
     if len(a) == 0 or len(b) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    ca, cb = (a[:, :2] + a[:, 2:]) / 2, (b[:, :2] + b[:, 2:]) / 2
-    ha = np.hypot(a[:, 2] - a[:, 0], a[:, 3] - a[:, 1]) / 2
-    hb = np.hypot(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1]) / 2
-    # boxes overlap only if their centres are closer than the sum of their half-diagonals; a radius from
-    # the typical box keeps the search linear even if a few huge boxes are present
-    radius = min(float(ha.max() + hb.max()), 10.0 * float(np.median(np.concatenate([ha, hb]))) + 1e-9)
-    ta = cKDTree(ca)
+    # one bulk R-tree query gives exactly the intersecting pairs (no per-box Python work)
+    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
+    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
     if same:
-        pairs = ta.query_pairs(radius, output_type="ndarray")
-        i, j = pairs[:, 0], pairs[:, 1]
-    else:
-        lists = ta.query_ball_tree(cKDTree(cb), radius)
-        counts = np.fromiter((len(x) for x in lists), int, len(lists))
-        i = np.repeat(np.arange(len(a)), counts)
-        j = np.fromiter((k for x in lists for k in x), int, counts.sum())
+        keep = i < j
+        i, j = i[keep], j[keep]
     iou = iou_pairs(a[i], b[j])
     keep = iou > 0
     return i[keep], j[keep], iou[keep]
