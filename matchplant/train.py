@@ -86,6 +86,8 @@ class TrainConfig:
     warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up",
                                  min=0, max=1)
     epochs: int = param(30, "training epochs", min=1)
+    max_minutes: float = param(0.0, "stop early, after the epoch that would end past this many minutes "
+                               "(0 = no limit); that last epoch is validated and saved as usual", min=0)
     batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
     num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
     augment: AugmentConfig = section(AugmentConfig)
@@ -223,6 +225,21 @@ def _check_resumable(cfg: TrainConfig, ck: dict, class_names: list[str], path: P
                     cfg.output_dir, ck["epoch"])
 
 
+def _out_of_time(cfg: TrainConfig, run_start: float, epoch_time: float, dist_info, device) -> bool:
+    """Whether another epoch (as long as the last) would end past ``max_minutes``; one answer for all
+    processes under torchrun (rank 0's clock)."""
+    if not cfg.max_minutes:
+        return False
+    over = (time.perf_counter() - run_start) + epoch_time > cfg.max_minutes * 60.0
+    if dist_info.world > 1:
+        import torch
+
+        flag = torch.tensor([1.0 if over else 0.0], device=device)
+        torch.distributed.broadcast(flag, src=0)
+        over = bool(flag.item())
+    return over
+
+
 def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None) -> dict:
     """Train as configured; returns the training summary (also written as training_summary.json).
 
@@ -304,7 +321,9 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
         record = {"epoch": epoch + 1, "lr": {g["name"]: g["lr"] for g in optimizer.param_groups},
                   "losses": losses, "train_time_s": round(train_time, 3),
                   "train_images_per_s": round(len(train_ds) / max(train_time, 1e-9), 3)}
-        validate = val_ds is not None and ((epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.epochs)
+        out_of_time = _out_of_time(cfg, run_start, train_time, dist_info, device)
+        last = epoch + 1 == cfg.epochs or out_of_time
+        validate = val_ds is not None and ((epoch + 1) % cfg.val_every == 0 or last)
         if validate and dist_info.main:
             record["val"] = validate_model(core, val_ds, model_cfg, cfg, device, amp)
         history.append(record)
@@ -332,6 +351,9 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
             torch.distributed.barrier()
         if on_epoch_end is not None:
             on_epoch_end(epoch + 1, record)
+        if out_of_time and epoch + 1 < cfg.epochs:
+            log.info("stopping after epoch %d: the next would pass max_minutes = %g", epoch + 1, cfg.max_minutes)
+            break
     summary = write_summary(out, cfg, history, best, class_names, device, "finished",
                             time.perf_counter() - run_start) if dist_info.main else {}
     if dist_info.main and best["epoch"] is not None:

@@ -389,3 +389,12 @@ def test_torchrun_two_processes(tiles, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     ck = read_checkpoint(out / "checkpoints" / "last.pt")
     assert ck["epoch"] == 2 and ck["iters_per_epoch"] == 2  # 8 tiles / (2 processes x 2 per batch)
+
+
+def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
+    """A time budget ends training early; the last epoch is still validated and saved as best/last."""
+    out = tmp_path / "budget"
+    summary = train(fast_config(tiles, out, "epochs=50", "max_minutes=0.0001"))
+    assert summary["epochs_done"] == 1
+    assert "val" in summary["history"][-1]  # the stopping epoch was validated
+    assert (out / "checkpoints" / "best.pt").is_file() and (out / "checkpoints" / "last.pt").is_file()
