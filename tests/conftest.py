@@ -33,6 +33,17 @@ def tiny_field(tmp_path_factory):
     return FieldPaths(root)
 
 
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """One torch thread: on a small shared CPU, more threads make small training steps several times slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def xvfb_available() -> bool:
     return shutil.which("Xvfb") is not None or shutil.which("xvfb-run") is not None
 

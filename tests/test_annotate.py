@@ -305,12 +305,12 @@ def test_cli_run_exports_and_bad_input_is_a_clear_error(photos, tmp_path, capsys
     assert rc == 2 and "bad.json" in err and "not valid JSON" in err
 
 
-def test_tiny_field_truth_round_trip(tiny_field_or_skip, tmp_path):
+def test_tiny_field_truth_round_trip(tiny_field, tmp_path):
     """The synthetic field's undistorted truth boxes imported, exported, and equal to the truth."""
-    truth = json.loads(tiny_field_or_skip.boxes_undistorted.read_text())
-    cfg = load_config(AnnotateConfig, None, [f"images={tiny_field_or_skip.undistorted_images}",
+    truth = json.loads(tiny_field.boxes_undistorted.read_text())
+    cfg = load_config(AnnotateConfig, None, [f"images={tiny_field.undistorted_images}",
                                              f"output_dir={tmp_path / 'out'}",
-                                             f"import_coco={tiny_field_or_skip.boxes_undistorted}",
+                                             f"import_coco={tiny_field.boxes_undistorted}",
                                              "include_unseen=true"])
     out = run(cfg)
     ds = json.loads(out["coco"].read_text())
@@ -330,14 +330,6 @@ def test_tiny_field_truth_round_trip(tiny_field_or_skip, tmp_path):
         assert nearest.max() <= 0.011  # x, y and x2, y2 are kept to 0.01 px
 
 
-@pytest.fixture
-def tiny_field_or_skip(request):
-    try:
-        import matchplant.simfield  # noqa: F401
-        from matchplant.simfield import generate_field  # noqa: F401
-    except ImportError:
-        pytest.skip("the synthetic field generator (matchplant.simfield) is not available yet")
-    return request.getfixturevalue("tiny_field")
 
 
 # -- a real window -------------------------------------------------------------------------------------------

@@ -269,8 +269,8 @@ def test_gui_preview_and_run(field, tmp_path):
     assert saved.tile_size == 96
 
 
-def test_tiny_field_tiles(tiny_field_or_skip, tmp_path):
-    f = tiny_field_or_skip
+def test_tiny_field_tiles(tiny_field, tmp_path):
+    f = tiny_field
     cfg = load_config(TilingConfig, None, [f"images={f.undistorted_images}", f"annotations={f.boxes_undistorted}",
                                            f"output_dir={tmp_path / 'out'}", "tile_size=256", "overlap=40",
                                            "negative_share=1", "workers=1", "min_box_side=0", "min_visible=0"])
@@ -282,13 +282,6 @@ def test_tiny_field_tiles(tiny_field_or_skip, tmp_path):
     assert all(t["file_name"].endswith(".tif") for t in tiles)           # TIFF sources stay TIFF
 
 
-@pytest.fixture
-def tiny_field_or_skip(request):
-    try:
-        from matchplant.simfield import generate_field  # noqa: F401
-    except ImportError:
-        pytest.skip("the synthetic field generator (matchplant.simfield) is not available yet")
-    return request.getfixturevalue("tiny_field")
 
 
 XVFB = """

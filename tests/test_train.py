@@ -30,13 +30,7 @@ FAST = [f"model.architecture={MOBILE}", "model.pretrained=none", "model.min_size
         "batch_size=4", "num_workers=0", "warmup_iters=2", "save_every=2", "epochs=2"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: on a shared, busy CPU two threads wait on each other (several times slower)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,40 @@
+"""Synthetic field: an ODM-shaped project of an early-season maize field with exact ground truth.
+
+    from matchplant.simfield import generate_field
+    paths = generate_field(preset="tiny", seed=0, out="field")   # a FieldPaths (see layout.py)
+
+Command line: ``matchplant simfield --preset tiny|small|large --seed N --out DIR`` (plus
+``--set altitude=12 --set tilt_deg=20 ...``). The same preset, seed and settings give the same files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..cli import ModuleSpec
+from .config import PRESETS, SimFieldConfig, Settings, config_from, resolve
+from .layout import FieldPaths
+
+__all__ = ["generate_field", "run", "SimFieldConfig", "Settings", "PRESETS", "FieldPaths", "resolve", "SPEC"]
+
+
+def generate_field(preset: str = "tiny", seed: int = 0, out: str | Path = "simfield_out", **overrides) -> FieldPaths:
+    """Write a synthetic field to ``out`` and return its :class:`FieldPaths`.
+
+    ``overrides`` are :class:`SimFieldConfig` keys: altitude, tilt_deg, slope_pct, image_width, overlap,
+    field_width, field_length, weeds, shadows, attitude_noise_deg.
+    """
+    return run(config_from(preset, seed, out, **overrides))
+
+
+def run(cfg: SimFieldConfig) -> FieldPaths:
+    from .generate import generate
+
+    return generate(cfg)
+
+
+SPEC = ModuleSpec(
+    name="simfield", config=SimFieldConfig, run=run,
+    flags={"--preset": ("preset", f"field size: {', '.join(PRESETS)}"),
+           "--seed": ("seed", "random seed (the same seed gives the same field)"),
+           "--out": ("output_dir", "folder to write the project into")})
