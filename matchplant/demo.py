@@ -54,7 +54,7 @@ def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, til
              "config": {"images": "${3_select.output_dir}/images",
                         "annotations": "${4_annotate.output_dir}/annotations.json",
                         "tile_size": tile, "overlap": tile // 4, "negative_share": 0.2,
-                        "split": [0.4, 0.1, 0.5]}},
+                        "split": [0.55, 0.15, 0.3]}},
             {"name": "6_train", "module": "train",
              "config": {"train_json": "${5_tiles.output_dir}/train.json",
                         "val_json": "${5_tiles.output_dir}/val.json",
@@ -66,7 +66,7 @@ def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, til
                                   # a 128 px tile holds at most ~40 plants: far fewer proposals than
                                   # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
                                   "rpn": {"pre_nms_top_n_train": 1000, "post_nms_top_n_train": 400,
-                                          "pre_nms_top_n_test": 500, "post_nms_top_n_test": 200},
+                                          "pre_nms_top_n_test": 300, "post_nms_top_n_test": 100},
                                   "roi": {"batch_size_per_image": 64}},
                         "epochs": 30, "max_minutes": minutes, "batch_size": 4, "num_workers": 0,
                         "warmup_iters": 20, "step_size": 20, "save_every": 0,
