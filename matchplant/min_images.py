@@ -677,7 +677,16 @@ def owned_areas(aoi, polygons: Sequence[Polygon], min_area: float = 1e-6) -> lis
         owned[j] = owned[j].union(part)
         rest = piece.difference(part)
         pieces += [g for g in getattr(rest, "geoms", [rest]) if g.area > min_area]
-    return [shapely.make_valid(o) for o in owned]
+    return [polygonal(o) for o in owned]
+
+
+def polygonal(geom):
+    """Only the areas of a geometry: overlays can leave zero-area lines or points in a collection."""
+    geom = shapely.make_valid(geom)
+    parts = [g for g in shapely.get_parts(geom) if isinstance(g, (Polygon, MultiPolygon)) and g.area > 0]
+    if not parts:
+        return Polygon()
+    return parts[0] if len(parts) == 1 else shapely.union_all(parts)
 
 
 def largest_polygon(geom) -> Polygon:
