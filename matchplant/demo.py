@@ -199,7 +199,7 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
         lines.append(f"| {name} | {status} | {secs:.1f} |")
     lines += ["", "## Georeferencing (module 0)", "",
               f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
-              f"estimated clock offset {gps.get('clock_offset_s', 'n/a')} s.", "",
+              f"estimated clock offset {num(gps, 'clock_offset_s', fmt='{:.2f}')} s.", "",
               "## Coverage (module 3)", "",
               f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
               f"covering {num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.", "",
