@@ -79,9 +79,12 @@ def load_config(cls: type, path: str | Path | None = None, overrides: typing.Ite
         source = str(path)
         base = path.resolve().parent
     cfg = _build(cls, data, prefix="", source=source, base=base)
+    overrides = list(overrides)
     for item in overrides:
         key, value = parse_override(item)
         set_value(cfg, key, value, source="--set", base=Path.cwd())
+    if overrides:  # a value that fails validation may come from either
+        source = "the command line" if path is None else f"{source} or the command line"
     if strict:
         validate(cfg, source=source, check_paths=check_paths)
     return cfg

@@ -211,9 +211,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         write_json(stamp, {"fingerprint": _fingerprint(step_cfg), "module": step.module,
                            "seconds": round(time.time() - t0, 2), "finished": time.strftime("%Y-%m-%d %H:%M:%S")})
         log.info("[%s] done in %.1f s", step.name, time.time() - t0)
-        results[step.name] = "ran"
-        forced = forced or cfg.force
-        # once a step re-ran, later steps see new inputs; their fingerprints catch that by mtime
+        results[step.name] = "ran"  # later steps see its new files: their fingerprints change by mtime
     return results
 
 
