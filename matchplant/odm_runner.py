@@ -360,6 +360,22 @@ def _node_error(exc: Exception, settings: NodeODMSettings) -> MatchPlantError:
     return ODMRunError(f"NodeODM error: {type(exc).__name__}: {exc}", fix="check the server's log")
 
 
+def percent_bar(desc: str):
+    """A 0-100 % progress bar and the callback pyodm calls with the percentage done."""
+    from .progress import progress
+
+    bar = progress(range(100), desc=desc, total=100, unit="%")
+    done = [0]
+
+    def update(pct: float) -> None:
+        step = int(pct) - done[0]
+        if step > 0:
+            bar.update(step)
+            done[0] += step
+
+    return bar, update
+
+
 def run_nodeodm(cfg: ODMRunnerConfig) -> dict:
     """Upload, process and download through NodeODM; resume the task saved in the state file."""
     from pyodm.exceptions import NodeResponseError, OdmError
@@ -393,15 +409,7 @@ def run_nodeodm(cfg: ODMRunnerConfig) -> dict:
             images = list_images(images_folder(cfg))
             gcp = find_gcp_file(cfg)
             files = [str(p) for p in images] + ([str(gcp)] if gcp else [])
-            bar = progress(range(100), desc="upload", total=100, unit="%")
-            done = [0]
-
-            def uploaded(pct: float) -> None:
-                step = int(pct) - done[0]
-                if step > 0:
-                    bar.update(step)
-                    done[0] += step
-
+            bar, uploaded = percent_bar("upload")
             task = node.create_task(files, options, name=Path(cfg.project_dir).name, progress_callback=uploaded,
                                     outputs=NODEODM_OUTPUTS, parallel_uploads=settings.parallel_uploads)
             bar.close()
@@ -461,15 +469,7 @@ def _download(task, project: Path) -> None:
     tmp = project / ".nodeodm_download"
     if tmp.exists():
         shutil.rmtree(tmp)
-    bar = progress(range(100), desc="download", total=100, unit="%")
-    done = [0]
-
-    def cb(pct: float) -> None:
-        step = int(pct) - done[0]
-        if step > 0:
-            bar.update(step)
-            done[0] += step
-
+    bar, cb = percent_bar("download")
     try:
         task.download_assets(str(tmp), progress_callback=cb)
         bar.close()
