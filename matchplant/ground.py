@@ -23,7 +23,13 @@ def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface,
     (:meth:`Surface.intersect`), so a ray grazing a plant's top stays on the plant.
     """
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    dirs = shot.ray_directions(uv)
+    return rays_to_ground(shot, shot.ray_directions(uv), frame, surface, clearance=clearance)
+
+
+def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface, *,
+                   clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pixels_to_ground` for ray directions (N, 3) in the reconstruction frame, already computed
+    (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces."""
     c = shot.center
     if frame.is_affine:
         origin = frame.to_map(c[None, :])

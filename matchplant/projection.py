@@ -40,7 +40,7 @@ from .coco import read_predictions, source_name
 from .config import param, section
 from .errors import ConfigError, InputError
 from .frames import Frame
-from .ground import pixels_to_ground
+from .ground import rays_to_ground
 from .io import atomic_open, atomic_path, write_json
 from .log import get_logger
 from .odm import ODMProject
@@ -55,11 +55,12 @@ NOT_IN_RECONSTRUCTION = "image not in the reconstruction (ODM could not place it
 BOX_OUTSIDE_IMAGE = "box lies outside the image (wrong image name or size?)"
 EMPTY_BOX = "box has no area"
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
-MAX_SURFACE_CELLS = 40_000_000
+MAX_SURFACE_CELLS = 40_000_000  # above this the DSM is read per image instead of once
 MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
-HIDDEN_COLUMNS = ("hidden_w", "hidden_s", "hidden_e", "hidden_n")  # sides of a view seen only past the plant's top
-FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds  # above this the DSM is read per image instead of once
+# sides of a view's map box not seen directly: behind the plant's top, behind another plant, or cut by a border
+UNSEEN_COLUMNS = ("unseen_w", "unseen_s", "unseen_e", "unseen_n")
+FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
 
 
 # --------------------------------------------------------------------------------------------------
@@ -109,9 +110,12 @@ class ProjectionConfig:
               "making the map box too long. A few cm keeps it on the plant; too much stops rays over leaves "
               "(0 = plain intersection)", min=0.0, max=1.0)
     hidden_height: float = param(
-        0.05, "metres: a box side whose grazing hit stands this much above the soil hit by the edge's other rays was "
-              "hidden behind the plant; it is taken from views that saw that side, else mirrored about the plant's "
-              "top", min=0.0)
+        0.05, "metres: a box side whose grazing hit stands this much above the ground lay behind the plant's top (or "
+              "behind another plant); it is taken from views that saw that side, else mirrored about the plant's top",
+        min=0.0)
+    ground_window: float = param(
+        1.5, "metres: the ground under the plants is estimated from the DSM by removing every bump narrower than "
+             "this; set it above the widest plant (or row, once the canopy closes)", min=0.05)
     map_box: Literal["inscribed", "outline"] = param(
         "inscribed", "the plant's map box: inscribed = box of the ellipse inscribed in the projected outline "
                      "(right for roundish plants whatever the flight direction); outline = box around the outline",
@@ -218,48 +222,72 @@ def _edge_indices(edge_points: int) -> list[np.ndarray]:
     return [(np.arange(q + 1) + k * q) % (4 * q) for k in range(4)]
 
 
-def silhouette_boxes(pts: np.ndarray, edge_points: int, surface: Surface | None = None, *,
-                     hidden_height: float = 0.05, apex_grid: int = 9, how: str = "inscribed") -> dict[str, np.ndarray]:
-    """Map boxes (M, 4) of plants from their outline hits ``pts`` (M, P, 3) (:func:`box_outline` order).
+def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
+    """Which edges (top, right, bottom, left) of photo boxes (M, 4) face the image's nadir point (M, 4).
 
-    A photo's box touches the plant at four points. On the sides facing the camera they are leaf tips on
-    the soil: the rays there meet the ground right at the plant's edge. On the far sides (away from the
-    nadir) the box edge is the image of the plant's *top*, displaced outwards by relief (height x tan of
-    the view angle): most rays of that edge pass over the plant and land on the soil behind it, and only
-    the ray grazing the top (stopped on it by the intersection's clearance) marks where the plant is. So
-    each side of the box is the *innermost* hit of its edge's rays, measured in the frame of the projected
-    box (axes along the photo's x and y, so any flight heading works). A side whose innermost hit stands
-    clearly above the soil hit by its neighbours (``hidden_height``) is hidden behind the plant: its edge
-    is then mirrored from the opposite side about the plant's top (the highest DSM point inside the box),
-    assuming a roughly symmetric plant.
+    Relief displaces everything above the ground away from the nadir point. On an edge facing it the
+    plant's outermost point is therefore a leaf tip on the soil, whatever stands in front of the plant;
+    on the other edges it may be the plant's displaced top.
+    """
+    cam = frame.to_map(shot.center[None, :])[0]
+    with np.errstate(invalid="ignore"):
+        nadir = shot.project(frame.from_map((cam - [0.0, 0.0, 1000.0])[None, :]))[0]
+    out = np.zeros((len(boxes), 4), dtype=bool)
+    if not np.isfinite(nadir).all():  # the camera does not look down
+        return out
+    b = np.asarray(boxes, dtype=float).reshape(-1, 4) - 0.5  # pixel edges -> camera pixels
+    out[:, 0], out[:, 1] = nadir[1] < b[:, 1], nadir[0] > b[:, 2]
+    out[:, 2], out[:, 3] = nadir[1] > b[:, 3], nadir[0] < b[:, 0]
+    return out
+
+
+def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
+                     surface: Surface | None = None, *, hidden_height: float = 0.05, apex_grid: int = 9,
+                     how: str = "inscribed") -> dict[str, np.ndarray]:
+    """Map boxes (M, 4) of plants from the hits of the rays along their photo box's edges.
+
+    ``edges``: the hits (M, Q, 3) of the top, right, bottom and left edge (:func:`box_outline` order);
+    ``corners`` (M, 4, 2): the box corners on the ground, which set the frame of the projected box (axes
+    along the photo's x and y, so any flight heading works); ``near`` (M, 4): edges facing the image's
+    nadir point (:func:`near_edges`), whose rays met the ground (a leaf tip on the soil, even behind a
+    neighbour). The other edges' rays met the DSM and stopped just above it: such an edge may be the
+    image of the plant's *top* displaced outwards by relief, and only its ray grazing the top (stopped on
+    it by the intersection's clearance) marks where the plant is. So each side is the *innermost* hit of
+    its edge. A side whose innermost hit stands more than ``hidden_height`` above the ground lay behind
+    the plant's top (or behind another plant): it is mirrored from the opposite side about the plant's
+    top (the highest DSM point inside the box), assuming a roughly symmetric plant.
 
     ``how``: ``inscribed`` = box of the ellipse inscribed in the resulting parallelogram (a round plant's
     box whatever the flight heading), ``outline`` = box of the parallelogram. Returns ``bounds``,
-    ``centre`` (M, 2), ``area`` (of the parallelogram) and ``hidden`` (M, 4: top, right, bottom, left).
+    ``centre`` (M, 2), ``area`` (of the parallelogram), ``hidden`` (M, 4: photo edges) and ``faces``
+    (M, 4, 4): which map sides (west, south, east, north) each photo edge bears on.
     """
-    xy = pts[..., :2]
-    q = edge_points + 1
-    c0, c1, c2, c3 = (xy[:, k * q] for k in range(4))
+    c0, c1, c2, c3 = (corners[:, k] for k in range(4))
     centre = (c0 + c1 + c2 + c3) / 4
     a = (c1 - c0 + c2 - c3) / 4  # half-axis along the photo's x
     b = (c3 - c0 + c2 - c1) / 4  # half-axis along the photo's y
     det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     det = np.where(np.abs(det) > 1e-18, det, np.nan)
-    d = xy - centre[:, None]
-    al = (d[..., 0] * b[:, None, 1] - d[..., 1] * b[:, None, 0]) / det[:, None]  # -1 left .. 1 right
-    be = (a[:, None, 0] * d[..., 1] - a[:, None, 1] * d[..., 0]) / det[:, None]  # -1 top .. 1 bottom
-    top, right, bottom, left = _edge_indices(edge_points)
-    inner = np.stack([be[:, top].max(1), al[:, right].min(1), be[:, bottom].min(1), al[:, left].max(1)], axis=1)
-    z = pts[..., 2]
-    hidden = np.zeros((len(pts), 4), dtype=bool)
-    for k, (e, arg) in enumerate(((top, be[:, top].argmax(1)), (right, al[:, right].argmin(1)),
-                                  (bottom, be[:, bottom].argmin(1)), (left, al[:, left].argmax(1)))):
-        ze = z[:, e]
-        hidden[:, k] = ze[np.arange(len(ze)), arg] - np.median(ze, axis=1) > hidden_height
-    # an inverted box (a side mirrored past the other, or rays crossing) falls back to the plain outline
-    t, r, bo, le = inner.T
-    if surface is not None and hidden.any():
-        sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
+    m = len(corners)
+    inner = np.empty((m, 4))
+    hidden = np.zeros((m, 4), dtype=bool)
+    rows = np.arange(m)
+    for k, e in enumerate(edges):  # top, right, bottom, left: the innermost coordinate of each edge
+        d = e[..., :2] - centre[:, None]
+        if k % 2:  # right, left: -1 left .. 1 right
+            c = (d[..., 0] * b[:, None, 1] - d[..., 1] * b[:, None, 0]) / det[:, None]
+        else:  # top, bottom: -1 top .. 1 bottom
+            c = (a[:, None, 0] * d[..., 1] - a[:, None, 1] * d[..., 0]) / det[:, None]
+        arg = c.argmin(axis=1) if k in (1, 2) else c.argmax(axis=1)
+        inner[:, k] = c[rows, arg]
+        hit = e[rows, arg]
+        far = ~near[:, k]
+        if far.any():
+            hidden[far, k] = hit[far, 2] - ground.sample(hit[far, 0], hit[far, 1]) > hidden_height
+    t, r, bo, le = (inner[:, k].copy() for k in range(4))
+    # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
+    sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
+    if surface is not None and sel.size:
         g = (np.arange(apex_grid) + 0.5) / apex_grid
         ga = le[sel, None, None] + (r - le)[sel, None, None] * g[None, None, :]
         gb = t[sel, None, None] + (bo - t)[sel, None, None] * g[None, :, None]
@@ -276,7 +304,6 @@ def silhouette_boxes(pts: np.ndarray, edge_points: int, surface: Surface | None 
         bo2[hs[:, 2]] = np.maximum(bo[sel], 2 * ab - t[sel])[hs[:, 2]]
         r2[hs[:, 1]] = np.maximum(r[sel], 2 * aa - le[sel])[hs[:, 1]]
         le2[hs[:, 3]] = np.minimum(le[sel], 2 * aa - r[sel])[hs[:, 3]]
-        t, r, bo, le = t.copy(), r.copy(), bo.copy(), le.copy()
         t[sel], r[sel], bo[sel], le[sel] = t2, r2, bo2, le2
     good = (r > le) & (bo > t) & np.isfinite(det)
     t, bo = np.where(good, t, -1.0), np.where(good, bo, 1.0)
@@ -286,13 +313,12 @@ def silhouette_boxes(pts: np.ndarray, edge_points: int, surface: Surface | None 
     hb = b * ((bo - t) / 2)[:, None]
     half = np.sqrt(ha ** 2 + hb ** 2) if how == "inscribed" else np.abs(ha) + np.abs(hb)
     area = np.abs(det) * (r - le) * (bo - t)
-    # which map sides (west, south, east, north) a hidden photo edge bears on: those its outward normal faces
+    # the map sides (west, south, east, north) a photo edge bears on: those its outward normal faces
     normals = np.stack([-b, a, b, -a], axis=1)  # top, right, bottom, left
     normals /= np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
     faces = np.stack([-normals[..., 0], -normals[..., 1], normals[..., 0], normals[..., 1]], axis=2) > 0.3
-    hidden_map = (faces & hidden[:, :, None]).any(axis=1)
     return {"bounds": np.concatenate([mid - half, mid + half], axis=1), "centre": mid, "area": area,
-            "hidden": hidden, "hidden_sides": hidden_map}
+            "hidden": hidden, "faces": faces}
 
 
 def _settle(points: np.ndarray, status: np.ndarray, cam: np.ndarray, surface: Surface,
@@ -334,41 +360,63 @@ def _settle(points: np.ndarray, status: np.ndarray, cam: np.ndarray, surface: Su
 
 
 def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
-                  map_box: str = "inscribed", clearance: float = 0.02,
-                  hidden_height: float = 0.05) -> dict[str, np.ndarray]:
+                  map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
+                  ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Project pixel boxes ``[x1, y1, x2, y2]`` (M, 4) of one image onto the surface, all at once.
 
-    Rays through each box outline are intersected with the DSM, stopping ``clearance`` metres above it
-    (so a ray grazing a plant's top stays on the plant); :func:`silhouette_boxes` turns the hits into the
-    plant's map box. Returns arrays over the M boxes: ``ok`` (every outline ray hit the surface),
-    ``status`` (the ray status explaining a failure, :data:`matchplant.surface.STATUS_TEXT`), ``outline``
-    (M, P, 3) map points, ``bounds`` (M, 4), ``centroid`` (M, 2, the box centre), ``z`` (mean height of
-    the hits), ``area`` (m²), ``hidden`` (M, 4: map sides west, south, east, north seen only past the plant's top) and ``off_nadir`` (degrees between
-    the plumb line and the ray to the centroid).
+    Rays through each box outline meet the ground (estimated from the DSM, :meth:`Surface.ground` with
+    ``ground_window``) on the edges facing the image's nadir point, and the DSM, stopping ``clearance``
+    metres above it (so a ray grazing a plant's top stays on the plant), on the others;
+    :func:`silhouette_boxes` turns the hits into the plant's map box. ``cut_edges`` (M, 4: top, right,
+    bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
+    (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
+    :data:`matchplant.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
+    ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``unseen`` (M, 4:
+    map sides west, south, east, north not seen directly: behind the plant's top or cut by a border)
+    and ``off_nadir`` (degrees between the plumb line and the ray to the centroid).
     """
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
     uv = box_outline(boxes, edge_points)
     m, p = uv.shape[:2]
     cam = frame.to_map(shot.center[None, :])[0]
-    pts, status = pixels_to_ground(shot, uv.reshape(-1, 2), frame, surface, clearance=clearance)
-    if clearance > 0:
-        pts = _settle(pts, status, cam, surface, clearance)
-    pts, status = pts.reshape(m, p, 3), status.reshape(m, p)
+    dirs = shot.ray_directions(uv.reshape(-1, 2))
+    near = near_edges(shot, frame, boxes)
+    edges = _edge_indices(edge_points)
+    on_far = np.zeros((m, p), dtype=bool)  # outline points of edges that may show the plant's top
+    for k, e in enumerate(edges):
+        on_far[:, e] |= ~near[:, k, None]
+    ground = surface.ground(ground_window)
+    g_pts, g_status = rays_to_ground(shot, dirs, frame, ground)
+    d_pts, d_status = g_pts.copy(), g_status.copy()
+    far = np.flatnonzero(on_far.ravel())
+    if far.size:
+        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance)
+        if clearance > 0:
+            pts = _settle(pts, st, cam, surface, clearance)
+        d_pts[far], d_status[far] = pts, st
+    g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
+    status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
     ok = (status == HIT).all(axis=1)
     reason = np.full(m, HIT, dtype=np.int8)
     for code in reversed(RAY_PRIORITY):  # the highest-priority failing status wins
         reason[(status == code).any(axis=1)] = code
-    out = {"ok": ok, "status": reason, "outline": pts,
+    out = {"ok": ok, "status": reason, "outline": np.where(on_far[..., None], d_pts, g_pts),
            "bounds": np.full((m, 4), np.nan), "centroid": np.full((m, 2), np.nan),
            "z": np.full(m, np.nan), "area": np.full(m, np.nan), "off_nadir": np.full(m, np.nan),
-           "hidden": np.zeros((m, 4), dtype=bool)}
+           "unseen": np.zeros((m, 4), dtype=bool)}
     if ok.any():
-        sb = silhouette_boxes(pts[ok], edge_points, surface, hidden_height=hidden_height, how=map_box)
+        nr = near[ok]
+        edge_hits = [np.where(nr[:, k, None, None], g_pts[ok][:, e], d_pts[ok][:, e]) for k, e in enumerate(edges)]
+        corners = g_pts[ok][:, [e[0] for e in edges], :2]
+        sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box)
         centroid = sb["centre"]
-        z = pts[ok][..., 2].mean(axis=1)
+        z = out["outline"][ok][..., 2].mean(axis=1)
         d = np.column_stack([centroid - cam[:2], z - cam[2]])
         off = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
+        unseen_edges = sb["hidden"] | (cut_edges[ok] if cut_edges is not None else False)
         out["bounds"][ok], out["centroid"][ok], out["area"][ok] = sb["bounds"], centroid, sb["area"]
-        out["z"][ok], out["off_nadir"][ok], out["hidden"][ok] = z, off, sb["hidden_sides"]
+        out["z"][ok], out["off_nadir"][ok] = z, off
+        out["unseen"][ok] = (sb["faces"] & unseen_edges[:, :, None]).any(axis=1)
     return out
 
 
@@ -423,17 +471,18 @@ def _shot(project: ODMProject, shot_id: str, undistorted: bool, warned: set) -> 
 
 
 def _cut(boxes: np.ndarray, size: np.ndarray, tile: np.ndarray, border: float) -> np.ndarray:
-    """Boxes (N, 4) touching their photo's border (``size`` (N, 2)) or an inner border of their tile
-    (``tile`` (N, 4): x0, y0, width, height; NaN when the box was found on the whole photo)."""
+    """Edges (N, 4: top, right, bottom, left) of boxes (N, 4) on their photo's border (``size`` (N, 2))
+    or on an inner border of their tile (``tile`` (N, 4): x0, y0, width, height; NaN when the box was
+    found on the whole photo)."""
     x1, y1, x2, y2 = boxes.T
     W, H = size.T
-    cut = (x1 <= border) | (y1 <= border) | (W - x2 <= border) | (H - y2 <= border)
     tx0, ty0, tw, th = tile.T
     with np.errstate(invalid="ignore"):
-        inner = ((x1 - tx0 <= border) & (tx0 > border)) | ((y1 - ty0 <= border) & (ty0 > border)) | \
-                ((tx0 + tw - x2 <= border) & (W - tx0 - tw > border)) | \
-                ((ty0 + th - y2 <= border) & (H - ty0 - th > border))
-    return cut | inner
+        top = (y1 <= border) | ((y1 - ty0 <= border) & (ty0 > border))
+        right = (W - x2 <= border) | ((tx0 + tw - x2 <= border) & (W - tx0 - tw > border))
+        bottom = (H - y2 <= border) | ((ty0 + th - y2 <= border) & (H - ty0 - th > border))
+        left = (x1 <= border) | ((x1 - tx0 <= border) & (tx0 > border))
+    return np.stack([top, right, bottom, left], axis=1)
 
 
 def _approx_heights(path: Path) -> tuple[float, float]:
@@ -470,10 +519,10 @@ def _ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: 
 class _Surfaces:
     """The DSM read once over every image's rays when that fits in memory, else per image."""
 
-    def __init__(self, path: Path, crs):
+    def __init__(self, path: Path, crs, ground_window: float):
         import rasterio
 
-        self.path, self.crs = path, crs
+        self.path, self.crs, self.ground_window = path, crs, ground_window
         self._whole: Surface | None = None
         with rasterio.open(path) as src:
             small = src.width * src.height <= MAX_SURFACE_CELLS
@@ -505,7 +554,7 @@ class _Surfaces:
             self._whole = self._open(union, res)
 
     def _open(self, bounds, res) -> Surface:
-        pad = 4 * res
+        pad = 4 * res + self.ground_window  # the ground estimate needs terrain around the rays
         return Surface.open(self.path, bounds=(bounds[0] - pad, bounds[1] - pad, bounds[2] + pad, bounds[3] + pad))
 
     def get(self, bounds: np.ndarray) -> Surface:
@@ -520,7 +569,8 @@ class _Surfaces:
 def project_predictions(project: ODMProject, predictions: dict, *, image_type: str = "auto",
                         dsm: Path | None = None, min_score: float = 0.0, edge_points: int = 4,
                         map_box: str = "inscribed", border_pixels: float = 2.0,
-                        clearance: float = 0.02, hidden_height: float = 0.05) -> tuple[ProjectedViews, pd.DataFrame]:
+                        clearance: float = 0.02, hidden_height: float = 0.05,
+                        ground_window: float = 1.5) -> tuple[ProjectedViews, pd.DataFrame]:
     """Project every prediction box; returns the projected views and the boxes that were not projected.
 
     ``predictions`` is :func:`matchplant.coco.read_predictions`'s dict (tile boxes are moved back to their
@@ -589,7 +639,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     dsm_path = Path(dsm) if dsm is not None else project.path("dsm")
     if dsm is None:
         project.require("dsm")
-    surfaces = _Surfaces(dsm_path, frame.crs)
+    surfaces = _Surfaces(dsm_path, frame.crs, ground_window)
     groups = {int(k): todo[group[todo] == k] for k in np.unique(group[todo])}
     bounds = {k: _ray_bounds(shots[k], frame, boxes[idx], surfaces.z_lo, surfaces.z_hi) for k, idx in groups.items()}
     surfaces.prepare(list(bounds.values()))
@@ -598,12 +648,15 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     outlines = np.full((n, P, 3), np.nan)
     res_cols = {c: np.full(n, np.nan) for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy", "z", "area_m2",
                                                   "off_nadir_deg")}
-    hidden = np.zeros((n, 4), dtype=bool)
+    unseen = np.zeros((n, 4), dtype=bool)
+    tiles = np.where(per[["tiled"]].to_numpy(), per[["x0", "y0", "tile_w", "tile_h"]].to_numpy(), np.nan)
+    cut_edges = _cut(boxes, size, tiles, border_pixels)
     for k in progress(list(groups), desc="projecting", unit="image"):
         idx = groups[k]
         surface = surfaces.get(bounds[k])
         r = project_boxes(shots[k], frame, surface, boxes[idx], edge_points=edge_points, map_box=map_box,
-                          clearance=clearance, hidden_height=hidden_height)
+                          clearance=clearance, hidden_height=hidden_height, ground_window=ground_window,
+                          cut_edges=cut_edges[idx])
         good = idx[r["ok"]]
         bad = idx[~r["ok"]]
         reason[bad] = [STATUS_TEXT[int(s)] for s in r["status"][~r["ok"]]]
@@ -613,16 +666,15 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
         res_cols["cx"][good], res_cols["cy"][good] = r["centroid"][r["ok"]].T
         res_cols["z"][good], res_cols["area_m2"][good] = r["z"][r["ok"]], r["area"][r["ok"]]
         res_cols["off_nadir_deg"][good] = r["off_nadir"][r["ok"]]
-        hidden[good] = r["hidden"][r["ok"]]
+        unseen[good] = r["unseen"][r["ok"]]
     for c, v in res_cols.items():
         table[c] = v
-    for j, c in enumerate(HIDDEN_COLUMNS):
-        table[c] = hidden[:, j]
+    for j, c in enumerate(UNSEEN_COLUMNS):
+        table[c] = unseen[:, j]
     table["reason"] = reason
 
     done = reason == ""
-    table["cut"] = _cut(boxes, size, np.where(per[["tiled"]].to_numpy(), per[["x0", "y0", "tile_w", "tile_h"]].to_numpy(),
-                                              np.nan), border_pixels)
+    table["cut"] = cut_edges.any(axis=1)
     views = table[done].drop(columns=["reason"]).reset_index(drop=True)
     rejected = table[~done][["pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score",
                              "category", "reason"]].reset_index(drop=True)
@@ -651,9 +703,9 @@ def overlapping_pairs(a: np.ndarray, b: np.ndarray | None = None) -> tuple[np.nd
     b = a if same else b
     if len(a) == 0 or len(b) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    # one bulk R-tree query gives exactly the intersecting pairs (no per-box Python work)
-    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
-    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
+    # one bulk R-tree query of the envelopes (which are the boxes: no geometric predicate needed)
+    gb = shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3])
+    i, j = shapely.STRtree(gb).query(gb if same else shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]))
     if same:
         keep = i < j
         i, j = i[keep], j[keep]
@@ -719,7 +771,12 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         cut = t["cut"].to_numpy()
         # a view cut by a border is partial, and its cut edge is no plant edge (with relief, the ray at the
         # border passes over the plant): a modest overlap is enough, and the best overlap wins below
+        # a view with a side it did not see (its box partly guessed) that lies inside another is that plant
+        guessed = t[list(UNSEEN_COLUMNS)].to_numpy().any(axis=1) if all(c in t for c in UNSEEN_COLUMNS) \
+            else np.zeros(n, dtype=bool)
+        smaller = np.where(area[i] <= area[j], i, j)
         strong = (cat[i] == cat[j]) & ((iou >= merge_iou) | ((inside >= MERGE_CONTAINED) & (iou >= merge_iou / 2))
+                                       | ((inside >= MERGE_CONTAINED) & guessed[smaller])
                                        | ((cut[i] | cut[j]) & (inside >= MERGE_CUT_INSIDE)))
         adj = sp.coo_matrix((iou[strong], (i[strong], j[strong])), shape=(n, n)).tocsr()
         adj = (adj + adj.T).tocsr()
@@ -781,7 +838,7 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     else:
         for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy"):
             plants[c] = reps_t[c].to_numpy()
-        if merge == "nadir" and all(c in t for c in HIDDEN_COLUMNS):
+        if merge == "nadir" and all(c in t for c in UNSEEN_COLUMNS):
             _observed_sides(plants, t, reps_t)
     for c in ("z", "area_m2", "source_image", "score", "category_id", "category", "off_nadir_deg", "cut"):
         plants[c] = reps_t[c].to_numpy()
@@ -793,12 +850,16 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
 
 
 def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame) -> None:
-    """A side of the representative view that lay behind the plant's top (relief) is replaced by the median
-    of that side in the plant's other whole views that saw it directly (their camera on that side)."""
+    """A side of the representative view that was not seen directly (behind the plant's top or another
+    plant, or cut by a border) is replaced by the median of that side in the plant's other views that saw
+    it; when none did, by the median of the whole views' guesses of it."""
     changed = np.zeros(len(plants), dtype=bool)
-    for side, h in zip(("xmin", "ymin", "xmax", "ymax"), HIDDEN_COLUMNS):
-        seen = t[side].where(~t[h] & ~t["cut"])
+    for side, h in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS):
+        seen = t[side].where(~t[h])
         med = seen.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
+        # no view saw it: each whole view guessed it (mirrored about the top); their median is the safer guess
+        guess = t[side].where(~t["cut"]).groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
+        med = np.where(np.isfinite(med), med, guess)
         use = reps_t[h].to_numpy() & np.isfinite(med)
         plants.loc[use, side] = med[use]
         changed |= use
@@ -880,7 +941,8 @@ def run_projection(cfg: ProjectionConfig) -> dict:
     views, rejected = project_predictions(project, preds, image_type=cfg.image_type, dsm=cfg.dsm,
                                           min_score=cfg.min_score, edge_points=cfg.edge_points,
                                           map_box=cfg.map_box, border_pixels=cfg.border_pixels,
-                                          clearance=cfg.silhouette_clearance, hidden_height=cfg.hidden_height)
+                                          clearance=cfg.silhouette_clearance, hidden_height=cfg.hidden_height,
+                                          ground_window=cfg.ground_window)
     plants = merge_views(views, merge=cfg.merge, merge_iou=cfg.merge_iou)
     geometry = "box" if cfg.merge == "fuse" else cfg.geometry  # fused boxes have no single outline
     written = write_plants(plants, views, out, layer=cfg.layer, geometry=geometry, shapefile=cfg.write_shapefile)

@@ -28,9 +28,15 @@ STATUS_TEXT = {
     NODATA: "ray meets the ground in a DSM nodata area",
     NO_HIT: "no intersection with the DSM (camera below the surface?)",
 }
-_REFINE_ITERATIONS = 60  # bisection steps at most
-_REFINE_TOLERANCE = 1e-9  # metres along the ray at which bisection stops
+_REFINE_ITERATIONS = 60  # refinement steps at most
+_REFINE_TOLERANCE = 1e-7  # metres (along the ray, and above the surface) at which refinement stops
 _BLOCK = 8  # cells per side of the blocks whose maxima let rays skip empty space
+GROUND_CELL = 0.02  # metres: cell size (at least the DSM's) of the ground estimated from the DSM
+
+
+def _max_tangent(d: np.ndarray) -> float:
+    """Largest horizontal / vertical ratio of ray directions (N, 3)."""
+    return float(np.max(np.hypot(d[:, 0], d[:, 1]) / np.maximum(-d[:, 2], 1e-12)))
 
 
 def _block_max(data: np.ndarray, block: int) -> np.ndarray:
@@ -108,6 +114,42 @@ def _inside(data, inv, x, y):
 
 
 @numba.njit(cache=True, nogil=True)
+def _refine(data, inv, o, d, clearance, a, b, fa, fb):
+    """The crossing in [a, b] (f(a) > 0 >= f(b)): regula falsi with the Illinois rule (a few steps where
+    bisection needs dozens); a hole inside the bracket counts as below, so the hit stays at its edge."""
+    ox, oy, oz = o[0], o[1], o[2]
+    dx, dy, dz = d[0], d[1], d[2]
+    tol = _REFINE_TOLERANCE / math.sqrt(dx * dx + dy * dy + dz * dz)
+    side = 0
+    for _ in range(_REFINE_ITERATIONS):
+        if b - a < tol:
+            break
+        if fa - fb > 0.0 and not math.isnan(fb):
+            m = b - fb * (b - a) / (fb - fa)
+            m = min(max(m, a + 0.01 * (b - a)), b - 0.01 * (b - a))
+        else:
+            m = 0.5 * (a + b)
+        fm = oz + m * dz - _bilinear(data, inv, ox + m * dx, oy + m * dy) - clearance
+        if math.isnan(fm):
+            b, fb, side = m, math.nan, 0
+        elif fm > 0.0:
+            a, fa = m, fm
+            if side == 1:
+                fb *= 0.5
+            side = 1
+            if fm < _REFINE_TOLERANCE:
+                return m
+        else:
+            b, fb = m, fm
+            if side == -1:
+                fa *= 0.5
+            side = -1
+            if -fm < _REFINE_TOLERANCE:
+                return m
+    return 0.5 * (a + b)
+
+
+@numba.njit(cache=True, nogil=True)
 def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
     """Fine march from ``s_from`` to ``s_to`` in ``n`` steps; bisect the first crossing.
 
@@ -126,19 +168,7 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
             if status == 4:
                 status = 2 if not _inside(data, inv, x, y) else 3
         elif prev_f > 0.0 and f <= 0.0:
-            a = prev_s
-            b = s
-            tol = _REFINE_TOLERANCE / math.sqrt(dx * dx + dy * dy + dz * dz)
-            for _ in range(_REFINE_ITERATIONS):
-                if b - a < tol:
-                    break
-                m = 0.5 * (a + b)
-                fm = oz + m * dz - _bilinear(data, inv, ox + m * dx, oy + m * dy) - clearance
-                if fm > 0.0:
-                    a = m
-                else:
-                    b = m  # a hole between two valid samples counts as below: the hit stays at its edge
-            return 0.5 * (a + b), f, 0
+            return _refine(data, inv, o, d, clearance, prev_s, s, prev_f, f), f, 0
         prev_f = f
         prev_s = s
     return math.nan, prev_f, status
@@ -198,9 +228,34 @@ def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, cleara
         out_status[i] = status
 
 
+@numba.njit(cache=True, nogil=True)
+def _intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
+    """Rays over a gentle surface (slope x ray tangent < 1 everywhere, so each ray crosses it once): the
+    fixed point s = (z_camera - height(s)) / -dz converges in a few steps. Rays that fail (a hole, the
+    raster's edge) are left for the march."""
+    h_start = 0.5 * (zmin + zmax)
+    for i in range(d.shape[0]):
+        out_done[i] = False
+        dz = d[i, 2]
+        if not dz < -1e-12:
+            continue
+        s = (o[i, 2] - h_start) / -dz
+        for _ in range(30):
+            h = _bilinear(data, inv, o[i, 0] + s * d[i, 0], o[i, 1] + s * d[i, 1])
+            if math.isnan(h):
+                break
+            s_new = (o[i, 2] - h) / -dz
+            if abs(s_new - s) * -dz < _REFINE_TOLERANCE:
+                out_s[i] = s_new
+                out_done[i] = True
+                h_start = h  # neighbouring rays (one box's outline) meet the ground at about this height
+                break
+            s = s_new
+
+
 @dataclass
 class Surface:
-    data: np.ndarray  # float64, NaN for holes
+    data: np.ndarray  # float32 (as ODM writes it), NaN for holes
     transform: "object"  # affine.Affine, north-up
     crs: "object" = None
     path: Path | None = None
@@ -210,7 +265,7 @@ class Surface:
         if abs(t.b) > 1e-12 or abs(t.d) > 1e-12:
             raise InputError("rotated rasters are not supported", path=self.path,
                              fix="warp the raster to a north-up grid (gdalwarp)")
-        self.data = np.ascontiguousarray(self.data, dtype=np.float64)
+        self.data = np.ascontiguousarray(self.data, dtype=np.float32)  # as ODM writes it: half the memory traffic
         i = ~t
         self._inv = np.array([i.a, i.b, i.c, i.d, i.e, i.f], dtype=np.float64)
         finite = self.data[np.isfinite(self.data)]
@@ -219,6 +274,35 @@ class Surface:
                              fix="check that the DSM covers the images (same CRS, same field)")
         self.zmin, self.zmax = float(finite.min()), float(finite.max())
         self._block_max = _block_max(self.data, _BLOCK)
+        self._grounds: dict[float, Surface] = {}
+        self._max_slope: float | None = None
+
+    def ground(self, window: float) -> "Surface":
+        """The bare ground under the plants, estimated from this surface: a morphological opening (the
+        highest flat square of side ``window`` metres that fits under the surface, at each point) removes
+        every bump narrower than the window and keeps the soil between them exactly, slopes included.
+        Computed on a grid of about :data:`GROUND_CELL` (lowest cell of each block); holes are ignored
+        when they are narrower than the window. Cached per window."""
+        if window not in self._grounds:
+            from affine import Affine
+            from scipy.ndimage import maximum_filter, minimum_filter
+
+            block = max(1, int(round(GROUND_CELL / self.pixel_size)))
+            rows, cols = self.data.shape
+            br, bc = -(-rows // block), -(-cols // block)
+            padded = np.full((br * block, bc * block), np.inf)
+            padded[:rows, :cols] = np.where(np.isnan(self.data), np.inf, self.data)
+            low = padded.reshape(br, block, bc, block).min(axis=(1, 3))
+            size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
+            eroded = minimum_filter(low, size=size, mode="nearest")
+            opened = maximum_filter(np.where(np.isinf(eroded), -np.inf, eroded), size=size, mode="nearest")
+            opened[~np.isfinite(opened)] = np.nan
+            # DSM holes stay holes (a ray meeting the ground there is reported, not placed)
+            nan = np.zeros(padded.shape, dtype=bool)
+            nan[:rows, :cols] = np.isnan(self.data)
+            opened[nan.reshape(br, block, bc, block).any(axis=(1, 3))] = np.nan
+            self._grounds[window] = Surface(opened, self.transform * Affine.scale(block), self.crs, self.path)
+        return self._grounds[window]
 
     @classmethod
     def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None,
@@ -252,9 +336,19 @@ class Surface:
                              fix="check that the raster and the reconstruction are of the same field and CRS") from exc
         except rasterio.errors.RasterioIOError as exc:
             raise InputError(f"cannot read the raster: {exc}", path=path, fix="check that it is a GeoTIFF") from exc
-        data = arr.astype(float).filled(np.nan)
+        data = arr.astype(np.float32).filled(np.nan)
         data[data <= -9999] = np.nan  # ODM's nodata even when the file does not declare it
         return cls(data=data, transform=transform, crs=crs, path=path)
+
+    @property
+    def max_slope(self) -> float:
+        """Steepest slope between neighbouring cells (rise over run), NaN-aware; computed once."""
+        if self._max_slope is None:
+            with np.errstate(invalid="ignore"):
+                gx = np.abs(np.diff(self.data, axis=1)) / abs(self.transform.a)
+                gy = np.abs(np.diff(self.data, axis=0)) / abs(self.transform.e)
+            self._max_slope = float(max(np.nanmax(gx, initial=0.0), np.nanmax(gy, initial=0.0)))
+        return self._max_slope
 
     @property
     def pixel_size(self) -> float:
@@ -302,7 +396,18 @@ class Surface:
         o = np.ascontiguousarray(o)
         s = np.empty(d.shape[0], dtype=np.float64)
         status = np.empty(d.shape[0], dtype=np.int8)
+        todo = slice(None)
+        if clearance == 0.0 and d.shape[0] and self.max_slope * _max_tangent(d) < 0.8:
+            done = np.empty(d.shape[0], dtype=np.bool_)
+            _intersect_gentle(self.data, self._inv, self.zmin, self.zmax, o, d, s, done)
+            status[done] = 0  # HIT
+            todo = np.flatnonzero(~done)
+            o, d = np.ascontiguousarray(o[todo]), np.ascontiguousarray(d[todo])
+        s_m = np.empty(d.shape[0], dtype=np.float64)
+        st_m = np.empty(d.shape[0], dtype=np.int8)
         _intersect_many(self.data, self._inv, self._block_max, _BLOCK, self.zmin, self.zmax, self.pixel_size,
-                        o, d, float(clearance), int(max_steps), s, status)
+                        o, d, float(clearance), int(max_steps), s_m, st_m)
+        s[todo], status[todo] = s_m, st_m
+        o, d = np.asarray(origins, dtype=np.float64).reshape(-1, 3), np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         points = o + s[:, None] * d
         return points, s, status

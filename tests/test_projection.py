@@ -182,6 +182,26 @@ def nadir_project(tmp_path_factory):
 # geometry units
 
 
+def test_ground_under_plants_is_the_terrain():
+    """The ground estimated from the DSM (morphological opening) is the sloped terrain wherever the soil
+    shows, within a cm or so under the plants, and keeps nothing of the plants (away from the raster's edges,
+    where the window runs out of terrain)."""
+    from matchplant.surface import Surface
+
+    plants = make_plants(np.random.default_rng(3))
+    Z, transform = dsm_array(plants)
+    Z[300:304, 200:204] = np.nan  # a hole stays a hole: rays meeting the ground there are reported
+    ground = Surface(Z, transform).ground(1.0)
+    assert np.isnan(ground.sample(*(transform * (202.0, 302.0))))
+    rows, cols = np.mgrid[50:650:7, 50:550:7]  # half a window from the raster's edges
+    x, y = transform * (cols + 0.5, rows + 0.5)
+    err = ground.sample(x, y) - terrain(x - OFFSET[0], y - OFFSET[1])
+    soil = Z[rows, cols] - terrain(x - OFFSET[0], y - OFFSET[1]) < 1e-6
+    assert np.isfinite(err).all()
+    assert np.abs(err[soil]).max() < 0.004  # the ground cell is 2 cm: its lowest DSM cell, 6.5 % slope
+    assert np.abs(err[~soil]).max() < 0.015 and err[~soil].max() < 0.015  # plants up to 0.45 m tall are gone
+
+
 def test_box_outline_runs_around_the_box():
     o = P.box_outline(np.array([[10, 20, 30, 60]]), 1)[0]
     assert o.shape == (8, 2)
@@ -488,30 +508,22 @@ def test_plain_coco_results_list_with_images_from(tiny_field, tmp_path, nadir_pr
         P.run(load_config(P.ProjectionConfig, None, over))
 
 
-@pytest.fixture(scope="module")
-def oblique_field(tmp_path_factory):
+@pytest.fixture(scope="module", params=[1, 2], ids=["seed1", "seed2"])
+def oblique_field(tmp_path_factory, request):
     from matchplant.simfield import generate_field
 
-    return generate_field(preset="tiny", seed=1, out=tmp_path_factory.mktemp("oblique"), tilt_deg=20,
+    return generate_field(preset="tiny", seed=request.param, out=tmp_path_factory.mktemp("oblique"), tilt_deg=20,
                           slope_pct=10)
 
 
 def test_synthetic_field_oblique_over_slope(oblique_field):
-    """Forward-tilted camera (20 degrees) over a 10 % slope: every plant is seen from one side only, so its
-    far side lies behind its top (silhouette clearance, views that saw that side, or mirroring)."""
+    """Forward-tilted camera (20 degrees) over a 10 % slope, a 3 m flight over plants up to 0.6 m tall: plants
+    are seen 15-38 degrees off nadir, their far sides lie behind their tops and many are partly hidden behind a
+    taller neighbour. Edges facing the nadir meet the ground; hidden sides come from other views or mirroring."""
     field = oblique_field
     rejected, plants, m, truth = score_field(field)
     assert len(rejected) == 0
     assert m["iou_median"] >= 0.9, m
-    assert m["share_iou_above_0.5"] >= 0.95, m  # the issue asks 99 %: see the xfail below
-    assert len(plants) <= len(truth) * 1.1  # few duplicates (3 of 47 today)
-
-
-@pytest.mark.xfail(reason="the tiny field's 3 m flight over plants up to 0.6 m tall, tilted 20 degrees: "
-                          "2 of 47 plants stay under IoU 0.5 (asymmetric plants whose far side no view saw)",
-                   strict=False)
-def test_synthetic_field_oblique_99_percent(oblique_field):
-    field = oblique_field
-    _, plants, m, truth = score_field(field)
     assert m["share_iou_above_0.5"] >= 0.99, m
-    assert len(plants) == len(truth)
+    # one record per plant, bar at most one duplicate at the field's edge (seen only 27-38 degrees off nadir)
+    assert len(truth) <= len(plants) <= len(truth) + 1
