@@ -27,20 +27,21 @@ def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface,
 
 
 def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface, *,
-                   clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                   clearance: float = 0.0, heights: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`pixels_to_ground` for ray directions (N, 3) in the reconstruction frame, already computed
-    (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces."""
+    (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces. ``heights``: the range of
+    map heights to search per ray, when known (:meth:`Surface.intersect`)."""
     c = shot.center
     if frame.is_affine:
         origin = frame.to_map(c[None, :])
-        points, _, status = surface.intersect(origin, dirs, clearance=clearance)
+        points, _, status = surface.intersect(origin, dirs, clearance=clearance, heights=heights)
         return points, status
     # Non-affine frame: a straight map-space ray through the centre and a point near the ground...
     c_map = frame.to_map(c[None, :])[0]
     reach = max(c_map[2] - surface.zmin, 1.0) / np.maximum(-dirs[:, 2], 1e-3)
     far_map = frame.to_map(c[None, :] + reach[:, None] * dirs)
     map_dirs = (far_map - c_map) / reach[:, None]
-    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance)
+    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, heights=heights)
     # ...then secant steps on the exact curve s -> frame.to_map(c + s * dir).
     ok = status == HIT
     if ok.any():

@@ -4,8 +4,9 @@ Plants are detected on the (undistorted) photos; each box is then projected onto
 
 1. rays through the box outline (its corners and points along its edges) leave the camera
    (:meth:`Shot.ray_directions`, exact for perspective, brown and fisheye cameras) and are intersected
-   with the real surface, the DSM (:func:`matchplant.ground.pixels_to_ground`) - not a flat plane at
-   the lowest height, which is what the published code did;
+   with the real surface (:func:`matchplant.ground.rays_to_ground`) - not a flat plane at the lowest
+   height, which is what the published code did: edges facing the image's nadir point (leaf tips on the
+   soil) meet the ground estimated from the DSM, the others the DSM itself (they may show the plant's top);
 2. the hits form the plant's polygon in the project's CRS; its centroid and an axis-aligned box follow;
 3. a plant seen in several photos (85 % overlap: dozens of views) or in two tiles becomes one record:
    views are merged in map space, the view closest to nadir is kept (or the views are fused), and the
@@ -390,7 +391,14 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     d_pts, d_status = g_pts.copy(), g_status.copy()
     far = np.flatnonzero(on_far.ravel())
     if far.size:
-        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance)
+        # the DSM is met between the ground hit and the tallest plant above it (the ground rising at most
+        # max_slope per metre towards the camera)
+        gz = np.where(g_status[far] == HIT, g_pts[far, 2], np.nan)
+        tan = np.hypot(dirs[far, 0], dirs[far, 1]) / np.maximum(-dirs[far, 2], 1e-12)
+        rise = 1.0 - ground.max_slope * tan
+        with np.errstate(invalid="ignore", divide="ignore"):
+            top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
+        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, heights=(top, gz - 0.05))
         if clearance > 0:
             pts = _settle(pts, st, cam, surface, clearance)
         d_pts[far], d_status[far] = pts, st

@@ -39,17 +39,36 @@ def _max_tangent(d: np.ndarray) -> float:
     return float(np.max(np.hypot(d[:, 0], d[:, 1]) / np.maximum(-d[:, 2], 1e-12)))
 
 
+@numba.njit(cache=True, nogil=True)
+def _block_stats(data, block):
+    """Lowest and highest valid cell of each ``block`` x ``block`` block (+inf / -inf when it has none) and
+    whether it holds a hole: one pass over the raster."""
+    rows, cols = data.shape
+    br, bc = -(-rows // block), -(-cols // block)
+    low = np.full((br, bc), np.inf, dtype=np.float32)
+    high = np.full((br, bc), -np.inf, dtype=np.float32)
+    hole = np.zeros((br, bc), dtype=np.bool_)
+    for r in range(rows):
+        for c in range(cols):
+            v = data[r, c]
+            i, j = r // block, c // block
+            if math.isnan(v):
+                hole[i, j] = True
+            else:
+                if v < low[i, j]:
+                    low[i, j] = v
+                if v > high[i, j]:
+                    high[i, j] = v
+    return low, high, hole
+
+
 def _block_max(data: np.ndarray, block: int) -> np.ndarray:
     """Highest cell of each block and its 8 neighbours; +inf where a block holds a hole, so rays march
     through holes cell by cell and are reported, not skipped."""
     from scipy.ndimage import maximum_filter
 
-    rows, cols = data.shape
-    br, bc = -(-rows // block), -(-cols // block)
-    padded = np.full((br * block, bc * block), -np.inf)
-    padded[:rows, :cols] = np.where(np.isnan(data), np.inf, data)
-    blocks = padded.reshape(br, block, bc, block).max(axis=(1, 3))
-    return np.ascontiguousarray(maximum_filter(blocks, size=3, mode="nearest"))
+    _, high, hole = _block_stats(data, block)
+    return np.ascontiguousarray(maximum_filter(np.where(hole, np.float32(np.inf), high), size=3, mode="nearest"))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -175,7 +194,8 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
 
 
 @numba.njit(cache=True, nogil=True)
-def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, clearance, max_steps, out_s, out_status):
+def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, clearance, max_steps, z_top, z_bottom,
+                    out_s, out_status):
     """For each ray: skip, a block at a time, the stretches where it stays above the highest cell of the
     3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps; bisect the first
     step from above ``clearance`` to at or below it."""
@@ -187,13 +207,17 @@ def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, cleara
         if not dz < -1e-12:
             out_status[i] = 1  # NOT_DOWNWARD
             continue
-        s = max(0.0, (oz - (zmax + clearance + margin)) / -dz)
-        s_end = (oz - (zmin - margin)) / -dz
+        top = zmax if not z_top[i] < zmax else z_top[i]  # NaN: the whole height range
+        bottom = zmin if not z_bottom[i] > zmin else z_bottom[i]
+        s = max(0.0, (oz - (top + clearance + margin)) / -dz)
+        s_end = (oz - (bottom - margin)) / -dz
         if not s_end > s:
             out_status[i] = 4  # NO_HIT
             continue
         horiz = max(math.sqrt(d[i, 0] ** 2 + d[i, 1] ** 2), 1e-12)
-        coarse = block * pixel / horiz  # ray length that moves one block horizontally
+        # ray length that moves one block less one cell horizontally: from anywhere in a block, the end of the
+        # step and its bilinear neighbours stay within the 3 x 3 blocks around it
+        coarse = (block - 1) * pixel / horiz
         fine = 0.5 * pixel / horiz
         status = 4
         prev_f = math.nan
@@ -268,41 +292,40 @@ class Surface:
         self.data = np.ascontiguousarray(self.data, dtype=np.float32)  # as ODM writes it: half the memory traffic
         i = ~t
         self._inv = np.array([i.a, i.b, i.c, i.d, i.e, i.f], dtype=np.float64)
-        finite = self.data[np.isfinite(self.data)]
-        if finite.size == 0:
+        self.zmin, self.zmax = float(np.nanmin(self.data, initial=np.inf)), float(np.nanmax(self.data, initial=-np.inf))
+        if not self.zmax >= self.zmin:
             raise InputError("the elevation raster holds no valid data in the area of interest", path=self.path,
                              fix="check that the DSM covers the images (same CRS, same field)")
-        self.zmin, self.zmax = float(finite.min()), float(finite.max())
         self._block_max = _block_max(self.data, _BLOCK)
         self._grounds: dict[float, Surface] = {}
+        self._canopy: dict[float, float] = {}
         self._max_slope: float | None = None
 
     def ground(self, window: float) -> "Surface":
         """The bare ground under the plants, estimated from this surface: a morphological opening (the
         highest flat square of side ``window`` metres that fits under the surface, at each point) removes
         every bump narrower than the window and keeps the soil between them exactly, slopes included.
-        Computed on a grid of about :data:`GROUND_CELL` (lowest cell of each block); holes are ignored
-        when they are narrower than the window. Cached per window."""
+        Computed on a grid of about :data:`GROUND_CELL` (lowest cell of each block); blocks holding a DSM
+        hole are holes. Cached per window."""
         if window not in self._grounds:
             from affine import Affine
             from scipy.ndimage import maximum_filter, minimum_filter
 
             block = max(1, int(round(GROUND_CELL / self.pixel_size)))
-            rows, cols = self.data.shape
-            br, bc = -(-rows // block), -(-cols // block)
-            padded = np.full((br * block, bc * block), np.inf)
-            padded[:rows, :cols] = np.where(np.isnan(self.data), np.inf, self.data)
-            low = padded.reshape(br, block, bc, block).min(axis=(1, 3))
+            low, high, hole = _block_stats(self.data, block)
             size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
             eroded = minimum_filter(low, size=size, mode="nearest")
             opened = maximum_filter(np.where(np.isinf(eroded), -np.inf, eroded), size=size, mode="nearest")
-            opened[~np.isfinite(opened)] = np.nan
-            # DSM holes stay holes (a ray meeting the ground there is reported, not placed)
-            nan = np.zeros(padded.shape, dtype=bool)
-            nan[:rows, :cols] = np.isnan(self.data)
-            opened[nan.reshape(br, block, bc, block).any(axis=(1, 3))] = np.nan
+            opened[~np.isfinite(opened) | hole] = np.nan  # DSM holes stay holes: rays meeting them are reported
+            with np.errstate(invalid="ignore"):
+                self._canopy[window] = float(np.nanmax(high - opened, initial=0.0))
             self._grounds[window] = Surface(opened, self.transform * Affine.scale(block), self.crs, self.path)
         return self._grounds[window]
+
+    def canopy_height(self, window: float) -> float:
+        """The greatest height of this surface above its :meth:`ground` (the tallest plant), metres."""
+        self.ground(window)
+        return self._canopy[window]
 
     @classmethod
     def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None,
@@ -379,15 +402,17 @@ class Surface:
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, *, clearance: float = 0.0,
-                  max_steps: int = 200_000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  max_steps: int = 200_000, heights: tuple[np.ndarray, np.ndarray] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of straight rays (in the raster's CRS) with the surface.
 
         Each ray is marched in half-pixel horizontal steps between the heights of the highest and lowest
         valid cell (so slopes and plant edges are found, not a flat plane), and the first bracket is
         bisected. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray
         that grazes a plant's top (the edge of its silhouette) then stays on the plant instead of
-        continuing to the ground behind it. Returns ``points (N, 3)``, ``s (N,)`` (the ray parameter)
-        and ``status (N,)`` (:data:`STATUS_TEXT`); points without a hit are NaN.
+        continuing to the ground behind it. ``heights`` = (top, bottom) (N,) narrows the height range
+        searched per ray when it is known (NaN: the whole range). Returns ``points (N, 3)``, ``s (N,)``
+        (the ray parameter) and ``status (N,)`` (:data:`STATUS_TEXT`); points without a hit are NaN.
         """
         o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
         d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
@@ -396,6 +421,8 @@ class Surface:
         o = np.ascontiguousarray(o)
         s = np.empty(d.shape[0], dtype=np.float64)
         status = np.empty(d.shape[0], dtype=np.int8)
+        z_top, z_bottom = (np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)) if heights is None else \
+            (np.asarray(h, dtype=np.float64).reshape(-1) for h in heights)
         todo = slice(None)
         if clearance == 0.0 and d.shape[0] and self.max_slope * _max_tangent(d) < 0.8:
             done = np.empty(d.shape[0], dtype=np.bool_)
@@ -403,10 +430,12 @@ class Surface:
             status[done] = 0  # HIT
             todo = np.flatnonzero(~done)
             o, d = np.ascontiguousarray(o[todo]), np.ascontiguousarray(d[todo])
+            z_top, z_bottom = z_top[todo], z_bottom[todo]
         s_m = np.empty(d.shape[0], dtype=np.float64)
         st_m = np.empty(d.shape[0], dtype=np.int8)
         _intersect_many(self.data, self._inv, self._block_max, _BLOCK, self.zmin, self.zmax, self.pixel_size,
-                        o, d, float(clearance), int(max_steps), s_m, st_m)
+                        o, d, float(clearance), int(max_steps), np.ascontiguousarray(z_top),
+                        np.ascontiguousarray(z_bottom), s_m, st_m)
         s[todo], status[todo] = s_m, st_m
         o, d = np.asarray(origins, dtype=np.float64).reshape(-1, 3), np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         points = o + s[:, None] * d
