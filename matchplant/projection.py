@@ -322,44 +322,6 @@ def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndar
             "hidden": hidden, "faces": faces}
 
 
-def _settle(points: np.ndarray, status: np.ndarray, cam: np.ndarray, surface: Surface,
-            clearance: float) -> np.ndarray:
-    """Rays stopped ``clearance`` above the surface: let those that go on to meet the surface within
-    twice that height drop onto it (exact hits: soil at a leaf tip, a plant's side); those that would
-    fall further only grazed a plant's top and stay where they stopped, on the plant."""
-    ok = np.flatnonzero(status == HIT)
-    if ok.size == 0:
-        return points
-    start = points[ok]
-    d = start - cam
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    # only the stretch of the ray over which it sinks 2 x clearance matters: sample it about once per DSM
-    # cell (the bilinear surface is linear within a cell) instead of following grazing rays to the soil
-    depth = 2 * clearance
-    s_max = depth / np.maximum(-d[:, 2], 1e-9)
-    horiz = s_max * np.hypot(d[:, 0], d[:, 1])
-    k = int(min(400, max(2, np.ceil(horiz.max(initial=0.0) / surface.pixel_size) + 1)))
-    s = s_max[:, None] * (np.arange(1, k + 1) / k)[None, :]
-    p = start[:, None, :] + s[..., None] * d[:, None, :]
-    f = p[..., 2] - surface.sample(p[..., 0], p[..., 1])
-    below = f <= 0  # NaN (a hole) never counts as a crossing
-    drop = below.any(axis=1)
-    if not drop.any():
-        return points
-    # the crossing, linearly between the last sample above and the first at or below the surface
-    # (a cell or less apart: the bilinear surface is nearly straight there, sub-millimetre error)
-    rows = np.flatnonzero(drop)
-    first = below[rows].argmax(axis=1)
-    s1, f1 = s[rows, first], f[rows, first]
-    s0 = np.where(first > 0, s[rows, np.maximum(first - 1, 0)], 0.0)
-    f0 = np.where(first > 0, f[rows, np.maximum(first - 1, 0)], clearance)
-    w = np.clip(np.where(f0 - f1 > 0, f0 / np.where(f0 - f1 > 0, f0 - f1, 1.0), 1.0), 0.0, 1.0)
-    s_hit = s0 + w * (s1 - s0)
-    out = points.copy()
-    out[ok[rows]] = start[rows] + s_hit[:, None] * d[rows]
-    return out
-
-
 def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
                   map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
                   ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -400,7 +362,10 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
             top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
         pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, heights=(top, gz - 0.05))
         if clearance > 0:
-            pts = _settle(pts, st, cam, surface, clearance)
+            # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
+            # exact hit (soil at a leaf tip, a plant's side); one that would fall further grazed a plant's top
+            hit = st == HIT
+            pts[hit] = surface.drop(pts[hit], pts[hit] - cam, 2 * clearance)  # along the ray, in map space
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
@@ -621,18 +586,18 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     reason = np.full(n, "", dtype=object)
     reason[table["score"].to_numpy() < min_score] = "score below min_score"
     resolved = {name: resolve_image(name, und_ids, orig_ids, image_type) for name in table["source_image"].unique()}
-    table["shot_id"] = [resolved[s][0] for s in table["source_image"]]
-    table["undistorted"] = [resolved[s][1] for s in table["source_image"]]
+    table["shot_id"] = table["source_image"].map({k: v[0] for k, v in resolved.items()})
+    table["undistorted"] = table["source_image"].map({k: v[1] for k, v in resolved.items()}).astype(bool)
     reason[(reason == "") & table["shot_id"].isna().to_numpy()] = NOT_IN_RECONSTRUCTION
     reason[(reason == "") & ~((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))] = EMPTY_BOX
 
     # one group per (shot, undistorted?): its camera, its boxes
     known = table["shot_id"].notna().to_numpy()
     group = np.full(n, -1)
-    keys_df = table.loc[known, ["shot_id", "undistorted"]]
-    codes, uniq = pd.factorize(pd.MultiIndex.from_frame(keys_df)) if known.any() else (np.zeros(0, int), [])
+    shot_codes, shot_ids = pd.factorize(table.loc[known, "shot_id"])
+    codes, pairs = pd.factorize(2 * shot_codes + table.loc[known, "undistorted"].to_numpy(int))
     group[known] = codes
-    keys = list(uniq)
+    keys = [(shot_ids[p // 2], bool(p % 2)) for p in pairs]
     warned: set = set()
     shots = [_shot(project, sid, bool(und), warned) for sid, und in keys]
     size = np.full((n, 2), np.nan)
@@ -648,7 +613,9 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     if dsm is None:
         project.require("dsm")
     surfaces = _Surfaces(dsm_path, frame.crs, ground_window)
-    groups = {int(k): todo[group[todo] == k] for k in np.unique(group[todo])}
+    by_group = todo[np.argsort(group[todo], kind="stable")]
+    keys_todo, starts = np.unique(group[by_group], return_index=True)
+    groups = {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
     bounds = {k: _ray_bounds(shots[k], frame, boxes[idx], surfaces.z_lo, surfaces.z_hi) for k, idx in groups.items()}
     surfaces.prepare(list(bounds.values()))
 

@@ -253,6 +253,26 @@ def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, cleara
 
 
 @numba.njit(cache=True, nogil=True)
+def _drop_many(data, inv, pixel, p, d, depth, out):
+    """Each point, left on its ray (direction ``d``) just above the surface: follow the ray down by at most
+    ``depth``; where it meets the surface on the way, move the point there."""
+    for i in range(p.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2] = p[i, 0], p[i, 1], p[i, 2]
+        dz = d[i, 2]
+        if not dz < -1e-12 or math.isnan(p[i, 0]):
+            continue
+        horiz = max(math.sqrt(d[i, 0] ** 2 + d[i, 1] ** 2), 1e-12)
+        s_to = depth / -dz
+        n = max(1, int(math.ceil(s_to / (0.5 * pixel / horiz))))
+        f0 = p[i, 2] - _bilinear(data, inv, p[i, 0], p[i, 1])
+        if not f0 > 0.0:
+            continue
+        s, _, status = _crossing(data, inv, p[i], d[i], 0.0, 0.0, s_to, n, f0, 4)
+        if status == 0:
+            out[i, 0], out[i, 1], out[i, 2] = p[i, 0] + s * d[i, 0], p[i, 1] + s * d[i, 1], p[i, 2] + s * dz
+
+
+@numba.njit(cache=True, nogil=True)
 def _intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
     """Rays over a gentle surface (slope x ray tangent < 1 everywhere, so each ray crosses it once): the
     fixed point s = (z_camera - height(s)) / -dz converges in a few steps. Rays that fail (a hole, the
@@ -400,6 +420,15 @@ class Surface:
         col, row = i[0] * x + i[1] * y + i[2], i[3] * x + i[4] * y + i[5]
         rows, cols = self.data.shape
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
+
+    def drop(self, points: np.ndarray, directions: np.ndarray, depth: float) -> np.ndarray:
+        """Points (N, 3) stopped just above the surface on rays along ``directions`` (N, 3): those whose ray
+        meets the surface within ``depth`` metres further down move there, the others stay."""
+        p = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
+        out = np.empty_like(p)
+        _drop_many(self.data, self._inv, self.pixel_size, p, d, float(depth), out)
+        return out
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, *, clearance: float = 0.0,
                   max_steps: int = 200_000, heights: tuple[np.ndarray, np.ndarray] | None = None

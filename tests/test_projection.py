@@ -202,6 +202,22 @@ def test_ground_under_plants_is_the_terrain():
     assert np.abs(err[~soil]).max() < 0.015 and err[~soil].max() < 0.015  # plants up to 0.45 m tall are gone
 
 
+def test_drop_settles_exact_hits_and_keeps_grazing_ones():
+    """A ray stopped 2 cm above the surface drops onto it when it meets it within 4 cm further down (the
+    soil, a plant's side) and stays when it only grazed a top (the soil lies much further down)."""
+    from matchplant.surface import Surface
+
+    Z = np.zeros((200, 200))
+    Z[90:110, 90:110] = 0.5  # a 20 cm block, 0.5 m tall
+    s = Surface(Z, Affine(0.01, 0, 0, 0, -0.01, 2.0))
+    d = np.array([[0.5, 0.0, -1.0], [0.5, 0.0, -1.0]])
+    # on flat soil at x = 0.5, and just past the block's far top edge (x = 1.1, 0.02 above its top)
+    p = np.array([[0.5, 1.0, 0.02], [1.1, 1.0, 0.52]])
+    out = s.drop(p, d, 0.04)
+    np.testing.assert_allclose(out[0], [0.51, 1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(out[1], p[1])
+
+
 def test_box_outline_runs_around_the_box():
     o = P.box_outline(np.array([[10, 20, 30, 60]]), 1)[0]
     assert o.shape == (8, 2)
