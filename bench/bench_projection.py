@@ -3,6 +3,7 @@
     python bench/bench_projection.py            # the large synthetic field (generated once into the temp folder)
     python bench/bench_projection.py --quick    # the small field
     python bench/bench_projection.py --field DIR  # an existing synthetic field
+    NUMBA_NUM_THREADS=1 taskset -c 0 python bench/bench_projection.py   # really one core
 
 Projects the ground-truth boxes of every undistorted image (score 1) and prints boxes/s for the ray/DSM
 intersection and for the whole run (reading, projection, merge), and the accuracy against the truth.
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="use the small field instead of the large one")
     ap.add_argument("--field", help="an existing synthetic field folder")
     ap.add_argument("--edge-points", type=int, default=4)
+    ap.add_argument("--repeat", type=int, default=3, help="runs; the fastest is reported")
     args = ap.parse_args()
     f = field("small" if args.quick else "large", args.field)
     ds = read_dataset(f.boxes_undistorted, validate=False)
@@ -53,12 +55,18 @@ def main() -> None:
     n = len(preds["predictions"])
     project = ODMProject(f.root)
 
-    # the core: ray/DSM intersection of every box outline, image by image
-    t0, c0 = time.perf_counter(), time.process_time()
-    views, rejected = P.project_predictions(project, preds, edge_points=args.edge_points)
-    t1 = time.perf_counter()
-    plants = P.merge_views(views)
-    t2, c2 = time.perf_counter(), time.process_time()
+    # the core: ray/DSM intersection of every box outline, image by image; the best of a few runs, since a
+    # shared virtual machine's speed varies by a third from run to run
+    best = None
+    for _ in range(args.repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        views, rejected = P.project_predictions(project, preds, edge_points=args.edge_points)
+        t1 = time.perf_counter()
+        plants = P.merge_views(views)
+        t2, c2 = time.perf_counter(), time.process_time()
+        if best is None or t2 - t0 < best[2] - best[0]:
+            best = (t0, t1, t2, c2 - c0)
+    t0, t1, t2, cpu = best
     truth = pd.read_csv(f.map_boxes)[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
     m = P.evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     rays = n * 4 * (args.edge_points + 1)
@@ -67,8 +75,8 @@ def main() -> None:
     print(f"projection (read + rays/DSM): {t1 - t0:.2f} s = {n / (t1 - t0):,.0f} boxes/s")
     print(f"merge into plants:            {t2 - t1:.2f} s = {n / max(t2 - t1, 1e-9):,.0f} boxes/s")
     print(f"total:                        {t2 - t0:.2f} s = {n / (t2 - t0):,.0f} boxes/s")
-    print(f"total CPU time (one thread):  {c2 - c0:.2f} s = {n / (c2 - c0):,.0f} boxes/s "
-          "(the wall-clock figures above include waiting for a shared core)")
+    print(f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s "
+          f"(best of {args.repeat} runs; the wall-clock figures include waiting for a shared core)")
     print(f"plants: {len(plants)} (truth {len(truth)}), median views {np.median(plants['views']):.0f}; "
           f"matched {m['share_matched']:.1%}, IoU>0.5 {m['share_iou_above_0.5']:.1%}, "
           f"median IoU {m['iou_median']:.3f}")

@@ -998,7 +998,7 @@ def _coco_map_boxes(path: Path, orthophoto: Path | None) -> np.ndarray:
     boxes = []
     for a in ds["annotations"]:
         x, y, w, h = to_source_pixels(a["bbox"], images[a["image_id"]])
-        xs, ys = t * (np.array([x, x + w]), np.array([y, y + h]))
+        xs, ys = t @ (np.array([x, x + w]), np.array([y, y + h]))
         boxes.append([min(xs), min(ys), max(xs), max(ys)])
     return np.array(boxes, dtype=float).reshape(-1, 4)
 

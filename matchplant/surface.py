@@ -339,7 +339,7 @@ class Surface:
             opened[~np.isfinite(opened) | hole] = np.nan  # DSM holes stay holes: rays meeting them are reported
             with np.errstate(invalid="ignore"):
                 self._canopy[window] = float(np.nanmax(high - opened, initial=0.0))
-            self._grounds[window] = Surface(opened, self.transform * Affine.scale(block), self.crs, self.path)
+            self._grounds[window] = Surface(opened, self.transform @ Affine.scale(block), self.crs, self.path)
         return self._grounds[window]
 
     def canopy_height(self, window: float) -> float:

@@ -315,7 +315,7 @@ def test_chm_ndvi_outputs_and_crs(field):
 
     with rasterio.open(d / "dtm.tif") as src:
         coarse = src.read(1)[::2, ::2] + 0.001  # the ground at the centres of 2 x 2 blocks
-    write_raster(d / "dtm_coarse.tif", coarse, field["t"] * Affine.scale(2))
+    write_raster(d / "dtm_coarse.tif", coarse, field["t"] @ Affine.scale(2))
     t3, _ = extract_stats(polys, [RasterSet(dsm=d / "dsm.tif", dtm=d / "dtm_coarse.tif")], ["max"], [])
     np.testing.assert_allclose(t3["chm_max"], table["chm_max"], atol=1e-4)
 
