@@ -170,7 +170,7 @@ def _refine(data, inv, o, d, clearance, a, b, fa, fb):
 
 @numba.njit(cache=True, nogil=True)
 def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
-    """Fine march from ``s_from`` to ``s_to`` in ``n`` steps; bisect the first crossing.
+    """Fine march from ``s_from`` to ``s_to`` in ``n`` steps; refine the first crossing.
 
     Returns (s_hit or NaN, last f, status) so the caller can continue after this segment.
     """
@@ -197,8 +197,9 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
 def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, clearance, max_steps, z_top, z_bottom,
                     out_s, out_status):
     """For each ray: skip, a block at a time, the stretches where it stays above the highest cell of the
-    3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps; bisect the first
-    step from above ``clearance`` to at or below it."""
+    3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps; refine the first
+    step from above ``clearance`` to at or below it. ``z_top``, ``z_bottom``: per-ray height range to
+    search (NaN: the surface's)."""
     margin = 0.01 + 1e-6 * (abs(zmax) + abs(zmin))
     nbr, nbc = block_max.shape
     for i in range(d.shape[0]):
@@ -385,12 +386,13 @@ class Surface:
 
     @property
     def max_slope(self) -> float:
-        """Steepest slope between neighbouring cells (rise over run), NaN-aware; computed once."""
+        """A bound on the slope (rise over run) of the bilinear surface anywhere: the hypotenuse of the steepest
+        steps between neighbouring cells along x and along y. Computed once."""
         if self._max_slope is None:
             with np.errstate(invalid="ignore"):
-                gx = np.abs(np.diff(self.data, axis=1)) / abs(self.transform.a)
-                gy = np.abs(np.diff(self.data, axis=0)) / abs(self.transform.e)
-            self._max_slope = float(max(np.nanmax(gx, initial=0.0), np.nanmax(gy, initial=0.0)))
+                gx = np.nanmax(np.abs(np.diff(self.data, axis=1)), initial=0.0) / abs(self.transform.a)
+                gy = np.nanmax(np.abs(np.diff(self.data, axis=0)), initial=0.0) / abs(self.transform.e)
+            self._max_slope = float(math.hypot(gx, gy))
         return self._max_slope
 
     @property
@@ -437,7 +439,8 @@ class Surface:
 
         Each ray is marched in half-pixel horizontal steps between the heights of the highest and lowest
         valid cell (so slopes and plant edges are found, not a flat plane), and the first bracket is
-        bisected. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray
+        refined. Over a gentle surface (``max_slope`` x the rays' tangent < 0.8: each ray crosses it once)
+        a fixed-point iteration replaces the march. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray
         that grazes a plant's top (the edge of its silhouette) then stays on the plant instead of
         continuing to the ground behind it. ``heights`` = (top, bottom) (N,) narrows the height range
         searched per ray when it is known (NaN: the whole range). Returns ``points (N, 3)``, ``s (N,)``
