@@ -57,10 +57,13 @@ BOX_OUTSIDE_IMAGE = "box lies outside the image (wrong image name or size?)"
 EMPTY_BOX = "box has no area"
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
 MAX_SURFACE_CELLS = 40_000_000  # above this the DSM is read per image instead of once
+APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for
 MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
 # sides of a view's map box not seen directly: behind the plant's top, behind another plant, or cut by a border
 UNSEEN_COLUMNS = ("unseen_w", "unseen_s", "unseen_e", "unseen_n")
+# sides beside a border cut: they bound only the part of the plant inside the photo (weaker evidence)
+BESIDE_CUT_COLUMNS = ("beside_cut_w", "beside_cut_s", "beside_cut_e", "beside_cut_n")
 FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
 
 
@@ -289,9 +292,14 @@ def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndar
     # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
     sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
     if surface is not None and sel.size:
+        # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
+        # stops a grazing ray a little before its tangent point, short of the top)
         g = (np.arange(apex_grid) + 0.5) / apex_grid
-        ga = le[sel, None, None] + (r - le)[sel, None, None] * g[None, None, :]
-        gb = t[sel, None, None] + (bo - t)[sel, None, None] * g[None, :, None]
+        hs = hidden[sel].astype(float) * APEX_REACH
+        a0, a1 = le[sel] - (r - le)[sel] * hs[:, 3], r[sel] + (r - le)[sel] * hs[:, 1]
+        b0, b1 = t[sel] - (bo - t)[sel] * hs[:, 0], bo[sel] + (bo - t)[sel] * hs[:, 2]
+        ga = a0[:, None, None] + (a1 - a0)[:, None, None] * g[None, None, :]
+        gb = b0[:, None, None] + (b1 - b0)[:, None, None] * g[None, :, None]
         ga, gb = np.broadcast_arrays(ga, gb)
         gx = centre[sel, 0, None, None] + ga * a[sel, 0, None, None] + gb * b[sel, 0, None, None]
         gy = centre[sel, 1, None, None] + ga * a[sel, 1, None, None] + gb * b[sel, 1, None, None]
@@ -334,7 +342,8 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
     (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
     :data:`matchplant.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
-    ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``unseen`` (M, 4:
+    ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``beside_cut`` (M, 4:
+    map sides beside a border cut), ``unseen`` (M, 4:
     map sides west, south, east, north not seen directly: behind the plant's top or cut by a border)
     and ``off_nadir`` (degrees between the plumb line and the ray to the centroid).
     """
@@ -376,7 +385,7 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     out = {"ok": ok, "status": reason, "outline": np.where(on_far[..., None], d_pts, g_pts),
            "bounds": np.full((m, 4), np.nan), "centroid": np.full((m, 2), np.nan),
            "z": np.full(m, np.nan), "area": np.full(m, np.nan), "off_nadir": np.full(m, np.nan),
-           "unseen": np.zeros((m, 4), dtype=bool)}
+           "unseen": np.zeros((m, 4), dtype=bool), "beside_cut": np.zeros((m, 4), dtype=bool)}
     if ok.any():
         nr = near[ok]
         edge_hits = [np.where(nr[:, k, None, None], g_pts[ok][:, e], d_pts[ok][:, e]) for k, e in enumerate(edges)]
@@ -386,7 +395,12 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         z = out["outline"][ok][..., 2].mean(axis=1)
         d = np.column_stack([centroid - cam[:2], z - cam[2]])
         off = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
-        unseen_edges = sb["hidden"] | (cut_edges[ok] if cut_edges is not None else False)
+        cut = cut_edges[ok] if cut_edges is not None else np.zeros_like(sb["hidden"])
+        unseen_edges = sb["hidden"] | cut
+        # a box cut by a border bounds only the plant's part inside the photo: the edges beside the cut
+        # are the plant's only if its outermost point there lies inside the photo
+        beside = (np.roll(cut, 1, axis=1) | np.roll(cut, -1, axis=1)) & ~unseen_edges
+        out["beside_cut"][ok] = (sb["faces"] & beside[:, :, None]).any(axis=1)
         out["bounds"][ok], out["centroid"][ok], out["area"][ok] = sb["bounds"], centroid, sb["area"]
         out["z"][ok], out["off_nadir"][ok] = z, off
         out["unseen"][ok] = (sb["faces"] & unseen_edges[:, :, None]).any(axis=1)
@@ -624,6 +638,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     res_cols = {c: np.full(n, np.nan) for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy", "z", "area_m2",
                                                   "off_nadir_deg")}
     unseen = np.zeros((n, 4), dtype=bool)
+    beside_cut = np.zeros((n, 4), dtype=bool)
     tiles = np.where(per[["tiled"]].to_numpy(), per[["x0", "y0", "tile_w", "tile_h"]].to_numpy(), np.nan)
     cut_edges = _cut(boxes, size, tiles, border_pixels)
     for k in progress(list(groups), desc="projecting", unit="image"):
@@ -641,11 +656,13 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
         res_cols["cx"][good], res_cols["cy"][good] = r["centroid"][r["ok"]].T
         res_cols["z"][good], res_cols["area_m2"][good] = r["z"][r["ok"]], r["area"][r["ok"]]
         res_cols["off_nadir_deg"][good] = r["off_nadir"][r["ok"]]
-        unseen[good] = r["unseen"][r["ok"]]
+        unseen[good], beside_cut[good] = r["unseen"][r["ok"]], r["beside_cut"][r["ok"]]
     for c, v in res_cols.items():
         table[c] = v
     for j, c in enumerate(UNSEEN_COLUMNS):
         table[c] = unseen[:, j]
+    for j, c in enumerate(BESIDE_CUT_COLUMNS):
+        table[c] = beside_cut[:, j]
     table["reason"] = reason
 
     done = reason == ""
@@ -747,8 +764,8 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         # a view cut by a border is partial, and its cut edge is no plant edge (with relief, the ray at the
         # border passes over the plant): a modest overlap is enough, and the best overlap wins below
         # a view with a side it did not see (its box partly guessed) that lies inside another is that plant
-        guessed = t[list(UNSEEN_COLUMNS)].to_numpy().any(axis=1) if all(c in t for c in UNSEEN_COLUMNS) \
-            else np.zeros(n, dtype=bool)
+        partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
+        guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
         smaller = np.where(area[i] <= area[j], i, j)
         strong = (cat[i] == cat[j]) & ((iou >= merge_iou) | ((inside >= MERGE_CONTAINED) & (iou >= merge_iou / 2))
                                        | ((inside >= MERGE_CONTAINED) & guessed[smaller])
@@ -826,16 +843,26 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
 
 def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame) -> None:
     """A side of the representative view that was not seen directly (behind the plant's top or another
-    plant, or cut by a border) is replaced by the median of that side in the plant's other views that saw
-    it; when none did, by the median of the whole views' guesses of it."""
+    plant, cut by a border, or beside a cut) is replaced by the median of that side in the plant's other
+    views that saw it; failing those, in its views cut beside that side that show at least half the
+    representative's area; failing those, by the median of the whole views' guesses of it."""
+    def area(df: pd.DataFrame) -> pd.Series:
+        return (df["xmax"] - df["xmin"]) * (df["ymax"] - df["ymin"])
+
+    rep_area = t["plant_id"].map(pd.Series(area(reps_t).to_numpy(), index=reps_t["plant_id"].to_numpy()))
+    beside_cols = BESIDE_CUT_COLUMNS if all(c in t for c in BESIDE_CUT_COLUMNS) else (None,) * 4
     changed = np.zeros(len(plants), dtype=bool)
-    for side, h in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS):
-        seen = t[side].where(~t[h])
-        med = seen.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
-        # no view saw it: each whole view guessed it (mirrored about the top); their median is the safer guess
-        guess = t[side].where(~t["cut"]).groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
-        med = np.where(np.isfinite(med), med, guess)
-        use = reps_t[h].to_numpy() & np.isfinite(med)
+    for side, h, bc in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols):
+        beside = t[bc] if bc else pd.Series(False, index=t.index)
+        tiers = [t[side].where(~t[h] & ~beside),  # seen whole
+                 t[side].where(~t[h] & beside & (area(t) >= 0.5 * rep_area)),  # most of the plant in view
+                 t[side].where(~t["cut"])]  # the whole views' guesses
+        med = np.full(len(plants), np.nan)
+        for values in tiers:
+            m = values.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
+            med = np.where(np.isfinite(med), med, m)
+        unseen_rep = reps_t[h].to_numpy() | (reps_t[bc].to_numpy() if bc else False)
+        use = unseen_rep & np.isfinite(med)
         plants.loc[use, side] = med[use]
         changed |= use
     ok = changed & (plants["xmax"] > plants["xmin"]) & (plants["ymax"] > plants["ymin"])
