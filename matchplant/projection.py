@@ -58,6 +58,7 @@ EMPTY_BOX = "box has no area"
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
 MAX_SURFACE_CELLS = 40_000_000  # above this the DSM is read per image instead of once
 APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for
+SKIM = 0.1  # metres: a ray that passed this close over a plant before landing on the soil missed the plant's top
 MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
 # sides of a view's map box not seen directly: behind the plant's top, behind another plant, or cut by a border
@@ -245,9 +246,26 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
+def _skimmed(hits: np.ndarray, cam: np.ndarray, surface: Surface, ground: Surface, hidden_height: float,
+             skim: float, canopy: float, samples: int = 16) -> np.ndarray:
+    """Rays (camera to ``hits`` on the soil) that passed less than ``skim`` above a plant (the DSM standing
+    ``hidden_height`` above the ground) on their way down: they went over the plant's top without a ray
+    grazing it, so where they landed is not the plant's edge."""
+    if len(hits) == 0:
+        return np.zeros(0, dtype=bool)
+    d = hits - cam
+    d /= -d[:, 2:3]  # per metre of descent
+    u = (np.arange(1, samples + 1) / samples) * (canopy + skim)  # heights above the hit
+    p = hits[:, None, :] - u[None, :, None] * d[:, None, :]
+    top = surface.sample(p[..., 0], p[..., 1])
+    plant = top - ground.sample(p[..., 0], p[..., 1]) > hidden_height
+    return (plant & (p[..., 2] - top < skim)).any(axis=1)
+
+
 def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
                      surface: Surface | None = None, *, hidden_height: float = 0.05, apex_grid: int = 9,
-                     how: str = "inscribed") -> dict[str, np.ndarray]:
+                     how: str = "inscribed", cam: np.ndarray | None = None, skim: float = 0.1,
+                     canopy: float = 0.0) -> dict[str, np.ndarray]:
     """Map boxes (M, 4) of plants from the hits of the rays along their photo box's edges.
 
     ``edges``: the hits (M, Q, 3) of the top, right, bottom and left edge (:func:`box_outline` order);
@@ -288,6 +306,9 @@ def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndar
         far = ~near[:, k]
         if far.any():
             hidden[far, k] = hit[far, 2] - ground.sample(hit[far, 0], hit[far, 1]) > hidden_height
+            if cam is not None and surface is not None:
+                on_soil = np.flatnonzero(far & ~hidden[:, k])
+                hidden[on_soil, k] = _skimmed(hit[on_soil], cam, surface, ground, hidden_height, skim, canopy)
     t, r, bo, le = (inner[:, k].copy() for k in range(4))
     # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
     sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
@@ -390,7 +411,8 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         nr = near[ok]
         edge_hits = [np.where(nr[:, k, None, None], g_pts[ok][:, e], d_pts[ok][:, e]) for k, e in enumerate(edges)]
         corners = g_pts[ok][:, [e[0] for e in edges], :2]
-        sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box)
+        sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box,
+                              cam=cam, skim=SKIM, canopy=surface.canopy_height(ground_window))
         centroid = sb["centre"]
         z = out["outline"][ok][..., 2].mean(axis=1)
         d = np.column_stack([centroid - cam[:2], z - cam[2]])

@@ -218,6 +218,23 @@ def test_drop_settles_exact_hits_and_keeps_grazing_ones():
     np.testing.assert_allclose(out[1], p[1])
 
 
+def test_rays_that_skimmed_a_plant_are_flagged():
+    """A far-edge ray that passed just over a plant's top and landed on the soil behind it did not mark the
+    plant's edge; one that landed on open soil did."""
+    from matchplant.surface import Surface
+
+    Z = np.zeros((200, 200))
+    Z[90:110, 90:110] = 0.5  # a 20 cm plant, 0.5 m tall, x and y from 0.9 to 1.1
+    s = Surface(Z, Affine(0.01, 0, 0, 0, -0.01, 2.0))
+    cam = np.array([1.0, 1.0, 10.0])
+    # the ray that clears the plant's last full-height point (the centre of its last cell, x = 1.095, z = 0.5)
+    # by 5 cm lands on the soil just behind it
+    skimmed_hit = np.array([1.0 + 0.095 * 10.0 / 9.45, 1.0, 0.0])
+    open_hit = np.array([0.2, 0.2, 0.0])
+    out = P._skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
+    assert out.tolist() == [True, False]
+
+
 def test_box_outline_runs_around_the_box():
     o = P.box_outline(np.array([[10, 20, 30, 60]]), 1)[0]
     assert o.shape == (8, 2)
