@@ -1,10 +1,6 @@
-"""Module 0: write the GNSS log's positions into copies of the flight's images (EXIF GPS).
-
-Usage: python 0_gps_embeder/gps_embed.py --config 0_gps_embeder/config.yaml
-See README.md in this folder; the algorithm is matchplant.gps_embed.
-"""
+"""The older name of gps_embeder.py in this folder, kept so that existing commands and scripts keep working."""
 
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("gps_embed", __file__))
+    raise SystemExit(folder_main(__file__))

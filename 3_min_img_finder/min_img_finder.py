@@ -8,4 +8,4 @@ Uses the config.yaml beside this script when no --config is given; see README.md
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("min_img_finder", __file__))
+    raise SystemExit(folder_main(__file__))

@@ -9,4 +9,4 @@ Every edit is saved at once to <output_dir>/session.json; reopening resumes. See
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("bbox_drawer", __file__))
+    raise SystemExit(folder_main(__file__))

@@ -10,4 +10,4 @@ See README.md.
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("img_splitter", __file__))
+    raise SystemExit(folder_main(__file__))

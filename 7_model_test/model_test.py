@@ -5,11 +5,7 @@ Usage:
     python 7_model_test/model_test.py --set checkpoint=runs/train/checkpoints/best.pt
 """
 
-from pathlib import Path
-
-from matchplant.cli import run_module
+from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    import sys
-
-    raise SystemExit(run_module("model_test", sys.argv[1:], default_config=Path(__file__).resolve().parent / "test_config.yaml"))
+    raise SystemExit(folder_main(__file__, "test_config.yaml"))

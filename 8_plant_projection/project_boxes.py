@@ -1,10 +1,6 @@
-"""Module 8: put the detected plants on the map through the camera poses and the DSM.
-
-Usage: python 8_plant_projection/project_boxes.py --config 8_plant_projection/config.yaml
-See README.md in this folder; the algorithm is matchplant.projection.
-"""
+"""The older name of plant_projection.py in this folder, kept so that existing commands and scripts keep working."""
 
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("project_boxes", __file__))
+    raise SystemExit(folder_main(__file__))

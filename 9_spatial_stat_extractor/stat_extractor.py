@@ -1,9 +1,6 @@
-"""Module 9: plant polygons to GIS files (GeoPackage, shapefile) and one row of statistics per plant
-(height from a CHM or DSM - DTM, NDVI, any band; one or several dates). Add --gui for the window.
+"""The older name of spatial_stat_extractor.py in this folder, kept so that existing commands and scripts keep working."""
 
-    python 9_spatial_stat_extractor/stat_extractor.py --config 9_spatial_stat_extractor/config.yaml
-"""
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":
-    raise SystemExit(folder_main("stat_extractor", __file__))
+    raise SystemExit(folder_main(__file__))

@@ -20,8 +20,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from test_min_images import make_project  # noqa: E402
 
-from matchplant.config import load_config  # noqa: E402
-from matchplant.min_images import MinImageFinder, MinImagesConfig, select_milp  # noqa: E402
+from matchplant.core.config import load_config  # noqa: E402
+from matchplant.min_img_finder.finder import MinImageFinder, MinImagesConfig, select_milp  # noqa: E402
 
 
 def main() -> None:

@@ -23,9 +23,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from matchplant import projection as P  # noqa: E402
-from matchplant.coco import read_dataset  # noqa: E402
-from matchplant.odm import ODMProject  # noqa: E402
+from matchplant.plant_projection import projection as P  # noqa: E402
+from matchplant.core.coco import read_dataset  # noqa: E402
+from matchplant.core.odm import ODMProject  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 

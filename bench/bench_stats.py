@@ -1,7 +1,7 @@
 """Benchmark of module 9's zonal statistics against rasterstats and exactextract.
 
 20,000 plant boxes over an 8,000 x 8,000 float32 raster (a 80 m field at 1 cm), in one run:
-``matchplant.stats_zonal`` (pixel-centre rule) vs rasterstats, and (coverage-weighted) vs exactextract.
+``matchplant.spatial_stat_extractor.zonal`` (pixel-centre rule) vs rasterstats, and (coverage-weighted) vs exactextract.
 Checks that the numbers agree, then prints the times and both ratios.
 
     python bench/bench_stats.py            # full size (a few minutes: rasterstats is slow)
@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     import rasterio
     import rasterstats
 
-    from matchplant.stats_zonal import RasterFileSource, zonal_stats
+    from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -22,9 +22,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from matchplant.coco import make_annotation, new_dataset, write_dataset
-from matchplant.config import load_config
-from matchplant.tiling import TilingConfig, run
+from matchplant.core.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.config import load_config
+from matchplant.img_splitter.tiling import TilingConfig, run
 
 
 def make_photos(folder: Path, n: int, width: int, height: int, boxes_per_image: int = 150) -> Path:

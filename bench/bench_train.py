@@ -1,6 +1,6 @@
 """Benchmark of modules 6 and 7: training and detection speed, and what a short training reaches.
 
-Measures, on synthetic plant tiles (matchplant.detection_synth):
+Measures, on synthetic plant tiles (matchplant.detection.synth):
 - training images/s of MatchPlant's loop (``train``: augmentation, per-part SGD, warm-up, AMP on CUDA,
   validation and checkpoints excluded from the timing) against a bare torchvision loop (same model,
   same data, plain forward/backward/step): the overhead of our loop;
@@ -49,13 +49,13 @@ def main() -> None:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    from matchplant.config import load_config
-    from matchplant.detection_data import CocoDetection, collate
-    from matchplant.detection_model import build_detector, load_detector
-    from matchplant.detection_synth import make_photo, make_tiles
-    from matchplant.device import select_device
-    from matchplant.model_test import detect_image, model_predictor, tile_starts
-    from matchplant.train import TrainConfig, train
+    from matchplant.core.config import load_config
+    from matchplant.detection.data import CocoDetection, collate
+    from matchplant.detection.model import build_detector, load_detector
+    from matchplant.detection.synth import make_photo, make_tiles
+    from matchplant.detection.device import select_device
+    from matchplant.model_test.detect import detect_image, model_predictor, tile_starts
+    from matchplant.model_train.train import TrainConfig, train
 
     device = select_device(args.device)
     tmp = tempfile.TemporaryDirectory()
@@ -106,7 +106,7 @@ def main() -> None:
     photo_w, photo_h = (4 * s, 3 * s) if args.quick else (8 * s, 6 * s)
     photo = work / "photo.png"
     make_photo(photo, photo_w, photo_h, n_plants=photo_w * photo_h // (s * s) * 3, radius=radius, seed=2)
-    from matchplant.detection_data import read_image
+    from matchplant.detection.data import read_image
     img = read_image(photo)
     det_model, _ = load_detector(work / "run" / "checkpoints" / "best.pt", device)
     det_model.roi_heads.score_thresh = 0.5

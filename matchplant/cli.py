@@ -1,77 +1,31 @@
-"""The one command line: ``matchplant <module> --config FILE [--set key=value ...] [--gui]``.
+"""The one command line: ``matchplant <step> --config FILE [--set key=value ...] [--gui]``.
 
-Each numbered folder's script calls :func:`folder_main`, so ``python 8_plant_projection/project_boxes.py``
-and ``matchplant project_boxes`` are the same program. A module plugs in by exposing ``SPEC``, a
-:class:`ModuleSpec`, from the Python module named in :data:`MODULES`.
+Each numbered folder's script calls :func:`folder_main`, so ``python 8_plant_projection/plant_projection.py``
+and ``matchplant plant_projection`` are the same program. The steps come from :mod:`matchplant.steps`
+(one small file per step there); this file only parses arguments, sets up logging and reports errors.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import sys
 import traceback
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Sequence
 
-from .errors import ConfigError, MatchPlantError
+from matchplant import __version__
+from matchplant.core.config import load_config, save_config
+from matchplant.core.errors import ConfigError, MatchPlantError
+from matchplant.core.log import setup_console, start_run_log, stop_run_log
+from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
-# name -> (python module exposing SPEC, numbered folder, one-line summary)
-MODULES: dict[str, tuple[str, str, str]] = {
-    "gps_embed": ("matchplant.gps_embed", "0_gps_embeder", "write GNSS positions into image EXIF"),
-    "gcp_finder": ("matchplant.gcp_finder", "1_gcp_finder", "find and mark GCPs, write gcp_list.txt"),
-    "odm_runner": ("matchplant.odm_runner", "2_odm_runner", "run OpenDroneMap and check its outputs"),
-    "min_img_finder": ("matchplant.min_images", "3_min_img_finder", "fewest undistorted images covering the field"),
-    "bbox_drawer": ("matchplant.annotate", "4_bbox_drawer", "draw plant boxes; COCO and YOLO"),
-    "img_splitter": ("matchplant.tiling", "5_img_splitter", "tile annotated images, split train/val/test"),
-    "train": ("matchplant.train", "6_model_train", "train a Faster R-CNN detector"),
-    "model_test": ("matchplant.model_test", "7_model_test", "COCO evaluation and detection on new images"),
-    "project_boxes": ("matchplant.projection", "8_plant_projection", "put detected plants on the map"),
-    "stat_extractor": ("matchplant.stats", "9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
-    "simfield": ("matchplant.simfield", "", "generate a synthetic ODM project with exact ground truth"),
-    "run": ("matchplant.pipeline", "", "run several modules in order from one pipeline.yaml"),
-}
-ALIASES = {str(i): name for i, name in enumerate(list(MODULES)[:10])}
+def resolve_module(name: str) -> StepSpec:
+    """The step named ``name`` (the CLI's own hook: tests replace it to run a stand-in step)."""
+    return resolve_step(name)
 
 
-@dataclass
-class ModuleSpec:
-    """How the command line drives one module."""
-
-    name: str
-    config: type
-    run: Callable[[Any], Any]
-    gui: Callable[[Any, Path | None], Any] | None = None
-    # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text"); a third item makes it a
-    # switch without a value: "--resume" -> ("resume", "help", "true") means --set resume=true
-    flags: dict[str, tuple[str, ...]] = field(default_factory=dict)
-    output_key: str = "output_dir"
-    # when set, the positional argument fills this key instead of naming a config file
-    # (``matchplant run pipeline.yaml``)
-    positional_key: str | None = None
-
-
-def resolve_module(name: str) -> ModuleSpec:
-    name = ALIASES.get(name, name).replace("-", "_")
-    if name not in MODULES:
-        import difflib
-        close = difflib.get_close_matches(name, list(MODULES), n=1)
-        hint = f"did you mean '{close[0]}'?" if close else "run 'matchplant --help' for the list"
-        raise ConfigError(f"unknown module '{name}'; {hint}")
-    target = MODULES[name][0]
-    try:
-        mod = importlib.import_module(target)
-    except ModuleNotFoundError as exc:
-        if exc.name and (exc.name == target or target.startswith(exc.name + ".")):
-            raise ConfigError(f"module '{name}' is not part of this version of MatchPlant yet",
-                              fix="update MatchPlant (git pull) or check the README for available modules") from exc
-        raise
-    return mod.SPEC
-
-
-def build_parser(spec: ModuleSpec) -> argparse.ArgumentParser:
+def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"matchplant {spec.name}",
                                 description=(spec.config.__doc__ or "").strip().split("\n")[0])
     if spec.positional_key:
@@ -120,10 +74,7 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
         return 1
 
 
-def _run(spec: ModuleSpec, args: argparse.Namespace, default_config: Path | None) -> int:
-    from .config import load_config, save_config
-    from .log import setup_console, start_run_log, stop_run_log
-
+def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) -> int:
     level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
     logger = setup_console(level)
     if args.write_config:
@@ -162,10 +113,15 @@ def _run(spec: ModuleSpec, args: argparse.Namespace, default_config: Path | None
     return 0
 
 
-def folder_main(name: str, script: str | Path) -> int:
-    """Entry point of a numbered folder's script: uses the ``config.yaml`` beside it by default."""
+def folder_main(script: str | Path, config_name: str = "config.yaml") -> int:
+    """Entry point of a numbered folder's script (``8_plant_projection/plant_projection.py``).
+
+    The step is the folder's word (``8_plant_projection`` -> ``plant_projection``); its default config
+    is ``config_name`` beside the script.
+    """
     here = Path(script).resolve().parent
-    default = here / "config.yaml"
+    name = here.name.split("_", 1)[1]
+    default = here / config_name
     return run_module(name, sys.argv[1:], default_config=default if default.is_file() else None)
 
 
@@ -174,14 +130,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: matchplant <module> [--config FILE] [--set KEY=VALUE ...] [--gui] [--debug]\n")
         print("modules:")
-        for i, (name, (_, folder, summary)) in enumerate(MODULES.items()):
+        for i, (name, (folder, summary)) in enumerate(STEPS.items()):
             number = f"{i}" if folder else " "
-            print(f"  {number:>2} {name:<16} {summary}")
+            older = [a for a, n in ALIASES.items() if n == name and not a.isdigit()]
+            also = f" (also: {', '.join(older)})" if older else ""
+            print(f"  {number:>2} {name:<23} {summary}{also}")
         print("\n'matchplant <module> --help' shows a module's options; "
               "'--write-config FILE' writes its commented config.")
         return 0
     if argv[0] in ("--version", "-V"):
-        from . import __version__
         print(f"matchplant {__version__}")
         return 0
     return run_module(argv[0], argv[1:])

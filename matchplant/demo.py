@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .errors import MatchPlantError
-from .io import write_text
-from .log import get_logger, setup_console
+from matchplant.core.errors import MatchPlantError
+from matchplant.core.io import write_text
+from matchplant.core.log import get_logger, setup_console
 
 log = get_logger("demo")
 
@@ -98,8 +98,8 @@ def compare_with_truth(out: Path, field: Path) -> dict:
     import geopandas as gpd
     from scipy.spatial import cKDTree
 
-    from .config import load_config
-    from .stats import SPEC as STATS
+    from matchplant.core.config import load_config
+    from matchplant.spatial_stat_extractor.extract import StatsConfig, run as run_stats
 
     plants = gpd.read_file(out / "8_plants" / "plants.gpkg")
     stats = {}
@@ -117,11 +117,11 @@ def compare_with_truth(out: Path, field: Path) -> dict:
     cent = np.column_stack([plants.geometry.centroid.x, plants.geometry.centroid.y])
     dist, idx = tree.query(cent, distance_upper_bound=0.15)
     # truth NDVI: the same statistics over the true plant boxes (the generator's plant reflectance)
-    truth_cfg = load_config(STATS.config, None, [
+    truth_cfg = load_config(StatsConfig, None, [
         f"polygons={field / 'truth' / 'map_boxes.csv'}", f"output_dir={out / 'report' / 'truth_stats'}",
         f"polygons_crs={json.loads((field / 'truth' / 'field.json').read_text())['crs']}",
         f"rasters.multispectral={field / 'multispectral' / 'multispectral.tif'}", "write_polygons=false"])
-    STATS.run(truth_cfg)
+    run_stats(truth_cfg)
     truth_ndvi = {}
     with open(out / "report" / "truth_stats" / "stats.csv", newline="") as fh:
         for row in csv.DictReader(fh):
@@ -234,8 +234,8 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
 
 def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float = 5.0, pretrained: str = "none",
              tile: int = 128, from_step: str = "") -> Path:
-    from .pipeline import PipelineConfig, read_pipeline, run_pipeline
-    from .simfield import generate_field
+    from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
+    from matchplant.simfield import generate_field
 
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)

@@ -27,10 +27,11 @@ from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
-from .config import load_config, param, read_yaml_mapping, set_value, to_dict, validate
-from .errors import ConfigError, MatchPlantError
-from .io import write_json
-from .log import get_logger
+from matchplant.core.config import load_config, param, read_yaml_mapping, set_value, to_dict, validate
+from matchplant.core.errors import ConfigError, MatchPlantError
+from matchplant.core.io import write_json
+from matchplant.core.log import get_logger
+from matchplant.steps import resolve_step
 
 log = get_logger("pipeline")
 _REF = re.compile(r"\$\{([A-Za-z0-9_.\-]+)\}")
@@ -157,8 +158,6 @@ def _fingerprint(cfg: Any) -> str:
 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
     """Run the steps; returns ``{step: "ran" | "up to date" | "skipped"}``."""
-    from .cli import resolve_module
-
     path = Path(cfg.pipeline)
     top, steps = read_pipeline(path)
     names = [s.name for s in steps]
@@ -173,7 +172,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
     base = path.resolve().parent
     for step in steps:
         forced = forced or (cfg.from_step == step.name) or cfg.force
-        spec = resolve_module(step.module)
+        spec = resolve_step(step.module)
         step_cfg = build_step_config(step, spec, scope, base)
         try:
             validate(step_cfg, source=f"step '{step.name}' of {path.name}")
@@ -213,13 +212,3 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         log.info("[%s] done in %.1f s", step.name, time.time() - t0)
         results[step.name] = "ran"  # later steps see its new files: their fingerprints change by mtime
     return results
-
-
-def _spec():
-    from .cli import ModuleSpec
-
-    return ModuleSpec(name="run", config=PipelineConfig, run=run_pipeline, positional_key="pipeline",
-                      flags={"--from": ("from_step", "re-run from this step on")})
-
-
-SPEC = _spec()

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from matchplant.annotate import (AnnotateConfig, AnnotationStore, coco_to_yolo, open_session, read_yolo,
+from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, coco_to_yolo, open_session, read_yolo,
                                  run, yolo_to_coco)
-from matchplant.coco import make_annotation, new_dataset, validate_dataset, write_dataset, write_predictions
-from matchplant.config import load_config
-from matchplant.errors import ConfigError, InputError
+from matchplant.core.coco import make_annotation, new_dataset, validate_dataset, write_dataset, write_predictions
+from matchplant.core.config import load_config
+from matchplant.core.errors import ConfigError, InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
@@ -45,7 +45,7 @@ def photos(tmp_path) -> Path:
 
 
 def _gui(store):
-    from matchplant.annotate_gui import AnnotatorGUI
+    from matchplant.bbox_drawer.gui import AnnotatorGUI
     return AnnotatorGUI(store, headless=True, dpi=60)  # small: every synthesised event redraws the figure
 
 
@@ -142,8 +142,8 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
 
 @pytest.mark.gui
 def test_gui_shows_owned_area(photos, tmp_path):
-    from matchplant.annotate import read_owned_areas
-    from matchplant.annotate_gui import AnnotatorGUI
+    from matchplant.bbox_drawer.annotate import read_owned_areas
+    from matchplant.bbox_drawer.gui import AnnotatorGUI
 
     owned = tmp_path / "owned.json"
     owned.write_text(json.dumps({"a.png": [[10, 10], [190, 10], [190, 140], [10, 140]]}))
@@ -159,8 +159,8 @@ KILLED = textwrap.dedent("""
     import sys
     sys.path.insert(0, {tests!r})
     import gui_events as ge
-    from matchplant.annotate import AnnotationStore
-    from matchplant.annotate_gui import AnnotatorGUI
+    from matchplant.bbox_drawer.annotate import AnnotationStore
+    from matchplant.bbox_drawer.gui import AnnotatorGUI
     g = AnnotatorGUI(AnnotationStore({photos!r}, {out!r}), headless=True, dpi=60)
     i = 0
     while True:                       # draw boxes until killed; report each one once the GUI returns
@@ -277,7 +277,7 @@ def test_imports_coco_yolo_and_predictions(photos, tmp_path):
 def console_cleanup():
     """The CLI binds a console handler to the (captured) stderr of the test; remove it afterwards."""
     yield
-    from matchplant.log import get_logger
+    from matchplant.core.log import get_logger
     logger = get_logger()
     for h in list(logger.handlers):
         if getattr(h, "_matchplant_console", False):
@@ -341,8 +341,8 @@ XVFB = textwrap.dedent("""
     import matplotlib
     import matplotlib.pyplot as plt
     import gui_events as ge
-    from matchplant.annotate import AnnotationStore
-    from matchplant.annotate_gui import AnnotatorGUI
+    from matchplant.bbox_drawer.annotate import AnnotationStore
+    from matchplant.bbox_drawer.gui import AnnotatorGUI
     store = AnnotationStore({photos!r}, {out!r})
     g = AnnotatorGUI(store, headless=False)
     def act():

@@ -13,12 +13,13 @@ from typing import Literal
 import numpy as np
 import pytest
 
-from matchplant import coco
-from matchplant.cli import ModuleSpec, run_module
-from matchplant.config import load_config, param, section, to_yaml, validate
-from matchplant.errors import ConfigError, InputError, MatchPlantError
-from matchplant.io import atomic_open, read_json, write_json
-from matchplant.odm import ODMProject
+from matchplant.core import coco
+from matchplant.cli import run_module
+from matchplant.steps import StepSpec
+from matchplant.core.config import load_config, param, section, to_yaml, validate
+from matchplant.core.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.io import atomic_open, read_json, write_json
+from matchplant.core.odm import ODMProject
 
 
 @dataclass
@@ -119,7 +120,7 @@ def test_validate_runs_check_hook():
 
 
 def _spec(run):
-    return ModuleSpec(name="demo", config=DemoConfig, run=run)
+    return StepSpec(name="demo", config=DemoConfig, run=run)
 
 
 def test_cli_error_is_one_message_without_traceback(tmp_path, capsys, monkeypatch):
@@ -139,7 +140,7 @@ def test_cli_runs_logs_config_and_versions(tmp_path, capsys, monkeypatch):
 
     def run(cfg):
         seen["cfg"] = cfg
-        from matchplant.log import get_logger
+        from matchplant.core.log import get_logger
         get_logger("demo").info("working")
 
     monkeypatch.setattr(cli, "resolve_module", lambda name: _spec(run))
@@ -184,7 +185,7 @@ def test_console_entry_point_help():
 
 
 def test_device_selection():
-    from matchplant.device import select_device
+    from matchplant.detection.device import select_device
 
     assert select_device("cpu").type == "cpu"
     assert select_device("auto").type in ("cpu", "cuda", "mps")
@@ -329,7 +330,7 @@ def test_quiet_keeps_info_off_the_console(tmp_path, capsys, monkeypatch):
     import matchplant.cli as cli
 
     def run(cfg):
-        from matchplant.log import get_logger
+        from matchplant.core.log import get_logger
         get_logger("demo").info("chatter")
         get_logger("demo").warning("important")
 

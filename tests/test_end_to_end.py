@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from matchplant.cli import run_module
-from matchplant.errors import MatchPlantError
+from matchplant.core.errors import MatchPlantError
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
 

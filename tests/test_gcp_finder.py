@@ -18,11 +18,11 @@ import pytest
 from PIL import Image
 from pyproj import Transformer
 
-from matchplant.config import load_config
-from matchplant.errors import ConfigError, InputError
-from matchplant.gcp_finder import (GcpFinderConfig, MarkStore, camera_rotation, detect_target, find_candidates,
+from matchplant.core.config import load_config
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.gcp_finder.finder import (GcpFinderConfig, MarkStore, camera_rotation, detect_target, find_candidates,
                                    parse_dji_xmp, read_gcp_list, read_image_info, run, track_yaw, write_gcp_list)
-from matchplant.gps_embed import gps_ifd, jpeg_segments
+from matchplant.gps_embeder.embed import gps_ifd, jpeg_segments
 
 from gui_events import click, drag, key  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -261,7 +261,7 @@ def test_unknown_camera_needs_sensor_width(tmp_path):
 
 
 def _gui(root, out, headless=True):
-    from matchplant.gcp_finder_gui import GcpFinderGUI
+    from matchplant.gcp_finder.gui import GcpFinderGUI
 
     cfg = cfg_for(root, out)
     finder = find_candidates(cfg)
@@ -362,8 +362,8 @@ def test_gui_real_window_xvfb(flight, tmp_path):
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         import matplotlib
         from pathlib import Path
-        from matchplant.gcp_finder import GcpFinderConfig, MarkStore, find_candidates
-        from matchplant.gcp_finder_gui import GcpFinderGUI
+        from matchplant.gcp_finder.finder import GcpFinderConfig, MarkStore, find_candidates
+        from matchplant.gcp_finder.gui import GcpFinderGUI
         from gui_events import click, key
         root, out = Path({str(root)!r}), Path({str(tmp_path)!r})
         cfg = GcpFinderConfig(images=root / "images", survey=root / "survey.csv", survey_crs="EPSG:32614",
@@ -433,7 +433,7 @@ def test_field_predictions_and_auto(tiny_field, tmp_path):
 
 @pytest.mark.gui
 def test_field_gui_clicks(tiny_field, tmp_path):
-    from matchplant.gcp_finder_gui import GcpFinderGUI
+    from matchplant.gcp_finder.gui import GcpFinderGUI
 
     truth = _field_truth(tiny_field)
     cfg = _field_cfg(tiny_field, tmp_path)

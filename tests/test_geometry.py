@@ -10,12 +10,12 @@ from affine import Affine
 from pyproj import CRS, Geod, Transformer
 from scipy.spatial.transform import Rotation
 
-from matchplant.camera import FisheyeCamera, PinholeCamera, camera_from_opensfm
-from matchplant.errors import GeometryError
-from matchplant.frames import OffsetFrame, TopocentricFrame, detect_frame, parse_crs, utm_crs_for
-from matchplant.ground import ground_to_pixels, pixels_to_ground
-from matchplant.reconstruction import Shot, read_reconstruction, write_reconstruction
-from matchplant.surface import HIT, NODATA, OUTSIDE, Surface
+from matchplant.core.camera import FisheyeCamera, PinholeCamera, camera_from_opensfm
+from matchplant.core.errors import GeometryError
+from matchplant.core.frames import OffsetFrame, TopocentricFrame, detect_frame, parse_crs, utm_crs_for
+from matchplant.core.ground import ground_to_pixels, pixels_to_ground
+from matchplant.core.reconstruction import Shot, read_reconstruction, write_reconstruction
+from matchplant.core.surface import HIT, NODATA, OUTSIDE, Surface
 
 BERLIN = "opensfm-berlin"
 

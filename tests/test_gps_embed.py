@@ -17,9 +17,9 @@ import pytest
 from PIL import Image
 from pyproj import Transformer
 
-from matchplant.config import load_config
-from matchplant.errors import ConfigError, InputError, MatchPlantError
-from matchplant.gps_embed import (GpsEmbedConfig, assign_events, embed_gps, estimate_clock_offset, exif_gps,
+from matchplant.core.config import load_config
+from matchplant.core.errors import ConfigError, InputError, MatchPlantError
+from matchplant.gps_embeder.embed import (GpsEmbedConfig, assign_events, embed_gps, estimate_clock_offset, exif_gps,
                                   exif_time, jpeg_scan_data, jpeg_segments, load_exif, read_gnss_log, splice_exif)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -254,7 +254,7 @@ def test_synthetic_field(tiny_field, tmp_path):
 
 def test_unwritable_vendor_tag_is_dropped(tmp_path):
     # SceneType stored as a number (some cameras do): piexif cannot write it back; the copy still works
-    from matchplant.gps_embed import write_gps_copy
+    from matchplant.gps_embeder.embed import write_gps_copy
 
     make_jpeg(tmp_path / "a.jpg", T0 + 0.25)
     exif = load_exif(tmp_path / "a.jpg")

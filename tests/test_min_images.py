@@ -15,9 +15,9 @@ import pytest
 import shapely
 from shapely.geometry import Polygon, box
 
-from matchplant.config import load_config
-from matchplant.errors import InputError
-from matchplant.min_images import (MinImageFinder, MinImagesConfig, build_grid, owned_areas, select_greedy,
+from matchplant.core.config import load_config
+from matchplant.core.errors import InputError
+from matchplant.min_img_finder.finder import (MinImageFinder, MinImagesConfig, build_grid, owned_areas, select_greedy,
                                    select_milp)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,9 +41,9 @@ def make_project(root: Path, nx: int = 4, ny: int = 3, spacing=(2.0, 1.5), altit
     from pyproj import CRS, Transformer
     from rasterio.transform import from_origin
 
-    from matchplant.camera import PinholeCamera
-    from matchplant.frames import write_coords_txt
-    from matchplant.reconstruction import Reconstruction, Shot, write_reconstruction
+    from matchplant.core.camera import PinholeCamera
+    from matchplant.core.frames import write_coords_txt
+    from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
     from scipy.spatial.transform import Rotation
 
     crs = CRS.from_epsg(32614)
@@ -140,7 +140,7 @@ def test_footprint_corners_are_ray_dsm_intersections(finder, small_project):
         assert np.min(np.hypot(*(verts - t[:2]).T)) < 0.01
     # every border vertex lies on the DSM and projects back onto the image border
     assert fp.hit.all()
-    from matchplant.ground import ground_to_pixels
+    from matchplant.core.ground import ground_to_pixels
     np.testing.assert_allclose(ground_to_pixels(fp.shot, fp.border, finder.frame), fp.border_uv, atol=1e-6)
     z = finder.surface.sample(fp.border[:, 0], fp.border[:, 1])
     np.testing.assert_allclose(fp.border[:, 2], z, atol=2e-3)
@@ -263,7 +263,7 @@ def test_owned_areas_partition_the_covered_field(finder):
 
 
 def test_owned_area_in_pixels_maps_back_to_the_ground(finder):
-    from matchplant.ground import pixels_to_ground
+    from matchplant.core.ground import pixels_to_ground
 
     result = finder.evaluate(finder.select())
     for fp in result.selected:
@@ -295,7 +295,7 @@ def test_each_point_of_the_field_owned_once():
 
 
 def test_run_writes_every_output(small_project, tmp_path):
-    from matchplant.min_images import run
+    from matchplant.min_img_finder.finder import run
 
     out = tmp_path / "out"
     result = run(cfg_for(small_project, out, "copy_images=link"))
@@ -350,7 +350,7 @@ def test_missing_dsm_is_a_clear_cli_error(small_project, tmp_path):
 def test_gui_headless_toggle_select_save(small_project, tmp_path):
     from gui_events import click
 
-    from matchplant.min_images_gui import MinImagesGUI
+    from matchplant.min_img_finder.gui import MinImagesGUI
 
     gui = MinImagesGUI(cfg_for(small_project, tmp_path / "out"), headless=True)
     first = list(gui.result.selection.indices)
@@ -390,9 +390,9 @@ def test_gui_real_window_under_xvfb(small_project, tmp_path):
     shot = tmp_path / "gui.png"
     code = f"""
 import matplotlib
-from matchplant.config import load_config
-from matchplant.min_images import MinImagesConfig
-from matchplant.min_images_gui import MinImagesGUI
+from matchplant.core.config import load_config
+from matchplant.min_img_finder.finder import MinImagesConfig
+from matchplant.min_img_finder.gui import MinImagesGUI
 cfg = load_config(MinImagesConfig, None, ["project_dir={small_project}", "output_dir={tmp_path / 'o'}"])
 gui = MinImagesGUI(cfg, headless=False)
 assert matplotlib.get_backend().lower() == "tkagg", matplotlib.get_backend()

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 import torch
 
-from matchplant.coco import make_annotation, new_dataset, read_predictions, write_dataset
-from matchplant.config import load_config
-from matchplant.detection_eval import coco_evaluate, matches_at_iou50, operating_point
-from matchplant.detection_model import build_detector, save_checkpoint
-from matchplant.detection_synth import make_photo, make_tiles
-from matchplant.errors import ConfigError, InputError
-from matchplant.model_test import (ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts)
-from matchplant.train import TrainConfig
+from matchplant.core.coco import make_annotation, new_dataset, read_predictions, write_dataset
+from matchplant.core.config import load_config
+from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
+from matchplant.detection.model import build_detector, save_checkpoint
+from matchplant.detection.synth import make_photo, make_tiles
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.model_test.detect import (ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts)
+from matchplant.model_train.train import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -232,9 +232,9 @@ def test_errors(checkpoint, tmp_path):
 
 
 def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
-    from matchplant.coco import read_dataset
-    from matchplant.detection_data import CocoDetection, read_image
-    from matchplant.tiling import TilingConfig, run as run_tiling
+    from matchplant.core.coco import read_dataset
+    from matchplant.detection.data import CocoDetection, read_image
+    from matchplant.img_splitter.tiling import TilingConfig, run as run_tiling
 
     truth = read_dataset(tiny_field.boxes_undistorted)
     sizes = np.asarray([a["bbox"][2:] for a in truth["annotations"]])

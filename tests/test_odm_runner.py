@@ -19,9 +19,9 @@ from pathlib import Path
 
 import pytest
 
-from matchplant.config import load_config
-from matchplant.errors import ConfigError, DependencyError, InputError
-from matchplant.odm_runner import (CONTAINER_PROJECT, NODEODM_OUTPUTS, ODMRunError, ODMRunnerConfig, check_docker,
+from matchplant.core.config import load_config
+from matchplant.core.errors import ConfigError, DependencyError, InputError
+from matchplant.odm_runner.runner import (CONTAINER_PROJECT, NODEODM_OUTPUTS, ODMRunError, ODMRunnerConfig, check_docker,
                                    check_outputs, docker_command, find_gcp_file, odm_arguments, run)
 
 ROOT = Path(__file__).resolve().parents[1]

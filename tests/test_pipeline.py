@@ -11,11 +11,12 @@ from pathlib import Path
 
 import pytest
 
-import matchplant.cli as cli
-from matchplant.cli import ModuleSpec, run_module
-from matchplant.config import param
-from matchplant.errors import ConfigError, InputError, MatchPlantError
-from matchplant.io import write_text
+import matchplant.pipeline as pipeline
+from matchplant.cli import run_module
+from matchplant.steps import StepSpec
+from matchplant.core.config import param
+from matchplant.core.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.io import write_text
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
 CALLS: list[str] = []
@@ -46,13 +47,13 @@ def count(cfg: CountConfig) -> None:
     write_text(Path(cfg.output_dir) / "count.txt", str(len(cfg.source.read_text().split())))
 
 
-SPECS = {"upper": ModuleSpec("upper", UpperConfig, upper), "count": ModuleSpec("count", CountConfig, count)}
+SPECS = {"upper": StepSpec("upper", UpperConfig, upper), "count": StepSpec("count", CountConfig, count)}
 
 
 @pytest.fixture
 def setup(tmp_path, monkeypatch):
-    real = cli.resolve_module
-    monkeypatch.setattr(cli, "resolve_module", lambda name: SPECS[name] if name in SPECS else real(name))
+    real = pipeline.resolve_step
+    monkeypatch.setattr(pipeline, "resolve_step", lambda name: SPECS[name] if name in SPECS else real(name))
     CALLS.clear()
     (tmp_path / "words.txt").write_text("one two three")
     pipe = tmp_path / "pipeline.yaml"

@@ -20,13 +20,13 @@ from affine import Affine
 from pyproj import CRS
 from scipy.spatial.transform import Rotation
 
-from matchplant import projection as P
-from matchplant.camera import FisheyeCamera, PinholeCamera
-from matchplant.config import load_config
-from matchplant.errors import MatchPlantError
-from matchplant.frames import write_coords_txt
-from matchplant.odm import ODMProject
-from matchplant.reconstruction import Reconstruction, Shot, write_reconstruction
+from matchplant.plant_projection import projection as P
+from matchplant.core.camera import FisheyeCamera, PinholeCamera
+from matchplant.core.config import load_config
+from matchplant.core.errors import MatchPlantError
+from matchplant.core.frames import write_coords_txt
+from matchplant.core.odm import ODMProject
+from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "8_plant_projection"
@@ -186,7 +186,7 @@ def test_ground_under_plants_is_the_terrain():
     """The ground estimated from the DSM (morphological opening) is the sloped terrain wherever the soil
     shows, within a cm or so under the plants, and keeps nothing of the plants (away from the raster's edges,
     where the window runs out of terrain)."""
-    from matchplant.surface import Surface
+    from matchplant.core.surface import Surface
 
     plants = make_plants(np.random.default_rng(3))
     Z, transform = dsm_array(plants)
@@ -205,7 +205,7 @@ def test_ground_under_plants_is_the_terrain():
 def test_drop_settles_exact_hits_and_keeps_grazing_ones():
     """A ray stopped 2 cm above the surface drops onto it when it meets it within 4 cm further down (the
     soil, a plant's side) and stays when it only grazed a top (the soil lies much further down)."""
-    from matchplant.surface import Surface
+    from matchplant.core.surface import Surface
 
     Z = np.zeros((200, 200))
     Z[90:110, 90:110] = 0.5  # a 20 cm block, 0.5 m tall
@@ -221,7 +221,7 @@ def test_drop_settles_exact_hits_and_keeps_grazing_ones():
 def test_rays_that_skimmed_a_plant_are_flagged():
     """A far-edge ray that passed just over a plant's top and landed on the soil behind it did not mark the
     plant's edge; one that landed on open soil did."""
-    from matchplant.surface import Surface
+    from matchplant.core.surface import Surface
 
     Z = np.zeros((200, 200))
     Z[90:110, 90:110] = 0.5  # a 20 cm plant, 0.5 m tall, x and y from 0.9 to 1.1
@@ -462,7 +462,7 @@ def test_folder_config_and_help():
 
 
 def gt_predictions(field, raw=False) -> dict:
-    from matchplant.coco import read_dataset
+    from matchplant.core.coco import read_dataset
 
     ds = read_dataset(field.boxes_raw if raw else field.boxes_undistorted, validate=False)
     return {"images": ds["images"], "categories": ds["categories"],
@@ -504,8 +504,8 @@ def test_topocentric_reconstruction_gives_the_same_plants(tiny_field, tmp_path):
     reconstruction puts them, within 1 cm."""
     from dataclasses import replace
 
-    from matchplant.frames import TopocentricFrame, read_coords_txt
-    from matchplant.reconstruction import read_reconstruction
+    from matchplant.core.frames import TopocentricFrame, read_coords_txt
+    from matchplant.core.reconstruction import read_reconstruction
 
     root = tmp_path / "topo"
     shutil.copytree(tiny_field.root, root, ignore=shutil.ignore_patterns("images*", "*.JPG", "multispectral"))

@@ -13,8 +13,8 @@ import pytest
 import shapely
 from affine import Affine
 
-from matchplant.errors import ConfigError, InputError
-from matchplant.stats_zonal import ArraySource, zonal_stats
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.spatial_stat_extractor.zonal import ArraySource, zonal_stats
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "9_spatial_stat_extractor"
@@ -288,7 +288,7 @@ def test_chm_ndvi_outputs_and_crs(field):
     import geopandas as gpd
     import pyogrio
 
-    from matchplant.stats import RasterSet, extract_stats, read_polygons, write_outputs
+    from matchplant.spatial_stat_extractor.extract import RasterSet, extract_stats, read_polygons, write_outputs
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -327,7 +327,7 @@ def test_chm_ndvi_outputs_and_crs(field):
 
 
 def test_dates_wide_and_long(field):
-    from matchplant.stats import RasterSet, extract_stats, read_polygons
+    from matchplant.spatial_stat_extractor.extract import RasterSet, extract_stats, read_polygons
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -342,7 +342,7 @@ def test_dates_wide_and_long(field):
 
 
 def test_csv_inputs(field, tmp_path):
-    from matchplant.stats import read_polygons
+    from matchplant.spatial_stat_extractor.extract import read_polygons
 
     b = shapely.bounds(field["boxes"])
     pd.DataFrame({"id": field["ids"], "xmin": b[:, 0], "ymin": b[:, 1], "xmax": b[:, 2], "ymax": b[:, 3]}).to_csv(
@@ -360,7 +360,7 @@ def test_csv_inputs(field, tmp_path):
 
 
 def test_bad_inputs_are_explained(field, tmp_path):
-    from matchplant.stats import RasterSet, extract_stats, read_polygons
+    from matchplant.spatial_stat_extractor.extract import RasterSet, extract_stats, read_polygons
 
     d = field["dir"]
     pd.DataFrame({"a": [1], "b": [2]}).to_csv(tmp_path / "nogeom.csv", index=False)
@@ -385,7 +385,7 @@ def test_bad_inputs_are_explained(field, tmp_path):
 
 
 def test_outside_and_nodata_reported(field, caplog):
-    from matchplant.stats import RasterSet, extract_stats, read_polygons
+    from matchplant.spatial_stat_extractor.extract import RasterSet, extract_stats, read_polygons
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -401,7 +401,7 @@ def test_outside_and_nodata_reported(field, caplog):
 
 
 def test_compare_two_sets(field, tmp_path):
-    from matchplant.stats_compare import compare_tables, match_by_iou
+    from matchplant.spatial_stat_extractor.compare import compare_tables, match_by_iou
 
     a = field["boxes"]
     b = shapely.transform(a[[0, 1, 2, 3, 4]], lambda c: c + [0.02, 0.0])  # a "prediction": shifted, one missed
@@ -452,8 +452,8 @@ def test_cli_end_to_end_with_comparison(field):
 
 
 def test_folder_config_and_help():
-    from matchplant.config import load_config
-    from matchplant.stats import StatsConfig
+    from matchplant.core.config import load_config
+    from matchplant.spatial_stat_extractor.extract import StatsConfig
 
     cfg = load_config(StatsConfig, FOLDER / "config.yaml", strict=False)
     assert cfg.mode == "center" and cfg.stats
@@ -463,8 +463,8 @@ def test_folder_config_and_help():
 
 
 def test_config_checks(tmp_path):
-    from matchplant.config import load_config
-    from matchplant.stats import StatsConfig
+    from matchplant.core.config import load_config
+    from matchplant.spatial_stat_extractor.extract import StatsConfig
 
     (tmp_path / "p.gpkg").write_text("x")
     with pytest.raises(ConfigError, match="no raster given"):
@@ -482,7 +482,7 @@ def test_synthetic_field_heights_and_ndvi(tiny_field, tmp_path):
     import rasterio
     import rasterio.features
 
-    from matchplant.stats import RasterSet, extract_stats, read_polygons
+    from matchplant.spatial_stat_extractor.extract import RasterSet, extract_stats, read_polygons
 
     truth = pd.read_csv(tiny_field.plants_csv).set_index("id")
     res = json.loads(tiny_field.field_json.read_text())["raster_res"]

@@ -47,9 +47,9 @@ def small_field(tmp_path):
 
 
 def test_gui_headless(small_field, tmp_path):
-    from matchplant.config import load_config
-    from matchplant.stats import StatsConfig
-    from matchplant.stats_gui import StatsGUI
+    from matchplant.core.config import load_config
+    from matchplant.spatial_stat_extractor.extract import StatsConfig
+    from matchplant.spatial_stat_extractor.gui import StatsGUI
 
     d = small_field["dir"]
     gui = StatsGUI(StatsConfig(), headless=True)
@@ -99,8 +99,8 @@ def test_gui_real_window(small_field, tmp_path):
     d = small_field["dir"]
     code = textwrap.dedent(f"""
         import matplotlib.pyplot as plt
-        from matchplant.stats import StatsConfig
-        from matchplant.stats_gui import StatsGUI
+        from matchplant.spatial_stat_extractor.extract import StatsConfig
+        from matchplant.spatial_stat_extractor.gui import StatsGUI
         cfg = StatsConfig()
         cfg.polygons = __import__("pathlib").Path({str(d / "plants.gpkg")!r})
         cfg.rasters.chm = __import__("pathlib").Path({str(d / "chm.tif")!r})

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from shapely.geometry import box as shapely_box
 
-from matchplant.coco import make_annotation, new_dataset, validate_dataset, write_dataset
-from matchplant.config import load_config
-from matchplant.errors import ConfigError, InputError
-from matchplant.tiling import TilingConfig, plan_image, run, split_images, tile_grid, tile_origins
+from matchplant.core.coco import make_annotation, new_dataset, validate_dataset, write_dataset
+from matchplant.core.config import load_config
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.img_splitter.tiling import TilingConfig, plan_image, run, split_images, tile_grid, tile_origins
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -210,7 +210,7 @@ def test_parallel_equals_serial(field, tmp_path):
 
 
 def test_yolo_labels_as_input_give_the_same_tiles(field, tmp_path):
-    from matchplant.annotate import coco_to_yolo
+    from matchplant.bbox_drawer.annotate import coco_to_yolo
 
     coco_to_yolo(json.loads((field / "annotations.json").read_text()), tmp_path / "yolo")
     a = run(_cfg(field, output_dir=tmp_path / "from_coco"))
@@ -246,7 +246,7 @@ def test_plan_is_vectorised_and_matches_hand_numbers():
 @pytest.mark.gui
 def test_gui_preview_and_run(field, tmp_path):
     import gui_events as ge
-    from matchplant.tiling_gui import TilingGUI
+    from matchplant.img_splitter.gui import TilingGUI
 
     cfg = _cfg(field, output_dir=tmp_path / "gui_out")
     g = TilingGUI(cfg, headless=True, dpi=40)  # small: each synthesised event redraws the figure
@@ -289,9 +289,9 @@ import sys
 from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
-from matchplant.config import load_config
-from matchplant.tiling import TilingConfig
-from matchplant.tiling_gui import TilingGUI
+from matchplant.core.config import load_config
+from matchplant.img_splitter.tiling import TilingConfig
+from matchplant.img_splitter.gui import TilingGUI
 cfg = load_config(TilingConfig, None, {sets!r})
 g = TilingGUI(cfg, headless=False)
 timer = g.fig.canvas.new_timer(interval=300)

@@ -12,13 +12,14 @@ import pytest
 import torch
 
 from matchplant.cli import build_parser
-from matchplant.config import field_help, load_config
-from matchplant.detection_data import AugmentConfig, CocoDetection
-from matchplant.detection_model import (ModelConfig, apply_freezing, build_detector, load_detector,
+from matchplant.core.config import field_help, load_config
+from matchplant.detection.data import AugmentConfig, CocoDetection
+from matchplant.detection.model import (ModelConfig, apply_freezing, build_detector, load_detector,
                                         read_checkpoint)
-from matchplant.detection_synth import make_tiles
-from matchplant.errors import ConfigError, DependencyError, InputError
-from matchplant.train import SPEC, TrainConfig, build_optimizer, build_scheduler, lr_factor, train
+from matchplant.detection.synth import make_tiles
+from matchplant.core.errors import ConfigError, DependencyError, InputError
+from matchplant.steps.model_train import SPEC
+from matchplant.model_train.train import TrainConfig, build_optimizer, build_scheduler, lr_factor, train
 
 ROOT = Path(__file__).resolve().parents[1]
 MOBILE = "fasterrcnn_mobilenet_v3_large_fpn"
@@ -168,7 +169,7 @@ def test_coco_weights_load_and_rebuild_without_download(monkeypatch, tmp_path):
     import torchvision.models._api as api
     from torchvision.ops.misc import FrozenBatchNorm2d
 
-    from matchplant.detection_model import save_checkpoint
+    from matchplant.detection.model import save_checkpoint
 
     cfg = load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=coco"])
     torch.manual_seed(3)

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..cli import ModuleSpec
-from .config import PRESETS, SimFieldConfig, Settings, config_from, resolve
-from .layout import FieldPaths
+from matchplant.simfield.config import PRESETS, SimFieldConfig, Settings, config_from, resolve
+from matchplant.simfield.layout import FieldPaths
 
-__all__ = ["generate_field", "run", "SimFieldConfig", "Settings", "PRESETS", "FieldPaths", "resolve", "SPEC"]
+__all__ = ["generate_field", "run", "SimFieldConfig", "Settings", "PRESETS", "FieldPaths", "resolve"]
 
 
 def generate_field(preset: str = "tiny", seed: int = 0, out: str | Path = "simfield_out", **overrides) -> FieldPaths:
@@ -28,13 +27,6 @@ def generate_field(preset: str = "tiny", seed: int = 0, out: str | Path = "simfi
 
 
 def run(cfg: SimFieldConfig) -> FieldPaths:
-    from .generate import generate
+    from matchplant.simfield.generate import generate
 
     return generate(cfg)
-
-
-SPEC = ModuleSpec(
-    name="simfield", config=SimFieldConfig, run=run,
-    flags={"--preset": ("preset", f"field size: {', '.join(PRESETS)}"),
-           "--seed": ("seed", "random seed (the same seed gives the same field)"),
-           "--out": ("output_dir", "folder to write the project into")})

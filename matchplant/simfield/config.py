@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
-from ..config import param
-from ..errors import ConfigError
+from matchplant.core.config import param
+from matchplant.core.errors import ConfigError
 
 # Field site: near Lincoln, Nebraska (UTM zone 14N). The south-west corner of the rasters lies here.
 SITE_LON, SITE_LAT = -96.6, 40.85
@@ -112,7 +112,7 @@ def config_from(preset: str = "tiny", seed: int = 0, out: str | Path = "simfield
         hints = [difflib.get_close_matches(u, names, n=1) for u in unknown]
         hint = "; ".join(f"'{u}'" + (f" (did you mean '{h[0]}'?)" if h else "") for u, h in zip(unknown, hints))
         raise ConfigError(f"unknown simfield setting {hint}", fix=f"valid settings: {', '.join(sorted(names))}")
-    from ..config import validate
+    from matchplant.core.config import validate
     cfg = SimFieldConfig(preset=preset, seed=int(seed), output_dir=Path(out), **overrides)
     validate(cfg, source="generate_field()")
     return cfg

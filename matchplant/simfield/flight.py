@@ -1,6 +1,6 @@
 """The camera, the lawn-mower flight, and the rendering of images by ray casting into the field.
 
-Poses are :class:`~matchplant.reconstruction.Shot` objects in the local frame (map CRS minus the
+Poses are :class:`~matchplant.core.reconstruction.Shot` objects in the local frame (map CRS minus the
 ``coords.txt`` offset), the frame ODM's ``reconstruction.json`` is in. Rays come from
 ``Shot.ray_directions`` (the foundation's camera conventions) and are intersected with the field's
 surface: terrain (analytic) plus the canopy-height raster, marched in steps finer than a pixel's
@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..camera import PinholeCamera
-from ..reconstruction import Shot
-from .config import Settings
-from .scene import Rasters, Terrain
+from matchplant.core.camera import PinholeCamera
+from matchplant.core.reconstruction import Shot
+from matchplant.simfield.config import Settings
+from matchplant.simfield.scene import Rasters, Terrain
 
 START_UTC = dt.datetime(2024, 6, 5, 15, 30, 0, tzinfo=dt.timezone.utc)  # early-season maize flight
 SHOT_INTERVAL_S = 2.0

@@ -14,19 +14,19 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from ..coco import make_annotation, new_dataset, write_dataset
-from ..errors import ConfigError
-from ..frames import OffsetFrame, TopocentricFrame, utm_crs_for, write_coords_txt
-from ..io import atomic_open, atomic_path, write_json, write_text
-from ..log import get_logger
-from ..progress import progress
-from ..reconstruction import Reconstruction, Shot, write_reconstruction
-from .config import SITE_LAT, SITE_LON, SimFieldConfig, Settings, resolve
-from .flight import (SENSOR_WIDTH_MM, SHOT_INTERVAL_S, TURN_S, Exposure, footprint, gps_time_of_week,
+from matchplant.core.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.errors import ConfigError
+from matchplant.core.frames import OffsetFrame, TopocentricFrame, utm_crs_for, write_coords_txt
+from matchplant.core.io import atomic_open, atomic_path, write_json, write_text
+from matchplant.core.log import get_logger
+from matchplant.core.progress import progress
+from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
+from matchplant.simfield.config import SITE_LAT, SITE_LON, SimFieldConfig, Settings, resolve
+from matchplant.simfield.flight import (SENSOR_WIDTH_MM, SHOT_INTERVAL_S, TURN_S, Exposure, footprint, gps_time_of_week,
                      make_camera, plan_flight, render)
-from .layout import FieldPaths
-from .scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
-from .truth import candidates_near, image_boxes
+from matchplant.simfield.layout import FieldPaths
+from matchplant.simfield.scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
+from matchplant.simfield.truth import candidates_near, image_boxes
 
 log = get_logger("simfield")
 NODATA = -9999.0

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import GROUND_ALTITUDE, Settings
+from matchplant.simfield.config import GROUND_ALTITUDE, Settings
 
 ROW_SPACING = 0.76     # m between maize rows (30 in)
 PLANT_SPACING = 0.20   # m between plants within a row

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..reconstruction import Shot
-from .scene import MAX_LEAVES, Plants, Terrain
+from matchplant.core.reconstruction import Shot
+from matchplant.simfield.scene import MAX_LEAVES, Plants, Terrain
 
 MIN_BOX_PX = 0.5  # a plant counts as visible when its box reaches a pixel centre (half a pixel in)
 RING = 72 + MAX_LEAVES  # points per ring of Plants.surface_points  # a plant counts as visible when at least this much of its box is in the image

@@ -1,0 +1,1 @@
+"""Module 4 (4_bbox_drawer): draw plant boxes; COCO and YOLO."""

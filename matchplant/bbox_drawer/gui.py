@@ -1,0 +1,381 @@
+"""Module 4's window: draw and correct plant boxes. A thin layer over :class:`~matchplant.bbox_drawer.annotate.AnnotationStore`.
+
+Mouse: drag on empty image to draw a box; click a box to select it; drag a selected box to move it,
+drag its edge or corner to resize it; right or middle drag pans; the wheel zooms around the cursor.
+Every edit is saved at once by the store; the help panel (key ``h``) lists the keys.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, display_rgb, match_name, open_session, read_image,
+                       read_owned_areas)
+from matchplant.core.config import validate
+from matchplant.core.gui import pyplot, show
+from matchplant.core.log import get_logger
+
+log = get_logger("annotate")
+
+COLORS = ["#ffd400", "#00e5ff", "#ff3df2", "#7cff4d", "#ff8c1a"]  # category 1..5, visible on green and soil
+HANDLE_PX = 8       # how near (screen pixels) an edge must be to grab it
+CLICK_PX = 3        # a press and release closer than this (screen pixels) is a click, not a drag
+ZOOM_STEP = 1.25
+
+HELP = """MOUSE
+ drag on image    draw a box
+ click box        select it
+ drag selected    move it
+ drag its edge    resize it
+ right/middle drag
+                  pan
+ wheel            zoom
+
+KEYS
+ 1-5        category (new boxes,
+            and the selected box)
+ delete, d  delete selected box
+ z / ctrl+z undo
+ y / ctrl+y redo
+ n, pgdown  next image
+ p, pgup    previous image
+ arrows     pan
+ + / -      zoom in / out
+ 0, home    whole image
+ escape     deselect
+ e          export COCO/YOLO now
+ h          hide/show this help
+ q          export and close
+
+Every edit is saved at once;
+reopen to resume."""
+
+
+class AnnotatorGUI:
+    """The annotation window over ``store``. ``headless=True`` (tests) uses the Agg backend."""
+
+    def __init__(self, store: AnnotationStore, owned_areas: dict[str, np.ndarray] | None = None,
+                 headless: bool | None = None, export_yolo: bool = True, include_unseen: bool = False,
+                 dpi: float | None = None):
+        self.store = store
+        # owned-area polygons keyed by this folder's image names (module 3 may name the shot, not the .tif)
+        self.owned = {match_name(k, store.files): v for k, v in (owned_areas or {}).items()}
+        self.export_options = {"yolo": export_yolo, "include_unseen": include_unseen}
+        plt = pyplot(headless)
+        self.plt = plt
+        self.fig = plt.figure(figsize=(13, 8), dpi=dpi)
+        self._quiet_default_keys()
+        self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
+        self.help_ax = self.fig.add_axes([0.76, 0.05, 0.23, 0.90])
+        self.help_ax.axis("off")
+        self.status = self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace")
+        self.category = 1
+        self.selected: int | None = None
+        self.drag: dict | None = None
+        self.artists: list = []
+        self.preview = None
+        self.image_artist = None
+        self.message = ""
+        self._draw_help()
+        for event, handler in (("button_press_event", self.on_press), ("motion_notify_event", self.on_motion),
+                               ("button_release_event", self.on_release), ("key_press_event", self.on_key),
+                               ("scroll_event", self.on_scroll), ("close_event", self.on_close)):
+            self.fig.canvas.mpl_connect(event, handler)
+        self.show_image(store.current)
+
+    # -- setup and drawing
+    def _quiet_default_keys(self) -> None:
+        """Matplotlib's own keys (s = save, l = log scale, ...) would clash with ours."""
+        handler = getattr(self.fig.canvas.manager, "key_press_handler_id", None) if self.fig.canvas.manager else None
+        if handler is not None:
+            self.fig.canvas.mpl_disconnect(handler)
+
+    def _draw_help(self) -> None:
+        """The help panel, rendered once as a picture: redrawing ~40 lines of text on every mouse move
+        would make the window sluggish."""
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        pos = self.help_ax.get_position()
+        w, h = self.fig.get_size_inches()
+        panel = Figure(figsize=(pos.width * w, pos.height * h), dpi=self.fig.dpi, facecolor="white")
+        FigureCanvasAgg(panel)
+        cats = "\n".join(f"     {i + 1}  {name}" for i, name in enumerate(self.store.categories))
+        text = panel.text(0.02, 0.99, "CATEGORIES\n" + cats + "\n\n" + HELP, va="top", ha="left",
+                          family="monospace", fontsize=8.5, linespacing=1.25)
+        panel.canvas.draw()
+        # colour swatches in front of the category lines (line height from the rendered text)
+        box = text.get_window_extent()
+        line = box.height / (text.get_text().count("\n") + 1) / (pos.height * h * self.fig.dpi)
+        for i in range(len(self.store.categories)):
+            panel.patches.append(self.plt.Rectangle((0.03, 0.99 - line * (i + 1.95)), 0.06, line * 0.7,
+                                                    transform=panel.transFigure, figure=panel, color=COLORS[i]))
+        panel.canvas.draw()
+        self.help_ax.clear()
+        self.help_ax.axis("off")
+        self.help_ax.imshow(np.asarray(panel.canvas.buffer_rgba()), aspect="auto", interpolation="nearest")
+
+    @property
+    def name(self) -> str:
+        return self.store.current
+
+    def show_image(self, name: str) -> None:
+        self.store.set_current(name)
+        self.selected = None
+        self.drag = None
+        img = display_rgb(read_image(self.store.files[name]))
+        w, h = self.store.size(name)
+        self.ax.clear()
+        # extent puts data coordinates on pixel edges: x = 0 is the left edge of the first pixel (COCO)
+        self.image_artist = self.ax.imshow(img, extent=(0, w, h, 0), interpolation="nearest",
+                                           cmap="gray" if img.ndim == 2 else None)
+        poly = self.owned.get(name)
+        if poly is not None:
+            self.ax.add_patch(self.plt.Polygon(poly, closed=True, fill=False, ls="--", lw=1.5, ec="white"))
+        self.ax.set_xticks([])
+        self.ax.set_yticks([])
+        self.preview = None
+        self.artists = []
+        self.reset_view()
+        self.redraw()
+
+    def reset_view(self) -> None:
+        w, h = self.store.size(self.name)
+        self.ax.set_xlim(0, w)
+        self.ax.set_ylim(h, 0)
+
+    def redraw(self) -> None:
+        for a in self.artists:
+            a.remove()
+        self.artists = []
+        boxes = self.store.boxes(self.name)
+        for b in boxes:
+            x1, y1, x2, y2 = b["xyxy"]
+            sel = b["id"] == self.selected
+            rect = self.plt.Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=COLORS[b["category_id"] - 1],
+                                      lw=2.6 if sel else 1.3, ls="--" if "score" in b else "-")
+            self.ax.add_patch(rect)
+            self.artists.append(rect)
+            if sel:
+                corners = np.array([[x1, y1], [x2, y1], [x2, y2], [x1, y2]])
+                (dots,) = self.ax.plot(corners[:, 0], corners[:, 1], "s", ms=6, mfc="white",
+                                       mec=COLORS[b["category_id"] - 1])
+                self.artists.append(dots)
+        self.ax.set_title(self.name, fontsize=10)
+        i = self.store.images.index(self.name) + 1
+        cat = self.store.categories[self.category - 1]
+        self.status.set_text(f"image {i}/{len(self.store.images)}   boxes {len(boxes)}   new boxes: "
+                             f"{self.category}={cat}   {self.message}")
+        self.fig.canvas.draw_idle()
+
+    # -- geometry helpers
+    def data_xy(self, event, snap: bool = False) -> tuple[float, float]:
+        """Image coordinates of an event, also when the mouse has left the axes (a box dragged past the
+        edge). ``snap`` rounds to whole pixel edges: boxes drawn by hand are in whole pixels."""
+        x, y = self.ax.transData.inverted().transform((event.x, event.y))
+        return (float(round(x)), float(round(y))) if snap else (float(x), float(y))
+
+    def px_per_unit(self) -> float:
+        x0, x1 = self.ax.get_xlim()
+        return self.ax.bbox.width / abs(x1 - x0)
+
+    def hit(self, x: float, y: float) -> tuple[int | None, str]:
+        """The box under (x, y) and which part: edges like 'lt' or 'r' for resizing, 'in' for moving."""
+        tol = HANDLE_PX / self.px_per_unit()
+        boxes = self.store.boxes(self.name)
+        order = sorted(boxes, key=lambda b: (b["id"] != self.selected,
+                                             (b["xyxy"][2] - b["xyxy"][0]) * (b["xyxy"][3] - b["xyxy"][1])))
+        for b in order:
+            x1, y1, x2, y2 = b["xyxy"]
+            if not (x1 - tol <= x <= x2 + tol and y1 - tol <= y <= y2 + tol):
+                continue
+            if b["id"] == self.selected:
+                edges = ("l" if abs(x - x1) <= tol else "r" if abs(x - x2) <= tol else "") + \
+                        ("t" if abs(y - y1) <= tol else "b" if abs(y - y2) <= tol else "")
+                if edges:
+                    return b["id"], edges
+            if x1 <= x <= x2 and y1 <= y <= y2:
+                return b["id"], "in"
+        return None, ""
+
+    # -- mouse
+    def on_press(self, event) -> None:
+        if event.inaxes is not self.ax:
+            return
+        x, y = self.data_xy(event)
+        start = self.data_xy(event, snap=True)
+        if event.button in (2, 3):
+            self.drag = {"mode": "pan", "px": (event.x, event.y), "xlim": self.ax.get_xlim(),
+                         "ylim": self.ax.get_ylim()}
+            return
+        if event.button != 1:
+            return
+        box_id, part = self.hit(x, y)
+        if box_id is None:
+            self.selected = None
+            self.drag = {"mode": "draw", "start": start, "px": (event.x, event.y)}
+        else:
+            self.selected = box_id
+            self.drag = {"mode": "resize" if part != "in" else "move", "edges": part, "start": start,
+                         "px": (event.x, event.y), "box": self.store.box(self.name, box_id)}
+        self.redraw()
+
+    @staticmethod
+    def _dragged_box(d: dict, x: float, y: float) -> list[float]:
+        x0, y0 = d["start"]
+        if d["mode"] == "draw":
+            return [x0, y0, x, y]
+        x1, y1, x2, y2 = d["box"]["xyxy"]
+        dx, dy = x - x0, y - y0
+        if d["mode"] == "move":
+            return [x1 + dx, y1 + dy, x2 + dx, y2 + dy]
+        e = d["edges"]
+        return [x1 + dx if "l" in e else x1, y1 + dy if "t" in e else y1,
+                x2 + dx if "r" in e else x2, y2 + dy if "b" in e else y2]
+
+    @staticmethod
+    def _is_click(d: dict, event) -> bool:
+        px0, py0 = d["px"]
+        return abs(event.x - px0) < CLICK_PX and abs(event.y - py0) < CLICK_PX
+
+    def on_motion(self, event) -> None:
+        if not self.drag:
+            return
+        if self.drag["mode"] == "pan":
+            inv = self.ax.transData.inverted()
+            (ax0, ay0), (ax1, ay1) = inv.transform([self.drag["px"], (event.x, event.y)])
+            xl, yl = self.drag["xlim"], self.drag["ylim"]
+            self.ax.set_xlim(xl[0] - (ax1 - ax0), xl[1] - (ax1 - ax0))
+            self.ax.set_ylim(yl[0] - (ay1 - ay0), yl[1] - (ay1 - ay0))
+            self.fig.canvas.draw_idle()
+            return
+        if self._is_click(self.drag, event):
+            return
+        x1, y1, x2, y2 = self._dragged_box(self.drag, *self.data_xy(event, snap=True))
+        if self.preview is None:
+            self.preview = self.plt.Rectangle((x1, y1), 0, 0, fill=False, ec="white", lw=1.2, ls=":")
+            self.ax.add_patch(self.preview)
+        self.preview.set_bounds(min(x1, x2), min(y1, y2), abs(x2 - x1), abs(y2 - y1))
+        self.fig.canvas.draw_idle()
+
+    def on_release(self, event) -> None:
+        d, self.drag = self.drag, None
+        if self.preview is not None:
+            self.preview.remove()
+            self.preview = None
+        if not d or d["mode"] == "pan":
+            return
+        click = self._is_click(d, event)
+        box = self._dragged_box(d, *self.data_xy(event, snap=True))
+        if click:
+            self.message = "" if d["mode"] == "draw" else "selected"
+        elif d["mode"] == "draw":
+            new = self.store.add(self.name, box, self.category)
+            self.selected = new
+            self.message = "box added" if new is not None else "too small: no box"
+        elif d["mode"] == "move":
+            x1, y1 = d["box"]["xyxy"][:2]
+            self.store.move(self.name, d["box"]["id"], box[0] - x1, box[1] - y1)
+            self.message = "box moved"
+        else:
+            self.store.resize(self.name, d["box"]["id"], box)
+            self.message = "box resized"
+        self.redraw()
+
+    def on_scroll(self, event) -> None:
+        if event.inaxes is not self.ax:
+            return
+        self.zoom(ZOOM_STEP ** (event.step if event.step else (1 if event.button == "up" else -1)),
+                  self.data_xy(event))
+
+    def zoom(self, factor: float, center: tuple[float, float] | None = None) -> None:
+        (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
+        cx, cy = center if center else ((x0 + x1) / 2, (y0 + y1) / 2)
+        self.ax.set_xlim(cx + (x0 - cx) / factor, cx + (x1 - cx) / factor)
+        self.ax.set_ylim(cy + (y0 - cy) / factor, cy + (y1 - cy) / factor)
+        self.fig.canvas.draw_idle()
+
+    def pan(self, fx: float, fy: float) -> None:
+        (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
+        dx, dy = fx * (x1 - x0), fy * (y0 - y1)  # y axis is inverted (image rows grow downwards)
+        self.ax.set_xlim(x0 + dx, x1 + dx)
+        self.ax.set_ylim(y0 + dy, y1 + dy)
+        self.fig.canvas.draw_idle()
+
+    # -- keys
+    def on_key(self, event) -> None:
+        k = (event.key or "").lower()
+        if k in {str(i) for i in range(1, len(self.store.categories) + 1)}:
+            self.category = int(k)
+            if self.selected is not None:
+                self.store.set_category(self.name, self.selected, self.category)
+                self.message = "category changed"
+        elif k in ("delete", "backspace", "d") and self.selected is not None:
+            self.store.delete(self.name, self.selected)
+            self.selected = None
+            self.message = "box deleted"
+        elif k in ("z", "ctrl+z", "cmd+z"):
+            self._history(self.store.undo(), "undone", "nothing to undo")
+            return
+        elif k in ("y", "ctrl+y", "cmd+y", "ctrl+shift+z"):
+            self._history(self.store.redo(), "redone", "nothing to redo")
+            return
+        elif k in ("n", "pagedown", " "):
+            self.export()
+            self.show_image(self.store.images[(self.store.images.index(self.name) + 1) % len(self.store.images)])
+            return
+        elif k in ("p", "pageup"):
+            self.export()
+            self.show_image(self.store.images[self.store.images.index(self.name) - 1])
+            return
+        elif k in ("left", "right", "up", "down"):
+            self.pan(*{"left": (-0.2, 0), "right": (0.2, 0), "up": (0, -0.2), "down": (0, 0.2)}[k])
+            return
+        elif k in ("+", "="):
+            self.zoom(ZOOM_STEP)
+            return
+        elif k == "-":
+            self.zoom(1 / ZOOM_STEP)
+            return
+        elif k in ("0", "home"):
+            self.reset_view()
+        elif k == "escape":
+            self.selected = None
+        elif k in ("h", "f1", "?"):
+            self.help_ax.set_visible(not self.help_ax.get_visible())
+        elif k in ("e", "ctrl+s"):
+            paths = self.export()
+            self.message = f"exported {paths['coco'].name}" + (" + YOLO" if "yolo" in paths else "")
+        elif k == "q":
+            self.plt.close(self.fig)
+            return
+        else:
+            return
+        self.redraw()
+
+    def _history(self, image: str | None, done: str, nothing: str) -> None:
+        self.message = done if image else nothing
+        if image and image != self.name:
+            self.show_image(image)  # show the edit that was undone
+            self.message = done
+        self.selected = None
+        self.redraw()
+
+    # -- saving
+    def export(self) -> dict:
+        return self.store.export(coco=True, yolo=self.export_options["yolo"],
+                                 include_unseen=self.export_options["include_unseen"])
+
+    def on_close(self, event=None) -> None:
+        paths = self.export()
+        log.info("annotations exported to %s", paths["coco"])
+
+
+def launch(cfg: AnnotateConfig, headless: bool | None = None) -> AnnotatorGUI:
+    """Open the window for a config (blocks until it is closed, unless headless)."""
+    validate(cfg, source="GUI")
+    store = open_session(cfg)
+    app = AnnotatorGUI(store, read_owned_areas(cfg.owned_areas), headless=headless,
+                       export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen)
+    show(app.fig, headless)
+    return app

@@ -1,0 +1,178 @@
+"""COCO datasets and detection results, with the tile provenance that chains the modules (DESIGN §2).
+
+Dataset: ``{"images": [...], "annotations": [...], "categories": [...]}`` with ``bbox = [x, y, w, h]`` in
+pixels of that image, ``area = w * h``, ``iscrowd = 0``, categories numbered 1..N. A tile's image entry
+also records ``source_image`` (file name of the photo it was cut from) and its offset ``x0``, ``y0``.
+
+Predictions (module 7 -> 8, 4): a JSON object ``{"images": [...], "categories": [...],
+"predictions": [{"image_id", "category_id", "bbox", "score"}, ...]}``; each image entry carries
+``file_name``, ``width``, ``height`` and, for tiles, ``source_image``, ``x0``, ``y0``, so every box can
+be put back in source-image pixels. A plain COCO results list (``[{"image_id", ...}]``) plus a dataset
+for the image entries is accepted too.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from matchplant.core.errors import InputError
+from matchplant.core.io import read_json, write_json
+
+PROVENANCE_KEYS = ("source_image", "x0", "y0")
+
+
+def new_dataset(categories: Iterable[str], info: dict | None = None) -> dict:
+    return {"info": info or {"description": "MatchPlant dataset"}, "licenses": [],
+            "images": [], "annotations": [],
+            "categories": [{"id": i + 1, "name": str(name), "supercategory": "plant"}
+                           for i, name in enumerate(categories)]}
+
+
+def make_annotation(ann_id: int, image_id: int, bbox: Iterable[float], category_id: int = 1, **extra) -> dict:
+    x, y, w, h = (float(v) for v in bbox)
+    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
+           "bbox": [x, y, w, h], "area": w * h, "iscrowd": 0}
+    ann.update(extra)
+    return ann
+
+
+def read_dataset(path: str | Path, *, validate: bool = True) -> dict:
+    path = Path(path)
+    data = read_json(path)
+    if not isinstance(data, dict) or "images" not in data:
+        raise InputError("not a COCO dataset (no 'images' list)", path=path,
+                         fix="give the COCO JSON written by module 4 or 5")
+    data.setdefault("annotations", [])
+    data.setdefault("categories", [])
+    if validate:
+        problems = validate_dataset(data)
+        if problems:
+            shown = "\n".join(f"  - {p}" for p in problems[:10])
+            more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
+            raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=path,
+                             fix="correct the annotations (module 4 can open and fix them)")
+    return data
+
+
+def write_dataset(path: str | Path, data: dict) -> Path:
+    return write_json(path, data, indent=None)
+
+
+def validate_dataset(data: dict, *, tolerance: float = 1.0) -> list[str]:
+    """Problems in a COCO dataset, each as a sentence; an empty list means valid.
+
+    Checks unique ids, annotations pointing at existing images and categories, positive box sizes,
+    and boxes inside their image (within ``tolerance`` pixels).
+    """
+    problems: list[str] = []
+    images = data.get("images", [])
+    anns = data.get("annotations", [])
+    cats = data.get("categories", [])
+    for kind, items in (("image", images), ("annotation", anns), ("category", cats)):
+        counts = Counter(item.get("id") for item in items)
+        dup = [i for i, c in counts.items() if c > 1]
+        if dup:
+            problems.append(f"duplicate {kind} ids: {sorted(dup)[:5]}")
+        if any(item.get("id") is None for item in items):
+            problems.append(f"a {kind} has no id")
+    if not cats and anns:
+        problems.append("no categories defined")
+    by_id = {im.get("id"): im for im in images}
+    cat_ids = {c.get("id") for c in cats}
+    for im in images:
+        if not im.get("file_name"):
+            problems.append(f"image {im.get('id')} has no file_name")
+        if not (isinstance(im.get("width"), (int, float)) and isinstance(im.get("height"), (int, float))
+                and im["width"] > 0 and im["height"] > 0):
+            problems.append(f"image {im.get('id')} ({im.get('file_name')}) has no valid width/height")
+    for a in anns:
+        im = by_id.get(a.get("image_id"))
+        if im is None:
+            problems.append(f"annotation {a.get('id')} refers to missing image {a.get('image_id')}")
+            continue
+        if a.get("category_id") not in cat_ids:
+            problems.append(f"annotation {a.get('id')} has unknown category {a.get('category_id')}")
+        box = a.get("bbox")
+        if not (isinstance(box, (list, tuple)) and len(box) == 4):
+            problems.append(f"annotation {a.get('id')} has no [x, y, w, h] bbox")
+            continue
+        x, y, w, h = (float(v) for v in box)
+        if not (w > 0 and h > 0):
+            problems.append(f"annotation {a.get('id')} in {im.get('file_name')} has a box of size {w}x{h}")
+        W, H = im.get("width", 0), im.get("height", 0)
+        if x < -tolerance or y < -tolerance or x + w > W + tolerance or y + h > H + tolerance:
+            problems.append(f"annotation {a.get('id')} box {[x, y, w, h]} lies outside "
+                            f"{im.get('file_name')} ({W}x{H})")
+    return problems
+
+
+def annotations_by_image(data: dict) -> dict[int, list[dict]]:
+    out: dict[int, list[dict]] = {im["id"]: [] for im in data.get("images", [])}
+    for a in data.get("annotations", []):
+        out.setdefault(a["image_id"], []).append(a)
+    return out
+
+
+def boxes_xyxy(anns: list[dict]) -> np.ndarray:
+    """(N, 4) array of ``[x1, y1, x2, y2]`` from COCO annotations or predictions."""
+    if not anns:
+        return np.zeros((0, 4))
+    b = np.asarray([a["bbox"] for a in anns], dtype=float)
+    return np.concatenate([b[:, :2], b[:, :2] + b[:, 2:]], axis=1)
+
+
+def to_source_pixels(bbox: Iterable[float], image: dict) -> list[float]:
+    """A box in tile pixels moved to its source image using the tile's ``x0``, ``y0``."""
+    x, y, w, h = (float(v) for v in bbox)
+    return [x + float(image.get("x0", 0)), y + float(image.get("y0", 0)), w, h]
+
+
+def source_name(image: dict) -> str:
+    return image.get("source_image") or image["file_name"]
+
+
+# -- predictions ---------------------------------------------------------------------------------
+
+
+def write_predictions(path: str | Path, images: list[dict], categories: list[dict],
+                      predictions: list[dict], info: dict | None = None) -> Path:
+    data = {"info": info or {"description": "MatchPlant predictions"}, "images": images,
+            "categories": categories, "predictions": predictions}
+    return write_json(path, data, indent=None)
+
+
+def read_predictions(path: str | Path, images_from: str | Path | None = None) -> dict:
+    """Read predictions as ``{"images", "categories", "predictions"}``.
+
+    Accepts MatchPlant's predictions file, or a plain COCO results list with ``images_from`` (a COCO
+    dataset providing the image entries).
+    """
+    path = Path(path)
+    data = read_json(path)
+    if isinstance(data, list):
+        if images_from is None:
+            raise InputError("this is a plain COCO results list; it has no image names", path=path,
+                             fix="also give the COCO dataset the predictions were made on")
+        ds = read_dataset(images_from, validate=False)
+        data = {"images": ds["images"], "categories": ds["categories"], "predictions": data}
+    if not isinstance(data, dict) or "predictions" not in data or "images" not in data:
+        raise InputError("not a predictions file (needs 'images' and 'predictions')", path=path,
+                         fix="give the predictions JSON written by module 7")
+    known = {im["id"] for im in data["images"]}
+    orphans = [p for p in data["predictions"] if p.get("image_id") not in known]
+    if orphans:
+        raise InputError(f"{len(orphans)} prediction(s) refer to images not listed in the file", path=path,
+                         fix="regenerate the predictions with module 7")
+    data.setdefault("categories", [{"id": 1, "name": "plant"}])
+    return data
+
+
+def results_list(predictions: dict) -> list[dict[str, Any]]:
+    """The plain COCO results list (for pycocotools' ``loadRes``)."""
+    return [{"image_id": p["image_id"], "category_id": p["category_id"],
+             "bbox": [float(v) for v in p["bbox"]], "score": float(p["score"])}
+            for p in predictions["predictions"]]

@@ -1,0 +1,1 @@
+"""Module 0 (0_gps_embeder): write GNSS positions into image EXIF by matching timestamps."""

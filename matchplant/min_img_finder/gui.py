@@ -1,0 +1,167 @@
+"""Module 3's GUI: the coverage map over the orthophoto, the selection's parameters, click to toggle images, Save.
+
+Thin over :class:`~matchplant.min_img_finder.finder.MinImageFinder`: the window only edits the config, calls ``select`` /
+``evaluate`` / ``write_outputs`` and draws with :func:`~matchplant.min_img_finder.finder.draw_coverage`.
+
+* Left: the map - every footprint in grey, the selected ones numbered with the area each owns, uncovered
+  parts of the field in red.
+* Right: the parameters (uncovered threshold, max overlap, overlap penalty, method), **Select** to run the
+  selection, **Save** to write every output (and the config beside them), and a status line.
+* Click a footprint on the map to add or remove that image (the smallest footprint under the pointer that
+  is not selected is added; a click inside a selected image's owned area removes it).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import shapely
+
+from matchplant.core.config import save_config, validate
+from matchplant.core.errors import MatchPlantError
+from matchplant.core.gui import pyplot, show, status_text
+from matchplant.core.log import get_logger
+from matchplant.min_img_finder.finder import MinImageFinder, MinImagesConfig, Result, draw_coverage, write_outputs
+
+log = get_logger("min_images.gui")
+
+FIELDS = [("uncovered_threshold", "uncovered %"), ("max_overlap", "max overlap %"),
+          ("overlap_penalty", "overlap penalty")]
+
+
+class MinImagesGUI:
+    def __init__(self, cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None):
+        from matplotlib.widgets import Button, RadioButtons, TextBox
+
+        self.cfg = cfg
+        self.config_path = config_path
+        self.plt = pyplot(headless)
+        self.fig = self.plt.figure(figsize=(13, 8))
+        self.fig.canvas.manager.set_window_title("MatchPlant - minimum image finder") \
+            if getattr(self.fig.canvas, "manager", None) else None
+        self.ax = self.fig.add_axes([0.09, 0.08, 0.58, 0.86])
+        panel = self.fig.add_axes([0.70, 0.08, 0.28, 0.86])
+        panel.axis("off")
+        panel.text(0.0, 1.0, "Minimum image finder", fontsize=14, weight="bold", va="top")
+        panel.text(0.0, 0.955, "click a footprint to add / remove it", fontsize=9, va="top", color="0.3")
+        self.boxes = {}
+        for k, (key, label) in enumerate(FIELDS):
+            bax = self.fig.add_axes([0.83, 0.82 - 0.06 * k, 0.14, 0.045])
+            self.boxes[key] = TextBox(bax, label + " ", initial=f"{getattr(cfg, key):g}")
+        rax = self.fig.add_axes([0.83, 0.56, 0.14, 0.09])
+        self.method = RadioButtons(rax, ("greedy", "milp"), active=0 if cfg.method == "greedy" else 1)
+        self.fig.text(0.71, 0.60, "method", fontsize=10)
+        self.select_btn = Button(self.fig.add_axes([0.72, 0.45, 0.12, 0.06]), "Select")
+        self.save_btn = Button(self.fig.add_axes([0.85, 0.45, 0.12, 0.06]), "Save")
+        self.select_btn.on_clicked(lambda _e: self.run_selection())
+        self.save_btn.on_clicked(lambda _e: self.save())
+        self.info = panel.text(0.0, 0.36, "", fontsize=9, va="top", family="monospace")
+        self.status = status_text(self.fig.add_axes([0.05, 0.0, 0.9, 0.04], frame_on=False), "")
+        self.status.axes.axis("off")
+        self.fig.canvas.mpl_connect("button_press_event", self.on_click)
+        self.finder: MinImageFinder | None = None
+        self.result: Result | None = None
+        self.saved: dict | None = None
+        self.load()
+
+    # -- actions ---------------------------------------------------------------------------------
+    def say(self, text: str, error: bool = False) -> None:
+        self.status.set_text(text)
+        self.status.set_color("red" if error else "black")
+        self.fig.canvas.draw_idle()
+
+    def read_params(self) -> bool:
+        try:
+            for key, box in self.boxes.items():
+                setattr(self.cfg, key, float(box.text))
+            self.cfg.method = self.method.value_selected
+            validate(self.cfg, check_paths=False)
+            return True
+        except (ValueError, MatchPlantError) as exc:
+            self.say(f"invalid parameter: {exc}".splitlines()[0], error=True)
+            return False
+
+    def load(self) -> None:
+        if self.cfg.project_dir is None:
+            self.say("set project_dir in the config (or --set project_dir=...) and reopen", error=True)
+            return
+        try:
+            self.finder = MinImageFinder(self.cfg)
+        except MatchPlantError as exc:
+            self.say(str(exc).replace("\n", " | "), error=True)
+            return
+        self.run_selection()
+
+    def run_selection(self) -> None:
+        if self.finder is None or not self.read_params():
+            return
+        try:
+            sel = self.finder.select()
+        except MatchPlantError as exc:
+            self.say(str(exc).replace("\n", " | "), error=True)
+            return
+        self.show_result(self.finder.evaluate(sel))
+        self.say(f"{sel.method}: {len(sel.indices)} images in {sel.seconds:.2f} s"
+                 + (" - overlap cap relaxed to reach the coverage" if sel.relaxed else ""))
+
+    def toggle(self, index: int) -> None:
+        """Add or remove one image and re-evaluate (coverage, owned areas)."""
+        chosen = list(self.result.selection.indices) if self.result else []
+        chosen.remove(index) if index in chosen else chosen.append(index)
+        self.show_result(self.finder.evaluate(self.finder.with_indices(chosen)))
+        name = self.finder.footprints[index].name
+        self.say(f"{'added' if index in chosen else 'removed'} {name}")
+
+    def on_click(self, event) -> None:
+        if event.inaxes is not self.ax or self.finder is None or event.xdata is None:
+            return
+        if getattr(self.fig.canvas, "toolbar", None) is not None and getattr(self.fig.canvas.toolbar, "mode", ""):
+            return  # zoom/pan in progress
+        index = self.image_at(event.xdata, event.ydata)
+        if index is not None:
+            self.toggle(index)
+
+    def image_at(self, x: float, y: float) -> int | None:
+        p = shapely.Point(x, y)
+        if self.result is not None:  # inside a selected image's owned area: that image
+            for i in self.result.selection.indices:
+                if self.result.owned[self.finder.footprints[i].name].contains(p):
+                    return i
+        chosen = set(self.result.selection.indices) if self.result else set()
+        hits = [(f.polygon.area, i) for i, f in enumerate(self.finder.footprints)
+                if i not in chosen and f.polygon.contains(p)]
+        return min(hits)[1] if hits else None
+
+    def show_result(self, result: Result) -> None:
+        self.result = result
+        draw_coverage(self.ax, self.finder, result)
+        s = result.selection
+        self.info.set_text(f"images       {len(s.indices)} of {len(self.finder.footprints)}\n"
+                           f"coverage     {100 * result.exact_coverage:.1f} %\n"
+                           f"asked        {100 * s.target:.1f} %\n"
+                           f"uncovered    {result.uncovered.area:.2f} m2\n"
+                           f"area         {self.finder.aoi.area:.1f} m2\n"
+                           f"method       {s.method}")
+        self.fig.canvas.draw_idle()
+
+    def save(self) -> dict | None:
+        if self.result is None:
+            self.say("nothing to save yet", error=True)
+            return None
+        try:
+            paths = write_outputs(self.finder, self.result)
+            out = Path(self.cfg.output_dir)
+            save_config(self.cfg, out / "min_img_finder_config.yaml")
+        except (MatchPlantError, OSError) as exc:
+            self.say(f"save failed: {exc}".replace("\n", " | "), error=True)
+            return None
+        self.saved = paths
+        self.say(f"saved {len(self.result.selection.indices)} images, CSV, figure and GeoPackage to {out}")
+        return paths
+
+
+def open_gui(cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None) -> MinImagesGUI:
+    gui = MinImagesGUI(cfg, config_path, headless=headless)
+    show(gui.fig, headless)
+    return gui

@@ -1,0 +1,1 @@
+"""Module 2 (2_odm_runner): run OpenDroneMap and check its outputs."""

@@ -1,0 +1,336 @@
+"""Module 9's window: choose the files, the statistics and percentiles, look at the plants over the raster,
+run in the background with a progress bar, and save. A thin layer over :mod:`matchplant.spatial_stat_extractor.extract`.
+
+The preview reads the raster at reduced resolution (overviews or decimated reads), never the full
+raster. The work runs in a thread; a timer on the window moves the progress bar and shows errors.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from matchplant.core.config import save_config, set_value, validate
+from matchplant.core.errors import ConfigError, MatchPlantError
+from matchplant.core.gui import pyplot, show
+from matchplant.core.log import get_logger
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
+
+log = get_logger("stats")
+
+TEXT_FIELDS = [  # (config key, label)
+    ("polygons", "Polygons"),
+    ("rasters.chm", "CHM"),
+    ("rasters.dsm", "DSM"),
+    ("rasters.dtm", "DTM"),
+    ("rasters.multispectral", "Multispectral"),
+    ("rasters.red_band", "Red band"),
+    ("rasters.nir_band", "NIR band"),
+    ("polygons_crs", "Polygons CRS"),
+    ("percentiles", "Percentiles"),
+    ("output_dir", "Output folder"),
+]
+OK_COLOR, ERROR_COLOR = "#1a7f37", "#c62828"
+
+
+def _get(cfg, key: str):
+    for part in key.split("."):
+        cfg = getattr(cfg, part)
+    return cfg
+
+
+def _as_text(value) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, (list, tuple)):
+        return ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
+    return str(value)
+
+
+def _text_box_class():
+    from matplotlib.widgets import TextBox
+
+    class QuietTextBox(TextBox):
+        """Matplotlib's TextBox redraws the whole window on every click anywhere, once per box; only
+        the box being typed in needs to stop typing."""
+
+        def stop_typing(self):
+            if self.capturekeystrokes:
+                super().stop_typing()
+
+    return QuietTextBox
+
+
+class StatsGUI:
+    """The window over a :class:`~matchplant.spatial_stat_extractor.extract.StatsConfig`. ``headless=True`` (tests) uses Agg."""
+
+    def __init__(self, cfg, config_path: Path | None = None, headless: bool | None = None):
+        from matplotlib.widgets import Button, CheckButtons, RadioButtons
+
+        self.cfg = cfg
+        self.config_path = Path(config_path) if config_path else None
+        self.plt = plt = pyplot(headless)
+        self.fig = fig = plt.figure(figsize=(13, 8))
+        import matplotlib
+
+        self.headless = matplotlib.get_backend().lower() == "agg"
+        if self.headless:  # Agg draws at once on every widget event; nobody looks until savefig (which still draws)
+            self.fig.canvas.draw_idle = self.fig.canvas.draw = lambda *args, **kwargs: None
+        try:
+            fig.canvas.manager.set_window_title("MatchPlant 9 - plant statistics")
+        except AttributeError:
+            pass
+        self.ax = fig.add_axes([0.08, 0.13, 0.50, 0.80])
+        self.ax.set_title("Preview: load the files and press Preview", fontsize=10)
+        self.ax.set_aspect("equal")
+        self.boxes: dict = {}
+        _TextBox = _text_box_class()
+        y = 0.93
+        for key, label in TEXT_FIELDS:
+            box = _TextBox(fig.add_axes([0.72, y, 0.26, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
+            box.on_submit(lambda text, key=key: self._set(key, text))
+            self.boxes[key] = box
+            y -= 0.045
+        self.crs_text = fig.text(0.62, y + 0.005, "CRS: -", fontsize=9, family="monospace")
+        fig.text(0.62, y - 0.03, "Statistics", fontsize=10, weight="bold")
+        self.stat_checks = CheckButtons(fig.add_axes([0.62, y - 0.25, 0.17, 0.21]), list(BASIC_STATS),
+                                        [s in cfg.stats for s in BASIC_STATS])
+        self.stat_checks.on_clicked(lambda _label: self._set_stats())
+        fig.text(0.81, y - 0.03, "Pixels", fontsize=10, weight="bold")
+        self.mode_radio = RadioButtons(fig.add_axes([0.81, y - 0.13, 0.17, 0.09]), list(MODES),
+                                       active=list(MODES).index(cfg.mode))
+        self.mode_radio.on_clicked(lambda label: self._set("mode", label))
+        by = 0.13
+        self.btn_preview = Button(fig.add_axes([0.62, by, 0.11, 0.05]), "Preview")
+        self.btn_run = Button(fig.add_axes([0.745, by, 0.11, 0.05]), "Run + save")
+        self.btn_save = Button(fig.add_axes([0.87, by, 0.11, 0.05]), "Save config")
+        self.btn_preview.on_clicked(lambda _e: self.preview())
+        self.btn_run.on_clicked(lambda _e: self.run())
+        self.btn_save.on_clicked(lambda _e: self.save_config())
+        self.bar_ax = fig.add_axes([0.62, 0.075, 0.36, 0.03])
+        self.bar_ax.set_xlim(0, 1)
+        self.bar_ax.set_ylim(0, 1)
+        self.bar_ax.set_xticks([])
+        self.bar_ax.set_yticks([])
+        self.bar = self.bar_ax.barh(0.5, 0.0, height=1.0, color="#2e7d32")[0]
+        self.status = fig.text(0.04, 0.03, "", fontsize=9, family="monospace", wrap=True)
+        # background work: the thread writes these, the timer (main thread) draws them
+        self.fraction = 0.0
+        self.message = ""
+        self.error: str | None = None
+        self.result = None
+        self.thread: threading.Thread | None = None
+        self.timer = fig.canvas.new_timer(interval=150)
+        self.timer.add_callback(self.poll)
+        self.poly_artist = None
+        self.image_artist = None
+        self.set_status("Set the files (press Enter in a box), then Preview or Run + save.")
+
+    # ---------------------------------------------------------------------------------------------
+    # settings
+
+    def set_status(self, text: str, error: bool = False) -> None:
+        self.status.set_text(text)
+        self.status.set_color(ERROR_COLOR if error else "black")
+        self.fig.canvas.draw_idle()
+
+    def _set(self, key: str, text: str) -> bool:
+        text = text.strip()
+        try:
+            if key == "percentiles":
+                value = [float(v) for v in text.replace(";", ",").split(",") if v.strip()]
+            elif text == "" and key not in ("polygons_crs",):
+                value = None
+            else:
+                value = text
+            if value is None and key in ("polygons", "output_dir", "rasters.red_band", "rasters.nir_band"):
+                raise ConfigError(f"'{key}' cannot be empty", fix="type a value and press Enter")
+            set_value(self.cfg, key, value, source="window")
+        except ValueError:
+            self.set_status(f"error: percentiles must be numbers separated by commas, got {text!r}", error=True)
+            return False
+        except MatchPlantError as exc:
+            self.set_status(f"error: {exc}", error=True)
+            return False
+        self.set_status(f"{key} = {_as_text(_get(self.cfg, key))}")
+        return True
+
+    def _set_stats(self) -> None:
+        chosen = [s for s, on in zip(BASIC_STATS, self.stat_checks.get_status()) if on]
+        self.cfg.stats = chosen
+        self.set_status("statistics: " + (", ".join(chosen) or "none (only percentiles)"))
+
+    def sync(self) -> bool:
+        """Take every text box's current text (also those not confirmed with Enter)."""
+        return all(self._set(key, box.text) for key, box in self.boxes.items()
+                   if box.text != _as_text(_get(self.cfg, key)))
+
+    def _validate(self) -> bool:
+        if not self.sync():
+            return False
+        try:
+            validate(self.cfg, source="window")
+        except MatchPlantError as exc:
+            self.set_status(f"error: {exc}", error=True)
+            return False
+        return True
+
+    # ---------------------------------------------------------------------------------------------
+    # preview
+
+    def preview(self) -> bool:
+        """Polygons over the first raster, read at reduced resolution."""
+        from matplotlib.collections import LineCollection
+
+        from matchplant.spatial_stat_extractor.extract import preview_layer, read_polygons
+
+        if not self._validate():
+            return False
+        try:
+            layer = self.cfg.date_sets()[0].layers()[0]
+            arr, extent, rcrs = preview_layer(layer, nodata=self.cfg.nodata)
+            polys = read_polygons(self.cfg.polygons, self.cfg.id_column, self.cfg.layer, self.cfg.polygons_crs)
+        except MatchPlantError as exc:
+            self.set_status(f"error: {exc}", error=True)
+            return False
+        note = ""
+        if rcrs is not None and polys.crs is not None and not polys.crs.equals(rcrs):
+            polys = polys.to_crs(rcrs)
+            note = "  (polygons reprojected to the raster's CRS)"
+        pcrs = polys.crs.to_string() if polys.crs is not None else "none"
+        self.crs_text.set_text(f"CRS: raster {rcrs.to_string() if rcrs else 'none'}, polygons {pcrs}")
+        self.ax.clear()
+        finite = arr[np.isfinite(arr)]
+        vmin, vmax = (np.percentile(finite, [2, 98]) if finite.size else (0, 1))
+        self.image_artist = self.ax.imshow(arr, extent=extent, cmap="viridis", vmin=vmin, vmax=vmax,
+                                           interpolation="nearest")
+        import shapely
+
+        rings = shapely.get_exterior_ring(shapely.get_parts(polys.geometry.values))
+        coords, idx = shapely.get_coordinates(rings, return_index=True)
+        segments = np.split(coords, np.flatnonzero(np.diff(idx)) + 1) if len(coords) else []
+        self.segments = segments
+        self.poly_artist = LineCollection(segments, colors="#ff3df2", linewidths=0.8)
+        self.ax.add_collection(self.poly_artist)
+        self.ax.ticklabel_format(useOffset=False, style="plain")
+        self.ax.tick_params(labelsize=8)
+        self.ax.tick_params(axis="y", labelrotation=90)
+        self.ax.set_xlim(extent[0], extent[1])
+        self.ax.set_ylim(extent[2], extent[3])
+        self.ax.set_title(f"{layer.name} ({arr.shape[1]} x {arr.shape[0]} preview) and {len(polys)} plants",
+                          fontsize=10)
+        self.preview_polygons = polys
+        self.set_status(f"preview of {Path(layer.paths[0]).name}: {len(polys)} plants{note}")
+        return True
+
+    # ---------------------------------------------------------------------------------------------
+    # background run
+
+    @property
+    def busy(self) -> bool:
+        return self.thread is not None and self.thread.is_alive()
+
+    def run(self) -> bool:
+        """Start the statistics in a background thread; the timer shows progress."""
+        if self.busy:
+            self.set_status("already running")
+            return False
+        if not self._validate():
+            return False
+        self.fraction, self.message, self.error, self.result = 0.0, "starting", None, None
+        self.bar.set_width(0.0)
+        self.thread = threading.Thread(target=self._work, daemon=True)
+        self.thread.start()
+        self.timer.start()
+        self.set_status("running ...")
+        return True
+
+    def _progress(self, fraction: float, message: str) -> None:
+        self.fraction, self.message = fraction, message
+
+    def _work(self) -> None:
+        from matchplant.spatial_stat_extractor.extract import extract_stats, read_polygons, write_outputs
+
+        cfg = self.cfg
+        try:
+            polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs)
+            table, report = extract_stats(polygons, cfg.date_sets(), cfg.stats, cfg.percentiles, cfg.mode,
+                                          nodata=cfg.nodata, layout=cfg.layout, on_progress=self._progress)
+            self.message = "writing files"
+            written = write_outputs(polygons, table, report, cfg.output_dir, write_polygons=cfg.write_polygons)
+            if cfg.compare.polygons is not None:
+                from matchplant.spatial_stat_extractor.compare import run_comparison
+
+                written.update(run_comparison(cfg, polygons, table, cfg.date_sets(), Path(cfg.output_dir)))
+            self.result = (polygons, table, written)
+        except MatchPlantError as exc:
+            self.error = f"error: {exc}"
+        except Exception as exc:  # noqa: BLE001 - shown in the window instead of a lost traceback
+            log.debug("internal error", exc_info=True)
+            self.error = f"internal error: {type(exc).__name__}: {exc}"
+        finally:
+            self.fraction = 1.0 if self.error is None else self.fraction
+
+    def poll(self) -> None:
+        """Draw the worker's progress; when it has finished, its result or error."""
+        self.bar.set_width(self.fraction)
+        if self.busy:
+            self.set_status(f"running: {self.message} ({100 * self.fraction:.0f} %)")
+            return
+        self.timer.stop()
+        if self.error:
+            self.bar.set_color(ERROR_COLOR)
+            self.set_status(self.error, error=True)
+        elif self.result is not None:
+            self.bar.set_color("#2e7d32")
+            polygons, table, written = self.result
+            self._show_result(polygons, table)
+            self.set_status(f"done: {len(table)} rows -> {written['stats_csv']} (and stats.gpkg"
+                            f"{', polygons.gpkg, polygons.shp' if 'polygons_gpkg' in written else ''})")
+
+    def _show_result(self, polygons, table) -> None:
+        """Colour the plants by their first statistic (e.g. chm_max) on the preview."""
+        cols = [c for c in table.columns if c not in ("plant_id", "date", "x", "y") and not c.endswith("_count")]
+        if not cols or self.poly_artist is None or len(table) != len(polygons):
+            return
+        col = next((c for c in cols if c.startswith("chm_max")), cols[0])
+        values = table[col].to_numpy(float)
+        import shapely
+
+        from matplotlib.collections import LineCollection
+
+        _, owner = shapely.get_parts(self.preview_polygons.geometry.values, return_index=True)
+        self.poly_artist.remove()
+        self.poly_artist = LineCollection(self.segments, array=values[owner], cmap="autumn", linewidths=1.6)
+        self.ax.add_collection(self.poly_artist)
+        self.ax.set_title(f"plant outlines coloured by {col} "
+                          f"({np.nanmin(values):.3g} .. {np.nanmax(values):.3g})", fontsize=10)
+
+    def wait(self, timeout: float = 60) -> None:
+        """Wait for the background work and draw its outcome (tests and scripts)."""
+        if self.thread is not None:
+            self.thread.join(timeout)
+        self.poll()
+
+    def save_config(self) -> Path | None:
+        if not self.sync():
+            return None
+        path = self.config_path or Path(self.cfg.output_dir) / "stat_extractor.yaml"
+        save_config(self.cfg, path)
+        self.set_status(f"settings saved to {path}")
+        return path
+
+
+def launch(cfg, config_path: Path | None = None, headless: bool | None = None) -> StatsGUI:
+    gui = StatsGUI(cfg, config_path, headless=headless)
+    try:
+        ready = cfg.polygons is not None and bool(cfg.date_sets())
+    except MatchPlantError as exc:
+        gui.set_status(f"error: {exc}", error=True)
+        ready = False
+    if ready:
+        gui.preview()
+    show(gui.fig, headless)
+    return gui

@@ -1,0 +1,75 @@
+"""The command layer: one small file per step, naming its config class, its run function and its GUI.
+
+``matchplant.cli`` and ``matchplant.pipeline`` find a step here by its one name, the word of its numbered
+folder (``8_plant_projection`` -> ``plant_projection``: the command, this layer's file and the step's
+subpackage). Each file exposes ``SPEC``, a :class:`StepSpec`. Step files are imported by name on demand
+(:func:`resolve_step`) so that ``matchplant --help`` and the pipeline's checks do not load PyTorch.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from matchplant.core.errors import ConfigError
+
+# name -> (numbered folder, one-line summary); the numbered steps first, in order
+STEPS: dict[str, tuple[str, str]] = {
+    "gps_embeder": ("0_gps_embeder", "write GNSS positions into image EXIF"),
+    "gcp_finder": ("1_gcp_finder", "find and mark GCPs, write gcp_list.txt"),
+    "odm_runner": ("2_odm_runner", "run OpenDroneMap and check its outputs"),
+    "min_img_finder": ("3_min_img_finder", "fewest undistorted images covering the field"),
+    "bbox_drawer": ("4_bbox_drawer", "draw plant boxes; COCO and YOLO"),
+    "img_splitter": ("5_img_splitter", "tile annotated images, split train/val/test"),
+    "model_train": ("6_model_train", "train a plant detector"),
+    "model_test": ("7_model_test", "COCO evaluation and detection on new images"),
+    "plant_projection": ("8_plant_projection", "put detected plants on the map"),
+    "spatial_stat_extractor": ("9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
+    "simfield": ("", "generate a synthetic ODM project with exact ground truth"),
+    "run": ("", "run several steps in order from one pipeline.yaml"),
+}
+
+# older command names, and the folder numbers, still work
+ALIASES: dict[str, str] = {
+    "gps_embed": "gps_embeder",
+    "train": "model_train",
+    "project_boxes": "plant_projection",
+    "stat_extractor": "spatial_stat_extractor",
+    **{str(i): name for i, name in enumerate(list(STEPS)[:10])},
+}
+
+
+@dataclass
+class StepSpec:
+    """How the command line and the pipeline drive one step."""
+
+    name: str
+    config: type
+    run: Callable[[Any], Any]
+    gui: Callable[[Any, Path | None], Any] | None = None
+    # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text"); a third item makes it a
+    # switch without a value: "--resume" -> ("resume", "help", "true") means --set resume=true
+    flags: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    output_key: str = "output_dir"
+    # when set, the positional argument fills this key instead of naming a config file
+    # (``matchplant run pipeline.yaml``)
+    positional_key: str | None = None
+
+
+def canonical_name(name: str) -> str:
+    """The step's one name for ``name`` (an alias, a folder number, dashes for underscores)."""
+    name = name.replace("-", "_")
+    name = ALIASES.get(name, name)
+    if name not in STEPS:
+        close = difflib.get_close_matches(name, list(STEPS) + list(ALIASES), n=1)
+        hint = f"did you mean '{ALIASES.get(close[0], close[0])}'?" if close else "run 'matchplant --help' for the list"
+        raise ConfigError(f"unknown module '{name}'; {hint}")
+    return name
+
+
+def resolve_step(name: str) -> StepSpec:
+    """The :class:`StepSpec` of step ``name`` (aliases accepted)."""
+    return importlib.import_module(f"matchplant.steps.{canonical_name(name)}").SPEC

@@ -1,0 +1,11 @@
+"""Step 8 (8_plant_projection): put detected boxes on the map through the camera poses and the DSM."""
+
+from matchplant.plant_projection.projection import ProjectionConfig, run
+from matchplant.steps import StepSpec
+
+SPEC = StepSpec(name="plant_projection", config=ProjectionConfig, run=run,
+                flags={"--mode": ("mode", "project, evaluate or both"),
+                       "--project": ("project", "ODM project folder"),
+                       "--predictions": ("predictions", "detections JSON (module 7)"),
+                       "--reference": ("evaluate.reference", "reference boxes for mode evaluate"),
+                       "--out": ("output_dir", "output folder")})

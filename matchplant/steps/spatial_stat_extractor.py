@@ -1,0 +1,13 @@
+"""Step 9 (9_spatial_stat_extractor): plant polygons to GIS files; per-plant statistics; GUI."""
+
+from matchplant.spatial_stat_extractor.extract import StatsConfig, run
+from matchplant.spatial_stat_extractor.gui import launch
+from matchplant.steps import StepSpec
+
+SPEC = StepSpec(name="spatial_stat_extractor", config=StatsConfig, run=run, gui=launch,
+                flags={"--polygons": ("polygons", "plant polygons (GeoPackage, shapefile, CSV)"),
+                       "--chm": ("rasters.chm", "canopy height model raster"),
+                       "--dsm": ("rasters.dsm", "DSM (with --dtm: CHM = DSM - DTM)"),
+                       "--dtm": ("rasters.dtm", "DTM"),
+                       "--multispectral": ("rasters.multispectral", "multispectral raster (NDVI)"),
+                       "--output": ("output_dir", "output folder")})
