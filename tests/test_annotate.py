@@ -142,7 +142,7 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
 
 @pytest.mark.gui
 def test_gui_shows_owned_area(photos, tmp_path):
-    from matchplant.bbox_drawer.annotate import read_owned_areas
+    from matchplant.core.owned_areas import read_owned_areas
     from matchplant.bbox_drawer.gui import AnnotatorGUI
 
     owned = tmp_path / "owned.json"

@@ -527,24 +527,6 @@ def _nms(items: list[ImportedBox], iou: float) -> list[ImportedBox]:
     return [items[i] for i in sorted(np.asarray(keep).reshape(-1).tolist())]
 
 
-def read_owned_areas(path: str | Path | None) -> dict[str, np.ndarray]:
-    """``{image_name: [[u, v], ...]}`` (one polygon per image, pixels of that image) -> arrays."""
-    if path is None:
-        return {}
-    data = read_json(path)
-    if not isinstance(data, dict):
-        raise InputError("owned-area file must be a JSON object {image_name: [[u, v], ...]}", path=path,
-                         fix="use the file written by module 3")
-    out = {}
-    for name, poly in data.items():
-        arr = np.asarray(poly, dtype=float)
-        if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3:
-            raise InputError(f"the polygon of '{name}' is not a list of at least 3 [u, v] points", path=path,
-                             fix="use the file written by module 3")
-        out[name] = arr
-    return out
-
-
 # -- configuration and the module's entry points --------------------------------------------------------
 
 
@@ -605,4 +587,4 @@ def run(cfg: AnnotateConfig) -> dict[str, Path]:
 
 __all__ = ["AnnotationStore", "AnnotateConfig", "ImportedBox", "list_images", "read_image", "display_rgb",
            "clip_box", "coco_to_yolo", "yolo_to_coco", "read_yolo", "read_coco_boxes", "read_prediction_boxes",
-           "read_owned_areas", "open_session", "run"]
+           "open_session", "run"]

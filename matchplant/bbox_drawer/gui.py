@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, display_rgb, match_name, open_session, read_image,
-                       read_owned_areas)
+from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, display_rgb, match_name, open_session,
+                                             read_image)
 from matchplant.core.config import validate
 from matchplant.core.gui import pyplot, show
 from matchplant.core.log import get_logger
+from matchplant.core.owned_areas import read_owned_areas
 
 log = get_logger("annotate")
 

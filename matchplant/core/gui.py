@@ -1,13 +1,23 @@
-"""Shared pieces of the Matplotlib GUIs: one code path on every platform, thin over library functions.
+"""Shared pieces of the Matplotlib GUIs and figures: one code path on every platform, no global state.
 
-GUIs are tested headless (Agg backend, events synthesised with :func:`tests.gui_events`) and in a real
-window under Xvfb. Keep logic out of GUI classes: they call library functions and draw results.
+No function here changes Matplotlib's global state (the backend, rcParams, pyplot's figure list):
+- :func:`figure` with ``headless=True`` makes a figure with an Agg canvas of its own, outside pyplot,
+  for files (training curves, coverage maps) and for tests that drive a GUI with synthesised events;
+- with ``headless=False`` it asks pyplot for a window figure, on the backend Matplotlib chose for this
+  process (``MPLBACKEND``, else its own choice: a window where a display exists, Agg elsewhere).
+
+GUIs are tested headless (events synthesised by ``tests/gui_events.py``) and in a real window under
+Xvfb. Keep logic out of GUI classes: they call library functions and draw results.
 """
 
 from __future__ import annotations
 
 import os
 import sys
+
+import matplotlib.pyplot as plt
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 
 def interactive_backend_available() -> bool:
@@ -17,28 +27,33 @@ def interactive_backend_available() -> bool:
     return True
 
 
-def pyplot(headless: bool | None = None):
-    """Import pyplot with a backend that works here: Agg when headless (tests, servers)."""
-    import matplotlib
-
-    if headless is None:
-        headless = not interactive_backend_available()
-    if headless:
-        matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+def is_headless(headless: bool | None) -> bool:
+    """``headless`` as asked, or, when None, whether this process cannot show a window."""
+    if headless is not None:
+        return headless
+    return not interactive_backend_available() or plt.get_backend().lower() == "agg"
 
 
-def show(fig, headless: bool | None = None) -> None:
-    """Show a figure window and block until it is closed (does nothing when headless)."""
-    import matplotlib
+def figure(headless: bool | None = None, **kwargs) -> Figure:
+    """A new figure (``kwargs`` as for :class:`matplotlib.figure.Figure`: figsize, dpi, ...)."""
+    if is_headless(headless):
+        fig = Figure(**kwargs)
+        FigureCanvasAgg(fig)
+        return fig
+    return plt.figure(**kwargs)
 
-    if headless or matplotlib.get_backend().lower() == "agg":
+
+def show(fig: Figure) -> None:
+    """Show a window figure and block until it is closed (does nothing for a headless figure)."""
+    if fig.canvas.manager is None:  # a headless figure: nothing to show
         return
-    import matplotlib.pyplot as plt
+    plt.show(block=True)
 
-    plt.show()
+
+def close(fig: Figure) -> None:
+    """Release a figure (a window figure is also removed from pyplot's list)."""
+    if fig.canvas.manager is not None:
+        plt.close(fig)
 
 
 def status_text(ax, text: str = ""):

@@ -52,6 +52,7 @@ from matchplant.core.ground import ground_to_pixels, pixels_to_ground
 from matchplant.core.io import atomic_open, atomic_path, write_json
 from matchplant.core.log import get_logger
 from matchplant.core.odm import ODMProject
+from matchplant.core.owned_areas import write_owned_areas
 from matchplant.core.progress import progress
 from matchplant.core.reconstruction import Shot
 from matchplant.core.surface import HIT, Surface
@@ -873,9 +874,7 @@ def write_outputs(finder: MinImageFinder, result: Result, output_dir: Path | Non
                          f"{100 * finder.grid.weights[covered].sum() / finder.grid.total:.3f}",
                          f"{cx:.3f}", f"{cy:.3f}", f"{100 * max(others, default=0.0):.2f}"])
     paths["csv"] = out / "selected_images.csv"
-    write_json(out / "owned_areas.json",
-               {fp.file.name: [[round(float(u), 2), round(float(v), 2)] for u, v in result.owned_pixels[fp.name]]
-                for fp in sel})
+    write_owned_areas(out / "owned_areas.json", {fp.file.name: result.owned_pixels[fp.name] for fp in sel})
     paths["owned_areas"] = out / "owned_areas.json"
     paths["gpkg"] = write_geopackage(finder, result, out / "footprints.gpkg")
     paths["figure"] = coverage_figure(finder, result, out / "coverage.png")
