@@ -28,7 +28,7 @@ def make_flight(root: Path, n: int, width: int) -> tuple[Path, Path]:
     import piexif
     from PIL import Image
 
-    from matchplant.gps_embeder.embed import splice_exif
+    from matchplant.core.exif import splice_exif
 
     rng = np.random.default_rng(0)
     h = width * 3 // 4
@@ -67,7 +67,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     n = args.n or (200 if args.quick else 1000)
 
-    from matchplant.gps_embeder.embed import GpsEmbedConfig, embed_gps, estimate_clock_offset, read_gnss_log
+    from matchplant.gps_embeder.embed import GpsEmbedConfig, embed_gps
+    from matchplant.gps_embeder.gnss_log import read_gnss_log
+    from matchplant.gps_embeder.matching import estimate_clock_offset, read_images
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -81,7 +83,6 @@ def main(argv=None) -> int:
         dt_all = time.perf_counter() - t
         assert all(r["status"] == "matched" for r in rows), "benchmark flight must match completely"
         g = read_gnss_log(log, crs="EPSG:32614")
-        from matchplant.gps_embeder.embed import read_images
         cam = np.array([r.time for r in read_images(images)])
         t = time.perf_counter()
         off, support = estimate_clock_offset(cam, g.times, 0.5)

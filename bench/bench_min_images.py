@@ -21,7 +21,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 from test_min_images import make_project  # noqa: E402
 
 from matchplant.core.config import load_config  # noqa: E402
-from matchplant.min_img_finder.finder import MinImageFinder, MinImagesConfig, select_milp  # noqa: E402
+from matchplant.min_img_finder.config import MinImagesConfig  # noqa: E402
+from matchplant.min_img_finder.finder import MinImageFinder  # noqa: E402
+from matchplant.min_img_finder.setcover import select_milp  # noqa: E402
 
 
 def main() -> None:

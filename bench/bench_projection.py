@@ -23,9 +23,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from matchplant.plant_projection import projection as P  # noqa: E402
 from matchplant.core.coco import read_dataset  # noqa: E402
 from matchplant.core.odm import ODMProject  # noqa: E402
+from matchplant.plant_projection.evaluation import evaluate_boxes  # noqa: E402
+from matchplant.plant_projection.merge import merge_views  # noqa: E402
+from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 
@@ -60,15 +62,15 @@ def main() -> None:
     best = None
     for _ in range(args.repeat):
         t0, c0 = time.perf_counter(), time.process_time()
-        views, rejected = P.project_predictions(project, preds, edge_points=args.edge_points)
+        views, rejected = project_predictions(project, preds, edge_points=args.edge_points)
         t1 = time.perf_counter()
-        plants = P.merge_views(views)
+        plants = merge_views(views)
         t2, c2 = time.perf_counter(), time.process_time()
         if best is None or t2 - t0 < best[2] - best[0]:
             best = (t0, t1, t2, c2 - c0)
     t0, t1, t2, cpu = best
     truth = pd.read_csv(f.map_boxes)[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
-    m = P.evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     rays = n * 4 * (args.edge_points + 1)
     print(f"field: {f.root} ({len(ds['images'])} images, {len(truth)} plants)")
     print(f"boxes: {n} ({rays} rays), not projected: {len(rejected)}")

@@ -17,7 +17,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import exactextract
+import geopandas as gpd
 import numpy as np
+import rasterio
+import rasterstats
+import shapely
+from affine import Affine
+
+from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]
 PERCENTILES = [95]
@@ -25,10 +33,6 @@ PERCENTILES = [95]
 
 def make_field(folder: Path, size: int, n_plants: int, seed: int = 0):
     """A float32 GeoTIFF (tiled, with nodata holes) and a grid of jittered plant boxes over it."""
-    import rasterio
-    import shapely
-    from affine import Affine
-
     rng = np.random.default_rng(seed)
     res = 0.01
     transform = Affine(res, 0, 500000.0, 0, -res, 4000000.0)
@@ -84,13 +88,6 @@ def main(argv=None) -> int:
     size = args.size or (2000 if args.quick else 8000)
     n = args.plants or (1250 if args.quick else 20000)
     os.environ.setdefault("MATCHPLANT_QUIET", "1")
-
-    import exactextract
-    import geopandas as gpd
-    import rasterio
-    import rasterstats
-
-    from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -24,6 +24,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from matchplant.core.config import load_config
+from matchplant.core.images import read_rgb8
+from matchplant.detection.data import CocoDetection, collate
+from matchplant.detection.device import select_device
+from matchplant.detection.model import build_detector, load_detector
+from matchplant.detection.synth import make_photo, make_tiles
+from matchplant.model_test.detect import detect_image, model_predictor, tile_starts
+from matchplant.model_train.train import TrainConfig, train
 
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 
@@ -45,17 +55,8 @@ def main() -> None:
     if args.quick:
         args.tiles, args.size, args.epochs = 16, 96, 2
 
-    import torch
-
     if args.threads:
         torch.set_num_threads(args.threads)
-    from matchplant.core.config import load_config
-    from matchplant.detection.data import CocoDetection, collate
-    from matchplant.detection.model import build_detector, load_detector
-    from matchplant.detection.synth import make_photo, make_tiles
-    from matchplant.detection.device import select_device
-    from matchplant.model_test.detect import detect_image, model_predictor, tile_starts
-    from matchplant.model_train.train import TrainConfig, train
 
     device = select_device(args.device)
     tmp = tempfile.TemporaryDirectory()
@@ -106,8 +107,7 @@ def main() -> None:
     photo_w, photo_h = (4 * s, 3 * s) if args.quick else (8 * s, 6 * s)
     photo = work / "photo.png"
     make_photo(photo, photo_w, photo_h, n_plants=photo_w * photo_h // (s * s) * 3, radius=radius, seed=2)
-    from matchplant.detection.data import read_image
-    img = read_image(photo)
+    img = read_rgb8(photo)
     det_model, _ = load_detector(work / "run" / "checkpoints" / "best.pt", device)
     det_model.roi_heads.score_thresh = 0.5
     overlap = s // 4

@@ -20,6 +20,7 @@ from matchplant.core.errors import ConfigError, MatchPlantError
 from matchplant.core.log import setup_console, start_run_log, stop_run_log
 from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
+
 def resolve_module(name: str) -> StepSpec:
     """The step named ``name`` (the CLI's own hook: tests replace it to run a stand-in step)."""
     return resolve_step(name)
@@ -39,7 +40,8 @@ def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
     if spec.gui is not None:
         p.add_argument("--gui", action="store_true", help="open the graphical interface")
     p.add_argument("--write-config", type=Path, metavar="FILE",
-                   help="write a commented config with every key and its default, then exit")
+                   help="write a commented config (every key, its meaning and its default, or the value from "
+                        "--config and --set), then exit")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug messages")
     p.add_argument("--quiet", action="store_true", help="only warnings and errors on the console")
     for flag, (key, text, *const) in spec.flags.items():
@@ -74,13 +76,15 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
         return 1
 
 
+def config_header(spec: StepSpec) -> list[str]:
+    """The lines under a written config's title: how to write it again, and how its paths are read."""
+    return [f"Written by 'matchplant {spec.name} --write-config FILE' (add --config FILE to keep a file's values).",
+            "Relative paths are relative to this file's folder."]
+
+
 def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) -> int:
     level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
     logger = setup_console(level)
-    if args.write_config:
-        path = save_config(spec.config(), args.write_config)
-        print(f"wrote {path}")
-        return 0
     positional_config = getattr(args, "config_file", None)
     if args.config and positional_config:
         raise ConfigError("give the config once: either as the first argument or with --config")
@@ -91,6 +95,13 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
     for key, value in vars(args).items():
         if key.startswith("flag__") and value is not None:
             overrides.append(f"{key[len('flag__'):]}={value}")
+    if args.write_config:
+        # with a config or --set: those values, with the comments of this version; else the defaults
+        cfg = (load_config(spec.config, config_path, overrides, strict=False)
+               if config_path or overrides else spec.config())
+        path = save_config(cfg, args.write_config, header=config_header(spec))
+        print(f"wrote {path}")
+        return 0
     gui = getattr(args, "gui", False)
     if gui:
         cfg = load_config(spec.config, config_path, overrides, check_paths=False, strict=False)

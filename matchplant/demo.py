@@ -19,72 +19,65 @@ import sys
 import time
 from pathlib import Path
 
+import geopandas as gpd
 import numpy as np
 import yaml
+from scipy.spatial import cKDTree
 
+from matchplant.core.config import load_config
 from matchplant.core.errors import MatchPlantError
-from matchplant.core.io import write_text
+from matchplant.core.gui import figure
+from matchplant.core.io import atomic_path, write_text
 from matchplant.core.log import get_logger, setup_console
+from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
+from matchplant.simfield import generate_field
+from matchplant.spatial_stat_extractor.config import StatsConfig
+from matchplant.spatial_stat_extractor.run import run as run_stats
 
 log = get_logger("demo")
+
+
+def _step(name: str, module: str, **config) -> dict:
+    return {"name": name, "module": module, "config": config}
 
 
 def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, tile: int) -> dict:
     """The demo's pipeline: every module, each reading the files the one before wrote."""
     net = int(round(tile * 2.5))
-    return {
-        "output_dir": ".",
-        "field": str(field),
-        "crs": crs,
-        "steps": [
-            {"name": "0_gps", "module": "gps_embed",
-             "config": {"images": "${field}/images_nogps", "gnss_log": "${field}/gnss/events.txt",
-                        "log_crs": "${crs}"}},
-            {"name": "1_gcp", "module": "gcp_finder",
-             "config": {"images": "${0_gps.output_dir}/images", "survey": "${field}/gcp/gcp_survey.csv",
-                        "survey_crs": "${crs}", "auto": True}},
-            {"name": "2_odm", "module": "odm_runner",
-             "config": {"project_dir": "${field}", "check_only": True}},
-            {"name": "3_select", "module": "min_img_finder",
-             "config": {"project_dir": "${field}"}},
-            {"name": "4_annotate", "module": "bbox_drawer",
-             "config": {"images": "${3_select.output_dir}/images",
-                        "import_coco": "${field}/truth/boxes_undistorted.json", "min_score": 0.0}},
-            {"name": "5_tiles", "module": "img_splitter",
-             "config": {"images": "${3_select.output_dir}/images",
-                        "annotations": "${4_annotate.output_dir}/annotations.json",
-                        "tile_size": tile, "overlap": tile // 4, "negative_share": 0.2,
-                        "split": [0.55, 0.15, 0.3]}},
-            {"name": "6_train", "module": "train",
-             "config": {"train_json": "${5_tiles.output_dir}/train.json",
-                        "val_json": "${5_tiles.output_dir}/val.json",
-                        # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse
-                        # feature maps; anchors are in the enlarged pixels
-                        "model": {"architecture": "fasterrcnn_mobilenet_v3_large_fpn", "pretrained": pretrained,
-                                  "min_size": net, "max_size": net,
-                                  "anchor_sizes": [[net // 8, net // 4, net // 2]] * 3,
-                                  # a 128 px tile holds at most ~40 plants: far fewer proposals than
-                                  # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
-                                  "rpn": {"pre_nms_top_n_train": 1000, "post_nms_top_n_train": 400,
-                                          "pre_nms_top_n_test": 300, "post_nms_top_n_test": 100},
-                                  "roi": {"batch_size_per_image": 64}},
-                        "epochs": 30, "max_minutes": minutes, "batch_size": 4, "num_workers": 0,
-                        "warmup_iters": 20, "step_size": 20, "save_every": 0,
-                        "lr": {"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}}},
-            {"name": "7_detect", "module": "model_test",
-             "config": {"checkpoint": "${6_train.output_dir}/checkpoints/best.pt",
-                        "evaluate": {"dataset_json": "${5_tiles.output_dir}/test.json"},
-                        "detect": {"images": "${3_select.output_dir}/images", "tile_size": tile,
-                                   "overlap": tile // 4}}},
-            {"name": "8_plants", "module": "project_boxes",
-             "config": {"project": "${field}", "predictions": "${7_detect.output_dir}/predictions.json",
-                        "mode": "both", "evaluate": {"reference": "${field}/truth/map_boxes.csv"}}},
-            {"name": "9_stats", "module": "stat_extractor",
-             "config": {"polygons": "${8_plants.output_dir}/plants.gpkg",
-                        "rasters": {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-                                    "multispectral": "${field}/multispectral/multispectral.tif"}}},
-        ],
-    }
+    # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse feature maps; anchors
+    # are in the enlarged pixels. A 128 px tile holds at most ~40 plants: far fewer proposals than
+    # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
+    model = {"architecture": "fasterrcnn_mobilenet_v3_large_fpn", "pretrained": pretrained,
+             "min_size": net, "max_size": net, "anchor_sizes": [[net // 8, net // 4, net // 2]] * 3,
+             "rpn": {"pre_nms_top_n_train": 1000, "post_nms_top_n_train": 400,
+                     "pre_nms_top_n_test": 300, "post_nms_top_n_test": 100},
+             "roi": {"batch_size_per_image": 64}}
+    steps = [
+        _step("0_gps", "gps_embeder", images="${field}/images_nogps", gnss_log="${field}/gnss/events.txt",
+              log_crs="${crs}"),
+        _step("1_gcp", "gcp_finder", images="${0_gps.output_dir}/images", survey="${field}/gcp/gcp_survey.csv",
+              survey_crs="${crs}", auto=True),
+        _step("2_odm", "odm_runner", project_dir="${field}", check_only=True),
+        _step("3_select", "min_img_finder", project_dir="${field}"),
+        _step("4_annotate", "bbox_drawer", images="${3_select.output_dir}/images",
+              import_coco="${field}/truth/boxes_undistorted.json", min_score=0.0),
+        _step("5_tiles", "img_splitter", images="${3_select.output_dir}/images",
+              annotations="${4_annotate.output_dir}/annotations.json", tile_size=tile, overlap=tile // 4,
+              negative_share=0.2, split=[0.55, 0.15, 0.3]),
+        _step("6_train", "model_train", train_json="${5_tiles.output_dir}/train.json",
+              val_json="${5_tiles.output_dir}/val.json", model=model, epochs=30, max_minutes=minutes, batch_size=4,
+              num_workers=0, warmup_iters=20, step_size=20, save_every=0,
+              lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
+        _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
+              evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
+              detect={"images": "${3_select.output_dir}/images", "tile_size": tile, "overlap": tile // 4}),
+        _step("8_plants", "plant_projection", project="${field}", predictions="${7_detect.output_dir}/predictions.json",
+              mode="both", evaluate={"reference": "${field}/truth/map_boxes.csv"}),
+        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg",
+              rasters={"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
+                       "multispectral": "${field}/multispectral/multispectral.tif"}),
+    ]
+    return {"output_dir": ".", "field": str(field), "crs": crs, "steps": steps}
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
@@ -95,12 +88,6 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
 
 def compare_with_truth(out: Path, field: Path) -> dict:
     """Per-plant height and NDVI of the projected plants against the truth, matched by position."""
-    import geopandas as gpd
-    from scipy.spatial import cKDTree
-
-    from matchplant.core.config import load_config
-    from matchplant.spatial_stat_extractor.extract import StatsConfig, run as run_stats
-
     plants = gpd.read_file(out / "8_plants" / "plants.gpkg")
     stats = {}
     with open(out / "9_stats" / "stats.csv", newline="") as fh:
@@ -149,12 +136,8 @@ def compare_with_truth(out: Path, field: Path) -> dict:
 
 
 def _scatter(path: Path, arr: np.ndarray) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
+    fig = figure(headless=True, figsize=(10, 4.5))
+    axes = fig.subplots(1, 2)
     for ax, (i, j), name in ((axes[0], (0, 1), "height (m): CHM max"), (axes[1], (2, 3), "NDVI mean")):
         ax.scatter(arr[:, i], arr[:, j], s=8, alpha=0.6)
         lo, hi = np.nanmin(arr[:, [i, j]]), np.nanmax(arr[:, [i, j]])
@@ -163,8 +146,8 @@ def _scatter(path: Path, arr: np.ndarray) -> None:
         ax.set_ylabel(f"MatchPlant {name}")
         ax.set_title(f"r = {_pearson(arr[:, i], arr[:, j]):.3f}, n = {len(arr)}")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
 
 
 def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
@@ -234,9 +217,6 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
 
 def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float = 5.0, pretrained: str = "none",
              tile: int = 128, from_step: str = "") -> Path:
-    from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
-    from matchplant.simfield import generate_field
-
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, coco_to_yolo, open_session, read_yolo,
-                                 run, yolo_to_coco)
+from matchplant.bbox_drawer.annotate import AnnotateConfig, open_session, run
+from matchplant.bbox_drawer.store import AnnotationStore
 from matchplant.core.coco import make_annotation, new_dataset, validate_dataset, write_dataset, write_predictions
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.yolo import read_yolo, yolo_to_coco
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
@@ -159,7 +160,7 @@ KILLED = textwrap.dedent("""
     import sys
     sys.path.insert(0, {tests!r})
     import gui_events as ge
-    from matchplant.bbox_drawer.annotate import AnnotationStore
+    from matchplant.bbox_drawer.store import AnnotationStore
     from matchplant.bbox_drawer.gui import AnnotatorGUI
     g = AnnotatorGUI(AnnotationStore({photos!r}, {out!r}), headless=True, dpi=60)
     i = 0
@@ -341,7 +342,7 @@ XVFB = textwrap.dedent("""
     import matplotlib
     import matplotlib.pyplot as plt
     import gui_events as ge
-    from matchplant.bbox_drawer.annotate import AnnotationStore
+    from matchplant.bbox_drawer.store import AnnotationStore
     from matchplant.bbox_drawer.gui import AnnotatorGUI
     store = AnnotationStore({photos!r}, {out!r})
     g = AnnotatorGUI(store, headless=False)

@@ -20,9 +20,15 @@ from pyproj import Transformer
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, InputError
-from matchplant.gcp_finder.finder import (GcpFinderConfig, MarkStore, camera_rotation, detect_target, find_candidates,
-                                   parse_dji_xmp, read_gcp_list, read_image_info, run, track_yaw, write_gcp_list)
-from matchplant.gps_embeder.embed import gps_ifd, jpeg_segments
+from matchplant.core.exif import gps_ifd, jpeg_segments
+from matchplant.core.gcp_list import read_gcp_list, write_gcp_list
+from matchplant.gcp_finder.candidates import find_candidates
+from matchplant.gcp_finder.config import GcpFinderConfig
+from matchplant.gcp_finder.finder import run
+from matchplant.gcp_finder.marks import MarkStore
+from matchplant.gcp_finder.metadata import parse_dji_xmp, read_image_info
+from matchplant.gcp_finder.pose import camera_rotation, track_yaw
+from matchplant.gcp_finder.target import detect_target
 
 from gui_events import click, drag, key  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -362,7 +368,9 @@ def test_gui_real_window_xvfb(flight, tmp_path):
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         import matplotlib
         from pathlib import Path
-        from matchplant.gcp_finder.finder import GcpFinderConfig, MarkStore, find_candidates
+        from matchplant.gcp_finder.candidates import find_candidates
+        from matchplant.gcp_finder.config import GcpFinderConfig
+        from matchplant.gcp_finder.marks import MarkStore
         from matchplant.gcp_finder.gui import GcpFinderGUI
         from gui_events import click, key
         root, out = Path({str(root)!r}), Path({str(tmp_path)!r})

@@ -19,8 +19,11 @@ from pyproj import Transformer
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, InputError, MatchPlantError
-from matchplant.gps_embeder.embed import (GpsEmbedConfig, assign_events, embed_gps, estimate_clock_offset, exif_gps,
-                                  exif_time, jpeg_scan_data, jpeg_segments, load_exif, read_gnss_log, splice_exif)
+from matchplant.core.exif import (exif_gps, exif_time, jpeg_scan_data, jpeg_segments, load_exif, splice_exif,
+                                  write_gps_copy)
+from matchplant.gps_embeder.embed import GpsEmbedConfig, embed_gps
+from matchplant.gps_embeder.gnss_log import read_gnss_log
+from matchplant.gps_embeder.matching import assign_events, estimate_clock_offset
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = calendar.timegm((2024, 6, 3, 15, 0, 0))  # camera clock of the first image (UTC)
@@ -254,8 +257,6 @@ def test_synthetic_field(tiny_field, tmp_path):
 
 def test_unwritable_vendor_tag_is_dropped(tmp_path):
     # SceneType stored as a number (some cameras do): piexif cannot write it back; the copy still works
-    from matchplant.gps_embeder.embed import write_gps_copy
-
     make_jpeg(tmp_path / "a.jpg", T0 + 0.25)
     exif = load_exif(tmp_path / "a.jpg")
     exif["Exif"][piexif.ExifIFD.SceneType] = 1

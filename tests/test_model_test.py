@@ -233,7 +233,8 @@ def test_errors(checkpoint, tmp_path):
 
 def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     from matchplant.core.coco import read_dataset
-    from matchplant.detection.data import CocoDetection, read_image
+    from matchplant.core.images import read_rgb8
+    from matchplant.detection.data import CocoDetection
     from matchplant.img_splitter.tiling import TilingConfig, run as run_tiling
 
     truth = read_dataset(tiny_field.boxes_undistorted)
@@ -250,7 +251,7 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     assert all(p is not None for p in ds.paths)
 
     im = truth["images"][0]
-    photo = read_image(tiny_field.undistorted_images / im["file_name"])
+    photo = read_rgb8(tiny_field.undistorted_images / im["file_name"])
     gt = np.asarray([a["bbox"] for a in truth["annotations"] if a["image_id"] == im["id"]], float)
     gt[:, 2:] += gt[:, :2]
     xs, ys = tile_starts(photo.shape[1], 192, overlap), tile_starts(photo.shape[0], 192, overlap)

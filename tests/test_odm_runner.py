@@ -21,8 +21,12 @@ import pytest
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, DependencyError, InputError
-from matchplant.odm_runner.runner import (CONTAINER_PROJECT, NODEODM_OUTPUTS, ODMRunError, ODMRunnerConfig, check_docker,
-                                   check_outputs, docker_command, find_gcp_file, odm_arguments, run)
+from matchplant.odm_runner.config import ODMRunError, ODMRunnerConfig
+from matchplant.odm_runner.docker import CONTAINER_PROJECT, check_docker, docker_command
+from matchplant.odm_runner.inputs import find_gcp_file, odm_arguments
+from matchplant.odm_runner.nodeodm import NODEODM_OUTPUTS
+from matchplant.odm_runner.outputs import check_outputs
+from matchplant.odm_runner.runner import run
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "2_odm_runner"

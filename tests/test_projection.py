@@ -20,13 +20,22 @@ from affine import Affine
 from pyproj import CRS
 from scipy.spatial.transform import Rotation
 
-from matchplant.plant_projection import projection as P
+from matchplant.core.boxes import iou_pairs, match_boxes
 from matchplant.core.camera import FisheyeCamera, PinholeCamera
 from matchplant.core.config import load_config
 from matchplant.core.errors import MatchPlantError
 from matchplant.core.frames import write_coords_txt
 from matchplant.core.odm import ODMProject
-from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
+from matchplant.core.reconstruction import Shot, write_reconstruction
+from matchplant.core.surface import OUTSIDE, STATUS_TEXT
+from matchplant.plant_projection import dsm
+from matchplant.plant_projection.config import ProjectionConfig
+from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
+from matchplant.plant_projection.geometry import _skimmed, box_outline, outline_boxes
+from matchplant.plant_projection.merge import merge_views
+from matchplant.plant_projection.run import run
+from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions
+from odm_builder import Raster, write_odm_project
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "8_plant_projection"
@@ -83,17 +92,9 @@ def pose(tilt_deg, heading_deg):
 
 def build_project(root: Path, *, tilt=0.0, heading=0.0, seed=0, fisheye=False):
     """Write an ODM-shaped project; return the truth (map boxes) and GT boxes on undistorted and raw images."""
-    import rasterio
-    from PIL import Image
-
     rng = np.random.default_rng(seed)
     plants = make_plants(rng)
     Z, transform = dsm_array(plants)
-    (root / "odm_dem").mkdir(parents=True)
-    with rasterio.open(root / "odm_dem" / "dsm.tif", "w", driver="GTiff", width=Z.shape[1], height=Z.shape[0],
-                       count=1, dtype="float32", crs=CRS14, transform=transform, nodata=-9999) as dst:
-        dst.write(Z.astype("float32"), 1)
-    write_coords_txt(root / "odm_georeferencing" / "coords.txt", CRS14, OFFSET)
     w, h = 480, 360
     if fisheye:
         raw = FisheyeCamera(id="cam", projection_type="fisheye", width=w, height=h, focal_x=0.7, focal_y=0.7,
@@ -112,16 +113,8 @@ def build_project(root: Path, *, tilt=0.0, heading=0.0, seed=0, fisheye=False):
         shots_raw[name] = Shot.from_center(name, raw, R, c)
         shots_und[name] = Shot.from_center(name, und, R, c)
     ref = {"latitude": 40.6, "longitude": -96.6, "altitude": 0.0}
-    write_reconstruction(root / "opensfm" / "reconstruction.json",
-                         Reconstruction(cameras={"cam": raw}, shots=shots_raw, reference_lla=ref))
-    write_reconstruction(root / "opensfm" / "reconstruction.topocentric.json",
-                         Reconstruction(cameras={"cam": raw}, shots=shots_raw, reference_lla=ref))
-    write_reconstruction(root / "opensfm" / "undistorted" / "reconstruction.json",
-                         Reconstruction(cameras={"cam": und}, shots=shots_und, reference_lla=ref))
-    img_dir = root / "opensfm" / "undistorted" / "images"
-    img_dir.mkdir(parents=True)
-    for name in shots_und:
-        Image.new("RGB", (w, h), (90, 70, 50)).save(img_dir / f"{name}.tif")
+    write_odm_project(root, crs=CRS14, offset=OFFSET, reference_lla=ref, shots=shots_raw, undistorted_shots=shots_und, dsm=Raster(Z, transform), topocentric_copy=True,
+                      image_color=(90, 70, 50))
 
     pts = surface_points(plants)
     x, y, r, _ = plants
@@ -165,9 +158,9 @@ def tiles_of(gt: dict, tile=240, overlap=40) -> dict:
 
 
 def project_and_score(root: Path, preds: dict, truth: np.ndarray, **kw):
-    views, rejected = P.project_predictions(ODMProject(root), preds, **{k: v for k, v in kw.items() if k != "merge"})
-    plants = P.merge_views(views, merge=kw.get("merge", "nadir"))
-    m = P.evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    views, rejected = project_predictions(ODMProject(root), preds, **{k: v for k, v in kw.items() if k != "merge"})
+    plants = merge_views(views, merge=kw.get("merge", "nadir"))
+    m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     return views, rejected, plants, m
 
 
@@ -231,12 +224,12 @@ def test_rays_that_skimmed_a_plant_are_flagged():
     # by 5 cm lands on the soil just behind it
     skimmed_hit = np.array([1.0 + 0.095 * 10.0 / 9.45, 1.0, 0.0])
     open_hit = np.array([0.2, 0.2, 0.0])
-    out = P._skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
+    out = _skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
     assert out.tolist() == [True, False]
 
 
 def test_box_outline_runs_around_the_box():
-    o = P.box_outline(np.array([[10, 20, 30, 60]]), 1)[0]
+    o = box_outline(np.array([[10, 20, 30, 60]]), 1)[0]
     assert o.shape == (8, 2)
     assert o[0].tolist() == [9.5, 19.5] and o[2].tolist() == [29.5, 19.5] and o[4].tolist() == [29.5, 59.5]
     assert o[:, 0].min() == 9.5 and o[:, 1].max() == 59.5
@@ -247,18 +240,18 @@ def test_inscribed_box_of_a_rotated_square_is_the_round_plants_box():
     sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) @ np.array([[np.cos(a), np.sin(a)],
                                                                            [-np.sin(a), np.cos(a)]])
     sq += [700000.0, 4500000.0]  # UTM-sized numbers must not lose precision
-    box, c, area = P.outline_boxes(sq[None], "inscribed")
+    box, c, area = outline_boxes(sq[None], "inscribed")
     assert np.allclose(box[0] - [700000, 4500000, 700000, 4500000], [-1, -1, 1, 1], atol=1e-6)
     assert area[0] == pytest.approx(4.0)
-    env, _, _ = P.outline_boxes(sq[None], "outline")
+    env, _, _ = outline_boxes(sq[None], "outline")
     assert env[0, 2] - env[0, 0] == pytest.approx(2 * (np.cos(a) + np.sin(a)))
 
 
 def test_iou_and_matching():
     a = np.array([[0, 0, 2, 2], [10, 10, 11, 11]], float)
     b = np.array([[1, 0, 3, 2], [0, 0, 2, 2]], float)
-    assert P.iou_pairs(a[:1], b[:1])[0] == pytest.approx(1 / 3)
-    match, iou = P.match_boxes(a, b)
+    assert iou_pairs(a[:1], b[:1])[0] == pytest.approx(1 / 3)
+    match, iou = match_boxes(a, b)
     assert match.tolist() == [1, -1] and iou[0] == 1.0
 
 
@@ -287,7 +280,7 @@ def test_oblique_flight_over_slope(tmp_path, tilt, heading):
     truth, gt = build_project(tmp_path, tilt=tilt, heading=heading, seed=1)
     views, rejected, plants, m = project_and_score(tmp_path, gt["undistorted"], truth)
     seen = np.unique([a["plant_id"] for a in gt["undistorted"]["predictions"]]) - 1
-    m = P.evaluate_boxes(truth[seen], plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    m = evaluate_boxes(truth[seen], plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     assert m["iou_median"] >= 0.9, m
     assert m["share_iou_above_0.5"] >= 0.99, m
 
@@ -355,7 +348,7 @@ def test_missing_image_nodata_and_outside_are_reported(tmp_path, nadir_project):
     truth_id = np.array([a["plant_id"] for a in preds["predictions"]])
     name = {im["id"]: im["file_name"] for im in preds["images"]}
     in_gone = np.array([name[a["image_id"]] == gone + ".tif" for a in preds["predictions"]])
-    miss = rejected[rejected["reason"] == P.NOT_IN_RECONSTRUCTION]
+    miss = rejected[rejected["reason"] == NOT_IN_RECONSTRUCTION]
     assert sorted(miss["pred_index"]) == list(np.flatnonzero(in_gone))
     hole = rejected[rejected["reason"].str.contains("nodata")]
     assert sorted(hole["pred_index"]) == list(np.flatnonzero((truth_id == k + 1) & ~in_gone))
@@ -371,7 +364,7 @@ def test_missing_image_nodata_and_outside_are_reported(tmp_path, nadir_project):
         dst.write(data, 1)
     views, rejected, _, _ = project_and_score(root, preds, truth, dsm=tmp_path / "west.tif")
     east = truth[:, 0] > OFFSET[0] + half_w * RES + 0.3  # plants well beyond the DSM's edge
-    out = rejected[rejected["reason"] == P.STATUS_TEXT[P.OUTSIDE]]
+    out = rejected[rejected["reason"] == STATUS_TEXT[OUTSIDE]]
     assert set(np.flatnonzero(east) + 1) <= set(truth_id[out["pred_index"]])
     assert not (set(views.table["truth_plant_id"]) & set(np.flatnonzero(east) + 1))
 
@@ -387,11 +380,11 @@ def test_run_writes_outputs_and_reports(tmp_path, nadir_project):
         {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.1}]
     (tmp_path / "preds.json").write_text(json.dumps(preds))
     pd.DataFrame(truth, columns=["xmin", "ymin", "xmax", "ymax"]).to_csv(tmp_path / "ref.csv", index=False)
-    cfg = load_config(P.ProjectionConfig, None, [f"project={src}", f"predictions={tmp_path / 'preds.json'}",
+    cfg = load_config(ProjectionConfig, None, [f"project={src}", f"predictions={tmp_path / 'preds.json'}",
                                                  f"output_dir={tmp_path / 'out'}", "mode=both",
                                                  f"evaluate.reference={tmp_path / 'ref.csv'}",
                                                  "write_shapefile=true"])
-    result = P.run(cfg)
+    result = run(cfg)
     out = tmp_path / "out"
     gdf = gpd.read_file(out / "plants.gpkg", layer="plants")
     assert gdf.crs.to_epsg() == 32614 and len(gdf) == len(truth)
@@ -401,7 +394,7 @@ def test_run_writes_outputs_and_reports(tmp_path, nadir_project):
     assert list(csv["plant_id"]) == list(gdf["plant_id"])
     assert (out / "plants.shp").is_file() and (out / "plants.prj").is_file()
     rep = pd.read_csv(out / "unprojected_boxes.csv")
-    assert rep["reason"].tolist() == [P.NOT_IN_RECONSTRUCTION]
+    assert rep["reason"].tolist() == [NOT_IN_RECONSTRUCTION]
     summary = json.loads((out / "projection_summary.json").read_text())
     assert summary["below_min_score"] == 1 and summary["not_projected"] == 1
     ev = json.loads((out / "evaluation.json").read_text())
@@ -428,7 +421,7 @@ def test_coco_reference_over_orthophoto(tmp_path, nadir_project):
     coco = {"images": [{"id": 1, "file_name": "ortho.tif", "width": 1200, "height": 1400}],
             "annotations": anns, "categories": [{"id": 1, "name": "maize"}]}
     (tmp_path / "ref.json").write_text(json.dumps(coco))
-    boxes = P.read_boxes(tmp_path / "ref.json", orthophoto=ortho)
+    boxes = read_boxes(tmp_path / "ref.json", orthophoto=ortho)
     assert np.allclose(boxes, truth, atol=1e-6)
 
 
@@ -439,18 +432,18 @@ def test_coco_reference_over_orthophoto(tmp_path, nadir_project):
 def test_bad_inputs_are_clear_errors(tmp_path, nadir_project):
     root, _, _ = nadir_project
     with pytest.raises(MatchPlantError, match="predictions"):
-        load_config(P.ProjectionConfig, None, [f"project={root}", f"output_dir={tmp_path}"])
+        load_config(ProjectionConfig, None, [f"project={root}", f"output_dir={tmp_path}"])
     (tmp_path / "p.json").write_text("[1, 2")
-    cfg = load_config(P.ProjectionConfig, None, [f"project={root}", f"predictions={tmp_path / 'p.json'}",
+    cfg = load_config(ProjectionConfig, None, [f"project={root}", f"predictions={tmp_path / 'p.json'}",
                                                  f"output_dir={tmp_path}"])
     with pytest.raises(MatchPlantError, match="not valid JSON"):
-        P.run(cfg)
+        run(cfg)
     with pytest.raises(MatchPlantError, match="evaluate.reference"):
-        load_config(P.ProjectionConfig, None, ["mode=evaluate", f"output_dir={tmp_path}"])
+        load_config(ProjectionConfig, None, ["mode=evaluate", f"output_dir={tmp_path}"])
 
 
 def test_folder_config_and_help():
-    cfg = load_config(P.ProjectionConfig, FOLDER / "config.yaml", check_paths=False, strict=False)
+    cfg = load_config(ProjectionConfig, FOLDER / "config.yaml", check_paths=False, strict=False)
     assert cfg.mode == "project" and cfg.merge == "nadir"
     r = subprocess.run([sys.executable, str(FOLDER / "project_boxes.py"), "--help"], capture_output=True, text=True,
                        timeout=60)
@@ -470,10 +463,10 @@ def gt_predictions(field, raw=False) -> dict:
 
 
 def score_field(field, raw=False, merge="nadir"):
-    views, rejected = P.project_predictions(ODMProject(field.root), gt_predictions(field, raw))
-    plants = P.merge_views(views, merge=merge)
+    views, rejected = project_predictions(ODMProject(field.root), gt_predictions(field, raw))
+    plants = merge_views(views, merge=merge)
     truth = pd.read_csv(field.map_boxes)[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
-    return rejected, plants, P.evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy()), truth
+    return rejected, plants, evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy()), truth
 
 
 @pytest.mark.parametrize("raw", [False, True], ids=["undistorted", "raw-brown"])
@@ -489,9 +482,9 @@ def test_dsm_read_per_image_gives_the_same_plants(tiny_field, monkeypatch):
     """A DSM too large for memory is read image by image (each window padded for the ground estimate): the
     boxes agree with those from the DSM read once."""
     preds = gt_predictions(tiny_field)
-    ref, _ = P.project_predictions(ODMProject(tiny_field.root), preds)
-    monkeypatch.setattr(P, "MAX_SURFACE_CELLS", 1000)
-    got, rejected = P.project_predictions(ODMProject(tiny_field.root), preds)
+    ref, _ = project_predictions(ODMProject(tiny_field.root), preds)
+    monkeypatch.setattr(dsm, "MAX_SURFACE_CELLS", 1000)
+    got, rejected = project_predictions(ODMProject(tiny_field.root), preds)
     assert len(rejected) == 0 and len(got.table) == len(ref.table)
     cols = ["xmin", "ymin", "xmax", "ymax"]
     err = np.abs(got.table[cols].to_numpy() - ref.table[cols].to_numpy()).max(axis=1)
@@ -522,8 +515,8 @@ def test_topocentric_reconstruction_gives_the_same_plants(tiny_field, tmp_path):
     assert isinstance(ODMProject(root).frame(), TopocentricFrame)
     for raw in (False, True):
         preds = gt_predictions(tiny_field, raw)
-        ref, _ = P.project_predictions(ODMProject(tiny_field.root), preds)
-        got, rejected = P.project_predictions(ODMProject(root), preds)
+        ref, _ = project_predictions(ODMProject(tiny_field.root), preds)
+        got, rejected = project_predictions(ODMProject(root), preds)
         assert len(rejected) == 0 and len(got.table) == len(ref.table)
         # the ray hits agree within 1 cm (in fact to a fraction of a mm)...
         ray_err = np.linalg.norm(got.outlines - ref.outlines, axis=-1)
@@ -544,14 +537,14 @@ def test_plain_coco_results_list_with_images_from(tiny_field, tmp_path, nadir_pr
     results = [{k: a[k] for k in ("image_id", "category_id", "bbox", "score")} for a in preds["predictions"]]
     (tmp_path / "results.json").write_text(json.dumps(results))
     over = [f"project={root}", f"predictions={tmp_path / 'results.json'}", f"output_dir={tmp_path / 'out'}"]
-    cfg = load_config(P.ProjectionConfig, None, over + [f"images_from={tmp_path / 'images.json'}"])
-    summary = P.run(cfg)["projection"]
+    cfg = load_config(ProjectionConfig, None, over + [f"images_from={tmp_path / 'images.json'}"])
+    summary = run(cfg)["projection"]
     assert summary["projected_boxes"] == len(results) and summary["plants"] == len(truth)
     plants = pd.read_csv(tmp_path / "out" / "plants.csv")
-    m = P.evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     assert m["share_iou_above_0.5"] >= 0.99, m
     with pytest.raises(MatchPlantError, match="plain COCO results list"):
-        P.run(load_config(P.ProjectionConfig, None, over))
+        run(load_config(ProjectionConfig, None, over))
 
 
 @pytest.fixture(scope="module", params=[1, 2], ids=["seed1", "seed2"])

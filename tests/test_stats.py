@@ -453,7 +453,7 @@ def test_cli_end_to_end_with_comparison(field):
 
 def test_folder_config_and_help():
     from matchplant.core.config import load_config
-    from matchplant.spatial_stat_extractor.extract import StatsConfig
+    from matchplant.spatial_stat_extractor.config import StatsConfig
 
     cfg = load_config(StatsConfig, FOLDER / "config.yaml", strict=False)
     assert cfg.mode == "center" and cfg.stats
@@ -464,7 +464,7 @@ def test_folder_config_and_help():
 
 def test_config_checks(tmp_path):
     from matchplant.core.config import load_config
-    from matchplant.spatial_stat_extractor.extract import StatsConfig
+    from matchplant.spatial_stat_extractor.config import StatsConfig
 
     (tmp_path / "p.gpkg").write_text("x")
     with pytest.raises(ConfigError, match="no raster given"):

@@ -48,7 +48,7 @@ def small_field(tmp_path):
 
 def test_gui_headless(small_field, tmp_path):
     from matchplant.core.config import load_config
-    from matchplant.spatial_stat_extractor.extract import StatsConfig
+    from matchplant.spatial_stat_extractor.config import StatsConfig
     from matchplant.spatial_stat_extractor.gui import StatsGUI
 
     d = small_field["dir"]
@@ -99,7 +99,7 @@ def test_gui_real_window(small_field, tmp_path):
     d = small_field["dir"]
     code = textwrap.dedent(f"""
         import matplotlib.pyplot as plt
-        from matchplant.spatial_stat_extractor.extract import StatsConfig
+        from matchplant.spatial_stat_extractor.config import StatsConfig
         from matchplant.spatial_stat_extractor.gui import StatsGUI
         cfg = StatsConfig()
         cfg.polygons = __import__("pathlib").Path({str(d / "plants.gpkg")!r})

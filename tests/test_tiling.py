@@ -15,6 +15,7 @@ from shapely.geometry import box as shapely_box
 from matchplant.core.coco import make_annotation, new_dataset, validate_dataset, write_dataset
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.yolo import coco_to_yolo
 from matchplant.img_splitter.tiling import TilingConfig, plan_image, run, split_images, tile_grid, tile_origins
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -210,8 +211,6 @@ def test_parallel_equals_serial(field, tmp_path):
 
 
 def test_yolo_labels_as_input_give_the_same_tiles(field, tmp_path):
-    from matchplant.bbox_drawer.annotate import coco_to_yolo
-
     coco_to_yolo(json.loads((field / "annotations.json").read_text()), tmp_path / "yolo")
     a = run(_cfg(field, output_dir=tmp_path / "from_coco"))
     b = run(_cfg(field, output_dir=tmp_path / "from_yolo", annotations=tmp_path / "yolo"))

@@ -1,4 +1,6 @@
-"""Module 4's window: draw and correct plant boxes. A thin layer over :class:`~matchplant.bbox_drawer.annotate.AnnotationStore`.
+"""Module 4's window: draw and correct plant boxes. A thin layer over
+:class:`~matchplant.bbox_drawer.store.AnnotationStore`, so that every edit is tested without a window
+and saved the moment it is made.
 
 Mouse: drag on empty image to draw a box; click a box to select it; drag a selected box to move it,
 drag its edge or corner to resize it; right or middle drag pans; the wheel zooms around the cursor.
@@ -8,11 +10,13 @@ Every edit is saved at once by the store; the help panel (key ``h``) lists the k
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.patches import Polygon, Rectangle
 
-from matchplant.bbox_drawer.annotate import (AnnotateConfig, AnnotationStore, display_rgb, match_name, open_session,
-                                             read_image)
+from matchplant.bbox_drawer.annotate import AnnotateConfig, open_session
+from matchplant.bbox_drawer.store import AnnotationStore
 from matchplant.core.config import validate
-from matchplant.core.gui import pyplot, show
+from matchplant.core.gui import close, figure, show
+from matchplant.core.images import display_rgb, match_name, read_image
 from matchplant.core.log import get_logger
 from matchplant.core.owned_areas import read_owned_areas
 
@@ -53,7 +57,7 @@ reopen to resume."""
 
 
 class AnnotatorGUI:
-    """The annotation window over ``store``. ``headless=True`` (tests) uses the Agg backend."""
+    """The annotation window over ``store``. ``headless=True`` (tests) draws on a figure of its own, outside pyplot."""
 
     def __init__(self, store: AnnotationStore, owned_areas: dict[str, np.ndarray] | None = None,
                  headless: bool | None = None, export_yolo: bool = True, include_unseen: bool = False,
@@ -62,9 +66,7 @@ class AnnotatorGUI:
         # owned-area polygons keyed by this folder's image names (module 3 may name the shot, not the .tif)
         self.owned = {match_name(k, store.files): v for k, v in (owned_areas or {}).items()}
         self.export_options = {"yolo": export_yolo, "include_unseen": include_unseen}
-        plt = pyplot(headless)
-        self.plt = plt
-        self.fig = plt.figure(figsize=(13, 8), dpi=dpi)
+        self.fig = figure(headless, figsize=(13, 8), dpi=dpi)
         self._quiet_default_keys()
         self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
         self.help_ax = self.fig.add_axes([0.76, 0.05, 0.23, 0.90])
@@ -94,13 +96,9 @@ class AnnotatorGUI:
     def _draw_help(self) -> None:
         """The help panel, rendered once as a picture: redrawing ~40 lines of text on every mouse move
         would make the window sluggish."""
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
         pos = self.help_ax.get_position()
         w, h = self.fig.get_size_inches()
-        panel = Figure(figsize=(pos.width * w, pos.height * h), dpi=self.fig.dpi, facecolor="white")
-        FigureCanvasAgg(panel)
+        panel = figure(True, figsize=(pos.width * w, pos.height * h), dpi=self.fig.dpi, facecolor="white")
         cats = "\n".join(f"     {i + 1}  {name}" for i, name in enumerate(self.store.categories))
         text = panel.text(0.02, 0.99, "CATEGORIES\n" + cats + "\n\n" + HELP, va="top", ha="left",
                           family="monospace", fontsize=8.5, linespacing=1.25)
@@ -109,8 +107,8 @@ class AnnotatorGUI:
         box = text.get_window_extent()
         line = box.height / (text.get_text().count("\n") + 1) / (pos.height * h * self.fig.dpi)
         for i in range(len(self.store.categories)):
-            panel.patches.append(self.plt.Rectangle((0.03, 0.99 - line * (i + 1.95)), 0.06, line * 0.7,
-                                                    transform=panel.transFigure, figure=panel, color=COLORS[i]))
+            panel.patches.append(Rectangle((0.03, 0.99 - line * (i + 1.95)), 0.06, line * 0.7,
+                                               transform=panel.transFigure, figure=panel, color=COLORS[i]))
         panel.canvas.draw()
         self.help_ax.clear()
         self.help_ax.axis("off")
@@ -132,7 +130,7 @@ class AnnotatorGUI:
                                            cmap="gray" if img.ndim == 2 else None)
         poly = self.owned.get(name)
         if poly is not None:
-            self.ax.add_patch(self.plt.Polygon(poly, closed=True, fill=False, ls="--", lw=1.5, ec="white"))
+            self.ax.add_patch(Polygon(poly, closed=True, fill=False, ls="--", lw=1.5, ec="white"))
         self.ax.set_xticks([])
         self.ax.set_yticks([])
         self.preview = None
@@ -153,8 +151,8 @@ class AnnotatorGUI:
         for b in boxes:
             x1, y1, x2, y2 = b["xyxy"]
             sel = b["id"] == self.selected
-            rect = self.plt.Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=COLORS[b["category_id"] - 1],
-                                      lw=2.6 if sel else 1.3, ls="--" if "score" in b else "-")
+            rect = Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=COLORS[b["category_id"] - 1],
+                             lw=2.6 if sel else 1.3, ls="--" if "score" in b else "-")
             self.ax.add_patch(rect)
             self.artists.append(rect)
             if sel:
@@ -254,7 +252,7 @@ class AnnotatorGUI:
             return
         x1, y1, x2, y2 = self._dragged_box(self.drag, *self.data_xy(event, snap=True))
         if self.preview is None:
-            self.preview = self.plt.Rectangle((x1, y1), 0, 0, fill=False, ec="white", lw=1.2, ls=":")
+            self.preview = Rectangle((x1, y1), 0, 0, fill=False, ec="white", lw=1.2, ls=":")
             self.ax.add_patch(self.preview)
         self.preview.set_bounds(min(x1, x2), min(y1, y2), abs(x2 - x1), abs(y2 - y1))
         self.fig.canvas.draw_idle()
@@ -348,7 +346,7 @@ class AnnotatorGUI:
             paths = self.export()
             self.message = f"exported {paths['coco'].name}" + (" + YOLO" if "yolo" in paths else "")
         elif k == "q":
-            self.plt.close(self.fig)
+            close(self.fig)
             return
         else:
             return
@@ -378,5 +376,5 @@ def launch(cfg: AnnotateConfig, headless: bool | None = None) -> AnnotatorGUI:
     store = open_session(cfg)
     app = AnnotatorGUI(store, read_owned_areas(cfg.owned_areas), headless=headless,
                        export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen)
-    show(app.fig, headless)
+    show(app.fig)
     return app

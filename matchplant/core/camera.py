@@ -1,4 +1,4 @@
-"""Camera models with OpenSfM's conventions (DESIGN §3), vectorised over many points.
+"""Camera models with OpenSfM's conventions (docs/DESIGN.md §3), vectorised over many points.
 
 Camera frame: x right, y down, z forward. Normalised image coordinates are scaled by
 ``S = max(width, height)`` and centred: ``u = x_n * S + (w - 1) / 2``, ``v = y_n * S + (h - 1) / 2``.

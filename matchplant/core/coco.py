@@ -1,4 +1,4 @@
-"""COCO datasets and detection results, with the tile provenance that chains the modules (DESIGN §2).
+"""COCO datasets and detection results, with the tile provenance that chains the modules (docs/DESIGN.md §2).
 
 Dataset: ``{"images": [...], "annotations": [...], "categories": [...]}`` with ``bbox = [x, y, w, h]`` in
 pixels of that image, ``area = w * h``, ``iscrowd = 0``, categories numbered 1..N. A tile's image entry

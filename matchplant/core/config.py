@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import os
+import textwrap
 import types
 import typing
 from dataclasses import MISSING, dataclass, field, fields, is_dataclass
@@ -29,6 +31,7 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 import yaml
 
 from matchplant.core.errors import ConfigError
+from matchplant.core.io import write_text
 
 PATH_KINDS = (None, "file", "dir", "exists", "out")
 
@@ -149,6 +152,12 @@ def _unknown_key(key: str, names: typing.Iterable[str], prefix: str, source: str
         f"valid keys here: {', '.join(sorted(names))}"
     return ConfigError(f"unknown config key '{full}' ({source}); {hint}",
                        fix="correct or remove the key; see the module's config.yaml for every key")
+
+
+def from_dict(cls: type, data: dict, *, prefix: str = "", source: str = "a mapping", base: Path | None = None) -> Any:
+    """A ``cls`` instance from plain data (e.g. settings stored in a checkpoint), converted and checked
+    exactly as a YAML file would be, so a stored config cannot bypass the loader's rules."""
+    return _build(cls, data, prefix=prefix, source=source, base=base or Path.cwd())
 
 
 def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> Any:
@@ -347,54 +356,71 @@ def to_dict(cfg: Any) -> dict:
     return plain(cfg)
 
 
-def to_yaml(cfg_or_cls: Any, *, comments: bool = True) -> str:
-    """YAML text of a config (or of a class's defaults) with each key's help as a comment."""
+def to_yaml(cfg_or_cls: Any, *, comments: bool = True, header: typing.Sequence[str] = (),
+            base: Path | None = None) -> str:
+    """YAML text of a config (or of a class's defaults) with each key's help as a comment.
+
+    ``header`` lines follow the class's description at the top. With ``base`` (the folder the file will be
+    in), absolute paths near it are written relative to it, as a YAML config's paths are read.
+    """
     cfg = cfg_or_cls() if isinstance(cfg_or_cls, type) else cfg_or_cls
     lines: list[str] = []
     doc = (type(cfg).__doc__ or "").strip()
-    if comments and doc:
-        lines += [f"# {line}".rstrip() for line in doc.splitlines()]
+    if comments and (doc or header):
+        lines += [f"# {line}".rstrip() for line in [*doc.splitlines(), *header]]
         lines.append("")
-    _yaml_lines(cfg, lines, indent="", comments=comments)
+    _yaml_lines(cfg, lines, indent="", comments=comments, base=base)
     return "\n".join(lines) + "\n"
 
 
-def _yaml_lines(cfg: Any, lines: list[str], indent: str, comments: bool) -> None:
+def _yaml_lines(cfg: Any, lines: list[str], indent: str, comments: bool, base: Path | None) -> None:
     for f in fields(cfg):
         value = getattr(cfg, f.name)
         md = f.metadata
         if comments and md.get("help"):
-            extra = []
+            extra = ["required: set this"] if md.get("required") else []
             if md.get("choices") is not None:
                 extra.append("one of: " + ", ".join(str(c) for c in md["choices"]))
             if md.get("min") is not None or md.get("max") is not None:
                 extra.append(f"range: {md.get('min', '')}..{md.get('max', '')}".replace("None", ""))
             text = md["help"] + (f" ({'; '.join(extra)})" if extra else "")
-            lines.append(f"{indent}# {text}")
+            lines += [f"{indent}# {line}" for line in textwrap.wrap(text, width=110 - len(indent))]
         if is_dataclass(value):
             lines.append(f"{indent}{f.name}:")
-            _yaml_lines(value, lines, indent + "  ", comments)
+            _yaml_lines(value, lines, indent + "  ", comments, base)
         else:
-            dumped = yaml.safe_dump({f.name: to_dict_value(value)}, default_flow_style=True,
+            dumped = yaml.safe_dump({f.name: to_dict_value(value, base)}, default_flow_style=True,
                                     sort_keys=False, width=1000).strip()
             lines.append(indent + dumped[1:-1])  # strip the braces of the one-key flow mapping
 
 
-def to_dict_value(v: Any) -> Any:
+def _path_text(p: Path, base: Path | None) -> str:
+    """A path as written in a YAML file in ``base``: relative when it is near (at most two levels up)."""
+    if base is None or not p.is_absolute():
+        return str(p)
+    try:
+        rel = Path(os.path.relpath(p, Path(base).resolve()))
+    except ValueError:  # another drive on Windows
+        return str(p)
+    return rel.as_posix() if rel.parts[:3].count("..") < 3 else str(p)
+
+
+def to_dict_value(v: Any, base: Path | None = None) -> Any:
     if isinstance(v, Path):
-        return str(v)
-    if isinstance(v, tuple):
-        return [to_dict_value(x) for x in v]
-    if isinstance(v, list):
-        return [to_dict_value(x) for x in v]
+        return _path_text(v, base)
+    if isinstance(v, (tuple, list)):
+        return [to_dict_value(x, base) for x in v]
     if is_dataclass(v):  # a list of sections (e.g. several dates of rasters)
-        return to_dict(v)
+        return {f.name: to_dict_value(getattr(v, f.name), base) for f in fields(v)}
+    if isinstance(v, dict):
+        return {str(k): to_dict_value(x, base) for k, x in v.items()}
     return v
 
 
-def save_config(cfg: Any, path: str | Path) -> Path:
-    from matchplant.core.io import write_text
-    return write_text(path, to_yaml(cfg))
+def save_config(cfg: Any, path: str | Path, header: typing.Sequence[str] = ()) -> Path:
+    """Write ``cfg`` as a commented YAML file; paths near the file are written relative to its folder."""
+    path = Path(path)
+    return write_text(path, to_yaml(cfg, header=header, base=path.parent))
 
 
 def field_help(cls: type) -> dict[str, str]:
@@ -410,5 +436,5 @@ def field_help(cls: type) -> dict[str, str]:
     return out
 
 
-__all__ = ["param", "section", "load_config", "set_value", "validate", "to_dict", "to_yaml", "save_config",
+__all__ = ["param", "section", "load_config", "from_dict", "set_value", "validate", "to_dict", "to_yaml", "save_config",
            "field_help", "dataclass", "dataclasses"]

@@ -1,4 +1,4 @@
-"""The frame a reconstruction is in, and its exact conversion to the map CRS (DESIGN §3).
+"""The frame a reconstruction is in, and its exact conversion to the map CRS (docs/DESIGN.md §3).
 
 1. :class:`OffsetFrame` - modern ODM: UTM (the CRS on line 1 of ``odm_georeferencing/coords.txt``)
    minus the integer offset on line 2. ``map = recon + (ox, oy, 0)``.
@@ -20,6 +20,7 @@ from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
 from matchplant.core.errors import InputError
+from matchplant.core.io import write_text
 
 _UTM_TEXT = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
@@ -67,8 +68,6 @@ def read_coords_txt(path: str | Path) -> tuple[CRS, np.ndarray]:
 
 
 def write_coords_txt(path: str | Path, crs: CRS, offset: np.ndarray) -> Path:
-    from matchplant.core.io import write_text
-
     epsg = crs.to_epsg()
     utm = crs.utm_zone if hasattr(crs, "utm_zone") else None
     if utm and epsg and 32601 <= epsg <= 32760:
@@ -154,7 +153,7 @@ class TopocentricFrame(Frame):
 def detect_frame(reference_lla: dict | None, coords: tuple[CRS, np.ndarray] | None = None,
                  has_topocentric_copy: bool = False, crs: CRS | None = None, *,
                  source: str | Path | None = None) -> Frame:
-    """Decide which frame a reconstruction is in (DESIGN §3) and return it.
+    """Decide which frame a reconstruction is in (docs/DESIGN.md §3) and return it.
 
     ``coords`` is coords.txt's (CRS, offset) if present; ``has_topocentric_copy`` says whether a
     ``reconstruction.topocentric.json`` lies beside the file; ``crs`` overrides the map CRS.

@@ -25,6 +25,16 @@ def is_image_name(path: Path, suffixes: Iterable[str] = IMAGE_SUFFIXES) -> bool:
     return path.suffix.lower() in tuple(suffixes) and not path.name.startswith(".")
 
 
+def match_name(name: str, known: Iterable[str]) -> str | None:
+    """The image of ``known`` that ``name`` refers to: same file name, or the same up to ODM's ``.tif``."""
+    known = set(known)
+    base = Path(str(name).replace("\\", "/")).name
+    for candidate in (base, base + ".tif", base[:-4] if base.lower().endswith(".tif") else None):
+        if candidate in known:
+            return candidate
+    return None
+
+
 def list_images(folder: str | Path, suffixes: Iterable[str] = IMAGE_SUFFIXES, *, key: str = "images",
                 fix: str | None = None, min_count: int = 1) -> list[Path]:
     """The image files of ``folder``, sorted by name.

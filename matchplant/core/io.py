@@ -13,6 +13,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
+from matchplant.core.errors import InputError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
@@ -65,8 +67,6 @@ def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:
 
 def read_json(path: str | Path) -> Any:
     """Read JSON with an error that names the file and the line of a syntax error."""
-    from matchplant.core.errors import InputError
-
     path = Path(path)
     if not path.is_file():
         raise InputError("file not found", path=path, fix="check the path in your config")

@@ -16,6 +16,8 @@ from typing import Any
 
 import yaml
 
+from matchplant.core.config import to_dict
+
 LOGGER_NAME = "matchplant"
 VERSIONED = ("matchplant", "numpy", "scipy", "opencv-python-headless", "rasterio", "pyproj", "shapely",
              "geopandas", "torch", "torchvision", "pycocotools", "matplotlib", "piexif", "rasterstats")
@@ -66,8 +68,6 @@ def setup_console(level: int | None = logging.INFO) -> logging.Logger:
 
 def start_run_log(output_dir: str | Path, module: str, config: Any = None) -> Path:
     """Attach a file handler for this run and record the configuration and package versions."""
-    from matchplant.core.config import to_dict
-
     logger = setup_console(level=None)
     for h in list(logger.handlers):
         if getattr(h, "_matchplant_run", False):

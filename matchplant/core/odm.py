@@ -1,4 +1,4 @@
-"""An OpenDroneMap project folder: its files (DESIGN §2), which are missing, and how to get them.
+"""An OpenDroneMap project folder: its files (docs/DESIGN.md §2), which are missing, and how to get them.
 
     project = ODMProject("path/to/project")
     project.require("reconstruction", "undistorted_images", "dsm")   # clear error naming the ODM option
@@ -12,6 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+
+import rasterio
+from PIL import Image
 
 from matchplant.core.errors import InputError
 from matchplant.core.frames import Frame, detect_frame, read_coords_txt
@@ -132,15 +135,12 @@ class ODMProject:
 
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) read from the file header only."""
-    from PIL import Image
-
     path = Path(path)
     try:
         with Image.open(path) as im:
             return int(im.width), int(im.height)
     except Exception:  # noqa: BLE001 - PIL cannot read every GeoTIFF layout; GDAL can
         try:
-            import rasterio
             with rasterio.open(path) as src:
                 return int(src.width), int(src.height)
         except Exception as exc:  # noqa: BLE001

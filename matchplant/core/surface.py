@@ -17,6 +17,10 @@ from pathlib import Path
 
 import numba
 import numpy as np
+import rasterio
+from affine import Affine
+from rasterio.windows import Window, from_bounds
+from scipy.ndimage import maximum_filter, minimum_filter
 
 from matchplant.core.errors import InputError
 
@@ -65,8 +69,6 @@ def _block_stats(data, block):
 def _block_max(data: np.ndarray, block: int) -> np.ndarray:
     """Highest cell of each block and its 8 neighbours; +inf where a block holds a hole, so rays march
     through holes cell by cell and are reported, not skipped."""
-    from scipy.ndimage import maximum_filter
-
     _, high, hole = _block_stats(data, block)
     return np.ascontiguousarray(maximum_filter(np.where(hole, np.float32(np.inf), high), size=3, mode="nearest"))
 
@@ -329,9 +331,6 @@ class Surface:
         Computed on a grid of about :data:`GROUND_CELL` (lowest cell of each block); blocks holding a DSM
         hole are holes. Cached per window."""
         if window not in self._grounds:
-            from affine import Affine
-            from scipy.ndimage import maximum_filter, minimum_filter
-
             block = max(1, int(round(GROUND_CELL / self.pixel_size)))
             low, high, hole = _block_stats(self.data, block)
             size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
@@ -352,9 +351,6 @@ class Surface:
     def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None,
              band: int = 1) -> "Surface":
         """Read ``path`` (only the window covering ``bounds = (xmin, ymin, xmax, ymax)``, if given)."""
-        import rasterio
-        from rasterio.windows import Window, from_bounds
-
         path = Path(path)
         if not path.is_file():
             raise InputError("elevation raster not found", path=path,

@@ -16,8 +16,7 @@ import numpy as np
 from matchplant.core.coco import annotations_by_image, read_dataset
 from matchplant.core.config import param
 from matchplant.core.errors import InputError
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+from matchplant.core.images import read_rgb8
 
 
 @dataclass
@@ -31,26 +30,6 @@ class AugmentConfig:
     saturation: float = param(0.2, "random saturation change, as a fraction", min=0, max=1)
     hue: float = param(0.0, "random hue shift (0..0.5 of the colour circle); plant green matters, keep it "
                             "small", min=0, max=0.5)
-
-
-def read_image(path: str | Path) -> np.ndarray:
-    """An image file as RGB uint8 (H, W, 3); 16-bit and 4-band files are reduced to 8-bit RGB."""
-    import cv2
-
-    path = Path(path)
-    try:
-        buf = np.fromfile(path, dtype=np.uint8)  # imdecode: non-ASCII paths work on Windows too
-    except OSError as exc:
-        raise InputError(f"cannot read the image ({exc})", path=path, fix="check that the file exists") from exc
-    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if img is None:
-        raise InputError("not a readable image", path=path, fix="give JPEG, PNG or TIFF images")
-    if img.dtype != np.uint8:
-        scale = 255.0 / 65535.0 if img.dtype == np.uint16 else 255.0 / max(float(img.max()), 1e-9)
-        img = np.clip(img.astype(np.float32) * scale, 0, 255).astype(np.uint8)
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    return np.ascontiguousarray(img[:, :, 2::-1] if img.shape[2] >= 3 else np.repeat(img[:, :, :1], 3, axis=2))
 
 
 def find_image(file_name: str, images_dir: Path, split: str | None = None) -> Path | None:
@@ -70,7 +49,7 @@ def build_augmentation(cfg: AugmentConfig | None):
     """A ``transforms.v2`` pipeline for ``(image, target)``, or None for no augmentation."""
     if cfg is None:
         return None
-    from torchvision.transforms import v2 as T
+    from torchvision.transforms import v2 as T  # lazy: PyTorch is heavy; configs load without it
 
     steps = []
     if cfg.hflip > 0:
@@ -123,7 +102,7 @@ class CocoDetection:
         return len(self.images)
 
     def target(self, index: int) -> dict:
-        import torch
+        import torch  # lazy: PyTorch is heavy; configs load without it
 
         im = self.images[index]
         anns = [a for a in self.anns.get(im["id"], []) if not a.get("iscrowd", 0)]
@@ -137,10 +116,10 @@ class CocoDetection:
                 "image_id": int(im["id"])}
 
     def __getitem__(self, index: int):
-        import torch
+        import torch  # lazy: PyTorch is heavy; configs load without it
         from torchvision import tv_tensors
 
-        img = read_image(self.paths[index])
+        img = read_rgb8(self.paths[index])
         image = tv_tensors.Image(torch.from_numpy(img).permute(2, 0, 1))
         target = self.target(index)
         target["boxes"] = tv_tensors.BoundingBoxes(target["boxes"], format="XYXY", canvas_size=img.shape[:2])

@@ -9,7 +9,7 @@ DEVICE_CHOICES = ("auto", "cuda", "mps", "cpu")
 
 def select_device(preference: str = "auto"):
     """Return a ``torch.device``. ``preference`` is auto, cpu, mps, cuda or cuda:N."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     pref = (preference or "auto").lower()
     if pref == "auto":

@@ -1,6 +1,6 @@
 """Running a detector over a COCO dataset and scoring it with pycocotools' COCOeval (modules 6 and 7).
 
-The rules that keep the numbers honest (DESIGN §3): every box goes to COCOeval (no score threshold
+The rules that keep the numbers honest (docs/DESIGN.md §3): every box goes to COCOeval (no score threshold
 before it), ``maxDets`` is raised above COCO's 100 for dense plant tiles, and the size classes come from
 the ground truth ``area``. Precision, recall and F1 at an operating threshold reuse COCOeval's own
 matching at IoU 0.5, so they agree with AP by construction of the same matches.
@@ -14,10 +14,15 @@ import io
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from pycocotools.coco import COCO
+from pycocotools.cocoeval import COCOeval
 
+from matchplant.core.gui import figure
 from matchplant.core.io import atomic_path
 from matchplant.core.progress import progress
+from matchplant.detection.data import collate
 
 STAT_NAMES = ("AP", "AP50", "AP75", "AP_small", "AP_medium", "AP_large",
               "AR_1", "AR_10", "AR_max", "AR_small", "AR_medium", "AR_large")
@@ -26,10 +31,8 @@ STAT_NAMES = ("AP", "AP50", "AP75", "AP_small", "AP_medium", "AP_large",
 def predict_dataset(model, dataset, device, *, batch_size: int = 4, num_workers: int = 0,
                     amp: bool = False, desc: str = "detecting") -> list[dict]:
     """COCO results (``image_id, category_id, bbox [x,y,w,h], score``) of ``model`` on every image."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
-
-    from matchplant.detection.data import collate
 
     model.eval()
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=num_workers, collate_fn=collate)
@@ -57,8 +60,6 @@ def _quiet():
 
 def coco_gt(dataset: dict):
     """A pycocotools COCO object from a dataset dict (``area`` filled in where missing)."""
-    from pycocotools.coco import COCO
-
     data = copy.deepcopy(dataset)
     data.setdefault("info", {})
     for a in data.get("annotations", []):
@@ -78,8 +79,6 @@ def coco_evaluate(dataset: dict, results: list[dict], *, max_dets: int = 300):
     value (e.g. no large plants). ``maxDets`` is ``[1, 10, max_dets]``; every stat uses ``max_dets``
     boxes except AR_1 and AR_10.
     """
-    from pycocotools.cocoeval import COCOeval
-
     if not results:
         n_gt = len(dataset.get("annotations", []))
         return {name: (0.0 if n_gt else None) for name in STAT_NAMES}, None
@@ -138,17 +137,13 @@ def operating_point(scores: np.ndarray, hits: np.ndarray, n_gt: int, threshold: 
 def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
-    import matplotlib.pyplot as plt
-    plt.close(fig)
     return path
 
 
 def plot_pr_curve(ev, path: Path, operating: dict | None = None, class_names: list[str] | None = None) -> Path:
     """Precision against recall at IoU 0.5 and 0.75 (COCOeval's interpolated curve), per class."""
-    from matchplant.core.gui import pyplot
-
-    plt = pyplot(headless=True)
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    fig = figure(headless=True, figsize=(5.5, 4.5))
+    ax = fig.add_subplot()
     rec = ev.params.recThrs
     for k in range(ev.eval["precision"].shape[2]):
         name = class_names[k] if class_names and k < len(class_names) else f"class {k + 1}"
@@ -167,10 +162,8 @@ def plot_pr_curve(ev, path: Path, operating: dict | None = None, class_names: li
 
 def plot_score_histogram(scores: np.ndarray, hits: np.ndarray, path: Path, threshold: float | None = None) -> Path:
     """How confident the detector is on true and on false detections (IoU 0.5)."""
-    from matchplant.core.gui import pyplot
-
-    plt = pyplot(headless=True)
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    fig = figure(headless=True, figsize=(5.5, 4))
+    ax = fig.add_subplot()
     bins = np.linspace(0, 1, 41)
     ax.hist([scores[hits], scores[~hits]], bins=bins, stacked=True, label=["true positive", "false positive"],
             color=["tab:green", "tab:red"])
@@ -185,8 +178,6 @@ def plot_score_histogram(scores: np.ndarray, hits: np.ndarray, path: Path, thres
 def draw_boxes(image: np.ndarray, boxes_xyxy: np.ndarray, color: tuple[int, int, int],
                scores: np.ndarray | None = None) -> np.ndarray:
     """A copy of an RGB image with boxes (and their scores) drawn on it."""
-    import cv2
-
     out = np.ascontiguousarray(image.copy())
     thick = max(1, int(round(max(image.shape[:2]) / 500)))
     for i, b in enumerate(np.asarray(boxes_xyxy, dtype=float).reshape(-1, 4)):
@@ -199,8 +190,6 @@ def draw_boxes(image: np.ndarray, boxes_xyxy: np.ndarray, color: tuple[int, int,
 
 
 def write_image(path: Path, rgb: np.ndarray) -> Path:
-    import cv2
-
     ok, buf = cv2.imencode(Path(path).suffix or ".png", rgb[:, :, ::-1])
     if not ok:
         raise RuntimeError(f"could not encode {path}")

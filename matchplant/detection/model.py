@@ -4,7 +4,7 @@ Three torchvision architectures: ``fasterrcnn_resnet50_fpn`` (the paper's), ``fa
 and ``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU). Every setting of :class:`ModelConfig` is
 passed to the model (anchors, RPN and ROI sampling and thresholds, image size, detections per image).
 
-A checkpoint (DESIGN §2) is one ``.pt`` file holding everything needed to rebuild the model with no
+A checkpoint (docs/DESIGN.md §2) is one ``.pt`` file holding everything needed to rebuild the model with no
 other file: the model settings, class names, the weights, and for training runs the epoch, optimizer,
 scheduler and scaler state, random states, history and metrics. :func:`load_detector` rebuilds it.
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from matchplant.core.config import param, section
+from matchplant.core.config import from_dict, param, section, to_dict
 from matchplant.core.errors import ConfigError, DependencyError, InputError
 from matchplant.core.io import atomic_path
 from matchplant.core.log import get_logger
@@ -117,10 +117,8 @@ class ModelConfig:
 
 def model_config_from_dict(data: dict) -> ModelConfig:
     """Rebuild a :class:`ModelConfig` from a checkpoint's plain dict."""
-    from matchplant.core.config import _build  # the YAML loader's converter: same types, same checks
-
     data = {k: v for k, v in data.items() if k != "checkpoint"}
-    return _build(ModelConfig, data, prefix="model.", source="checkpoint", base=Path.cwd())
+    return from_dict(ModelConfig, data, prefix="model.", source="checkpoint", base=Path.cwd())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -129,6 +127,7 @@ def model_config_from_dict(data: dict) -> ModelConfig:
 
 def _weights(arch: str, pretrained: str):
     """torchvision weight enums (detector, backbone) for a ``pretrained`` choice."""
+    # lazy: PyTorch is heavy; configs load without it
     from torchvision.models import MobileNet_V3_Large_Weights, ResNet50_Weights
     from torchvision.models import detection as d
 
@@ -154,7 +153,7 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
     ``load_weights=False`` builds the same structure without downloading anything (the weights then
     come from a checkpoint).
     """
-    import torch.nn as nn
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
     from torchvision.models import detection as d
     from torchvision.models.detection.anchor_utils import AnchorGenerator
     from torchvision.models.detection.faster_rcnn import FastRCNNPredictor
@@ -182,7 +181,7 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
                         num_classes=91 if weights is not None else num_classes,
                         trainable_backbone_layers=trainable if (weights or weights_backbone) else None, **kwargs)
     except (urllib.error.URLError, OSError, ConnectionError) as exc:
-        from torch.hub import get_dir
+        from torch.hub import get_dir  # lazy: PyTorch is heavy; configs load without it
         name = (weights or weights_backbone).url.rsplit("/", 1)[-1]
         raise DependencyError(f"could not download the {cfg.pretrained.upper()} weights of {cfg.architecture} "
                               f"({type(exc).__name__}: {exc})", path=Path(get_dir()) / "checkpoints" / name,
@@ -210,7 +209,7 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
 
 def _freeze_batchnorm(module) -> None:
     """Replace every BatchNorm2d below ``module`` with torchvision's FrozenBatchNorm2d (same buffers)."""
-    import torch.nn as nn
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
     from torchvision.ops.misc import FrozenBatchNorm2d
 
     for name, child in module.named_children():
@@ -265,7 +264,7 @@ def apply_freezing(model, arch: str, trainable_backbone_layers: int, freeze: lis
 def keep_frozen_norms_fixed(model) -> None:
     """Put batch norms whose weights are frozen in eval mode, so their running statistics stay fixed too
     (call after ``model.train()``)."""
-    import torch.nn as nn
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
 
     for m in model.modules():
         if isinstance(m, nn.modules.batchnorm._BatchNorm) and not any(p.requires_grad for p in m.parameters()):
@@ -292,9 +291,7 @@ def parameter_groups(model, lrs: dict[str, float]) -> list[dict]:
 def save_checkpoint(path: str | Path, model, model_cfg: ModelConfig, class_names: list[str],
                     category_ids: list[int], **extra) -> Path:
     """Write a self-contained checkpoint atomically (``extra``: epoch, optimizer state, metrics, ...)."""
-    import torch
-
-    from matchplant.core.config import to_dict
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     model = getattr(model, "module", model)  # DistributedDataParallel
     data = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
@@ -308,7 +305,7 @@ def save_checkpoint(path: str | Path, model, model_cfg: ModelConfig, class_names
 
 def read_checkpoint(path: str | Path) -> dict:
     """Load a checkpoint's contents (on the CPU), with a clear error for other files."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     path = Path(path)
     if not path.is_file():

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from matchplant.core.coco import make_annotation, new_dataset, write_dataset
@@ -22,8 +23,6 @@ def soil(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
 
 def draw_plants(img: np.ndarray, centers: np.ndarray, radii: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Draw elliptical green plants; returns their boxes ``[x1, y1, x2, y2]`` clipped to the image."""
-    import cv2
-
     h, w = img.shape[:2]
     boxes = []
     for (cx, cy), r in zip(centers, radii):
@@ -58,8 +57,6 @@ def make_tiles(out: str | Path, n_images: int = 16, size: int = 128, plants: tup
 
     Tiles record a made-up source image and offset, like module 5's, so provenance can be checked.
     """
-    import cv2
-
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -83,8 +80,6 @@ def make_tiles(out: str | Path, n_images: int = 16, size: int = 128, plants: tup
 def make_photo(path: str | Path, width: int, height: int, n_plants: int, radius: tuple[float, float] = (8, 14),
                seed: int = 0) -> np.ndarray:
     """A large synthetic photo with plants written to ``path``; returns the true boxes ``[x1, y1, x2, y2]``."""
-    import cv2
-
     rng = np.random.default_rng(seed)
     img = soil(rng, height, width)
     centers, radii = place_plants(rng, n_plants, height, width, radius, margin=radius[1])

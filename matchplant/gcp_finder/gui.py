@@ -2,7 +2,7 @@
 
 One Matplotlib window on every OS, thin over :mod:`matchplant.gcp_finder`: the image opens zoomed around
 the predicted position (cyan cross); a click marks the GCP (red circle), dragging the mark moves it;
-every change is saved to ``gcp_list.txt`` at once (:class:`~matchplant.gcp_finder.MarkStore`). The list
+every change is saved to ``gcp_list.txt`` at once (:class:`~matchplant.gcp_finder.marks.MarkStore`). The list
 on the right shows each GCP's marked/candidate images; ODM wants at least 3 per GCP.
 """
 
@@ -10,13 +10,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from PIL import Image
 
 from matchplant.core.config import validate
 from matchplant.core.errors import DependencyError
-from matchplant.core.gui import interactive_backend_available, pyplot, show, status_text
-from matchplant.gcp_finder.finder import (MIN_IMAGES_PER_GCP, Finder, GcpFinderConfig, MarkStore, find_candidates,
-                                         load_gray, locate_target, store_for)
+from matchplant.core.gui import close as close_figure
+from matchplant.core.gui import figure, interactive_backend_available, is_headless, show, status_text
+from matchplant.gcp_finder.candidates import Finder, find_candidates
+from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
+from matchplant.gcp_finder.marks import MarkStore, store_for
+from matchplant.gcp_finder.target import load_gray, locate_target
 
 HELP = "click: mark | drag: move | right-drag: pan | scroll: zoom | n/p: image | ]/[: GCP | h: all keys | q: quit"
 KEYS = ("cyan +: predicted position, red o: your mark (saved at once)   click: mark   drag the mark: move it\n"
@@ -32,16 +37,14 @@ class GcpFinderGUI:
                  target_pattern: str = "checker", headless: bool | None = None):
         self.finder, self.store, self.zoom_px = finder, store, zoom_px
         self.target_size_m, self.target_pattern = target_size_m, target_pattern
-        self.plt = pyplot(headless)
         self.gcp_ids = list(finder.gcps)
         self.gi = next((i for i, g in enumerate(self.gcp_ids) if finder.candidates[g]), 0)
         self.ci = 0
         self._image_cache: tuple[str, np.ndarray] | None = None
         self._press = None       # (kind, display xy, data xy, limits)
-        import matplotlib
-
-        offscreen = matplotlib.get_backend().lower() == "agg"  # tests: a coarser canvas draws faster
-        self.fig = self.plt.figure(figsize=(13, 8), dpi=50 if offscreen else None)
+        # tests: a coarser canvas draws faster
+        offscreen = is_headless(headless) or matplotlib.get_backend().lower() == "agg"
+        self.fig = figure(headless, figsize=(13, 8), dpi=50 if offscreen else None)
         self.fig.canvas.manager and self.fig.canvas.manager.set_window_title("MatchPlant - GCP marking")
         manager = self.fig.canvas.manager
         if manager is not None and getattr(manager, "key_press_handler_id", None) is not None:
@@ -76,8 +79,6 @@ class GcpFinderGUI:
 
     def _image(self, name: str) -> np.ndarray:
         if self._image_cache is None or self._image_cache[0] != name:
-            from PIL import Image
-
             with Image.open(self.finder.images[name].path) as im:
                 arr = np.asarray(im.convert("RGB") if im.mode not in ("RGB", "L") else im)
             self._image_cache = (name, arr)
@@ -308,7 +309,7 @@ class GcpFinderGUI:
 
     def close(self) -> None:
         self.store.save()
-        self.plt.close(self.fig)
+        close_figure(self.fig)
 
     def show(self) -> None:
         show(self.fig)

@@ -6,11 +6,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.patches import Rectangle
+from matplotlib.widgets import Button, TextBox
 
-from matchplant.bbox_drawer.annotate import display_rgb, read_image
 from matchplant.core.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.errors import MatchPlantError
-from matchplant.core.gui import pyplot, show
+from matchplant.core.gui import figure, show
+from matchplant.core.images import display_rgb, read_image
 from matchplant.img_splitter.tiling import TilingConfig, load_sources, plan_all, run
 
 FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
@@ -19,38 +21,31 @@ KEPT, LOST = "#39ff14", "#ff2a2a"
 TILE_COLORS = ["white", "#ffd400", "#00e5ff", "#ff3df2"]  # neighbouring tiles in different colours
 
 
-def _text_box_class():
-    from matplotlib.widgets import TextBox
+class QuietTextBox(TextBox):
+    """Matplotlib's TextBox redraws the whole figure on every click anywhere, for every box (12 full
+    redraws per click here); only a box that was being typed in needs to."""
 
-    class QuietTextBox(TextBox):
-        """Matplotlib's TextBox redraws the whole figure on every click anywhere, for every box (12 full
-        redraws per click here); only a box that was being typed in needs to."""
-
-        def stop_typing(self):
-            if self.capturekeystrokes:
-                super().stop_typing()
-
-    return QuietTextBox
+    def stop_typing(self):
+        if self.capturekeystrokes:
+            super().stop_typing()
 
 
 class TilingGUI:
+    """The settings, the preview of one image and Run. ``headless=True`` (tests) draws on a figure of its
+    own, outside pyplot."""
+
     def __init__(self, cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None,
                  dpi: float | None = None):
-        from matplotlib.widgets import Button
-
-        TextBox = _text_box_class()
-
         self.cfg = cfg
         self.config_path = config_path
-        self.plt = plt = pyplot(headless)
-        self.fig = plt.figure(figsize=(14, 8.5), dpi=dpi)
+        self.fig = figure(headless, figsize=(14, 8.5), dpi=dpi)
         self.fig.text(0.02, 0.965, "Tiling and split (module 5)", fontsize=13, weight="bold")
-        self.boxes: dict[str, TextBox] = {}
+        self.boxes: dict[str, QuietTextBox] = {}
         for i, key in enumerate(FIELDS):
             ax = self.fig.add_axes([0.13, 0.90 - i * 0.05, 0.19, 0.036])
             value = getattr(cfg, key)
             text = "" if value is None else str(to_dict_value(value))
-            self.boxes[key] = TextBox(ax, key + " ", initial=text, label_pad=0.02)
+            self.boxes[key] = QuietTextBox(ax, key + " ", initial=text, label_pad=0.02)
             self.boxes[key].label.set_fontsize(9)
         row = 0.90 - len(FIELDS) * 0.05
         self.buttons = {}
@@ -136,12 +131,12 @@ class TilingGUI:
         written = set(np.flatnonzero(plan.positive).tolist()) | set(s.negatives)
         for t, (x0, y0, x1, y1) in enumerate(plan.tiles):
             kept = t in written
-            ax.add_patch(self.plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.4 if kept else 0.8,
-                                            ec=TILE_COLORS[t % len(TILE_COLORS)] if kept else "0.55",
-                                            ls="-" if kept else ":"))
+            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.4 if kept else 0.8,
+                                   ec=TILE_COLORS[t % len(TILE_COLORS)] if kept else "0.55",
+                                   ls="-" if kept else ":"))
         anywhere = plan.kept_anywhere
         for (x1, y1, x2, y2), ok in zip(plan.boxes, anywhere):
-            ax.add_patch(self.plt.Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=1.2, ec=KEPT if ok else LOST))
+            ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=1.2, ec=KEPT if ok else LOST))
         ax.set_xlim(0, s.width)
         ax.set_ylim(s.height, 0)
         ax.set_title(f"{s.name}  ({self.index + 1}/{len(self.sources)}, {s.split})  -  coloured: tiles written, "
@@ -169,5 +164,5 @@ class TilingGUI:
 
 def launch(cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None) -> TilingGUI:
     app = TilingGUI(cfg, config_path, headless)
-    show(app.fig, headless)
+    show(app.fig)
     return app

@@ -26,15 +26,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
+from PIL import Image
 
-from matchplant.bbox_drawer.annotate import coco_to_yolo, list_images, yolo_to_coco
 from matchplant.core.coco import make_annotation, new_dataset, read_dataset, write_dataset
 from matchplant.core.config import param
 from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.images import list_images, match_name
 from matchplant.core.io import atomic_path, read_json, write_json, write_text
 from matchplant.core.log import get_logger
+from matchplant.core.odm import image_size
 from matchplant.core.progress import progress
+from matchplant.core.yolo import coco_to_yolo, yolo_to_coco
 
 log = get_logger("tiling")
 
@@ -180,8 +184,6 @@ def split_images(names: list[str], ratios: list[float], seed: int = 0,
 
 def read_positions(path: Path | None, files: dict[str, Path]) -> dict[str, tuple[float, float]]:
     """Photo positions for the spatial split: a CSV ``image,x,y`` or the images' EXIF GPS."""
-    from matchplant.bbox_drawer.annotate import match_name
-
     out: dict[str, tuple[float, float]] = {}
     if path is not None:
         with open(path, newline="", encoding="utf-8") as fh:
@@ -207,8 +209,6 @@ def read_positions(path: Path | None, files: dict[str, Path]) -> dict[str, tuple
 
 
 def _exif_lonlat(path: Path) -> tuple[float, float] | None:
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             gps = im.getexif().get_ifd(0x8825)
@@ -227,8 +227,6 @@ def _exif_lonlat(path: Path) -> tuple[float, float] | None:
 
 def read_raw(path: str | Path) -> np.ndarray:
     """Pixels exactly as stored (OpenCV channel order, any bit depth), for lossless cropping."""
-    import cv2
-
     img = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError("not a readable image", path=path, fix="remove it from the annotations or re-export it")
@@ -236,8 +234,6 @@ def read_raw(path: str | Path) -> np.ndarray:
 
 
 def write_lossless(path: Path, pixels: np.ndarray) -> None:
-    import cv2
-
     params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix == ".png" else []
     ok, buf = cv2.imencode(path.suffix, np.ascontiguousarray(pixels), params)
     if not ok:
@@ -274,15 +270,11 @@ class Source:
 
 def load_sources(cfg: TilingConfig) -> tuple[list[Source], list[dict], list[str]]:
     """The annotated images found on disk, the categories, and the annotated names missing on disk."""
-    from matchplant.core.odm import image_size
-
-    files = {p.name: p for p in list_images(cfg.images)}
+    files = {p.name: p for p in list_images(cfg.images, min_count=0)}
     if cfg.annotations.is_dir():
         ds = yolo_to_coco(cfg.annotations, {n: image_size(p) for n, p in files.items()})
     else:
         ds = read_dataset(cfg.annotations)
-    from matchplant.bbox_drawer.annotate import match_name
-
     by_image: dict[int, list[dict]] = {im["id"]: [] for im in ds["images"]}
     for a in ds["annotations"]:
         by_image[a["image_id"]].append(a)

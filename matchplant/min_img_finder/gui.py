@@ -1,7 +1,8 @@
 """Module 3's GUI: the coverage map over the orthophoto, the selection's parameters, click to toggle images, Save.
 
-Thin over :class:`~matchplant.min_img_finder.finder.MinImageFinder`: the window only edits the config, calls ``select`` /
-``evaluate`` / ``write_outputs`` and draws with :func:`~matchplant.min_img_finder.finder.draw_coverage`.
+Thin over :class:`~matchplant.min_img_finder.finder.MinImageFinder`: the window only edits the config, calls
+``select`` / ``evaluate`` / :func:`~matchplant.min_img_finder.output.write_outputs` and draws with
+:func:`~matchplant.min_img_finder.output.draw_coverage`, so what it saves is what the CLI would write.
 
 * Left: the map - every footprint in grey, the selected ones numbered with the area each owns, uncovered
   parts of the field in red.
@@ -15,14 +16,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import shapely
+from matplotlib.widgets import Button, RadioButtons, TextBox
 
 from matchplant.core.config import save_config, validate
 from matchplant.core.errors import MatchPlantError
-from matchplant.core.gui import pyplot, show, status_text
+from matchplant.core.gui import figure, show, status_text
 from matchplant.core.log import get_logger
-from matchplant.min_img_finder.finder import MinImageFinder, MinImagesConfig, Result, draw_coverage, write_outputs
+from matchplant.min_img_finder.config import MinImagesConfig
+from matchplant.min_img_finder.finder import MinImageFinder, Result
+from matchplant.min_img_finder.output import draw_coverage, write_outputs
 
 log = get_logger("min_images.gui")
 
@@ -32,14 +35,11 @@ FIELDS = [("uncovered_threshold", "uncovered %"), ("max_overlap", "max overlap %
 
 class MinImagesGUI:
     def __init__(self, cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None):
-        from matplotlib.widgets import Button, RadioButtons, TextBox
-
         self.cfg = cfg
         self.config_path = config_path
-        self.plt = pyplot(headless)
-        self.fig = self.plt.figure(figsize=(13, 8))
-        self.fig.canvas.manager.set_window_title("MatchPlant - minimum image finder") \
-            if getattr(self.fig.canvas, "manager", None) else None
+        self.fig = figure(headless, figsize=(13, 8))
+        if self.fig.canvas.manager is not None:  # a window (a headless figure has no manager)
+            self.fig.canvas.manager.set_window_title("MatchPlant - minimum image finder")
         self.ax = self.fig.add_axes([0.09, 0.08, 0.58, 0.86])
         panel = self.fig.add_axes([0.70, 0.08, 0.28, 0.86])
         panel.axis("off")
@@ -163,5 +163,5 @@ class MinImagesGUI:
 
 def open_gui(cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None) -> MinImagesGUI:
     gui = MinImagesGUI(cfg, config_path, headless=headless)
-    show(gui.fig, headless)
+    show(gui.fig)
     return gui

@@ -7,7 +7,7 @@ confidence histogram, images with drawn boxes and ``metrics.json``.
 
 Detection (``detect`` section): whole undistorted images of any size are cut into overlapping tiles,
 detected in batches, and the boxes merged across tiles, so a plant cut by a tile border is found once.
-``predictions.json`` (DESIGN §2, the input of module 8) holds the boxes in source-image pixels with each
+``predictions.json`` (docs/DESIGN.md §2, the input of module 8) holds the boxes in source-image pixels with each
 image's name.
 """
 
@@ -21,15 +21,17 @@ import numpy as np
 
 from matchplant.core.coco import write_predictions
 from matchplant.core.config import param, section, to_dict
-from matchplant.detection.data import IMAGE_SUFFIXES, CocoDetection, read_image
-from matchplant.detection.evaluate import (coco_evaluate, draw_boxes, matches_at_iou50, operating_point, plot_pr_curve,
-                             plot_score_histogram, predict_dataset, summarise_stats, write_image)
-from matchplant.detection.model import load_detector, read_checkpoint
-from matchplant.detection.device import select_device
 from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.images import list_images as list_image_files
+from matchplant.core.images import read_rgb8
 from matchplant.core.io import write_json
 from matchplant.core.log import get_logger
 from matchplant.core.progress import progress
+from matchplant.detection.data import CocoDetection
+from matchplant.detection.device import select_device
+from matchplant.detection.evaluate import (coco_evaluate, draw_boxes, matches_at_iou50, operating_point, plot_pr_curve,
+                                           plot_score_histogram, predict_dataset, summarise_stats, write_image)
+from matchplant.detection.model import load_detector, read_checkpoint
 
 log = get_logger("model_test")
 
@@ -133,7 +135,7 @@ def _draw_eval_images(ds: CocoDetection, results: list[dict], ecfg: EvalConfig, 
     picks = np.unique(np.linspace(0, len(ds) - 1, min(ecfg.drawn_images, len(ds))).round().astype(int))
     for i in picks:
         im = ds.images[i]
-        img = read_image(ds.paths[i])
+        img = read_rgb8(ds.paths[i])
         gt = ds.target(i)["boxes"].numpy()
         dets = [r for r in results if r["image_id"] == im["id"] and r["score"] >= ecfg.operating_threshold]
         b = np.asarray([r["bbox"] for r in dets], dtype=float).reshape(-1, 4)
@@ -173,7 +175,7 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
     it lies inside a kept whole box of its class, else kept through the same NMS (a plant larger than
     the overlap, seen cut in every tile).
     """
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
     from torchvision.ops import batched_nms
 
     if len(boxes) == 0:
@@ -202,7 +204,7 @@ Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.n
 
 def model_predictor(model, device, amp: bool = False) -> Predictor:
     """A function from RGB uint8 tiles to ``(boxes xyxy, scores, labels)`` per tile."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     def predict(tiles: list[np.ndarray]):
         batch = [torch.from_numpy(t).to(device).permute(2, 0, 1).float().div_(255.0) for t in tiles]
@@ -240,12 +242,13 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
 
 
 def list_images(path: Path) -> list[Path]:
+    """``detect.images``: one image file, or every image of a folder."""
     if path.is_file():
         return [path]
-    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    fix = "point detect.images at the undistorted images (opensfm/undistorted/images)"
+    files = list_image_files(path, key="detect.images", fix=fix, min_count=0)
     if not files:
-        raise InputError("no images (JPEG, PNG, TIFF) in this folder", path=path,
-                         fix="point detect.images at the undistorted images (opensfm/undistorted/images)")
+        raise InputError("no images (JPEG, PNG, TIFF) in this folder", path=path, fix=fix)
     return files
 
 
@@ -265,7 +268,7 @@ def detect(cfg: ModelTestConfig, device=None) -> Path:
     images, predictions = [], []
     draw_every = max(1, int(np.ceil(len(files) / dcfg.drawn_images))) if dcfg.drawn_images else 0
     for i, path in enumerate(progress(files, desc="detecting", unit="image")):
-        img = read_image(path)
+        img = read_rgb8(path)
         boxes, scores, labels = detect_image(img, predictor, tile_size=dcfg.tile_size, overlap=dcfg.overlap,
                                              batch_size=cfg.batch_size, score_threshold=dcfg.score_threshold,
                                              merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin)

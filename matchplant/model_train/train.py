@@ -6,7 +6,7 @@ device chosen automatically, mixed precision on CUDA, several GPUs under ``torch
 logs the losses, scores the validation split with COCOeval (AP, AP50) and writes into ``output_dir``:
 
 - ``checkpoints/last.pt`` (every epoch; ``--resume`` continues from it), ``best.pt`` (best validation
-  metric) and ``epoch_NNN.pt`` every ``save_every`` epochs: self-contained (DESIGN §2);
+  metric) and ``epoch_NNN.pt`` every ``save_every`` epochs: self-contained (docs/DESIGN.md §2);
 - ``training_summary.json`` (settings, per-epoch history, best epoch, speed) and ``training_curves.png``.
 
 Transfer learning: ``model.checkpoint`` starts from an earlier MatchPlant model (a different number of
@@ -16,6 +16,7 @@ classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``l
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import os
 import random
@@ -27,16 +28,17 @@ from typing import Any, Callable
 import numpy as np
 
 from matchplant.core.config import param, section, to_dict
-from matchplant.detection.data import AugmentConfig, CocoDetection, collate
-from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
-from matchplant.detection.model import (PARTS, ModelConfig, apply_freezing, backbone_stages, build_detector,
-                              keep_frozen_norms_fixed, load_matching_weights,
-                              model_config_from_dict, parameter_groups, read_checkpoint, save_checkpoint)
-from matchplant.detection.device import DEVICE_CHOICES, select_device
 from matchplant.core.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.gui import figure
 from matchplant.core.io import atomic_path, write_json
 from matchplant.core.log import get_logger
 from matchplant.core.progress import progress
+from matchplant.detection.data import AugmentConfig, CocoDetection, collate
+from matchplant.detection.device import DEVICE_CHOICES, select_device
+from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
+from matchplant.detection.model import (PARTS, ModelConfig, apply_freezing, backbone_stages, build_detector,
+                                        keep_frozen_norms_fixed, load_matching_weights, model_config_from_dict,
+                                        parameter_groups, read_checkpoint, save_checkpoint)
 
 log = get_logger("train")
 
@@ -111,7 +113,7 @@ class TrainConfig:
 
 
 def build_optimizer(cfg: TrainConfig, model):
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     groups = parameter_groups(model, dataclasses.asdict(cfg.lr))
     if cfg.optimizer == "sgd":
@@ -139,7 +141,7 @@ def lr_factor(cfg: TrainConfig, iteration: int, iters_per_epoch: int) -> float:
 
 def build_scheduler(cfg: TrainConfig, optimizer, iters_per_epoch: int):
     """A per-iteration LambdaLR (its state is the iteration count, so a resumed run continues exactly)."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch))
 
@@ -161,12 +163,12 @@ class _Dist:
 
 def _init_distributed(cfg: TrainConfig):
     """Join a torchrun job (WORLD_SIZE > 1) and pick this process's device."""
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return _Dist(), select_device(cfg.device)
-    import torch.distributed as dist
+    import torch.distributed as dist  # lazy: PyTorch is heavy; configs load without it
 
     local = int(os.environ.get("LOCAL_RANK", "0"))
     if torch.cuda.is_available() and cfg.device in ("auto", "cuda"):
@@ -177,14 +179,13 @@ def _init_distributed(cfg: TrainConfig):
     if not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     if dist.get_rank() != 0:  # one voice: the other processes report only warnings and errors
-        import logging
         for h in get_logger().handlers:
             h.setLevel(logging.WARNING)
     return _Dist(dist.get_rank(), dist.get_world_size(), local), device
 
 
 def seed_everything(seed: int) -> None:
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     random.seed(seed)
     np.random.seed(seed % 2**32)
@@ -231,7 +232,7 @@ def _out_of_time(cfg: TrainConfig, run_start: float, epoch_time: float, dist_inf
         return False
     over = (time.perf_counter() - run_start) + epoch_time > cfg.max_minutes * 60.0
     if dist_info.world > 1:
-        import torch
+        import torch  # lazy: PyTorch is heavy; configs load without it
 
         flag = torch.tensor([1.0 if over else 0.0], device=device)
         torch.distributed.broadcast(flag, src=0)
@@ -244,7 +245,7 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
 
     ``on_epoch_end(epoch, record)`` is called after each epoch's checkpoints are written.
     """
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 
     dist_info, device = _init_distributed(cfg)
@@ -365,7 +366,7 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
 
 def _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp: bool, desc: str,
                      dist_info: _Dist) -> dict[str, float]:
-    import torch
+    import torch  # lazy: PyTorch is heavy; configs load without it
 
     model.train()
     keep_frozen_norms_fixed(model)
@@ -439,10 +440,8 @@ def write_summary(out: Path, cfg: TrainConfig, history: list[dict], best: dict, 
 
 def plot_curves(history: list[dict], path: Path) -> Path:
     """Loss components and validation AP / AP50 per epoch."""
-    from matchplant.core.gui import pyplot
-
-    plt = pyplot(headless=True)
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    fig = figure(headless=True, figsize=(10, 4))
+    ax1, ax2 = fig.subplots(1, 2)
     epochs = [h["epoch"] for h in history]
     for key in history[0]["losses"]:
         ax1.plot(epochs, [h["losses"][key] for h in history], marker=".", lw=2 if key == "loss" else 1,
@@ -460,7 +459,6 @@ def plot_curves(history: list[dict], path: Path) -> Path:
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
     return path
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from matchplant.simfield.config import PRESETS, SimFieldConfig, Settings, config_from, resolve
+from matchplant.simfield.generate import generate
 from matchplant.simfield.layout import FieldPaths
 
 __all__ = ["generate_field", "run", "SimFieldConfig", "Settings", "PRESETS", "FieldPaths", "resolve"]
@@ -27,6 +28,4 @@ def generate_field(preset: str = "tiny", seed: int = 0, out: str | Path = "simfi
 
 
 def run(cfg: SimFieldConfig) -> FieldPaths:
-    from matchplant.simfield.generate import generate
-
     return generate(cfg)

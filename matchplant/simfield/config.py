@@ -6,10 +6,11 @@ Every override left at ``null`` takes the preset's value; :func:`resolve` merges
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
-from matchplant.core.config import param
+from matchplant.core.config import param, validate
 from matchplant.core.errors import ConfigError
 
 # Field site: near Lincoln, Nebraska (UTM zone 14N). The south-west corner of the rasters lies here.
@@ -108,11 +109,9 @@ def config_from(preset: str = "tiny", seed: int = 0, out: str | Path = "simfield
     names = {f.name for f in fields(SimFieldConfig)}
     unknown = sorted(set(overrides) - names)
     if unknown:
-        import difflib
         hints = [difflib.get_close_matches(u, names, n=1) for u in unknown]
         hint = "; ".join(f"'{u}'" + (f" (did you mean '{h[0]}'?)" if h else "") for u, h in zip(unknown, hints))
         raise ConfigError(f"unknown simfield setting {hint}", fix=f"valid settings: {', '.join(sorted(names))}")
-    from matchplant.core.config import validate
     cfg = SimFieldConfig(preset=preset, seed=int(seed), output_dir=Path(out), **overrides)
     validate(cfg, source="generate_field()")
     return cfg

@@ -5,14 +5,22 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import io
+import multiprocessing as mp
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
+import piexif
+import rasterio
+from affine import Affine
 from pyproj import CRS, Transformer
+from rasterio.enums import ColorInterp
+from rasterio.windows import Window
 
 from matchplant.core.coco import make_annotation, new_dataset, write_dataset
 from matchplant.core.errors import ConfigError
@@ -285,9 +293,6 @@ def _run_jobs(scene: Scene, jobs: list[ImageJob], workers: int):
         finally:
             _init_worker(None)
         return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
     # fork shares the field's rasters with the workers without copying them; elsewhere they are pickled once
     context = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
     with ProcessPoolExecutor(n, mp_context=context, initializer=_init_worker, initargs=(scene,)) as pool:
@@ -328,8 +333,6 @@ def _model(s: Settings) -> str:
 
 
 def _encode(rgb: np.ndarray, ext: str, quality: int = 95) -> bytes:
-    import cv2
-
     params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if ext == ".jpg" else []
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(rgb[..., ::-1]), params)
     if not ok:  # pragma: no cover - OpenCV always encodes these
@@ -347,8 +350,6 @@ def _write_image(path: Path, rgb: np.ndarray, ext: str) -> None:
 
 
 def _write_mask(path: Path, ids: np.ndarray) -> None:
-    import cv2
-
     if ids.max(initial=0) > 65535:  # pragma: no cover - presets stay below
         raise ValueError("more than 65535 plants: the masks cannot be written as 16-bit PNG")
     ok, buf = cv2.imencode(".png", ids.astype(np.uint16))
@@ -363,8 +364,6 @@ def _rational_dms(value: float) -> tuple:
 
 
 def _with_exif(jpeg: bytes, s: Settings, cam_time: dt.datetime, gps: tuple | None) -> bytes:
-    import piexif
-
     stamp = cam_time.strftime("%Y:%m:%d %H:%M:%S")
     sub = f"{cam_time.microsecond // 1000:03d}"
     focal_mm = s.focal * SENSOR_WIDTH_MM
@@ -405,11 +404,6 @@ def _write_csv(path: Path, header: list[str], rows: list) -> None:
 
 def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terrain, offset: np.ndarray,
                    crs: CRS) -> None:
-    import rasterio
-    from rasterio.enums import ColorInterp
-    from affine import Affine
-    from rasterio.windows import Window
-
     transform = Affine(grid.res, 0.0, grid.x0 + offset[0], 0.0, -grid.res, grid.y1 + offset[1])
     block = 512
 

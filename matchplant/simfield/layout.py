@@ -16,7 +16,7 @@ class FieldPaths:
     def __post_init__(self):
         object.__setattr__(self, "root", Path(self.root))  # accept a str too
 
-    # -- what ODM leaves behind (DESIGN §2) -------------------------------------------------------
+    # -- what ODM leaves behind (docs/DESIGN.md §2) -------------------------------------------------------
     @property
     def images(self) -> Path:            # raw distorted JPEGs with EXIF (GPS included), ODM's input
         return self.root / "images"

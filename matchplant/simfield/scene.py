@@ -14,7 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from matchplant.simfield.config import GROUND_ALTITUDE, Settings
 
@@ -274,8 +276,6 @@ class Rasters:
         """Highest canopy within one block of each ``block`` x ``block`` cell block (flattened), for
         skipping empty space when casting rays."""
         if getattr(self, "_block_max", None) is None:
-            from scipy.ndimage import maximum_filter
-
             h, w = self.canopy.shape
             hb, wb = -(-h // block), -(-w // block)
             padded = np.zeros((hb * block, wb * block), np.float32)
@@ -287,8 +287,6 @@ class Rasters:
 
 def _noise(shape: tuple[int, int], cells: float, rng: np.random.Generator) -> np.ndarray:
     """Smooth unit noise with a feature size of ``cells`` raster cells (upsampled white noise)."""
-    import cv2
-
     h, w = shape
     ch, cw = max(2, int(np.ceil(h / cells)) + 2), max(2, int(np.ceil(w / cells)) + 2)
     coarse = rng.standard_normal((ch, cw)).astype(np.float32)
@@ -425,8 +423,6 @@ def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np
 
 
 def _shadows(canopy: np.ndarray, label: np.ndarray, grid: Grid, az_deg: float, elev_deg: float) -> np.ndarray:
-    import cv2
-
     r, c = np.nonzero(canopy > 0.01)
     h = canopy[r, c]
     away = np.radians(az_deg + 180.0)  # shadows fall away from the sun (azimuth clockwise from north)

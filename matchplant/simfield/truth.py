@@ -2,19 +2,20 @@
 
 Image boxes: each plant's canopy surface points (leaf tips included) projected through the shot's
 camera; the box is their extent, clipped to the image. COCO boxes use pixel *edges*: the image spans
-``[0, W] x [0, H]`` and the camera pixel ``(u, v)`` (centres at integers, DESIGN §3) is at
+``[0, W] x [0, H]`` and the camera pixel ``(u, v)`` (centres at integers, docs/DESIGN.md §3) is at
 ``(u + 0.5, v + 0.5)``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from shapely import box, make_valid, polygons, union_all
 
 from matchplant.core.reconstruction import Shot
 from matchplant.simfield.scene import MAX_LEAVES, Plants, Terrain
 
 MIN_BOX_PX = 0.5  # a plant counts as visible when its box reaches a pixel centre (half a pixel in)
-RING = 72 + MAX_LEAVES  # points per ring of Plants.surface_points  # a plant counts as visible when at least this much of its box is in the image
+RING = 72 + MAX_LEAVES  # points per ring of Plants.surface_points
 
 
 def image_boxes(shot: Shot, plants: Plants, terrain: Terrain, candidates: np.ndarray,
@@ -52,8 +53,6 @@ def image_boxes(shot: Shot, plants: Plants, terrain: Terrain, candidates: np.nda
 def _visible_box(uv: np.ndarray, width: int, height: int) -> np.ndarray:
     """Box of the part of a plant inside the image: its projected canopy rings (polygons) united and
     clipped to the frame, as an annotator would draw a plant cut by the frame."""
-    from shapely import box, make_valid, polygons, union_all
-
     rings = uv.reshape(-1, RING, 2)[1:]  # ring 0 is the top centre, a single point
     shape = union_all(make_valid(polygons(rings))).intersection(box(0, 0, width, height))
     inside = uv[(uv[:, 0] >= 0) & (uv[:, 0] <= width) & (uv[:, 1] >= 0) & (uv[:, 1] <= height)]

@@ -13,16 +13,21 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
+import shapely
+from scipy import stats as st
 
+from matchplant.core.boxes import greedy_matches
+from matchplant.core.errors import ConfigError
+from matchplant.core.gui import figure
 from matchplant.core.io import atomic_path
 from matchplant.core.log import get_logger
+from matchplant.spatial_stat_extractor.extract import extract_stats, read_polygons, write_csv
 
 log = get_logger("stats")
 
 
 def match_by_iou(geoms_a, geoms_b, min_iou: float = 0.3) -> pd.DataFrame:
     """One-to-one matches ``(index_a, index_b, iou)``, greedy by decreasing IoU (ties: lower indices)."""
-    import shapely
 
     a, b = np.asarray(geoms_a, dtype=object), np.asarray(geoms_b, dtype=object)
     tree = shapely.STRtree(b)
@@ -33,14 +38,8 @@ def match_by_iou(geoms_a, geoms_b, min_iou: float = 0.3) -> pd.DataFrame:
         iou = np.where(union > 0, inter / union, 0.0)
     keep = iou >= max(min_iou, 1e-12)
     ia, ib, iou = ia[keep], ib[keep], iou[keep]
-    order = np.lexsort((ib, ia, -iou))
-    used_a, used_b = np.zeros(len(a), bool), np.zeros(len(b), bool)
-    rows = []
-    for i in order:  # candidate pairs are few (each plant overlaps a handful of others)
-        if not used_a[ia[i]] and not used_b[ib[i]]:
-            used_a[ia[i]] = used_b[ib[i]] = True
-            rows.append((ia[i], ib[i], iou[i]))
-    return pd.DataFrame(rows, columns=["index_a", "index_b", "iou"]).astype(
+    kept = greedy_matches(ia, ib, np.lexsort((ib, ia, -iou)), len(a), len(b))
+    return pd.DataFrame({"index_a": ia[kept], "index_b": ib[kept], "iou": iou[kept]}).astype(
         {"index_a": np.int64, "index_b": np.int64, "iou": float})
 
 
@@ -56,7 +55,6 @@ def default_traits(columns: Sequence[str], trait_names: Sequence[str], dates: Se
 def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.DataFrame,
                    traits: Sequence[str], label_a: str = "a", label_b: str = "b") -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-trait summary (KS, Pearson r, absolute differences) and the matched pairs table."""
-    from scipy import stats as st
 
     ia, ib = matches["index_a"].to_numpy(), matches["index_b"].to_numpy()
     pairs = pd.DataFrame({f"plant_id_{label_a}": table_a["plant_id"].to_numpy()[ia],
@@ -99,10 +97,8 @@ def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.Dat
 def comparison_figure(table_a, table_b, pairs: pd.DataFrame, summary: pd.DataFrame, traits: Sequence[str],
                       path: Path, label_a: str = "a", label_b: str = "b") -> Path:
     """Distributions (histograms of both sets) and matched-pair scatter plots, one row per trait."""
-    from matplotlib.figure import Figure
-
     n = max(len(traits), 1)
-    fig = Figure(figsize=(9, 3.2 * n), constrained_layout=True)
+    fig = figure(headless=True, figsize=(9, 3.2 * n), constrained_layout=True)
     axes = fig.subplots(n, 2, squeeze=False)
     for row, t in zip(axes, traits):
         va, vb = table_a[t].to_numpy(float), table_b[t].to_numpy(float)
@@ -138,7 +134,6 @@ def comparison_figure(table_a, table_b, pairs: pd.DataFrame, summary: pd.DataFra
 
 def run_comparison(cfg, polygons_a, table_a: pd.DataFrame, date_sets, out: Path) -> dict[str, Path]:
     """The ``compare`` part of module 9: statistics of the second set, matching, tables and figure."""
-    from matchplant.spatial_stat_extractor.extract import extract_stats, read_polygons, write_csv
 
     c = cfg.compare
     polygons_b = read_polygons(c.polygons, c.id_column, c.layer, cfg.polygons_crs)
@@ -154,7 +149,6 @@ def run_comparison(cfg, polygons_a, table_a: pd.DataFrame, date_sets, out: Path)
     traits = list(c.traits) or default_traits(list(table_a.columns), names, [s.date for s in date_sets])
     missing = [t for t in traits if t not in table_a.columns]
     if missing:
-        from matchplant.core.errors import ConfigError
         raise ConfigError(f"compare.traits {missing} are not columns of the statistics",
                           fix=f"choose from {[x for x in table_a.columns if x not in ('plant_id', 'x', 'y')]}")
     matches = match_by_iou(polygons_a.geometry.values, polygons_b.geometry.values, c.min_iou)

@@ -1,5 +1,5 @@
 """Module 9's window: choose the files, the statistics and percentiles, look at the plants over the raster,
-run in the background with a progress bar, and save. A thin layer over :mod:`matchplant.spatial_stat_extractor.extract`.
+run in the background with a progress bar, and save. A thin layer over :mod:`matchplant.spatial_stat_extractor.run`.
 
 The preview reads the raster at reduced resolution (overviews or decimated reads), never the full
 raster. The work runs in a thread; a timer on the window moves the progress bar and shows errors.
@@ -11,11 +11,18 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import shapely
+from matplotlib.collections import LineCollection
+from matplotlib.widgets import Button, CheckButtons, RadioButtons, TextBox
 
 from matchplant.core.config import save_config, set_value, validate
 from matchplant.core.errors import ConfigError, MatchPlantError
-from matchplant.core.gui import pyplot, show
+from matchplant.core.gui import figure, is_headless, show
 from matchplant.core.log import get_logger
+from matchplant.spatial_stat_extractor.config import StatsConfig
+from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.rasters import preview_layer
+from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
 
 log = get_logger("stats")
@@ -49,33 +56,24 @@ def _as_text(value) -> str:
     return str(value)
 
 
-def _text_box_class():
-    from matplotlib.widgets import TextBox
+class QuietTextBox(TextBox):
+    """Matplotlib's TextBox redraws the whole window on every click anywhere, once per box; only
+    the box being typed in needs to stop typing."""
 
-    class QuietTextBox(TextBox):
-        """Matplotlib's TextBox redraws the whole window on every click anywhere, once per box; only
-        the box being typed in needs to stop typing."""
-
-        def stop_typing(self):
-            if self.capturekeystrokes:
-                super().stop_typing()
-
-    return QuietTextBox
+    def stop_typing(self):
+        if self.capturekeystrokes:
+            super().stop_typing()
 
 
 class StatsGUI:
-    """The window over a :class:`~matchplant.spatial_stat_extractor.extract.StatsConfig`. ``headless=True`` (tests) uses Agg."""
+    """The window over a :class:`~matchplant.spatial_stat_extractor.config.StatsConfig`. ``headless=True``
+    (tests) draws on a figure of its own, without a window."""
 
-    def __init__(self, cfg, config_path: Path | None = None, headless: bool | None = None):
-        from matplotlib.widgets import Button, CheckButtons, RadioButtons
-
+    def __init__(self, cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None):
         self.cfg = cfg
         self.config_path = Path(config_path) if config_path else None
-        self.plt = plt = pyplot(headless)
-        self.fig = fig = plt.figure(figsize=(13, 8))
-        import matplotlib
-
-        self.headless = matplotlib.get_backend().lower() == "agg"
+        self.headless = is_headless(headless)
+        self.fig = fig = figure(self.headless, figsize=(13, 8))
         if self.headless:  # Agg draws at once on every widget event; nobody looks until savefig (which still draws)
             self.fig.canvas.draw_idle = self.fig.canvas.draw = lambda *args, **kwargs: None
         try:
@@ -86,10 +84,9 @@ class StatsGUI:
         self.ax.set_title("Preview: load the files and press Preview", fontsize=10)
         self.ax.set_aspect("equal")
         self.boxes: dict = {}
-        _TextBox = _text_box_class()
         y = 0.93
         for key, label in TEXT_FIELDS:
-            box = _TextBox(fig.add_axes([0.72, y, 0.26, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
+            box = QuietTextBox(fig.add_axes([0.72, y, 0.26, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
             box.on_submit(lambda text, key=key: self._set(key, text))
             self.boxes[key] = box
             y -= 0.045
@@ -182,10 +179,6 @@ class StatsGUI:
 
     def preview(self) -> bool:
         """Polygons over the first raster, read at reduced resolution."""
-        from matplotlib.collections import LineCollection
-
-        from matchplant.spatial_stat_extractor.extract import preview_layer, read_polygons
-
         if not self._validate():
             return False
         try:
@@ -206,8 +199,6 @@ class StatsGUI:
         vmin, vmax = (np.percentile(finite, [2, 98]) if finite.size else (0, 1))
         self.image_artist = self.ax.imshow(arr, extent=extent, cmap="viridis", vmin=vmin, vmax=vmax,
                                            interpolation="nearest")
-        import shapely
-
         rings = shapely.get_exterior_ring(shapely.get_parts(polys.geometry.values))
         coords, idx = shapely.get_coordinates(rings, return_index=True)
         segments = np.split(coords, np.flatnonzero(np.diff(idx)) + 1) if len(coords) else []
@@ -251,19 +242,8 @@ class StatsGUI:
         self.fraction, self.message = fraction, message
 
     def _work(self) -> None:
-        from matchplant.spatial_stat_extractor.extract import extract_stats, read_polygons, write_outputs
-
-        cfg = self.cfg
         try:
-            polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs)
-            table, report = extract_stats(polygons, cfg.date_sets(), cfg.stats, cfg.percentiles, cfg.mode,
-                                          nodata=cfg.nodata, layout=cfg.layout, on_progress=self._progress)
-            self.message = "writing files"
-            written = write_outputs(polygons, table, report, cfg.output_dir, write_polygons=cfg.write_polygons)
-            if cfg.compare.polygons is not None:
-                from matchplant.spatial_stat_extractor.compare import run_comparison
-
-                written.update(run_comparison(cfg, polygons, table, cfg.date_sets(), Path(cfg.output_dir)))
+            polygons, table, _, written = extract_and_write(self.cfg, on_progress=self._progress)
             self.result = (polygons, table, written)
         except MatchPlantError as exc:
             self.error = f"error: {exc}"
@@ -297,10 +277,6 @@ class StatsGUI:
             return
         col = next((c for c in cols if c.startswith("chm_max")), cols[0])
         values = table[col].to_numpy(float)
-        import shapely
-
-        from matplotlib.collections import LineCollection
-
         _, owner = shapely.get_parts(self.preview_polygons.geometry.values, return_index=True)
         self.poly_artist.remove()
         self.poly_artist = LineCollection(self.segments, array=values[owner], cmap="autumn", linewidths=1.6)
@@ -323,7 +299,7 @@ class StatsGUI:
         return path
 
 
-def launch(cfg, config_path: Path | None = None, headless: bool | None = None) -> StatsGUI:
+def launch(cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None) -> StatsGUI:
     gui = StatsGUI(cfg, config_path, headless=headless)
     try:
         ready = cfg.polygons is not None and bool(cfg.date_sets())
@@ -332,5 +308,5 @@ def launch(cfg, config_path: Path | None = None, headless: bool | None = None) -
         ready = False
     if ready:
         gui.preview()
-    show(gui.fig, headless)
+    show(gui.fig)
     return gui

@@ -22,6 +22,9 @@ from dataclasses import dataclass, field
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
+import shapely
+from pyproj import CRS
+from rasterio.windows import Window
 
 BASIC_STATS = ("count", "min", "max", "mean", "median", "std", "sum", "nodata")
 DEFAULT_STATS = ("count", "min", "max", "mean", "median", "std", "sum")
@@ -61,8 +64,6 @@ def pyproj_crs(crs):
     """A rasterio CRS as a pyproj CRS (what GeoPandas uses), None stays None."""
     if crs is None:
         return None
-    from pyproj import CRS
-
     return CRS.from_user_input(crs.to_wkt() if hasattr(crs, "to_wkt") else crs)
 
 
@@ -82,8 +83,6 @@ class RasterFileSource:
                        if v is not None and not np.isnan(v)]
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        from rasterio.windows import Window
-
         arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0)).astype(float)
         for v in self.nodata:
             arr[arr == v] = np.nan
@@ -137,8 +136,6 @@ class PixelPolygons:
 
     @classmethod
     def from_geometries(cls, geoms: Sequence, transform) -> "PixelPolygons":
-        import shapely
-
         geoms = np.asarray(geoms, dtype=object)
         n = len(geoms)
         parts, owner = shapely.get_parts(geoms, return_index=True)

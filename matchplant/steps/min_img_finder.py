@@ -1,6 +1,7 @@
 """Step 3 (3_min_img_finder): the fewest undistorted images that cover the field; GUI."""
 
-from matchplant.min_img_finder.finder import MinImagesConfig, run
+from matchplant.min_img_finder.config import MinImagesConfig
+from matchplant.min_img_finder.finder import run
 from matchplant.min_img_finder.gui import open_gui
 from matchplant.steps import StepSpec
 

@@ -1,6 +1,7 @@
 """Step 2 (2_odm_runner): run OpenDroneMap (Docker, NodeODM) and check its outputs."""
 
-from matchplant.odm_runner.runner import ODMRunnerConfig, run
+from matchplant.odm_runner.config import ODMRunnerConfig
+from matchplant.odm_runner.runner import run
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="odm_runner", config=ODMRunnerConfig, run=run,

@@ -1,6 +1,7 @@
 """Step 8 (8_plant_projection): put detected boxes on the map through the camera poses and the DSM."""
 
-from matchplant.plant_projection.projection import ProjectionConfig, run
+from matchplant.plant_projection.config import ProjectionConfig
+from matchplant.plant_projection.run import run
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="plant_projection", config=ProjectionConfig, run=run,

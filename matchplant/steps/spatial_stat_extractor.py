@@ -1,7 +1,8 @@
 """Step 9 (9_spatial_stat_extractor): plant polygons to GIS files; per-plant statistics; GUI."""
 
-from matchplant.spatial_stat_extractor.extract import StatsConfig, run
+from matchplant.spatial_stat_extractor.config import StatsConfig
 from matchplant.spatial_stat_extractor.gui import launch
+from matchplant.spatial_stat_extractor.run import run
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="spatial_stat_extractor", config=StatsConfig, run=run, gui=launch,

@@ -1,0 +1,344 @@
+"""Module 4's annotation state: every box of every image, its edits, and the session file.
+
+The GUI (:mod:`matchplant.bbox_drawer.gui`) is a thin layer over :class:`AnnotationStore`, so that every
+edit can be tested without a window and the session survives the window: the store writes the whole
+session to ``<output_dir>/session.json`` atomically after each edit. Reopening the same ``output_dir``
+therefore resumes exactly where the user stopped, also after a crash or power cut.
+
+Boxes are kept as ``[x1, y1, x2, y2]`` in pixel-edge coordinates (``x = 0`` is the left edge of the
+first pixel, ``x = width`` the right edge of the last; docs/DESIGN.md §3), clipped to the image and
+rounded to 0.01 px, so that COCO and YOLO exports round-trip exactly.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+from matchplant.core.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.images import list_images, match_name
+from matchplant.core.io import read_json, write_json
+from matchplant.core.log import get_logger
+from matchplant.core.odm import image_size
+from matchplant.core.yolo import coco_to_yolo
+
+log = get_logger("annotate")
+
+MAX_CATEGORIES = 5
+STATE_NAME = "session.json"
+STATE_FORMAT = "matchplant-annotation-session"
+HISTORY = 500  # undo steps kept (and saved) per session
+DECIMALS = 2   # boxes are stored to 0.01 px
+
+
+# -- boxes ----------------------------------------------------------------------------------------------
+
+
+def _readable(path: Path) -> bool:
+    """False (with a warning) for a file named like an image that is not one."""
+    try:
+        image_size(path)
+        return True
+    except InputError:
+        log.warning("skipped %s: not a readable image", path.name)
+        return False
+
+
+def clip_box(xyxy: Iterable[float], width: float, height: float) -> list[float]:
+    """A box with corners in any order, clipped to the image and rounded to 0.01 px."""
+    x1, y1, x2, y2 = (float(v) for v in xyxy)
+    x1, x2 = sorted((x1, x2))
+    y1, y2 = sorted((y1, y2))
+    return [round(min(max(x1, 0.0), width), DECIMALS), round(min(max(y1, 0.0), height), DECIMALS),
+            round(min(max(x2, 0.0), width), DECIMALS), round(min(max(y2, 0.0), height), DECIMALS)]
+
+
+@dataclass
+class ImportedBox:
+    """A box from another file (COCO, YOLO, predictions), in source-image pixels: its category goes by
+    name because each file numbers categories its own way; ``score`` marks a model's detection."""
+
+    xyxy: list[float]
+    category: str
+    score: float | None = None
+
+
+# -- the session --------------------------------------------------------------------------------------
+
+
+class AnnotationStore:
+    """Every box of every image in a folder, saved atomically after each edit.
+
+    ``store = AnnotationStore(images_dir, output_dir, ["plant"])`` opens (or resumes) the session in
+    ``output_dir``. Edits name the image and the box id; each returns what changed and is undoable.
+    """
+
+    def __init__(self, images_dir: str | Path, output_dir: str | Path, categories: Iterable[str] = ("plant",),
+                 *, min_box_size: float = 2.0):
+        self.images_dir = Path(images_dir)
+        self.output_dir = Path(output_dir)
+        self.path = self.output_dir / STATE_NAME
+        self.min_box_size = float(min_box_size)
+        files = [p for p in list_images(self.images_dir, min_count=0) if _readable(p)]
+        if not files:
+            raise InputError("no images (.jpg, .png, .tif, ...) in the image folder", path=self.images_dir,
+                             fix="set 'images' to the folder that holds the photos to annotate")
+        self.files = {p.name: p for p in files}
+        self.state = self._load()
+        self._merge_categories(list(categories))
+        for name in self.files:
+            self.state["images"].setdefault(name, {"boxes": [], "seen": False})
+        if self.state.get("current") not in self.files:
+            self.state["current"] = next(iter(self.files))
+        self.save()
+
+    # -- persistence
+    def _load(self) -> dict:
+        empty = {"format": STATE_FORMAT, "version": 1, "categories": [], "current": None, "next_id": 1,
+                 "images": {}, "undo": [], "redo": [], "imports": []}
+        if not self.path.is_file():
+            return empty
+        data = read_json(self.path)
+        if not isinstance(data, dict) or data.get("format") != STATE_FORMAT:
+            raise InputError("this file is not a MatchPlant annotation session", path=self.path,
+                             fix="choose another output_dir, or move the file away")
+        for key, value in empty.items():
+            data.setdefault(key, value)
+        log.info("resumed the annotation session in %s", self.path)
+        return data
+
+    def save(self) -> None:
+        self.state["saved"] = _dt.datetime.now().isoformat(timespec="seconds")
+        write_json(self.path, self.state, indent=None)
+
+    def _merge_categories(self, categories: list[str]) -> None:
+        cats = self.state["categories"]
+        for name in categories:
+            if str(name) not in cats:
+                cats.append(str(name))
+        if not cats:
+            cats.append("plant")
+        if len(cats) > MAX_CATEGORIES:
+            raise ConfigError(f"at most {MAX_CATEGORIES} categories are supported, this session has {cats}",
+                              fix="list at most 5 names under 'categories' (or start a new output_dir)")
+
+    # -- queries
+    @property
+    def categories(self) -> list[str]:
+        return list(self.state["categories"])
+
+    @property
+    def images(self) -> list[str]:
+        return list(self.files)
+
+    @property
+    def current(self) -> str:
+        return self.state["current"]
+
+    def size(self, name: str) -> tuple[int, int]:
+        entry = self.state["images"][name]
+        if "width" not in entry:
+            entry["width"], entry["height"] = image_size(self.files[name])
+        return entry["width"], entry["height"]
+
+    def boxes(self, name: str) -> list[dict]:
+        """``[{"id", "xyxy", "category_id", ...}]`` of one image (copies)."""
+        return [dict(b) for b in self.state["images"][name]["boxes"]]
+
+    def box(self, name: str, box_id: int) -> dict:
+        for b in self.state["images"][name]["boxes"]:
+            if b["id"] == box_id:
+                return dict(b)
+        raise KeyError(f"no box {box_id} in {name}")
+
+    def count(self) -> int:
+        return sum(len(self.state["images"][n]["boxes"]) for n in self.files)
+
+    # -- navigation
+    def set_current(self, name: str) -> None:
+        if name not in self.files:
+            raise KeyError(name)
+        self.state["current"] = name
+        self.state["images"][name]["seen"] = True
+        self.save()
+
+    def step(self, delta: int) -> str:
+        names = self.images
+        i = (names.index(self.current) + delta) % len(names)
+        self.set_current(names[i])
+        return names[i]
+
+    # -- edits (each saved at once and undoable)
+    def add(self, name: str, xyxy: Iterable[float], category_id: int = 1) -> int | None:
+        """Add a box (clipped to the image); None when it is smaller than ``min_box_size`` after clipping."""
+        self._check_category(category_id)
+        box = self._clipped(name, xyxy)
+        if box is None:
+            return None
+        new = {"id": int(self.state["next_id"]), "xyxy": box, "category_id": int(category_id)}
+        self.state["next_id"] += 1
+        self._apply(name, None, new)
+        return new["id"]
+
+    def move(self, name: str, box_id: int, dx: float, dy: float) -> dict:
+        """Shift a box, keeping its size; it stops at the image edges."""
+        old = self.box(name, box_id)
+        w, h = self.size(name)
+        x1, y1, x2, y2 = old["xyxy"]
+        dx = min(max(float(dx), -x1), w - x2)
+        dy = min(max(float(dy), -y1), h - y2)
+        return self._replace(name, old, [x1 + dx, y1 + dy, x2 + dx, y2 + dy])
+
+    def resize(self, name: str, box_id: int, xyxy: Iterable[float]) -> dict:
+        """Give a box new corners (clipped); a resize that makes it vanish is refused (box unchanged)."""
+        return self._replace(name, self.box(name, box_id), xyxy)
+
+    def delete(self, name: str, box_id: int) -> None:
+        self._apply(name, self.box(name, box_id), None)
+
+    def set_category(self, name: str, box_id: int, category_id: int) -> dict:
+        self._check_category(category_id)
+        old = self.box(name, box_id)
+        new = dict(old, category_id=int(category_id))
+        new.pop("score", None)  # a corrected prediction is a human label now
+        self._apply(name, old, new)
+        return new
+
+    def undo(self) -> str | None:
+        """Undo the last edit; returns the image it touched (None when there is nothing to undo)."""
+        return self._history("undo", "redo")
+
+    def redo(self) -> str | None:
+        return self._history("redo", "undo")
+
+    # -- internals
+    def _check_category(self, category_id: int) -> None:
+        if not 1 <= int(category_id) <= len(self.categories):
+            raise ConfigError(f"category {category_id} does not exist; categories are "
+                              f"{', '.join(f'{i + 1}={c}' for i, c in enumerate(self.categories))}",
+                              fix="add the category name to 'categories' in the config")
+
+    def _clipped(self, name: str, xyxy: Iterable[float], min_size: float | None = None) -> list[float] | None:
+        w, h = self.size(name)
+        box = clip_box(xyxy, w, h)
+        min_size = self.min_box_size if min_size is None else min_size
+        if box[2] - box[0] < min_size or box[3] - box[1] < min_size or box[2] <= box[0] or box[3] <= box[1]:
+            return None
+        return box
+
+    def _replace(self, name: str, old: dict, xyxy: Iterable[float]) -> dict:
+        box = self._clipped(name, xyxy)
+        if box is None or box == old["xyxy"]:
+            return old
+        new = dict(old, xyxy=box)
+        self._apply(name, old, new)
+        return new
+
+    def _apply(self, name: str, before: dict | None, after: dict | None, record: bool = True) -> None:
+        self._swap(name, before, after)
+        if record:
+            self.state["undo"] = (self.state["undo"] + [{"image": name, "before": before, "after": after}])[-HISTORY:]
+            self.state["redo"] = []
+        self.state["images"][name]["seen"] = True
+        self.save()
+
+    def _swap(self, name: str, before: dict | None, after: dict | None) -> None:
+        boxes = self.state["images"][name]["boxes"]
+        if before is not None:
+            boxes[:] = [b for b in boxes if b["id"] != before["id"]]
+        if after is not None:
+            boxes.append(dict(after))
+            boxes.sort(key=lambda b: b["id"])
+
+    def _history(self, source: str, target: str) -> str | None:
+        if not self.state[source]:
+            return None
+        step = self.state[source].pop()
+        before, after = (step["before"], step["after"]) if source == "redo" else (step["after"], step["before"])
+        self._swap(step["image"], before, after)
+        self.state[target].append(step)
+        self.save()
+        return step["image"]
+
+    # -- imports
+    def import_boxes(self, boxes: dict[str, list[ImportedBox]], source: str) -> int:
+        """Add imported boxes to images that have none yet; each source file is imported once per session.
+
+        Returns the number of boxes added. Imports are not undoable edits (delete boxes to reject them).
+        """
+        key = str(Path(source).resolve()) if Path(source).exists() else str(source)
+        if key in self.state["imports"]:
+            log.info("%s was already imported into this session; skipped", source)
+            return 0
+        added, skipped = 0, []
+        for raw_name, items in boxes.items():
+            name = match_name(raw_name, self.files)
+            if name is None:
+                skipped.append(raw_name)
+                continue
+            if self.state["images"][name]["boxes"]:
+                log.info("%s already has boxes; imported boxes for it are skipped", name)
+                continue
+            for item in items:
+                cat = self._category_for(item.category)
+                box = self._clipped(name, item.xyxy, min_size=0.0)  # keep thin boxes cut by the image edge
+                if box is None:
+                    continue
+                new = {"id": int(self.state["next_id"]), "xyxy": box, "category_id": cat}
+                if item.score is not None:
+                    new["score"] = round(float(item.score), 4)
+                self.state["next_id"] += 1
+                self._swap(name, None, new)
+                added += 1
+        if skipped:
+            log.warning("%d image(s) of %s are not in the image folder and were skipped (e.g. %s)",
+                        len(skipped), Path(source).name, skipped[0])
+        self.state["imports"].append(key)
+        self.save()
+        log.info("imported %d box(es) from %s", added, source)
+        return added
+
+    def _category_for(self, name: str) -> int:
+        cats = self.state["categories"]
+        if name not in cats:
+            if len(cats) >= MAX_CATEGORIES:
+                raise InputError(f"imported category '{name}' is not one of {cats} and there is no room "
+                                 f"for a sixth", fix="rename the categories in the imported file")
+            cats.append(name)
+        return cats.index(name) + 1
+
+    # -- exports
+    def to_coco(self, include_unseen: bool = False) -> dict:
+        """One COCO dataset of the images that were looked at or have boxes (all with ``include_unseen``)."""
+        ds = new_dataset(self.categories, info={"description": "MatchPlant annotations (module 4)",
+                                                "images_dir": str(self.images_dir)})
+        ann_id = 1
+        for image_id, name in enumerate(self.images, start=1):
+            entry = self.state["images"][name]
+            if not (include_unseen or entry.get("seen") or entry["boxes"]):
+                continue
+            w, h = self.size(name)
+            ds["images"].append({"id": image_id, "file_name": name, "width": w, "height": h})
+            for b in entry["boxes"]:
+                x1, y1, x2, y2 = b["xyxy"]
+                extra = {"score": b["score"]} if "score" in b else {}
+                ds["annotations"].append(make_annotation(ann_id, image_id, [x1, y1, round(x2 - x1, DECIMALS),
+                                                                            round(y2 - y1, DECIMALS)],
+                                                         b["category_id"], **extra))
+                ann_id += 1
+        return ds
+
+    def export(self, coco: bool = True, yolo: bool = False, include_unseen: bool = False) -> dict[str, Path]:
+        ds = self.to_coco(include_unseen)
+        out: dict[str, Path] = {}
+        if coco:
+            out["coco"] = write_dataset(self.output_dir / "annotations.json", ds)
+        if yolo:
+            out["yolo"] = coco_to_yolo(ds, self.output_dir / "yolo")
+        return out
+
+
+__all__ = ["AnnotationStore", "ImportedBox", "clip_box", "MAX_CATEGORIES"]

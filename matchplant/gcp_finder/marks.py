@@ -1,0 +1,111 @@
+"""The marks of a session (a GCP's pixel in one image): set, move, delete, undo, saved to gcp_list.txt.
+
+Every change is saved at once in the GUI, so a crash or a closed window loses nothing; an existing
+gcp_list.txt (ours or another tool's) is continued rather than overwritten.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pyproj import Transformer
+
+from matchplant.core.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
+from matchplant.core.log import get_logger
+from matchplant.gcp_finder.candidates import Finder
+from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
+
+log = get_logger("gcp_finder")
+
+
+class MarkStore:
+    """The marks of one session: set, move, delete, undo; every change is saved to gcp_list.txt."""
+
+    def __init__(self, finder: Finder, path: Path, autosave: bool = True):
+        self.finder = finder
+        self.path = Path(path)
+        self.autosave = autosave
+        self.marks: dict[tuple[str, str], tuple[float, float]] = {}
+        self.undo_stack: list[tuple[tuple[str, str], tuple[float, float] | None]] = []
+
+    def load(self, path: Path) -> int:
+        """Continue from an existing gcp_list.txt; returns the number of marks taken over."""
+        _, crs, marks = read_gcp_list(path)
+        t = None if crs.equals(self.finder.crs) else Transformer.from_crs(crs, self.finder.crs, always_xy=True)
+        ids = list(self.finder.gcps)
+        xy = np.array([[g.x, g.y] for g in self.finder.gcps.values()])
+        n = 0
+        for m in marks:
+            gid = m.gcp if m.gcp in self.finder.gcps else None
+            if gid is None:  # unnamed line: the surveyed GCP at its coordinates
+                mx, my = t.transform(m.x, m.y) if t else (m.x, m.y)
+                d = np.hypot(xy[:, 0] - mx, xy[:, 1] - my)
+                if d.min() < 0.5:
+                    gid = ids[int(np.argmin(d))]
+            if gid is None:
+                log.warning("gcp_list line for %s (%s) matches no surveyed GCP; dropped", m.image, m.gcp or "unnamed")
+                continue
+            self.marks[(gid, m.image)] = (m.u, m.v)
+            n += 1
+        return n
+
+    def set(self, gcp: str, image: str, u: float, v: float, record: bool = True) -> None:
+        if record:
+            self.undo_stack.append(((gcp, image), self.marks.get((gcp, image))))
+        self.marks[(gcp, image)] = (float(u), float(v))
+        self._changed()
+
+    def delete(self, gcp: str, image: str) -> bool:
+        if (gcp, image) not in self.marks:
+            return False
+        self.undo_stack.append(((gcp, image), self.marks.pop((gcp, image))))
+        self._changed()
+        return True
+
+    def undo(self) -> tuple[str, str] | None:
+        if not self.undo_stack:
+            return None
+        key, previous = self.undo_stack.pop()
+        if previous is None:
+            self.marks.pop(key, None)
+        else:
+            self.marks[key] = previous
+        self._changed()
+        return key
+
+    def count(self, gcp: str) -> int:
+        return sum(1 for g, _ in self.marks if g == gcp)
+
+    def to_marks(self) -> list[Mark]:
+        order = {gid: i for i, gid in enumerate(self.finder.gcps)}
+        out = []
+        for (gid, image), (u, v) in sorted(self.marks.items(), key=lambda kv: (order.get(kv[0][0], 1e9), kv[0][1])):
+            g = self.finder.gcps[gid]
+            out.append(Mark(g.x, g.y, g.z, u, v, image, gid))
+        return out
+
+    def save(self) -> Path:
+        return write_gcp_list(self.path, crs_header(self.finder.crs), self.to_marks())
+
+    def _changed(self) -> None:
+        if self.autosave:
+            self.save()
+
+    def warn_few(self) -> list[str]:
+        few = [gid for gid in self.finder.gcps if 0 < self.count(gid) < MIN_IMAGES_PER_GCP]
+        if few:
+            log.warning("GCPs marked in fewer than %d images (ODM may ignore them): %s", MIN_IMAGES_PER_GCP,
+                        ", ".join(f"{g} ({self.count(g)})" for g in few))
+        return few
+
+
+def store_for(cfg: GcpFinderConfig, finder: Finder, autosave: bool) -> MarkStore:
+    """The session's store, continuing the configured (or the output folder's) gcp_list.txt if it exists."""
+    out = Path(cfg.output_dir)
+    store = MarkStore(finder, out / "gcp_list.txt", autosave=autosave)
+    existing = cfg.gcp_list or (out / "gcp_list.txt")
+    if Path(existing).is_file():
+        n = store.load(Path(existing))
+        log.info("continuing from %s (%d marks)", existing, n)
+    return store

@@ -1,0 +1,115 @@
+"""After a run: are the outputs later steps need there (docs/DESIGN.md §2), and what was run.
+
+:func:`check_outputs` names, for each missing output, the ODM option that produces it;
+:func:`write_manifest` records the run, its options and every output in ``odm_manifest.json``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import rasterio
+
+from matchplant.core.config import to_dict
+from matchplant.core.errors import MatchPlantError
+from matchplant.core.io import write_json
+from matchplant.core.log import package_versions
+from matchplant.core.odm import OUTPUTS, ODMProject
+from matchplant.odm_runner.config import ODMRunnerConfig
+from matchplant.odm_runner.inputs import odm_option_dict
+
+# outputs modules 3, 8 and 9 read (docs/DESIGN.md §2); the topocentric copy is optional
+REQUIRED_OUTPUTS = ("reconstruction", "undistorted_reconstruction", "undistorted_images", "dsm", "dtm",
+                    "orthophoto", "coords")
+
+
+@dataclass
+class OutputReport:
+    """What an ODM project holds, and every reason later steps could not use it (empty: ok)."""
+
+    project: Path
+    present: dict[str, bool]
+    problems: list[str] = field(default_factory=list)  # missing outputs, each with the option producing it
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OUTPUTS) -> OutputReport:
+    """Check the outputs modules 3, 8 and 9 need; each problem names the ODM option that fixes it."""
+    project = ODMProject(project_dir)
+    present = project.check()
+    problems = [f"{OUTPUTS[n].relpath} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
+                for n in required if not present[n]]
+    details: dict[str, Any] = {}
+    if present["undistorted_reconstruction"]:
+        try:
+            shots = set(project.reconstruction(undistorted=True).shots)
+            images = set(project.undistorted_images())
+            details["undistorted_shots"] = len(shots)
+            details["undistorted_images"] = len(images)
+            lacking = sorted(shots - images)
+            if lacking and present["undistorted_images"]:
+                problems.append(f"{len(lacking)} of {len(shots)} reconstructed images have no undistorted image "
+                                f"(e.g. {lacking[0]}.tif): produced by the OpenSfM undistort step "
+                                "(do not use --optimize-disk-space)")
+        except MatchPlantError as exc:
+            problems.append(f"opensfm/undistorted/reconstruction.json is unreadable: {exc.problem}")
+    for name in ("dsm", "dtm", "orthophoto"):
+        if present[name]:
+            info = _raster_info(project.path(name))
+            details[name] = info
+            if "error" in info:
+                problems.append(f"{OUTPUTS[name].relpath} is unreadable ({info['error']}): re-run ODM "
+                                f"({OUTPUTS[name].produced_by})")
+            elif info.get("crs") is None:
+                problems.append(f"{OUTPUTS[name].relpath} has no coordinate system: give ODM GPS-tagged "
+                                "images or a gcp_list.txt")
+    if present["coords"]:
+        try:
+            crs, offset = project.coords
+            details["crs"] = crs.to_string()
+            details["offset"] = [float(offset[0]), float(offset[1])]
+        except MatchPlantError as exc:
+            problems.append(f"odm_georeferencing/coords.txt is unreadable: {exc.problem}")
+    return OutputReport(project=Path(project_dir), present=present, problems=problems, details=details)
+
+
+def _raster_info(path: Path) -> dict:
+    try:
+        with rasterio.open(path) as src:
+            return {"width": src.width, "height": src.height, "bands": src.count,
+                    "crs": src.crs.to_string() if src.crs else None,
+                    "resolution_m": [abs(src.transform.a), abs(src.transform.e)]}
+    except Exception as exc:  # noqa: BLE001 - any GDAL failure means the file is unusable
+        return {"error": str(exc)}
+
+
+def write_manifest(path: str | Path, cfg: ODMRunnerConfig, report: OutputReport, run_info: dict | None) -> Path:
+    """What was run, with which options, and every output with its size and whether it is there."""
+    project = ODMProject(report.project)
+    outputs = {}
+    for name, out in OUTPUTS.items():
+        p = project.path(name)
+        entry: dict[str, Any] = {"path": out.relpath, "exists": report.present[name], "produced_by": out.produced_by}
+        if report.present[name] and p.is_file():
+            entry["bytes"] = p.stat().st_size
+        outputs[name] = entry
+    data = {
+        "created": _dt.datetime.now().isoformat(timespec="seconds"),
+        "project_dir": str(report.project),
+        "run": run_info,
+        "odm_options": odm_option_dict(cfg.odm),
+        "outputs": outputs,
+        "details": report.details,
+        "problems": report.problems,
+        "ok": report.ok,
+        "config": to_dict(cfg),
+        "versions": package_versions(),
+    }
+    return write_json(path, data)

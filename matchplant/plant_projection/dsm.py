@@ -1,0 +1,98 @@
+"""The DSM around the rays: read once when it fits in memory, else one window per image.
+
+A large field's DSM (a 1 cm grid over hectares) does not fit in memory; each image's rays only need
+the part under its boxes, bounded by where its corner rays cross the lowest and highest heights.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from pyproj import CRS
+
+from matchplant.core.errors import InputError
+from matchplant.core.frames import Frame
+from matchplant.core.reconstruction import Shot
+from matchplant.core.surface import Surface
+from matchplant.plant_projection.geometry import box_outline
+
+MAX_SURFACE_CELLS = 40_000_000  # above this the DSM is read per image instead of once
+
+
+def approx_heights(path: Path) -> tuple[float, float]:
+    """DSM height range from a decimated read (for the window of the rays), with a margin."""
+    with rasterio.open(path) as src:
+        f = max(1, int(max(src.width, src.height) // 512))
+        arr = src.read(1, out_shape=(max(1, src.height // f), max(1, src.width // f)), masked=True)
+    data = arr.astype(float).filled(np.nan)
+    data[data <= -9999] = np.nan
+    if not np.isfinite(data).any():
+        raise InputError("the DSM holds no valid heights", path=path, fix="check the DSM (re-run ODM with --dsm)")
+    lo, hi = float(np.nanmin(data)), float(np.nanmax(data))
+    pad = 1.0 + 0.2 * (hi - lo)
+    return lo - pad, hi + pad
+
+
+def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray | None:
+    """Map bounds where the boxes' corner rays cross the heights z_lo and z_hi (None if a ray looks up)."""
+    uv = box_outline(boxes, 0).reshape(-1, 2)
+    d = shot.ray_directions(uv)
+    c = shot.center
+    c_map = frame.to_map(c[None, :])[0]
+    far = frame.to_map(c[None, :] + 100.0 * d)
+    dm = (far - c_map) / 100.0
+    if (dm[:, 2] > -1e-6).any():
+        return None
+    pts = [c_map[:2] + ((z - c_map[2]) / dm[:, 2])[:, None] * dm[:, :2] for z in (z_lo, z_hi)]
+    pts = np.concatenate(pts)
+    return np.concatenate([pts.min(axis=0), pts.max(axis=0)])
+
+
+class DsmSurfaces:
+    """The DSM read once over every image's rays when that fits in memory, else per image."""
+
+    def __init__(self, path: Path, crs, ground_window: float):
+        self.path, self.crs, self.ground_window = path, crs, ground_window
+        self._whole: Surface | None = None
+        with rasterio.open(path) as src:
+            small = src.width * src.height <= MAX_SURFACE_CELLS
+        if small:  # the whole DSM fits: read it once, its heights bound the rays
+            self._whole = Surface.open(path)
+            pad = 1.0 + 0.2 * (self._whole.zmax - self._whole.zmin)
+            self.z_lo, self.z_hi = self._whole.zmin - pad, self._whole.zmax + pad
+        else:
+            self.z_lo, self.z_hi = approx_heights(path)
+
+    def prepare(self, all_bounds: list[np.ndarray | None]) -> None:
+        """Once every image's ray bounds are known: refuse a DSM in another CRS, and read the union of
+        the bounds at once when it fits (one read instead of one per image)."""
+        with rasterio.open(self.path) as src:
+            res = min(abs(src.transform.a), abs(src.transform.e))
+            dsm_crs = src.crs
+        if dsm_crs is not None and self.crs is not None and not CRS.from_user_input(dsm_crs).equals(self.crs):
+            raise InputError(f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}", path=self.path,
+                             fix="use the DSM of this ODM project (or reproject it to the project's CRS)")
+        if self._whole is not None:
+            return
+        if any(b is None for b in all_bounds):
+            self._whole = Surface.open(self.path)
+            return
+        b = np.array(all_bounds)
+        union = (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
+        cells = (union[2] - union[0]) * (union[3] - union[1]) / res ** 2
+        if cells <= MAX_SURFACE_CELLS:
+            self._whole = self._open(union, res)
+
+    def _open(self, bounds, res) -> Surface:
+        pad = 4 * res + self.ground_window  # the ground estimate needs terrain around the rays
+        return Surface.open(self.path, bounds=(bounds[0] - pad, bounds[1] - pad, bounds[2] + pad, bounds[3] + pad))
+
+    def get(self, bounds: np.ndarray) -> Surface:
+        """The surface under one image's rays (``bounds`` from :func:`ray_bounds`)."""
+        if self._whole is not None:
+            return self._whole
+        with rasterio.open(self.path) as src:
+            res = min(abs(src.transform.a), abs(src.transform.e))
+        return self._open(bounds, res)

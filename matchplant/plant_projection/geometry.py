@@ -1,0 +1,289 @@
+"""Rays through a photo box's outline to the surface, and the plant's map box from where they land.
+
+Everything here works on all the boxes of one image at once (arrays, no per-box loop). Relief decides
+which surface a ray must meet: everything above the ground is displaced in the photo away from the
+image's nadir point, so an edge facing that point is a leaf tip on the soil (its rays meet the ground
+estimated from the DSM), while the other edges may be the image of the plant's top (their rays meet the
+DSM and stop just above it, so a ray grazing the top stays on the plant). Camera and map conventions:
+``docs/DESIGN.md`` §3.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from matchplant.core.frames import Frame
+from matchplant.core.ground import rays_to_ground
+from matchplant.core.reconstruction import Shot
+from matchplant.core.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+
+RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
+APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for
+SKIM = 0.1  # metres: a ray that passed this close over a plant before landing on the soil missed the plant's top
+
+
+def box_outline(boxes: np.ndarray, edge_points: int) -> np.ndarray:
+    """Points (M, P, 2) around boxes ``[x1, y1, x2, y2]`` (pixel edges, COCO), in camera pixel coordinates.
+
+    COCO boxes are in edge coordinates (pixel ``i`` spans ``[i, i+1]``); the cameras put pixel centres at
+    integers, hence the half-pixel shift. The outline runs corner to corner with ``edge_points`` points
+    inside each edge, ``P = 4 (edge_points + 1)``.
+    """
+    b = np.asarray(boxes, dtype=float).reshape(-1, 4) - 0.5
+    x1, y1, x2, y2 = (b[:, i:i + 1] for i in range(4))
+    t = np.arange(edge_points + 1) / (edge_points + 1)
+    one = np.ones_like(t)
+    xs = np.concatenate([x1 + (x2 - x1) * t, x2 * one, x2 + (x1 - x2) * t, x1 * one], axis=1)
+    ys = np.concatenate([y1 * one, y1 + (y2 - y1) * t, y2 * one, y2 + (y1 - y2) * t], axis=1)
+    return np.stack([xs, ys], axis=-1)
+
+
+def polygon_moments(xy: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Area, centroid and variances of polygons (M, P, 2) (shoelace sums; orientation does not matter).
+
+    Coordinates are taken relative to each polygon's mean vertex, so UTM-sized numbers lose no precision.
+    Returns ``area, cx, cy, var_x, var_y`` (variances of a uniform density over the polygon).
+    """
+    mean = xy.mean(axis=1, keepdims=True)
+    p = xy - mean
+    x, y = p[..., 0], p[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cross = x * yn - xn * y
+    a2 = cross.sum(axis=1)  # twice the signed area
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cx = ((x + xn) * cross).sum(axis=1) / (3.0 * a2)
+        cy = ((y + yn) * cross).sum(axis=1) / (3.0 * a2)
+        ixx = ((x * x + x * xn + xn * xn) * cross).sum(axis=1) / (6.0 * a2)
+        iyy = ((y * y + y * yn + yn * yn) * cross).sum(axis=1) / (6.0 * a2)
+    return np.abs(a2) / 2.0, cx + mean[:, 0, 0], cy + mean[:, 0, 1], ixx - cx * cx, iyy - cy * cy
+
+
+def outline_boxes(xy: np.ndarray, how: str = "inscribed") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Axis-aligned boxes (M, 4) ``[xmin, ymin, xmax, ymax]``, centroids (M, 2) and areas of outlines (M, P, 2)
+    that start at a box corner and pass the other corners at P/4, P/2 and 3P/4 (:func:`box_outline`).
+
+    ``inscribed``: the box of the ellipse inscribed in the parallelogram of the four corners. When the photo's
+    axes follow the map axes this is the outline's own box; when the flight runs at an angle, the outline's
+    box would be up to 41 % too wide for a round plant, and this box is the round plant's box.
+    """
+    area, cx, cy, _, _ = polygon_moments(xy)
+    env = np.concatenate([xy.min(axis=1), xy.max(axis=1)], axis=1)
+    good = np.isfinite(cx) & np.isfinite(cy) & (area > 0)
+    centroid = np.where(good[:, None], np.stack([cx, cy], axis=1), (env[:, :2] + env[:, 2:]) / 2)
+    if how == "outline":
+        return env, centroid, area
+    q = xy.shape[1] // 4
+    c0, c1, c2, c3 = (xy[:, k * q] for k in range(4))
+    centre = (c0 + c1 + c2 + c3) / 4
+    a = (c1 - c0 + c2 - c3) / 4  # half-axis along the photo's x
+    b = (c3 - c0 + c2 - c1) / 4  # half-axis along the photo's y
+    half = np.sqrt(a ** 2 + b ** 2)
+    return np.concatenate([centre - half, centre + half], axis=1), centroid, area
+
+
+def _edge_indices(edge_points: int) -> list[np.ndarray]:
+    """Outline indices of the top, right, bottom and left edge (corners included) of :func:`box_outline`."""
+    q = edge_points + 1
+    return [(np.arange(q + 1) + k * q) % (4 * q) for k in range(4)]
+
+
+def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
+    """Which edges (top, right, bottom, left) of photo boxes (M, 4) face the image's nadir point (M, 4).
+
+    Relief displaces everything above the ground away from the nadir point. On an edge facing it the
+    plant's outermost point is therefore a leaf tip on the soil, whatever stands in front of the plant;
+    on the other edges it may be the plant's displaced top.
+    """
+    cam = frame.to_map(shot.center[None, :])[0]
+    with np.errstate(invalid="ignore"):
+        nadir = shot.project(frame.from_map((cam - [0.0, 0.0, 1000.0])[None, :]))[0]
+    out = np.zeros((len(boxes), 4), dtype=bool)
+    if not np.isfinite(nadir).all():  # the camera does not look down
+        return out
+    b = np.asarray(boxes, dtype=float).reshape(-1, 4) - 0.5  # pixel edges -> camera pixels
+    out[:, 0], out[:, 1] = nadir[1] < b[:, 1], nadir[0] > b[:, 2]
+    out[:, 2], out[:, 3] = nadir[1] > b[:, 3], nadir[0] < b[:, 0]
+    return out
+
+
+def _skimmed(hits: np.ndarray, cam: np.ndarray, surface: Surface, ground: Surface, hidden_height: float,
+             skim: float, canopy: float, samples: int = 16) -> np.ndarray:
+    """Rays (camera to ``hits`` on the soil) that passed less than ``skim`` above a plant (the DSM standing
+    ``hidden_height`` above the ground) on their way down: they went over the plant's top without a ray
+    grazing it, so where they landed is not the plant's edge."""
+    if len(hits) == 0:
+        return np.zeros(0, dtype=bool)
+    d = hits - cam
+    d /= -d[:, 2:3]  # per metre of descent
+    u = (np.arange(1, samples + 1) / samples) * (canopy + skim)  # heights above the hit
+    p = hits[:, None, :] - u[None, :, None] * d[:, None, :]
+    top = surface.sample(p[..., 0], p[..., 1])
+    plant = top - ground.sample(p[..., 0], p[..., 1]) > hidden_height
+    return (plant & (p[..., 2] - top < skim)).any(axis=1)
+
+
+def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
+                     surface: Surface | None = None, *, hidden_height: float = 0.05, apex_grid: int = 9,
+                     how: str = "inscribed", cam: np.ndarray | None = None, skim: float = 0.1,
+                     canopy: float = 0.0) -> dict[str, np.ndarray]:
+    """Map boxes (M, 4) of plants from the hits of the rays along their photo box's edges.
+
+    ``edges``: the hits (M, Q, 3) of the top, right, bottom and left edge (:func:`box_outline` order);
+    ``corners`` (M, 4, 2): the box corners on the ground, which set the frame of the projected box (axes
+    along the photo's x and y, so any flight heading works); ``near`` (M, 4): edges facing the image's
+    nadir point (:func:`near_edges`), whose rays met the ground (a leaf tip on the soil, even behind a
+    neighbour). The other edges' rays met the DSM and stopped just above it: such an edge may be the
+    image of the plant's *top* displaced outwards by relief, and only its ray grazing the top (stopped on
+    it by the intersection's clearance) marks where the plant is. So each side is the *innermost* hit of
+    its edge. A side whose innermost hit stands more than ``hidden_height`` above the ground lay behind
+    the plant's top (or behind another plant): it is mirrored from the opposite side about the plant's
+    top (the highest DSM point inside the box), assuming a roughly symmetric plant.
+
+    ``how``: ``inscribed`` = box of the ellipse inscribed in the resulting parallelogram (a round plant's
+    box whatever the flight heading), ``outline`` = box of the parallelogram. Returns ``bounds``,
+    ``centre`` (M, 2), ``area`` (of the parallelogram), ``hidden`` (M, 4: photo edges) and ``faces``
+    (M, 4, 4): which map sides (west, south, east, north) each photo edge bears on.
+    """
+    c0, c1, c2, c3 = (corners[:, k] for k in range(4))
+    centre = (c0 + c1 + c2 + c3) / 4
+    a = (c1 - c0 + c2 - c3) / 4  # half-axis along the photo's x
+    b = (c3 - c0 + c2 - c1) / 4  # half-axis along the photo's y
+    det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    det = np.where(np.abs(det) > 1e-18, det, np.nan)
+    m = len(corners)
+    inner = np.empty((m, 4))
+    hidden = np.zeros((m, 4), dtype=bool)
+    rows = np.arange(m)
+    for k, e in enumerate(edges):  # top, right, bottom, left: the innermost coordinate of each edge
+        d = e[..., :2] - centre[:, None]
+        if k % 2:  # right, left: -1 left .. 1 right
+            c = (d[..., 0] * b[:, None, 1] - d[..., 1] * b[:, None, 0]) / det[:, None]
+        else:  # top, bottom: -1 top .. 1 bottom
+            c = (a[:, None, 0] * d[..., 1] - a[:, None, 1] * d[..., 0]) / det[:, None]
+        arg = c.argmin(axis=1) if k in (1, 2) else c.argmax(axis=1)
+        inner[:, k] = c[rows, arg]
+        hit = e[rows, arg]
+        far = ~near[:, k]
+        if far.any():
+            hidden[far, k] = hit[far, 2] - ground.sample(hit[far, 0], hit[far, 1]) > hidden_height
+            if cam is not None and surface is not None:
+                on_soil = np.flatnonzero(far & ~hidden[:, k])
+                hidden[on_soil, k] = _skimmed(hit[on_soil], cam, surface, ground, hidden_height, skim, canopy)
+    t, r, bo, le = (inner[:, k].copy() for k in range(4))
+    # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
+    sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
+    if surface is not None and sel.size:
+        # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
+        # stops a grazing ray a little before its tangent point, short of the top)
+        g = (np.arange(apex_grid) + 0.5) / apex_grid
+        hs = hidden[sel].astype(float) * APEX_REACH
+        a0, a1 = le[sel] - (r - le)[sel] * hs[:, 3], r[sel] + (r - le)[sel] * hs[:, 1]
+        b0, b1 = t[sel] - (bo - t)[sel] * hs[:, 0], bo[sel] + (bo - t)[sel] * hs[:, 2]
+        ga = a0[:, None, None] + (a1 - a0)[:, None, None] * g[None, None, :]
+        gb = b0[:, None, None] + (b1 - b0)[:, None, None] * g[None, :, None]
+        ga, gb = np.broadcast_arrays(ga, gb)
+        gx = centre[sel, 0, None, None] + ga * a[sel, 0, None, None] + gb * b[sel, 0, None, None]
+        gy = centre[sel, 1, None, None] + ga * a[sel, 1, None, None] + gb * b[sel, 1, None, None]
+        h = surface.sample(gx, gy).reshape(len(sel), -1)
+        h = np.where(np.isfinite(h), h, -np.inf)
+        top_i = h.argmax(axis=1)
+        aa, ab = ga.reshape(len(sel), -1)[np.arange(len(sel)), top_i], gb.reshape(len(sel), -1)[np.arange(len(sel)), top_i]
+        hs = hidden[sel]
+        t2, r2, bo2, le2 = t[sel].copy(), r[sel].copy(), bo[sel].copy(), le[sel].copy()
+        t2[hs[:, 0]] = np.minimum(t[sel], 2 * ab - bo[sel])[hs[:, 0]]
+        bo2[hs[:, 2]] = np.maximum(bo[sel], 2 * ab - t[sel])[hs[:, 2]]
+        r2[hs[:, 1]] = np.maximum(r[sel], 2 * aa - le[sel])[hs[:, 1]]
+        le2[hs[:, 3]] = np.minimum(le[sel], 2 * aa - r[sel])[hs[:, 3]]
+        t[sel], r[sel], bo[sel], le[sel] = t2, r2, bo2, le2
+    good = (r > le) & (bo > t) & np.isfinite(det)
+    t, bo = np.where(good, t, -1.0), np.where(good, bo, 1.0)
+    le, r = np.where(good, le, -1.0), np.where(good, r, 1.0)
+    mid = centre + ((le + r) / 2)[:, None] * a + ((t + bo) / 2)[:, None] * b
+    ha = a * ((r - le) / 2)[:, None]
+    hb = b * ((bo - t) / 2)[:, None]
+    half = np.sqrt(ha ** 2 + hb ** 2) if how == "inscribed" else np.abs(ha) + np.abs(hb)
+    area = np.abs(det) * (r - le) * (bo - t)
+    # the map sides (west, south, east, north) a photo edge bears on: those its outward normal faces
+    normals = np.stack([-b, a, b, -a], axis=1)  # top, right, bottom, left
+    normals /= np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
+    faces = np.stack([-normals[..., 0], -normals[..., 1], normals[..., 0], normals[..., 1]], axis=2) > 0.3
+    return {"bounds": np.concatenate([mid - half, mid + half], axis=1), "centre": mid, "area": area,
+            "hidden": hidden, "faces": faces}
+
+
+def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
+                  map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
+                  ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Project pixel boxes ``[x1, y1, x2, y2]`` (M, 4) of one image onto the surface, all at once.
+
+    Rays through each box outline meet the ground (estimated from the DSM, :meth:`Surface.ground` with
+    ``ground_window``) on the edges facing the image's nadir point, and the DSM, stopping ``clearance``
+    metres above it (so a ray grazing a plant's top stays on the plant), on the others;
+    :func:`silhouette_boxes` turns the hits into the plant's map box. ``cut_edges`` (M, 4: top, right,
+    bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
+    (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
+    :data:`matchplant.core.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
+    ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``beside_cut`` (M, 4:
+    map sides beside a border cut), ``unseen`` (M, 4:
+    map sides west, south, east, north not seen directly: behind the plant's top or cut by a border)
+    and ``off_nadir`` (degrees between the plumb line and the ray to the centroid).
+    """
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    uv = box_outline(boxes, edge_points)
+    m, p = uv.shape[:2]
+    cam = frame.to_map(shot.center[None, :])[0]
+    dirs = shot.ray_directions(uv.reshape(-1, 2))
+    near = near_edges(shot, frame, boxes)
+    edges = _edge_indices(edge_points)
+    on_far = np.zeros((m, p), dtype=bool)  # outline points of edges that may show the plant's top
+    for k, e in enumerate(edges):
+        on_far[:, e] |= ~near[:, k, None]
+    ground = surface.ground(ground_window)
+    g_pts, g_status = rays_to_ground(shot, dirs, frame, ground)
+    d_pts, d_status = g_pts.copy(), g_status.copy()
+    far = np.flatnonzero(on_far.ravel())
+    if far.size:
+        # the DSM is met between the ground hit and the tallest plant above it (the ground rising at most
+        # max_slope per metre towards the camera)
+        gz = np.where(g_status[far] == HIT, g_pts[far, 2], np.nan)
+        tan = np.hypot(dirs[far, 0], dirs[far, 1]) / np.maximum(-dirs[far, 2], 1e-12)
+        rise = 1.0 - ground.max_slope * tan
+        with np.errstate(invalid="ignore", divide="ignore"):
+            top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
+        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, heights=(top, gz - 0.05))
+        if clearance > 0:
+            # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
+            # exact hit (soil at a leaf tip, a plant's side); one that would fall further grazed a plant's top
+            hit = st == HIT
+            pts[hit] = surface.drop(pts[hit], pts[hit] - cam, 2 * clearance)  # along the ray, in map space
+        d_pts[far], d_status[far] = pts, st
+    g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
+    status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
+    ok = (status == HIT).all(axis=1)
+    reason = np.full(m, HIT, dtype=np.int8)
+    for code in reversed(RAY_PRIORITY):  # the highest-priority failing status wins
+        reason[(status == code).any(axis=1)] = code
+    out = {"ok": ok, "status": reason, "outline": np.where(on_far[..., None], d_pts, g_pts),
+           "bounds": np.full((m, 4), np.nan), "centroid": np.full((m, 2), np.nan),
+           "z": np.full(m, np.nan), "area": np.full(m, np.nan), "off_nadir": np.full(m, np.nan),
+           "unseen": np.zeros((m, 4), dtype=bool), "beside_cut": np.zeros((m, 4), dtype=bool)}
+    if ok.any():
+        nr = near[ok]
+        edge_hits = [np.where(nr[:, k, None, None], g_pts[ok][:, e], d_pts[ok][:, e]) for k, e in enumerate(edges)]
+        corners = g_pts[ok][:, [e[0] for e in edges], :2]
+        sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box,
+                              cam=cam, skim=SKIM, canopy=surface.canopy_height(ground_window))
+        centroid = sb["centre"]
+        z = out["outline"][ok][..., 2].mean(axis=1)
+        d = np.column_stack([centroid - cam[:2], z - cam[2]])
+        off = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
+        cut = cut_edges[ok] if cut_edges is not None else np.zeros_like(sb["hidden"])
+        unseen_edges = sb["hidden"] | cut
+        # a box cut by a border bounds only the plant's part inside the photo: the edges beside the cut
+        # are the plant's only if its outermost point there lies inside the photo
+        beside = (np.roll(cut, 1, axis=1) | np.roll(cut, -1, axis=1)) & ~unseen_edges
+        out["beside_cut"][ok] = (sb["faces"] & beside[:, :, None]).any(axis=1)
+        out["bounds"][ok], out["centroid"][ok], out["area"][ok] = sb["bounds"], centroid, sb["area"]
+        out["z"][ok], out["off_nadir"][ok] = z, off
+        out["unseen"][ok] = (sb["faces"] & unseen_edges[:, :, None]).any(axis=1)
+    return out

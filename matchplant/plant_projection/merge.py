@@ -1,0 +1,184 @@
+"""Views of one plant joined into one record: the photos overlap, so a plant is seen a dozen times.
+
+Views are compared in map space, where relief has already been accounted for; the view closest to nadir
+(least relief displacement) anchors its plant, and the spread of the views' centroids is kept as an
+uncertainty measure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import scipy.sparse as sp
+
+from matchplant.core.boxes import overlapping_pairs
+from matchplant.plant_projection.views import BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews
+
+MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
+MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
+FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
+
+
+def _tile_duplicates(t: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of boxes of one photo found on two overlapping tiles: a box cut by its tile border that lies
+    mostly inside a box of another tile, compared in pixels (where relief plays no part). Returns the
+    index pairs."""
+    if "image_id" not in t or "shot_id" not in t:
+        return np.zeros(0, int), np.zeros(0, int)
+    out_i, out_j = [], []
+    for _, idx in t.groupby(["shot_id", "undistorted"]).indices.items():
+        if len(idx) < 2 or t["image_id"].iloc[idx].nunique() < 2:
+            continue
+        px = t[["u1", "v1", "u2", "v2"]].to_numpy(float)[idx]
+        i, j, iou = overlapping_pairs(px)
+        area = (px[:, 2] - px[:, 0]) * (px[:, 3] - px[:, 1])
+        inside = iou * (area[i] + area[j]) / (1.0 + iou) / np.minimum(area[i], area[j])
+        tile = t["image_id"].to_numpy()[idx]
+        cut = t["cut"].to_numpy()[idx]
+        keep = (tile[i] != tile[j]) & (cut[i] | cut[j]) & (inside >= 0.7)
+        out_i.append(idx[i[keep]])
+        out_j.append(idx[j[keep]])
+    if not out_i:
+        return np.zeros(0, int), np.zeros(0, int)
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float = 0.25) -> pd.DataFrame:
+    """One row per plant from the projected views; adds ``plant_id`` and ``representative`` to views.table.
+
+    Views are visited best first (whole before cut by a border, then closest to nadir). The first view of
+    a plant becomes its representative and claims the views that overlap it (non-maximum suppression in
+    map space); each claimed view then joins the representative it overlaps most. Two views of one category
+    overlap enough when their IoU reaches ``merge_iou``, or when one lies mostly inside the other
+    (:data:`MERGE_CONTAINED`) with at least half that IoU: a tall plant seen obliquely projects too far on
+    its far side (relief displacement), so its oblique views contain its near-nadir view rather than
+    match it; a view cut by the photo or tile border needs only a modest overlap
+    (:data:`MERGE_CUT_INSIDE`) since its cut edge is no plant edge. Near-nadir views are the most accurate, so they anchor the plants.
+
+    ``merge="fuse"`` replaces each plant's box by the robust intersection of its whole views (the
+    :data:`FUSE_QUANTILE` of each side): every view's box contains the plant's footprint, and views from
+    different sides overshoot on different sides.
+    """
+    t = views.table
+    n = len(t)
+    box = t[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
+    rep = np.arange(n)
+    iou_to_rep = np.ones(n)
+    if merge != "none" and n:
+        order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
+        i, j, iou = overlapping_pairs(box)
+        area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+        inter = iou * (area[i] + area[j]) / (1.0 + iou)
+        inside = inter / np.minimum(area[i], area[j])
+        cat = t["category_id"].to_numpy()
+        cut = t["cut"].to_numpy()
+        # a view cut by a border is partial, and its cut edge is no plant edge (with relief, the ray at the
+        # border passes over the plant): a modest overlap is enough, and the best overlap wins below
+        # a view with a side it did not see (its box partly guessed) that lies inside another is that plant
+        partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
+        guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
+        smaller = np.where(area[i] <= area[j], i, j)
+        strong = (cat[i] == cat[j]) & ((iou >= merge_iou) | ((inside >= MERGE_CONTAINED) & (iou >= merge_iou / 2))
+                                       | ((inside >= MERGE_CONTAINED) & guessed[smaller])
+                                       | ((cut[i] | cut[j]) & (inside >= MERGE_CUT_INSIDE)))
+        adj = sp.coo_matrix((iou[strong], (i[strong], j[strong])), shape=(n, n)).tocsr()
+        adj = (adj + adj.T).tocsr()
+        seed = np.zeros(n, dtype=bool)
+        claimed = np.zeros(n, dtype=bool)
+        indptr, indices = adj.indptr, adj.indices
+        for k in order:  # a loop over views, but only representatives do any work
+            if claimed[k]:
+                continue
+            seed[k] = True
+            claimed[indices[indptr[k]:indptr[k + 1]]] = True
+        # every claimed view joins the representative it overlaps most
+        coo = adj.tocoo()
+        m = seed[coo.col] & ~seed[coo.row]
+        r, c, v = coo.row[m], coo.col[m], coo.data[m]
+        best = np.lexsort((-v, r))
+        first = np.r_[True, r[best][1:] != r[best][:-1]] if best.size else np.zeros(0, bool)
+        rep[r[best][first]] = c[best][first]
+        iou_to_rep[r[best][first]] = v[best][first]
+        # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
+        rank = np.empty(n, dtype=np.int64)
+        rank[order] = np.arange(n)
+        ti, tj = _tile_duplicates(t)
+        for a, b in zip(np.r_[ti, tj], np.r_[tj, ti]):
+            if cut[a] and rank[b] < rank[a] and rep[a] != rep[b]:
+                members = (rep == rep[a]) if seed[a] else (np.arange(n) == a)
+                rep[members] = rep[b]
+    # number plants in map order (north to south, then west to east) so ids are stable and readable
+    reps = np.unique(rep)
+    ry = t["cy"].to_numpy()[reps]
+    rx = t["cx"].to_numpy()[reps]
+    ranked = reps[np.lexsort((rx, -np.round(ry, 1)))]
+    pid_of_rep = np.empty(n, dtype=np.int64)
+    pid_of_rep[ranked] = np.arange(1, len(ranked) + 1)
+    t["plant_id"] = pid_of_rep[rep]
+    t["representative"] = rep == np.arange(n)
+    t["iou_to_representative"] = iou_to_rep
+
+    reps_pos = ranked  # position of each plant's representative view, in plant id order
+    reps_t = t.iloc[reps_pos]
+    g = t.groupby("plant_id", sort=True)
+    mean_c = g[["cx", "cy"]].transform("mean")
+    d2 = (t["cx"] - mean_c["cx"]) ** 2 + (t["cy"] - mean_c["cy"]) ** 2
+    plants = pd.DataFrame({"plant_id": np.arange(1, len(reps_pos) + 1)})
+    plants["views"] = g.size().to_numpy()
+    plants["spread_m"] = np.sqrt(d2.groupby(t["plant_id"]).mean()).to_numpy()
+    if merge == "fuse":
+        only_cut = t.groupby("plant_id")["cut"].transform("min").astype(bool)
+        whole = t[~t["cut"] | only_cut]  # cut views are partial: use them only when there is nothing else
+        gw = whole.groupby("plant_id", sort=True)
+        lo = gw[["xmin", "ymin"]].quantile(1 - FUSE_QUANTILE).to_numpy()
+        hi = gw[["xmax", "ymax"]].quantile(FUSE_QUANTILE).to_numpy()
+        med = gw[["xmin", "ymin", "xmax", "ymax"]].median().to_numpy()
+        fused = np.where((hi > lo).all(axis=1)[:, None], np.hstack([lo, hi]), med)
+        for k, c in enumerate(("xmin", "ymin", "xmax", "ymax")):
+            plants[c] = fused[:, k]
+        plants["cx"] = (plants["xmin"] + plants["xmax"]) / 2
+        plants["cy"] = (plants["ymin"] + plants["ymax"]) / 2
+    else:
+        for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy"):
+            plants[c] = reps_t[c].to_numpy()
+        if merge == "nadir" and all(c in t for c in UNSEEN_COLUMNS):
+            _observed_sides(plants, t, reps_t)
+    for c in ("z", "area_m2", "source_image", "score", "category_id", "category", "off_nadir_deg", "cut"):
+        plants[c] = reps_t[c].to_numpy()
+    plants["score_max"] = g["score"].max().to_numpy()
+    if "truth_plant_id" in reps_t:
+        plants["truth_plant_id"] = reps_t["truth_plant_id"].to_numpy()
+    plants["view_index"] = reps_pos
+    return plants
+
+
+def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame) -> None:
+    """A side of the representative view that was not seen directly (behind the plant's top or another
+    plant, cut by a border, or beside a cut) is replaced by the median of that side in the plant's other
+    views that saw it; failing those, in its views cut beside that side that show at least half the
+    representative's area; failing those, by the median of the whole views' guesses of it."""
+    def area(df: pd.DataFrame) -> pd.Series:
+        return (df["xmax"] - df["xmin"]) * (df["ymax"] - df["ymin"])
+
+    rep_area = t["plant_id"].map(pd.Series(area(reps_t).to_numpy(), index=reps_t["plant_id"].to_numpy()))
+    beside_cols = BESIDE_CUT_COLUMNS if all(c in t for c in BESIDE_CUT_COLUMNS) else (None,) * 4
+    changed = np.zeros(len(plants), dtype=bool)
+    for side, h, bc in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols):
+        beside = t[bc] if bc else pd.Series(False, index=t.index)
+        tiers = [t[side].where(~t[h] & ~beside),  # seen whole
+                 t[side].where(~t[h] & beside & (area(t) >= 0.5 * rep_area)),  # most of the plant in view
+                 t[side].where(~t["cut"])]  # the whole views' guesses
+        med = np.full(len(plants), np.nan)
+        for values in tiers:
+            m = values.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
+            med = np.where(np.isfinite(med), med, m)
+        unseen_rep = reps_t[h].to_numpy() | (reps_t[bc].to_numpy() if bc else False)
+        use = unseen_rep & np.isfinite(med)
+        plants.loc[use, side] = med[use]
+        changed |= use
+    ok = changed & (plants["xmax"] > plants["xmin"]) & (plants["ymax"] > plants["ymin"])
+    bad = changed & ~ok
+    for c in ("xmin", "ymin", "xmax", "ymax"):  # sides that cross: keep the representative's box
+        plants.loc[bad, c] = reps_t[c].to_numpy()[bad]
+    plants.loc[ok, "cx"] = (plants["xmin"] + plants["xmax"])[ok] / 2
+    plants.loc[ok, "cy"] = (plants["ymin"] + plants["ymax"])[ok] / 2

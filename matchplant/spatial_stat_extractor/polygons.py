@@ -1,0 +1,115 @@
+"""Module 9's plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each.
+
+A module-8 CSV carries no CRS; it is taken from the ``projection_summary.json`` written beside it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import geopandas as gpd
+import numpy as np
+import pandas as pd
+import shapely
+from pyproj import CRS
+from pyproj.exceptions import CRSError
+
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.io import read_json
+from matchplant.core.log import get_logger
+
+log = get_logger("stats")
+
+ID_CANDIDATES = ("plant_id", "id", "ID", "Id", "fid", "FID", "plant", "label")
+WKT_CANDIDATES = ("geometry", "wkt", "WKT", "geom", "the_geom")
+BOX_COLUMNS = ("xmin", "ymin", "xmax", "ymax")
+
+
+def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", crs: str = ""):
+    """A GeoDataFrame with a ``plant_id`` column from a vector file or a CSV (see the module doc of
+    :mod:`~matchplant.spatial_stat_extractor.extract` for the formats)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("polygon file not found", path=path, fix="check 'polygons' in your config")
+    if path.suffix.lower() in (".csv", ".txt", ".tsv"):
+        gdf = _read_polygon_csv(path, crs)
+    else:
+        try:
+            gdf = gpd.read_file(path, layer=layer or None)
+        except Exception as exc:  # pyogrio raises several kinds; all mean the file can't be used
+            hint = " (is the layer name right?)" if layer else ""
+            raise InputError(f"cannot read the polygons{hint}: {exc}", path=path,
+                             fix="give a GeoPackage, shapefile, GeoJSON or CSV") from exc
+        if crs:
+            if gdf.crs is None:
+                gdf = gdf.set_crs(_parse_crs(crs, "polygons_crs"))
+            elif not gdf.crs.equals(_parse_crs(crs, "polygons_crs")):
+                log.warning("polygons_crs=%s ignored: %s declares %s", crs, path.name, gdf.crs.to_string())
+    if len(gdf) == 0:
+        raise InputError("the polygon file holds no features", path=path, fix="check that it is the right file")
+    geom = gdf.geometry.values
+    kinds = set(shapely.get_type_id(np.asarray(geom)[~shapely.is_missing(np.asarray(geom))]).tolist())
+    if not kinds <= {3, 6}:
+        raise InputError("the file holds points or lines, not polygons", path=path,
+                         fix="give plant polygons or boxes (module 8's plants.gpkg)")
+    gdf = gdf.copy()
+    gdf["plant_id"] = _plant_ids(gdf, id_column, path)
+    if gdf["plant_id"].duplicated().any():
+        dups = gdf["plant_id"][gdf["plant_id"].duplicated()].unique()[:5].tolist()
+        raise InputError(f"plant ids are not unique (e.g. {dups})", path=path,
+                         fix="set id_column to a column with one value per plant, or 'auto' to number them")
+    cols = ["plant_id"] + [c for c in gdf.columns if c not in ("plant_id", gdf.geometry.name)]
+    return gdf[cols + [gdf.geometry.name]]
+
+
+def _plant_ids(gdf, id_column: str, path: Path) -> pd.Series:
+    if id_column and id_column != "auto":
+        if id_column not in gdf.columns:
+            raise InputError(f"id column '{id_column}' not found; columns: {list(gdf.columns)}", path=path,
+                             fix="set id_column to one of them, or to 'auto'")
+        return gdf[id_column]
+    for name in ID_CANDIDATES:
+        if name in gdf.columns:
+            return gdf[name]
+    log.info("%s has no plant id column; plants are numbered 1..%d in file order", path.name, len(gdf))
+    return pd.Series(np.arange(1, len(gdf) + 1), index=gdf.index)
+
+
+def _parse_crs(text: str, key: str):
+    try:
+        return CRS.from_user_input(text)
+    except CRSError as exc:
+        raise ConfigError(f"'{key}' = {text!r} is not a CRS pyproj knows",
+                          fix="write it as EPSG:32615 (your UTM zone)") from exc
+
+
+def _read_polygon_csv(path: Path, crs: str):
+    try:
+        df = pd.read_csv(path, sep=None, engine="python")
+    except Exception as exc:
+        raise InputError(f"cannot read the CSV: {exc}", path=path, fix="check that it is a CSV with a header") from exc
+    wkt = next((c for c in WKT_CANDIDATES if c in df.columns), None)
+    if wkt is not None:
+        try:
+            geom = shapely.from_wkt(df[wkt].astype(str).to_numpy())
+        except shapely.errors.GEOSException as exc:
+            raise InputError(f"column '{wkt}' holds text that is not WKT: {exc}", path=path,
+                             fix="write polygons as WKT, e.g. POLYGON ((x y, ...))") from exc
+        df = df.drop(columns=[wkt])
+    elif all(c in df.columns for c in BOX_COLUMNS):
+        b = df[list(BOX_COLUMNS)].to_numpy(float)
+        if np.any(b[:, 2] < b[:, 0]) or np.any(b[:, 3] < b[:, 1]):
+            raise InputError("some boxes have xmax < xmin or ymax < ymin", path=path,
+                             fix="check the column order xmin,ymin,xmax,ymax")
+        geom = shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3])
+    else:
+        raise InputError(f"the CSV has neither a WKT geometry column nor {','.join(BOX_COLUMNS)}; "
+                         f"columns: {list(df.columns)}", path=path,
+                         fix="add a 'geometry' column (WKT) or box columns xmin,ymin,xmax,ymax")
+    if not crs:
+        summary = path.parent / "projection_summary.json"  # module 8 writes its CRS there
+        if summary.is_file():
+            crs = read_json(summary).get("crs") or ""
+            if crs:
+                log.info("polygon CRS %s taken from %s", crs, summary.name)
+    return gpd.GeoDataFrame(df, geometry=geom, crs=_parse_crs(crs, "polygons_crs") if crs else None)

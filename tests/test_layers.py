@@ -1,0 +1,149 @@
+"""The package's layers, enforced on its source (docs/DESIGN.md §1).
+
+core  <-  detection, simfield  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
+
+Read with ``ast`` from the files themselves, imports inside functions included, so nothing here depends on
+what happens to be imported at test time. Independent of the camera code.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from matchplant.steps import STEPS
+
+PACKAGE = Path(__file__).resolve().parents[1] / "matchplant"
+STEP_PACKAGES = {name for name, (folder, _) in STEPS.items() if folder}
+MAX_LINES = 600
+
+# what each layer may import (besides itself)
+ALLOWED = {
+    "core": set(),
+    "detection": {"core"},
+    "simfield": {"core"},
+    **{step: {"core", "detection"} for step in STEP_PACKAGES},
+    "steps": {"core", "detection", "simfield", "pipeline", *STEP_PACKAGES},
+    "pipeline": {"core", "steps"},
+    "cli": {"core", "steps", ""},  # "" is the package's own __init__ (the version)
+}
+
+
+def module_name(path: Path, root: Path = PACKAGE) -> str:
+    parts = ["matchplant", *path.relative_to(root).with_suffix("").parts]
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def is_module(name: str, root: Path) -> bool:
+    where = root.joinpath(*name.split(".")[1:])
+    return where.with_suffix(".py").is_file() or (where / "__init__.py").is_file()
+
+
+def internal_imports(path: Path, root: Path = PACKAGE) -> list[tuple[str, int, bool]]:
+    """``(imported matchplant module, line, inside a function)`` for every import in the file."""
+    module = module_name(path, root)
+    package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    in_function: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            in_function.update(id(n) for n in ast.walk(node) if n is not node)
+    found = []
+    for node in ast.walk(tree):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                names = [".".join(base + ([node.module] if node.module else []))]
+            else:
+                names = [node.module or ""]
+            # "from matchplant.x import y" may name a submodule y
+            names = [f"{n}.{a.name}" if is_module(f"{n}.{a.name}", root) else n for n in names for a in node.names]
+        for name in dict.fromkeys(names):
+            if name == "matchplant" or name.startswith("matchplant."):
+                found.append((name, node.lineno, id(node) in in_function))
+    return found
+
+
+SOURCES = sorted(PACKAGE.rglob("*.py"))
+GRAPH = {module_name(p): {name for name, _, _ in internal_imports(p)} for p in SOURCES}
+
+
+def test_layers_are_respected():
+    bad = []
+    for path in SOURCES:
+        own = layer(module_name(path))
+        if own not in ALLOWED:  # demo: the application on top may use every layer
+            continue
+        for name, line, _ in internal_imports(path):
+            other = layer(name)
+            if other != own and other not in ALLOWED[own]:
+                bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'matchplant'})")
+    assert not bad, "imports across layers:\n" + "\n".join(bad)
+
+
+def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Every cycle that a depth-first walk meets (empty for an acyclic graph)."""
+    graph = {m: {t for t in targets if t in graph and t != m} for m, targets in graph.items()}
+    state: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for t in sorted(graph[m]):
+            if state.get(t) == 1:
+                cycles.append(stack[stack.index(t):] + [t])
+            elif t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+    return cycles
+
+
+def test_no_import_cycles():
+    cycles = find_cycles(GRAPH)
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_internal_imports_are_at_the_top():
+    inner = [f"{p.relative_to(PACKAGE.parent)}:{line} imports {name} inside a function"
+             for p in SOURCES for name, line, in_function in internal_imports(p) if in_function]
+    assert not inner, "\n".join(inner)
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_source_files_are_small(path):
+    n = len(path.read_text(encoding="utf-8").splitlines())
+    assert n <= MAX_LINES, f"{path.name} has {n} lines; split it along its concerns (at most {MAX_LINES})"
+
+
+def test_the_checker_sees_cycles_and_inner_imports(tmp_path):
+    """The reader and the cycle finder catch what they must, on a small package made for the purpose."""
+    root = tmp_path / "matchplant"
+    (root / "core").mkdir(parents=True)
+    (root / "__init__.py").write_text("")
+    (root / "core" / "__init__.py").write_text("")
+    (root / "core" / "a.py").write_text("from .b import x\n")
+    (root / "core" / "b.py").write_text("def f():\n    from matchplant.core import a\n    import matchplant.steps\n")
+    a = internal_imports(root / "core" / "a.py", root)
+    b = internal_imports(root / "core" / "b.py", root)
+    assert a == [("matchplant.core.b", 1, False)]
+    assert sorted(b) == [("matchplant.core.a", 2, True), ("matchplant.steps", 3, True)]
+    graph = {"matchplant.core.a": {"matchplant.core.b"}, "matchplant.core.b": {"matchplant.core.a", "matchplant.steps"}}
+    assert find_cycles(graph) == [["matchplant.core.a", "matchplant.core.b", "matchplant.core.a"]]
+    assert find_cycles({"x": {"y"}, "y": set()}) == []
