@@ -216,6 +216,7 @@ def test_detect_target_none_on_flat():
     assert detect_target(np.full((100, 100), 120, np.float32), 50, 50, 30) is None
 
 
+@pytest.mark.independent
 def test_real_gcp_lists_parse():
     header, crs, marks = read_gcp_list(DATA / "copr" / "gcp_list.txt")
     assert header.startswith("+proj=utm") and crs.utm_zone == "11N"

@@ -29,6 +29,7 @@ def berlin(data_dir):
     return read_reconstruction(data_dir / BERLIN / "reconstruction_example.json")
 
 
+@pytest.mark.independent
 def test_berlin_points_reproject_onto_tracks(berlin, data_dir):
     """3D points projected into their images agree with the tracked features: median error < 1 px."""
     points = dict(zip(berlin.point_ids, berlin.points))
@@ -49,6 +50,7 @@ def test_berlin_points_reproject_onto_tracks(berlin, data_dir):
     assert np.percentile(errors, 90) < 5.0
 
 
+@pytest.mark.independent
 def test_berlin_camera_centre_is_minus_rt_t_and_lands_on_exif_gps(berlin, data_dir):
     """C = -R^T t mapped through the topocentric frame lands on each image's EXIF GPS (GPS DOP 5 m);
     OpenSfM's own topocentric gps_position maps back onto the EXIF values exactly."""
@@ -103,6 +105,7 @@ def test_pixel_bearing_pixel_roundtrip(cam):
     np.testing.assert_allclose(cam.project(b * 7.3), uv, atol=1e-6)
 
 
+@pytest.mark.independent
 def test_brown_formula_matches_hand_computation():
     cam = CAMERAS[1]
     X = np.array([[0.3, -0.2, 1.0]])
@@ -151,6 +154,7 @@ def test_parse_crs_forms():
     assert parse_crs("+proj=utm +zone=14 +datum=WGS84 +units=m +no_defs").to_epsg() in (32614, None)
 
 
+@pytest.mark.independent
 def test_topocentric_frame_matches_independent_enu_math():
     """ENU -> ECEF done by hand (rotation matrix) -> geodetic with pyproj agrees with the frame."""
     frame = TopocentricFrame(LAT, LON, 350.0, CRS14)

@@ -117,6 +117,7 @@ def brute_force_ground(shot, uv, frame, dsm_path):
     return np.array(out)
 
 
+@pytest.mark.independent
 def test_footprint_corners_are_ray_dsm_intersections(finder, small_project):
     fp = finder.footprints[5]
     w, h = fp.shot.camera.width, fp.shot.camera.height
@@ -266,6 +267,7 @@ def test_solver_on_hand_made_arrays_greedy_trap():
     assert sorted(select_greedy(grid, 1.0).indices) == [0, 1]  # restarts from other images find the optimum
 
 
+@pytest.mark.independent
 def test_solver_on_random_arrays_matches_brute_force():
     """Small random incidence matrices and weights, with and without an overlap cap, against every subset:
     both solvers return valid selections (coverage reached; cap kept unless they say they relaxed it, which the

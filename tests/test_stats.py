@@ -158,6 +158,7 @@ def raster_file(tmp_path_factory, synthetic):
 # the engine
 
 
+@pytest.mark.independent
 @pytest.mark.parametrize("mode", ["center", "coverage"])
 def test_equals_brute_force(synthetic, mode):
     data, transform, geoms = synthetic
@@ -170,6 +171,7 @@ def test_equals_brute_force(synthetic, mode):
     assert res.stats["nodata"].sum() > 0
 
 
+@pytest.mark.independent
 def test_equals_rasterstats(synthetic, raster_file):
     rasterstats = pytest.importorskip("rasterstats")
     data, transform, geoms = synthetic
@@ -187,6 +189,7 @@ def test_equals_rasterstats(synthetic, raster_file):
         np.testing.assert_allclose(res.stats[ours], b, rtol=2e-6, atol=1e-9, equal_nan=True, err_msg=ours)
 
 
+@pytest.mark.independent
 def test_equals_exactextract(synthetic, raster_file):
     exactextract = pytest.importorskip("exactextract")
     import geopandas as gpd

@@ -257,7 +257,8 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
     if typ is Path:
         if isinstance(value, (str, Path)) and str(value) != "":
             p = Path(value).expanduser()
-            return p if p.is_absolute() else (base / p)
+            # normalised: a config written beside its inputs refers to them with '..'
+            return p if p.is_absolute() else Path(os.path.normpath(base / p))
         raise bad("a path")
     if origin in (list, tuple, typing.Sequence) or typ in (list, tuple):
         args = get_args(typ)
