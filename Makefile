@@ -25,6 +25,7 @@ demo: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS)
 
 bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet -r requirements-bench.txt
 	$(BIN)/python -m bench $(BENCH_ARGS)
 
 clean:

@@ -1,1 +1,1 @@
-"""Benchmarks: long runs kept out of the test suite. `python -m bench [--quick] [NAME ...]`."""
+"""Benchmarks: long runs kept out of the test suite. `python -m bench [--quick] [--only NAME] [--device cuda]`."""

@@ -5,6 +5,9 @@
 
 Prints images per second for the whole run (read EXIF, estimate the clock offset, match, write the
 copies, report) and the time of the clock-offset estimate alone.
+
+``python -m bench --only gps-embed`` times it against ``exiftool -geotag`` on the same 300 images
+(:func:`comparison`; exiftool from the system: ``apt-get install libimage-exiftool-perl``).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import calendar
 import datetime as dt
 import io
 import os
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -57,6 +62,68 @@ def make_flight(root: Path, n: int, width: int) -> tuple[Path, Path]:
         for i in range(n):
             fh.write(f"{cam[i] + 3600.4 + 18:.3f}\t{e[i]:.4f}\t{nn[i]:.4f}\t{380.0:.3f}\n")
     return images, log
+
+
+def write_gpx(path: Path, log: Path, offset_s: float) -> Path:
+    """The events as a GPX track in WGS84, times moved onto the camera clock (exiftool cannot estimate
+    the offset; it gets it for free here), for ``exiftool -geotag``."""
+    from pyproj import Transformer
+
+    rows = np.loadtxt(log, skiprows=1)
+    lon, lat = Transformer.from_crs("EPSG:32614", "EPSG:4326", always_xy=True).transform(rows[:, 1], rows[:, 2])
+    pts = []
+    for t, x, y, z in zip(rows[:, 0] - offset_s, lon, lat, rows[:, 3]):
+        stamp = dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+        pts.append(f'<trkpt lat="{y:.9f}" lon="{x:.9f}"><ele>{z:.3f}</ele><time>{stamp}</time></trkpt>')
+    path.write_text('<?xml version="1.0"?>\n<gpx version="1.1" creator="bench"><trk><trkseg>\n'
+                    + "\n".join(pts) + "\n</trkseg></trk></gpx>\n")
+    return path
+
+
+def comparison(name: str, work: Path, quick: bool, device: str):
+    """For ``python -m bench``: module 0 on 300 JPEGs of 2000 x 1500 (quick: 60) against
+    ``exiftool -geotag`` writing copies of the same images into another folder."""
+    from bench.harness import Comparison
+    from matchplant.core.exif import exif_gps, load_exif
+    from matchplant.gps_embeder.embed import GpsEmbedConfig, embed_gps
+
+    n = 60 if quick else 300
+    images, log = make_flight(work, n, 2000)
+    gpx = write_gpx(work / "track.gpx", log, 3600.4 + 18)
+    ours_out, peer_out = work / "ours", work / "exiftool"
+    cfg = GpsEmbedConfig(images=images, gnss_log=log, output_dir=ours_out, log_crs="EPSG:32614")
+
+    def reset(side: str):
+        shutil.rmtree(ours_out if side == "ours" else peer_out, ignore_errors=True)
+
+    def ours():
+        rows = embed_gps(cfg)
+        if not all(r["status"] == "matched" for r in rows):
+            raise RuntimeError("benchmark flight must match completely")
+
+    exiftool = shutil.which("exiftool")
+    version = subprocess.run([exiftool, "-ver"], capture_output=True, text=True).stdout.strip() if exiftool else None
+
+    def peer():
+        peer_out.mkdir()
+        subprocess.run([exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00",
+                        "-o", f"{peer_out}/", str(images)], check=True)
+
+    def check() -> dict:
+        """Both wrote every image with a position; largest distance between them (m, rough)."""
+        worst = 0.0
+        for p in sorted(images.iterdir()):
+            a = exif_gps(load_exif(ours_out / "images" / p.name))
+            b = exif_gps(load_exif(peer_out / p.name))
+            worst = max(worst, abs(a[0] - b[0]) * 111e3, abs(a[1] - b[1]) * 80e3)
+        return {"images_written_by_both": n, "largest_position_difference_m": worst}
+
+    size = sum(p.stat().st_size for p in images.iterdir()) / n / 1e6
+    return Comparison(name, f"{n} JPEGs of 2000 x 1500 ({size:.2f} MB each): GPS into EXIF copies",
+                      "matchplant gps_embed", "exiftool -geotag", ours, peer if exiftool else None,
+                      reset=reset, check=check if exiftool else None, items=n, unit="images",
+                      skip=None if exiftool else "exiftool is not installed (apt-get install libimage-exiftool-perl)",
+                      notes={"exiftool": version})
 
 
 def main(argv=None) -> int:

@@ -28,6 +28,8 @@ from matchplant.core.odm import ODMProject  # noqa: E402
 from matchplant.plant_projection.evaluation import evaluate_boxes  # noqa: E402
 from matchplant.plant_projection.merge import merge_views  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
+from matchplant.core.surface import Surface  # noqa: E402
+from matchplant.plant_projection.geometry import box_outline  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 
@@ -41,6 +43,30 @@ def field(preset: str, given: str | None) -> FieldPaths:
         print(f"generating the {preset} synthetic field in {root} (once) ...", flush=True)
         generate_field(preset=preset, seed=0, out=root)
     return FieldPaths(root)
+
+
+def bare_kernel(project: ODMProject, ds: dict, edge_points: int) -> tuple[float, int]:
+    """CPU seconds of the bare ray/DSM intersection (Surface.intersect, no clearance) of every box outline ray,
+    and the number of boxes: the kernel's own speed, beside the whole path's."""
+    surface = Surface.open(project.path("dsm"))
+    by_image: dict = {}
+    for a in ds["annotations"]:
+        by_image.setdefault(a["image_id"], []).append(a["bbox"])
+    cpu, n = 0.0, 0
+    for im in ds["images"]:
+        if im["id"] not in by_image:
+            continue
+        sid = im["file_name"][:-4]
+        shot, frame = project.nominal_shot(sid), project.frame_of(sid)
+        b = np.array(by_image[im["id"]], dtype=float)
+        uv = box_outline(np.column_stack([b[:, :2], b[:, :2] + b[:, 2:]]), edge_points).reshape(-1, 2)
+        dirs = shot.ray_directions(uv)
+        origin = frame.to_map(shot.center[None, :])
+        c0 = time.process_time()
+        surface.intersect(origin, dirs)
+        cpu += time.process_time() - c0
+        n += len(b)
+    return cpu, n
 
 
 def main() -> None:
@@ -79,6 +105,16 @@ def main() -> None:
     print(f"total:                        {t2 - t0:.2f} s = {n / (t2 - t0):,.0f} boxes/s")
     print(f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s "
           f"(best of {args.repeat} runs; the wall-clock figures include waiting for a shared core)")
+    if not project.is_split and project.frame().is_affine:
+        k_cpu, k_n = bare_kernel(project, ds, args.edge_points)
+        print(f"bare ray kernel (Surface.intersect, CPU): {k_cpu:.2f} s = {k_n / k_cpu:,.0f} boxes/s "
+              f"(whole path: {n / cpu:,.0f} boxes/s)")
+    try:
+        import resource  # POSIX only
+
+        print(f"peak memory (max RSS): {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:,.0f} MB")
+    except ImportError:
+        pass
     print(f"plants: {len(plants)} (truth {len(truth)}), median views {np.median(plants['views']):.0f}; "
           f"matched {m['share_matched']:.1%}, IoU>0.5 {m['share_iou_above_0.5']:.1%}, "
           f"median IoU {m['iou_median']:.3f}")

@@ -6,7 +6,8 @@
 Both write lossless PNG tiles and keep every tile (negatives included) with the same box threshold
 (0.3 of a box's area). SAHI (``pip install sahi``) is a benchmark-only dependency; without it only
 MatchPlant is timed. Prints tiles per second for MatchPlant with one process (as SAHI), with all
-cores, and SAHI, and the ratios.
+cores, and SAHI, and the ratios. ``python -m bench --only tiling`` is the alternating, pinned
+comparison (one process each; :func:`comparison`).
 """
 
 from __future__ import annotations
@@ -70,6 +71,40 @@ def time_sahi(images: Path, ann: Path, out: Path, tile: int, overlap: int) -> tu
                          slice_height=tile, slice_width=tile, overlap_height_ratio=overlap / tile,
                          overlap_width_ratio=overlap / tile, min_area_ratio=0.3, out_ext=".png", verbose=False)
     return time.perf_counter() - t0, len(coco["images"])
+
+
+def comparison(name: str, work: Path, quick: bool, device: str):
+    """For ``python -m bench``: module 5 with one process against SAHI's ``slice_coco`` on the same
+    photos and settings (50 JPEGs of 4000 x 3000, tile 1024, overlap 100; quick: 6 of 2000 x 1500)."""
+    from bench.harness import Comparison
+
+    n, w, h = (6, 2000, 1500) if quick else (50, 4000, 3000)
+    tile, overlap = 1024, 100
+    ann = make_photos(work / "images", n, w, h)
+    counts: dict[str, int] = {}
+
+    def reset(side: str):
+        shutil.rmtree(work / side, ignore_errors=True)
+
+    def ours():
+        counts["ours"] = time_matchplant(work / "images", ann, work / "ours", tile, overlap, workers=1)[1]
+
+    def peer():
+        counts["peer"] = time_sahi(work / "images", ann, work / "peer", tile, overlap)[1]
+
+    def check() -> dict:
+        size = {s: sum(p.stat().st_size for p in (work / s).rglob("*.png")) for s in ("ours", "peer")}
+        return {"tiles_ours": counts["ours"], "tiles_sahi": counts["peer"],
+                "png_bytes_ours_over_sahi": size["ours"] / max(size["peer"], 1)}
+
+    try:
+        import sahi  # noqa: F401 - only to know whether the peer can run
+        skip = None
+    except ImportError:
+        skip = "SAHI is not installed (pip install sahi)"
+    return Comparison(name, f"{n} JPEG photos of {w} x {h}, tile {tile}, overlap {overlap}, PNG tiles",
+                      "matchplant tiling (1 process)", "sahi slice_coco", ours, None if skip else peer,
+                      reset=reset, check=None if skip else check, items=0, unit="tiles", skip=skip)
 
 
 def main(argv=None) -> int:

@@ -17,6 +17,8 @@ from typing import Sequence
 from matchplant import __version__
 from matchplant.core.config import load_config, save_config
 from matchplant.core.errors import ConfigError, MatchPlantError
+from matchplant.core.gui import require_display
+from matchplant.core.guard import check_outputs
 from matchplant.core.log import setup_console, start_run_log, stop_run_log
 from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
@@ -104,10 +106,13 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
         return 0
     gui = getattr(args, "gui", False)
     if gui:
+        # no window possible: exit 2 with the headless command, instead of a GUI that silently does nothing
+        require_display(f"matchplant {spec.name} --config FILE --set KEY=VALUE")
         cfg = load_config(spec.config, config_path, overrides, check_paths=False, strict=False)
         spec.gui(cfg, config_path)
         return 0
     cfg = load_config(spec.config, config_path, overrides)
+    check_outputs(cfg)  # outputs apart from the inputs and writable, before logs/ is made in the output folder
     out = getattr(cfg, spec.output_key, None) if spec.output_key else None
     log_path = start_run_log(out, spec.name, cfg) if out is not None else None
     try:

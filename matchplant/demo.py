@@ -1,11 +1,16 @@
 """``make demo``: MatchPlant end to end on a generated field, without a screen, with a report.
 
-1. generates the ``small`` synthetic field (an ODM-shaped project with exact ground truth);
+1. generates the ``small`` synthetic field (an ODM-shaped project with exact ground truth, each plant
+   with its own vigour (NDVI), a plot layout with missing plants, and a second date with grown plants);
 2. writes ``pipeline.yaml`` chaining modules 0 to 9 and runs it with ``matchplant run`` (ODM's outputs
    come from the generator; the ground-truth boxes stand in for hand annotation; a CPU-sized detector
    trains for a few minutes);
 3. writes ``report.md`` with the coverage map, training curves, AP, the projected plants over the
-   orthophoto, and per-plant height and NDVI against the truth.
+   orthophoto, per-plant height and NDVI against the truth (over the box and over the plant's canopy
+   outlined on the CHM), the outlines against the true canopies, the plots' stand counts and gaps
+   against the truth, and the plants re-centred on the second date; ``report/summary.json`` holds the
+   figures (``traits.height_r``, ``traits.ndvi_r``, ``traits.outline_iou_median``,
+   ``plots.stand_count_exact_share``, ...).
 
 Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps.
 """
@@ -13,7 +18,6 @@ Run ``python -m matchplant.demo --help`` for the options. Re-running skips the f
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -21,8 +25,8 @@ from pathlib import Path
 
 import geopandas as gpd
 import numpy as np
+import pandas as pd
 import yaml
-from scipy.spatial import cKDTree
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import MatchPlantError
@@ -31,6 +35,9 @@ from matchplant.core.io import atomic_path, write_text
 from matchplant.core.log import get_logger, setup_console
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.simfield import generate_field
+from matchplant.simfield.layout import FieldPaths
+from matchplant.simfield.scoring import (growth_scores, match_to_truth, outline_ious, pearson, plot_scores, positions,
+                                         trait_scores)
 from matchplant.spatial_stat_extractor.config import StatsConfig
 from matchplant.spatial_stat_extractor.run import run as run_stats
 
@@ -75,76 +82,78 @@ def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, til
               mode="both", evaluate={"reference": "${field}/truth/map_boxes.csv"}),
         _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg",
               rasters={"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-                       "multispectral": "${field}/multispectral/multispectral.tif"}),
+                       "multispectral": "${field}/multispectral/multispectral.tif",
+                       "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"},
+              plots=_plots_section(field)),
     ]
     return {"output_dir": ".", "field": str(field), "crs": crs, "steps": steps}
 
 
-def _pearson(a: np.ndarray, b: np.ndarray) -> float:
-    if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
-        return float("nan")
-    return float(np.corrcoef(a, b)[0, 1])
+def _plots_section(field: Path) -> dict:
+    """Module 9's plot grid: the field's corners, columns, ranges and spacing (as a breeder measures them),
+    and the field book; read from the generator's plot layout."""
+    grid = json.loads((field / "truth" / "plots.json").read_text()) if (field / "truth" / "plots.json").is_file() else {}
+    if not grid:
+        return {}
+    return {"corners": grid["corners"], "columns": grid["columns"], "ranges": grid["ranges"],
+            "rows_per_plot": grid["rows_per_plot"], "plant_spacing": grid["plant_spacing"],
+            "field_book": "${field}/truth/field_book.csv", "figure_trait": "ndvi_canopy_mean"}
 
 
 def compare_with_truth(out: Path, field: Path) -> dict:
-    """Per-plant height and NDVI of the projected plants against the truth, matched by position."""
-    plants = gpd.read_file(out / "8_plants" / "plants.gpkg")
-    stats = {}
-    with open(out / "9_stats" / "stats.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-            stats[str(row[next(iter(row))])] = row
-    truth = {}
-    with open(field / "truth" / "plants.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-            truth[int(row["id"])] = row
-    tid = np.array(list(truth))
-    txy = np.array([[float(truth[i]["x"]), float(truth[i]["y"])] for i in tid])
-    tree = cKDTree(txy)
-    id_col = next(c for c in ("plant_id", "id") if c in plants.columns)
-    cent = np.column_stack([plants.geometry.centroid.x, plants.geometry.centroid.y])
-    dist, idx = tree.query(cent, distance_upper_bound=0.15)
-    # truth NDVI: the same statistics over the true plant boxes (the generator's plant reflectance)
-    truth_cfg = load_config(StatsConfig, None, [
-        f"polygons={field / 'truth' / 'map_boxes.csv'}", f"output_dir={out / 'report' / 'truth_stats'}",
-        f"polygons_crs={json.loads((field / 'truth' / 'field.json').read_text())['crs']}",
-        f"rasters.multispectral={field / 'multispectral' / 'multispectral.tif'}", "write_polygons=false"])
-    run_stats(truth_cfg)
-    truth_ndvi = {}
-    with open(out / "report" / "truth_stats" / "stats.csv", newline="") as fh:
-        for row in csv.DictReader(fh):
-            key = next(iter(row))
-            truth_ndvi[int(float(row[key]))] = float(row["ndvi_mean"])
-    rows = []
-    for k, pid in enumerate(plants[id_col]):
-        if not np.isfinite(dist[k]):
-            continue
-        t = int(tid[idx[k]])
-        s = stats.get(str(pid))
-        if s is None or not s.get("chm_max"):
-            continue
-        rows.append((float(truth[t]["height"]), float(s["chm_max"]), truth_ndvi.get(t, np.nan), float(s["ndvi_mean"])))
-    arr = np.array(rows, dtype=float).reshape(-1, 4)
-    ok = np.isfinite(arr).all(axis=1)
-    arr = arr[ok]
-    result = {"plants_projected": int(len(plants)), "plants_true": int(len(truth)),
-              "matched_to_truth": int(len(arr)),
-              "height_r": _pearson(arr[:, 0], arr[:, 1]), "height_mae_m": float(np.mean(np.abs(arr[:, 1] - arr[:, 0]))),
-              "height_bias_m": float(np.mean(arr[:, 1] - arr[:, 0])),
-              "ndvi_r": _pearson(arr[:, 2], arr[:, 3]), "ndvi_mae": float(np.mean(np.abs(arr[:, 3] - arr[:, 2])))}
-    _scatter(out / "report" / "traits_vs_truth.png", arr)
+    """Per-plant traits of the projected plants against the truth (matched by position), their outlines
+    against the true canopies, the plots against the true stand counts and gaps, and the growth check
+    (the plants re-centred on the second date)."""
+    paths = FieldPaths(field)
+    table = pd.read_csv(out / "9_stats" / "stats.csv")
+    traits = trait_scores(table, paths)
+    outlines = gpd.read_file(out / "9_stats" / "outlines.gpkg").set_index("plant_id").reindex(table["plant_id"])
+    iou = outline_ious(outlines.geometry.values, table, paths)
+    traits.update(outline_iou_median=float(np.nanmedian(iou)), outline_iou_p10=float(np.nanpercentile(iou, 10)),
+                  plants_projected=int(len(table)))
+    result = {"traits": traits}
+    if (out / "9_stats" / "plots.csv").is_file():
+        grid = json.loads(paths.plots_json.read_text())
+        result["plots"] = plot_scores(pd.read_csv(out / "9_stats" / "plots.csv"),
+                                      pd.read_csv(out / "9_stats" / "plot_gaps.csv"), paths, grid["plant_spacing"])
+    if paths.later.dsm.is_file():
+        result["growth"] = growth_check(out, paths)
+    _scatter(out / "report" / "traits_vs_truth.png", table, paths)
     return result
 
 
-def _scatter(path: Path, arr: np.ndarray) -> None:
-    fig = figure(headless=True, figsize=(10, 4.5))
-    axes = fig.subplots(1, 2)
-    for ax, (i, j), name in ((axes[0], (0, 1), "height (m): CHM max"), (axes[1], (2, 3), "NDVI mean")):
-        ax.scatter(arr[:, i], arr[:, j], s=8, alpha=0.6)
-        lo, hi = np.nanmin(arr[:, [i, j]]), np.nanmax(arr[:, [i, j]])
-        ax.plot([lo, hi], [lo, hi], "k--", lw=1)
-        ax.set_xlabel(f"truth {name}")
-        ax.set_ylabel(f"MatchPlant {name}")
-        ax.set_title(f"r = {_pearson(arr[:, i], arr[:, j]):.3f}, n = {len(arr)}")
+def growth_check(out: Path, paths: FieldPaths) -> dict:
+    """Module 9 with the second date: the first date's boxes reused, each plant re-centred."""
+    cfg = load_config(StatsConfig, None, [
+        f"polygons={out / '8_plants' / 'plants.gpkg'}", f"output_dir={out / 'report' / 'growth'}",
+        "rasters.date=d1", f"rasters.dsm={paths.dsm}", f"rasters.dtm={paths.dtm}", "write_polygons=false",
+        f"more_dates=[{{date: d2, dsm: {paths.later.dsm}, dtm: {paths.later.dtm}}}]"])
+    run_stats(cfg)
+    table = pd.read_csv(out / "report" / "growth" / "stats.csv")
+    d1 = table.rename(columns=lambda c: c[:-3] if c.endswith("_d1") else c)
+    return growth_scores(d1, paths, ("top_x_d2", "top_y_d2"))
+
+
+def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
+    """The paper's Figure 10, box statistics and canopy statistics side by side."""
+    truth = pd.read_csv(paths.traits_csv)
+    m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
+    ok = m >= 0
+    t, s = truth.iloc[m[ok]], table[ok]
+    panels = [("height", "chm_max", "height (m): CHM max over the box"),
+              ("height", "chm_canopy_p95", "height (m): CHM P95 over the canopy"),
+              ("ndvi", "ndvi_mean", "NDVI: mean over the box"),
+              ("ndvi", "ndvi_canopy_mean", "NDVI: mean over the canopy")]
+    fig = figure(headless=True, figsize=(10, 9))
+    for ax, (tcol, col, name) in zip(fig.subplots(2, 2).ravel(), panels):
+        x, y = t[tcol].to_numpy(float), s[col].to_numpy(float) if col in s else np.full(len(t), np.nan)
+        ax.scatter(x, y, s=6, alpha=0.5)
+        lo, hi = np.nanmin(np.r_[x, y]), np.nanmax(np.r_[x, y])
+        ax.plot([lo, hi], [lo, hi], "k--", lw=1, label="1:1")
+        ax.set_xlabel(f"true {tcol}")
+        ax.set_ylabel(name)
+        ax.set_title(f"{name}\nr = {pearson(x, y):.3f}, n = {int(np.isfinite(y).sum())}", fontsize=9)
+        ax.legend(loc="upper left", fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -154,6 +163,7 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
     def load(p: Path) -> dict:
         return json.loads(p.read_text()) if p.is_file() else {}
 
+    tr, pl, gr = compare.get("traits", {}), compare.get("plots", {}), compare.get("growth", {})
     metrics = load(out / "7_detect" / "metrics.json")
     evaluation = load(out / "8_plants" / "evaluation.json")
     summary = load(out / "6_train" / "training_summary.json")
@@ -199,17 +209,31 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
               f"median IoU {num(evaluation, 'iou_median')}.", "",
               fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
               "## Per-plant traits against the truth (module 9)", "",
-              f"Plants projected: {compare.get('plants_projected')}, true plants: {compare.get('plants_true')}, "
-              f"matched by position: {compare.get('matched_to_truth')}.", "",
-              "| trait | Pearson r | mean absolute error | bias |", "|---|---|---|---|",
-              f"| height (CHM max vs true height) | {compare.get('height_r', float('nan')):.3f} | "
-              f"{compare.get('height_mae_m', float('nan')):.3f} m | {compare.get('height_bias_m', float('nan')):+.3f} m |",
-              f"| NDVI (mean over predicted vs true plant box) | {compare.get('ndvi_r', float('nan')):.3f} | "
-              f"{compare.get('ndvi_mae', float('nan')):.3f} | |", "",
-              fig("report/traits_vs_truth.png", "per-plant height and NDVI against the truth"), ""]
+              f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
+              f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
+              f"median IoU {num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
+              "over the box (as the paper does) and over the canopy pixels.", "",
+              "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
+              "|---|---|---|---|",
+              f"| height (CHM max) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} | "
+              f"{num(tr, 'height_mae_m')} m |",
+              f"| NDVI (mean) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |", "",
+              fig("report/traits_vs_truth.png", "per-plant height and NDVI against the truth (the paper's Figure 10): "
+                                                "left, over the box (the paper's way); right, over the canopy "
+                                                "outlined on the CHM"),
+              "## Plots (module 9)", "",
+              f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
+              f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
+              f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.", "",
+              fig("9_stats/plots.png", "plots coloured by their mean canopy NDVI; black dots: plants, red crosses: "
+                                       "gaps"),
+              "## Growth (module 9, second date)", "",
+              f"Boxes of the first date reused on the second: median centre error "
+              f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
+              f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.", ""]
     path = out / "report" / "report.md"
     write_text(path, "\n".join(lines))
-    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, "traits": compare,
+    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare,
                                                               "detector": metrics, "projection": evaluation},
                                                              indent=1, default=str))
     return path
@@ -223,9 +247,9 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float 
     t0 = time.time()
     meta = field / "truth" / "field.json"
     if not (meta.is_file() and json.loads(meta.read_text()).get("preset") == preset
-            and json.loads(meta.read_text()).get("seed") == seed):
+            and json.loads(meta.read_text()).get("seed") == seed and FieldPaths(field).later.plants_csv.is_file()):
         log.info("generating the '%s' synthetic field (seed %d) ...", preset, seed)
-        generate_field(preset=preset, seed=seed, out=field)
+        generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True)
     t_field = time.time() - t0
     crs = json.loads(meta.read_text())["crs"]
     pipe = out / "pipeline.yaml"

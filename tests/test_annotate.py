@@ -33,14 +33,15 @@ def _write_png(path: Path, w: int, h: int, seed: int = 0) -> None:
 
 @pytest.fixture
 def photos(tmp_path) -> Path:
-    """Two images plus files that must be ignored: a text file, a hidden image, a broken 'image'."""
+    """Two images plus files that must be ignored: a text file, a hidden image, junk of Windows and macOS."""
     d = tmp_path / "photos"
     d.mkdir()
     _write_png(d / "a.png", 200, 150, 1)
     _write_png(d / "b.png", 160, 120, 2)
     _write_png(d / ".hidden.png", 50, 50, 3)
     (d / "notes.txt").write_text("not an image")
-    (d / "broken.jpg").write_bytes(b"this is no jpeg")
+    (d / "Thumbs.db").write_bytes(b"\x00junk")
+    (d / "._a.png").write_bytes(b"\x00\x05\x16\x07 resource fork")
     (d / "sub").mkdir()
     return d
 
@@ -70,6 +71,10 @@ def test_non_images_ignored(photos, tmp_path):
     assert store.images == ["a.png", "b.png"]
     with pytest.raises(InputError, match="no images"):
         AnnotationStore(photos / "sub", tmp_path / "out2")
+    # a file named like an image that is not a whole one is named, not skipped or shown half grey
+    (photos / "broken.jpg").write_bytes(b"this is no jpeg")
+    with pytest.raises(InputError, match="broken.jpg"):
+        AnnotationStore(photos, tmp_path / "out3")
 
 
 # -- the GUI, headless -----------------------------------------------------------------------------------------
@@ -151,6 +156,57 @@ def test_gui_shows_owned_area(photos, tmp_path):
     g = AnnotatorGUI(AnnotationStore(photos, tmp_path / "out"), read_owned_areas(owned), headless=True)
     polys = [p for p in g.ax.patches if type(p).__name__ == "Polygon"]
     assert len(polys) == 1 and np.allclose(polys[0].get_xy()[:4], [[10, 10], [190, 10], [190, 140], [10, 140]])
+
+
+@pytest.mark.gui
+def test_category_keys_choose_the_next_box_and_relabel_only_a_clicked_box(photos, tmp_path):
+    """Issue 17: a category key pressed right after drawing a box sets the NEXT box's category and leaves the
+    box just drawn alone (also after fixing its corner); a box the user clicked, or pressed to drag, is relabelled."""
+    import gui_events as ge
+
+    store = AnnotationStore(photos, tmp_path / "out", ["plant", "weed", "soil"])
+    g = _gui(store)
+    fig, ax = g.fig, g.ax
+
+    def cats():
+        return [b["category_id"] for b in store.boxes("a.png")]
+
+    ge.drag(fig, ax, 20, 30, 60, 80, steps=1)              # box 1, drawn as plant
+    assert g.selected == 1                                 # it keeps its handles, to fix it at once
+    ge.key(fig, "2")
+    assert cats() == [1] and g.category == 2 and "next box: 2=weed" in g.status.get_text()
+    ge.drag(fig, ax, 60, 80, 70, 90, steps=1)              # its corner dragged: resized, still not relabelled
+    assert _xyxy(store, "a.png") == [[20, 30, 70, 90]]
+    ge.key(fig, "3")
+    assert cats() == [1]
+    ge.drag(fig, ax, 100, 20, 140, 60, steps=1)            # box 2 takes the category chosen: soil
+    ge.key(fig, "2")
+    ge.drag(fig, ax, 150, 100, 180, 140, steps=1)          # box 3: weed; box 2 was not relabelled
+    assert cats() == [1, 3, 2]
+    assert store.undo() == "a.png" and cats() == [1, 3]    # the last edit was drawing box 3: no relabel in between
+    assert store.redo() == "a.png" and cats() == [1, 3, 2]
+    ge.click(fig, ax, 40, 50)                              # click box 1: picked, the keys relabel it
+    ge.key(fig, "3")
+    assert cats() == [3, 3, 2] and "keys relabel it" in g.status.get_text()
+    ge.key(fig, "1")
+    assert cats() == [1, 3, 2]
+    ge.drag(fig, ax, 120, 40, 125, 45, steps=1)            # press box 2 (not selected) and drag it: picked too
+    assert _xyxy(store, "a.png")[1] == [105, 25, 145, 65]
+    ge.key(fig, "2")
+    assert cats() == [1, 2, 2]
+    ge.key(fig, "escape")                                  # nothing selected: the key only sets the next box
+    ge.key(fig, "3")
+    assert cats() == [1, 2, 2] and g.category == 3
+    ge.key(fig, "n")                                       # another image: nothing picked there
+    ge.drag(fig, ax, 10, 10, 30, 40, steps=1)
+    ge.key(fig, "1")
+    assert [b["category_id"] for b in store.boxes("b.png")] == [3]
+    ge.key(fig, "q")                                       # headless: exported (no window to close)
+    ds = json.loads((tmp_path / "out" / "annotations.json").read_text())
+    names = {c["id"]: c["name"] for c in ds["categories"]}
+    files = {im["id"]: im["file_name"] for im in ds["images"]}
+    got = sorted((files[a["image_id"]], names[a["category_id"]]) for a in ds["annotations"])
+    assert got == [("a.png", "plant"), ("a.png", "weed"), ("a.png", "weed"), ("b.png", "soil")]
 
 
 # -- never lose work ---------------------------------------------------------------------------------------------
@@ -375,3 +431,80 @@ def test_gui_in_a_real_window(photos, tmp_path):
     boxes = json.loads(r.stdout.split("BOXES", 1)[1])
     assert boxes == {"a.png": [[20, 30, 60, 80]], "b.png": [[5, 5, 25, 45]]}
     assert (tmp_path / "out" / "annotations.json").is_file()     # exported when the window closed
+
+
+# -- real size ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.gui
+def test_gui_on_a_20_megapixel_photo_with_3000_boxes(tmp_path):
+    """A 5472 x 3648 photo with 3,000 boxes: the whole photo is shown from a reduced pyramid level and
+    one box collection, a drag redraws only the dragged outline (no full redraw per mouse move), and
+    every edit lands exactly. Timings are measured by bench/bench_annotate_gui.py."""
+    import cv2
+    import gui_events as ge
+    from matplotlib.backend_bases import MouseEvent
+
+    from matchplant.bbox_drawer.gui import AnnotatorGUI
+    from matchplant.bbox_drawer.store import ImportedBox
+
+    W, H = 5472, 3648
+    rng = np.random.default_rng(0)
+    d = tmp_path / "photos"
+    d.mkdir()
+    small = rng.integers(0, 255, (H // 16, W // 16, 3), dtype=np.uint8)
+    cv2.imwrite(str(d / "big.jpg"), cv2.resize(small, (W, H), interpolation=cv2.INTER_NEAREST))
+    xy = np.stack([rng.uniform(0, W - 60, 4000), rng.uniform(0, H - 60, 4000)], 1).round()
+    xy = xy[~((xy[:, 0] > 900) & (xy[:, 0] < 1600) & (xy[:, 1] > 900) & (xy[:, 1] < 1500))][:3000]  # free ground
+    boxes = [[x, y, x + 30 + i % 30, y + 20 + i % 40] for i, (x, y) in enumerate(xy.tolist())]
+    store = AnnotationStore(d, tmp_path / "out")
+    assert store.import_boxes({"big.jpg": [ImportedBox(b, "plant") for b in boxes]}, "synthetic") == 3000
+    g = AnnotatorGUI(store, headless=True, dpi=100)
+    fig, ax = g.fig, g.ax
+    fig.canvas.draw()
+    assert g.image_artist.shown_level >= 2                       # the whole photo: never at full resolution
+    assert len(ax.collections) == 1 and sum(len(p.vertices) for p in ax.collections[0].get_paths()) == 5 * 3000
+    full_draws = []
+    real_draw = fig.canvas.draw
+    fig.canvas.draw = lambda *a, **k: (full_draws.append(1), real_draw(*a, **k))[1]
+    # drag on empty ground: one full draw at the press, none while moving, one at the release
+    free = (1000.0, 1000.0)
+    ge.mouse(fig, ax, "button_press_event", *free)
+    n_press = len(full_draws)
+    for i in range(1, 11):  # motion events delivered without gui_events' redraw before each
+        px, py = ax.transData.transform((free[0] + 40 * i, free[1] + 30 * i))
+        fig.canvas.callbacks.process("motion_notify_event", MouseEvent("motion_notify_event", fig.canvas, px, py))
+    assert len(full_draws) == n_press                            # moves are blitted
+    ge.mouse(fig, ax, "button_release_event", free[0] + 400, free[1] + 300)
+    new = store.boxes("big.jpg")[-1]
+    screen_px = 1 / g.px_per_unit()   # events come in whole screen pixels: ~5.7 photo pixels here
+    assert np.allclose(new["xyxy"], [free[0], free[1], free[0] + 400, free[1] + 300], atol=screen_px + 0.5)
+    assert g.selected == new["id"]
+    # move the new box, zoom in to the photo's pixels, pan with the right button
+    ge.drag(fig, ax, free[0] + 200, free[1] + 150, free[0] + 260, free[1] + 190, steps=2)
+    moved = store.box("big.jpg", new["id"])["xyxy"]
+    assert np.allclose(np.subtract(moved, new["xyxy"]), [60, 40, 60, 40], atol=2 * screen_px + 1)
+    for _ in range(8):
+        ge.mouse(fig, ax, "scroll_event", free[0] + 100, free[1] + 100, step=1)
+    fig.canvas.draw()
+    assert g.image_artist.shown_level == 0
+    before = ax.get_xlim()
+    ge.drag(fig, ax, free[0] + 100, free[1] + 100, free[0] + 80, free[1] + 100, steps=2, button=3)
+    assert ax.get_xlim()[0] > before[0] + 5   # the photo follows the mouse (leftwards: the view moves right)
+    assert len(store.boxes("big.jpg")) == 3001
+
+
+def test_annotated_region_is_recorded_for_module_5(photos, tmp_path):
+    owned = tmp_path / "owned.json"
+    owned.write_text(json.dumps({"a.png": [[10, 10], [190, 10], [190, 140], [10, 140]]}))
+    base = [f"images={photos}", "export_yolo=false", f"owned_areas={owned}"]
+    for mode, expected in (("auto", [[10, 10], [190, 10], [190, 140], [10, 140]]), ("image", None)):
+        cfg = load_config(AnnotateConfig, None, [*base, f"output_dir={tmp_path / mode}", f"annotated_region={mode}",
+                                                 "include_unseen=true"])
+        AnnotationStore(photos, tmp_path / mode).add("b.png", [5, 5, 40, 40])  # an export needs a box
+        ds = json.loads(run(cfg)["coco"].read_text())
+        regions = {im["file_name"]: im.get("annotated_region") for im in ds["images"]}
+        assert regions == {"a.png": expected, "b.png": None}   # b.png has no owned area: annotated whole
+    with pytest.raises(ConfigError, match="owned areas"):
+        load_config(AnnotateConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'x'}",
+                                           "annotated_region=owned"])

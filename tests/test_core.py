@@ -341,3 +341,168 @@ def test_quiet_keeps_info_off_the_console(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "important" in err and "chatter" not in err
     assert "chatter" in next((tmp_path / "o" / "logs").glob("*.log")).read_text()  # the log file has it all
+
+
+# -- progress in logs, device honesty, GUIs without a display (issue 17) ---------------------------
+
+class _Records:
+    """The messages one matchplant logger emits (a handler of its own: independent of propagation)."""
+
+    def __init__(self, name: str, level: int):
+        import logging
+
+        self.logger, self.level, self.records = logging.getLogger(name), level, []
+        self.handler = logging.Handler(level)
+        self.handler.emit = self.records.append
+
+    def __enter__(self):
+        self.old = self.logger.level
+        self.logger.setLevel(self.level)
+        self.logger.addHandler(self.handler)
+        return self
+
+    def __exit__(self, *exc):
+        self.logger.removeHandler(self.handler)
+        self.logger.setLevel(self.old)
+
+    def messages(self, level: int = 0) -> list[str]:
+        return [r.getMessage() for r in self.records if r.levelno >= level]
+
+
+def _progress_records(caplog, monkeypatch, interval: str, body):
+    import logging
+
+    from matchplant.core import progress as progress_module
+
+    monkeypatch.delenv("MATCHPLANT_QUIET", raising=False)
+    monkeypatch.delenv("MATCHPLANT_PROGRESS", raising=False)
+    monkeypatch.setenv("MATCHPLANT_PROGRESS_INTERVAL", interval)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
+    with _Records("matchplant.progress", logging.INFO) as rec:
+        body(progress_module.progress)
+    return rec.messages()
+
+
+def test_progress_logs_lines_when_not_on_a_terminal(caplog, monkeypatch):
+    clock = {"t": 1000.0}
+    monkeypatch.setattr("tqdm.std.time", lambda: clock["t"])  # tqdm's clock: one simulated second per image
+
+    def body(progress):
+        for _ in progress(range(40), desc="detecting", unit="image"):
+            clock["t"] += 1.0  # one image per second: a line at about every 10 images
+
+    lines = _progress_records(caplog, monkeypatch, "10", body)
+    assert 3 <= len(lines) <= 5, lines
+    assert lines[0].startswith("detecting: 1") and "/40 image" in lines[0]
+    # rate 1.00 image/s and the ETA from it: after n images, 40 - n seconds left
+    n = int(lines[1].split(":")[1].split("/")[0])
+    assert "1.00 image/s" in lines[1] and f"ETA 0:{40 - n:02d}" in lines[1], lines[1]
+    assert lines[-1].startswith("detecting: 40/40 image 100%")
+
+
+def test_progress_is_silent_for_short_loops_and_when_quiet(caplog, monkeypatch):
+    def body(progress):
+        assert list(progress([1, 2, 3], desc="quick")) == [1, 2, 3]
+        bar = progress(None, desc="tiles", total=5)
+        bar.update(5)
+        bar.close()
+
+    assert _progress_records(caplog, monkeypatch, "10", body) == []
+    monkeypatch.setenv("MATCHPLANT_QUIET", "1")
+    assert list(__import__("matchplant.core.progress", fromlist=["x"]).progress([1, 2])) == [1, 2]
+
+
+def test_progress_line_format():
+    from matchplant.core.progress import progress_line
+
+    assert progress_line("tiles", 30, 120, 60.0, "tile") == "tiles: 30/120 tile 25% (1:00 elapsed, 2.0 s/tile, ETA 3:00)"
+    assert progress_line("x", 5, None, 2.0) == "x: 5 it (0:02 elapsed, 2.50 it/s)"
+
+
+def test_device_is_chosen_out_loud():
+    import logging
+
+    import torch
+
+    from matchplant.detection.device import cuda_unusable_reason, explain_device, select_device
+
+    dev, why = explain_device("auto")
+    if torch.cuda.is_available():
+        assert dev.type == "cuda" and "CUDA GPU found" in why
+    else:
+        assert dev.type in ("cpu", "mps") and cuda_unusable_reason(torch) in why
+    assert explain_device("cpu") == (torch.device("cpu"), "asked for (device: cpu)")
+    with _Records("matchplant.device", logging.INFO) as rec:
+        select_device("cpu")
+    assert rec.messages() == ["device: cpu (asked for (device: cpu))"]
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA cannot be used"):
+            explain_device("cuda")
+
+
+def test_cuda_reasons_name_the_cause():
+    from types import SimpleNamespace
+
+    from matchplant.detection.device import cuda_unusable_reason
+
+    cpu_build = SimpleNamespace(version=SimpleNamespace(cuda=None))
+    assert "CPU-only" in cuda_unusable_reason(cpu_build)
+
+    def old_driver():
+        import warnings
+
+        warnings.warn("CUDA initialization: The NVIDIA driver on your system is too old (found version 11040)")
+        return False
+
+    cuda_build = SimpleNamespace(version=SimpleNamespace(cuda="13.0"), cuda=SimpleNamespace(is_available=old_driver))
+    assert "driver on your system is too old" in cuda_unusable_reason(cuda_build)
+
+
+def test_slow_cpu_work_is_announced():
+    import logging
+
+    import torch
+
+    from matchplant.detection.device import CPU_SECONDS_PER_MEGAPIXEL, warn_if_slow
+
+    with _Records("matchplant.device", logging.INFO) as rec:
+        arch = "fasterrcnn_resnet50_fpn"
+        est = warn_if_slow(torch.device("cpu"), arch, 1000, 5472, 3648)
+        assert est == pytest.approx(CPU_SECONDS_PER_MEGAPIXEL[arch] * 1000 * 5472 * 3648 / 1e6)
+        assert warn_if_slow(torch.device("cpu"), arch, 2, 400, 300) < 600
+        assert warn_if_slow(torch.device("cuda"), arch, 1000, 5472, 3648) is None
+    warned = rec.messages(logging.WARNING)
+    assert len(warned) == 1 and f"{est / 3600:.1f} h" in warned[0] and "1000 image(s) of 5472 x 3648" in warned[0]
+
+
+def test_gui_without_display_exits_2_with_the_headless_command(monkeypatch, capsys):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if not sys.platform.startswith("linux"):
+        pytest.skip("a display is always there on macOS and Windows")
+    assert run_module("min_img_finder", ["--gui"]) == 2
+    err = capsys.readouterr().err
+    assert "needs a window" in err and "matchplant min_img_finder" in err and "without --gui" in err
+
+
+def test_default_outputs_are_git_ignored():
+    """Every step's default output_dir (config class and folder config) is under the git-ignored runs/."""
+    from matchplant.steps import STEPS, resolve_step
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    for name, (folder, _) in STEPS.items():
+        spec = resolve_step(name)
+        default = getattr(spec.config(), spec.output_key, None) if spec.output_key else None
+        paths = [default] if default is not None else []
+        if folder:
+            for yml in (root / folder).glob("*config.yaml"):
+                cfg = load_config(spec.config, yml, check_paths=False, strict=False)
+                value = getattr(cfg, spec.output_key, None)
+                if value is not None:
+                    paths.append(value)
+        for p in paths:
+            p = Path(p) if Path(p).is_absolute() else root / p
+            r = subprocess.run(["git", "check-ignore", "-q", "--no-index", str(p / "x")], cwd=root)
+            assert r.returncode == 0, f"{name}: default output {p} is not git-ignored"

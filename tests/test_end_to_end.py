@@ -118,6 +118,15 @@ def test_outputs_agree_with_the_truth(season):
     assert len(chm) >= 0.9 * len(heights)
     true = np.array(sorted(heights.values()))
     assert abs(np.median(chm) - np.median(true)) < 0.05
+    # module 9's canopy: every plant outlined on the CHM; over the canopy, NDVI is the leaves' own 0.8
+    # (the generator's leaf reflectance), with no soil mixed in as in a box mean
+    assert (run / "stats" / "outlines.gpkg").is_file()
+    with open(run / "stats" / "stats.csv", newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r.get("outline_flag") == ""]
+    assert len(rows) >= 0.9 * len(heights)
+    canopy = np.array([float(r["ndvi_canopy_mean"]) for r in rows])
+    box = np.array([float(r["ndvi_mean"]) for r in rows])
+    assert np.median(canopy) > 0.79 and np.median(box) < 0.7
 
 
 def _exif_latlon(path) -> tuple[float, float]:

@@ -244,9 +244,9 @@ def test_survey_errors(flight, tmp_path):
     root, _ = flight
     bad = tmp_path / "s.csv"
     bad.write_text("id,x,y\nG1,700000,4500000\n")
-    with pytest.raises(InputError, match="lacks the column.*z"):
+    with pytest.raises(InputError, match="no column .z."):
         find_candidates(GcpFinderConfig(images=root / "images", survey=bad, survey_crs=UTM, output_dir=tmp_path))
-    with pytest.raises(InputError, match="coordinate reference system"):
+    with pytest.raises(ConfigError, match="survey_crs.*coordinate reference system"):
         find_candidates(cfg_for(root, tmp_path, survey_crs="EPSG:123456789"))
     far = tmp_path / "far.csv"
     far.write_text("id,x,y,z\nA,690000,4510000,350\nB,690010,4510000,350\n")
@@ -457,3 +457,47 @@ def test_field_gui_clicks(tiny_field, tmp_path):
     assert got.keys() == clicks.keys() and clicks
     for k in clicks:
         assert np.allclose(got[k], clicks[k], atol=2e-3)
+
+
+def test_survey_values_checked_with_their_line(flight, tmp_path):
+    root, _ = flight
+    rows = (root / "survey.csv").read_text().splitlines()
+
+    def survey(lines, **kw):
+        p = tmp_path / "s.csv"
+        p.write_text("\n".join(lines) + "\n")
+        return find_candidates(cfg_for(root, tmp_path, survey=p, **kw))
+
+    with pytest.raises(InputError, match="on lines 3 and 4"):
+        survey([rows[0], rows[1], rows[2], rows[2].replace(rows[2].split(",")[1], "1")])
+    with pytest.raises(InputError, match="line 2: column 'x' is 'n/a'"):
+        survey([rows[0], "G9,n/a,4500000,300", *rows[1:]])
+    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(
+        *map(float, rows[1].split(",")[1:3]))
+    with pytest.raises(InputError, match="look like degrees"):  # lon/lat in a survey said to be UTM
+        survey([rows[0], f"G1,{lon},{lat},300", f"G2,{lon + 1e-5},{lat},300"])
+    with pytest.raises(InputError, match="swapped"):  # lat in x, lon in y
+        survey([rows[0], f"G1,{lat},{lon},300", f"G2,{lat},{lon + 1e-5},300"], survey_crs="EPSG:4326")
+    with pytest.raises(ConfigError, match="output_crs.*not a projected"):
+        survey(rows, output_crs="EPSG:4326")
+
+
+def test_continued_list_drops_foreign_images_and_outside_marks(flight, tmp_path):
+    root, truth = flight
+    finder = find_candidates(cfg_for(root, tmp_path))
+    (gid, image), (u, v) = next(iter(truth.items()))
+    g = finder.gcps[gid]
+    earlier = tmp_path / "earlier.txt"
+    earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n"
+                       f"{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n"
+                       f"{g.x} {g.y} {g.z} 10 99999 {image} {gid}\n")
+    store = MarkStore(finder, tmp_path / "gcp_list.txt", autosave=False)
+    assert store.load(earlier) == 1 and list(store.marks) == [(gid, image)]
+    earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} nan {v} {image} {gid}\n")
+    with pytest.raises(InputError, match="line 2"):
+        store.load(earlier)
+    # run() writes the continued list back without them, even without 'auto'
+    earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n"
+                       f"{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n")
+    run(cfg_for(root, tmp_path / "out", gcp_list=earlier))
+    assert [(m.gcp, m.image) for m in read_gcp_list(tmp_path / "out" / "gcp_list.txt")[2]] == [(gid, image)]

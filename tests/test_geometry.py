@@ -276,3 +276,30 @@ def test_minus_9999_is_nodata_when_reading(tmp_path):
     win = Surface.open(path, bounds=(0.5, 0.5, 1.0, 1.0))
     assert win.data.shape[0] < 20 and win.data.shape[1] < 20
 
+
+
+def test_march_does_not_step_over_a_thin_first_crossing():
+    """A one-cell spike (a leaf tip on a 1 cm DSM) that a ray grazes between two half-cell samples: the first
+    crossing is found, as a brute-force march 1,000 times finer finds it, whatever the samples' phase."""
+    res = 0.01
+    data = np.zeros((41, 201), dtype=np.float32)
+    data[20, 100] = 1.0  # the spike: a bilinear tent 2 cells wide
+    surface = Surface(data=data, transform=Affine(res, 0, 0, 0, -res, 0.41))
+    d = np.array([1.0, 0.0, -0.5])
+    d /= np.linalg.norm(d)
+    x_tip = 100.5 * res
+    rng = np.random.default_rng(0)
+    # rays passing 1 to 15 cm below the tip, at random phases: the part of the ray under the tent is 0.02 to
+    # 0.3 cells long, so half-cell samples straddle it
+    below = rng.uniform(0.01, 0.15, 200)
+    x0 = rng.uniform(0.2, 0.6, 200)
+    z0 = 1.0 - below + (x_tip - x0) * 0.5
+    o = np.column_stack([x0, np.full(200, 0.205), z0])
+    pts, s, status = surface.intersect(o, np.repeat(d[None], 200, axis=0))
+    fine = np.linspace(0, 3.0, 300_001)
+    for k in range(200):
+        p = o[k] + fine[:, None] * d
+        f = p[:, 2] - surface.sample(p[:, 0], p[:, 1])
+        first = np.flatnonzero(f <= 0)[0]
+        assert status[k] == HIT
+        assert s[k] == pytest.approx(fine[first], abs=2e-5)

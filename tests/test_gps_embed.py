@@ -19,6 +19,7 @@ from pyproj import Transformer
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.io import BatchedWrites
 from matchplant.core.exif import (exif_gps, exif_time, jpeg_scan_data, jpeg_segments, load_exif, splice_exif,
                                   write_gps_copy)
 from matchplant.gps_embeder.embed import GpsEmbedConfig, embed_gps
@@ -113,6 +114,28 @@ def test_shifted_clock_positions_lossless(tmp_path):
     assert name == "IMG_0000.JPG" and abs(float(lat) - truth[0, 0]) < 1e-8
     with open(tmp_path / "out" / "match_report.csv") as fh:
         assert len(list(csv.DictReader(fh))) == 12
+
+
+def test_batched_writes_rename_only_synced_whole_files(tmp_path):
+    """Copies appear under their names only after their batch is synced; an error drops the pending ones."""
+    out = tmp_path / "copies"
+    payload = [bytes([i]) * (1000 + i) for i in range(7)]
+    with pytest.raises(RuntimeError):
+        with BatchedWrites(out, batch=3) as w:
+            for i, data in enumerate(payload):
+                w.write(f"f{i}.jpg", data)
+                if i == 1:  # before the first batch is full: nothing under a final name yet
+                    assert not list(out.glob("f*.jpg")) and len(list(out.glob(".f*.partial"))) == 2
+                if i == 4:
+                    raise RuntimeError("crash in the middle of the second batch")
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["f0.jpg", "f1.jpg", "f2.jpg"]  # the synced batch, whole; no temporaries left
+    assert all((out / f"f{i}.jpg").read_bytes() == payload[i] for i in range(3))
+    with BatchedWrites(out, batch=3) as w:
+        for i, data in enumerate(payload):
+            w.write(f"f{i}.jpg", data)
+    assert w.syncs == 3 and sorted(p.name for p in out.iterdir()) == [f"f{i}.jpg" for i in range(7)]
+    assert all((out / f"f{i}.jpg").read_bytes() == payload[i] for i in range(7))
 
 
 def test_missing_timestamp_gap_and_other_crs(tmp_path):
@@ -263,3 +286,74 @@ def test_unwritable_vendor_tag_is_dropped(tmp_path):
     write_gps_copy(tmp_path / "a.jpg", tmp_path / "b.jpg", exif, 40.1, -96.2, 300.0)
     out = load_exif(tmp_path / "b.jpg")
     assert exif_gps(out) == pytest.approx((40.1, -96.2, 300.0)) and exif_time(out) == T0 + 0.25
+
+
+def test_log_values_are_checked_with_their_line(tmp_path):
+    """Values that read as numbers but cannot be a camera event are refused with the log's line."""
+    p = tmp_path / "events.txt"
+    head = "# receiver export\nTimestamp\tX\tY\tZ\n"
+    good = [f"{1717601400 + 2 * k}.0\t{500000 + k}\t4600000\t300" for k in range(5)]
+    cases = {"nan position": (3, "\tnan\t", "position"), "ms timestamp": (None, None, "timestamp_unit"),
+             "absurd time": (4, "9e15", "absurd"), "height in mm": (None, "mm", "height")}
+    for name, (line, what, expect) in cases.items():
+        rows = list(good)
+        if name == "nan position":
+            rows[0] = rows[0].replace("\t500000\t", what)
+        elif name == "ms timestamp":
+            rows = [f"{float(r.split()[0]) * 1000:.0f}\t" + "\t".join(r.split()[1:]) for r in rows]
+        elif name == "absurd time":
+            rows[1] = what + rows[1][rows[1].index("\t"):]
+        else:
+            rows = [r[: r.rindex("\t")] + "\t300000" for r in rows]
+        p.write_text(head + "\n".join(rows) + "\n")
+        with pytest.raises(InputError, match=expect) as err:
+            read_gnss_log(p, crs="EPSG:32614")
+        if line is not None:
+            assert f"line {line}" in str(err.value), (name, err.value)
+    # the same log in milliseconds reads exactly like the one in seconds once the unit is set
+    p.write_text(head + "\n".join(good) + "\n")
+    seconds = read_gnss_log(p, crs="EPSG:32614")
+    p.write_text(head + "\n".join(f"{float(r.split()[0]) * 1000:.0f}\t" + "\t".join(r.split()[1:]) for r in good))
+    ms = read_gnss_log(p, crs="EPSG:32614", timestamp_unit="ms")
+    assert np.array_equal(seconds.times, ms.times) and seconds.lines == [3, 4, 5, 6, 7]
+
+
+def test_duplicate_and_swapped_log_lines(tmp_path):
+    p = tmp_path / "events.txt"
+    rows = ["Timestamp\tX\tY\tZ", "1717601400.0\t500000\t4600000\t300", "1717601402.0\t500005\t4600000\t300"]
+    p.write_text("\n".join(rows + [rows[2]]) + "\n")  # the same line twice: used once
+    g = read_gnss_log(p, crs="EPSG:32614")
+    assert len(g.times) == 2 and g.lines == [2, 3]
+    p.write_text("\n".join(rows + ["1717601402.0\t500009\t4600000\t300"]) + "\n")  # same time, other place
+    with pytest.raises(InputError, match="lines 3 and 4"):
+        read_gnss_log(p, crs="EPSG:32614")
+    p.write_text("Timestamp\tY\tX\tZ\n" + "\n".join(rows[1:]) + "\n")  # northing in X
+    with pytest.raises(InputError, match="swapped"):
+        read_gnss_log(p, crs="EPSG:32614")
+
+
+def test_ambiguous_or_weak_offset_is_refused(tmp_path):
+    from matchplant.gps_embeder.matching import check_support
+
+    cam = T0 + np.arange(9) * 2.0
+    one = type("G", (), {"times": np.array([T0 + 100.0]), "path": tmp_path / "e.txt"})()
+    with pytest.raises(InputError, match="ambiguous"):  # one event fits any of the 9 images
+        check_support(1, 100.0, cam, one, 0.5)
+    weak = type("G", (), {"times": T0 + 100 + np.arange(9) * 2000.0, "path": tmp_path / "e.txt"})()
+    with pytest.raises(InputError, match="ms, set 'timestamp_unit'"):  # events 1000x as far apart
+        check_support(1, 100.0, cam, weak, 0.5)
+    fine = type("G", (), {"times": cam + 100.0, "path": tmp_path / "e.txt"})()
+    check_support(9, 100.0, cam, fine, 0.5)
+
+
+def test_failed_run_leaves_no_copies(tmp_path):
+    img_dir, log, _ = make_flight(tmp_path, n=6)
+    data = (img_dir / "IMG_0003.JPG").read_bytes()
+    (img_dir / "IMG_0003.JPG").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="IMG_0003.JPG"):
+        run(img_dir, log, tmp_path / "out")
+    assert not (tmp_path / "out" / "images").exists() or not any((tmp_path / "out" / "images").iterdir())
+    with pytest.raises(InputError, match="no image could be matched"):
+        (img_dir / "IMG_0003.JPG").write_bytes(data)
+        run(img_dir, log, tmp_path / "out2", clock_offset_s=-5000.0)
+    assert sorted(p.name for p in (tmp_path / "out2").rglob("*") if p.is_file()) == ["match_report.csv"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import json
 import subprocess
 import sys
@@ -261,3 +262,239 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     from torchvision.ops import box_iou
     iou = box_iou(torch.as_tensor(gt), torch.as_tensor(boxes)).numpy()
     assert len(boxes) == len(gt) and (iou.max(axis=1) > 0.99).all()
+
+
+def test_torchrun_two_processes_write_the_single_process_predictions(checkpoint, tmp_path):
+    """``torchrun --nproc_per_node 2`` (gloo on the CPU): the images are split across the processes and one
+    predictions file results, equal to a single process's."""
+    for k, (w, h) in enumerate([(300, 200), (150, 260), (200, 200), (260, 150), (180, 220)]):
+        make_photo(tmp_path / "imgs" / f"DJI_{k:04d}.JPG.tif", w, h, n_plants=6, seed=k)
+    common = [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}", "detect.tile_size=128",
+              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu", "evaluate.dataset_json=null",
+              "detect.drawn_images=0"]
+    run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'one'}"]))
+    sets = [a for c in common + [f"output_dir={tmp_path / 'two'}"] for a in ("--set", c)]
+    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(ROOT / "7_model_test" / "model_test.py"), *sets],
+                          capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "by 2 processes" in proc.stderr + proc.stdout
+    one = json.loads((tmp_path / "one" / "predictions.json").read_text())
+    two = json.loads((tmp_path / "two" / "predictions.json").read_text())
+    assert len(one["images"]) == 5 and one["predictions"]
+    assert two["images"] == one["images"] and two["categories"] == one["categories"]
+    assert two["predictions"] == one["predictions"]
+
+
+# -- issue 16: the training geometry, distinct plants, nested duplicates --------------------------------------
+
+
+class _Records:
+    """The log records of the 'matchplant' logger (it does not propagate to pytest's caplog)."""
+
+    def __enter__(self):
+        import logging
+
+        self.records, self.logger = [], logging.getLogger("matchplant")
+        self.handler = logging.Handler(logging.INFO)
+        self.handler.emit = self.records.append
+        self.level = self.logger.level
+        self.logger.addHandler(self.handler)
+        self.logger.setLevel(logging.INFO)
+        return self
+
+    def __exit__(self, *exc):
+        self.logger.removeHandler(self.handler)
+        self.logger.setLevel(self.level)
+
+    def warnings(self) -> list[str]:
+        return [r.getMessage() for r in self.records if r.levelname == "WARNING"]
+
+
+def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
+    """A model trained on 128 px tiles: module 7 tiles at 128 by default (tile_size null), and warns when
+    asked for 1024 px tiles (plants 8x smaller in the detector's input than in training)."""
+    from matchplant.model_train.train import train
+    from matchplant.model_test.scale import check_found_scale
+
+    tiles = make_tiles(tmp_path / "tiles", n_images=4, size=128, plants=(1, 3), radius=(8, 12), negatives=0,
+                       name="train.json")
+    cfg = load_config(TrainConfig, None, [f"train_json={tiles}", f"output_dir={tmp_path / 'run'}", "epochs=1",
+                                          "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+                                          "model.pretrained=none", "model.min_size=64", "model.max_size=64",
+                                          "model.anchor_sizes=auto", "batch_size=4", "num_workers=0",
+                                          "warmup_iters=1", "save_every=0", "model.rpn.post_nms_top_n_test=50"])
+    train(cfg)
+    ck_path = tmp_path / "run" / "checkpoints" / "last.pt"
+    make_photo(tmp_path / "imgs" / "a.png", 300, 200, n_plants=8, radius=(8, 12), seed=1)
+    common = [f"checkpoint={ck_path}", f"detect.images={tmp_path / 'imgs'}", "detect.score_threshold=0.0",
+              "device=cpu", "detect.drawn_images=0"]
+    with _Records() as rec:
+        run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'default'}"]))
+    info = read_predictions(tmp_path / "default" / "predictions.json")["info"]
+    assert info["tile_size"] == 128 and 0 < info["overlap"] <= 64
+    assert not any("training size" in w for w in rec.warnings() if "detect.tile_size" in w)
+    with _Records() as rec:
+        run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'big'}", "detect.tile_size=1024",
+                                                         "detect.overlap=64"]))
+    assert read_predictions(tmp_path / "big" / "predictions.json")["info"]["tile_size"] == 1024
+    assert any("detect.tile_size 1024" in w and "0.12x" in w for w in rec.warnings()), rec.warnings()
+    # after detection: plants found at 3x their training size (photos of another ground resolution)
+    from matchplant.detection.model import read_checkpoint
+    ck = read_checkpoint(ck_path)
+    med = ck["training_geometry"]["objects_input_px"] * 128 / 64  # training plants in tile pixels
+    big = np.array([[0, 0, 3 * med, 3 * med]] * 5)
+    with _Records() as rec:
+        assert check_found_scale(ck, [(big, 300, 200)], 128) == pytest.approx(3.0, rel=0.02)
+    assert any("the plants found" in w and "detect.tile_size about 384" in w for w in rec.warnings())
+
+
+def _tiled_truth(tmp_path: Path):
+    """Two photos with known plants tiled by module 5 (overlap: plants in 2-4 tiles); returns the test
+    split and, for every tile box, the true plant it is a copy of (an oracle from the truth: the tile box is
+    that plant's box clipped to the tile)."""
+    from matchplant.core.coco import read_dataset
+    from matchplant.img_splitter.tiling import TilingConfig, run as run_tiling
+
+    ds = new_dataset(["plant"])
+    truth = {}
+    for k, name in enumerate(("p0.png", "p1.png")):
+        boxes = make_photo(tmp_path / "photos" / name, 400, 300, n_plants=30, radius=(8, 14), seed=10 + k)
+        ds["images"].append({"id": k + 1, "file_name": name, "width": 400, "height": 300})
+        for b in boxes:
+            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, k + 1,
+                                                     [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
+        truth[name] = boxes
+    write_dataset(tmp_path / "ann.json", ds)
+    run_tiling(load_config(TilingConfig, None, [f"images={tmp_path / 'photos'}", f"annotations={tmp_path / 'ann.json'}",
+                                                f"output_dir={tmp_path / 'tiles'}", "tile_size=128", "overlap=48",
+                                                "split=[0.0, 0.0, 1.0]", "negative_share=0", "workers=1"]))
+    test = read_dataset(tmp_path / "tiles" / "test.json")
+    images = {im["id"]: im for im in test["images"]}
+    plant_of = {}
+    for a in test["annotations"]:
+        im = images[a["image_id"]]
+        x0, y0, w, h = im["x0"], im["y0"], im["width"], im["height"]
+        t = truth[im["source_image"]]
+        clipped = np.stack([np.maximum(t[:, 0], x0), np.maximum(t[:, 1], y0), np.minimum(t[:, 2], x0 + w),
+                            np.minimum(t[:, 3], y0 + h)], axis=1)
+        x, y, bw, bh = a["bbox"]
+        err = np.abs(clipped - [x0 + x, y0 + y, x0 + x + bw, y0 + y + bh]).max(axis=1)
+        assert err.min() < 0.02
+        plant_of[a["id"]] = (im["source_image"], int(err.argmin()))
+    return test, plant_of
+
+
+def test_distinct_plants_counted_once_across_overlapping_tiles(tmp_path, checkpoint):
+    from matchplant.detection.tile_objects import distinct_objects, found_objects
+
+    test, plant_of = _tiled_truth(tmp_path)
+    n_true = len(set(plant_of.values()))
+    assert len(test["annotations"]) > n_true + 10  # many plants are in several tiles
+    object_of, n = distinct_objects(test)
+    assert n == n_true
+    # the same partition as the truth's
+    pairs = {(object_of[a], plant_of[a]) for a in plant_of}
+    assert len(pairs) == n_true
+    # plants found: a perfect detector on every second tile finds the plants with a copy there
+    seen = {im["id"] for im in test["images"][::2]}
+    results = [{"image_id": a["image_id"], "category_id": 1, "bbox": a["bbox"], "score": 0.9}
+               for a in test["annotations"] if a["image_id"] in seen]
+    _, ev = coco_evaluate(test, results)
+    assert found_objects(ev, object_of, 0.5) == len({plant_of[a["id"]] for a in test["annotations"]
+                                                     if a["image_id"] in seen})
+    assert found_objects(ev, object_of, 0.95) == 0
+    # module 7's metrics.json: plants are distinct plants, tile boxes are counted apart; fractions only
+    out = tmp_path / "eval"
+    run(load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"evaluate.dataset_json={tmp_path / 'tiles' / 'test.json'}",
+                                            f"output_dir={out}", "device=cpu", "evaluate.drawn_images=0"]))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["plants"] == n_true and metrics["tile_boxes"] == len(test["annotations"])
+    assert "fractions 0..1" in metrics["units"]
+    assert metrics["plants_found"]["plants"] == n_true and 0 <= metrics["plants_found"]["recall"] <= 1
+    fractions = [v for v in metrics["coco"].values() if v is not None]
+    fractions += [metrics["at_threshold"][k] for k in ("precision", "recall", "f1")]
+    assert all(0 <= v <= 1 for v in fractions)
+
+
+def test_nested_duplicates_from_another_tile_are_merged():
+    """A plant whole in tile A, and seen by tile B only as a nested part (IoU 0.36: NMS keeps both): one
+    plant. When tile B also saw the whole plant, its inner box is a second plant and is kept."""
+    img = np.zeros((200, 300, 3), np.uint8)   # tiles at x 0 and 100 (200 px, overlap 100)
+    plant, part, small = [120, 50, 170, 100], [130, 60, 160, 90], [135, 65, 155, 85]
+
+    def predictor(answers):
+        def predict(tiles):
+            return [answers.pop(0) for _ in tiles]
+        return predict
+
+    def tile(*boxes, score=0.9):
+        b = np.asarray(boxes, float).reshape(-1, 4)
+        return b, np.full(len(b), score), np.ones(len(b), int)
+
+    shift = np.array([100, 0, 100, 0])
+    boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
+                               overlap=100)
+    assert boxes.tolist() == [plant]
+    boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
+                               overlap=100, merge_containment=1.0)   # 'part' is wholly inside: still merged
+    assert boxes.tolist() == [plant]
+    answers = [tile(plant), (np.array([np.array(plant) - shift, np.array(small) - shift], float),
+                             np.array([0.8, 0.95]), np.ones(2, int))]
+    boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100)
+    assert sorted(boxes.tolist()) == sorted([plant, small])
+
+
+# -- input checks (issue 15): checkpoints that are not MatchPlant's, runs that find nothing ----------------------
+
+
+def test_checkpoint_errors_say_what_the_file_is(checkpoint, tmp_path):
+    from matchplant.detection.model import load_detector, read_checkpoint
+
+    data = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    cases = {"weights.pth": (lambda p: torch.save(data["model_state"], p), "bare weights"),
+             "whole.pt": (lambda p: torch.save(load_detector(checkpoint)[0], p), "whole pickled model"),
+             "cut.pt": (lambda p: p.write_bytes(Path(checkpoint).read_bytes()[:50_000]), "truncated"),
+             "empty.pt": (lambda p: p.write_bytes(b""), "empty"),
+             "notes.pt": (lambda p: p.write_text("epochs: 30\n"), "text file"),
+             "yolo.pt": (lambda p: torch.save(dict(data, model_config=dict(data["model_config"], architecture="yolo")),
+                                              p), "'yolo' model"),
+             "noclass.pt": (lambda p: torch.save({k: v for k, v in data.items() if k != "class_names"}, p),
+                            "'class_names' is missing")}
+    for name, (write, said) in cases.items():
+        write(tmp_path / name)
+        with pytest.raises(InputError, match=said) as err:
+            read_checkpoint(tmp_path / name)
+        assert err.value.path == tmp_path / name and err.value.fix
+    mixed = dict(data, model_config=dict(data["model_config"], architecture="fasterrcnn_resnet50_fpn"))
+    torch.save(mixed, tmp_path / "mixed.pt")
+    with pytest.raises(InputError, match="weights do not fit its model") as err:
+        load_detector(tmp_path / "mixed.pt")
+    assert err.value.path == tmp_path / "mixed.pt"
+
+
+def test_detection_that_finds_nothing_says_why_and_writes_nothing(checkpoint, tmp_path):
+    make_photo(tmp_path / "imgs" / "DJI_0001.JPG", 150, 100, n_plants=4, seed=3)
+    common = [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}", "detect.tile_size=128",
+              "detect.overlap=32", "device=cpu"]
+    cfg = load_config(ModelTestConfig, None, [*common, f"output_dir={tmp_path / 'out'}", "detect.score_threshold=0.5"])
+    with pytest.raises(InputError, match="no plant found on any of the 1 image") as err:
+        run(cfg)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.json"))
+    # the best score it reports is the best box of a run that keeps every box
+    run(load_config(ModelTestConfig, None, [*common, f"output_dir={tmp_path / 'all'}", "detect.score_threshold=0"]))
+    best = max(p["score"] for p in read_predictions(tmp_path / "all" / "predictions.json")["predictions"])
+    assert f"scores {best:.3f}" in err.value.problem and "detect.score_threshold" in err.value.fix
+
+
+def test_detection_on_an_image_smaller_than_the_tile_warns_and_uses_the_image(checkpoint, tmp_path, caplog):
+    make_photo(tmp_path / "one.png", 90, 70, n_plants=3, seed=4)
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'one.png'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=1024",
+                                              "detect.overlap=256", "detect.score_threshold=0", "device=cpu"])
+    with caplog.at_level("WARNING"):
+        run(cfg)
+    assert any("larger than 1 of the 1 image" in r.message and "90x70" in r.message for r in caplog.records)
+    preds = read_predictions(tmp_path / "out" / "predictions.json")
+    assert [(im["file_name"], im["width"], im["height"]) for im in preds["images"]] == [("one.png", 90, 70)]

@@ -218,6 +218,21 @@ def test_check_outputs_names_the_option_for_each_missing_piece(tiny_field, tmp_p
     assert any(remove.split("/")[-1] in p and option in p for p in report.problems), report.problems
 
 
+@pytest.mark.parametrize("damage, message", [
+    (lambda p: p.write_bytes(p.read_bytes()[:1000]), "truncated"),
+    (lambda p: p.write_text(json.dumps([dict(json.loads(p.read_text())[0], shots={})])), "no images"),
+])
+def test_check_outputs_reads_the_reconstruction(tiny_field, tmp_path, damage, message):
+    copy = tmp_path / "project"
+    copy_outputs(tiny_field.root, copy)
+    damage(copy / "opensfm" / "reconstruction.json")
+    report = check_outputs(copy)
+    assert any(p.startswith("opensfm/reconstruction.json") and message in p for p in report.problems), report.problems
+    with pytest.raises(InputError, match="reconstruction.json"):  # check_only: no manifest of a failed check
+        run(cfg_for(copy, "check_only=true", f"output_dir={tmp_path / 'out'}"))
+    assert not (tmp_path / "out" / "odm_manifest.json").exists()
+
+
 def test_check_outputs_undistorted_image_missing(tiny_field, tmp_path):
     copy = tmp_path / "project"
     copy_outputs(tiny_field.root, copy)

@@ -34,7 +34,8 @@ from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
 from matchplant.plant_projection.geometry import _skimmed, box_outline, outline_boxes
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.run import run
-from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions
+from matchplant.plant_projection.inputs import load_predictions
+from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions, resolve_images
 from odm_builder import Raster, write_odm_project
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -436,10 +437,41 @@ def test_bad_inputs_are_clear_errors(tmp_path, nadir_project):
     (tmp_path / "p.json").write_text("[1, 2")
     cfg = load_config(ProjectionConfig, None, [f"project={root}", f"predictions={tmp_path / 'p.json'}",
                                                  f"output_dir={tmp_path}"])
-    with pytest.raises(MatchPlantError, match="not valid JSON"):
+    with pytest.raises(MatchPlantError, match="truncated|not valid JSON"):
         run(cfg)
     with pytest.raises(MatchPlantError, match="evaluate.reference"):
         load_config(ProjectionConfig, None, ["mode=evaluate", f"output_dir={tmp_path}"])
+
+
+def test_resolve_images_matches_names_that_differ_by_case_or_extension():
+    und = orig = {"IMG_1.JPG", "IMG_2.JPG", "IMG_2.DNG", "A"}
+    names = ["IMG_1.JPG.tif", "IMG_1.tif", "img_1.jpg.tif", "IMG_1.jpg", "A.tif", "IMG_2.tif", "IMG_9.JPG.tif"]
+    got, hints = resolve_images(names, und, orig)
+    assert got["IMG_1.JPG.tif"] == ("IMG_1.JPG", True)                  # ODM's own name
+    assert got["IMG_1.tif"] == got["img_1.jpg.tif"] == ("IMG_1.JPG", True)  # extension or case differ
+    assert got["IMG_1.jpg"] == ("IMG_1.JPG", False)                      # an original photo
+    assert got["A.tif"] == ("A", True)
+    assert got["IMG_2.tif"][0] is None and got["IMG_9.JPG.tif"][0] is None  # ambiguous (JPG, DNG); unknown
+    assert "did you mean" in hints["IMG_9.JPG.tif"]
+    got, _ = resolve_images(["IMG_1.jpg.tif"], und, orig, image_type="original")
+    assert got["IMG_1.jpg.tif"][0] is None  # boxes said to be on originals are not moved to undistorted images
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: {"images": d["images"], "annotations": d["predictions"]}, "COCO dataset"),
+    (lambda d: d["predictions"], "images_from"),
+    (lambda d: dict(d, predictions=[]), "no detections"),
+    (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[1, 2, float("nan"), 3])]), r"predictions\[0\]"),
+    (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[10, 10, -3, 3])]), "negative"),
+    (lambda d: dict(d, predictions=[dict(d["predictions"][0], score=87)]), "percentage"),
+])
+def test_load_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
+    _, _, gt = nadir_project
+    path = tmp_path / "p.json"
+    path.write_text(json.dumps(change(json.loads(json.dumps(gt["undistorted"])))))
+    with pytest.raises(MatchPlantError, match=message) as err:
+        load_predictions(path)
+    assert "p.json" in str(err.value) and "fix:" in str(err.value)
 
 
 def test_folder_config_and_help():
@@ -524,7 +556,7 @@ def test_topocentric_reconstruction_gives_the_same_plants(tiny_field, tmp_path):
         # ...and so do the boxes, bar a rare grazing ray that stops on the other side of the clearance
         cols = ["xmin", "ymin", "xmax", "ymax", "cx", "cy"]
         box_err = np.abs(got.table[cols].to_numpy() - ref.table[cols].to_numpy()).max(axis=1)
-        assert (box_err < 0.01).mean() >= 0.98 and np.median(box_err) < 0.001
+        assert (box_err < 0.01).mean() >= 0.97 and np.median(box_err) < 0.001  # 1 box in 49 may graze
         assert got.crs.equals(ref.crs)
 
 

@@ -314,3 +314,28 @@ def test_rendering_agrees_with_foundation_ray_casting(tiny_field):
     assert total > 3000
     # disagreements only at plant edges (bilinear DSM walls vs the renderer's cells)
     assert agree / total > 0.97, agree / total
+
+
+def test_plot_truth_agrees_with_the_plants(tiny_field):
+    """truth/plots.csv, gaps.csv and field_book.csv against the plants themselves: every plant of a plot's
+    rows inside it, stand count + gaps = expected, and no plant at a gap."""
+    import pandas as pd
+    import shapely
+
+    grid = read_json(tiny_field.plots_json)
+    plots = pd.read_csv(tiny_field.plots_csv)
+    gaps = pd.read_csv(tiny_field.gaps_csv)
+    plants = pd.read_csv(tiny_field.plants_csv)
+    book = pd.read_csv(tiny_field.field_book)
+    assert len(plots) == grid["columns"] * grid["ranges"] == len(book) and list(book["plot_id"]) == list(plots["plot_id"])
+    assert (plots["stand_count"] + plots["gaps"] == plots["expected"]).all()
+    assert (plots["expected"] == grid["rows_per_plot"] * round(grid["plot_length"] / grid["plant_spacing"])).all()
+    outlines = shapely.from_wkt(plots["geometry"].to_numpy())
+    for outline, count in zip(outlines, plots["stand_count"]):
+        assert shapely.contains_xy(outline, plants["x"], plants["y"]).sum() == count
+    assert len(gaps) == plots["gaps"].sum()
+    d = np.hypot(gaps["x"].to_numpy()[:, None] - plants["x"].to_numpy()[None], gaps["y"].to_numpy()[:, None] -
+                 plants["y"].to_numpy()[None])
+    assert d.min() > 0.1  # nothing grows where a seed is missing
+    corners = np.array(grid["corners"])
+    assert shapely.Polygon(corners).area == pytest.approx(sum(o.area for o in outlines))

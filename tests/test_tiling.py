@@ -226,10 +226,19 @@ def test_bad_inputs_are_clear_errors(field, tmp_path):
         _cfg(field, tile_size=64, overlap=64)
     with pytest.raises(ConfigError, match="split"):
         _cfg(field, split="[0.5, 0.5]")
+    with pytest.raises(ConfigError, match="'split' shares must add up to 1"):   # not normalised silently
+        _cfg(field, split="[0.6, 0.3, 0.3]")
+    with pytest.raises(ConfigError, match="tile_size"):                      # larger than every image
+        run(_cfg(field, tile_size=1024, overlap=0))
+    ann = json.loads((field / "annotations.json").read_text())
+    write_dataset(field / "no_boxes.json", dict(ann, annotations=[]))
+    with pytest.raises(InputError, match="no box"):                          # no silent negatives-only tiles
+        run(_cfg(field, annotations=field / "no_boxes.json"))
+    assert not (field / "out").exists()                                      # nothing written by failed runs
     other = tmp_path / "other"
     other.mkdir()
     cv2.imwrite(str(other / "x.png"), np.zeros((10, 10, 3), np.uint8))
-    with pytest.raises(InputError, match="none of the annotated images"):
+    with pytest.raises(InputError, match="none of the 10 annotated images"):
         run(_cfg(field, images=other))
     cv2.imwrite(str(field / "images" / "p1.png"), np.zeros((10, 10, 3), np.uint8))   # resized on disk
     with pytest.raises(InputError, match="p1.png"):
@@ -281,6 +290,85 @@ def test_tiny_field_tiles(tiny_field, tmp_path):
     assert all(t["file_name"].endswith(".tif") for t in tiles)           # TIFF sources stay TIFF
 
 
+
+
+def _owned_area_annotation(f, out: Path, record_region: bool) -> Path:
+    """The true boxes of every plant touching a tilted quadrilateral 'owned area' of each undistorted
+    image (as a person annotating only the owned area would box them), with or without the region."""
+    from shapely.geometry import Polygon
+
+    truth = json.loads(f.boxes_undistorted.read_text())
+    ds = new_dataset(["plant"])
+    for im in truth["images"]:
+        W, H = im["width"], im["height"]
+        poly = [[0.30 * W, 0.15 * H], [0.80 * W, 0.30 * H], [0.70 * W, 0.85 * H], [0.15 * W, 0.70 * H]]
+        entry = {k: im[k] for k in ("id", "file_name", "width", "height")}
+        if record_region:
+            entry["annotated_region"] = poly
+        ds["images"].append(entry)
+        for a in truth["annotations"]:
+            x, y, w, h = a["bbox"]
+            if a["image_id"] == im["id"] and shapely_box(x, y, x + w, y + h).intersects(Polygon(poly)):
+                ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, im["id"], a["bbox"]))
+    return write_dataset(out, ds)
+
+
+def _unlabelled_plants(f, out: Path) -> tuple[int, int]:
+    """(unlabelled, visible) true plants over all written tiles, from the rendered truth masks: a plant is
+    visible in a tile when at least half of its pixels in the photo are in the tile's unmasked part, and
+    labelled when a box of the tile has IoU >= 0.5 with the box of those pixels."""
+    from matchplant.img_splitter.regions import mask_outside
+
+    def best_iou(a, b):
+        lo, hi = np.maximum(a[:2], b[:, :2]), np.minimum(a[2:], b[:, 2:])
+        inter = np.prod(np.clip(hi - lo, 0, None), axis=1)
+        return (inter / (np.prod(a[2:] - a[:2]) + np.prod(b[:, 2:] - b[:, :2], axis=1) - inter)).max()
+
+    unlabelled = visible = 0
+    for split in ("train", "val", "test"):
+        ds = _load(out, split)
+        by_image = {im["id"]: [] for im in ds["images"]}
+        for a in ds["annotations"]:
+            by_image[a["image_id"]].append(a["bbox"])
+        for im in ds["images"]:
+            ids = cv2.imread(str(f.masks_undistorted / (im["source_image"][:-4] + ".png")), cv2.IMREAD_UNCHANGED)
+            counts = np.bincount(ids.ravel())
+            x0, y0, w, h = im["x0"], im["y0"], im["width"], im["height"]
+            tile = ids[y0:y0 + h, x0:x0 + w]
+            if im.get("masked_outside_region"):
+                region = next(i for i in json.loads((out.parent / "ann" / "annotations.json").read_text())["images"]
+                              if i["file_name"] == im["source_image"])["annotated_region"]
+                tile = mask_outside(tile, region, x0, y0)
+            boxes = np.array([[x, y, x + bw, y + bh] for x, y, bw, bh in by_image[im["id"]]]).reshape(-1, 4)
+            for pid in np.unique(tile[tile > 0]):
+                rows, cols = np.nonzero(tile == pid)
+                if len(rows) < 0.5 * counts[pid]:
+                    continue
+                visible += 1
+                mine = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1], float)
+                if not len(boxes) or best_iou(mine, boxes) < 0.5:
+                    unlabelled += 1
+    return unlabelled, visible
+
+
+def test_owned_area_annotation_teaches_no_plant_as_background(tiny_field, tmp_path):
+    """Issue 16: annotating only each image's owned area must not leave unboxed plants in the tiles."""
+    f = tiny_field
+    results = {}
+    for record in (False, True):
+        (tmp_path / "ann").mkdir(exist_ok=True)
+        ann = _owned_area_annotation(f, tmp_path / "ann" / "annotations.json", record)
+        out = tmp_path / f"tiles_{record}"
+        summary = run(load_config(TilingConfig, None, [
+            f"images={f.undistorted_images}", f"annotations={ann}", f"output_dir={out}", "tile_size=128",
+            "overlap=32", "negative_share=1", "workers=1", "min_box_side=2", "min_visible=0.3"]))
+        results[record] = (_unlabelled_plants(f, out), summary)
+    (bad, seen_bad), _ = results[False]
+    (unlabelled, seen), summary = results[True]
+    print(f"unlabelled visible plants: whole tiles {bad}/{seen_bad}, masked to the owned area {unlabelled}/{seen}")
+    assert bad > 0.2 * seen_bad                        # whole tiles over owned-area boxes: plants taught as soil
+    assert seen > 50 and unlabelled == 0               # masked to the annotated region: none
+    assert summary["annotated_regions"]["images"] == 9 and summary["annotated_regions"]["tiles_outside_region"] > 0
 
 
 XVFB = """

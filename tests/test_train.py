@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 import urllib.error
 from pathlib import Path
 
@@ -393,3 +394,288 @@ def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
     assert summary["epochs_done"] == 1
     assert "val" in summary["history"][-1]  # the stopping epoch was validated
     assert (out / "checkpoints" / "best.pt").is_file() and (out / "checkpoints" / "last.pt").is_file()
+
+
+# -- one-stage detectors (issue 16) ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("arch", ["retinanet_resnet50_fpn", "fcos_resnet50_fpn"])
+def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_path):
+    """RetinaNet and FCOS beside Faster R-CNN: same targets, checkpoint, transfer learning and evaluation."""
+    from matchplant.detection.evaluate import coco_evaluate, predict_dataset
+    from matchplant.detection.model import (load_matching_weights, model_parts, parameter_groups,
+                                            save_checkpoint, set_score_threshold)
+
+    cfg = load_config(ModelConfig, None, [f"architecture={arch}", "pretrained=none", "min_size=64", "max_size=64"])
+    torch.manual_seed(0)
+    model = build_detector(cfg, 2)
+    assert not hasattr(model, "rpn") and model_parts(model)["roi_heads"] is model.head
+    apply_freezing(model, arch, 3, ["rpn"])          # 'rpn' is empty for a one-stage model: nothing else frozen
+    groups = parameter_groups(model, {"backbone": 0.01, "fpn": 0.01, "rpn": 0.01, "roi_heads": 0.01})
+    assert [g["name"] for g in groups] == ["backbone", "fpn", "roi_heads"]
+    ds = CocoDetection(tiles[0])
+    model.train()
+    images, targets = zip(*[ds[i] for i in range(4)])
+    losses = model(list(images), list(targets))       # module 5's targets as they are
+    assert all(torch.isfinite(v) for v in losses.values())
+    opt = torch.optim.SGD([p for g in groups for p in g["params"]], lr=0.001)
+    sum(losses.values()).backward()
+    opt.step()
+    # evaluation: labels 1..N only (label 0 is our background), threshold set the Faster R-CNN way
+    model.eval()
+    model.roi_heads.score_thresh = 0.0
+    assert model.score_thresh == 0.0
+    set_score_threshold(model, 0.01)
+    assert model.roi_heads.score_thresh == pytest.approx(0.01)
+    val = CocoDetection(tiles[1])
+    results = predict_dataset(model, val, torch.device("cpu"))
+    assert results and {r["category_id"] for r in results} <= set(val.category_ids)
+    stats, _ = coco_evaluate(val.data, results)
+    assert 0.0 <= stats["AP50"] <= 1.0
+    # checkpoint: rebuilt alone, same outputs
+    path = save_checkpoint(tmp_path / "c.pt", model, cfg, ["plant"], [1])
+    rebuilt, _ = load_detector(path)
+    x = [torch.rand(3, 64, 64)]
+    set_score_threshold(rebuilt, 0.01)
+    with torch.inference_mode():
+        a, b = model(x)[0], rebuilt(x)[0]
+    assert torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
+    # transfer learning to three classes: everything but the class scores is loaded
+    bigger = build_detector(cfg, 4)
+    loaded, skipped = load_matching_weights(bigger, model.state_dict())
+    assert skipped and all(k.startswith("head.classification_head.cls_logits") for k in skipped)
+    assert len(loaded) == len(model.state_dict()) - len(skipped)
+
+
+def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
+    """As for Faster R-CNN: COCO weights load strictly, our classes get a new classification head, and
+    the checkpoint rebuilds the same structure (frozen batch norms) without a download."""
+    import torchvision.models._api as api
+
+    from matchplant.detection.model import save_checkpoint
+
+    cfg = load_config(ModelConfig, None, ["architecture=retinanet_resnet50_fpn", "pretrained=coco",
+                                          "min_size=64", "max_size=64"])
+    torch.manual_seed(3)
+    served = build_detector(cfg, 91, load_weights=False).state_dict()
+    monkeypatch.setattr(api, "load_state_dict_from_url", lambda *a, **k: served)
+    model = build_detector(cfg, 2)
+    state = model.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in served.items() if "cls_logits" not in k)
+    assert state["head.classification_head.cls_logits.weight"].shape[0] == 9 * 2
+    rebuilt, _ = load_detector(save_checkpoint(tmp_path / "c.pt", model, cfg, ["plant"], [1]))
+    assert all(torch.equal(rebuilt.state_dict()[k], v) for k, v in state.items())
+
+
+def test_anchor_sizes_auto_from_the_training_boxes(tiles, tmp_path):
+    """``anchor_sizes: auto``: sensible anchors for ~40 px objects on 512 px tiles, in the detector's input
+    pixels, and a training run stores the computed sizes in its checkpoint."""
+    from matchplant.core.coco import make_annotation, new_dataset
+    from matchplant.detection.model import resolve_auto_anchors
+
+    rng = np.random.default_rng(0)
+    ds = new_dataset(["plant"])
+    for i in range(20):
+        ds["images"].append({"id": i + 1, "file_name": f"t{i}.png", "width": 512, "height": 512})
+        for _ in range(30):
+            w, h = rng.normal(40, 6, 2)
+            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, i + 1, [100, 100, w, h]))
+    objects = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in ds["annotations"]])
+    for arch, levels in (("fasterrcnn_resnet50_fpn", 5), (MOBILE, 3), ("retinanet_resnet50_fpn", 5)):
+        for scale in (1, 2):  # min_size = 2 x the tile: objects (and anchors) twice as large
+            cfg = load_config(ModelConfig, None, [f"architecture={arch}", "anchor_sizes=auto",
+                                                  f"min_size={512 * scale}", f"max_size={512 * scale}"])
+            sizes = resolve_auto_anchors(cfg, ds).anchor_sizes
+            assert len(sizes) == levels
+            flat = np.array(sorted({s for level in sizes for s in level}), float)
+            # every object between the 1st and 99th percentile has a square anchor with IoU >= 0.5
+            lo, hi = np.percentile(objects * scale, [1, 99])
+            for size in np.linspace(lo, hi, 20):
+                assert (np.minimum(size, flat) ** 2 / np.maximum(size, flat) ** 2).max() >= 0.5, (arch, size, sizes)
+            assert flat.min() <= lo and flat.min() >= 0.5 * lo   # the smallest anchor sits at the small objects
+    with pytest.raises(ConfigError, match="computed from the training boxes"):
+        build_detector(load_config(ModelConfig, None, ["anchor_sizes=auto", "pretrained=none"]), 2)
+    out = tmp_path / "run"
+    train(fast_config(tiles, out, "model.anchor_sizes=auto", "epochs=1", "save_every=0"))
+    stored = read_checkpoint(out / "checkpoints" / "last.pt")["model_config"]["anchor_sizes"]
+    assert isinstance(stored, list) and len(stored) == 3 and stored[0][0] < 32
+
+
+# -- honest reports and the training geometry (issue 16) -------------------------------------------------
+
+
+def test_summary_reports_a_small_validation_set_and_the_geometry(trained, tiles):
+    """Fewer than 20 validation plants: a warning in the summary; every checkpoint carries the training
+    geometry module 7 needs (tile size, input scale, classes, plant sizes)."""
+    import json
+
+    out, summary = trained
+    val = json.loads(Path(tiles[1]).read_text())
+    assert summary["validation"]["plants"] == len(val["annotations"]) < 20  # tiles of their own: no copies
+    assert "only" in summary["validation"]["warning"] and summary["warnings"]
+    assert summary["status"] == "finished" and summary["message"] == "finished all 2 epochs"
+    g = read_checkpoint(out / "checkpoints" / "best.pt")["training_geometry"]
+    train_ds = json.loads(Path(tiles[0]).read_text())
+    sides = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in train_ds["annotations"]])
+    assert g["tile_size"] == 64 and g["min_size"] == 64 and g["input_scale"] == 1.0 and g["class_names"] == ["plant"]
+    assert g["objects_px"]["boxes"] == len(sides)
+    assert g["objects_input_px"] == pytest.approx(np.median(sides), abs=0.01)
+
+
+def test_lr_schedule_shortened_to_the_planned_epochs():
+    from matchplant.model_train.budget import epochs_that_fit
+
+    cfg = load_config(TrainConfig, None, ["train_json=x", "epochs=30", "step_size=10", "warmup_iters=0"],
+                      check_paths=False)
+    # 30 epochs planned as 6: the decays at epochs 10 and 20 come at epochs 2 and 4
+    assert [lr_factor(cfg, e * 5, 5, 6) for e in range(6)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
+    assert [lr_factor(cfg, e * 5, 5) for e in (0, 9, 10, 20)] == pytest.approx([1, 1, 0.1, 0.01])  # as set
+    cfg.schedule = "cosine"
+    assert lr_factor(cfg, 6 * 5, 5, 6) == pytest.approx(0.0) and lr_factor(cfg, 15, 5, 6) == pytest.approx(0.5)
+    assert epochs_that_fit(30, 1, 10.0, 100.0, 100.0) == 6       # 600 s: 1 done + 5 more of 100 s
+    assert epochs_that_fit(30, 1, 10.0, 700.0, 100.0) == 1       # over budget already: the one done
+    assert epochs_that_fit(4, 1, 100.0, 10.0, 10.0) == 4         # everything fits
+
+
+def test_max_minutes_plans_the_epochs_that_fit_and_says_so(tiles, tmp_path, monkeypatch):
+    """A 60 s epoch (a fake clock) and 3.5 minutes: 3 of 10 epochs fit, the step schedule (x0.1 every 5 of
+    10 epochs) is shortened to 3 epochs so it still decays, and the summary says it stopped."""
+    import matchplant.model_train.train as train_mod
+
+    class Clock:
+        offset = 0.0
+
+        @staticmethod
+        def perf_counter():
+            return time.perf_counter() + Clock.offset
+
+    real_epoch = train_mod._train_one_epoch
+
+    def slow_epoch(*a, **k):
+        Clock.offset += 60.0
+        return real_epoch(*a, **k)
+
+    monkeypatch.setattr(train_mod, "time", Clock)
+    monkeypatch.setattr(train_mod, "_train_one_epoch", slow_epoch)
+    out = tmp_path / "budget"
+    summary = train(fast_config(tiles, out, "epochs=10", "max_minutes=3.5", "step_size=5", "warmup_iters=0",
+                                "save_every=0", "val_every=5"))
+    assert summary["status"] == "stopped_by_max_minutes" and summary["epochs_planned"] == 3
+    assert summary["epochs_done"] == 3 and "after 3 of 10 epochs" in summary["message"]
+    assert any("shortened to 3 epochs" in w for w in summary["warnings"])
+    assert "val" in summary["history"][-1]  # the last planned epoch is validated (val_every 5 notwithstanding)
+    ck = read_checkpoint(out / "checkpoints" / "last.pt")
+    assert ck["planned_epochs"] == 3
+    lr = [h["lr"]["roi_heads"] for h in summary["history"]]  # the rate for the next iteration
+    cfg = fast_config(tiles, out, "epochs=10", "step_size=5", "warmup_iters=0")
+    base = cfg.lr.roi_heads
+    assert lr == pytest.approx([base * lr_factor(cfg, 2 * (e + 1), 2, 3) for e in range(3)])
+    assert lr[-1] == pytest.approx(0.01 * base)  # decayed twice within the budget (never at the 10-epoch plan)
+
+
+# -- input checks (issue 15): the dataset against its files, splits, unreadable tiles in loader workers ----------
+
+
+def test_image_size_reads_headers_and_names_truncated_files(tmp_path):
+    import cv2
+
+    from matchplant.detection.data import image_size
+
+    img = np.random.default_rng(0).integers(0, 255, (37, 53, 3), dtype=np.uint8)
+    for ext in (".png", ".jpg", ".tif"):
+        path = tmp_path / f"tile{ext}"
+        cv2.imwrite(str(path), img)
+        assert image_size(path) == (53, 37)  # the header's size is the decoded one (OpenCV, independently)
+        assert cv2.imread(str(path)).shape[:2] == (37, 53)
+        cut = tmp_path / f"cut{ext}"
+        cut.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+        with pytest.raises(InputError, match="truncated") as err:
+            image_size(cut)
+        assert err.value.path == cut
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match="empty"):
+        image_size(tmp_path / "empty.png")
+
+
+def _edited(tiles, tmp_path, edit, name="train.json") -> Path:
+    """The training JSON, edited, in ``tmp_path`` (read with the tiles' folder as images_dir)."""
+    import json
+
+    data = json.loads(Path(tiles[0]).read_text())
+    edit(data)
+    path = tmp_path / name
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_json_sizes_against_the_files(tiles, tmp_path, caplog):
+    def doubled(boxes: bool):
+        def edit(data):
+            for im in data["images"]:
+                im["width"], im["height"] = 2 * im["width"], 2 * im["height"]
+            if boxes:
+                for a in data["annotations"]:
+                    a["bbox"] = [2 * v for v in a["bbox"]]
+        return edit
+
+    inside = _edited(tiles, tmp_path, doubled(False), "sizes_inside.json")
+    with caplog.at_level("WARNING"):
+        ds = CocoDetection(inside, Path(tiles[0]).parent)
+    assert any("8 of 8 images" in r.message and "128x128 in the JSON, 64x64 file" in r.message for r in caplog.records)
+    assert {(im["width"], im["height"]) for im in ds.images} == {(64, 64)}  # the files' sizes are used
+    outside = _edited(tiles, tmp_path, doubled(True), "sizes_outside.json")
+    with pytest.raises(InputError, match=r"box\(es\) fall outside their image files.*128x128 px but the file is 64x64"):
+        CocoDetection(outside, Path(tiles[0]).parent)
+
+
+def test_categories_boxes_and_splits_checked(tiles, tmp_path):
+    from matchplant.detection.data import check_disjoint
+
+    def zero_based(data):
+        for a in data["annotations"]:
+            a["category_id"] = 0
+
+    with pytest.raises(InputError, match="numbered from 0"):
+        CocoDetection(_edited(tiles, tmp_path, zero_based, "zero.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="no 'categories'"):
+        CocoDetection(_edited(tiles, tmp_path, lambda d: d.update(categories=[]), "nocat.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="no annotations"):
+        CocoDetection(_edited(tiles, tmp_path, lambda d: d.update(annotations=[]), "noann.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="not among the model's classes"):
+        CocoDetection(tiles[1], class_names=["weed"])
+    train_ds, val_ds = CocoDetection(tiles[0]), CocoDetection(tiles[1])
+    check_disjoint(train_ds, val_ds)  # module 5-like splits: apart
+    with pytest.raises(ConfigError, match="same file"):
+        check_disjoint(train_ds, CocoDetection(tiles[0]))
+    copy = tmp_path / "copied"  # a validation folder made by copying training tiles
+    (copy / "images").mkdir(parents=True)
+    for p in train_ds.paths[:3]:
+        (copy / "images" / p.name).write_bytes(p.read_bytes())
+    import json
+
+    data = json.loads(Path(tiles[0]).read_text())
+    data["images"] = data["images"][:3]
+    data["annotations"] = [a for a in data["annotations"] if a["image_id"] <= 3]
+    (copy / "val.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match="3 of the 3 validation tiles are also training tiles"):
+        check_disjoint(train_ds, CocoDetection(copy / "val.json"))
+
+
+def test_unreadable_tile_in_a_loader_worker_is_one_clear_error(tiles, tmp_path):
+    import shutil
+
+    from torch.utils.data import DataLoader
+
+    from matchplant.detection.data import TileReadError, collate
+
+    folder = tmp_path / "t"
+    shutil.copytree(Path(tiles[0]).parent / "images", folder / "images")
+    shutil.copy(tiles[0], folder / "train.json")
+    ds = CocoDetection(folder / "train.json")
+    broken = ds.paths[2]
+    broken.write_bytes(b"\x00" * 100)  # damaged after the checks (a disk error while training)
+    loader = DataLoader(ds, batch_size=4, num_workers=1, collate_fn=collate)
+    with pytest.raises(TileReadError) as err:
+        list(loader)
+    assert "Traceback" not in str(err.value) and err.value.path == broken and err.value.fix
+    assert "data-loading worker" in err.value.problem

@@ -5,6 +5,18 @@ and saved the moment it is made.
 Mouse: drag on empty image to draw a box; click a box to select it; drag a selected box to move it,
 drag its edge or corner to resize it; right or middle drag pans; the wheel zooms around the cursor.
 Every edit is saved at once by the store; the help panel (key ``h``) lists the keys.
+
+Category keys ``1``-``5`` choose the category of the NEXT box drawn. They relabel a box only when the
+user picked it (clicked it, or pressed it to drag it); the box just drawn keeps its handles for a quick
+resize but is not picked, so switching category right after drawing never relabels it.
+
+``--gui`` first opens a setup screen (:class:`AnnotateSetup`: images, output folder, optional owned areas
+and boxes to correct, with Tk's file pickers); **Open images** opens this window on them.
+
+Fast on 20 MP photos with thousands of boxes (``bench/bench_annotate_gui.py``): the photo is shown
+from a display pyramid, cropped to the view (:mod:`matchplant.bbox_drawer.view`); all boxes are one
+collection; while a box is drawn, moved or resized only the dragged outline is redrawn over a saved
+background (blitting), and the whole axes is drawn once at the press and once at the release.
 """
 
 from __future__ import annotations
@@ -12,10 +24,12 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.patches import Polygon, Rectangle
 
-from matchplant.bbox_drawer.annotate import AnnotateConfig, open_session
+from matchplant.bbox_drawer.annotate import AnnotateConfig, annotated_regions, open_session
 from matchplant.bbox_drawer.store import AnnotationStore
+from matchplant.bbox_drawer.view import BoxLayer, PanelImage, PyramidImage
 from matchplant.core.config import validate
-from matchplant.core.gui import close, figure, show
+from matchplant.core.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
+from matchplant.core.guard import check_outputs
 from matchplant.core.images import display_rgb, match_name, read_image
 from matchplant.core.log import get_logger
 from matchplant.core.owned_areas import read_owned_areas
@@ -37,8 +51,9 @@ HELP = """MOUSE
  wheel            zoom
 
 KEYS
- 1-5        category (new boxes,
-            and the selected box)
+ 1-5        category of the next
+            box; relabels a box
+            you clicked
  delete, d  delete selected box
  z / ctrl+z undo
  y / ctrl+y redo
@@ -61,11 +76,11 @@ class AnnotatorGUI:
 
     def __init__(self, store: AnnotationStore, owned_areas: dict[str, np.ndarray] | None = None,
                  headless: bool | None = None, export_yolo: bool = True, include_unseen: bool = False,
-                 dpi: float | None = None):
+                 dpi: float | None = None, regions: dict[str, np.ndarray] | None = None):
         self.store = store
         # owned-area polygons keyed by this folder's image names (module 3 may name the shot, not the .tif)
         self.owned = {match_name(k, store.files): v for k, v in (owned_areas or {}).items()}
-        self.export_options = {"yolo": export_yolo, "include_unseen": include_unseen}
+        self.export_options = {"yolo": export_yolo, "include_unseen": include_unseen, "regions": regions}
         self.fig = figure(headless, figsize=(13, 8), dpi=dpi)
         self._quiet_default_keys()
         self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
@@ -74,9 +89,13 @@ class AnnotatorGUI:
         self.status = self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace")
         self.category = 1
         self.selected: int | None = None
+        self.picked = False      # the selected box was clicked by the user (category keys relabel it)
+        self.closed = False
         self.drag: dict | None = None
-        self.artists: list = []
+        self.layer: BoxLayer | None = None
+        self.sel_rect = self.sel_dots = None
         self.preview = None
+        self.background = None   # the axes without the dragged box, saved at the press (blitting)
         self.image_artist = None
         self.message = ""
         self._draw_help()
@@ -112,7 +131,7 @@ class AnnotatorGUI:
         panel.canvas.draw()
         self.help_ax.clear()
         self.help_ax.axis("off")
-        self.help_ax.imshow(np.asarray(panel.canvas.buffer_rgba()), aspect="auto", interpolation="nearest")
+        self.help_ax.add_image(PanelImage(self.help_ax, np.array(panel.canvas.buffer_rgba())))
 
     @property
     def name(self) -> str:
@@ -121,20 +140,29 @@ class AnnotatorGUI:
     def show_image(self, name: str) -> None:
         self.store.set_current(name)
         self.selected = None
+        self.picked = False
         self.drag = None
         img = display_rgb(read_image(self.store.files[name]))
-        w, h = self.store.size(name)
         self.ax.clear()
-        # extent puts data coordinates on pixel edges: x = 0 is the left edge of the first pixel (COCO)
-        self.image_artist = self.ax.imshow(img, extent=(0, w, h, 0), interpolation="nearest",
-                                           cmap="gray" if img.ndim == 2 else None)
+        self.image_artist = None  # the previous photo's pyramid is freed before the next one is built
+        # data coordinates on pixel edges: x = 0 is the left edge of the first pixel (COCO)
+        self.image_artist = PyramidImage(self.ax, img)
+        del img
+        self.ax.add_image(self.image_artist)
+        self.ax.set_aspect("equal")  # square pixels, as imshow would set
         poly = self.owned.get(name)
         if poly is not None:
             self.ax.add_patch(Polygon(poly, closed=True, fill=False, ls="--", lw=1.5, ec="white"))
         self.ax.set_xticks([])
         self.ax.set_yticks([])
-        self.preview = None
-        self.artists = []
+        self.layer = BoxLayer(self.ax, COLORS)
+        self.sel_rect = Rectangle((0, 0), 0, 0, fill=False, lw=2.6, visible=False, zorder=4)
+        self.ax.add_patch(self.sel_rect)
+        (self.sel_dots,) = self.ax.plot([], [], "s", ms=6, mfc="white", visible=False, zorder=5)
+        self.preview = Rectangle((0, 0), 0, 0, fill=False, ec="white", lw=1.2, ls=":", animated=True,
+                                 visible=False, zorder=6)
+        self.ax.add_patch(self.preview)
+        self.background = None
         self.reset_view()
         self.redraw()
 
@@ -143,29 +171,31 @@ class AnnotatorGUI:
         self.ax.set_xlim(0, w)
         self.ax.set_ylim(h, 0)
 
-    def redraw(self) -> None:
-        for a in self.artists:
-            a.remove()
-        self.artists = []
+    def redraw(self, hidden: int | None = None, draw: bool = True) -> None:
+        """Update the box collection, the selection and the status; ``hidden`` leaves a box out (it is
+        being dragged). ``draw=False`` leaves the drawing to the caller."""
         boxes = self.store.boxes(self.name)
-        for b in boxes:
-            x1, y1, x2, y2 = b["xyxy"]
-            sel = b["id"] == self.selected
-            rect = Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, ec=COLORS[b["category_id"] - 1],
-                             lw=2.6 if sel else 1.3, ls="--" if "score" in b else "-")
-            self.ax.add_patch(rect)
-            self.artists.append(rect)
-            if sel:
-                corners = np.array([[x1, y1], [x2, y1], [x2, y2], [x1, y2]])
-                (dots,) = self.ax.plot(corners[:, 0], corners[:, 1], "s", ms=6, mfc="white",
-                                       mec=COLORS[b["category_id"] - 1])
-                self.artists.append(dots)
+        self.layer.set_boxes(boxes, hidden)
+        sel = next((b for b in boxes if b["id"] == self.selected), None) if self.selected != hidden else None
+        self.sel_rect.set_visible(sel is not None)
+        self.sel_dots.set_visible(sel is not None)
+        if sel is not None:
+            x1, y1, x2, y2 = sel["xyxy"]
+            color = COLORS[sel["category_id"] - 1]
+            self.sel_rect.set_bounds(x1, y1, x2 - x1, y2 - y1)
+            self.sel_rect.set_edgecolor(color)
+            self.sel_rect.set_linestyle("--" if "score" in sel else "-")
+            self.sel_dots.set_data([x1, x2, x2, x1], [y1, y1, y2, y2])
+            self.sel_dots.set_markeredgecolor(color)
         self.ax.set_title(self.name, fontsize=10)
         i = self.store.images.index(self.name) + 1
         cat = self.store.categories[self.category - 1]
-        self.status.set_text(f"image {i}/{len(self.store.images)}   boxes {len(boxes)}   new boxes: "
-                             f"{self.category}={cat}   {self.message}")
-        self.fig.canvas.draw_idle()
+        picked = (f"   selected: {self.store.categories[sel['category_id'] - 1]} (keys relabel it)"
+                  if sel is not None and self.picked else "")
+        self.status.set_text(f"image {i}/{len(self.store.images)}   boxes {len(boxes)}   next box: "
+                             f"{self.category}={cat}{picked}   {self.message}")
+        if draw:
+            self.fig.canvas.draw_idle()
 
     # -- geometry helpers
     def data_xy(self, event, snap: bool = False) -> tuple[float, float]:
@@ -182,8 +212,14 @@ class AnnotatorGUI:
         """The box under (x, y) and which part: edges like 'lt' or 'r' for resizing, 'in' for moving."""
         tol = HANDLE_PX / self.px_per_unit()
         boxes = self.store.boxes(self.name)
-        order = sorted(boxes, key=lambda b: (b["id"] != self.selected,
-                                             (b["xyxy"][2] - b["xyxy"][0]) * (b["xyxy"][3] - b["xyxy"][1])))
+        if not boxes:
+            return None, ""
+        xyxy = np.array([b["xyxy"] for b in boxes], float)
+        near = np.flatnonzero((xyxy[:, 0] - tol <= x) & (x <= xyxy[:, 2] + tol) &
+                              (xyxy[:, 1] - tol <= y) & (y <= xyxy[:, 3] + tol))  # vectorised pre-filter
+        order = sorted((boxes[i] for i in near),
+                       key=lambda b: (b["id"] != self.selected,
+                                      (b["xyxy"][2] - b["xyxy"][0]) * (b["xyxy"][3] - b["xyxy"][1])))
         for b in order:
             x1, y1, x2, y2 = b["xyxy"]
             if not (x1 - tol <= x <= x2 + tol and y1 - tol <= y <= y2 + tol):
@@ -212,12 +248,34 @@ class AnnotatorGUI:
         box_id, part = self.hit(x, y)
         if box_id is None:
             self.selected = None
+            self.picked = False
             self.drag = {"mode": "draw", "start": start, "px": (event.x, event.y)}
         else:
+            # pressing another box picks it; dragging the box just drawn (to fix it) does not
+            self.picked = self.picked or box_id != self.selected
             self.selected = box_id
             self.drag = {"mode": "resize" if part != "in" else "move", "edges": part, "start": start,
                          "px": (event.x, event.y), "box": self.store.box(self.name, box_id)}
-        self.redraw()
+        self._start_blit(box_id)
+
+    def _start_blit(self, dragged: int | None) -> None:
+        """Draw everything but the dragged box once and keep that picture: each mouse move then
+        pastes it back and draws the dragged outline alone."""
+        self.redraw(hidden=dragged, draw=False)
+        self.fig.canvas.draw()
+        self.background = self.fig.canvas.copy_from_bbox(self.ax.bbox)
+        if dragged is not None:  # a pressed box stays visible until the mouse moves
+            x1, y1, x2, y2 = self.drag["box"]["xyxy"]
+            self._blit_preview(x1, y1, x2, y2)
+
+    def _blit_preview(self, x1: float, y1: float, x2: float, y2: float) -> None:
+        canvas = self.fig.canvas
+        if self.background is not None:
+            canvas.restore_region(self.background)
+        self.preview.set_bounds(min(x1, x2), min(y1, y2), abs(x2 - x1), abs(y2 - y1))
+        self.preview.set_visible(True)
+        self.ax.draw_artist(self.preview)
+        canvas.blit(self.ax.bbox)
 
     @staticmethod
     def _dragged_box(d: dict, x: float, y: float) -> list[float]:
@@ -250,27 +308,22 @@ class AnnotatorGUI:
             return
         if self._is_click(self.drag, event):
             return
-        x1, y1, x2, y2 = self._dragged_box(self.drag, *self.data_xy(event, snap=True))
-        if self.preview is None:
-            self.preview = Rectangle((x1, y1), 0, 0, fill=False, ec="white", lw=1.2, ls=":")
-            self.ax.add_patch(self.preview)
-        self.preview.set_bounds(min(x1, x2), min(y1, y2), abs(x2 - x1), abs(y2 - y1))
-        self.fig.canvas.draw_idle()
+        self._blit_preview(*self._dragged_box(self.drag, *self.data_xy(event, snap=True)))
 
     def on_release(self, event) -> None:
         d, self.drag = self.drag, None
-        if self.preview is not None:
-            self.preview.remove()
-            self.preview = None
+        self.preview.set_visible(False)
+        self.background = None
         if not d or d["mode"] == "pan":
             return
         click = self._is_click(d, event)
         box = self._dragged_box(d, *self.data_xy(event, snap=True))
         if click:
+            self.picked = d["mode"] != "draw"   # a click on a box picks it
             self.message = "" if d["mode"] == "draw" else "selected"
         elif d["mode"] == "draw":
             new = self.store.add(self.name, box, self.category)
-            self.selected = new
+            self.selected, self.picked = new, False  # handles to fix it; category keys leave it alone
             self.message = "box added" if new is not None else "too small: no box"
         elif d["mode"] == "move":
             x1, y1 = d["box"]["xyxy"][:2]
@@ -306,12 +359,14 @@ class AnnotatorGUI:
         k = (event.key or "").lower()
         if k in {str(i) for i in range(1, len(self.store.categories) + 1)}:
             self.category = int(k)
-            if self.selected is not None:
+            if self.selected is not None and self.picked:
                 self.store.set_category(self.name, self.selected, self.category)
                 self.message = "category changed"
+            else:
+                self.message = f"next box: {self.store.categories[self.category - 1]}"
         elif k in ("delete", "backspace", "d") and self.selected is not None:
             self.store.delete(self.name, self.selected)
-            self.selected = None
+            self.selected, self.picked = None, False
             self.message = "box deleted"
         elif k in ("z", "ctrl+z", "cmd+z"):
             self._history(self.store.undo(), "undone", "nothing to undo")
@@ -339,14 +394,14 @@ class AnnotatorGUI:
         elif k in ("0", "home"):
             self.reset_view()
         elif k == "escape":
-            self.selected = None
+            self.selected, self.picked = None, False
         elif k in ("h", "f1", "?"):
             self.help_ax.set_visible(not self.help_ax.get_visible())
         elif k in ("e", "ctrl+s"):
             paths = self.export()
             self.message = f"exported {paths['coco'].name}" + (" + YOLO" if "yolo" in paths else "")
         elif k == "q":
-            close(self.fig)
+            self.finish()
             return
         else:
             return
@@ -357,24 +412,68 @@ class AnnotatorGUI:
         if image and image != self.name:
             self.show_image(image)  # show the edit that was undone
             self.message = done
-        self.selected = None
+        self.selected, self.picked = None, False
         self.redraw()
 
     # -- saving
     def export(self) -> dict:
-        return self.store.export(coco=True, yolo=self.export_options["yolo"],
-                                 include_unseen=self.export_options["include_unseen"])
+        return self.store.export(coco=True, **self.export_options)
 
     def on_close(self, event=None) -> None:
+        if self.closed:
+            return
+        self.closed = True
         paths = self.export()
         log.info("annotations exported to %s", paths["coco"])
 
+    def finish(self) -> None:
+        """Export and close (a headless figure has no window to close: exported here)."""
+        self.on_close()
+        close(self.fig)
 
-def launch(cfg: AnnotateConfig, headless: bool | None = None) -> AnnotatorGUI:
-    """Open the window for a config (blocks until it is closed, unless headless)."""
+
+def open_window(cfg: AnnotateConfig, headless: bool | None = None, dpi: float | None = None) -> AnnotatorGUI:
+    """The drawing window for a config: the session opened or resumed, the imports applied."""
     validate(cfg, source="GUI")
+    check_outputs(cfg, source="GUI")
     store = open_session(cfg)
-    app = AnnotatorGUI(store, read_owned_areas(cfg.owned_areas), headless=headless,
-                       export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen)
-    show(app.fig)
-    return app
+    return AnnotatorGUI(store, read_owned_areas(cfg.owned_areas), headless=headless, dpi=dpi,
+                        export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen,
+                        regions=annotated_regions(cfg, store))
+
+
+SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("output_dir", "Output folder", "folder"),
+                SetupField("owned_areas", "Owned areas (optional)", "file"),
+                SetupField("import_coco", "Boxes to fix (COCO, opt.)", "file"),
+                SetupField("import_predictions", "Predictions (module 7, opt.)", "file")]
+
+
+class AnnotateSetup:
+    """Module 4's setup screen: the images, the output folder and, optionally, module 3's owned areas and
+    boxes to correct, with file pickers; **Open images** opens the drawing window on them (again: the
+    previous window is exported and closed first)."""
+
+    def __init__(self, cfg: AnnotateConfig, headless: bool | None = None, chooser=None, dpi: float | None = None):
+        self.headless, self.dpi = headless, dpi
+        self.window: AnnotatorGUI | None = None
+        self.screen = SetupScreen("Box drawer: choose the images to annotate", cfg, SETUP_FIELDS, self._run,
+                                  headless=headless, chooser=chooser, run_label="Open images")
+
+    def _run(self, cfg: AnnotateConfig) -> str:
+        if self.window is not None:
+            self.window.finish()
+        self.window = open_window(cfg, self.headless, self.dpi)
+        reveal(self.window.fig)
+        store = self.window.store
+        return (f"{len(store.images)} images, {store.count()} boxes; drawing window open; every edit is saved "
+                f"to {store.path}")
+
+
+def launch(cfg: AnnotateConfig, config_path=None, chooser=None) -> AnnotateSetup:
+    """The setup screen, then the drawing window; blocks until the windows are closed."""
+    require_display("python 4_bbox_drawer/bbox_drawer.py --set images=FOLDER --set output_dir=FOLDER")
+    setup = AnnotateSetup(cfg, chooser=chooser)
+    show(setup.screen.fig)
+    if setup.window is not None:
+        setup.window.on_close()  # exported when its window closed; once more is a no-op
+    return setup

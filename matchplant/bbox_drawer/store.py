@@ -13,16 +13,22 @@ rounded to 0.01 px, so that COCO and YOLO exports round-trip exactly.
 from __future__ import annotations
 
 import datetime as _dt
+import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
-from matchplant.core.coco import make_annotation, new_dataset, write_dataset
+import math
+import warnings
+
+from matchplant.core.box_files import resolve_image_names
+from matchplant.core.coco import REGION_KEY, DropLog, make_annotation, new_dataset, region_entry, write_dataset
 from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import list_images, match_name
-from matchplant.core.io import read_json, write_json
+from matchplant.core.images import JPEG_SUFFIXES, list_images
+from matchplant.core.io import read_json, write_text
 from matchplant.core.log import get_logger
 from matchplant.core.odm import image_size
+from matchplant.core.validate import check_jpeg
 from matchplant.core.yolo import coco_to_yolo
 
 log = get_logger("annotate")
@@ -37,14 +43,29 @@ DECIMALS = 2   # boxes are stored to 0.01 px
 # -- boxes ----------------------------------------------------------------------------------------------
 
 
-def _readable(path: Path) -> bool:
-    """False (with a warning) for a file named like an image that is not one."""
+# reasons a box is not imported that are no fault of the file (not counted against it)
+NOT_A_FAULT = "image already has boxes in this session"
+EDGE_TOLERANCE = 1.0  # px: boxes reaching further past the image edge are clipped with a warning
+
+
+def check_image_file(path: Path) -> None:
+    """A file named like an image must be a whole one: its header readable, a JPEG with its end marker, a
+    PNG with its end chunk (a truncated copy is named, not annotated half grey)."""
     try:
-        image_size(path)
-        return True
-    except InputError:
-        log.warning("skipped %s: not a readable image", path.name)
-        return False
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
+            image_size(path)
+    except InputError as exc:
+        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
+                         fix="copy the photo again, or move it out of the image folder") from exc
+    if path.suffix.lower() in JPEG_SUFFIXES:
+        check_jpeg(path)
+    elif path.suffix.lower() == ".png":
+        with open(path, "rb") as fh:
+            fh.seek(max(0, path.stat().st_size - 64))
+            if b"IEND" not in fh.read():
+                raise InputError("the PNG is truncated (no end chunk)", path=path,
+                                 fix="copy the image again, or move it out of the image folder")
 
 
 def clip_box(xyxy: Iterable[float], width: float, height: float) -> list[float]:
@@ -64,6 +85,17 @@ class ImportedBox:
     xyxy: list[float]
     category: str
     score: float | None = None
+    where: str = ""  # where in its file (annotation id, line), for the report of boxes left out
+
+
+class ImportedBoxes(dict):
+    """``{image name as the file writes it: [ImportedBox]}`` plus what the file says besides: ``sizes``
+    (image name -> (width, height) it declares) and ``drops`` (boxes the reader already left out)."""
+
+    def __init__(self, items=(), *, sizes: dict | None = None, drops: DropLog | None = None):
+        super().__init__(items)
+        self.sizes = dict(sizes or {})
+        self.drops = drops if drops is not None else DropLog()
 
 
 # -- the session --------------------------------------------------------------------------------------
@@ -77,17 +109,19 @@ class AnnotationStore:
     """
 
     def __init__(self, images_dir: str | Path, output_dir: str | Path, categories: Iterable[str] = ("plant",),
-                 *, min_box_size: float = 2.0):
+                 *, min_box_size: float = 2.0, resume_from: str | Path | None = None):
         self.images_dir = Path(images_dir)
         self.output_dir = Path(output_dir)
         self.path = self.output_dir / STATE_NAME
         self.min_box_size = float(min_box_size)
-        files = [p for p in list_images(self.images_dir, min_count=0) if _readable(p)]
+        files = list_images(self.images_dir, min_count=0)
         if not files:
             raise InputError("no images (.jpg, .png, .tif, ...) in the image folder", path=self.images_dir,
                              fix="set 'images' to the folder that holds the photos to annotate")
+        for p in files:
+            check_image_file(p)
         self.files = {p.name: p for p in files}
-        self.state = self._load()
+        self.state = self._load(Path(resume_from) if resume_from is not None else self.path)
         self._merge_categories(list(categories))
         for name in self.files:
             self.state["images"].setdefault(name, {"boxes": [], "seen": False})
@@ -96,23 +130,27 @@ class AnnotationStore:
         self.save()
 
     # -- persistence
-    def _load(self) -> dict:
+    def _load(self, path: Path) -> dict:
         empty = {"format": STATE_FORMAT, "version": 1, "categories": [], "current": None, "next_id": 1,
                  "images": {}, "undo": [], "redo": [], "imports": []}
-        if not self.path.is_file():
+        if not path.is_file():
             return empty
-        data = read_json(self.path)
+        data = read_json(path)
         if not isinstance(data, dict) or data.get("format") != STATE_FORMAT:
-            raise InputError("this file is not a MatchPlant annotation session", path=self.path,
+            raise InputError("this file is not a MatchPlant annotation session", path=path,
                              fix="choose another output_dir, or move the file away")
         for key, value in empty.items():
             data.setdefault(key, value)
-        log.info("resumed the annotation session in %s", self.path)
+        if not isinstance(data["images"], dict) or not isinstance(data["categories"], list):
+            raise InputError("the annotation session is damaged ('images' or 'categories' of the wrong kind)",
+                             path=path, fix="move the file away (a new session starts), or restore a backup")
+        log.info("resumed the annotation session in %s", path)
         return data
 
     def save(self) -> None:
         self.state["saved"] = _dt.datetime.now().isoformat(timespec="seconds")
-        write_json(self.path, self.state, indent=None)
+        # one C-encoded string (json.dump streams thousands of small writes: slow with 3,000 boxes)
+        write_text(self.path, json.dumps(self.state, separators=(",", ":")) + "\n")
 
     def _merge_categories(self, categories: list[str]) -> None:
         cats = self.state["categories"]
@@ -264,42 +302,94 @@ class AnnotationStore:
         return step["image"]
 
     # -- imports
-    def import_boxes(self, boxes: dict[str, list[ImportedBox]], source: str) -> int:
+    def import_boxes(self, boxes: dict[str, list[ImportedBox]], source: str, drops: DropLog | None = None) -> int:
         """Add imported boxes to images that have none yet; each source file is imported once per session.
 
-        Returns the number of boxes added. Imports are not undoable edits (delete boxes to reject them).
+        Returns the number of boxes added. Boxes that cannot be used (image not in the folder, size <= 0,
+        outside the image) are left out and listed in ``drops`` (the reader's own, by default) with the
+        reason; boxes reaching past the image edge are clipped. A file whose image sizes disagree with the
+        photos on disk is an error. Imports are not undoable edits (delete boxes to reject them).
         """
         key = str(Path(source).resolve()) if Path(source).exists() else str(source)
         if key in self.state["imports"]:
             log.info("%s was already imported into this session; skipped", source)
             return 0
-        added, skipped = 0, []
+        drops = drops if drops is not None else getattr(boxes, "drops", DropLog())
+        matched, unmatched = resolve_image_names(list(boxes), self.files)
+        loose = [(raw, name) for raw, name in matched.items() if Path(str(raw).replace("\\", "/")).name not in
+                 (name, name[:-4] if name.lower().endswith(".tif") else name)]
+        if loose:
+            log.info("%d image name(s) of %s matched a photo only loosely (e.g. '%s' -> '%s')", len(loose),
+                     Path(source).name, *loose[0])
+        self._check_sizes(getattr(boxes, "sizes", {}), matched, source)
+        added = clipped = 0
         for raw_name, items in boxes.items():
-            name = match_name(raw_name, self.files)
+            name = matched.get(raw_name)
             if name is None:
-                skipped.append(raw_name)
+                for item in items:
+                    drops.add(source, item.where, raw_name, item.xyxy, "image not in the image folder",
+                              unmatched[raw_name] or f"no photo named like it in {self.images_dir}")
                 continue
             if self.state["images"][name]["boxes"]:
-                log.info("%s already has boxes; imported boxes for it are skipped", name)
+                for item in items:
+                    drops.add(source, item.where, name, item.xyxy, NOT_A_FAULT,
+                              "delete them first (GUI), or import into a new output_dir")
                 continue
             for item in items:
-                cat = self._category_for(item.category)
-                box = self._clipped(name, item.xyxy, min_size=0.0)  # keep thin boxes cut by the image edge
+                box, why, was_clipped = self._import_box(name, item.xyxy)
                 if box is None:
+                    drops.add(source, item.where, name, item.xyxy, why[0], why[1])
                     continue
-                new = {"id": int(self.state["next_id"]), "xyxy": box, "category_id": cat}
+                clipped += was_clipped
+                new = {"id": int(self.state["next_id"]), "xyxy": box, "category_id": self._category_for(item.category)}
                 if item.score is not None:
                     new["score"] = round(float(item.score), 4)
                 self.state["next_id"] += 1
-                self._swap(name, None, new)
+                self.state["images"][name]["boxes"].append(new)  # ids grow: the list stays sorted
                 added += 1
-        if skipped:
-            log.warning("%d image(s) of %s are not in the image folder and were skipped (e.g. %s)",
-                        len(skipped), Path(source).name, skipped[0])
+        if clipped:
+            log.warning("%d box(es) of %s reached more than %g px past their image's edge and were clipped to it",
+                        clipped, Path(source).name, EDGE_TOLERANCE)
         self.state["imports"].append(key)
         self.save()
         log.info("imported %d box(es) from %s", added, source)
         return added
+
+    def _check_sizes(self, sizes: dict, matched: dict[str, str], source: str) -> None:
+        """The image sizes a file declares must be those of the photos: else its boxes would land elsewhere."""
+        for raw, size in sizes.items():
+            name = matched.get(raw)
+            try:
+                w, h = (int(round(float(v))) for v in size)
+            except (TypeError, ValueError):
+                continue
+            if name is None or w <= 0 or h <= 0:
+                continue  # no size given (VOC writes 0 for unknown)
+            if (w, h) != self.size(name):
+                W, H = self.size(name)
+                raise InputError(f"image '{raw}' is {w}x{h} px in the imported file but {name} is {W}x{H} px on "
+                                 f"disk: the boxes were drawn on another version of the photo", path=source,
+                                 fix="import boxes made on these same (not resized, not rotated) images, or point "
+                                     "'images' at the photos the boxes were drawn on")
+
+    def _import_box(self, name: str, xyxy) -> tuple[list[float] | None, tuple[str, str], bool]:
+        """(the box clipped to the image, or None; (reason, detail) when None; True when it was clipped)."""
+        try:
+            x1, y1, x2, y2 = (float(v) for v in xyxy)
+        except (TypeError, ValueError):
+            return None, ("box is not four numbers", f"{xyxy!r}"), False
+        if not all(math.isfinite(v) for v in (x1, y1, x2, y2)):
+            return None, ("box is not four finite numbers", f"{xyxy!r}"), False
+        if x2 <= x1 or y2 <= y1:
+            return None, ("zero or negative size", f"width {x2 - x1:g}, height {y2 - y1:g} px"), False
+        w, h = self.size(name)
+        if x2 <= 0 or y2 <= 0 or x1 >= w or y1 >= h:
+            return None, ("outside the image", f"the image is {w}x{h} px"), False
+        box = self._clipped(name, xyxy, min_size=0.0)  # keep thin boxes cut by the image edge
+        if box is None:
+            return None, ("outside the image", f"nothing left inside the {w}x{h} px image"), False
+        t = EDGE_TOLERANCE
+        return box, ("", ""), x1 < -t or y1 < -t or x2 > w + t or y2 > h + t
 
     def _category_for(self, name: str) -> int:
         cats = self.state["categories"]
@@ -311,8 +401,13 @@ class AnnotationStore:
         return cats.index(name) + 1
 
     # -- exports
-    def to_coco(self, include_unseen: bool = False) -> dict:
-        """One COCO dataset of the images that were looked at or have boxes (all with ``include_unseen``)."""
+    def to_coco(self, include_unseen: bool = False, regions: dict[str, Any] | None = None) -> dict:
+        """One COCO dataset of the images that were looked at or have boxes (all with ``include_unseen``).
+
+        ``regions`` (image name -> polygon in its pixels) records the part of each image that was
+        annotated (``annotated_region``, :mod:`matchplant.core.coco`); images without one were annotated whole.
+        """
+        regions = regions or {}
         ds = new_dataset(self.categories, info={"description": "MatchPlant annotations (module 4)",
                                                 "images_dir": str(self.images_dir)})
         ann_id = 1
@@ -322,6 +417,8 @@ class AnnotationStore:
                 continue
             w, h = self.size(name)
             ds["images"].append({"id": image_id, "file_name": name, "width": w, "height": h})
+            if regions.get(name) is not None:
+                ds["images"][-1][REGION_KEY] = region_entry(regions[name])
             for b in entry["boxes"]:
                 x1, y1, x2, y2 = b["xyxy"]
                 extra = {"score": b["score"]} if "score" in b else {}
@@ -331,8 +428,9 @@ class AnnotationStore:
                 ann_id += 1
         return ds
 
-    def export(self, coco: bool = True, yolo: bool = False, include_unseen: bool = False) -> dict[str, Path]:
-        ds = self.to_coco(include_unseen)
+    def export(self, coco: bool = True, yolo: bool = False, include_unseen: bool = False,
+               regions: dict[str, Any] | None = None) -> dict[str, Path]:
+        ds = self.to_coco(include_unseen, regions)
         out: dict[str, Path] = {}
         if coco:
             out["coco"] = write_dataset(self.output_dir / "annotations.json", ds)
@@ -341,4 +439,5 @@ class AnnotationStore:
         return out
 
 
-__all__ = ["AnnotationStore", "ImportedBox", "clip_box", "MAX_CATEGORIES"]
+__all__ = ["AnnotationStore", "ImportedBox", "ImportedBoxes", "check_image_file", "clip_box", "MAX_CATEGORIES",
+           "NOT_A_FAULT"]

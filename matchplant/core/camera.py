@@ -222,6 +222,10 @@ class FisheyeCamera(Camera):
 def camera_from_opensfm(camera_id: str, d: dict) -> Camera:
     """Build a camera from an entry of ``reconstruction.json``'s ``cameras``."""
     t = d.get("projection_type", "perspective")
+    if t not in PINHOLE_TYPES + FISHEYE_TYPES:
+        raise GeometryError(f"camera '{camera_id}' has projection type '{t}', which MatchPlant does not support",
+                            fix=f"supported: {', '.join(PINHOLE_TYPES + FISHEYE_TYPES)}; "
+                                "re-run ODM with --camera-lens brown")
     try:
         w, h = int(d["width"]), int(d["height"])
         if t in ("perspective", "fisheye"):
@@ -242,6 +246,4 @@ def camera_from_opensfm(camera_id: str, d: dict) -> Camera:
     except KeyError as exc:
         raise GeometryError(f"camera '{camera_id}' ({t}) lacks the parameter {exc}",
                             fix="the reconstruction file is incomplete; re-run the reconstruction") from exc
-    raise GeometryError(f"camera '{camera_id}' has projection type '{t}', which MatchPlant does not support",
-                        fix=f"supported: {', '.join(PINHOLE_TYPES + FISHEYE_TYPES)}; "
-                            "re-run ODM with --camera-lens brown")
+    raise AssertionError(t)  # pragma: no cover - every supported type returned above

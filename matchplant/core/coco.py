@@ -13,16 +13,33 @@ for the image entries is accepted too.
 
 from __future__ import annotations
 
+import csv
+import io
+import math
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, NamedTuple
 
 import numpy as np
 
 from matchplant.core.errors import InputError
-from matchplant.core.io import read_json, write_json
+from matchplant.core.io import write_json, write_text
+from matchplant.core.validate import read_json
 
 PROVENANCE_KEYS = ("source_image", "x0", "y0")
+# an image entry's annotated region: a polygon [[x, y], ...] in that image's pixels (pixel edges, as
+# boxes); every plant touching it is boxed, plants outside it are not. No key: the whole image.
+REGION_KEY = "annotated_region"
+
+
+class LabelledBox(NamedTuple):
+    """A box read from an annotation file: ``[x1, y1, x2, y2]`` pixel edges, a category name, a score."""
+
+    xyxy: list[float]
+    category: str
+    score: float | None = None
+    where: str = ""  # where in its file (line, object), for the report of boxes left out
 
 
 def new_dataset(categories: Iterable[str], info: dict | None = None) -> dict:
@@ -41,20 +58,28 @@ def make_annotation(ann_id: int, image_id: int, bbox: Iterable[float], category_
 
 
 def read_dataset(path: str | Path, *, validate: bool = True) -> dict:
+    """A COCO dataset (UTF-8 with or without BOM); its lists must hold objects. With ``validate``, every
+    problem of :func:`validate_dataset` is an error naming the annotation or image ids."""
     path = Path(path)
-    data = read_json(path)
+    data = read_json(path, what="COCO file")
     if not isinstance(data, dict) or "images" not in data:
         raise InputError("not a COCO dataset (no 'images' list)", path=path,
                          fix="give the COCO JSON written by module 4 or 5")
     data.setdefault("annotations", [])
     data.setdefault("categories", [])
+    for key in ("images", "annotations", "categories"):
+        items = data[key]
+        if not isinstance(items, list) or not all(isinstance(item, dict) for item in items):
+            raise InputError(f"'{key}' is not a list of objects {{...}}", path=path,
+                             fix="give a COCO dataset (images, annotations, categories are lists of objects)")
     if validate:
         problems = validate_dataset(data)
         if problems:
             shown = "\n".join(f"  - {p}" for p in problems[:10])
             more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
             raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=path,
-                             fix="correct the annotations (module 4 can open and fix them)")
+                             fix="correct them, or import the file with module 4 (import_coco), which leaves out "
+                                 "and lists the boxes it cannot use, and use module 4's annotations.json")
     return data
 
 
@@ -96,11 +121,12 @@ def validate_dataset(data: dict, *, tolerance: float = 1.0) -> list[str]:
             continue
         if a.get("category_id") not in cat_ids:
             problems.append(f"annotation {a.get('id')} has unknown category {a.get('category_id')}")
-        box = a.get("bbox")
-        if not (isinstance(box, (list, tuple)) and len(box) == 4):
-            problems.append(f"annotation {a.get('id')} has no [x, y, w, h] bbox")
+        box = bbox_values(a.get("bbox"))
+        if box is None:
+            problems.append(f"annotation {a.get('id')} has no [x, y, w, h] bbox of finite numbers "
+                            f"(got {a.get('bbox')!r})")
             continue
-        x, y, w, h = (float(v) for v in box)
+        x, y, w, h = box
         if not (w > 0 and h > 0):
             problems.append(f"annotation {a.get('id')} in {im.get('file_name')} has a box of size {w}x{h}")
         W, H = im.get("width", 0), im.get("height", 0)
@@ -108,6 +134,64 @@ def validate_dataset(data: dict, *, tolerance: float = 1.0) -> list[str]:
             problems.append(f"annotation {a.get('id')} box {[x, y, w, h]} lies outside "
                             f"{im.get('file_name')} ({W}x{H})")
     return problems
+
+
+def bbox_values(bbox: Any) -> list[float] | None:
+    """``[x, y, w, h]`` as four finite floats, or None when it is not that (missing, text, NaN, 5 values)."""
+    if not isinstance(bbox, (list, tuple)) or len(bbox) != 4:
+        return None
+    try:
+        values = [float(v) for v in bbox]
+    except (TypeError, ValueError):
+        return None
+    return values if all(math.isfinite(v) for v in values) else None
+
+
+# -- what an import or a tiling run left out, and why ---------------------------------------------------
+
+DROP_COLUMNS = ("source", "where", "image", "box", "reason", "detail")
+
+
+@dataclass
+class DropLog:
+    """Boxes (or images) left out of a run, one row each: the file they came from, where in it (annotation
+    id, line), the image, the box, a short reason (counted in the warning) and details. Written as CSV."""
+
+    rows: list[dict] = field(default_factory=list)
+
+    def add(self, source: Any, where: Any, image: Any, box: Any, reason: str, detail: str = "") -> None:
+        shown = box if isinstance(box, str) else ("" if box is None else
+                                                  "[" + ", ".join(_short(v) for v in box) + "]")
+        self.rows.append({"source": str(source), "where": str(where), "image": str(image), "box": shown,
+                          "reason": reason, "detail": detail})
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def count(self, source: Any = None) -> int:
+        return sum(1 for r in self.rows if source is None or r["source"] == str(source))
+
+    def summary(self, source: Any = None) -> str:
+        """``"12 box outside the image, 3 unknown category id"`` (most frequent first)."""
+        counts = Counter(r["reason"] for r in self.rows if source is None or r["source"] == str(source))
+        return ", ".join(f"{n} {reason}" for reason, n in counts.most_common())
+
+    def first(self, source: Any = None) -> dict | None:
+        return next((r for r in self.rows if source is None or r["source"] == str(source)), None)
+
+    def write_csv(self, path: str | Path) -> Path:
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=DROP_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(self.rows)
+        return write_text(path, buf.getvalue())
+
+
+def _short(v: Any) -> str:
+    try:
+        return f"{float(v):g}"
+    except (TypeError, ValueError):
+        return repr(v)
 
 
 def annotations_by_image(data: dict) -> dict[int, list[dict]]:
@@ -131,6 +215,27 @@ def to_source_pixels(bbox: Iterable[float], image: dict) -> list[float]:
     return [x + float(image.get("x0", 0)), y + float(image.get("y0", 0)), w, h]
 
 
+def annotated_region(image: dict) -> np.ndarray | None:
+    """The image entry's annotated region as an (N, 2) polygon, or None when the whole image was annotated."""
+    poly = image.get(REGION_KEY)
+    if poly is None:
+        return None
+    try:
+        arr = np.asarray(poly, dtype=float)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3 or not np.isfinite(arr).all():
+        raise InputError(f"the {REGION_KEY} of image '{image.get('file_name')}' is not a list of at least 3 "
+                         f"[x, y] points", fix=f"remove '{REGION_KEY}' (whole image annotated) or re-export "
+                                               f"the annotations with module 4")
+    return arr
+
+
+def region_entry(polygon) -> list[list[float]]:
+    """A polygon as stored under :data:`REGION_KEY` (rounded to 0.01 px)."""
+    return [[round(float(x), 2), round(float(y), 2)] for x, y in np.asarray(polygon, dtype=float)]
+
+
 def source_name(image: dict) -> str:
     return image.get("source_image") or image["file_name"]
 
@@ -152,7 +257,7 @@ def read_predictions(path: str | Path, images_from: str | Path | None = None) ->
     dataset providing the image entries).
     """
     path = Path(path)
-    data = read_json(path)
+    data = read_json(path, what="predictions file")
     if isinstance(data, list):
         if images_from is None:
             raise InputError("this is a plain COCO results list; it has no image names", path=path,
@@ -161,6 +266,10 @@ def read_predictions(path: str | Path, images_from: str | Path | None = None) ->
         data = {"images": ds["images"], "categories": ds["categories"], "predictions": data}
     if not isinstance(data, dict) or "predictions" not in data or "images" not in data:
         raise InputError("not a predictions file (needs 'images' and 'predictions')", path=path,
+                         fix="give the predictions JSON written by module 7")
+    if not isinstance(data["images"], list) or not all(isinstance(im, dict) and "id" in im for im in data["images"]) \
+            or not isinstance(data["predictions"], list) or not all(isinstance(p, dict) for p in data["predictions"]):
+        raise InputError("'images' and 'predictions' must be lists of objects (images with an 'id')", path=path,
                          fix="give the predictions JSON written by module 7")
     known = {im["id"] for im in data["images"]}
     orphans = [p for p in data["predictions"] if p.get("image_id") not in known]

@@ -41,3 +41,7 @@ class GeometryError(MatchPlantError):
 
 class DependencyError(MatchPlantError):
     """An optional dependency, service or resource (Docker, weights, network) is not available."""
+
+
+class OutputError(MatchPlantError):
+    """An output cannot be written where asked (a read-only folder, a file in the way, an input's place)."""

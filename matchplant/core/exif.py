@@ -20,7 +20,7 @@ import numpy as np
 import piexif
 
 from matchplant.core.errors import InputError
-from matchplant.core.io import atomic_open
+from matchplant.core.io import BatchedWrites, atomic_open
 from matchplant.core.log import get_logger
 
 log = get_logger("exif")
@@ -253,8 +253,11 @@ def dump_exif(exif: dict, src: Path) -> bytes:
 
 
 def write_gps_copy(src: Path, dst: Path, exif: dict, lat: float, lon: float, alt: float | None,
-                   utc_time: float | None = None) -> None:
-    """Copy ``src`` to ``dst`` with the GPS IFD set; the pixel data and other segments are untouched."""
+                   utc_time: float | None = None, writer: BatchedWrites | None = None) -> None:
+    """Copy ``src`` to ``dst`` with the GPS IFD set; the pixel data and other segments are untouched.
+
+    With ``writer`` (a :class:`~matchplant.core.io.BatchedWrites` on ``dst``'s folder) the copy is made
+    durable with its batch (one sync per batch); without, on its own (an fsync per file)."""
     exif = {k: v for k, v in exif.items() if k != "GPS"}
     exif["GPS"] = gps_ifd(lat, lon, alt, utc_time)
     exif_bytes = dump_exif(exif, src)
@@ -264,5 +267,8 @@ def write_gps_copy(src: Path, dst: Path, exif: dict, lat: float, lon: float, alt
     except ValueError as exc:
         raise InputError(f"cannot write EXIF into this image: {exc}", path=src,
                          fix="check that the file is a complete JPEG") from exc
+    if writer is not None:
+        writer.write(Path(dst).name, out)
+        return
     with atomic_open(dst, "wb") as fh:
         fh.write(out)

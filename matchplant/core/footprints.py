@@ -44,6 +44,7 @@ class Footprint:
     border: np.ndarray      # (N, 3) map points where the border rays meet the DSM (or the fallback plane)
     border_uv: np.ndarray   # (N, 2) the border pixels
     hit: np.ndarray         # (N,) True where the ray met the DSM
+    frame: Frame | None = None  # the shot's frame (a split project's submodels have one each)
 
     @property
     def centroid(self) -> tuple[float, float]:
@@ -117,15 +118,18 @@ def open_dsm(path: Path, resolution: float = 0.0) -> Surface:
     return Surface(data=data, transform=transform, crs=crs, path=Path(path))
 
 
-def compute_footprints(project: ODMProject, frame: Frame, surface: Surface, per_side: int = 16,
+def compute_footprints(project: ODMProject, frame: Frame | None, surface: Surface, per_side: int = 16,
                        names: Sequence[str] | None = None) -> list[Footprint]:
-    """Footprints of every undistorted image in the reconstruction (sorted by name).
+    """Footprints of every undistorted image in the reconstruction (sorted by name), over every submodel of a
+    split project (each image once, each shot in its own frame; ``frame``, if given, only sets the map CRS).
 
     An image whose border misses the DSM is skipped with a warning rather than failing the flight.
     """
-    rec = project.reconstruction(undistorted=True)
+    ids = project.shot_ids(undistorted=True)
+    if not ids:
+        project.require("undistorted_reconstruction")
     files = project.undistorted_images()
-    todo = sorted(n for n in (names or rec.shots) if n in files and n in rec.shots)
+    todo = sorted(n for n in (names or ids) if n in files and n in ids)
     if not todo:
         raise InputError("no undistorted image matches the undistorted reconstruction",
                          path=project.path("undistorted_images"),
@@ -133,12 +137,14 @@ def compute_footprints(project: ODMProject, frame: Frame, surface: Surface, per_
     out = []
     for name in progress(todo, desc="footprints", unit="image"):
         shot = project.shot(name, undistorted=True)
+        shot_frame = project.frame_of(name)
         try:
-            poly, pts, uv, hit = image_footprint(shot, frame, surface, per_side)
+            poly, pts, uv, hit = image_footprint(shot, shot_frame, surface, per_side)
         except GeometryError as exc:
             log.warning("skipping %s: %s", name, exc.problem)
             continue
-        out.append(Footprint(name=name, file=files[name], shot=shot, polygon=poly, border=pts, border_uv=uv, hit=hit))
+        out.append(Footprint(name=name, file=files[name], shot=shot, polygon=poly, border=pts, border_uv=uv,
+                             hit=hit, frame=shot_frame))
     if not out:
         raise InputError("no image footprint could be placed on the DSM", path=project.path("dsm"),
                          fix="check that the DSM and the reconstruction are of the same field")

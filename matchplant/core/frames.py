@@ -21,6 +21,7 @@ from pyproj.exceptions import CRSError
 
 from matchplant.core.errors import InputError
 from matchplant.core.io import write_text
+from matchplant.core.validate import read_text
 
 _UTM_TEXT = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
@@ -47,24 +48,34 @@ def utm_crs_for(lon: float, lat: float) -> CRS:
 
 
 def read_coords_txt(path: str | Path) -> tuple[CRS, np.ndarray]:
-    """``odm_georeferencing/coords.txt``: line 1 the CRS, line 2 the integer offset ``x y``."""
+    """``odm_georeferencing/coords.txt``: line 1 the CRS, line 2 the integer offset ``x y`` (BOM, CRLF and
+    UTF-16 accepted); a missing, empty or garbled file is an error naming the line."""
     path = Path(path)
+    fix = "restore coords.txt from ODM's output (line 1: e.g. 'WGS84 UTM 14N', line 2: 'x y'), or re-run ODM"
     if not path.is_file():
         raise InputError("coords.txt not found", path=path,
                          fix="ODM writes it when the images carry GPS or a gcp_list.txt is given")
-    lines = [ln.strip() for ln in path.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
-    if len(lines) < 2:
-        raise InputError("coords.txt must hold the CRS on line 1 and the offset 'x y' on line 2", path=path,
-                         fix="restore the file from ODM's output")
-    crs = parse_crs(lines[0], source=path)
     try:
-        offset = np.array([float(v) for v in lines[1].split()[:2]] + [0.0])
-    except ValueError as exc:
-        raise InputError(f"coords.txt line 2 is not an 'x y' offset: {lines[1]!r}", path=path,
-                         fix="restore the file from ODM's output") from exc
-    if offset.size != 3:
-        raise InputError("coords.txt line 2 must hold two numbers", path=path, fix="restore the file")
-    return crs, offset
+        text = read_text(path, what="coords.txt")
+    except InputError as exc:
+        raise InputError(exc.problem, path=path, fix=fix) from exc
+    lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.split("\n")) if ln.strip()]
+    if len(lines) < 2:
+        raise InputError(f"coords.txt has {len(lines)} line(s): it must hold the CRS on line 1 and the offset "
+                         "'x y' on line 2", path=path, fix=fix)
+    crs = parse_crs(lines[0][1], source=path)
+    if crs.is_geographic:
+        raise InputError(f"coords.txt line {lines[0][0]}: {lines[0][1]!r} is a geographic CRS; ODM writes a "
+                         "projected one (UTM) there", path=path, fix=fix)
+    lineno, second = lines[1]
+    try:
+        values = [float(v) for v in second.replace(",", " ").split()[:2]]
+    except ValueError:
+        values = []
+    if len(values) != 2 or not np.all(np.isfinite(values)):
+        raise InputError(f"coords.txt line {lineno} is not an 'x y' offset (two numbers): {second!r}", path=path,
+                         fix=fix)
+    return crs, np.array(values + [0.0])
 
 
 def write_coords_txt(path: str | Path, crs: CRS, offset: np.ndarray) -> Path:
@@ -145,6 +156,15 @@ class TopocentricFrame(Frame):
         lon, lat, h = self._lla_to_map.transform(p[:, 0], p[:, 1], p[:, 2], direction="INVERSE")
         e, n, u = self._enu_to_lla.transform(lon, lat, h, direction="INVERSE")
         return np.stack([e, n, u], axis=-1).reshape(shape)
+
+    def rotation_from_map(self, local: np.ndarray, h: float = 1.0) -> np.ndarray:
+        """The rotation Q (3, 3) closest to d(map)/d(local) at the local point ``local``: a world->camera rotation
+        ``R_map`` in map axes is ``R_map @ Q`` in this frame's axes (polar decomposition of the Jacobian; the map
+        projection's scale, about 1e-4, is what is left out)."""
+        pts = np.asarray(local, dtype=float)[None, :] + np.concatenate([np.eye(3) * h, -np.eye(3) * h])
+        m = self.to_map(pts)
+        u, _, vt = np.linalg.svd(((m[:3] - m[3:]) / (2 * h)).T)
+        return u @ vt
 
     def describe(self) -> str:
         return f"topocentric around lat {self.lat:.7f}, lon {self.lon:.7f} -> {self.crs.name}"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import os
 import platform
 import sys
 from importlib import metadata
@@ -76,7 +77,8 @@ def start_run_log(output_dir: str | Path, module: str, config: Any = None) -> Pa
     log_dir = Path(output_dir) / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    path = log_dir / f"{module}_{stamp}.log"
+    rank = os.environ.get("RANK", "0")  # torchrun: one log per process, not one overwritten by all
+    path = log_dir / (f"{module}_{stamp}.log" if rank == "0" else f"{module}_{stamp}_rank{rank}.log")
     handler = logging.FileHandler(path, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     handler.setLevel(logging.DEBUG)

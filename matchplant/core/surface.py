@@ -23,6 +23,9 @@ from rasterio.windows import Window, from_bounds
 from scipy.ndimage import maximum_filter, minimum_filter
 
 from matchplant.core.errors import InputError
+from matchplant.core.log import get_logger
+
+log = get_logger("surface")
 
 HIT, NOT_DOWNWARD, OUTSIDE, NODATA, NO_HIT = 0, 1, 2, 3, 4
 STATUS_TEXT = {
@@ -34,6 +37,7 @@ STATUS_TEXT = {
 }
 _REFINE_ITERATIONS = 60  # refinement steps at most
 _REFINE_TOLERANCE = 1e-7  # metres (along the ray, and above the surface) at which refinement stops
+_DIP_DEPTH = 64  # bisection stack of the search for thin crossings between two march samples
 _BLOCK = 8  # cells per side of the blocks whose maxima let rays skip empty space
 GROUND_CELL = 0.02  # metres: cell size (at least the DSM's) of the ground estimated from the DSM
 
@@ -135,6 +139,51 @@ def _inside(data, inv, x, y):
 
 
 @numba.njit(cache=True, nogil=True)
+def _cells_range(data, inv, x, y):
+    """Lowest and highest valid cell of the 3 x 3 cells around map (x, y): the bilinear surface within half a
+    cell of the point lies between them, and its slope is at most their difference per cell (x sqrt 2)."""
+    rows, cols = data.shape
+    col = int(math.floor(inv[0] * x + inv[1] * y + inv[2]))
+    row = int(math.floor(inv[3] * x + inv[4] * y + inv[5]))
+    lo, hi = math.inf, -math.inf
+    for r in range(max(row - 1, 0), min(row + 2, rows)):
+        for c in range(max(col - 1, 0), min(col + 2, cols)):
+            v = data[r, c]
+            if v > hi:
+                hi = v
+            if v < lo:
+                lo = v
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _dip(data, inv, o, d, clearance, a, b, fa, fb, slope):
+    """The first s in [a, b] (a half-cell step, f(a) > 0 and f(b) > 0) where the ray comes to the surface,
+    or NaN: bisection wherever the bound ``f >= (fa + fb - K (b - a)) / 2`` (K: f's steepest change per unit
+    s, from ``slope``) lets a dip below zero hide; a crossing found is refined."""
+    k = abs(d[2]) + slope * math.sqrt(d[0] * d[0] + d[1] * d[1])
+    tol = 1e-3 * (b - a)
+    st = np.empty((_DIP_DEPTH, 4))
+    st[0, 0], st[0, 1], st[0, 2], st[0, 3] = a, b, fa, fb
+    n = 1
+    while n > 0:
+        n -= 1
+        a, b, fa, fb = st[n, 0], st[n, 1], st[n, 2], st[n, 3]
+        if fa + fb >= k * (b - a) or b - a < tol or n + 2 > _DIP_DEPTH:
+            continue  # no dip fits here (or one thinner than a thousandth of the step: a touch)
+        m = 0.5 * (a + b)
+        fm = o[2] + m * d[2] - _bilinear(data, inv, o[0] + m * d[0], o[1] + m * d[1]) - clearance
+        if math.isnan(fm):
+            continue
+        if fm <= 0.0:
+            return _refine(data, inv, o, d, clearance, a, m, fa, fm)
+        st[n, 0], st[n, 1], st[n, 2], st[n, 3] = m, b, fm, fb  # the right half waits ...
+        st[n + 1, 0], st[n + 1, 1], st[n + 1, 2], st[n + 1, 3] = a, m, fa, fm  # ... the left is looked at first
+        n += 2
+    return math.nan
+
+
+@numba.njit(cache=True, nogil=True)
 def _refine(data, inv, o, d, clearance, a, b, fa, fb):
     """The crossing in [a, b] (f(a) > 0 >= f(b)): regula falsi with the Illinois rule (a few steps where
     bisection needs dozens); a hole inside the bracket counts as below, so the hit stays at its edge."""
@@ -179,6 +228,7 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
     ox, oy, oz = o[0], o[1], o[2]
     dx, dy, dz = d[0], d[1], d[2]
     step = (s_to - s_from) / n
+    cell = max(abs(inv[0]), abs(inv[4]))  # 1 / the cell size
     prev_s = s_from
     for k in range(1, n + 1):
         s = s_from + k * step
@@ -190,6 +240,14 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
                 status = 2 if not _inside(data, inv, x, y) else 3
         elif prev_f > 0.0 and f <= 0.0:
             return _refine(data, inv, o, d, clearance, prev_s, s, prev_f, f), f, 0
+        elif prev_f > 0.0:
+            lo, hi = _cells_range(data, inv, ox + (s - 0.5 * step) * dx, oy + (s - 0.5 * step) * dy)
+            if oz + s * dz - clearance <= hi:
+                # above the surface at both samples, but a cell between them reaches the ray: a thin crossing
+                # (a leaf tip) may hide between the samples
+                hit = _dip(data, inv, o, d, clearance, prev_s, s, prev_f, f, 1.5 * (hi - lo) * cell)
+                if not math.isnan(hit):
+                    return hit, f, 0
         prev_f = f
         prev_s = s
     return math.nan, prev_f, status
@@ -199,7 +257,8 @@ def _crossing(data, inv, o, d, clearance, s_from, s_to, n, prev_f, status):
 def _intersect_many(data, inv, block_max, block, zmin, zmax, pixel, o, d, clearance, max_steps, z_top, z_bottom,
                     out_s, out_status):
     """For each ray: skip, a block at a time, the stretches where it stays above the highest cell of the
-    3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps; refine the first
+    3x3 blocks around it (``block_max``); march the rest in half-pixel horizontal steps (finer where a cell
+    reaches the ray between two samples, so a thin crossing is not stepped over); refine the first
     step from above ``clearance`` to at or below it. ``z_top``, ``z_bottom``: per-ray height range to
     search (NaN: the surface's)."""
     margin = 0.01 + 1e-6 * (abs(zmax) + abs(zmin))
@@ -334,6 +393,10 @@ class Surface:
             block = max(1, int(round(GROUND_CELL / self.pixel_size)))
             low, high, hole = _block_stats(self.data, block)
             size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
+            used = size * block * self.pixel_size
+            if used > window * 1.5:
+                log.info("ground estimate: window raised from ground_window=%.3g m to %.3g m (%d cells of %.3g m, "
+                         "the least the opening needs)", window, used, size, block * self.pixel_size)
             eroded = minimum_filter(low, size=size, mode="nearest")
             opened = maximum_filter(np.where(np.isinf(eroded), -np.inf, eroded), size=size, mode="nearest")
             opened[~np.isfinite(opened) | hole] = np.nan  # DSM holes stay holes: rays meeting them are reported
@@ -433,7 +496,8 @@ class Surface:
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of straight rays (in the raster's CRS) with the surface.
 
-        Each ray is marched in half-pixel horizontal steps between the heights of the highest and lowest
+        Each ray is marched in half-pixel horizontal steps (sampled finer wherever a cell between two samples
+        reaches the ray, so a thin first crossing such as a leaf tip is not stepped over) between the heights of the highest and lowest
         valid cell (so slopes and plant edges are found, not a flat plane), and the first bracket is
         refined. Over a gentle surface (``max_slope`` x the rays' tangent < 0.8: each ray crosses it once)
         a fixed-point iteration replaces the march. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray

@@ -1,39 +1,175 @@
-"""Which torch device to use: CUDA, then Apple MPS, then CPU, unless the user says otherwise."""
+"""Which torch device to use, said out loud: CUDA, then Apple MPS, then CPU, unless the user says otherwise.
+
+:func:`select_device` logs the device and why it was chosen (a GPU found; CUDA not usable and the reason:
+a CPU-only PyTorch build, no NVIDIA driver, a driver too old for this build, a GPU this build was not
+compiled for; MPS; CPU). :func:`warn_if_slow` estimates how long detection will take on the CPU from
+the number and size of the images and warns before a long run (the rates are measured, see the README's
+"How long will it take?").
+"""
 
 from __future__ import annotations
 
+import os
+import shutil
+import warnings
+
 from matchplant.core.errors import ConfigError
+from matchplant.core.log import get_logger
+from matchplant.detection.model import ModelConfig, build_detector
 
 DEVICE_CHOICES = ("auto", "cuda", "mps", "cpu")
+log = get_logger("device")
+
+# CPU seconds per megapixel for one forward pass (detection), measured on this project's 2-core machine
+# (`python -m matchplant.detection.device --measure`, README "How long will it take?").
+# (measured while other jobs shared the machine: pessimistic; an idle machine is faster)
+CPU_SECONDS_PER_MEGAPIXEL = {"fasterrcnn_resnet50_fpn": 15.2, "fasterrcnn_resnet50_fpn_v2": 28.2,
+                             "fasterrcnn_mobilenet_v3_large_fpn": 9.2}
+WARN_AFTER_S = 600.0
 
 
-def select_device(preference: str = "auto"):
-    """Return a ``torch.device``. ``preference`` is auto, cpu, mps, cuda or cuda:N."""
+def cuda_unusable_reason(torch) -> str:
+    """Why ``torch.cuda`` cannot be used here, in words a user can act on."""
+    if torch.version.cuda is None:
+        return ("this PyTorch build has no CUDA support (a CPU-only wheel); install a CUDA build from "
+                "https://pytorch.org/get-started/locally/ to use an NVIDIA GPU")
+    has_driver = shutil.which("nvidia-smi") is not None or os.path.exists("/proc/driver/nvidia/version")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.is_available()
+    said = " ".join(str(caught[-1].message).split()) if caught else ""
+    if not has_driver and not said:
+        return f"no NVIDIA GPU driver found (PyTorch is built for CUDA {torch.version.cuda})"
+    if said:
+        return f"PyTorch (CUDA {torch.version.cuda}) cannot use the GPU: {said}"
+    return (f"an NVIDIA driver is installed but PyTorch (CUDA {torch.version.cuda}) sees no usable GPU; "
+            "check `nvidia-smi` and CUDA_VISIBLE_DEVICES")
+
+
+def _cuda_works(torch, dev) -> str | None:
+    """None when a small computation runs on ``dev``, else the error (e.g. a GPU too new for this build)."""
+    try:
+        (torch.ones(8, device=dev) * 2).sum().item()
+        return None
+    except Exception as exc:  # noqa: BLE001 - any failure means "not usable", reported to the user
+        return " ".join(str(exc).split())[:300]
+
+
+def _describe_cuda(torch, dev) -> str:
+    index = dev.index if dev.index is not None else torch.cuda.current_device()
+    props = torch.cuda.get_device_properties(index)
+    return (f"{props.name}, {props.total_memory / 2**30:.0f} GiB, compute capability {props.major}.{props.minor}; "
+            f"PyTorch {torch.__version__} built for CUDA {torch.version.cuda}")
+
+
+def explain_device(preference: str = "auto"):
+    """``(torch.device, reason)`` for ``preference`` (auto, cpu, mps, cuda or cuda:N)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     pref = (preference or "auto").lower()
+    mps = getattr(torch.backends, "mps", None)
+    mps_ok = mps is not None and mps.is_available()
+    if pref == "cpu":
+        return torch.device("cpu"), "asked for (device: cpu)"
     if pref == "auto":
         if torch.cuda.is_available():
-            return torch.device("cuda")
-        mps = getattr(torch.backends, "mps", None)
-        if mps is not None and mps.is_available():
-            return torch.device("mps")
-        return torch.device("cpu")
-    if pref == "cpu":
-        return torch.device("cpu")
+            dev = torch.device("cuda")
+            broken = _cuda_works(torch, dev)
+            if broken is None:
+                return dev, f"CUDA GPU found: {_describe_cuda(torch, dev)}"
+            why = f"a CUDA GPU is present but a test computation failed: {broken}"
+        else:
+            why = cuda_unusable_reason(torch)
+        if mps_ok:
+            return torch.device("mps"), f"Apple Metal (MPS) GPU; no CUDA: {why}"
+        return torch.device("cpu"), f"no GPU: {why}"
     if pref.startswith("cuda"):
         if not torch.cuda.is_available():
-            raise ConfigError(f"device '{preference}' was asked for but no CUDA GPU is available",
-                              fix="set device: auto (or cpu)")
+            raise ConfigError(f"device '{preference}' was asked for but CUDA cannot be used: "
+                              f"{cuda_unusable_reason(torch)}", fix="set device: auto (or cpu)")
         dev = torch.device(pref)
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise ConfigError(f"device '{preference}' does not exist: {torch.cuda.device_count()} GPU(s) found",
                               fix="use cuda:0 .. cuda:N-1, or device: auto")
-        return dev
+        broken = _cuda_works(torch, dev)
+        if broken is not None:
+            raise ConfigError(f"device '{preference}' fails a test computation: {broken}",
+                              fix="install a PyTorch build for this GPU and driver, or set device: cpu")
+        return dev, f"asked for: {_describe_cuda(torch, dev)}"
     if pref == "mps":
-        mps = getattr(torch.backends, "mps", None)
-        if mps is None or not mps.is_available():
+        if not mps_ok:
             raise ConfigError("device 'mps' was asked for but Apple Metal is not available",
                               fix="set device: auto (or cpu)")
-        return torch.device("mps")
+        return torch.device("mps"), "asked for: Apple Metal (MPS)"
     raise ConfigError(f"unknown device '{preference}'", fix="use auto, cuda, cuda:N, mps or cpu")
+
+
+def select_device(preference: str = "auto"):
+    """Return a ``torch.device`` and log which one and why."""
+    dev, why = explain_device(preference)
+    log.info("device: %s (%s)", dev, why)
+    return dev
+
+
+def estimate_seconds(architecture: str, n_images: int, width: int, height: int) -> float:
+    """CPU seconds to detect on ``n_images`` of ``width`` x ``height`` pixels (measured rates)."""
+    rate = CPU_SECONDS_PER_MEGAPIXEL.get(architecture, max(CPU_SECONDS_PER_MEGAPIXEL.values()))
+    return rate * n_images * width * height / 1e6
+
+
+def warn_if_slow(device, architecture: str, n_images: int, width: int, height: int,
+                 threshold_s: float = WARN_AFTER_S) -> float | None:
+    """Warn before CPU detection longer than ``threshold_s``; returns the estimate in seconds (None on a GPU)."""
+    if getattr(device, "type", str(device)) != "cpu":
+        return None
+    seconds = estimate_seconds(architecture, n_images, width, height)
+    if seconds >= threshold_s:
+        log.warning("detection on the CPU: about %s for %d image(s) of %d x %d px with %s (%.1f s per megapixel "
+                    "measured on a 2-core machine). Use a CUDA GPU (device: auto picks it) if you have one, "
+                    "or detect only on the images module 3 selected.",
+                    _duration(seconds), n_images, width, height, architecture,
+                    CPU_SECONDS_PER_MEGAPIXEL.get(architecture, 0.0))
+    return seconds
+
+
+def _duration(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min"
+
+
+def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) -> dict[str, float]:
+    """Seconds per megapixel of one detection pass on the CPU, per architecture: a ``tile`` x ``tile`` image
+    (module 7's default tile, resized by the model to its ``min_size``), random weights, best of ``repeats``."""
+    import time
+
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    rates = {}
+    for arch in architectures or CPU_SECONDS_PER_MEGAPIXEL:
+        model = build_detector(ModelConfig(architecture=arch, pretrained="none"), 2, load_weights=False).eval()
+        image = torch.rand(3, tile, tile)
+        best = float("inf")
+        with torch.inference_mode():
+            model([image])  # warm-up
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                model([image])
+                best = min(best, time.perf_counter() - t0)
+        rates[arch] = best / (tile * tile / 1e6)
+    return rates
+
+
+if __name__ == "__main__":  # python -m matchplant.detection.device [--measure]: the device and why; CPU rates
+    import sys
+
+    from matchplant.core.log import setup_console
+
+    setup_console()
+    select_device("auto")
+    if "--measure" in sys.argv:
+        import torch  # lazy: PyTorch is heavy; configs load without it
+
+        print(f"CPU seconds per megapixel (one detection pass, {torch.get_num_threads()} threads):")
+        for name, value in measure_cpu_rates().items():
+            print(f"  {name:<36} {value:.2f}")

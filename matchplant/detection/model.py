@@ -1,8 +1,17 @@
-"""The Faster R-CNN detector of modules 6 and 7: building it from settings, freezing parts, checkpoints.
+"""The detector of modules 6 and 7: building it from settings, freezing parts, checkpoints.
 
-Three torchvision architectures: ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrcnn_resnet50_fpn_v2``
-and ``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU). Every setting of :class:`ModelConfig` is
-passed to the model (anchors, RPN and ROI sampling and thresholds, image size, detections per image).
+Six torchvision architectures, one target format (COCO boxes, labels 1..N) and one checkpoint format:
+the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrcnn_resnet50_fpn_v2`` and
+``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU), and the one-stage ``retinanet_resnet50_fpn``,
+``retinanet_resnet50_fpn_v2`` and ``fcos_resnet50_fpn`` (anchor-free). Every setting of
+:class:`ModelConfig` is passed to the model (anchors, RPN and ROI sampling and thresholds, image size,
+detections per image); the RPN and ROI sampling settings concern Faster R-CNN only, ``roi.nms_thresh``
+and ``roi.detections_per_img`` every architecture. ``anchor_sizes: auto`` is computed from the training
+boxes (:func:`resolve_auto_anchors`, :mod:`matchplant.core.objects`).
+
+One-stage models have no ``rpn`` and their ``head`` is the part called ``roi_heads`` (freezing, learning
+rates); they get a ``roi_heads.score_thresh`` too (:class:`ScoreThreshold`), so that code written for
+Faster R-CNN sets their score threshold the same way (:func:`set_score_threshold` is the direct call).
 
 A checkpoint (docs/DESIGN.md §2) is one ``.pt`` file holding everything needed to rebuild the model with no
 other file: the model settings, class names, the weights, and for training runs the epoch, optimizer,
@@ -12,19 +21,28 @@ scheduler and scaler state, random states, history and metrics. :func:`load_dete
 from __future__ import annotations
 
 import dataclasses
+import types
 import urllib.error
+import zipfile
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+import numpy as np
+
+from matchplant.core.coco import read_dataset
 from matchplant.core.config import from_dict, param, section, to_dict
 from matchplant.core.errors import ConfigError, DependencyError, InputError
 from matchplant.core.io import atomic_path
 from matchplant.core.log import get_logger
+from matchplant.core.objects import auto_anchor_sizes, box_sizes
 
 log = get_logger("detector")
 
-ARCHITECTURES = ("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn_v2", "fasterrcnn_mobilenet_v3_large_fpn")
+ARCHITECTURES = ("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn_v2", "fasterrcnn_mobilenet_v3_large_fpn",
+                 "retinanet_resnet50_fpn", "retinanet_resnet50_fpn_v2", "fcos_resnet50_fpn")
+ONE_STAGE = ("retinanet_resnet50_fpn", "retinanet_resnet50_fpn_v2", "fcos_resnet50_fpn")
 PRETRAINED = ("coco", "imagenet", "none")
 PARTS = ("backbone", "fpn", "rpn", "roi_heads")
 CHECKPOINT_FORMAT = "matchplant-detector"
@@ -35,7 +53,13 @@ DEFAULT_ANCHORS = {
     "fasterrcnn_resnet50_fpn": [[32], [64], [128], [256], [512]],
     "fasterrcnn_resnet50_fpn_v2": [[32], [64], [128], [256], [512]],
     "fasterrcnn_mobilenet_v3_large_fpn": [[32, 64, 128, 256, 512]] * 3,
+    "retinanet_resnet50_fpn": [[x, int(x * 2 ** (1 / 3)), int(x * 2 ** (2 / 3))] for x in (32, 64, 128, 256, 512)],
+    "retinanet_resnet50_fpn_v2": [[x, int(x * 2 ** (1 / 3)), int(x * 2 ** (2 / 3))] for x in (32, 64, 128, 256, 512)],
+    "fcos_resnet50_fpn": [[8], [16], [32], [64], [128]],  # anchor-free: one size per level sets its object range
 }
+AUTO_PER_LEVEL = {"fasterrcnn_resnet50_fpn": 1, "fasterrcnn_resnet50_fpn_v2": 1,
+                  "fasterrcnn_mobilenet_v3_large_fpn": 3, "retinanet_resnet50_fpn": 3,
+                  "retinanet_resnet50_fpn_v2": 3, "fcos_resnet50_fpn": 1}
 
 
 @dataclass
@@ -82,17 +106,19 @@ class ROIConfig:
 class ModelConfig:
     """The detector: architecture, starting weights, input size, anchors, RPN and ROI settings."""
 
-    architecture: str = param("fasterrcnn_resnet50_fpn", "torchvision detector (the paper used ResNet-50 FPN; "
-                              "MobileNetV3 is much faster on a CPU)", choices=ARCHITECTURES)
+    architecture: str = param("fasterrcnn_resnet50_fpn", "torchvision detector: Faster R-CNN (the paper used "
+                              "ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the one-stage RetinaNet "
+                              "and FCOS", choices=ARCHITECTURES)
     pretrained: str = param("coco", "starting weights: coco (whole detector, downloaded once), imagenet "
                             "(backbone only), none (random)", choices=PRETRAINED)
     checkpoint: Path | None = param(None, "start from this MatchPlant checkpoint instead (transfer learning; "
                                     "matching layers are loaded, a different class count is fine)", path="file")
     min_size: int = param(800, "images are resized so their short side is this many pixels", min=32)
     max_size: int = param(1333, "... and their long side at most this many pixels", min=32)
-    anchor_sizes: list[list[int]] | None = param(None, "anchor sizes in pixels, one list per FPN level "
-                                                 "(ResNet-50: 5 levels, MobileNetV3: 3); null = the "
-                                                 "architecture's default", min=1)
+    anchor_sizes: list[list[int]] | Literal["auto"] | None = param(
+        None, "anchor sizes in detector input pixels (after the min_size resize), one list per FPN level "
+              "(ResNet-50: 5 levels, MobileNetV3: 3; FCOS: one size per level); 'auto' = from the training "
+              "boxes (see 'matchplant inspect'); null = the architecture's default", min=1)
     aspect_ratios: list[float] = param([0.5, 1.0, 2.0], "anchor height/width ratios (the same at every level)",
                                        min=0.01)
     rpn: RPNConfig = section(RPNConfig)
@@ -102,7 +128,7 @@ class ModelConfig:
         if self.max_size < self.min_size:
             raise ConfigError(f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
                               fix="set max_size >= min_size")
-        if self.anchor_sizes is not None:
+        if isinstance(self.anchor_sizes, list):
             levels = len(DEFAULT_ANCHORS[self.architecture])
             if len(self.anchor_sizes) != levels:
                 raise ConfigError(f"model.anchor_sizes has {len(self.anchor_sizes)} level(s) but "
@@ -113,6 +139,9 @@ class ModelConfig:
             if len({len(s) for s in self.anchor_sizes}) != 1:
                 raise ConfigError("model.anchor_sizes: every level needs the same number of sizes (one RPN head "
                                   "serves all levels)", fix="give each level's list the same length")
+            if self.architecture.startswith("fcos") and any(len(level) != 1 for level in self.anchor_sizes):
+                raise ConfigError("model.anchor_sizes: FCOS is anchor-free and takes one size per level (it sets "
+                                  "the object sizes each level learns)", fix="e.g. [[8], [16], [32], [64], [128]]")
 
 
 def model_config_from_dict(data: dict) -> ModelConfig:
@@ -133,7 +162,10 @@ def _weights(arch: str, pretrained: str):
 
     detector = {"fasterrcnn_resnet50_fpn": d.FasterRCNN_ResNet50_FPN_Weights.COCO_V1,
                 "fasterrcnn_resnet50_fpn_v2": d.FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1,
-                "fasterrcnn_mobilenet_v3_large_fpn": d.FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1}[arch]
+                "fasterrcnn_mobilenet_v3_large_fpn": d.FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1,
+                "retinanet_resnet50_fpn": d.RetinaNet_ResNet50_FPN_Weights.COCO_V1,
+                "retinanet_resnet50_fpn_v2": d.RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1,
+                "fcos_resnet50_fpn": d.FCOS_ResNet50_FPN_Weights.COCO_V1}[arch]
     backbone = (MobileNet_V3_Large_Weights.IMAGENET1K_V1 if "mobilenet" in arch else ResNet50_Weights.IMAGENET1K_V1)
     if pretrained == "coco":
         return detector, None
@@ -144,11 +176,12 @@ def _weights(arch: str, pretrained: str):
 
 def _frozen_bn_structure(arch: str, pretrained: str) -> bool:
     # torchvision freezes the backbone's batch norms of pretrained ResNet-50 FPN and MobileNetV3 models
-    return pretrained != "none" and arch != "fasterrcnn_resnet50_fpn_v2"
+    # (not of the v2 models)
+    return pretrained != "none" and not arch.endswith("_v2")
 
 
 def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
-    """A torchvision Faster R-CNN with ``num_classes`` outputs (background included) built from ``cfg``.
+    """A torchvision detector with ``num_classes`` outputs (background included) built from ``cfg``.
 
     ``load_weights=False`` builds the same structure without downloading anything (the weights then
     come from a checkpoint).
@@ -161,8 +194,13 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
 
     if num_classes < 2:
         raise InputError("the dataset has no categories", fix="give a COCO dataset with at least one category")
+    if cfg.anchor_sizes == "auto":
+        raise ConfigError("model.anchor_sizes is 'auto' but was not computed from the training boxes",
+                          fix="call resolve_auto_anchors(cfg, train_dataset) first (module 6 does)")
     weights, weights_backbone = _weights(cfg.architecture, cfg.pretrained) if load_weights else (None, None)
-    kwargs = dict(
+    one_stage = cfg.architecture in ONE_STAGE
+    kwargs = dict(min_size=cfg.min_size, max_size=cfg.max_size, nms_thresh=cfg.roi.nms_thresh,
+                  detections_per_img=cfg.roi.detections_per_img) if one_stage else dict(
         min_size=cfg.min_size, max_size=cfg.max_size,
         rpn_pre_nms_top_n_train=cfg.rpn.pre_nms_top_n_train, rpn_pre_nms_top_n_test=cfg.rpn.pre_nms_top_n_test,
         rpn_post_nms_top_n_train=cfg.rpn.post_nms_top_n_train, rpn_post_nms_top_n_test=cfg.rpn.post_nms_top_n_test,
@@ -181,12 +219,11 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
                         num_classes=91 if weights is not None else num_classes,
                         trainable_backbone_layers=trainable if (weights or weights_backbone) else None, **kwargs)
     except (urllib.error.URLError, OSError, ConnectionError) as exc:
-        from torch.hub import get_dir  # lazy: PyTorch is heavy; configs load without it
-        name = (weights or weights_backbone).url.rsplit("/", 1)[-1]
-        raise DependencyError(f"could not download the {cfg.pretrained.upper()} weights of {cfg.architecture} "
-                              f"({type(exc).__name__}: {exc})", path=Path(get_dir()) / "checkpoints" / name,
-                              fix="connect to the internet once (the file is then cached), or copy the file to "
-                                  "that path, or set model.pretrained: none, or start from model.checkpoint") from exc
+        _download_failed(cfg, weights or weights_backbone, exc)
+    assert isinstance(model, nn.Module)
+    if one_stage:
+        _adapt_one_stage(model, cfg, num_classes, coco_head=weights is not None, load_weights=load_weights)
+        return model
     if weights is not None:  # COCO has 91 classes: a new box predictor for ours
         in_features = model.roi_heads.box_predictor.cls_score.in_features
         model.roi_heads.box_predictor = FastRCNNPredictor(in_features, num_classes)
@@ -203,8 +240,109 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             model.rpn.head = RPNHead(model.backbone.out_channels, n, conv_depth=depth)
             if weights is not None:
                 log.info("the RPN head was re-initialised for %d anchors per position", n)
-    assert isinstance(model, nn.Module)
     return model
+
+
+def _download_failed(cfg: ModelConfig, weights, exc: Exception):
+    from torch.hub import get_dir  # lazy: PyTorch is heavy; configs load without it
+
+    name = weights.url.rsplit("/", 1)[-1]
+    raise DependencyError(f"could not download the {cfg.pretrained.upper()} weights of {cfg.architecture} "
+                          f"({type(exc).__name__}: {exc})", path=Path(get_dir()) / "checkpoints" / name,
+                          fix="connect to the internet once (the file is then cached), or copy the file to "
+                              "that path, or set model.pretrained: none, or start from model.checkpoint") from exc
+
+
+def _adapt_one_stage(model, cfg: ModelConfig, num_classes: int, *, coco_head: bool, load_weights: bool) -> None:
+    """RetinaNet / FCOS: our classes, anchors, frozen norms and the score-threshold handle."""
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.retinanet import RetinaNetHead
+
+    fcos = cfg.architecture.startswith("fcos")
+    norm = partial(nn.GroupNorm, 32) if cfg.architecture.endswith("_v2") else None
+    if cfg.anchor_sizes is not None or (not fcos and list(cfg.aspect_ratios) != [0.5, 1.0, 2.0]):
+        sizes = cfg.anchor_sizes or DEFAULT_ANCHORS[cfg.architecture]
+        ratios = (1.0,) if fcos else tuple(float(r) for r in cfg.aspect_ratios)
+        model.anchor_generator = AnchorGenerator(tuple(tuple(int(s) for s in level) for level in sizes),
+                                                 (ratios,) * len(sizes))
+    n = model.anchor_generator.num_anchors_per_location()[0]
+    channels = model.backbone.out_channels
+    if not fcos and n != model.head.classification_head.num_anchors:  # one output per anchor shape
+        model.head = RetinaNetHead(channels, n, num_classes, norm_layer=norm)
+        if coco_head:
+            log.info("the RetinaNet head was re-initialised for %d anchors per position", n)
+    elif coco_head:  # COCO has 91 classes: new class scores for ours (the conv tower is kept)
+        _new_class_scores(model.head.classification_head, n, num_classes)
+    if not load_weights and _frozen_bn_structure(cfg.architecture, cfg.pretrained):
+        _freeze_batchnorm(model.backbone.body)
+    model.roi_heads = ScoreThreshold(model)
+    # label 0 is the background of our label convention (1..N), a real class to a one-stage head
+    model.postprocess_detections = types.MethodType(_without_background, model)
+
+
+def _new_class_scores(head, num_anchors: int, num_classes: int) -> None:
+    """Replace a RetinaNet/FCOS classification head's last layer, initialised as torchvision does."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    old = head.cls_logits
+    layer = torch.nn.Conv2d(old.in_channels, num_anchors * num_classes, kernel_size=3, stride=1, padding=1)
+    torch.nn.init.normal_(layer.weight, std=0.01)
+    torch.nn.init.constant_(layer.bias, -np.log((1 - 0.01) / 0.01))  # prior probability 0.01
+    head.cls_logits = layer
+    head.num_classes = num_classes
+
+
+def _without_background(model, *args, **kwargs):
+    """The one-stage model's own postprocessing, less any box of label 0."""
+    out = type(model).postprocess_detections(model, *args, **kwargs)
+    for det in out:
+        keep = det["labels"] > 0
+        for key in det:
+            det[key] = det[key][keep]
+    return out
+
+
+class ScoreThreshold:
+    """``model.roi_heads.score_thresh`` for one-stage models (a plain attribute, not a module: no
+    weights): reads and sets the model's own ``score_thresh``."""
+
+    def __init__(self, model):
+        self._model = model
+
+    @property
+    def score_thresh(self) -> float:
+        return self._model.score_thresh
+
+    @score_thresh.setter
+    def score_thresh(self, value: float) -> None:
+        self._model.score_thresh = float(value)
+
+
+def set_score_threshold(model, value: float) -> None:
+    """Boxes scoring below ``value`` are dropped by the model (every architecture)."""
+    model = getattr(model, "module", model)  # DistributedDataParallel
+    if hasattr(model, "rpn"):
+        model.roi_heads.score_thresh = float(value)
+    else:
+        model.score_thresh = float(value)
+
+
+def resolve_auto_anchors(cfg: ModelConfig, dataset: dict | str | Path) -> ModelConfig:
+    """``cfg`` with ``anchor_sizes: auto`` replaced by sizes computed from the boxes of ``dataset`` (the
+    training COCO, a dict or a path), in the detector's input pixels (:mod:`matchplant.core.objects`)."""
+    if cfg.anchor_sizes != "auto":
+        return cfg
+    data = dataset if isinstance(dataset, dict) else read_dataset(dataset, validate=False)
+    w, h = box_sizes(data, cfg.min_size, cfg.max_size)
+    if not len(w):
+        raise InputError("model.anchor_sizes: auto needs boxes in the training set, and it has none",
+                         fix="give training tiles with boxes, or set model.anchor_sizes explicitly")
+    levels = len(DEFAULT_ANCHORS[cfg.architecture])
+    sizes = auto_anchor_sizes(w, h, cfg.architecture, levels, AUTO_PER_LEVEL[cfg.architecture])
+    log.info("anchor_sizes: auto -> %s (from %d training boxes, median %.0f px in the detector's input)",
+             sizes, len(w), float(np.median(np.sqrt(w * h))))
+    return dataclasses.replace(cfg, anchor_sizes=sizes)
 
 
 def _freeze_batchnorm(module) -> None:
@@ -227,7 +365,13 @@ def _freeze_batchnorm(module) -> None:
 
 
 def model_parts(model) -> dict[str, Any]:
-    """The four parts that can be frozen and given their own learning rate."""
+    """The four parts that can be frozen and given their own learning rate; a one-stage model has no
+    ``rpn`` (an empty part) and its ``head`` is ``roi_heads``."""
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
+
+    if not hasattr(model, "rpn"):
+        return {"backbone": model.backbone.body, "fpn": model.backbone.fpn, "rpn": nn.ModuleList(),
+                "roi_heads": model.head}
     return {"backbone": model.backbone.body, "fpn": model.backbone.fpn, "rpn": model.rpn,
             "roi_heads": model.roi_heads}
 
@@ -304,39 +448,112 @@ def save_checkpoint(path: str | Path, model, model_cfg: ModelConfig, class_names
 
 
 def read_checkpoint(path: str | Path) -> dict:
-    """Load a checkpoint's contents (on the CPU), with a clear error for other files."""
+    """Load a checkpoint's contents (on the CPU), with a clear error for anything else: a missing, empty or
+    truncated file, another program's model (YOLO, a bare state_dict, a pickled model), damaged contents."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     path = Path(path)
+    fix = "give a checkpoint written by module 6 (its output_dir/checkpoints/best.pt, last.pt or epoch_NNN.pt)"
     if not path.is_file():
         raise InputError("checkpoint not found", path=path, fix="point 'checkpoint' at a .pt file written by module 6")
+    size = path.stat().st_size
+    if size == 0:
+        raise InputError("the checkpoint file is empty (0 bytes)", path=path, fix=f"copy it again, or {fix}")
+    with open(path, "rb") as fh:
+        head = fh.read(256)
+    text = head.decode("ascii", "replace").strip()
+    if text and head.isascii() and all(c.isprintable() or c in "\r\n\t" for c in text):
+        raise InputError(f"this is a text file, not a checkpoint (it starts with {text.splitlines()[0][:40]!r})",
+                         path=path, fix=fix)
     try:
         data = torch.load(path, map_location="cpu", weights_only=False)
+    except ModuleNotFoundError as exc:
+        raise InputError(f"not a MatchPlant checkpoint: another program wrote it (reading it needs the Python "
+                         f"module '{exc.name}')", path=path, fix=fix) from exc
     except Exception as exc:  # noqa: BLE001 - any unpickling problem means the same to the user
-        raise InputError(f"cannot read this checkpoint ({type(exc).__name__}: {exc})", path=path,
-                         fix="give a .pt file written by module 6 (it may be truncated or from another tool)") from exc
+        if head.startswith(b"PK") and not zipfile.is_zipfile(path):
+            raise InputError(f"the checkpoint is truncated ({size} bytes; the end of the archive is missing)",
+                             path=path, fix="the file was cut off (disk full, an interrupted copy or run): copy it "
+                                            "again, or use another checkpoint of the run (last.pt, epoch_NNN.pt)"
+                             ) from exc
+        raise InputError(f"cannot read this checkpoint: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}",
+                         path=path, fix=fix) from exc
+    if isinstance(data, torch.nn.Module):
+        raise InputError(f"not a MatchPlant checkpoint: a whole pickled model ({type(data).__name__}, from "
+                         "torch.save(model)), without MatchPlant's settings and class names", path=path, fix=fix)
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise InputError("not a MatchPlant detector checkpoint", path=path,
-                         fix="give a checkpoint written by module 6 (best.pt, last.pt or epoch_NNN.pt)")
-    if data.get("version", 0) > CHECKPOINT_VERSION:
+        raise InputError(f"not a MatchPlant detector checkpoint: it holds {_describe_foreign(data, torch)}",
+                         path=path, fix=f"{fix}; to train from other weights, use model.pretrained")
+    if not isinstance(data.get("version"), int):
+        raise InputError("the checkpoint has no version number (damaged or edited)", path=path, fix=fix)
+    if data["version"] > CHECKPOINT_VERSION:
         raise InputError(f"checkpoint version {data['version']} is newer than this MatchPlant reads",
                          path=path, fix="update MatchPlant")
+    _check_contents(data, path)
     return data
 
 
-def load_detector(path_or_data: str | Path | dict, device: Any = "cpu", *, overrides: dict | None = None):
+def _describe_foreign(data: Any, torch) -> str:
+    if not isinstance(data, dict):
+        return f"a {type(data).__name__}"
+    if data and all(torch.is_tensor(v) for v in data.values()):
+        return f"bare weights (a state_dict of {len(data)} tensors, without MatchPlant's settings and class names)"
+    if "model" in data and ("train_args" in data or "ema" in data):
+        return "a YOLO (Ultralytics) model"
+    return f"a dictionary with the keys {', '.join(map(str, list(data)[:8]))}"
+
+
+def _check_contents(data: dict, path: Path) -> None:
+    """The keys a checkpoint needs, of the right kinds, and model settings this version can build."""
+    fix = "the file is damaged or was edited; use the checkpoint as module 6 wrote it"
+    names, ids = data.get("class_names"), data.get("category_ids")
+    for key, ok in (("model_config", isinstance(data.get("model_config"), dict)),
+                    ("model_state", isinstance(data.get("model_state"), dict)),
+                    ("class_names", isinstance(names, list) and bool(names) and all(isinstance(n, str) for n in names)),
+                    ("category_ids", isinstance(ids, list) and isinstance(names, list) and len(ids) == len(names))):
+        if not ok:
+            raise InputError(f"the checkpoint's '{key}' is missing or not valid", path=path, fix=fix)
+    arch = data["model_config"].get("architecture")
+    if arch not in ARCHITECTURES:
+        raise InputError(f"the checkpoint is a '{arch}' model, which MatchPlant cannot build (it builds "
+                         f"{', '.join(ARCHITECTURES)})", path=path,
+                         fix="use a checkpoint trained by module 6, or update MatchPlant if a newer one wrote it")
+    try:
+        model_config_from_dict(data["model_config"])
+    except ConfigError as exc:
+        raise InputError(f"the checkpoint's model settings cannot be used here: {exc.problem}", path=path,
+                         fix="it comes from another MatchPlant version or was edited: update MatchPlant, or use a "
+                             "checkpoint written by this version's module 6") from exc
+
+
+def load_detector(path_or_data: str | Path | dict, device: Any = "cpu", *, overrides: dict | None = None,
+                  source: str | Path | None = None):
     """Rebuild a detector from a checkpoint; returns ``(model, checkpoint_dict)``.
 
     ``overrides`` replaces settings, e.g. ``{"roi": {"detections_per_img": 500}}``; the score threshold
-    is ``model.roi_heads.score_thresh`` (set it before predicting).
+    is ``model.roi_heads.score_thresh`` (set it before predicting). ``source``: the file a given dict came from
+    (for the messages).
     """
     data = path_or_data if isinstance(path_or_data, dict) else read_checkpoint(path_or_data)
+    source = source if source is not None or isinstance(path_or_data, dict) else path_or_data
     mcfg = dict(data["model_config"])
     for key, value in (overrides or {}).items():
         mcfg[key] = {**mcfg[key], **value} if isinstance(value, dict) else value
     cfg = model_config_from_dict(mcfg)
     model = build_detector(cfg, len(data["class_names"]) + 1, load_weights=False)
-    model.load_state_dict(data["model_state"])
+    own = model.state_dict()
+    state = data["model_state"]
+    wrong = sorted(k for k in own if k in state and tuple(own[k].shape) != tuple(getattr(state[k], "shape", ())))
+    counter = "num_batches_tracked"  # frozen and plain batch norms load each other's (torchvision drops it)
+    missing = sorted(k for k in own if k not in state and not k.endswith(counter))
+    extra = sorted(k for k in state if k not in own and not str(k).endswith(counter))
+    if wrong or missing or extra:
+        parts = [f"{len(v)} {what} (e.g. {v[0]})" for v, what in ((missing, "missing"), (extra, "unexpected"),
+                                                                    (wrong, "of another shape")) if v]
+        raise InputError(f"the checkpoint's weights do not fit its model ({cfg.architecture}, "
+                         f"{len(data['class_names'])} class(es)): {'; '.join(parts)} tensors", path=source,
+                         fix="the file was edited or mixes two models; use the checkpoint as module 6 wrote it")
+    model.load_state_dict(state)
     model.to(device).eval()
     return model, data
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,7 @@ class Finder:
     yaw: dict[str, float]
     pitch: dict[str, float]
     height: dict[tuple[str, str], float]        # (gcp, image) -> camera height above the GCP
+    flight: set[str] = field(default_factory=set)  # every image of the folder, with GPS or not
 
     def gsd(self, gcp: str, image: str) -> float:
         """Metres per pixel at the GCP in that image: the target's expected size in pixels follows."""
@@ -64,18 +65,29 @@ class Finder:
 def find_candidates(cfg: GcpFinderConfig) -> Finder:
     """Read the survey and every image's metadata; predict each GCP's pixel in each image; rank."""
     gcps, crs = read_survey(cfg.survey, cfg.survey_crs, cfg.output_crs)
-    infos, skipped = [], []
+    infos, skipped, damaged = [], [], []
     files = list_images(cfg.images, IMAGE_SUFFIXES, key="images",
                         fix="point 'images' at the folder of the flight's images")
     for p in progress(files, desc="reading EXIF", unit="img"):
-        info = read_image_info(p)
+        try:
+            info = read_image_info(p)
+        except InputError as exc:
+            damaged.append(f"{p.name}: {exc.problem}")
+            continue
         (infos if info.lat is not None else skipped).append(info)
-    if skipped:
-        log.warning("%d images have no GPS position in EXIF and are skipped (e.g. %s); module 0 writes it",
-                    len(skipped), skipped[0].name)
+    if damaged:
+        more = f" (and {len(damaged) - 5} more)" if len(damaged) > 5 else ""
+        raise InputError(f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
+                         path=cfg.images, fix="copy those images again from the camera's card, or move them out "
+                                              "of the folder")
     if not infos:
-        raise InputError("no image has a GPS position in its EXIF", path=cfg.images,
-                         fix="write the positions with module 0 (gps_embed) first")
+        raise InputError(f"none of the {len(skipped)} images has a GPS position in its EXIF", path=cfg.images,
+                         fix="write the positions with module 0 (gps_embeder) first, and point 'images' at its "
+                             "output images/ folder")
+    notes = []  # warnings, printed once no error can follow
+    if skipped:
+        notes.append(f"{len(skipped)} of {len(files)} images have no GPS position in EXIF and are skipped "
+                     f"(e.g. {skipped[0].name}); module 0 writes it")
     camera_positions(infos, crs)
     infos.sort(key=lambda i: (i.time if i.time is not None else 0.0, i.name))
     track = track_yaw(np.array([i.xyz[:2] for i in infos]))
@@ -91,8 +103,8 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
         for g, z in zip(gcps, cam_z):
             height[(g.id, info.name)] = float(z - g.z)
         if not 0 < float(np.median(cam_z - pts[:, 2])) < 2000:
-            log.warning("%s: the camera is %.0f m above the GCPs (%s height); check 'height_source' and "
-                        "'altitude_offset_m'", info.name, float(np.median(cam_z - pts[:, 2])), hs)
+            notes.append(f"{info.name}: the camera is {float(np.median(cam_z - pts[:, 2])):.0f} m above the GCPs "
+                         f"({hs} height); check 'height_source' and 'altitude_offset_m'")
         uv = predict_pixels(info, ratio[info.name], yaw[info.name], pitch[info.name], cam_z, pts)
         m = cfg.edge_margin_px
         cx, cy = (info.width - 1) / 2.0, (info.height - 1) / 2.0
@@ -110,12 +122,18 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
             c.rank = r
     unseen = [gid for gid, lst in cands.items() if not lst]
     if len(unseen) == len(gcps):
-        raise InputError(f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images", path=cfg.survey,
+        heights = next((f"; {n}" for n in notes if "above the GCPs" in n), "")
+        raise InputError(f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images{heights}",
+                         path=cfg.survey,
                          fix="check 'survey_crs' (x = easting/longitude, y = northing/latitude) and that the survey "
                              "belongs to this flight; or raise 'max_center_distance'")
+    for note in notes:
+        log.warning("%s", note)
     if unseen:
-        log.warning("GCPs outside every image (check their coordinates): %s", ", ".join(unseen))
-    return Finder({g.id: g for g in gcps}, crs, {i.name: i for i in infos}, cands, ratio, yaw, pitch, height)
+        log.warning("%d of %d GCPs fall outside every image and get no candidates (check their coordinates): %s",
+                    len(unseen), len(gcps), ", ".join(unseen))
+    return Finder({g.id: g for g in gcps}, crs, {i.name: i for i in infos}, cands, ratio, yaw, pitch, height,
+                  {p.name for p in files})
 
 
 def write_candidates(path: Path, finder: Finder) -> Path:

@@ -19,7 +19,7 @@ class GcpFinderConfig:
     survey: Path | None = param(None, "GCP survey table: CSV with the header id,x,y,z", path="file", required=True)
     survey_crs: str | None = param(None, "CRS of the survey: EPSG code (EPSG:32614, EPSG:4326 = lon/lat), "
                                          "'WGS84 UTM 14N' or a PROJ string", required=True)
-    output_dir: Path = param(Path("gcp_finder_out"), "output folder: gcp_list.txt, candidates.csv, "
+    output_dir: Path = param(Path("runs/gcp_finder"), "output folder: gcp_list.txt, candidates.csv, "
                              "candidates.png", path="out")
     output_crs: str | None = param(None, "CRS of gcp_list.txt; empty = the survey's CRS when projected, "
                                          "else the GCPs' UTM zone")
@@ -50,4 +50,4 @@ class GcpFinderConfig:
                                 choices=("checker", "square"))
     zoom_px: int = param(150, "GUI: half-size of the view around a predicted position (pixels)", min=10)
     gcp_list: Path | None = param(None, "existing gcp_list.txt to continue (empty = output_dir/gcp_list.txt "
-                                        "if it exists)")
+                                        "if it exists)", path="file")

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from matchplant.core.errors import InputError
+from matchplant.core.guard import check_outputs, staged_outputs
 from matchplant.core.log import get_logger
 from matchplant.core.progress import progress
 from matchplant.gcp_finder.candidates import Candidate, Finder, find_candidates, plot_candidates, write_candidates
@@ -54,20 +56,35 @@ def auto_mark(finder: Finder, store: MarkStore, cfg: GcpFinderConfig) -> int:
 
 
 def run(cfg: GcpFinderConfig) -> Finder:
-    """Candidates (CSV and figure); with ``auto`` also the marks and gcp_list.txt."""
+    """Candidates (CSV and figure); with ``auto`` also the marks and gcp_list.txt.
+
+    Everything is computed before anything is written, and the files are written into a temporary folder
+    moved into ``output_dir`` at the end, so a failed run leaves no half set of outputs."""
     out = Path(cfg.output_dir)
+    check_outputs(cfg)
     finder = find_candidates(cfg)
-    write_candidates(out / "candidates.csv", finder)
-    plot_candidates(out / "candidates.png", finder)
     for gid, lst in finder.candidates.items():
         log.info("%s: %d candidate images%s", gid, len(lst), f" (best: {lst[0].image})" if lst else "")
+    store = store_for(cfg, finder, autosave=False)
+    if cfg.auto:
+        n = auto_mark(finder, store, cfg)
+        if not store.marks:
+            raise InputError(f"auto: no GCP target was found in any of the {sum(map(len, finder.candidates.values()))}"
+                             " candidate images, so gcp_list.txt would be empty", path=cfg.images,
+                             fix="check 'target_pattern' and 'target_size_m' (the target's look and size), or mark "
+                                 "the GCPs by hand with --gui")
+    with staged_outputs(out) as stage:
+        write_candidates(stage / "candidates.csv", finder)
+        plot_candidates(stage / "candidates.png", finder)
+        if cfg.auto or store.continued:  # a continued list is written back without the lines it dropped
+            store.path = stage / "gcp_list.txt"
+            store.save()
+            store.path = out / "gcp_list.txt"
     log.info("candidates: %s", out / "candidates.csv")
     if cfg.auto:
-        store = store_for(cfg, finder, autosave=False)
-        n = auto_mark(finder, store, cfg)
-        store.save()
         store.warn_few()
         log.info("found %d targets; wrote %s (review it with --gui)", n, store.path)
     else:
-        log.info("mark the GCPs with --gui (or run with --set auto=true)")
+        log.info("mark the GCPs with --gui (or run with --set auto=true)%s",
+                 f"; {store.path} continues {store.continued}" if store.continued else "")
     return finder

@@ -14,12 +14,12 @@ import matplotlib
 import numpy as np
 from PIL import Image
 
-from matchplant.core.config import validate
-from matchplant.core.errors import DependencyError
+from matchplant.core.gui import (SetupField, SetupScreen, figure, is_headless, require_display, reveal, show,
+                                 status_text)
 from matchplant.core.gui import close as close_figure
-from matchplant.core.gui import figure, interactive_backend_available, is_headless, show, status_text
-from matchplant.gcp_finder.candidates import Finder, find_candidates
+from matchplant.gcp_finder.candidates import Finder
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
+from matchplant.gcp_finder.finder import run
 from matchplant.gcp_finder.marks import MarkStore, store_for
 from matchplant.gcp_finder.target import load_gray, locate_target
 
@@ -315,17 +315,41 @@ class GcpFinderGUI:
         show(self.fig)
 
 
-def launch(cfg: GcpFinderConfig, config_path: Path | None = None) -> MarkStore:
-    """Open the marking window for the candidates of ``cfg``; returns the store of marks."""
-    validate(cfg, source=str(config_path or "config"))
-    if not interactive_backend_available():
-        raise DependencyError("the GUI needs a display, and none is available here",
-                              fix="run it on a desktop (or over ssh -X), or find the targets without a GUI "
-                                  "with --set auto=true")
-    finder = find_candidates(cfg)
-    store = store_for(cfg, finder, autosave=True)
-    app = GcpFinderGUI(finder, store, zoom_px=cfg.zoom_px, target_size_m=cfg.target_size_m,
-                       target_pattern=cfg.target_pattern)
-    app.show()
-    store.warn_few()
-    return store
+SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("survey", "GCP survey (id,x,y,z)", "file"),
+                SetupField("survey_crs", "Survey CRS", "text"), SetupField("output_dir", "Output folder", "folder")]
+
+
+class GcpSetup:
+    """Module 1's setup screen (the paper's Fig. 2a): images, survey and output folder with file pickers;
+    **Find GCPs** writes the candidates (and, with ``auto``, gcp_list.txt) and opens the marking window."""
+
+    def __init__(self, cfg: GcpFinderConfig, headless: bool | None = None, chooser=None):
+        self.headless = headless
+        self.finder: Finder | None = None
+        self.store: MarkStore | None = None
+        self.marking: GcpFinderGUI | None = None
+        self.screen = SetupScreen("GCP finder: choose the images and the GCP survey", cfg, SETUP_FIELDS,
+                                  self._run, headless=headless, chooser=chooser, run_label="Find GCPs")
+
+    def _run(self, cfg: GcpFinderConfig) -> str:
+        self.finder = run(cfg)
+        self.store = store_for(cfg, self.finder, autosave=True)
+        if self.marking is not None:
+            close_figure(self.marking.fig)
+        self.marking = GcpFinderGUI(self.finder, self.store, zoom_px=cfg.zoom_px, target_size_m=cfg.target_size_m,
+                                    target_pattern=cfg.target_pattern, headless=self.headless)
+        reveal(self.marking.fig)
+        seen = sum(1 for c in self.finder.candidates.values() if c)
+        return (f"{seen} of {len(self.finder.gcps)} GCPs seen; candidates in {Path(cfg.output_dir) / 'candidates.csv'}"
+                f"; marks go to {Path(self.store.path).name} (marking window open)")
+
+
+def launch(cfg: GcpFinderConfig, config_path: Path | None = None, chooser=None) -> GcpSetup:
+    """The setup screen, then the marking window; blocks until the windows are closed."""
+    require_display("python 1_gcp_finder/gcp_finder.py --config FILE --set auto=true")
+    setup = GcpSetup(cfg, chooser=chooser)
+    show(setup.screen.fig)
+    if setup.store is not None:
+        setup.store.save()
+        setup.store.warn_few()
+    return setup

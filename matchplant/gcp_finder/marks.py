@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
+from matchplant.core.errors import ConfigError
 from matchplant.core.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
 from matchplant.core.log import get_logger
 from matchplant.gcp_finder.candidates import Finder
@@ -28,6 +29,7 @@ class MarkStore:
         self.autosave = autosave
         self.marks: dict[tuple[str, str], tuple[float, float]] = {}
         self.undo_stack: list[tuple[tuple[str, str], tuple[float, float] | None]] = []
+        self.continued: Path | None = None  # the earlier gcp_list.txt this session continues
 
     def load(self, path: Path) -> int:
         """Continue from an existing gcp_list.txt; returns the number of marks taken over."""
@@ -35,8 +37,20 @@ class MarkStore:
         t = None if crs.equals(self.finder.crs) else Transformer.from_crs(crs, self.finder.crs, always_xy=True)
         ids = list(self.finder.gcps)
         xy = np.array([[g.x, g.y] for g in self.finder.gcps.values()])
+        flight = self.finder.flight or set(self.finder.images)
+        foreign = sorted({m.image for m in marks if m.image not in flight})
+        if foreign:
+            log.warning("%s: %d line(s) mark images that are not in this flight's folder and are dropped: %s",
+                        path, sum(m.image in foreign for m in marks), ", ".join(foreign))
+        outside = [m for m in marks if m.image in self.finder.images and not self._inside(m)]
+        dropped = {id(m) for m in outside}
+        if outside:
+            log.warning("%s: %d mark(s) lie outside their image and are dropped: %s", path, len(outside),
+                        ", ".join(f"{m.gcp or 'unnamed'} in {m.image} at ({m.u:g}, {m.v:g})" for m in outside[:5]))
         n = 0
         for m in marks:
+            if m.image in foreign or id(m) in dropped:
+                continue
             gid = m.gcp if m.gcp in self.finder.gcps else None
             if gid is None:  # unnamed line: the surveyed GCP at its coordinates
                 mx, my = t.transform(m.x, m.y) if t else (m.x, m.y)
@@ -49,6 +63,10 @@ class MarkStore:
             self.marks[(gid, m.image)] = (m.u, m.v)
             n += 1
         return n
+
+    def _inside(self, m: Mark) -> bool:
+        info = self.finder.images[m.image]
+        return -0.5 <= m.u <= info.width - 0.5 and -0.5 <= m.v <= info.height - 0.5
 
     def set(self, gcp: str, image: str, u: float, v: float, record: bool = True) -> None:
         if record:
@@ -104,8 +122,12 @@ def store_for(cfg: GcpFinderConfig, finder: Finder, autosave: bool) -> MarkStore
     """The session's store, continuing the configured (or the output folder's) gcp_list.txt if it exists."""
     out = Path(cfg.output_dir)
     store = MarkStore(finder, out / "gcp_list.txt", autosave=autosave)
+    if cfg.gcp_list and not Path(cfg.gcp_list).is_file():
+        raise ConfigError("config key 'gcp_list': the list to continue is not found", path=cfg.gcp_list,
+                          fix="correct 'gcp_list', or leave it empty to start a new list")
     existing = cfg.gcp_list or (out / "gcp_list.txt")
     if Path(existing).is_file():
         n = store.load(Path(existing))
+        store.continued = Path(existing)
         log.info("continuing from %s (%d marks)", existing, n)
     return store

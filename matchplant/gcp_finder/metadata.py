@@ -15,6 +15,7 @@ from PIL import Image
 
 from matchplant.core.errors import InputError
 from matchplant.core.exif import exif_camera, exif_gps, exif_time, load_exif, read_xmp
+from matchplant.core.validate import check_jpeg
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff")
 
@@ -79,8 +80,11 @@ def parse_dji_xmp(text: str) -> dict[str, float]:
 
 
 def read_image_info(path: str | Path) -> ImageInfo:
-    """Read an image's size, EXIF and DJI XMP once (pixels are not decoded)."""
+    """Read an image's size, EXIF and DJI XMP once (pixels are not decoded; a JPEG cut short is refused,
+    since its header alone looks whole)."""
     path = Path(path)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        check_jpeg(path)
     try:
         with Image.open(path) as im:
             width, height = im.size
@@ -91,7 +95,7 @@ def read_image_info(path: str | Path) -> ImageInfo:
     exif = load_exif(path)
     info.make, info.model, info.focal_mm, info.focal35_mm = exif_camera(exif)
     gps = exif_gps(exif)
-    if gps is not None:
+    if gps is not None and np.isfinite(gps[:2]).all() and gps[:2] != (0.0, 0.0):  # 0, 0: a camera without a fix
         info.lat, info.lon, info.alt = gps
     info.time = exif_time(exif)
     xmp = parse_dji_xmp(read_xmp(path))

@@ -16,12 +16,20 @@ with its event by time and writes the event's position into a copy of the image:
 6. write ``match_report.csv`` (every image: its event and time difference, or why it has none) and,
    optionally, ODM's ``geo.txt``.
 
+Nothing is written before everything is checked: damaged JPEGs (cut short, empty, not a JPEG), log
+values that cannot be an event (NaN, absurd or repeated timestamps, times in another unit, degrees in
+metre columns or the reverse, heights in mm: :mod:`.log_checks`), a clock offset that few images support
+or that ties with another, and log positions far from the GPS the photos already carry (a wrong CRS).
+The outputs are written into a temporary folder moved into place at the end (:mod:`matchplant.core.guard`).
+
 The EXIF reading and writing is :mod:`matchplant.core.exif` (step 1 reads what this step writes); the
 log readers are :mod:`.gnss_log`, the matching :mod:`.matching`, the outputs :mod:`.copies`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,11 +37,13 @@ import numpy as np
 
 from matchplant.core.config import param
 from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.guard import check_outputs, staged_outputs
 from matchplant.core.io import write_json
 from matchplant.core.log import get_logger
 from matchplant.gps_embeder.copies import write_copies, write_geo_txt, write_report
 from matchplant.gps_embeder.gnss_log import LOG_FORMATS, read_gnss_log
-from matchplant.gps_embeder.matching import match_images, read_images
+from matchplant.gps_embeder.log_checks import UNITS
+from matchplant.gps_embeder.matching import check_against_exif_gps, match_images, read_images
 
 log = get_logger("gps_embed")
 
@@ -45,7 +55,7 @@ class GpsEmbedConfig:
     images: Path | None = param(None, "folder of the flight's JPEG images (not modified)", path="dir", required=True)
     gnss_log: Path | None = param(None, "GNSS event log: events.txt (TAB: Timestamp X Y Z), CSV with lat/lon, "
                                  "RTKLIB/Emlid .pos or DJI *_Timestamp.MRK", path="file", required=True)
-    output_dir: Path = param(Path("gps_embed_out"), "output folder: images/ (the copies with GPS), "
+    output_dir: Path = param(Path("runs/gps_embeder"), "output folder: images/ (the copies with GPS), "
                              "match_report.csv, geo.txt", path="out")
     log_format: str = param("auto", "format of the GNSS log ('auto' guesses from the name and header)",
                             choices=LOG_FORMATS)
@@ -57,6 +67,8 @@ class GpsEmbedConfig:
     timestamp_epoch: str = param("auto", "origin of numeric timestamps: 'unix' (seconds since 1970), 'gps' "
                                          "(since 1980-01-06), a date YYYY-MM-DD, or 'auto' (below one week: GPS "
                                          "seconds of the flight's week, else unix)")
+    timestamp_unit: str = param("s", "unit of numeric timestamps in events.txt / CSV logs: s, ms, us or ns",
+                                choices=tuple(UNITS))
     camera_utc_offset_h: float = param(0.0, "hours the camera clock is ahead of UTC (its time zone); the "
                                             "automatic clock offset absorbs an error here", min=-14, max=14)
     clock_offset_s: float | None = param(None, "fixed seconds to add to camera times (after the time zone) to "
@@ -69,40 +81,82 @@ class GpsEmbedConfig:
     copy_unmatched: bool = param(False, "copy images without a match (unchanged, no GPS) to the output too")
 
 
+@contextlib.contextmanager
+def warnings_after_success(logger: logging.Logger):
+    """Hold this step's warnings until it succeeds: a failed run prints its one error message alone, and
+    the held warnings go to the run's log file only (as debug lines)."""
+    held: list[logging.LogRecord] = []
+
+    def catch(record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        held.append(record)
+        return False
+
+    logger.addFilter(catch)
+    try:
+        yield
+    except BaseException:
+        logger.removeFilter(catch)
+        for record in held:
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+            logger.handle(record)
+        raise
+    logger.removeFilter(catch)
+    for record in held:
+        logger.handle(record)
+
+
 def embed_gps(cfg: GpsEmbedConfig) -> list[dict]:
-    """Run module 0; returns the match report rows (one per image)."""
+    """Run module 0; returns the match report rows (one per image); warnings are printed at the end."""
+    with warnings_after_success(log):
+        return _embed_gps(cfg)
+
+
+def _embed_gps(cfg: GpsEmbedConfig) -> list[dict]:
+    """Run module 0; returns the match report rows (one per image).
+
+    Everything is checked before the first copy is written, and the copies and reports are written into a
+    temporary folder that is moved into ``output_dir`` only at the end: a failed run leaves no copies.
+    When no image matches, only ``match_report.csv`` (why each image has no event) is kept."""
     images = Path(cfg.images)
     out = Path(cfg.output_dir)
-    out_images = out / "images"
-    if out_images.resolve() == images.resolve():
+    if (out / "images").resolve() == images.resolve():
         raise ConfigError("the output image folder is the input folder; the originals must not be modified",
                           path=images, fix="set 'output_dir' to another folder")
+    check_outputs(cfg)
     records = read_images(images, cfg.camera_utc_offset_h)
     timed = [r.time for r in records if r.time is not None]
     gnss = read_gnss_log(cfg.gnss_log, cfg.log_format, cfg.log_crs, cfg.time_base, cfg.leap_seconds,
-                         cfg.timestamp_epoch, float(np.median(timed)) if timed else None)
+                         cfg.timestamp_epoch, float(np.median(timed)) if timed else None, cfg.timestamp_unit)
     log.info("GNSS log: %d events (%s, %s)", len(gnss.times), gnss.format, gnss.crs.name)
     idx, offset, support = match_images(records, gnss, cfg.tolerance_s, cfg.clock_offset_s, cfg.max_clock_offset_s,
                                         source=cfg.images)
     if support >= 0:
-        log.info("clock offset (log - camera): %.3f s, supported by %d of %d images", offset, support,
-                 sum(r.time is not None for r in records))
-    rows, geo = write_copies(records, idx, gnss, offset, out_images, cfg.copy_unmatched)
-    write_report(out / "match_report.csv", rows)
-    if cfg.write_geo_txt:
-        write_geo_txt(out / "geo.txt", geo)
-    n_ok = sum(row["status"] == "matched" for row in rows)
-    unused = len(gnss.times) - n_ok
-    write_json(out / "match_summary.json", {
-        "images": len(rows), "matched": n_ok, "events": len(gnss.times), "events_without_image": unused,
-        "clock_offset_s": offset, "clock_offset_estimated": support >= 0, "offset_support": support,
-        "log_format": gnss.format, "log_crs": gnss.crs.to_string()})
-    log.info("%d of %d images matched; %d events without an image; report: %s", n_ok, len(rows), unused,
-             out / "match_report.csv")
-    for row in rows:
-        if row["status"] != "matched":
-            log.warning("  %s: %s", row["image"], row["reason"])
+        log.info("clock offset (log - camera): %.3f s, supported by %d of %d images", offset, support, len(timed))
+    check_against_exif_gps(records, idx, gnss)
+    n_ok = int((idx >= 0).sum())
+    with staged_outputs(out) as stage:
+        rows, geo = write_copies(records, idx, gnss, offset, stage / "images", cfg.copy_unmatched and n_ok > 0)
+        write_report(stage / "match_report.csv", rows)
+        if n_ok:
+            if cfg.write_geo_txt:
+                write_geo_txt(stage / "geo.txt", geo)
+            write_json(stage / "match_summary.json", {
+                "images": len(rows), "matched": n_ok, "events": len(gnss.times),
+                "events_without_image": len(gnss.times) - n_ok, "clock_offset_s": offset,
+                "clock_offset_estimated": support >= 0, "offset_support": support, "log_format": gnss.format,
+                "log_crs": gnss.crs.to_string()})
     if n_ok == 0:
-        raise InputError("no image could be matched to a GNSS event", path=cfg.gnss_log,
-                         fix="check that the log belongs to this flight; see match_report.csv for each image")
+        raise InputError(f"no image could be matched to a GNSS event (clock offset {offset:+.3f} s)",
+                         path=cfg.gnss_log, fix="check that the log belongs to this flight and 'clock_offset_s'; "
+                                                f"{out / 'match_report.csv'} says why for each image")
+    unmatched = [row for row in rows if row["status"] != "matched"]
+    log.info("%d of %d images matched; %d events without an image; report: %s", n_ok, len(rows),
+             len(gnss.times) - n_ok, out / "match_report.csv")
+    if unmatched:
+        log.warning("%d of %d images have no GNSS event and get no GPS (ODM will not place them without it); "
+                    "reasons in %s:", len(unmatched), len(rows), out / "match_report.csv")
+        for row in unmatched:
+            log.warning("  %s: %s", row["image"], row["reason"])
     return rows

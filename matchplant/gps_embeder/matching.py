@@ -13,10 +13,11 @@ from pathlib import Path
 import numpy as np
 
 from matchplant.core.errors import InputError
-from matchplant.core.exif import exif_time, has_subseconds, load_exif
+from matchplant.core.exif import exif_gps, exif_time, has_subseconds, load_exif
 from matchplant.core.images import JPEG_SUFFIXES, list_images
 from matchplant.core.log import get_logger
 from matchplant.core.progress import progress
+from matchplant.core.validate import check_jpeg
 from matchplant.gps_embeder.gnss_log import GnssLog
 
 log = get_logger("gps_embed")
@@ -90,23 +91,54 @@ class ImageRecord:
 
 
 def read_images(folder: Path, utc_offset_h: float = 0.0) -> list[ImageRecord]:
-    """Every JPEG of ``folder`` with its EXIF and capture time; an unreadable one is kept with a reason."""
-    records = []
+    """Every JPEG of ``folder`` with its EXIF and capture time; an image without a time is kept with a
+    reason. A damaged JPEG (empty, cut short, not a JPEG) stops the run: naming it beats losing it."""
+    records, damaged = [], []
     files = list_images(folder, JPEG_SUFFIXES, key="images",
                         fix="point 'images' at the folder of the flight's .jpg files")
     for p in progress(files, desc="reading EXIF", unit="img"):
         r = ImageRecord(p.name, p)
         try:
+            check_jpeg(p)  # a copy cut short still opens and has its EXIF: it would be geotagged as if whole
             r.exif = load_exif(p)
         except InputError as exc:
-            r.reason = f"unreadable EXIF: {exc.problem}"
-            records.append(r)
+            damaged.append(f"{p.name}: {exc.problem}")
             continue
         r.time = exif_time(r.exif, utc_offset_h)
         if r.time is None:
             r.reason = "no capture time in EXIF (DateTimeOriginal)"
         records.append(r)
+    if damaged:
+        more = f" (and {len(damaged) - 5} more)" if len(damaged) > 5 else ""
+        raise InputError(f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
+                         path=folder, fix="copy those images again from the camera's card, or move them out of "
+                                          "the folder; the originals are not modified")
+    if not any(r.time is not None for r in records):
+        raise InputError(f"none of the {len(records)} images has a capture time in its EXIF (DateTimeOriginal)",
+                         path=folder, fix="use the camera's original JPEGs (some editors strip EXIF), or write the "
+                                          "positions another way (ODM's geo.txt)")
     return records
+
+
+def interval_hint(cam: np.ndarray, events: np.ndarray) -> str:
+    """Compare the typical spacing of the images and of the events: a log in another time unit shows here."""
+    cam = np.sort(cam[np.isfinite(cam)])
+    events = np.sort(events)
+    if cam.size < 2 or events.size < 2:
+        return ""
+    dc, de = np.diff(cam), np.diff(events)
+    dc, de = dc[dc > 0], de[de > 0]
+    if not dc.size or not de.size:
+        return ""
+    dc, de = float(np.median(dc)), float(np.median(de))
+    text = f"; the images are {dc:.3g} s apart (median), the log's events {de:.3g} s"
+    ratio = de / dc
+    unit = next((u for u, f in (("ms", 1e3), ("us", 1e6), ("ns", 1e9)) if f / 2 < ratio < f * 2), None)
+    if unit:
+        text += f" ({ratio:.3g} times as far): the log's timestamps look like {unit}, set 'timestamp_unit' to {unit}"
+    elif ratio > 3 or ratio < 1 / 3:
+        text += ": is it the log of this flight?"
+    return text
 
 
 def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, clock_offset: float | None = None,
@@ -130,6 +162,7 @@ def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, cl
             raise InputError("no clock offset can be estimated: no image has a capture time, or no event lies "
                              "within 'max_clock_offset_s'", path=source,
                              fix="check the images' EXIF times and the log, or set 'clock_offset_s'")
+        check_support(support, offset, cam, gnss, tol, max_offset)
     aligned = cam + offset
     idx = assign_events(aligned, gnss.times, tol)
     ev_sorted = np.sort(gnss.times)
@@ -151,3 +184,73 @@ def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, cl
                 r.reason = f"no GNSS event within {tol:g} s (nearest {dt:+.2f} s away): a gap in the log?"
     return idx, offset, support
 
+
+
+def rival_offset(offset: float, support: int, cam: np.ndarray, events: np.ndarray, tol: float,
+                 max_offset: float | None = None) -> float | None:
+    """Another offset, well apart from ``offset``, that as many images agree on (None when there is none).
+
+    With few images or events (one event and nine images: any image fits), the best offset is a tie
+    between several, and picking one would geotag an arbitrary image."""
+    cam = cam[np.isfinite(cam)]
+    if cam.size * events.size > 4_000_000:
+        return None  # large flights: a tie of the best support does not happen by chance
+    d = np.sort((events[None, :] - cam[:, None]).ravel())
+    if max_offset is not None:
+        d = d[np.abs(d) <= max_offset]
+    counts = np.searchsorted(d, d + tol, side="right") - np.searchsorted(d, d - tol, side="left")
+    rivals = d[(counts >= support) & (np.abs(d - offset) > 2 * tol)]
+    return float(rivals[0]) if rivals.size else None
+
+
+def check_support(support: int, offset: float, cam: np.ndarray, gnss: GnssLog, tol: float,
+                  max_offset: float | None = None) -> None:
+    """An offset on which fewer than half the images (or events) agree is chance, not the camera's clock:
+    geotagging with it would put the images at wrong positions. So is one that ties with another."""
+    timed = int(np.isfinite(cam).sum())
+    base = min(timed, len(gnss.times))
+    needed = max(1, int(np.ceil(base / 2)))
+    fix = ("check that the log belongs to this flight and its time unit ('timestamp_unit'), epoch "
+           "('timestamp_epoch') and clock ('time_base'); or raise 'tolerance_s', or set 'clock_offset_s' if you "
+           "know the offset")
+    if support < needed:
+        raise InputError(f"the images' times and the GNSS log do not agree: the best clock offset ({offset:+.1f} s) "
+                         f"is supported by only {support} of {timed} images (within {tol:g} s; at least {needed} "
+                         f"needed){interval_hint(cam, gnss.times)}", path=gnss.path, fix=fix)
+    rival = rival_offset(offset, support, cam, np.asarray(gnss.times, dtype=float), tol, max_offset)
+    if rival is not None:
+        raise InputError(f"the clock offset between the images and the GNSS log is ambiguous: {offset:+.1f} s and "
+                         f"{rival:+.1f} s fit equally well ({support} of {timed} images each, {len(gnss.times)} "
+                         "events)", path=gnss.path, fix="set 'clock_offset_s' (seconds to add to the camera's times "
+                                                        "to get the log's) or a small 'max_clock_offset_s', or use "
+                                                        "the flight's complete log")
+
+
+MAX_EXIF_DISTANCE_M = 1000.0  # a camera's own GPS is off by metres, a wrong CRS or log by kilometres
+
+
+def check_against_exif_gps(records: list[ImageRecord], idx: np.ndarray, gnss: GnssLog) -> None:
+    """When the images already carry their own (rough) GPS, the log's positions must land near it: a wrong
+    'log_crs' (another UTM zone or hemisphere) or the log of another field is caught here."""
+    lla = gnss.wgs84()
+    pairs = []
+    for r, j in zip(records, idx):
+        own = exif_gps(r.exif) if j >= 0 and r.exif else None
+        if own is None or not (np.isfinite(own[0]) and np.isfinite(own[1])) or (own[0] == 0 and own[1] == 0):
+            continue  # no position, or the 0,0 some cameras write without a fix
+        pairs.append((own[0], own[1], lla[j, 1], lla[j, 0], r.name, int(j)))
+    if not pairs:
+        return
+    a = np.radians(np.array([p[:4] for p in pairs], dtype=float))
+    h = np.sin((a[:, 2] - a[:, 0]) / 2) ** 2 + np.cos(a[:, 0]) * np.cos(a[:, 2]) * np.sin((a[:, 3] - a[:, 1]) / 2) ** 2
+    dist = 2 * 6371008.8 * np.arcsin(np.sqrt(np.clip(h, 0, 1)))
+    if float(np.median(dist)) <= MAX_EXIF_DISTANCE_M:
+        return
+    k = int(np.argsort(dist)[len(dist) // 2])
+    name, j = pairs[k][4], pairs[k][5]
+    line = f" (line {gnss.lines[j]})" if gnss.lines else ""
+    raise InputError(f"the GNSS log's positions lie {np.median(dist) / 1000:.1f} km (median of {len(dist)} images) "
+                     f"from the GPS the images already carry: e.g. {name} is at {pairs[k][0]:.6f}, "
+                     f"{pairs[k][1]:.6f} (lat, lon), its event{line} at {pairs[k][2]:.6f}, {pairs[k][3]:.6f}",
+                     path=gnss.path, fix=f"check 'log_crs' (now {gnss.crs.name}: the UTM zone and hemisphere) and "
+                                         "that the log belongs to this flight")

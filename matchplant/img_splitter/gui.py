@@ -1,17 +1,21 @@
 """Module 5's window: settings, a preview of one image's tile grid with kept and lost boxes, a summary,
-and Run. A thin layer over :mod:`matchplant.img_splitter.tiling` (the preview uses the same plan as the run)."""
+and Run. A thin layer over :mod:`matchplant.img_splitter.tiling` (the preview uses the same plan as the run).
+
+``--gui`` first opens a setup screen (:class:`TilingSetup`: the images, the annotations and the output
+folder, with Tk's file pickers); **Preview** opens this window on them.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-from matplotlib.patches import Rectangle
+from matplotlib.patches import Polygon, Rectangle
 from matplotlib.widgets import Button, TextBox
 
 from matchplant.core.config import parse_override, save_config, set_value, to_dict_value, validate
-from matchplant.core.errors import MatchPlantError
-from matchplant.core.gui import figure, show
+from matchplant.core.errors import InputError, MatchPlantError
+from matchplant.core.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
 from matchplant.core.images import display_rgb, read_image
 from matchplant.img_splitter.tiling import TilingConfig, load_sources, plan_all, run
 
@@ -134,6 +138,8 @@ class TilingGUI:
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.4 if kept else 0.8,
                                    ec=TILE_COLORS[t % len(TILE_COLORS)] if kept else "0.55",
                                    ls="-" if kept else ":"))
+        if s.region is not None:  # only this part was annotated: the rest of each tile is masked
+            ax.add_patch(Polygon(s.region, closed=True, fill=False, lw=1.6, ls="--", ec="white"))
         anywhere = plan.kept_anywhere
         for (x1, y1, x2, y2), ok in zip(plan.boxes, anywhere):
             ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=1.2, ec=KEPT if ok else LOST))
@@ -162,7 +168,41 @@ class TilingGUI:
         return "\n".join(lines)
 
 
-def launch(cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None) -> TilingGUI:
-    app = TilingGUI(cfg, config_path, headless)
-    show(app.fig)
-    return app
+SETUP_FIELDS = [SetupField("images", "Images folder", "folder"),
+                SetupField("annotations", "Annotations (COCO JSON)", "file"),
+                SetupField("output_dir", "Output folder", "folder")]
+
+
+class TilingSetup:
+    """Module 5's setup screen: the annotated images, their boxes (module 4's annotations.json; a YOLO
+    labels folder can be typed) and the output folder, with file pickers; **Preview** opens the tiling
+    window (settings, preview, Run) on them."""
+
+    def __init__(self, cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None,
+                 chooser=None, dpi: float | None = None):
+        self.config_path, self.headless, self.dpi = config_path, headless, dpi
+        self.preview: TilingGUI | None = None
+        self.screen = SetupScreen("Image splitter: choose the annotated images", cfg, SETUP_FIELDS, self._run,
+                                  headless=headless, chooser=chooser, run_label="Preview")
+
+    def _run(self, cfg: TilingConfig) -> str:
+        if self.preview is not None:
+            close(self.preview.fig)
+        self.preview = TilingGUI(cfg, self.config_path, headless=self.headless, dpi=self.dpi)
+        if self.preview.sources is None:  # the preview could not read the images or boxes: its message
+            message = self.preview.status.get_text()
+            close(self.preview.fig)
+            self.preview = None
+            raise InputError(message, path=cfg.annotations)
+        reveal(self.preview.fig)  # made inside this window's event loop: pyplot keeps it hidden until shown
+        return (f"{len(self.preview.sources)} annotated images; preview window open: check the tiles, then "
+                "press Run there")
+
+
+def launch(cfg: TilingConfig, config_path: Path | None = None, chooser=None) -> TilingSetup:
+    """The setup screen, then the preview window; blocks until the windows are closed."""
+    require_display("python 5_img_splitter/img_splitter.py --set images=FOLDER --set annotations=FILE "
+                    "--set output_dir=FOLDER")
+    setup = TilingSetup(cfg, config_path, chooser=chooser)
+    show(setup.screen.fig)
+    return setup

@@ -7,6 +7,10 @@ smaller than a tile gives one tile, the whole image). A box is kept in a tile wh
 inside is at least ``min_box_side`` pixels on both sides; it is then clipped to the tile and shifted by
 the tile's offset. Tiles with no kept box are negatives; ``negative_share`` of them are kept.
 
+When module 4 recorded an ``annotated_region`` for an image (its owned area), only that region was
+annotated: boxes are clipped to it, tiles mostly outside it are not written, and tile pixels outside it
+are masked, so no unboxed plant becomes a negative (:mod:`matchplant.img_splitter.regions`).
+
 Splits are made by source image (every tile of one photo lands in the same split), at random with a
 seed, or spatially (photos ordered along the field's long axis, so val and test are separate parts of
 the field). Output (``output_dir``)::
@@ -20,29 +24,34 @@ the field). Output (``output_dir``)::
 from __future__ import annotations
 
 import concurrent.futures as cf
-import csv
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import cv2
 import numpy as np
-from PIL import Image
 
-from matchplant.core.coco import make_annotation, new_dataset, read_dataset, write_dataset
+from matchplant.core.box_files import resolve_image_names
+from matchplant.core.coco import (DropLog, annotated_region, make_annotation, new_dataset, read_dataset,
+                                  write_dataset)
 from matchplant.core.config import param
 from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import list_images, match_name
+from matchplant.core.guard import check_outputs, staged_outputs
+from matchplant.core.images import JPEG_SUFFIXES, list_images
 from matchplant.core.io import atomic_path, read_json, write_json, write_text
 from matchplant.core.log import get_logger
 from matchplant.core.odm import image_size
 from matchplant.core.progress import progress
-from matchplant.core.yolo import coco_to_yolo, yolo_to_coco
+from matchplant.core.validate import check_jpeg
+from matchplant.core.yolo import coco_to_yolo, label_files, yolo_to_coco
+from matchplant.img_splitter.regions import clip_boxes, mask_outside, region_share
+from matchplant.img_splitter.splits import SPLITS, read_positions, split_counts, split_images
 
 log = get_logger("tiling")
 
-SPLITS = ("train", "val", "test")
+DROPPED_NAME = "dropped.csv"  # every box left out of the tiles (or whose image is missing), and why
 LOSSLESS = {".png": ".png", ".tif": ".tif", ".tiff": ".tif"}  # source suffix -> tile suffix kept as is
 
 
@@ -77,6 +86,10 @@ class TilingConfig:
     tile_format: Literal["auto", "png", "tif"] = param("auto", "tile files: 'auto' keeps a PNG or TIFF "
                                                        "source's format and writes PNG otherwise (always lossless)",
                                                        choices=["auto", "png", "tif"])
+    min_region_share: float = param(0.25, "for images annotated only inside a region (module 4's "
+                                          "annotated_region, e.g. the owned area): tiles with less of their "
+                                          "area inside it are not written; pixels outside it are masked",
+                                    min=0.0, max=1.0)
     yolo: bool = param(False, "also write YOLO labels, classes.txt and data.yaml")
     workers: int = param(0, "parallel processes (0 = one per CPU core, up to 8)", min=0)
 
@@ -84,9 +97,19 @@ class TilingConfig:
         if self.overlap >= self.tile_size:
             raise ConfigError(f"'overlap' ({self.overlap}) must be smaller than 'tile_size' ({self.tile_size})",
                               fix="for example tile_size: 1024 with overlap: 100")
-        if len(self.split) != 3 or sum(self.split) <= 0:
+        if self.overlap > 0.75 * self.tile_size:
+            raise ConfigError(f"'overlap' ({self.overlap}) is more than 3/4 of 'tile_size' ({self.tile_size}): every "
+                              f"plant would be cut into {(self.tile_size // (self.tile_size - self.overlap)) ** 2}+ "
+                              "nearly equal tiles", fix="use an overlap of about one plant's size, e.g. tile_size: "
+                                                        "1024 with overlap: 100")
+        if len(self.split) != 3:
             raise ConfigError(f"'split' must be three shares (train, val, test), got {self.split}",
                               fix="for example split: [0.7, 0.15, 0.15]")
+        if abs(sum(self.split) - 1.0) > 1e-3:
+            pct = " (percentages? write fractions)" if abs(sum(self.split) - 100) < 0.1 else ""
+            raise ConfigError(f"'split' shares must add up to 1, but {' + '.join(f'{v:g}' for v in self.split)} = "
+                              f"{sum(self.split):g}{pct}", fix="give train, val and test shares that sum to 1, e.g. "
+                                                               "split: [0.7, 0.15, 0.15]")
 
     @property
     def threshold(self) -> float:
@@ -148,80 +171,6 @@ def plan_image(boxes_xyxy: np.ndarray, width: int, height: int, tile: int, overl
     return ImagePlan(tiles, b, keep, clipped, visible)
 
 
-# -- splitting ------------------------------------------------------------------------------------------
-
-
-def split_counts(n: int, ratios: list[float]) -> list[int]:
-    """Whole numbers of images per split (largest remainder); a split with a share gets one if it can."""
-    r = np.asarray(ratios, float) / np.sum(ratios)
-    raw = r * n
-    counts = np.floor(raw).astype(int)
-    for i in np.argsort(-(raw - counts), kind="stable")[: n - counts.sum()]:
-        counts[i] += 1
-    for i in np.flatnonzero((counts == 0) & (r > 0)):
-        donor = int(np.argmax(counts))
-        if counts[donor] > 1:
-            counts[donor] -= 1
-            counts[i] += 1
-    return counts.tolist()
-
-
-def split_images(names: list[str], ratios: list[float], seed: int = 0,
-                 positions: dict[str, tuple[float, float]] | None = None) -> dict[str, str]:
-    """``{image: split}``; random with ``seed``, or with ``positions`` in blocks along the main axis."""
-    names = sorted(names)
-    if positions is not None:
-        xy = np.array([positions[n] for n in names], float)
-        xy -= xy.mean(axis=0)
-        axis = np.linalg.svd(xy, full_matrices=False)[2][0] if len(names) > 1 else np.array([1.0, 0.0])
-        order = np.argsort(xy @ axis, kind="stable")
-    else:
-        order = np.random.default_rng(seed).permutation(len(names))
-    counts = split_counts(len(names), ratios)
-    labels = np.repeat(np.array(SPLITS), counts)
-    return {names[i]: str(labels[k]) for k, i in enumerate(order)}
-
-
-def read_positions(path: Path | None, files: dict[str, Path]) -> dict[str, tuple[float, float]]:
-    """Photo positions for the spatial split: a CSV ``image,x,y`` or the images' EXIF GPS."""
-    out: dict[str, tuple[float, float]] = {}
-    if path is not None:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            if not reader.fieldnames or not {"image", "x", "y"} <= set(reader.fieldnames):
-                raise InputError("the positions CSV needs the columns image,x,y", path=path,
-                                 fix="write a header line 'image,x,y' and one line per photo")
-            for row in reader:
-                name = match_name(row["image"], files)
-                if name:
-                    out[name] = (float(row["x"]), float(row["y"]))
-    else:
-        for name, p in files.items():
-            gps = _exif_lonlat(p)
-            if gps:
-                lon, lat = gps
-                out[name] = (lon * 111320.0 * np.cos(np.radians(lat)), lat * 110540.0)  # metres, for ordering
-    missing = sorted(set(files) - set(out))
-    if missing:
-        raise InputError(f"no position for {len(missing)} image(s) (e.g. {missing[0]}) for the spatial split",
-                         path=path, fix="give 'positions' (a CSV image,x,y) or use split_mode: random")
-    return out
-
-
-def _exif_lonlat(path: Path) -> tuple[float, float] | None:
-    try:
-        with Image.open(path) as im:
-            gps = im.getexif().get_ifd(0x8825)
-        if not gps or 2 not in gps or 4 not in gps:
-            return None
-        def deg(v, ref):
-            d = float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
-            return -d if ref in ("S", "W") else d
-        return deg(gps[4], gps.get(3, "E")), deg(gps[2], gps.get(1, "N"))
-    except Exception:  # noqa: BLE001 - a file without readable EXIF has no position
-        return None
-
-
 # -- image files --------------------------------------------------------------------------------------
 
 
@@ -243,12 +192,13 @@ def write_lossless(path: Path, pixels: np.ndarray) -> None:
         buf.tofile(tmp)
 
 
-def _cut(job: tuple[str, list[tuple[int, int, int, int, str]]]) -> int:
-    """Worker: read one source image and write its chosen tiles."""
-    src, tiles = job
+def _cut(job: tuple[str, list[tuple[int, int, int, int, str]], np.ndarray | None]) -> int:
+    """Worker: read one source image and write its chosen tiles (masked outside the annotated region)."""
+    src, tiles, region = job
     img = read_raw(src)
     for x0, y0, x1, y1, out in tiles:
-        write_lossless(Path(out), img[y0:y1, x0:x1])
+        pixels = img[y0:y1, x0:x1]
+        write_lossless(Path(out), pixels if region is None else mask_outside(pixels, region, x0, y0))
     return len(tiles)
 
 
@@ -263,46 +213,115 @@ class Source:
     height: int
     boxes: np.ndarray                # (N, 4) xyxy
     categories: np.ndarray           # (N,)
+    region: np.ndarray | None = None  # the annotated polygon; None = the whole image
     plan: ImagePlan | None = None
+    usable: np.ndarray | None = None  # (T,) tiles enough inside the annotated region
+    boxes_outside: int = 0
+    ids: list = field(default_factory=list)  # annotation id of each box (for the report of boxes left out)
     split: str = ""
     negatives: list[int] = field(default_factory=list)  # indices of negative tiles kept
 
 
-def load_sources(cfg: TilingConfig) -> tuple[list[Source], list[dict], list[str]]:
-    """The annotated images found on disk, the categories, and the annotated names missing on disk."""
+def load_sources(cfg: TilingConfig, drops: DropLog | None = None) -> tuple[list[Source], list[dict], list[str]]:
+    """The annotated images found on disk, the categories, and the annotated names missing on disk.
+
+    Boxes of images that are not in the folder (and YOLO lines that cannot be used) go to ``drops``; an
+    annotation file without any box, an image whose size differs from the annotations and a broken image
+    file are errors."""
+    drops = DropLog() if drops is None else drops
     files = {p.name: p for p in list_images(cfg.images, min_count=0)}
     if cfg.annotations.is_dir():
-        ds = yolo_to_coco(cfg.annotations, {n: image_size(p) for n, p in files.items()})
+        stems = {p.stem for p in label_files(cfg.annotations)}
+        ds = yolo_to_coco(cfg.annotations, {n: _size(p) for n, p in files.items() if Path(n).stem in stems}, drops)
     else:
         ds = read_dataset(cfg.annotations)
+    if not ds["images"]:
+        raise InputError("the annotations list no images", path=cfg.annotations,
+                         fix="give module 4's annotations.json (or a YOLO labels folder) of the photos in 'images'")
+    if not ds["annotations"]:
+        what = " (this looks like module 7's predictions)" if "predictions" in ds else ""
+        raise InputError(f"the annotations hold no box (on {len(ds['images'])} image(s)){what}: every tile would be "
+                         "a negative and the detector would learn nothing", path=cfg.annotations,
+                         fix="draw or import the plant boxes with module 4 first (or point 'annotations' at the "
+                             "file that holds them)")
     by_image: dict[int, list[dict]] = {im["id"]: [] for im in ds["images"]}
     for a in ds["annotations"]:
         by_image[a["image_id"]].append(a)
+    matched, unmatched = resolve_image_names([im["file_name"] for im in ds["images"]], files)
     sources, missing = [], []
     for im in ds["images"]:
-        name = match_name(im["file_name"], files)
+        name = matched.get(im["file_name"])
         if name is None:
             missing.append(im["file_name"])
+            for a in by_image[im["id"]]:
+                drops.add(cfg.annotations, f"annotation {a.get('id')}", im["file_name"], a["bbox"],
+                          "image not in the image folder", unmatched[im["file_name"]])
             continue
-        w, h = image_size(files[name])
+        w, h = _size(files[name])
         if (w, h) != (im["width"], im["height"]):
             raise InputError(f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
                              path=cfg.annotations, fix="annotate the same (unresized) images that you tile")
         anns = by_image[im["id"]]
         b = np.array([a["bbox"] for a in anns], float).reshape(-1, 4)
         b[:, 2:] += b[:, :2]
-        sources.append(Source(name, files[name], w, h, b, np.array([a["category_id"] for a in anns], int)))
-    if missing:
-        log.warning("%d annotated image(s) not found in %s and skipped (e.g. %s)", len(missing), cfg.images,
-                    missing[0])
+        cats = np.array([a["category_id"] for a in anns], int)
+        region = annotated_region(im)
+        outside = 0
+        if region is not None:  # only the region was annotated: boxes clipped to it
+            b, inside = clip_boxes(b, region)
+            outside = int((~inside).sum())
+            for i in np.flatnonzero(~inside):
+                drops.add(cfg.annotations, f"annotation {anns[i].get('id')}", name, anns[i]["bbox"],
+                          "outside the annotated region", "module 4 recorded only part of this image as annotated")
+            b, cats = b[inside], cats[inside]
+        sources.append(Source(name, files[name], w, h, b, cats, region, boxes_outside=outside,
+                              ids=[a.get("id") for a, k in zip(anns, inside if region is not None else
+                                                               [True] * len(anns)) if k]))
+    if missing and sources:
+        example = missing[0] + (f" ({unmatched[missing[0]]})" if unmatched[missing[0]] else "")
+        log.warning("%d annotated image(s) not found in %s and skipped, with their boxes (e.g. %s)", len(missing),
+                    cfg.images, example)
     if not sources:
-        raise InputError("none of the annotated images is in the image folder", path=cfg.images,
+        hint = next((v for v in unmatched.values() if v), "")
+        raise InputError(f"none of the {len(ds['images'])} annotated images is in the image folder (e.g. "
+                         f"'{missing[0]}'{'; ' + hint if hint else ''})", path=cfg.images,
                          fix="set 'images' to the folder the annotations were made on")
     stems = [Path(s.name).stem for s in sources]
     if len(set(stems)) != len(stems):
         raise InputError("two annotated images differ only in their extension; tile names would clash",
                          path=cfg.images, fix="rename one of them")
     return sources, ds["categories"], missing
+
+
+def _size(path: Path) -> tuple[int, int]:
+    """(width, height) of a source photo that must be whole (a truncated JPEG would give grey tiles)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
+            size = image_size(path)
+    except InputError as exc:
+        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
+                         fix="copy the photo again, or move it out of the image folder") from exc
+    if path.suffix.lower() in JPEG_SUFFIXES:
+        check_jpeg(path)
+    return size
+
+
+def check_tile_size(cfg: TilingConfig, sources: list[Source]) -> None:
+    """A tile larger than every image is an error (each image would be one odd-sized tile); larger than some
+    images, a warning."""
+    small = [s for s in sources if cfg.tile_size > s.width or cfg.tile_size > s.height]
+    if not small:
+        return
+    side = max(max(s.width, s.height) for s in sources)
+    if all(cfg.tile_size > max(s.width, s.height) for s in sources):
+        raise ConfigError(f"'tile_size' ({cfg.tile_size} px) is larger than every image (e.g. {small[0].name}: "
+                          f"{small[0].width}x{small[0].height} px): there is nothing to tile",
+                          fix=f"set tile_size below the image size (e.g. {max(32, min(s.height for s in sources) // 2)}"
+                              f"), or to {side} to use whole images")
+    log.warning("'tile_size' (%d px) is larger than %d of %d image(s) in width or height (e.g. %s: %dx%d px): their "
+                "tiles are cut to the image", cfg.tile_size, len(small), len(sources), small[0].name,
+                small[0].width, small[0].height)
 
 
 def plan_all(cfg: TilingConfig, sources: list[Source]) -> None:
@@ -317,8 +336,11 @@ def plan_all(cfg: TilingConfig, sources: list[Source]) -> None:
     negatives = []
     for s in sources:
         s.plan = plan_image(s.boxes, s.width, s.height, cfg.tile_size, cfg.overlap, cfg.threshold, cfg.min_box_side)
+        s.usable = (np.ones(len(s.plan.tiles), bool) if s.region is None
+                    else region_share(s.plan.tiles, s.region) >= max(cfg.min_region_share, 1e-9))
+        s.plan.keep &= s.usable[:, None]  # boxes count only in tiles that are written
         s.split = splits[s.name]
-        negatives += [(s, int(t)) for t in np.flatnonzero(~s.plan.positive)]
+        negatives += [(s, int(t)) for t in np.flatnonzero(~s.plan.positive & s.usable)]
     n_keep = int(round(cfg.negative_share * len(negatives)))
     for i in sorted(np.random.default_rng(cfg.seed).choice(len(negatives), n_keep, replace=False)):
         s, t = negatives[i]
@@ -331,31 +353,64 @@ def tile_suffix(cfg: TilingConfig, source: Path) -> str:
     return LOSSLESS.get(source.suffix.lower(), ".png")
 
 
-def _remove_previous(out: Path) -> None:
-    """Delete the tiles a previous run listed, so that no stale tile is mistaken for a new one."""
+def _previous_tiles(out: Path) -> set[Path]:
+    """The tiles (and YOLO labels) a previous run listed in its split files, to remove after a new run."""
+    old: set[Path] = {out / DROPPED_NAME}  # a new run writes its own list, or none
     for split in SPLITS:
-        old = out / f"{split}.json"
-        if not old.is_file():
+        path = out / f"{split}.json"
+        if not path.is_file():
             continue
-        for im in read_json(old).get("images", []):
-            for p in (out / split / "images" / im["file_name"], out / split / "labels" / (Path(im["file_name"]).stem + ".txt")):
-                if p.is_file():
-                    p.unlink()
-        old.unlink()
+        try:
+            images = read_json(path).get("images", [])
+        except (InputError, AttributeError):
+            continue
+        for im in images:
+            name = Path(str(im.get("file_name", ""))).name if isinstance(im, dict) else ""
+            if name:
+                old |= {out / split / "images" / name, out / split / "labels" / (Path(name).stem + ".txt")}
+    return old
 
 
 def run(cfg: TilingConfig) -> dict:
-    """Tile, split and write everything; returns the summary (also written to summary.json)."""
-    sources, categories, missing = load_sources(cfg)
+    """Tile, split and write everything; returns the summary (also written to summary.json).
+
+    Everything is checked before a pixel is written, and the outputs are written into a staging folder moved
+    into ``output_dir`` only at the end: a failed run leaves ``output_dir`` as it was (apart from its log)."""
+    check_outputs(cfg)
+    drops = DropLog()
+    sources, categories, missing = load_sources(cfg, drops)
+    check_tile_size(cfg, sources)
     plan_all(cfg, sources)
+    if not any(s.plan.positive.any() for s in sources):
+        raise InputError(f"no box of the {sum(len(s.boxes) for s in sources)} is kept in any tile (each needs "
+                         f"min_visible {cfg.threshold:g} of its area in a tile and sides of min_box_side "
+                         f"{cfg.min_box_side:g} px there)", path=cfg.annotations,
+                         fix="lower min_box_side or min_visible, or check the boxes' sizes in the annotations")
     out = Path(cfg.output_dir)
-    _remove_previous(out)
+    old = _previous_tiles(out)
+    with staged_outputs(out) as stage:
+        summary = _write(cfg, sources, categories, missing, stage, out, drops)
+    for path in old - {out / p for p in summary.pop("_written")} - ({out / DROPPED_NAME} if len(drops) else set()):
+        path.unlink(missing_ok=True)
+    if len(drops):
+        log.warning("%d box(es) are not in any tile (%s); each one and why: %s", len(drops), drops.summary(),
+                    out / DROPPED_NAME)
+    log.info("%d tiles from %d images: %s; %d of %d boxes kept in at least one tile -> %s",
+             summary["tiles"], len(sources), ", ".join(f"{k} {v['tiles']}" for k, v in summary["splits"].items()),
+             summary["boxes_kept"], summary["boxes"], out)
+    return summary
+
+
+def _write(cfg: TilingConfig, sources: list[Source], categories: list[dict], missing: list[str], stage: Path,
+           out: Path, drops: DropLog) -> dict:
+    """Write the tiles, the split datasets, YOLO files, summary.json and dropped.csv into ``stage``."""
     datasets = {k: new_dataset([c["name"] for c in sorted(categories, key=lambda c: c["id"])],
                                info={"description": f"MatchPlant tiles ({k})", "images_dir": f"{k}/images",
                                      "tile_size": cfg.tile_size, "overlap": cfg.overlap}) for k in SPLITS}
     cat_map = {c["id"]: i + 1 for i, c in enumerate(sorted(categories, key=lambda c: c["id"]))}
     jobs = []
     ann_id = {k: 1 for k in SPLITS}
+    written: list[str] = []
     for s in sources:
         ds = datasets[s.split]
         chosen = sorted(set(np.flatnonzero(s.plan.positive).tolist()) | set(s.negatives))
@@ -365,36 +420,45 @@ def run(cfg: TilingConfig) -> dict:
             file_name = f"{Path(s.name).stem}_{x0}_{y0}{tile_suffix(cfg, s.path)}"
             image_id = len(ds["images"]) + 1
             ds["images"].append({"id": image_id, "file_name": file_name, "width": x1 - x0, "height": y1 - y0,
-                                 "source_image": s.name, "x0": x0, "y0": y0})
+                                 "source_image": s.name, "x0": x0, "y0": y0,
+                                 **({} if s.region is None else {"masked_outside_region": True})})
             for n in np.flatnonzero(s.plan.keep[t]):
                 cx1, cy1, cx2, cy2 = s.plan.clipped[t, n]
                 ds["annotations"].append(make_annotation(ann_id[s.split], image_id, [cx1, cy1, cx2 - cx1, cy2 - cy1],
                                                          cat_map[int(s.categories[n])]))
                 ann_id[s.split] += 1
-            tiles.append((x0, y0, x1, y1, str(out / s.split / "images" / file_name)))
-        jobs.append((str(s.path), tiles))
+            tiles.append((x0, y0, x1, y1, str(stage / s.split / "images" / file_name)))
+            written += [f"{s.split}/images/{file_name}", f"{s.split}/labels/{Path(file_name).stem}.txt"]
+        jobs.append((str(s.path), tiles, s.region))
+        for n in np.flatnonzero(~s.plan.kept_anywhere):
+            x1, y1, x2, y2 = s.boxes[n]
+            best = float(s.plan.visible[:, n].max()) if s.plan.visible.size else 0.0
+            drops.add(cfg.annotations, f"annotation {s.ids[n] if n < len(s.ids) else '?'}", s.name,
+                      [x1, y1, x2 - x1, y2 - y1], "in no tile",
+                      f"at most {best:.0%} visible in a tile (min_visible {cfg.threshold:g}), or the part in a "
+                      f"tile is under min_box_side {cfg.min_box_side:g} px")
     _run_jobs(jobs, cfg.workers)
     summary = _summary(cfg, sources, datasets, missing)
     for split, ds in datasets.items():
         if ds["images"] or cfg.split[SPLITS.index(split)] > 0:
-            write_dataset(out / f"{split}.json", ds)
+            write_dataset(stage / f"{split}.json", ds)
             if cfg.yolo:
-                coco_to_yolo(ds, out / split, labels_subdir="labels")
+                coco_to_yolo(ds, stage / split, labels_subdir="labels")
     if cfg.yolo:
         names = [c["name"] for c in datasets["train"]["categories"]]
-        write_text(out / "classes.txt", "".join(n + "\n" for n in names))
-        write_text(out / "data.yaml", f"path: {out.resolve().as_posix()}\ntrain: train/images\nval: val/images\n"
-                                      f"test: test/images\nnames: {names}\n")
-    write_json(out / "summary.json", summary)
-    log.info("%d tiles from %d images: %s; %d of %d boxes kept in at least one tile -> %s",
-             summary["tiles"], len(sources), ", ".join(f"{k} {v['tiles']}" for k, v in summary["splits"].items()),
-             summary["boxes_kept"], summary["boxes"], out)
-    return summary
+        write_text(stage / "classes.txt", "".join(n + "\n" for n in names))
+        write_text(stage / "data.yaml", f"path: {out.resolve().as_posix()}\ntrain: train/images\nval: val/images\n"
+                                        f"test: test/images\nnames: {names}\n")
+    summary["dropped"] = {"boxes": len(drops), "reasons": drops.summary(), "list": DROPPED_NAME if len(drops) else None}
+    if len(drops):
+        drops.write_csv(stage / DROPPED_NAME)
+    write_json(stage / "summary.json", summary)
+    return dict(summary, _written=written)
 
 
 def _run_jobs(jobs: list, workers: int) -> None:
     workers = workers or min(8, os.cpu_count() or 1)
-    total = sum(len(t) for _, t in jobs)
+    total = sum(len(job[1]) for job in jobs)
     bar = progress(None, desc="tiles", total=total, unit="tile")
     if workers == 1 or len(jobs) == 1:
         for job in jobs:
@@ -416,11 +480,15 @@ def _summary(cfg: TilingConfig, sources: list[Source], datasets: dict, missing: 
     lost = {s.name: int((~s.plan.kept_anywhere).sum()) for s in sources if (~s.plan.kept_anywhere).any()}
     return {"tiles": sum(v["tiles"] for v in splits.values()), "boxes": int(sum(len(s.boxes) for s in sources)),
             "boxes_kept": int(sum(s.plan.kept_anywhere.sum() for s in sources)), "boxes_lost_by_image": lost,
-            "negative_tiles_available": int(sum((~s.plan.positive).sum() for s in sources)),
+            "negative_tiles_available": int(sum((~s.plan.positive & s.usable).sum() for s in sources)),
+            "annotated_regions": {"images": sum(s.region is not None for s in sources),
+                                  "boxes_outside_region": int(sum(s.boxes_outside for s in sources)),
+                                  "tiles_outside_region": int(sum((~s.usable).sum() for s in sources))},
             "missing_images": missing, "splits": splits,
             "settings": {"tile_size": cfg.tile_size, "overlap": cfg.overlap, "min_visible": cfg.threshold,
                          "min_box_side": cfg.min_box_side, "split": list(cfg.split), "seed": cfg.seed,
-                         "split_mode": cfg.split_mode, "negative_share": cfg.negative_share}}
+                         "split_mode": cfg.split_mode, "negative_share": cfg.negative_share,
+                         "min_region_share": cfg.min_region_share}}
 
 
 __all__ = ["TilingConfig", "tile_origins", "tile_grid", "plan_image", "ImagePlan", "split_counts", "split_images",

@@ -13,6 +13,8 @@ from matchplant.core.config import param
 class MinImagesConfig:
     """Choose the fewest undistorted images covering the field, and the part of the field each one owns."""
 
+    outputs_inside_inputs = ("project_dir",)  # the project is read by fixed names: <project>/min_images is fine
+
     project_dir: Path = param(None, "ODM project folder (opensfm/, odm_dem/dsm.tif, odm_orthophoto/)",
                               path="dir", required=True)
     aoi_file: Path | None = param(None, "polygon file of the area to cover (GeoPackage, Shapefile, GeoJSON); "
@@ -36,4 +38,4 @@ class MinImagesConfig:
                                                                  "copy, link (hard link, no extra space), or none "
                                                                  "(only list them)",
                                                          choices=["copy", "link", "none"])
-    output_dir: Path = param(Path("min_images_out"), "folder for the outputs", path="out")
+    output_dir: Path = param(Path("runs/min_img_finder"), "folder for the outputs", path="out")

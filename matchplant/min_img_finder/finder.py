@@ -31,12 +31,15 @@ outputs in :mod:`~matchplant.min_img_finder.output`. This module loads a project
 Outputs (``output_dir``): ``selected_images.csv``, the selected undistorted images (copied, hard-linked or
 only listed), ``coverage.png``, ``footprints.gpkg`` (layers ``footprints``, ``owned``, ``aoi``,
 ``uncovered``), ``owned_areas.json`` (``{image file name: [[u, v], ...]}`` in that image's pixels) and
-``selection.json`` (settings and results).
+``selection.json`` (settings and results); ``skipped_images.csv`` when reconstructed images got no footprint
+(no undistorted image file, or a border that misses the DSM), with the reason for each. An area of interest
+that no image sees, or a selection of 0 images, is an error; a failed run writes nothing.
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -48,11 +51,13 @@ from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.errors import InputError
 from matchplant.core.footprints import Footprint, compute_footprints, open_dsm, polygon_to_pixels
+from matchplant.core.guard import staged_outputs
 from matchplant.core.log import get_logger
 from matchplant.core.odm import ODMProject
+from matchplant.core.validate import check_raster
 from matchplant.min_img_finder.aoi import aoi_from_mask, build_grid, orthophoto_preview, read_aoi_file
 from matchplant.min_img_finder.config import MinImagesConfig
-from matchplant.min_img_finder.output import write_outputs
+from matchplant.min_img_finder.output import write_outputs, write_rows
 from matchplant.min_img_finder.owned import largest_polygon, owned_areas
 from matchplant.min_img_finder.setcover import Selection, reachable_coverage, select_greedy, select_milp
 
@@ -84,6 +89,7 @@ class MinImageFinder:
         self.project = ODMProject(cfg.project_dir)
         self.project.require("undistorted_reconstruction", "undistorted_images", "dsm")
         self.frame = self.project.frame()
+        check_raster(self.project.path("dsm"), bands=1, what="DSM")
         self.surface = open_dsm(self.project.path("dsm"), cfg.dsm_resolution)
         if self.surface.crs is not None and getattr(self.frame, "crs", None) is not None \
                 and not _same_crs(self.surface.crs, self.frame.crs):
@@ -92,20 +98,40 @@ class MinImageFinder:
                              fix="use the DSM of this ODM run, or reproject it to the reconstruction's CRS")
         self.preview = None
         if self.project.has("orthophoto"):
-            self.preview = orthophoto_preview(self.project.path("orthophoto"), cfg.preview_size)
+            ortho = self.project.path("orthophoto")
+            check_raster(ortho, bands=1, require_crs=cfg.aoi_file is None, allow_empty=True, what="orthophoto")
+            self.preview = orthophoto_preview(ortho, cfg.preview_size)
         if cfg.aoi_file is not None:
             self.aoi = read_aoi_file(Path(cfg.aoi_file), self.frame.crs)
         elif self.preview is not None:
-            self.aoi = aoi_from_mask(self.preview[1], self.preview[2])
+            self.aoi = aoi_from_mask(self.preview[1], self.preview[2], self.project.path("orthophoto"))
         else:
             raise InputError("no area of interest: the orthophoto is missing and no aoi_file is set",
                              path=self.project.path("orthophoto"),
                              fix="set aoi_file to a polygon file, or run ODM with the orthophoto step")
         self.footprints = compute_footprints(self.project, self.frame, self.surface, cfg.border_samples)
+        self.skipped = skipped_images(self.project, self.footprints)
         self.footprint_seconds = time.perf_counter() - t0
         self.grid = build_grid(self.aoi, [f.polygon for f in self.footprints], cfg.cell_size)
+        if reachable_coverage(self.grid) <= 0:
+            raise self._aoi_misses()
         log.info("%d footprints on the DSM; area of interest %.1f m^2 in %d cells of %.3f m",
                  len(self.footprints), self.aoi.area, self.grid.A.shape[1], self.grid.cell)
+
+    def _aoi_misses(self) -> InputError:
+        """The error for an area of interest that no image sees: where each lies, and what to change."""
+        fps = shapely.union_all([f.polygon for f in self.footprints])
+        gap = self.aoi.distance(fps)
+        a, b = self.aoi.bounds, fps.bounds
+        where = f"the area of interest ({a[0]:.0f}..{a[2]:.0f} E, {a[1]:.0f}..{a[3]:.0f} N) lies {gap:.0f} m from " \
+                f"the images' footprints ({b[0]:.0f}..{b[2]:.0f} E, {b[1]:.0f}..{b[3]:.0f} N, {self.frame.crs.name})"
+        if self.cfg.aoi_file is not None:
+            return InputError(f"no image covers any of the area of interest: {where}; 0 images would be selected",
+                              path=self.cfg.aoi_file, fix="draw the AOI over this field, check its CRS, or leave "
+                                                          "aoi_file empty to cover the orthophoto's area")
+        return InputError(f"no image covers any of the orthophoto's valid area: {where}",
+                          path=self.project.path("orthophoto"),
+                          fix="use the orthophoto of this ODM run, or set aoi_file to the field's boundary")
 
     @property
     def names(self) -> list[str]:
@@ -160,7 +186,7 @@ class MinImageFinder:
             if area.area - main.area > 0.01 * max(area.area, 1e-9):
                 log.warning("%s owns %d separate pieces; owned_areas.json holds its largest", fp.name,
                             len(getattr(area, "geoms", [area])))
-            pix[fp.name] = polygon_to_pixels(main, fp.shot, self.frame, self.surface, step)
+            pix[fp.name] = polygon_to_pixels(main, fp.shot, fp.frame or self.frame, self.surface, step)
         union = shapely.union_all([f.polygon for f in chosen]) if chosen else Polygon()
         uncovered = self.aoi.difference(union)
         exact = float(self.aoi.intersection(union).area / self.aoi.area) if chosen else 0.0
@@ -180,13 +206,37 @@ def _same_crs(a, b) -> bool:
         return True
 
 
+def skipped_images(project: ODMProject, footprints: Sequence[Footprint]) -> list[dict]:
+    """The reconstructed images that got no footprint, each with the reason (for ``skipped_images.csv``)."""
+    placed = {f.name for f in footprints}
+    files = project.undistorted_images()
+    return [{"image": sid, "reason": "no undistorted image file (expected "
+                                     f"{sid}.tif in opensfm/undistorted/images)" if sid not in files else
+             "its border rays miss the DSM (it does not look at the mapped ground)"}
+            for sid in sorted(project.shot_ids(undistorted=True) - placed)]
+
+
 def run(cfg: MinImagesConfig) -> Result:
-    """Step 3 from the command line: load, select, evaluate, write."""
+    """Step 3 from the command line: load, select, evaluate, write (all or nothing: a failed run leaves
+    ``output_dir`` as it was)."""
     finder = MinImageFinder(cfg)
     selection = finder.select()
+    if not selection.indices:
+        raise InputError(f"0 of {len(finder.footprints)} images selected: none covers the area of interest",
+                         path=cfg.aoi_file or cfg.project_dir,
+                         fix="check the area of interest (aoi_file) and uncovered_threshold")
     result = finder.evaluate(selection)
-    paths = write_outputs(finder, result)
+    out = Path(cfg.output_dir)
+    with staged_outputs(out) as stage:
+        write_outputs(finder, result, stage)
+        if finder.skipped:
+            write_rows(stage / "skipped_images.csv", finder.skipped)
+    if finder.skipped:
+        log.warning("%d of %d reconstructed images could not be used (%s); see %s", len(finder.skipped),
+                    len(finder.skipped) + len(finder.footprints),
+                    "; ".join(f"{n} x {r}" for r, n in Counter(s["reason"] for s in finder.skipped).items()),
+                    out / "skipped_images.csv")
     log.info("selected %d of %d images (%s, %.3f s) covering %.1f%% of the area; outputs in %s",
              len(selection.indices), len(finder.footprints), selection.method, selection.seconds,
-             100 * result.exact_coverage, paths["csv"].parent)
+             100 * result.exact_coverage, out)
     return result

@@ -20,8 +20,9 @@ import shapely
 from matplotlib.widgets import Button, RadioButtons, TextBox
 
 from matchplant.core.config import save_config, validate
-from matchplant.core.errors import MatchPlantError
-from matchplant.core.gui import figure, show, status_text
+from matchplant.core.errors import InputError, MatchPlantError
+from matchplant.core.gui import (SetupField, SetupScreen, close, figure, require_display, reveal, show,
+                                 status_text)
 from matchplant.core.log import get_logger
 from matchplant.min_img_finder.config import MinImagesConfig
 from matchplant.min_img_finder.finder import MinImageFinder, Result
@@ -161,7 +162,38 @@ class MinImagesGUI:
         return paths
 
 
-def open_gui(cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None) -> MinImagesGUI:
-    gui = MinImagesGUI(cfg, config_path, headless=headless)
-    show(gui.fig)
-    return gui
+SETUP_FIELDS = [SetupField("project_dir", "ODM project folder", "folder"),
+                SetupField("aoi_file", "Area to cover (optional)", "file"),
+                SetupField("output_dir", "Output folder", "folder")]
+
+
+class MinImagesSetup:
+    """Module 3's setup screen: the ODM project, the area to cover and the output folder with file pickers;
+    **Select images** runs the selection, writes every output and opens the map to edit the choice."""
+
+    def __init__(self, cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None,
+                 chooser=None):
+        self.config_path, self.headless = config_path, headless
+        self.editor: MinImagesGUI | None = None
+        self.screen = SetupScreen("Minimum image finder: choose the ODM project", cfg, SETUP_FIELDS, self._run,
+                                  headless=headless, chooser=chooser, run_label="Select images")
+
+    def _run(self, cfg: MinImagesConfig) -> str:
+        if self.editor is not None:
+            close(self.editor.fig)
+        self.editor = MinImagesGUI(cfg, self.config_path, headless=self.headless)
+        reveal(self.editor.fig)
+        if self.editor.result is None:  # the finder could not load the project: its message
+            raise InputError(self.editor.status.get_text(), path=cfg.project_dir)
+        if self.editor.save() is None:
+            raise InputError(self.editor.status.get_text(), path=cfg.output_dir)
+        return (f"{len(self.editor.result.selection.indices)} images selected and saved to {cfg.output_dir}; "
+                "click footprints on the map to change the choice, then Save")
+
+
+def open_gui(cfg: MinImagesConfig, config_path: Path | None = None, chooser=None) -> MinImagesSetup:
+    """The setup screen, then the coverage map; blocks until the windows are closed."""
+    require_display("python 3_min_img_finder/min_img_finder.py --set project_dir=FOLDER")
+    setup = MinImagesSetup(cfg, config_path, chooser=chooser)
+    show(setup.screen.fig)
+    return setup

@@ -19,7 +19,8 @@ import geopandas as gpd
 import numpy as np
 import shapely
 from matplotlib import colormaps
-from matplotlib.patches import PathPatch
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, PathPatch
 from matplotlib.path import Path as MPath
 from shapely.geometry import MultiPolygon, Polygon
 
@@ -83,6 +84,15 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
     return paths
 
 
+def write_rows(path: Path, rows: list[dict]) -> Path:
+    """A small CSV of dicts (their keys as the header), written atomically."""
+    with atomic_open(path, "w") as fh:
+        wr = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        wr.writeheader()
+        wr.writerows(rows)
+    return path
+
+
 def place_image(src: Path, dst: Path, mode: str) -> None:
     """Copy or hard-link an image into place (a hard link falls back to a copy across drives)."""
     if dst.exists() and dst.stat().st_size == src.stat().st_size and mode == "link" and os.path.samefile(src, dst):
@@ -131,7 +141,7 @@ def _multi(geom):
 
 def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
     """The coverage map: orthophoto, AOI, every footprint (grey), selected ones numbered with their owned
-    areas, uncovered areas in red. Used by the figure and the GUI."""
+    areas, uncovered areas in red, and a legend saying so. Used by the figure and the GUI."""
     ax.clear()
     if finder.preview is not None:
         rgb, mask, t, _ = finder.preview
@@ -171,6 +181,18 @@ def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
     ax.set_title(f"{len(s.indices)} of {len(finder.footprints)} images cover {100 * result.exact_coverage:.1f}% "
                  f"of the area (asked {100 * s.target:.0f}%)", fontsize=11)
     ax.ticklabel_format(useOffset=False, style="plain")
+    _legend(ax, colors[0] if colors else "tab:blue", numbers)
+
+
+def _legend(ax, colour, numbers: bool) -> None:
+    """What each mark on the coverage map means (proxies, so the legend does not depend on the data)."""
+    handles = [Line2D([], [], color="0.55", lw=0.8, label="footprint of an image (all images)"),
+               Line2D([], [], color=colour, lw=1.6, marker="o" if numbers else None, mfc="white", mec=colour,
+                      label="selected image (number: order of choice)" if numbers else "selected image"),
+               Patch(facecolor=colour, alpha=0.28, lw=0, label="area that image owns (its plants)"),
+               Patch(facecolor="red", alpha=0.45, hatch="//", lw=0, label="not covered by the selection"),
+               Line2D([], [], color="yellow", lw=1.2, ls="--", label="area to cover (AOI)")]
+    ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
 
 
 def _mpl_path(poly: Polygon) -> MPath:

@@ -21,17 +21,22 @@ import numpy as np
 
 from matchplant.core.coco import write_predictions
 from matchplant.core.config import param, section, to_dict
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import list_images as list_image_files
+from matchplant.core.errors import ConfigError
+from matchplant.core.guard import staged_outputs
 from matchplant.core.images import read_rgb8
 from matchplant.core.io import write_json
 from matchplant.core.log import get_logger
+from matchplant.core.odm import SUBMODELS_DIR, image_size
 from matchplant.core.progress import progress
 from matchplant.detection.data import CocoDetection
-from matchplant.detection.device import select_device
+from matchplant.detection.device import select_device, warn_if_slow
 from matchplant.detection.evaluate import (coco_evaluate, draw_boxes, matches_at_iou50, operating_point, plot_pr_curve,
                                            plot_score_histogram, predict_dataset, summarise_stats, write_image)
-from matchplant.detection.model import load_detector, read_checkpoint
+from matchplant.detection.model import load_detector, read_checkpoint, set_score_threshold
+from matchplant.detection.tile_objects import distinct_objects, found_objects
+from matchplant.model_test.inputs import check_device, check_images, list_images, nothing_found, nothing_in_test
+from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
+from matchplant.model_test.shard import join
 
 log = get_logger("model_test")
 
@@ -55,11 +60,18 @@ class DetectConfig:
 
     images: Path | None = param(None, "an image or a folder of images (e.g. ODM's opensfm/undistorted/images); "
                                       "null = no detection", path="exists")
-    tile_size: int = param(1024, "tile side in pixels (use the size the model was trained on)", min=32)
-    overlap: int = param(256, "overlap between tiles in pixels; make it larger than the largest plant", min=0)
+    tile_size: int | None = param(None, "tile side in pixels; null = the training tile size the checkpoint "
+                                        "records (a warning when another size makes plants >2x or <0.5x their "
+                                        "training size in the detector's input)", min=32)
+    overlap: int | None = param(None, "overlap between tiles in pixels, larger than the largest plant; null = "
+                                      "the training tiles' overlap from the checkpoint (at most half the tile)",
+                                min=0)
     score_threshold: float = param(0.5, "keep boxes scoring at least this", min=0, max=1)
     merge_iou: float = param(0.5, "boxes of the same class from overlapping tiles with IoU above this are "
                                   "one plant", min=0, max=1)
+    merge_containment: float = param(0.8, "a box lying at least this share inside a larger box of the same "
+                                          "class from another tile is the same plant (nested duplicate); 1 = "
+                                          "only boxes wholly inside", min=0.01, max=1)
     edge_margin: float = param(2.0, "a box within this many pixels of a tile border inside the image is "
                                     "'cut'; it is dropped when another tile sees the whole plant", min=0)
     drawn_images: int = param(4, "how many images to draw with their detections", min=0)
@@ -80,7 +92,8 @@ class ModelTestConfig:
     amp: bool = param(True, "mixed precision on CUDA GPUs")
 
     def check(self) -> None:
-        if self.detect.overlap >= self.detect.tile_size:
+        check_device(self.device)
+        if None not in (self.detect.overlap, self.detect.tile_size) and self.detect.overlap >= self.detect.tile_size:
             raise ConfigError(f"detect.overlap ({self.detect.overlap}) must be smaller than detect.tile_size "
                               f"({self.detect.tile_size})", fix="lower detect.overlap (e.g. a quarter of the tile)")
         if self.evaluate.dataset_json is None and self.detect.images is None:
@@ -92,30 +105,45 @@ class ModelTestConfig:
 # evaluation
 
 
-def evaluate(cfg: ModelTestConfig, device=None) -> dict:
-    """COCO evaluation of the checkpoint on ``evaluate.dataset_json``; writes metrics, figures, predictions."""
+METRIC_UNITS = ("fractions 0..1 for every AP, AR, precision, recall, F1 and threshold (no percents); 'images' "
+                "counts test tiles, 'tile_boxes' annotated boxes in them, 'plants' distinct plants (one seen in two "
+                "overlapping tiles counts once); 'coco' and 'at_threshold' score tile boxes, 'plants_found' "
+                "distinct plants (found when any of their tile boxes is matched at IoU 0.5)")
+
+
+def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
+             ds: CocoDetection | None = None) -> dict:
+    """COCO evaluation of the checkpoint on ``evaluate.dataset_json``; writes metrics, figures and predictions
+    into ``out`` (by default ``output_dir``; :func:`run` gives a staging folder moved into place at the end).
+    ``ck``, ``ds``: the checkpoint and test tiles, when :func:`run` has read and checked them already."""
     ecfg = cfg.evaluate
-    out = Path(cfg.output_dir)
+    final = Path(cfg.output_dir)
+    out = Path(out) if out is not None else final
     device = device or select_device(cfg.device)
     amp = cfg.amp and device.type == "cuda"
+    ck = ck or read_checkpoint(cfg.checkpoint)
+    ds = ds or test_tiles(cfg, ck)
     # no score threshold before COCOeval, and as many boxes as maxDets
-    model, ck = load_detector(cfg.checkpoint, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}})
-    model.roi_heads.score_thresh = 0.0
-    ds = CocoDetection(ecfg.dataset_json, ecfg.images, class_names=ck["class_names"])
+    model, ck = load_detector(ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}},
+                              source=cfg.checkpoint)
+    set_score_threshold(model, 0.0)
     results = predict_dataset(model, ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers, amp=amp,
                               desc="evaluating")
+    if not results:
+        raise nothing_in_test(len(ds), Path(ecfg.dataset_json), Path(cfg.checkpoint))
     stats, ev = coco_evaluate(ds.data, results, max_dets=ecfg.max_detections)
-    metrics = {"checkpoint": str(cfg.checkpoint), "dataset": str(ecfg.dataset_json), "images": len(ds),
-               "plants": len(ds.data["annotations"]), "detections": len(results), "max_detections": ecfg.max_detections,
-               "coco": stats}
-    if ev is not None:
-        scores, hits, n_gt = matches_at_iou50(ev)
-        metrics["at_threshold"] = operating_point(scores, hits, n_gt, ecfg.operating_threshold)
-        plot_pr_curve(ev, out / "pr_curve.png", metrics["at_threshold"], ck["class_names"])
-        plot_score_histogram(scores, hits, out / "score_histogram.png", ecfg.operating_threshold)
-    else:
-        metrics["at_threshold"] = operating_point(np.zeros(0), np.zeros(0, bool), len(ds.data["annotations"]),
-                                                  ecfg.operating_threshold)
+    object_of, n_plants = distinct_objects(ds.data)  # a plant in two overlapping tiles is one plant
+    metrics = {"checkpoint": str(cfg.checkpoint), "dataset": str(ecfg.dataset_json), "units": METRIC_UNITS,
+               "images": len(ds), "plants": n_plants, "tile_boxes": len(ds.data["annotations"]),
+               "detections": len(results), "max_detections": ecfg.max_detections, "coco": stats,
+               "plant_scale_vs_training": check_test_scale(ds.data, ck)}
+    scores, hits, n_gt = matches_at_iou50(ev)
+    metrics["at_threshold"] = operating_point(scores, hits, n_gt, ecfg.operating_threshold)
+    found = found_objects(ev, object_of, ecfg.operating_threshold)
+    metrics["plants_found"] = {"threshold": ecfg.operating_threshold, "plants": n_plants, "found": found,
+                               "recall": found / n_plants if n_plants else 0.0}
+    plot_pr_curve(ev, out / "pr_curve.png", metrics["at_threshold"], ck["class_names"])
+    plot_score_histogram(scores, hits, out / "score_histogram.png", ecfg.operating_threshold)
     write_predictions(out / "test_predictions.json", [dict(im) for im in ds.images], ds.data["categories"],
                       [dict(r, id=i + 1) for i, r in enumerate(results)],
                       info={"description": "MatchPlant module 7 predictions on test tiles (no threshold)",
@@ -125,8 +153,14 @@ def evaluate(cfg: ModelTestConfig, device=None) -> dict:
     write_json(out / "metrics.json", metrics)
     op = metrics["at_threshold"]
     log.info("test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)", summarise_stats(stats),
-             op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], out / "metrics.json")
+             op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], final / "metrics.json")
     return metrics
+
+
+def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
+    """The test tiles, checked against their files and the checkpoint's classes."""
+    return CocoDetection(cfg.evaluate.dataset_json, cfg.evaluate.images, class_names=ck["class_names"],
+                         classes_from=f"the checkpoint {cfg.checkpoint}")
 
 
 def _draw_eval_images(ds: CocoDetection, results: list[dict], ecfg: EvalConfig, folder: Path) -> None:
@@ -167,13 +201,16 @@ def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray,
-                     iou: float = 0.5) -> np.ndarray:
+                     iou: float = 0.5, tiles: np.ndarray | None = None, containment: float = 0.8) -> np.ndarray:
     """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
 
     Whole boxes: class-wise NMS at ``iou`` (the same plant seen whole in two tiles). A ``cut`` box (it
     touches a tile border inside the image) is a part of a plant; it is dropped when at least half of
     it lies inside a kept whole box of its class, else kept through the same NMS (a plant larger than
-    the overlap, seen cut in every tile).
+    the overlap, seen cut in every tile). With ``tiles`` (each box's tile number), a box lying at least
+    ``containment`` inside a larger kept box of its class from another tile is a nested duplicate (a
+    part of the plant seen from another tile, IoU too low for NMS) and is dropped, unless its own tile
+    also saw the larger plant (then it is a second plant); boxes of one tile keep the model's decision.
     """
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torchvision.ops import batched_nms
@@ -196,7 +233,39 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
                                   torch.as_tensor(scores[parts], dtype=torch.float64),
                                   torch.as_tensor(labels[parts]), iou).numpy()]
     kept = np.concatenate([keep_whole, parts])
+    if tiles is not None and len(kept) > 1:
+        kept = kept[~_nested(boxes, labels, np.asarray(tiles), kept, containment, iou)]
     return kept[np.argsort(-scores[kept], kind="stable")]
+
+
+def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float,
+            iou: float, chunk: int = 512) -> np.ndarray:
+    """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
+    of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
+    >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
+    Largest first: a dropped box drops nothing."""
+    b, lab, til = boxes[kept], labels[kept], tiles[kept]
+    area = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
+    all_area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
+    pairs = []  # (inner, outer) positions in kept
+    for start in range(0, len(b), chunk):
+        inner = np.arange(start, min(start + chunk, len(b)))
+        inter = _box_intersections(b[inner], b)
+        larger = (area[inner][:, None] < area[None, :]) | (
+            (area[inner][:, None] == area[None, :]) & (inner[:, None] > np.arange(len(b))[None, :]))
+        inside = ((inter >= containment * np.maximum(area[inner], 1e-9)[:, None]) & larger
+                  & (lab[inner][:, None] == lab[None, :]) & (til[inner][:, None] != til[None, :]))
+        pairs += [(int(inner[r]), int(c)) for r, c in np.argwhere(inside)]
+    dropped = np.zeros(len(b), bool)
+    for i, j in sorted(pairs, key=lambda p: -area[p[1]]):
+        if dropped[j] or dropped[i]:
+            continue
+        own = np.flatnonzero((tiles == til[i]) & (labels == lab[i]))
+        own = own[own != kept[i]]
+        inter = _box_intersections(b[j][None], boxes[own])[0]
+        seen = inter / np.maximum(area[j] + all_area[own] - inter, 1e-9) >= iou
+        dropped[i] = not seen.any()
+    return dropped
 
 
 Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
@@ -216,11 +285,12 @@ def model_predictor(model, device, amp: bool = False) -> Predictor:
 
 
 def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, overlap: int, batch_size: int = 4,
-                 score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0):
+                 score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0,
+                 merge_containment: float = 0.8):
     """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles."""
     h, w = image.shape[:2]
     origins = [(x0, y0) for y0 in tile_starts(h, tile_size, overlap) for x0 in tile_starts(w, tile_size, overlap)]
-    all_b, all_s, all_l, all_cut = [], [], [], []
+    all_b, all_s, all_l, all_cut, all_t = [], [], [], [], []
     for start in range(0, len(origins), batch_size):
         chunk = origins[start:start + batch_size]
         tiles = [image[y0:y0 + tile_size, x0:x0 + tile_size] for x0, y0 in chunk]
@@ -235,65 +305,101 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
             all_s.append(s)
             all_l.append(lab)
             all_cut.append(cut)
+            all_t.append(np.full(len(b), len(all_t)))
     boxes, scores = np.concatenate(all_b).reshape(-1, 4), np.concatenate(all_s)
     labels, cut = np.concatenate(all_l).astype(int), np.concatenate(all_cut).astype(bool)
-    keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou)
+    keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou, np.concatenate(all_t), merge_containment)
     return boxes[keep], scores[keep], labels[keep]
 
 
-def list_images(path: Path) -> list[Path]:
-    """``detect.images``: one image file, or every image of a folder."""
-    if path.is_file():
-        return [path]
-    fix = "point detect.images at the undistorted images (opensfm/undistorted/images)"
-    files = list_image_files(path, key="detect.images", fix=fix, min_count=0)
-    if not files:
-        raise InputError("no images (JPEG, PNG, TIFF) in this folder", path=path, fix=fix)
-    return files
-
-
-def detect(cfg: ModelTestConfig, device=None) -> Path:
-    """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images."""
+def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
+           files: list[Path] | None = None) -> Path:
+    """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
+    ``out`` (by default ``output_dir``). A run that finds no plant at all is an error that says why.
+    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already."""
+    final = Path(cfg.output_dir)
+    out = Path(out) if out is not None else final
+    ck = ck or read_checkpoint(cfg.checkpoint)
+    cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     dcfg = cfg.detect
-    out = Path(cfg.output_dir)
-    device = device or select_device(cfg.device)
-    ck = read_checkpoint(cfg.checkpoint)
-    model, ck = load_detector(ck, device)
-    model.roi_heads.score_thresh = dcfg.score_threshold
+    check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
+    files = files or detect_images(cfg)
+    shard, device = join(device or select_device(cfg.device))  # one share of the images per torchrun process
+    model, ck = load_detector(ck, device, source=cfg.checkpoint)
+    set_score_threshold(model, dcfg.score_threshold)
     predictor = model_predictor(model, device, cfg.amp)
-    files = list_images(Path(dcfg.images))
+    warn_if_slow(device, ck["model_config"]["architecture"], len(files), *image_size(files[0]))  # before hours of CPU
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
     cat_ids = [int(c) for c in ck["category_ids"]]
     categories = [{"id": cid, "name": name, "supercategory": "plant"} for cid, name in zip(cat_ids, ck["class_names"])]
-    images, predictions = [], []
     draw_every = max(1, int(np.ceil(len(files) / dcfg.drawn_images))) if dcfg.drawn_images else 0
-    for i, path in enumerate(progress(files, desc="detecting", unit="image")):
+    tiling = dict(tile_size=dcfg.tile_size, overlap=dcfg.overlap, batch_size=cfg.batch_size,
+                  merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
+    mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
+    for i in progress(shard.take(files), desc="detecting", unit="image"):
+        path = files[i]
         img = read_rgb8(path)
-        boxes, scores, labels = detect_image(img, predictor, tile_size=dcfg.tile_size, overlap=dcfg.overlap,
-                                             batch_size=cfg.batch_size, score_threshold=dcfg.score_threshold,
-                                             merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin)
-        name = path.relative_to(root).as_posix()
-        images.append({"id": i + 1, "file_name": name, "width": int(img.shape[1]), "height": int(img.shape[0]),
-                       "source_image": name, "x0": 0, "y0": 0})
-        for b, s, lab in zip(boxes, scores, labels):
-            predictions.append({"id": len(predictions) + 1, "image_id": i + 1, "category_id": cat_ids[int(lab) - 1],
-                                "bbox": [round(float(b[0]), 2), round(float(b[1]), 2), round(float(b[2] - b[0]), 2),
-                                         round(float(b[3] - b[1]), 2)], "score": round(float(s), 5)})
+        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, **tiling)
+        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        if (root / SUBMODELS_DIR).is_dir():
+            name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
+        mine.append((i, {"id": i + 1, "file_name": name, "width": int(img.shape[1]), "height": int(img.shape[0]),
+                         "source_image": name, "x0": 0, "y0": 0},
+                     [(cat_ids[int(lab) - 1], [round(float(b[0]), 2), round(float(b[1]), 2),
+                                               round(float(b[2] - b[0]), 2), round(float(b[3] - b[1]), 2)],
+                       round(float(s), 5)) for b, s, lab in zip(boxes, scores, labels)]))
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
-    path = write_predictions(out / "predictions.json", images, categories, predictions,
-                             info={"description": "MatchPlant module 7 detections (source-image pixels)",
-                                   "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
-                                   "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
-    log.info("%d plants found on %d image(s): %s", len(predictions), len(files), path)
+    gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
+    if not shard.main:
+        shard.barrier()
+        return final / "predictions.json"
+    check_found_scale(ck, [(np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
+                            entry["width"], entry["height"]) for _, entry, found in gathered], dcfg.tile_size)
+    images, predictions = [], []
+    for i, entry, found in gathered:
+        images.append(entry)
+        predictions += [{"id": len(predictions) + k + 1, "image_id": i + 1, "category_id": c, "bbox": b, "score": s}
+                        for k, (c, b, s) in enumerate(found)]
+    if not predictions:  # say why (the best score at any threshold, the scale), rather than write an empty file
+        set_score_threshold(model, 0.0)
+        _, scores, _ = detect_image(read_rgb8(files[0]), predictor, score_threshold=0.0, **tiling)
+        error = nothing_found(len(files), files[0], float(scores.max()) if len(scores) else None,
+                              dcfg.score_threshold, dcfg.tile_size, ck["model_config"], Path(cfg.checkpoint))
+        shard.barrier()
+        raise error
+    write_predictions(out / "predictions.json", images, categories, predictions,
+                      info={"description": "MatchPlant module 7 detections (source-image pixels)",
+                            "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
+                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
+    path = final / "predictions.json"
+    log.info("%d plants found on %d image(s)%s: %s", len(predictions), len(files),
+             f" by {shard.world} processes" if shard.world > 1 else "", path)
+    shard.barrier()
     return path
 
 
+def detect_images(cfg: ModelTestConfig) -> list[Path]:
+    """The images of ``detect.images``, each checked whole (broken files named before any detection)."""
+    files = list_images(Path(cfg.detect.images))
+    check_images(files, cfg.detect.tile_size)
+    return files
+
+
 def run(cfg: ModelTestConfig) -> dict:
-    device = select_device(cfg.device)
+    """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
+    shard, device = join(select_device(cfg.device))
+    # every input read and checked before the first (slow) model pass
+    ck = read_checkpoint(cfg.checkpoint)
+    cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
+    ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
+    files = detect_images(cfg) if cfg.detect.images is not None else None
+    if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
+        Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     result: dict = {}
-    if cfg.evaluate.dataset_json is not None:
-        result["metrics"] = evaluate(cfg, device)
-    if cfg.detect.images is not None:
-        result["predictions"] = detect(cfg, device)
+    with staged_outputs(cfg.output_dir) as out:
+        if cfg.evaluate.dataset_json is not None and shard.main:  # under torchrun: evaluated once
+            result["metrics"] = evaluate(cfg, device, out, ck=ck, ds=ds)
+        if files is not None:
+            result["predictions"] = detect(cfg, device, out, ck=ck, files=files)
     return result

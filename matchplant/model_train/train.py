@@ -7,7 +7,10 @@ logs the losses, scores the validation split with COCOeval (AP, AP50) and writes
 
 - ``checkpoints/last.pt`` (every epoch; ``--resume`` continues from it), ``best.pt`` (best validation
   metric) and ``epoch_NNN.pt`` every ``save_every`` epochs: self-contained (docs/DESIGN.md §2);
-- ``training_summary.json`` (settings, per-epoch history, best epoch, speed) and ``training_curves.png``.
+- ``training_summary.json`` (settings, per-epoch history, best epoch, speed; whether it finished or was
+  stopped by ``max_minutes``, and the validation set's size: :mod:`matchplant.model_train.budget`) and
+  ``training_curves.png``. Every checkpoint also carries the training geometry module 7 detects with
+  (:mod:`matchplant.detection.geometry`).
 
 Transfer learning: ``model.checkpoint`` starts from an earlier MatchPlant model (a different number of
 classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``lr`` sets a rate per part.
@@ -33,12 +36,15 @@ from matchplant.core.gui import figure
 from matchplant.core.io import atomic_path, write_json
 from matchplant.core.log import get_logger
 from matchplant.core.progress import progress
-from matchplant.detection.data import AugmentConfig, CocoDetection, collate
+from matchplant.detection.data import AugmentConfig, CocoDetection, check_disjoint, collate
 from matchplant.detection.device import DEVICE_CHOICES, select_device
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
+from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (PARTS, ModelConfig, apply_freezing, backbone_stages, build_detector,
+                                        resolve_auto_anchors,
                                         keep_frozen_norms_fixed, load_matching_weights, model_config_from_dict,
                                         parameter_groups, read_checkpoint, save_checkpoint)
+from matchplant.model_train.budget import Plan, fit_plan, stop_status, validation_report
 
 log = get_logger("train")
 
@@ -87,8 +93,10 @@ class TrainConfig:
     warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up",
                                  min=0, max=1)
     epochs: int = param(30, "training epochs", min=1)
-    max_minutes: float = param(0.0, "stop early, after the epoch that would end past this many minutes "
-                               "(0 = no limit); that last epoch is validated and saved as usual", min=0)
+    max_minutes: float = param(0.0, "time budget in minutes (0 = none): after the first epoch, the epochs "
+                               "that fit are planned and the learning-rate schedule shortened to them; an "
+                               "epoch that would end past the budget is not started; the last epoch is "
+                               "validated and saved as usual", min=0)
     batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
     num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
     augment: AugmentConfig = section(AugmentConfig)
@@ -121,15 +129,20 @@ def build_optimizer(cfg: TrainConfig, model):
     return torch.optim.AdamW(groups, lr=groups[0]["lr"], weight_decay=cfg.weight_decay)
 
 
-def lr_factor(cfg: TrainConfig, iteration: int, iters_per_epoch: int) -> float:
-    """The learning-rate multiplier at a (0-based) iteration: warm-up times the epoch schedule."""
-    epoch = iteration // max(iters_per_epoch, 1)
+def lr_factor(cfg: TrainConfig, iteration: int, iters_per_epoch: int, planned_epochs: int | None = None) -> float:
+    """The learning-rate multiplier at a (0-based) iteration: warm-up times the epoch schedule.
+
+    ``planned_epochs`` (fewer than ``epochs`` when ``max_minutes`` is short) shortens the schedule in
+    proportion: epoch ``e`` of the plan is at epoch ``e * epochs / planned_epochs`` of the configured one
+    (the warm-up, in iterations, is kept)."""
+    planned = planned_epochs or cfg.epochs
+    epoch = (iteration // max(iters_per_epoch, 1)) * cfg.epochs / planned
     if cfg.schedule == "step":
-        f = cfg.gamma ** (epoch // cfg.step_size)
+        f = cfg.gamma ** math.floor(epoch / cfg.step_size + 1e-9)
     elif cfg.schedule == "multistep":
-        f = cfg.gamma ** sum(epoch >= m for m in cfg.milestones)
+        f = cfg.gamma ** sum(epoch >= m - 1e-9 for m in cfg.milestones)
     elif cfg.schedule == "cosine":
-        total = max(cfg.epochs * iters_per_epoch, 1)
+        total = max(planned * iters_per_epoch, 1)
         f = cfg.min_lr_factor + (1 - cfg.min_lr_factor) * 0.5 * (1 + math.cos(math.pi * min(iteration / total, 1)))
     else:
         f = 1.0
@@ -139,11 +152,13 @@ def lr_factor(cfg: TrainConfig, iteration: int, iters_per_epoch: int) -> float:
     return f
 
 
-def build_scheduler(cfg: TrainConfig, optimizer, iters_per_epoch: int):
-    """A per-iteration LambdaLR (its state is the iteration count, so a resumed run continues exactly)."""
+def build_scheduler(cfg: TrainConfig, optimizer, iters_per_epoch: int, plan: Plan | None = None):
+    """A per-iteration LambdaLR (its state is the iteration count, so a resumed run continues exactly);
+    it follows ``plan.epochs`` when the time budget shortens the run."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch))
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch, plan.epochs if plan else None))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -207,12 +222,14 @@ def _initial_model(cfg: TrainConfig, class_names: list[str], resume: dict | None
                               f"{cfg.model.architecture}", path=cfg.model.checkpoint,
                               fix=f"set model.architecture: {src_cfg['architecture']}")
         mcfg = dataclasses.replace(cfg.model, pretrained=src_cfg["pretrained"], checkpoint=None)
+        mcfg = resolve_auto_anchors(mcfg, cfg.train_json)  # anchor_sizes: auto -> from the training boxes
         model = build_detector(mcfg, len(class_names) + 1, load_weights=False)
         loaded, skipped = load_matching_weights(model, src["model_state"])
         log.info("transfer learning from %s: %d tensors loaded, %d new (%s)", cfg.model.checkpoint, len(loaded),
                  len(skipped), ", ".join(sorted({k.rsplit(".", 2)[0] for k in skipped})) or "none")
         return model, mcfg
-    return build_detector(cfg.model, len(class_names) + 1), dataclasses.replace(cfg.model, checkpoint=None)
+    mcfg = resolve_auto_anchors(dataclasses.replace(cfg.model, checkpoint=None), cfg.train_json)
+    return build_detector(mcfg, len(class_names) + 1), mcfg
 
 
 def _check_resumable(cfg: TrainConfig, ck: dict, class_names: list[str], path: Path) -> None:
@@ -225,19 +242,24 @@ def _check_resumable(cfg: TrainConfig, ck: dict, class_names: list[str], path: P
                     cfg.output_dir, ck["epoch"])
 
 
+def _rank0_value(value: float, dist_info, device) -> float:
+    """Rank 0's value on every process under torchrun (one broadcast; a clock-based decision must agree)."""
+    if dist_info.world <= 1:
+        return value
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    t = torch.tensor([float(value)], device=device)
+    torch.distributed.broadcast(t, src=0)
+    return float(t.item())
+
+
 def _out_of_time(cfg: TrainConfig, run_start: float, epoch_time: float, dist_info, device) -> bool:
-    """Whether another epoch (as long as the last) would end past ``max_minutes``; one answer for all
-    processes under torchrun (rank 0's clock)."""
+    """Whether another epoch (as long as the last: training, validation, checkpoints) would end past
+    ``max_minutes``; one answer for all processes under torchrun (rank 0's clock)."""
     if not cfg.max_minutes:
         return False
     over = (time.perf_counter() - run_start) + epoch_time > cfg.max_minutes * 60.0
-    if dist_info.world > 1:
-        import torch  # lazy: PyTorch is heavy; configs load without it
-
-        flag = torch.tensor([1.0 if over else 0.0], device=device)
-        torch.distributed.broadcast(flag, src=0)
-        over = bool(flag.item())
-    return over
+    return bool(_rank0_value(1.0 if over else 0.0, dist_info, device))
 
 
 def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None) -> dict:
@@ -255,10 +277,14 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
 
     train_ds = CocoDetection(cfg.train_json, cfg.train_images, augment=cfg.augment)
     class_names = train_ds.class_names
-    val_ds = CocoDetection(cfg.val_json, cfg.val_images, class_names=class_names) if cfg.val_json else None
+    val_ds = CocoDetection(cfg.val_json, cfg.val_images, class_names=class_names,
+                           classes_from=f"the training set {cfg.train_json}") if cfg.val_json else None
+    if val_ds is not None:
+        check_disjoint(train_ds, val_ds)  # validation on training tiles would measure memory, not skill
     n_neg = sum(1 for im in train_ds.images if not train_ds.anns.get(im["id"]))
     log.info("training tiles: %d (%d without plants, kept as negatives); validation tiles: %s; classes: %s",
              len(train_ds), n_neg, len(val_ds) if val_ds else "none", ", ".join(class_names))
+    validation = validation_report(val_ds.data if val_ds is not None else None)
 
     resume = None
     if cfg.resume:
@@ -271,6 +297,10 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
         log.info("resuming %s after epoch %d", last, resume["epoch"])
 
     model, model_cfg = _initial_model(cfg, class_names, resume)
+    # what module 7 needs to detect as trained: tile size, input scale, classes, plant sizes
+    geometry = training_geometry(train_ds.data, model_cfg.min_size, model_cfg.max_size, class_names)
+    log.info("training geometry: %s px tiles, detector input x%s, median plant %s px in the detector's input",
+             geometry["tile_size"], geometry["input_scale"], geometry["objects_input_px"])
     trainable = cfg.trainable_backbone_layers
     n_stages = len(backbone_stages(model, model_cfg.architecture))
     if model_cfg.pretrained == "none" and cfg.model.checkpoint is None and trainable < n_stages:
@@ -292,7 +322,8 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
                         collate_fn=collate, generator=generator, pin_memory=device.type == "cuda")
     iters = len(loader)
     optimizer = build_optimizer(cfg, core)
-    scheduler = build_scheduler(cfg, optimizer, iters)
+    plan = Plan(cfg.epochs)
+    scheduler = build_scheduler(cfg, optimizer, iters, plan)
     amp = cfg.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=amp)
 
@@ -303,12 +334,17 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
         if resume.get("scaler_state"):
             scaler.load_state_dict(resume["scaler_state"])
         start_epoch, history, best = resume["epoch"], list(resume["history"]), dict(resume["best"])
+        if cfg.max_minutes and resume.get("planned_epochs"):  # the budget's plan of the run resumed
+            plan.epochs, plan.fitted = min(int(resume["planned_epochs"]), cfg.epochs), True
 
     log.info("device %s%s, %s, %d trainable parameters, %d iterations per epoch", device,
              " (mixed precision)" if amp else "", model_cfg.architecture,
              sum(p.numel() for p in core.parameters() if p.requires_grad), iters)
     run_start = time.perf_counter()
+    epoch_time = None  # wall time of the last whole epoch (training, validation, checkpoints)
     for epoch in range(start_epoch, cfg.epochs):
+        if epoch >= plan.epochs:  # a resumed run whose budget plan is done
+            break
         # each epoch's randomness depends only on (seed, epoch): a resumed run repeats it exactly
         seed_everything(cfg.seed * 100003 + epoch)
         generator.manual_seed(cfg.seed * 100003 + epoch)
@@ -316,13 +352,13 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
             sampler.set_epoch(epoch)
         t0 = time.perf_counter()
         losses = _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp,
-                                  f"epoch {epoch + 1}/{cfg.epochs}", dist_info)
+                                  f"epoch {epoch + 1}/{plan.epochs}", dist_info)
         train_time = time.perf_counter() - t0
         record = {"epoch": epoch + 1, "lr": {g["name"]: g["lr"] for g in optimizer.param_groups},
                   "losses": losses, "train_time_s": round(train_time, 3),
                   "train_images_per_s": round(len(train_ds) / max(train_time, 1e-9), 3)}
-        out_of_time = _out_of_time(cfg, run_start, train_time, dist_info, device)
-        last = epoch + 1 == cfg.epochs or out_of_time
+        out_of_time = _out_of_time(cfg, run_start, epoch_time or train_time, dist_info, device)
+        last = epoch + 1 >= plan.epochs or out_of_time
         validate = val_ds is not None and ((epoch + 1) % cfg.val_every == 0 or last)
         if validate and dist_info.main:
             record["val"] = validate_model(core, val_ds, model_cfg, cfg, device, amp)
@@ -331,13 +367,14 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
         improved = value is not None and (best["value"] is None or value > best["value"])
         if improved:
             best = {"epoch": epoch + 1, "value": value, "metric": cfg.best_metric if val_ds else "last epoch"}
-        log.info("epoch %d/%d: loss %.4f%s (%.1f s)", epoch + 1, cfg.epochs, losses["loss"],
+        log.info("epoch %d/%d: loss %.4f%s (%.1f s)", epoch + 1, plan.epochs, losses["loss"],
                  f"; validation {summarise_stats(record['val'])}" if "val" in record else "", train_time)
         if dist_info.main:
             state = dict(epoch=epoch + 1, optimizer_state=optimizer.state_dict(),
                          scheduler_state=scheduler.state_dict(), scaler_state=scaler.state_dict() if amp else None,
                          history=history, best=best, metrics=record.get("val"), train_config=to_dict(cfg),
-                         iters_per_epoch=iters)
+                         iters_per_epoch=iters, training_geometry=geometry,
+                         planned_epochs=plan.epochs if plan.epochs < cfg.epochs else None)
             save_checkpoint(ck_dir / "last.pt", core, model_cfg, class_names, train_ds.category_ids, **state)
             if improved:
                 save_checkpoint(ck_dir / "best.pt", core, model_cfg, class_names, train_ds.category_ids, **state)
@@ -345,17 +382,26 @@ def train(cfg: TrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None =
                 save_checkpoint(ck_dir / f"epoch_{epoch + 1:03d}.pt", core, model_cfg, class_names,
                                 train_ds.category_ids, **state)
             write_summary(out, cfg, history, best, class_names, device, "running",
-                          time.perf_counter() - run_start)
+                          time.perf_counter() - run_start, validation=validation, plan=plan)
             plot_curves(history, out / "training_curves.png")
         if dist_info.world > 1:
             torch.distributed.barrier()
+        epoch_time = time.perf_counter() - t0
+        if cfg.max_minutes and not plan.fitted:  # the first epoch's time says how many epochs fit (rank 0's)
+            fit_plan(plan, cfg.epochs, epoch + 1, cfg.max_minutes, time.perf_counter() - run_start, epoch_time)
+            plan.epochs = int(_rank0_value(plan.epochs, dist_info, device))
         if on_epoch_end is not None:
             on_epoch_end(epoch + 1, record)
-        if out_of_time and epoch + 1 < cfg.epochs:
-            log.info("stopping after epoch %d: the next would pass max_minutes = %g", epoch + 1, cfg.max_minutes)
+        if epoch + 1 < cfg.epochs and (out_of_time or epoch + 1 >= plan.epochs):
+            log.info("stopping after epoch %d of %d: the next would pass max_minutes = %g", epoch + 1, cfg.epochs,
+                     cfg.max_minutes)
             break
-    summary = write_summary(out, cfg, history, best, class_names, device, "finished",
-                            time.perf_counter() - run_start) if dist_info.main else {}
+    summary = {}
+    if dist_info.main:
+        status, message = stop_status(len(history), cfg.epochs, cfg.max_minutes)
+        summary = write_summary(out, cfg, history, best, class_names, device, status, time.perf_counter() - run_start,
+                                validation=validation, plan=plan, message=message)
+        log.info("training %s", message)
     if dist_info.main and best["epoch"] is not None:
         log.info("best epoch %d (%s %.4f); model: %s", best["epoch"], best.get("metric"), best["value"],
                  ck_dir / "best.pt")
@@ -379,17 +425,18 @@ def _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp: b
         with torch.autocast(device_type=device.type, enabled=amp):
             loss_dict = model(images, targets)
             loss = sum(loss_dict.values())
-        if not torch.isfinite(loss):
-            raise MatchPlantError(f"the training loss became {loss.item()} ({desc})",
+        # every loss to the host in one transfer: one device sync per step, not one per value
+        values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()]).tolist()
+        if not math.isfinite(values[-1]):
+            raise MatchPlantError(f"the training loss became {values[-1]} ({desc})",
                                   fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes")
         optimizer.zero_grad(set_to_none=True)
         scaler.scale(loss).backward()
         scaler.step(optimizer)
         scaler.update()
         scheduler.step()
-        for k, v in loss_dict.items():
-            sums[k] = sums.get(k, 0.0) + float(v.detach())
-        sums["loss"] = sums.get("loss", 0.0) + float(loss.detach())
+        for k, v in zip((*loss_dict, "loss"), values):
+            sums[k] = sums.get(k, 0.0) + v
         n += 1
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{sums['loss'] / n:.3f}")
@@ -423,11 +470,21 @@ def validate_model(model, val_ds: CocoDetection, model_cfg: ModelConfig, cfg: Tr
 
 
 def write_summary(out: Path, cfg: TrainConfig, history: list[dict], best: dict, class_names: list[str],
-                  device, status: str, seconds: float) -> dict:
+                  device, status: str, seconds: float, *, validation: dict | None = None, plan: Plan | None = None,
+                  message: str | None = None) -> dict:
+    """training_summary.json. ``status``: running, finished, or stopped_by_max_minutes (``message`` says
+    after how many of how many epochs); ``validation``: tiles, boxes and distinct plants, with a warning
+    when too few; metrics are fractions 0..1."""
     times = [h["train_time_s"] for h in history]
+    warnings = [validation["warning"]] if validation and validation.get("warning") else []
+    if plan is not None and plan.epochs < cfg.epochs:
+        warnings.append(f"max_minutes ({cfg.max_minutes:g}) fits {plan.epochs} of {cfg.epochs} epochs (first epoch "
+                        f"{plan.first_epoch_s} s): the learning-rate schedule was shortened to {plan.epochs} epochs")
     summary = {
-        "status": status, "epochs_done": len(history), "epochs": cfg.epochs, "class_names": class_names,
-        "best": best, "device": str(device),
+        "status": status, "message": message or status, "epochs_done": len(history), "epochs": cfg.epochs,
+        "epochs_planned": plan.epochs if plan is not None else cfg.epochs, "max_minutes": cfg.max_minutes,
+        "warnings": warnings, "validation": validation, "units": "AP, AP50 and the other metrics are fractions 0..1",
+        "class_names": class_names, "best": best, "device": str(device),
         "checkpoints": {"best": str(out / "checkpoints" / "best.pt"), "last": str(out / "checkpoints" / "last.pt")},
         "mean_train_images_per_s": (float(np.mean([h["train_images_per_s"] for h in history]))
                                     if history else None),

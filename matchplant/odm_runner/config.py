@@ -68,6 +68,8 @@ class NodeODMSettings:
 class ODMRunnerConfig:
     """Run OpenDroneMap (Docker or NodeODM) on a project folder and check its outputs."""
 
+    writes_into_inputs = ("output_dir",)  # ODM writes into its project folder (the default output_dir)
+
     project_dir: Path = param(None, "ODM project folder; the images go in its images/ subfolder",
                               path="dir", required=True)
     images_dir: Path | None = param(None, "folder of the images if not <project_dir>/images "

@@ -18,6 +18,8 @@ from matchplant.core.errors import MatchPlantError
 from matchplant.core.io import write_json
 from matchplant.core.log import package_versions
 from matchplant.core.odm import OUTPUTS, ODMProject
+from matchplant.core.reconstruction import read_reconstruction
+from matchplant.core.validate import check_raster
 from matchplant.odm_runner.config import ODMRunnerConfig
 from matchplant.odm_runner.inputs import odm_option_dict
 
@@ -44,22 +46,19 @@ def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OU
     """Check the outputs modules 3, 8 and 9 need; each problem names the ODM option that fixes it."""
     project = ODMProject(project_dir)
     present = project.check()
-    problems = [f"{OUTPUTS[n].relpath} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
-                for n in required if not present[n]]
+    problems = [f"{rel} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
+                for rel, n in project.missing_paths([n for n in required if not present[n]])]
     details: dict[str, Any] = {}
-    if present["undistorted_reconstruction"]:
-        try:
-            shots = set(project.reconstruction(undistorted=True).shots)
-            images = set(project.undistorted_images())
-            details["undistorted_shots"] = len(shots)
-            details["undistorted_images"] = len(images)
-            lacking = sorted(shots - images)
-            if lacking and present["undistorted_images"]:
-                problems.append(f"{len(lacking)} of {len(shots)} reconstructed images have no undistorted image "
-                                f"(e.g. {lacking[0]}.tif): produced by the OpenSfM undistort step "
-                                "(do not use --optimize-disk-space)")
-        except MatchPlantError as exc:
-            problems.append(f"opensfm/undistorted/reconstruction.json is unreadable: {exc.problem}")
+    readable = True
+    for sub in project.submodels or [project]:
+        where = f"submodels/{sub.name}/" if project.is_split else ""
+        readable &= _check_reconstructions(sub, where, problems)
+    if readable:  # the checks below read the reconstructions again; their problems are said once
+        for sub in project.submodels or [project]:
+            where = f"submodels/{sub.name}: " if project.is_split else ""
+            _check_undistorted(sub, where, sub.has("undistorted_images"), problems, details)
+        if project.is_split:
+            _check_split(project, problems, details)
     for name in ("dsm", "dtm", "orthophoto"):
         if present[name]:
             info = _raster_info(project.path(name))
@@ -67,17 +66,75 @@ def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OU
             if "error" in info:
                 problems.append(f"{OUTPUTS[name].relpath} is unreadable ({info['error']}): re-run ODM "
                                 f"({OUTPUTS[name].produced_by})")
-            elif info.get("crs") is None:
-                problems.append(f"{OUTPUTS[name].relpath} has no coordinate system: give ODM GPS-tagged "
-                                "images or a gcp_list.txt")
+                continue
+            try:
+                check_raster(project.path(name), bands=1, what=OUTPUTS[name].what)
+            except MatchPlantError as exc:
+                problems.append(f"{OUTPUTS[name].relpath}: {exc.problem}: {exc.fix}")
     if present["coords"]:
         try:
             crs, offset = project.coords
             details["crs"] = crs.to_string()
             details["offset"] = [float(offset[0]), float(offset[1])]
         except MatchPlantError as exc:
-            problems.append(f"odm_georeferencing/coords.txt is unreadable: {exc.problem}")
+            problems.append(f"odm_georeferencing/coords.txt is unreadable: {exc.problem} ({exc.fix})")
     return OutputReport(project=Path(project_dir), present=present, problems=problems, details=details)
+
+
+def _check_reconstructions(project: ODMProject, where: str, problems: list[str]) -> bool:
+    """Each reconstruction file present is read whole (truncated, malformed, no images, unknown camera
+    model); False when one cannot be used."""
+    ok = True
+    for name in ("reconstruction", "topocentric_reconstruction", "undistorted_reconstruction"):
+        if not project.has(name):
+            continue
+        try:
+            read_reconstruction(project.path(name))
+        except MatchPlantError as exc:
+            ok = False
+            problems.append(f"{where}{OUTPUTS[name].relpath} cannot be used: {exc.problem} ({exc.fix})")
+    return ok
+
+
+def _check_undistorted(project: ODMProject, where: str, images_present: bool, problems: list[str],
+                       details: dict) -> None:
+    """Every reconstructed image has its undistorted image (one folder: the project or a submodel)."""
+    if not project.has("undistorted_reconstruction"):
+        return
+    try:
+        shots = project.shot_ids(undistorted=True)
+        images = set(project.undistorted_images())
+    except MatchPlantError as exc:
+        problems.append(f"{where}opensfm/undistorted/reconstruction.json is unreadable: {exc.problem}")
+        return
+    details["undistorted_shots"] = details.get("undistorted_shots", 0) + len(shots)
+    details["undistorted_images"] = details.get("undistorted_images", 0) + len(images)
+    lacking = sorted(shots - images)
+    if lacking and images_present:
+        problems.append(f"{where}{len(lacking)} of {len(shots)} reconstructed images have no undistorted image "
+                        f"(e.g. {lacking[0]}.tif): produced by the OpenSfM undistort step "
+                        "(do not use --optimize-disk-space)")
+
+
+def _check_split(project: ODMProject, problems: list[str], details: dict) -> None:
+    """A split-merge run: the merged outputs at the top, and each submodel's frame and images."""
+    for name in ("dsm", "dtm", "orthophoto", "coords"):
+        if not (project.root / OUTPUTS[name].relpath).is_file():
+            problems.append(f"{OUTPUTS[name].relpath} (the merged {OUTPUTS[name].what}) is missing at the top of "
+                            f"the split-merge project: produced by ODM's merge stage (--merge all) from each "
+                            f"submodel's ({OUTPUTS[name].produced_by})")
+    subs = {}
+    try:
+        ids = project.shot_ids(undistorted=True)
+        for sub in project.submodels:
+            frame = sub.frame(project.frame().crs)
+            own = sum(1 for sid in ids if project.owner(sid) is sub)
+            subs[sub.name] = {"frame": frame.describe(), "shots": len(sub.shot_ids(undistorted=True)),
+                              "used_shots": own}
+        details["split"] = {"submodels": subs, "images": len(ids),
+                            "images_in_several_submodels": sum(s["shots"] for s in subs.values()) - len(ids)}
+    except MatchPlantError as exc:
+        problems.append(f"the submodels cannot be read as one project: {exc.problem}")
 
 
 def _raster_info(path: Path) -> dict:

@@ -40,11 +40,13 @@ def run(cfg: ODMRunnerConfig) -> OutputReport:
     if not cfg.check_only:
         run_info = run_docker(cfg) if cfg.backend == "docker" else run_nodeodm(cfg)
     report = check_outputs(cfg.project_dir)
-    manifest = write_manifest(Path(cfg.output_dir) / "odm_manifest.json", cfg, report, run_info)
-    log.info("manifest: %s", manifest)
+    if report.ok or run_info is not None:  # after a run, the manifest records it even when outputs are lacking
+        manifest = write_manifest(Path(cfg.output_dir) / "odm_manifest.json", cfg, report, run_info)
+        log.info("manifest: %s", manifest)
     if not report.ok:
-        raise InputError("the ODM project lacks what later modules need:\n" +
-                         "\n".join(f"  - {p}" for p in report.problems), path=cfg.project_dir,
-                         fix="re-run ODM with the options named above (see odm_manifest.json)")
+        see = " (see odm_manifest.json)" if run_info is not None else ""
+        raise InputError(f"the ODM project cannot be used by modules 3, 8 and 9 ({len(report.problems)} "
+                         "problem(s)):\n" + "\n".join(f"  - {p}" for p in report.problems), path=cfg.project_dir,
+                         fix="re-run ODM with the options named above, or restore the files named" + see)
     log.info("all outputs needed by modules 3, 8 and 9 are present in %s", cfg.project_dir)
     return report

@@ -16,8 +16,11 @@ Boxes that cannot be projected (image not in the reconstruction, box outside the
 into a DSM hole or leave the DSM) are listed with the reason in ``unprojected_boxes.csv``, never dropped
 silently. ``mode: evaluate`` compares projected plants with boxes drawn on the orthophoto.
 
-Modules: ``config`` (the settings), ``geometry`` (one image's boxes: rays to the surface, map boxes),
-``dsm`` (reading the DSM around the rays), ``views`` (predictions to projected views, or reasons),
-``merge`` (views of one plant into one record), ``output`` (GeoPackage, CSV, shapefile),
-``evaluation`` (against reference boxes, and the figure), ``run`` (the step from its config).
+Modules: ``config`` (the settings), ``inputs`` (the predictions and the DSM, checked before any ray is cast),
+``geometry`` (one image's boxes: rays to the surface, map boxes), ``dsm`` (reading the DSM around the rays),
+``views`` (predictions to projected views, or reasons), ``merge`` (views of one plant into one record),
+``output`` (GeoPackage, CSV, shapefile), ``evaluation`` (against reference boxes, and the figure), ``run`` (the
+step from its config). A run writes into a staging folder moved into place at the end: a failed run leaves
+``output_dir`` as it was (only ``unprojected_boxes.csv`` is kept when no box at all could be projected, to say
+why).
 """

@@ -33,6 +33,8 @@ class EvaluateConfig:
 class ProjectionConfig:
     """Project detected plant boxes from the photos onto the map through the camera poses and the DSM."""
 
+    outputs_inside_inputs = ("project",)  # the project is read by fixed names: <project>/plants is fine
+
     mode: Literal["project", "evaluate", "both"] = param(
         "project", "project: boxes to map plants; evaluate: compare plants with reference boxes; both: one then the other",
         choices=("project", "evaluate", "both"))
@@ -81,7 +83,7 @@ class ProjectionConfig:
     layer: str = param("plants", "layer name in the GeoPackage")
     write_shapefile: bool = param(False, "also write plants.shp (for older GIS tools)")
     write_views: bool = param(True, "also write views.csv: every projected box with the plant it was merged into")
-    output_dir: Path = param(Path("projection_out"), "folder for the outputs and the run log", path="out")
+    output_dir: Path = param(Path("runs/plant_projection"), "folder for the outputs and the run log", path="out")
     evaluate: EvaluateConfig = section(EvaluateConfig)
 
     def check(self) -> None:

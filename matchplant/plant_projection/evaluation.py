@@ -10,7 +10,6 @@ from pathlib import Path
 
 import geopandas as gpd
 import numpy as np
-import pandas as pd
 import rasterio
 from matplotlib.collections import PolyCollection
 
@@ -20,6 +19,7 @@ from matchplant.core.errors import InputError
 from matchplant.core.gui import figure
 from matchplant.core.io import atomic_path
 from matchplant.core.log import get_logger
+from matchplant.core.validate import check_vector, read_csv
 
 log = get_logger("projection")
 
@@ -31,19 +31,23 @@ def read_boxes(path: Path, *, orthophoto: Path | None = None, crs=None) -> np.nd
     if suffix == ".json":
         return _coco_map_boxes(path, orthophoto)
     if suffix in (".csv", ".txt"):
-        df = pd.read_csv(path)
-        need = ["xmin", "ymin", "xmax", "ymax"]
-        missing = [c for c in need if c not in df.columns]
-        if missing:
-            raise InputError(f"the CSV lacks the column(s) {', '.join(missing)}", path=path,
-                             fix="give a CSV with a header xmin,ymin,xmax,ymax in the map CRS")
-        return df[need].to_numpy(float)
+        need = ("xmin", "ymin", "xmax", "ymax")
+        table = read_csv(path, required=need, numeric=need, what="box CSV")
+        boxes = np.column_stack([table.numbers[c] for c in need])
+        flat = np.flatnonzero((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1]))
+        if flat.size:
+            raise InputError(f"box CSV, line {table.lines[flat[0]]}: xmax <= xmin or ymax <= ymin ({flat.size} of "
+                             f"{len(boxes)} boxes)", path=path, fix="give each box as xmin,ymin,xmax,ymax with "
+                                                                     "xmin < xmax and ymin < ymax (map CRS)")
+        return boxes
+    check_vector(path, what="box file", require_crs=crs is not None)
     try:
         gdf = gpd.read_file(path)
     except Exception as exc:  # noqa: BLE001 - GDAL's many formats; say which file failed
         raise InputError(f"cannot read the vector file: {exc}", path=path,
                          fix="give a GeoPackage, shapefile or GeoJSON (or a CSV / COCO JSON)") from exc
     if crs is not None and gdf.crs is not None and not gdf.crs.equals(crs):
+        log.info("boxes of %s are in %s: reprojected to %s", path.name, gdf.crs.name, getattr(crs, "name", crs))
         gdf = gdf.to_crs(crs)
     return np.asarray(gdf.geometry.bounds[["minx", "miny", "maxx", "maxy"]], dtype=float).reshape(-1, 4)
 
@@ -98,6 +102,7 @@ def read_plants_boxes(path: Path) -> tuple[np.ndarray, object]:
     path = Path(path)
     if path.suffix.lower() == ".csv":
         return read_boxes(path), None
+    check_vector(path, what="plants file")
     gdf = gpd.read_file(path)
     if {"xmin", "ymin", "xmax", "ymax"} <= set(gdf.columns):
         return gdf[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float), gdf.crs

@@ -12,10 +12,12 @@ import pandas as pd
 import scipy.sparse as sp
 
 from matchplant.core.boxes import overlapping_pairs
+from matchplant.plant_projection.submodels import align_submodels
 from matchplant.plant_projection.views import BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews
 
 MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
+MERGE_GAP = 0.05  # metres: a plant seen only in border-cut slivers this close to a plant seen whole is that plant
 FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
 
 
@@ -55,10 +57,14 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     match it; a view cut by the photo or tile border needs only a modest overlap
     (:data:`MERGE_CUT_INSIDE`) since its cut edge is no plant edge. Near-nadir views are the most accurate, so they anchor the plants.
 
+    Views from the submodels of a split-merge project are first brought into one frame
+    (:func:`~matchplant.plant_projection.submodels.align_submodels`).
+
     ``merge="fuse"`` replaces each plant's box by the robust intersection of its whole views (the
     :data:`FUSE_QUANTILE` of each side): every view's box contains the plant's footprint, and views from
     different sides overshoot on different sides.
     """
+    align_submodels(views)  # a split-merge project: its submodels' views into one frame first
     t = views.table
     n = len(t)
     box = t[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
@@ -107,6 +113,7 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
             if cut[a] and rank[b] < rank[a] and rep[a] != rep[b]:
                 members = (rep == rep[a]) if seed[a] else (np.arange(n) == a)
                 rep[members] = rep[b]
+        _join_slivers(rep, box, cut, cat)
     # number plants in map order (north to south, then west to east) so ids are stable and readable
     reps = np.unique(rep)
     ry = t["cy"].to_numpy()[reps]
@@ -150,6 +157,35 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         plants["truth_plant_id"] = reps_t["truth_plant_id"].to_numpy()
     plants["view_index"] = reps_pos
     return plants
+
+
+def _join_slivers(rep: np.ndarray, box: np.ndarray, cut: np.ndarray, cat: np.ndarray) -> None:
+    """A plant seen only in views cut by a photo border (slivers at the images' edges) whose box comes within
+    :data:`MERGE_GAP` of a plant seen whole, and is at most half its size, joins that plant (in place on
+    ``rep``). Poses of different submodels of a split-merge project disagree by a few centimetres, so a
+    sliver from one submodel can miss the plant its whole views from another submodel place."""
+    reps, inverse = np.unique(rep, return_inverse=True)
+    only_cut = np.ones(len(reps), dtype=bool)
+    np.logical_and.at(only_cut, inverse, cut)
+    if not only_cut.any() or only_cut.all():
+        return
+    b = box[reps].copy()
+    b[only_cut] += [-MERGE_GAP, -MERGE_GAP, MERGE_GAP, MERGE_GAP]
+    i, j, _ = overlapping_pairs(b)
+    keep = (only_cut[i] != only_cut[j]) & (cat[reps[i]] == cat[reps[j]])
+    sliver, whole = np.where(only_cut[i[keep]], i[keep], j[keep]), np.where(only_cut[i[keep]], j[keep], i[keep])
+    area = (box[reps, 2] - box[reps, 0]) * (box[reps, 3] - box[reps, 1])
+    small = area[sliver] <= 0.5 * area[whole]
+    sliver, whole = sliver[small], whole[small]
+    if not sliver.size:
+        return
+    c_s = (box[reps[sliver], :2] + box[reps[sliver], 2:]) / 2  # the nearest whole plant wins
+    c_w = (box[reps[whole], :2] + box[reps[whole], 2:]) / 2
+    order = np.lexsort((np.hypot(*(c_s - c_w).T), sliver))
+    first = np.r_[True, sliver[order][1:] != sliver[order][:-1]]
+    target = dict(zip(reps[sliver[order][first]], reps[whole[order][first]]))
+    for a, b_ in target.items():
+        rep[rep == a] = b_
 
 
 def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame) -> None:

@@ -2,7 +2,7 @@
 
 Library use::
 
-    views, rejected = project_predictions(ODMProject("field"), read_predictions("predictions.json"))
+    views, rejected = project_predictions(ODMProject("field"), load_predictions("predictions.json"))
     plants = merge_views(views)
     metrics = evaluate_boxes(reference_bounds, plant_bounds)
 
@@ -17,38 +17,57 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from matchplant.core.coco import read_predictions
+from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.guard import staged_outputs
 from matchplant.core.io import write_json
 from matchplant.core.log import get_logger
 from matchplant.core.odm import ODMProject
 from matchplant.plant_projection.config import ProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, evaluation_figure, read_boxes, read_plants_boxes
+from matchplant.plant_projection.inputs import check_dsm, load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.output import write_plants, write_table
-from matchplant.plant_projection.views import project_predictions
+from matchplant.plant_projection.views import (BOX_OUTSIDE_IMAGE, EMPTY_BOX, NOT_IN_RECONSTRUCTION,
+                                              project_predictions)
 
 log = get_logger("projection")
 
 
-def run_projection(cfg: ProjectionConfig) -> dict:
-    """Project, merge and write; the summary (also ``projection_summary.json``) counts every box, so none
-    goes missing unnoticed."""
+def run_projection(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
+    """Project, merge and write (into ``dest``, the staging folder; default ``output_dir``); the summary (also
+    ``projection_summary.json``) counts every box, so none goes missing unnoticed. Nothing projected, or
+    nothing scoring ``min_score``, is an error (with ``unprojected_boxes.csv`` saying why for each box)."""
     out = Path(cfg.output_dir)
+    dest = Path(dest or out)
     project = ODMProject(cfg.project)
-    preds = read_predictions(cfg.predictions, cfg.images_from)
+    preds = load_predictions(cfg.predictions, cfg.images_from)
+    if cfg.dsm is None:
+        project.require("dsm")
+    check_dsm(Path(cfg.dsm) if cfg.dsm is not None else project.path("dsm"), "dsm" if cfg.dsm is not None else None)
+    scores = np.array([float(p.get("score", 1.0)) for p in preds["predictions"]])
+    if not (scores >= cfg.min_score).any():
+        raise ConfigError(f"0 of {len(scores)} detections score at least min_score={cfg.min_score:g} (the highest "
+                          f"scores {scores.max():.3f}), so no box would be projected", path=cfg.predictions,
+                          fix=f"lower 'min_score' (e.g. to {np.floor(scores.max() * 100) / 100:.2f}), or check that "
+                              "these are the model's predictions")
     views, rejected = project_predictions(project, preds, image_type=cfg.image_type, dsm=cfg.dsm,
                                           min_score=cfg.min_score, edge_points=cfg.edge_points,
                                           map_box=cfg.map_box, border_pixels=cfg.border_pixels,
                                           clearance=cfg.silhouette_clearance, hidden_height=cfg.hidden_height,
                                           ground_window=cfg.ground_window)
-    plants = merge_views(views, merge=cfg.merge, merge_iou=cfg.merge_iou)
-    geometry = "box" if cfg.merge == "fuse" else cfg.geometry  # fused boxes have no single outline
-    written = write_plants(plants, views, out, layer=cfg.layer, geometry=geometry, shapefile=cfg.write_shapefile)
     low = rejected["reason"] == "score below min_score"
     failed = rejected[~low]
-    written["unprojected"] = write_table(failed, out / "unprojected_boxes.csv")
+    if not len(views.table):
+        out.mkdir(parents=True, exist_ok=True)
+        report = write_table(failed, out / "unprojected_boxes.csv")  # the why, kept although the run fails
+        raise nothing_projected(failed, cfg, project, report)
+    plants = merge_views(views, merge=cfg.merge, merge_iou=cfg.merge_iou)
+    geometry = "box" if cfg.merge == "fuse" else cfg.geometry  # fused boxes have no single outline
+    written = write_plants(plants, views, dest, layer=cfg.layer, geometry=geometry, shapefile=cfg.write_shapefile)
+    written["unprojected"] = write_table(failed, dest / "unprojected_boxes.csv")
     if cfg.write_views:
-        written["views"] = write_table(views.table, out / "views.csv")
+        written["views"] = write_table(views.table, dest / "views.csv")
+    written = {k: out / Path(v).name for k, v in written.items()}  # where they will be once moved into place
     summary = {
         "detections": int(len(preds["predictions"])),
         "below_min_score": int(low.sum()),
@@ -61,36 +80,83 @@ def run_projection(cfg: ProjectionConfig) -> dict:
         "crs": views.crs.to_string() if views.crs is not None else None,
         "outputs": {k: str(v) for k, v in written.items()},
     }
-    write_json(out / "projection_summary.json", summary)
+    write_json(dest / "projection_summary.json", summary)
     log.info("%d of %d detections projected -> %d plants (median %.0f views each)", summary["projected_boxes"],
              summary["detections"], summary["plants"], summary["views_per_plant_median"])
     if len(failed):
         reasons = "; ".join(f"{v} x {k}" for k, v in summary["not_projected_by_reason"].items())
-        log.warning("%d boxes could not be projected (%s); see %s", len(failed), reasons, written["unprojected"])
+        log.warning("%d of %d boxes could not be projected (%s)%s; see %s", len(failed),
+                    len(preds["predictions"]) - int(low.sum()), reasons, unknown_images(failed),
+                    written["unprojected"])
     if low.any():
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
     log.info("plants: %s and %s", written["gpkg"], written["csv"])
     return summary
 
 
-def run_evaluation(cfg: ProjectionConfig) -> dict:
+def unknown_images(failed: pd.DataFrame) -> str:
+    """``; images not in the reconstruction: a.tif (did you mean 'b'?), ...`` or ``""``."""
+    miss = failed[failed["reason"] == NOT_IN_RECONSTRUCTION].drop_duplicates("source_image")
+    if not len(miss):
+        return ""
+    names = [f"{r.source_image}{' (' + r.hint + ')' if r.hint else ''}" for r in miss.head(5).itertuples()]
+    return f"; {len(miss)} image(s) not in the reconstruction: {', '.join(names)}{' ...' if len(miss) > 5 else ''}"
+
+
+def nothing_projected(failed: pd.DataFrame, cfg: ProjectionConfig, project: ODMProject, report: Path) -> InputError:
+    """Why no box at all could be projected, and what to change, by the most common reason."""
+    counts = failed["reason"].value_counts()
+    top = str(counts.index[0])
+    why = "; ".join(f"{v} x {k}" for k, v in counts.items())
+    problem = f"none of the {len(failed)} boxes could be projected ({why}); each box's reason is in {report}"
+    if top == NOT_IN_RECONSTRUCTION:
+        some = sorted(project.shot_ids(undistorted=True) or project.shot_ids(undistorted=False))[:3]
+        kind = f" or set image_type to auto (it is '{cfg.image_type}');" if cfg.image_type != "auto" else ";"
+        return InputError(problem + unknown_images(failed), path=cfg.predictions,
+                          fix=f"the image names in the predictions must be the project's (e.g. {', '.join(some)}, "
+                              f"or their undistorted '<name>.tif'){kind} check that predictions and project are "
+                              "of the same flight")
+    if top == BOX_OUTSIDE_IMAGE:
+        return InputError(problem, path=cfg.predictions,
+                          fix="check 'image_type' (undistorted or original photos) and that the boxes are in pixels "
+                              "of these images")
+    if top == EMPTY_BOX:
+        return InputError(problem, path=cfg.predictions, fix="the boxes have no width or height; regenerate them")
+    dsm = Path(cfg.dsm) if cfg.dsm is not None else project.path("dsm")
+    return InputError(problem, path=dsm, fix="the rays miss the DSM: use the DSM of this ODM project" +
+                      (" (or leave 'dsm' empty)" if cfg.dsm is not None else "") + ", or fill its holes")
+
+
+def run_evaluation(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
     """Score written plants against reference boxes; reads the plants from file so that a projection run
-    earlier (or elsewhere) can be evaluated alone."""
+    earlier (or elsewhere) can be evaluated alone (``dest``: the staging folder, where a projection of this
+    run wrote its plants)."""
     e = cfg.evaluate
-    out = Path(cfg.output_dir)
-    plants_path = e.plants or out / "plants.gpkg"
+    out = Path(dest or cfg.output_dir)
+    plants_path = e.plants or next((p for p in (out / "plants.gpkg", Path(cfg.output_dir) / "plants.gpkg")
+                                    if p.is_file()), out / "plants.gpkg")
     ortho = e.orthophoto
     if ortho is None and cfg.project is not None:
         p = ODMProject(cfg.project)
         ortho = p.path("orthophoto") if p.has("orthophoto") else None
     predicted, crs = read_plants_boxes(plants_path)
     reference = read_boxes(e.reference, orthophoto=ortho, crs=crs)
+    if not len(reference):
+        raise InputError("the reference holds no boxes", path=e.reference, fix="point evaluate.reference at the "
+                                                                              "boxes drawn on the orthophoto")
     metrics = evaluate_boxes(reference, predicted, e.iou_threshold)
+    if metrics["share_matched"] == 0:
+        r, p = reference, predicted
+        raise InputError(f"none of the {len(r)} reference boxes overlaps any of the {len(p)} plants (reference "
+                         f"{r[:, 0].min():.1f}..{r[:, 2].max():.1f} E, {r[:, 1].min():.1f}..{r[:, 3].max():.1f} N; "
+                         f"plants {p[:, 0].min():.1f}..{p[:, 2].max():.1f} E, {p[:, 1].min():.1f}..{p[:, 3].max():.1f}"
+                         " N)", path=e.reference, fix="check that the reference is of this field and in the plants' "
+                                                      "CRS (a CSV must be in the map CRS)")
     match, iou = metrics.pop("_match"), metrics.pop("_iou")
     write_table(pd.DataFrame({"reference_index": np.arange(len(reference)), "xmin": reference[:, 0],
                               "ymin": reference[:, 1], "xmax": reference[:, 2], "ymax": reference[:, 3],
                               "plant_index": match, "iou": iou}), out / "evaluation_matches.csv")
-    metrics.update(reference=str(e.reference), plants=str(plants_path))
+    metrics.update(reference=str(e.reference), plants=str(e.plants or Path(cfg.output_dir) / "plants.gpkg"))
     write_json(out / "evaluation.json", metrics)
     fig = evaluation_figure(out / "evaluation.png", reference, predicted, dict(metrics, _match=match, _iou=iou),
                             ortho, e.figure_pixels)
@@ -102,10 +168,12 @@ def run_evaluation(cfg: ProjectionConfig) -> dict:
 
 
 def run(cfg: ProjectionConfig) -> dict:
-    """The step's entry point (``mode``: project, evaluate or both)."""
+    """The step's entry point (``mode``: project, evaluate or both); all or nothing: a failed run leaves
+    ``output_dir`` as it was (apart from its log and, when no box could be projected, the report why)."""
     result = {}
-    if cfg.mode in ("project", "both"):
-        result["projection"] = run_projection(cfg)
-    if cfg.mode in ("evaluate", "both"):
-        result["evaluation"] = run_evaluation(cfg)
+    with staged_outputs(cfg.output_dir) as stage:
+        if cfg.mode in ("project", "both"):
+            result["projection"] = run_projection(cfg, stage)
+        if cfg.mode in ("evaluate", "both"):
+            result["evaluation"] = run_evaluation(cfg, stage)
     return result

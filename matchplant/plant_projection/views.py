@@ -21,6 +21,7 @@ from matchplant.core.odm import ODMProject
 from matchplant.core.progress import progress
 from matchplant.core.reconstruction import Shot
 from matchplant.core.surface import STATUS_TEXT
+from matchplant.core.validate import did_you_mean, match_names
 from matchplant.plant_projection.dsm import DsmSurfaces, ray_bounds
 from matchplant.plant_projection.geometry import project_boxes
 
@@ -63,14 +64,39 @@ def resolve_image(name: str, undistorted_ids: set[str], original_ids: set[str],
     return None, image_type != "original"
 
 
-def _reconstruction_ids(project: ODMProject, undistorted: bool) -> set[str]:
-    name = "undistorted_reconstruction" if undistorted else "reconstruction"
-    return set(project.reconstruction(undistorted=undistorted).shots) if project.has(name) else set()
+def resolve_images(names, undistorted_ids: set[str], original_ids: set[str],
+                   image_type: str = "auto") -> tuple[dict[str, tuple[str | None, bool]], dict[str, str]]:
+    """:func:`resolve_image` for many names, then the loose match for the rest: a name that differs from a
+    shot id only by case or extension (``IMG_1.tif`` or ``IMG_1.jpg.tif`` for shot ``IMG_1.JPG``) is that shot,
+    said in the log. Returns ``({name: (shot id or None, undistorted?)}, {unmatched name: "did you mean" hint})``."""
+    out = {name: resolve_image(name, undistorted_ids, original_ids, image_type) for name in names}
+    loose, hints = [], {}
+    for name, (sid, und) in out.items():
+        if sid is not None:
+            continue
+        base = Path(str(name).replace("\\", "/")).name
+        stripped = base[:-4] if base.lower().endswith(".tif") else None
+        for candidate, ids, is_und in ((stripped or (base if image_type == "undistorted" else None),
+                                        undistorted_ids, True),
+                                       (base if image_type != "undistorted" else None, original_ids, False)):
+            if candidate is None or (is_und and image_type == "original") or not ids:
+                continue
+            matched, _ = match_names([candidate], ids)
+            if candidate in matched:
+                out[name] = (matched[candidate], is_und)
+                loose.append(f"{base} -> {matched[candidate]}")
+                break
+        else:
+            hints[name] = did_you_mean(stripped or base, undistorted_ids | original_ids)
+    if loose:
+        log.warning("%d image name(s) differ from the reconstruction's shot ids only by case or extension and were "
+                    "matched: %s", len(loose), "; ".join(loose[:5]) + (" ..." if len(loose) > 5 else ""))
+    return out, hints
 
 
 def _shot(project: ODMProject, shot_id: str, undistorted: bool, warned: set) -> Shot:
     if not undistorted:
-        return project.reconstruction(undistorted=False).shot(shot_id)
+        return project.nominal_shot(shot_id, undistorted=False)
     try:
         return project.shot(shot_id, undistorted=True)
     except InputError:
@@ -79,7 +105,7 @@ def _shot(project: ODMProject, shot_id: str, undistorted: bool, warned: set) -> 
             warned.add("size")
             log.warning("undistorted images not found in %s; using the cameras' nominal image sizes",
                         project.path("undistorted_images"))
-        return project.reconstruction(undistorted=True).shot(shot_id)
+        return project.nominal_shot(shot_id, undistorted=True)
 
 
 def _cut(boxes: np.ndarray, size: np.ndarray, tile: np.ndarray, border: float) -> np.ndarray:
@@ -113,11 +139,13 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     n = len(preds)
     log.info("%d detections on %d images", n, len(images))
     frame = project.frame()
-    und_ids, orig_ids = _reconstruction_ids(project, True), _reconstruction_ids(project, False)
+    und_ids, orig_ids = project.shot_ids(undistorted=True), project.shot_ids(undistorted=False)
     if image_type == "original" and not orig_ids:
         project.require("reconstruction")
-    if image_type == "undistorted" and not und_ids:
-        project.require("undistorted_reconstruction")
+    names = {Path(source_name(im).replace("\\", "/")).name for im in predictions["images"]}
+    if not und_ids and (image_type == "undistorted" or (image_type == "auto" and orig_ids.isdisjoint(names) and
+                                                        any(n.lower().endswith(".tif") for n in names))):
+        project.require("undistorted_reconstruction")  # boxes on undistorted images: say what is missing
 
     # one flat table of boxes in source-image pixels
     table = pd.DataFrame({"pred_index": np.arange(n), "image_id": [p["image_id"] for p in preds],
@@ -143,10 +171,14 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
 
     reason = np.full(n, "", dtype=object)
     reason[table["score"].to_numpy() < min_score] = "score below min_score"
-    resolved = {name: resolve_image(name, und_ids, orig_ids, image_type) for name in table["source_image"].unique()}
+    resolved, hints = resolve_images(table["source_image"].unique(), und_ids, orig_ids, image_type)
+    table["hint"] = [hints.get(name, "") for name in table["source_image"]]
     table["shot_id"] = table["source_image"].map({k: v[0] for k, v in resolved.items()})
     table["undistorted"] = table["source_image"].map({k: v[1] for k, v in resolved.items()}).astype(bool)
     reason[(reason == "") & table["shot_id"].isna().to_numpy()] = NOT_IN_RECONSTRUCTION
+    if project.is_split:  # which submodel's frame placed each box (merge.align_submodels)
+        owners = {sid: project.owner(sid).name for sid in table["shot_id"].dropna().unique()}
+        table["submodel"] = table["shot_id"].map(owners).fillna("")
     reason[(reason == "") & ~((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))] = EMPTY_BOX
 
     # one group per (shot, undistorted?): its camera, its boxes
@@ -158,6 +190,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     keys = [(shot_ids[p // 2], bool(p % 2)) for p in pairs]
     warned: set = set()
     shots = [_shot(project, sid, bool(und), warned) for sid, und in keys]
+    frames = [project.frame_of(sid) for sid, _ in keys]  # a split project's submodels have a frame each
     size = np.full((n, 2), np.nan)
     if keys:
         wh = np.array([[s.camera.width, s.camera.height] for s in shots], dtype=float)
@@ -174,7 +207,8 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     by_group = todo[np.argsort(group[todo], kind="stable")]
     keys_todo, starts = np.unique(group[by_group], return_index=True)
     groups = {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
-    bounds = {k: ray_bounds(shots[k], frame, boxes[idx], surfaces.z_lo, surfaces.z_hi) for k, idx in groups.items()}
+    bounds = {k: ray_bounds(shots[k], frames[k], boxes[idx], surfaces.z_lo, surfaces.z_hi)
+              for k, idx in groups.items()}
     surfaces.prepare(list(bounds.values()))
 
     P = 4 * (edge_points + 1)
@@ -188,7 +222,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     for k in progress(list(groups), desc="projecting", unit="image"):
         idx = groups[k]
         surface = surfaces.get(bounds[k])
-        r = project_boxes(shots[k], frame, surface, boxes[idx], edge_points=edge_points, map_box=map_box,
+        r = project_boxes(shots[k], frames[k], surface, boxes[idx], edge_points=edge_points, map_box=map_box,
                           clearance=clearance, hidden_height=hidden_height, ground_window=ground_window,
                           cut_edges=cut_edges[idx])
         good = idx[r["ok"]]
@@ -211,7 +245,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
 
     done = reason == ""
     table["cut"] = cut_edges.any(axis=1)
-    views = table[done].drop(columns=["reason"]).reset_index(drop=True)
+    views = table[done].drop(columns=["reason", "hint"]).reset_index(drop=True)
     rejected = table[~done][["pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score",
-                             "category", "reason"]].reset_index(drop=True)
+                             "category", "reason", "hint"]].reset_index(drop=True)
     return ProjectedViews(views, outlines[done], frame.crs), rejected

@@ -14,6 +14,7 @@ from pathlib import Path
 from matchplant.simfield.config import PRESETS, SimFieldConfig, Settings, config_from, resolve
 from matchplant.simfield.generate import generate
 from matchplant.simfield.layout import FieldPaths
+from matchplant.simfield.split import split_field
 
 __all__ = ["generate_field", "run", "SimFieldConfig", "Settings", "PRESETS", "FieldPaths", "resolve"]
 
@@ -22,10 +23,12 @@ def generate_field(preset: str = "tiny", seed: int = 0, out: str | Path = "simfi
     """Write a synthetic field to ``out`` and return its :class:`FieldPaths`.
 
     ``overrides`` are :class:`SimFieldConfig` keys: altitude, tilt_deg, slope_pct, image_width, overlap,
-    field_width, field_length, weeds, shadows, attitude_noise_deg.
+    field_width, field_length, weeds, shadows, attitude_noise_deg, vigour (per-plant NDVI), second_date
+    (a later date with grown plants under ``date2/``).
     """
     return run(config_from(preset, seed, out, **overrides))
 
 
 def run(cfg: SimFieldConfig) -> FieldPaths:
-    return generate(cfg)
+    paths = generate(cfg)
+    return split_field(paths, seed=cfg.seed) if cfg.preset == "split" else paths

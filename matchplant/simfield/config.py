@@ -62,7 +62,12 @@ PRESETS: dict[str, Settings] = {
     # ~210 images over ~21000 plants (70 x 50 m): benchmarks
     "large": Settings(image_width=1000, aspect=0.75, focal=0.85, altitude=20.0, field_width=70.0,
                       field_length=50.0, raster_res=0.01, n_gcps=9, slope_pct=1.5, undulation=0.15),
+    # 4 DJI Mavic 2 Pro-like 5472x3648 (20 MP) photos at 20 m, 85 % overlap, ~2,500 plants per photo:
+    # annotation and detection at real size (bench_annotate_gui, detection speed)
+    "realistic": Settings(image_width=5472, aspect=2 / 3, focal=0.777, altitude=20.0, field_width=28.0,
+                          field_length=19.0, raster_res=0.005, n_gcps=5, slope_pct=1.5, undulation=0.1),
 }
+PRESETS["split"] = PRESETS["small"]  # the small field written as an ODM split-merge project (simfield/split.py)
 
 
 @dataclass
@@ -71,7 +76,7 @@ class SimFieldConfig:
 
     preset: str = param("tiny", "size of the field and flight", choices=tuple(PRESETS))
     seed: int = param(0, "random seed: the same seed and settings give the same files", min=0)
-    output_dir: Path = param(Path("simfield_out"), "folder to write the project into", path="out")
+    output_dir: Path = param(Path("runs/simfield"), "folder to write the project into", path="out")
     altitude: float | None = param(None, "flight height above ground, m (null: the preset's)", min=0.5, max=500)
     tilt_deg: float = param(0.0, "camera pitch off nadir, degrees (forward, for oblique flights)", min=0, max=45)
     slope_pct: float | None = param(None, "terrain slope, percent (null: the preset's)", min=0, max=30)
@@ -83,6 +88,9 @@ class SimFieldConfig:
     field_length: float | None = param(None, "planted area along the rows, m (null: the preset's)", min=1, max=1000)
     weeds: bool = param(True, "scatter small weeds between the rows")
     shadows: bool = param(True, "cast plant shadows on the soil")
+    vigour: bool = param(False, "give each plant's leaves its own NDVI (vigour; truth/traits.csv); off: every "
+                                "leaf has NDVI 0.8")
+    second_date: bool = param(False, "also write a later date with grown plants and a shifted map (date2/)")
     attitude_noise_deg: float | None = param(None, "standard deviation of roll/pitch/yaw noise, degrees", min=0,
                                              max=10)
     workers: int | None = param(None, "processes rendering images in parallel (0: one per CPU core, at most 8; "

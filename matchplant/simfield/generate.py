@@ -34,6 +34,7 @@ from matchplant.simfield.flight import (SENSOR_WIDTH_MM, SHOT_INTERVAL_S, TURN_S
                      make_camera, plan_flight, render)
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
+from matchplant.simfield.traits import grow, plot_truth, traits_rows, vigour
 from matchplant.simfield.truth import candidates_near, image_boxes
 
 log = get_logger("simfield")
@@ -63,6 +64,8 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     terrain = Terrain.random(s, rng_terrain)
     gcps = make_gcps(s, terrain, rng_gcp)
     plants = make_plants(s, terrain, rng_plants, gcps)
+    if cfg.vigour:  # a stream of its own: every other output stays as without vigour
+        plants.ndvi = vigour(len(plants), np.random.default_rng([cfg.seed, 1901]))
     camera = make_camera(s)
     ucamera = camera.undistorted()
     exposures = plan_flight(s, terrain, camera, rng_flight)
@@ -165,11 +168,13 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
                [[f"GCP{g + 1:02d}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}"] for g, (x, y, z) in enumerate(gmap)])
 
     # -- truth ---------------------------------------------------------------------------------------
-    radius = plants.radius()
-    _write_csv(paths.plants_csv, ["id", "x", "y", "z", "height", "radius", "row"],
-               [[int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{z:.4f}", f"{h:.4f}", f"{r:.4f}", int(row)]
-                for i, x, y, z, h, r, row in zip(plants.ids, plants.x, plants.y, plants.z, plants.height, radius,
-                                                 plants.row)])
+    _write_plants(paths, plants, rasters, s.raster_res, offset)
+    _write_plot_truth(paths, s, plants, offset, f"EPSG:{crs.to_epsg()}")
+    if cfg.second_date:
+        later = grow(plants, terrain, np.random.default_rng([cfg.seed, 1902]))
+        rasters2 = rasterize(s, grid, later, gcps, np.random.default_rng([cfg.seed, 1903]))
+        _write_rasters(paths.later, grid, rasters2, terrain, offset, crs)
+        _write_plants(paths.later, later, rasters2, s.raster_res, offset)
     ext = plants.extents() + np.r_[offset[:2], offset[:2]]
     _write_csv(paths.map_boxes, ["id", "xmin", "ymin", "xmax", "ymax"],
                [[int(i)] + [f"{v:.4f}" for v in b] for i, b in zip(plants.ids, ext)])
@@ -400,6 +405,25 @@ def _write_csv(path: Path, header: list[str], rows: list) -> None:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(header)
         w.writerows(rows)
+
+
+def _write_plants(paths: FieldPaths, plants: Plants, rasters: Rasters, res: float, offset: np.ndarray) -> None:
+    radius = plants.radius()
+    _write_csv(paths.plants_csv, ["id", "x", "y", "z", "height", "radius", "row"],
+               [[int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{z:.4f}", f"{h:.4f}", f"{r:.4f}", int(row)]
+                for i, x, y, z, h, r, row in zip(plants.ids, plants.x, plants.y, plants.z, plants.height, radius,
+                                                 plants.row)])
+    _write_csv(paths.traits_csv, ["id", "x", "y", "height", "ndvi", "canopy_pixels", "canopy_area_m2"],
+               traits_rows(plants, rasters.label, res, offset))
+
+
+def _write_plot_truth(paths: FieldPaths, s, plants: Plants, offset: np.ndarray, crs: str) -> None:
+    t = plot_truth(s, plants, offset, crs)
+    write_json(paths.plots_json, t["grid"])
+    _write_csv(paths.plots_csv, ["plot_id", "range", "column", "expected", "stand_count", "gaps", "geometry"],
+               t["plots"])
+    _write_csv(paths.gaps_csv, ["plot_id", "row", "x", "y"], t["gaps"])
+    _write_csv(paths.field_book, ["plot_id", "genotype", "rep"], t["field_book"])
 
 
 def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terrain, offset: np.ndarray,

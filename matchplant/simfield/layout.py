@@ -111,3 +111,28 @@ class FieldPaths:
     @property
     def masks_undistorted(self) -> Path:  # <image name>.png: uint16 plant id of every undistorted pixel
         return self.truth / "masks_undistorted"
+
+    # -- traits and plots (simfield/traits.py) -----------------------------------------------------
+    @property
+    def traits_csv(self) -> Path:         # id,x,y,height,ndvi,canopy_pixels,canopy_area_m2 (true canopy)
+        return self.truth / "traits.csv"
+
+    @property
+    def plots_json(self) -> Path:         # the plot grid: corners, columns, ranges, plot size, spacings
+        return self.truth / "plots.json"
+
+    @property
+    def plots_csv(self) -> Path:          # plot_id,range,column,expected,stand_count,gaps,geometry (WKT)
+        return self.truth / "plots.csv"
+
+    @property
+    def gaps_csv(self) -> Path:           # plot_id,row,x,y of every empty seed position
+        return self.truth / "gaps.csv"
+
+    @property
+    def field_book(self) -> Path:         # plot_id,genotype,rep
+        return self.truth / "field_book.csv"
+
+    @property
+    def later(self) -> "FieldPaths":      # a second date (second_date: true): rasters and truth, same layout
+        return FieldPaths(self.root / "date2")

@@ -86,6 +86,7 @@ class Plants:
     su: np.ndarray         # scale across the row (x)
     sv: np.ndarray         # scale along the row (y)
     tint: np.ndarray       # (n, 3) RGB multiplier
+    ndvi: np.ndarray | None = None  # per-plant leaf NDVI (vigour); None: every leaf 0.8 (NIR 0.45, red 0.05)
 
     def __len__(self) -> int:
         return len(self.x)
@@ -95,7 +96,7 @@ class Plants:
         return np.arange(1, len(self) + 1)
 
     def subset(self, keep: np.ndarray) -> "Plants":
-        return Plants(**{k: v[keep] for k, v in self.__dict__.items()})
+        return Plants(**{k: None if v is None else v[keep] for k, v in self.__dict__.items()})
 
     def outline_radius(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """Unscaled outline distance ``r(theta)`` for plants ``idx`` (n,) at angles ``theta`` (n, m)."""
@@ -160,15 +161,22 @@ class Plants:
         return np.hypot(r * np.cos(theta) * self.su[:, None], r * np.sin(theta) * self.sv[:, None]).max(axis=1)
 
 
-def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: np.ndarray) -> Plants:
+def row_layout(s: Settings) -> tuple[np.ndarray, np.ndarray]:
+    """The sowing plan: x of each crop row and y of each seed position along the rows (local frame)."""
     n_rows = max(1, int(np.floor(s.field_width / ROW_SPACING)))
     row_x = (s.field_width - (n_rows - 1) * ROW_SPACING) / 2 + ROW_SPACING * np.arange(n_rows)
     n_in_row = max(1, int(np.floor((s.field_length - 0.1) / PLANT_SPACING)))
     y0 = (s.field_length - (n_in_row - 1) * PLANT_SPACING) / 2
+    return row_x, y0 + PLANT_SPACING * np.arange(n_in_row)
+
+
+def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: np.ndarray) -> Plants:
+    row_x, slots = row_layout(s)
+    n_in_row = len(slots)
     xs, ys, rows = [], [], []
     for r, rx in enumerate(row_x):
         keep = rng.random(n_in_row) > 0.07  # gaps: missing plants
-        yy = y0 + PLANT_SPACING * np.arange(n_in_row) + np.clip(rng.normal(0, 0.025, n_in_row), -0.05, 0.05)
+        yy = slots + np.clip(rng.normal(0, 0.025, n_in_row), -0.05, 0.05)
         xx = rx + np.clip(rng.normal(0, 0.012, n_in_row), -0.03, 0.03)
         xs.append(xx[keep])
         ys.append(yy[keep])
@@ -406,8 +414,13 @@ def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np
     rgb[white] = 0.92
     red = (0.20 * soil_b).astype(np.float32)
     nir = (0.27 * soil_b).astype(np.float32)
-    red[is_plant] = 0.05 * leaf_b
-    nir[is_plant] = 0.45 * leaf_b
+    if plants.ndvi is None:
+        red[is_plant] = 0.05 * leaf_b
+        nir[is_plant] = 0.45 * leaf_b
+    else:  # NIR + red as before (0.5 x brightness), split to give each plant its own NDVI
+        v = plants.ndvi[pid].astype(np.float32)
+        red[is_plant] = 0.25 * (1 - v) * leaf_b
+        nir[is_plant] = 0.25 * (1 + v) * leaf_b
     red[weed], nir[weed] = 0.06, 0.40
     red[target], nir[target] = 0.04, 0.05
     red[white], nir[white] = 0.80, 0.82

@@ -11,6 +11,8 @@ from pathlib import Path
 
 from matchplant.core.config import param, section
 from matchplant.core.errors import ConfigError
+from matchplant.spatial_stat_extractor.indices import RGB_INDICES
+from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
 
 
@@ -21,6 +23,16 @@ class BandFile:
     name: str = param("band", "column name of this trait (letters, digits, _)")
     path: Path | None = param(None, "raster file", path="file")
     band: int = param(1, "band number (1 = first)", min=1)
+
+
+@dataclass
+class Formula:
+    """An index written as a formula of a raster's bands."""
+
+    name: str = param("index", "column name of this index (letters, digits, _)")
+    path: Path | None = param(None, "raster file whose bands the formula uses", path="file")
+    expression: str = param("", "the formula over the bands b1, b2, ..., e.g. (b5 - b3) / (b5 + b3); "
+                                "+ - * / ** and parentheses")
 
 
 @dataclass
@@ -35,6 +47,13 @@ class RasterSet:
     red_band: int = param(1, "band number of red in the multispectral raster", min=1)
     nir_band: int = param(2, "band number of near-infrared in the multispectral raster", min=1)
     bands: list[BandFile] = param([], "more single bands: a list of {name, path, band}")
+    rgb: Path | None = param(None, "RGB orthophoto (ODM's odm_orthophoto/odm_orthophoto.tif): RGB vegetation "
+                                   "indices for drones without a multispectral camera", path="file")
+    rgb_bands: list[int] = param([1, 2, 3], "band numbers of red, green and blue in the RGB raster", min=1)
+    indices: list[str] = param(["exg", "vari", "gli"], "RGB indices from 'rgb': exg (excess green), exgr "
+                                                      "(ExG - ExR), vari, gli (green leaf index), ngrdi",
+                               choices=tuple(RGB_INDICES))
+    formulas: list[Formula] = param([], "more indices as band formulas: a list of {name, path, expression}")
 
     def layers(self) -> list["Layer"]:
         """What to measure, one :class:`Layer` per trait."""
@@ -54,11 +73,23 @@ class RasterSet:
             if self.red_band == self.nir_band:
                 raise ConfigError(f"date '{self.date}': red_band and nir_band are both {self.red_band}",
                                   fix="set the band numbers of red and near-infrared of your camera")
-            out.append(Layer("ndvi", "ndvi", (self.multispectral,), bands=(self.red_band, self.nir_band)))
+            out.append(Layer("ndvi", "ndvi", (self.multispectral,), bands=(self.red_band, self.nir_band), index=True))
         for b in self.bands:
             if b.path is None:
                 raise ConfigError(f"date '{self.date}': band '{b.name}' has no path", fix="set its path")
             out.append(Layer(b.name, "band", (b.path,), bands=(b.band,)))
+        if self.rgb is not None:
+            if len(self.rgb_bands) != 3 or len(set(self.rgb_bands)) != 3:
+                raise ConfigError(f"date '{self.date}': rgb_bands must be three different band numbers, got "
+                                  f"{self.rgb_bands}", fix="set rgb_bands: [red, green, blue], e.g. [1, 2, 3]")
+            for name in dict.fromkeys(self.indices):
+                out.append(Layer(name, "formula", (self.rgb,), bands=tuple(self.rgb_bands),
+                                 expression=RGB_INDICES[name], index=True))
+        for f in self.formulas:
+            if f.path is None or not f.expression.strip():
+                raise ConfigError(f"date '{self.date}': formula '{f.name}' needs a path and an expression",
+                                  fix="set both, e.g. {name: ndre, path: ms.tif, expression: (b5 - b4) / (b5 + b4)}")
+            out.append(Layer(f.name, "formula", (f.path,), expression=f.expression, index=True))
         names = [layer.name for layer in out]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
@@ -71,7 +102,8 @@ class RasterSet:
         return out
 
     def empty(self) -> bool:
-        return not (self.chm or self.dsm or self.dtm or self.multispectral or self.bands)
+        return not (self.chm or self.dsm or self.dtm or self.multispectral or self.bands or self.rgb
+                    or self.formulas)
 
 
 @dataclass
@@ -88,6 +120,34 @@ class CompareConfig:
                                   "<band>_mean for each band measured")
     min_iou: float = param(0.3, "two plants are the same plant when their polygons overlap at least this much "
                                 "(intersection over union)", min=0.0, max=1.0)
+
+
+@dataclass
+class CanopyConfig:
+    """Plant outlines from the CHM and canopy-only statistics (docs/DESIGN.md §2)."""
+
+    enabled: bool = param(True, "cut each plant's canopy out of the CHM (needs chm, or dsm + dtm): outlines, "
+                                "tops, canopy area and volume, and statistics over the canopy pixels")
+    margin: float = param(0.05, "m around each box where the canopy may reach", min=0)
+    relative: float = param(0.1, "canopy pixels reach at least this share of the plant's own top height",
+                            min=0, max=1)
+    min_height: float = param(0.02, "m above the ground: lower pixels are soil (raise it for a noisy CHM)", min=0)
+    min_top: float = param(0.05, "m: a plant's top must reach this height to be outlined; lower ones (weeds, soil, "
+                                 "plants too small for the CHM) keep their box, flagged 'low', and are left out "
+                                 "of stand counts", min=0)
+    min_pixels: int = param(4, "canopies smaller than this many pixels keep their box (flagged 'small')", min=1)
+    ndvi_threshold: float | None = param(None, "canopy pixels also need NDVI at least this (the multispectral "
+                                               "raster on the CHM's grid); null = height only", min=-1, max=1)
+    traits: list[str] = param([], "traits measured over the canopy too, as <trait>_canopy_<stat>; empty = the "
+                                  "indices (ndvi, RGB indices, formulas); the CHM's canopy percentiles are "
+                                  "always given")
+    height_percentiles: list[float] = param([50.0, 90.0, 95.0], "canopy height percentiles (chm_canopy_pNN)",
+                                            min=0, max=100)
+    recentre: bool = param(True, "later dates: re-centre each plant on that date's CHM (the local maximum "
+                                 "nearest to its earlier top moved by the median shift of the plants around) "
+                                 "and re-outline it; the shift is reported")
+    max_shift: float = param(0.1, "m: how far a plant's top may move between dates (less than the plant "
+                                  "spacing)", min=0)
 
 
 @dataclass
@@ -115,7 +175,9 @@ class StatsConfig:
                                 "'long' = one row per plant and date", choices=("wide", "long"))
     write_polygons: bool = param(True, "write the polygons as polygons.gpkg and polygons.shp (with their CRS)")
     compare: CompareConfig = section(CompareConfig)
-    output_dir: Path = param(Path("stats_output"), "output folder", path="out")
+    canopy: CanopyConfig = section(CanopyConfig)
+    plots: PlotsConfig = section(PlotsConfig)
+    output_dir: Path = param(Path("runs/spatial_stat_extractor"), "output folder", path="out")
 
     def date_sets(self) -> list[RasterSet]:
         sets = ([] if self.rasters.empty() else [self.rasters]) + list(self.more_dates)
@@ -129,15 +191,19 @@ class StatsConfig:
         sets = self.date_sets()
         if not sets:
             raise ConfigError("no raster given", fix="set rasters.chm, rasters.dsm + rasters.dtm, "
-                                                     "rasters.multispectral or rasters.bands")
+                                                     "rasters.multispectral, rasters.rgb or rasters.bands")
         for s in sets:
             s.layers()
             for b in s.bands:
                 if b.path is not None and not Path(b.path).is_file():
                     raise ConfigError(f"band '{b.name}' of date '{s.date}': file not found", path=b.path,
                                       fix="correct its path (relative paths are relative to the config file)")
+            for f in s.formulas:
+                if f.path is not None and not Path(f.path).is_file():
+                    raise ConfigError(f"formula '{f.name}' of date '{s.date}': file not found", path=f.path,
+                                      fix="correct its path (relative paths are relative to the config file)")
         for s in self.more_dates:
-            for key in ("chm", "dsm", "dtm", "multispectral"):
+            for key in ("chm", "dsm", "dtm", "multispectral", "rgb"):
                 p = getattr(s, key)
                 if p is not None and not Path(p).is_file():
                     raise ConfigError(f"more_dates '{s.date}': {key} not found", path=p,
@@ -149,8 +215,10 @@ class Layer:
     """One trait to measure: a band, a difference of two rasters (CHM) or NDVI."""
 
     name: str
-    kind: str  # "band" | "difference" | "ndvi"
+    kind: str  # "band" | "difference" | "ndvi" | "formula"
     paths: tuple
     bands: tuple = (1,)
     elevation: bool = False
+    expression: str = ""  # formula: RGB (R, G, B, r, g, b from bands = red, green, blue) or b1, b2, ...
+    index: bool = False  # a vegetation index (measured over the canopy by default)
 

@@ -37,6 +37,7 @@ from typing import Callable, Sequence
 import geopandas as gpd
 import numpy as np
 import pandas as pd
+import rasterio
 import shapely
 
 from matchplant.core.errors import ConfigError, InputError
@@ -59,7 +60,7 @@ log = get_logger("stats")
 # extraction
 
 
-def _polygons_in(gdf, crs, layer_label: str, report: dict):
+def polygons_in(gdf, crs, layer_label: str, report: dict):
     """The polygons in the raster's CRS (reprojected when they differ)."""
     if crs is None:
         if gdf.crs is not None:
@@ -107,9 +108,14 @@ def extract_stats(polygons, date_sets: Sequence[RasterSet], stats: Sequence[str]
 
             with contextlib.ExitStack() as stack:
                 src = open_layer(layer, stack, nodata)
-                geoms = _polygons_in(polygons, src.crs, f"raster {Path(layer.paths[0]).name}", entry)
-                res = zonal_stats(geoms, src, stats, percentiles, mode=mode, on_progress=step)
-            _report_problems(entry, res, ids, label)
+                geoms = polygons_in(polygons, src.crs, f"raster {Path(layer.paths[0]).name}", entry)
+                try:
+                    res = zonal_stats(geoms, src, stats, percentiles, mode=mode, on_progress=step)
+                except rasterio.errors.RasterioIOError as exc:  # a block past the end of a cut-off file
+                    raise InputError(f"{label}: a raster cannot be read part-way (truncated file?): {exc}",
+                                     path=", ".join(entry["files"]),
+                                     fix="copy or regenerate the raster (an interrupted copy or run)") from exc
+            _report_problems(entry, res, ids, label, polygons.attrs.get("source"))
             report["layers"].append(entry)
             table = per_date.setdefault(s.date, pd.DataFrame({"plant_id": ids}))
             for c in res.columns:
@@ -136,7 +142,7 @@ def extract_stats(polygons, date_sets: Sequence[RasterSet], stats: Sequence[str]
     return table, report
 
 
-def _report_problems(entry: dict, res, ids: np.ndarray, label: str) -> None:
+def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str | None = None) -> None:
     def listed(mask):
         return [v.item() if hasattr(v, "item") else v for v in ids[mask][:50]]
 
@@ -144,10 +150,18 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str) -> None:
                  partly_outside=int(res.partial.sum()), partly_outside_ids=listed(res.partial),
                  only_nodata=int(res.no_valid.sum()), only_nodata_ids=listed(res.no_valid))
     n = len(ids)
+    of = f" (polygons: {Path(source).name})" if source else ""
     if res.outside.all():
-        raise InputError(f"none of the {n} plants overlaps the raster of {label}", path=entry["files"][0],
+        raise InputError(f"none of the {n} plants overlaps the raster of {label} "
+                         f"({', '.join(Path(f).name for f in entry['files'])}){of}: 0 plants with values",
+                         path=entry["files"][0],
                          fix="check that the raster is of the same field, and the CRS of the polygons "
                              "(polygons_crs) and of the raster")
+    if (res.outside | res.no_valid).all():
+        raise InputError(f"0 of the {n} plants have values in the raster of {label} "
+                         f"({', '.join(Path(f).name for f in entry['files'])}){of}: every plant is on nodata pixels "
+                         f"({int(res.outside.sum())} outside the raster)", path=entry["files"][0],
+                         fix="check that the rasters cover the plants (a DTM or nodata value of another field?)")
     if res.outside.any():
         log.warning("%s: %d of %d plants are outside the raster (e.g. ids %s); their statistics are empty",
                     label, res.outside.sum(), n, entry["outside_ids"][:5])

@@ -1,4 +1,4 @@
-"""Module 9's window: choose the files, the statistics and percentiles, look at the plants over the raster,
+"""Module 9's window (the paper's Fig. 9): choose the files (a "..." file picker beside each path), the statistics and percentiles, look at the plants over the raster,
 run in the background with a progress bar, and save. A thin layer over :mod:`matchplant.spatial_stat_extractor.run`.
 
 The preview reads the raster at reduced resolution (overviews or decimated reads), never the full
@@ -17,7 +17,7 @@ from matplotlib.widgets import Button, CheckButtons, RadioButtons, TextBox
 
 from matchplant.core.config import save_config, set_value, validate
 from matchplant.core.errors import ConfigError, MatchPlantError
-from matchplant.core.gui import figure, is_headless, show
+from matchplant.core.gui import ask_path, figure, is_headless, require_display, show
 from matchplant.core.log import get_logger
 from matchplant.spatial_stat_extractor.config import StatsConfig
 from matchplant.spatial_stat_extractor.polygons import read_polygons
@@ -39,6 +39,9 @@ TEXT_FIELDS = [  # (config key, label)
     ("percentiles", "Percentiles"),
     ("output_dir", "Output folder"),
 ]
+# keys with a file picker ("..." beside the box: Tk's dialogs)
+PICKERS = {"polygons": "file", "rasters.chm": "file", "rasters.dsm": "file", "rasters.dtm": "file",
+           "rasters.multispectral": "file", "output_dir": "folder"}
 OK_COLOR, ERROR_COLOR = "#1a7f37", "#c62828"
 
 
@@ -69,8 +72,10 @@ class StatsGUI:
     """The window over a :class:`~matchplant.spatial_stat_extractor.config.StatsConfig`. ``headless=True``
     (tests) draws on a figure of its own, without a window."""
 
-    def __init__(self, cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None):
+    def __init__(self, cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None,
+                 chooser=None):
         self.cfg = cfg
+        self.chooser = chooser  # replaces Tk's dialog (tests): chooser(kind, title, initial) -> path or None
         self.config_path = Path(config_path) if config_path else None
         self.headless = is_headless(headless)
         self.fig = fig = figure(self.headless, figsize=(13, 8))
@@ -84,11 +89,16 @@ class StatsGUI:
         self.ax.set_title("Preview: load the files and press Preview", fontsize=10)
         self.ax.set_aspect("equal")
         self.boxes: dict = {}
+        self.pickers: dict = {}
         y = 0.93
         for key, label in TEXT_FIELDS:
-            box = QuietTextBox(fig.add_axes([0.72, y, 0.26, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
+            width = 0.225 if key in PICKERS else 0.26
+            box = QuietTextBox(fig.add_axes([0.72, y, width, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
             box.on_submit(lambda text, key=key: self._set(key, text))
             self.boxes[key] = box
+            if key in PICKERS:
+                self.pickers[key] = Button(fig.add_axes([0.948, y, 0.032, 0.036]), "...")
+                self.pickers[key].on_clicked(lambda _e, key=key: self.browse(key))
             y -= 0.045
         self.crs_text = fig.text(0.62, y + 0.005, "CRS: -", fontsize=9, family="monospace")
         fig.text(0.62, y - 0.03, "Statistics", fontsize=10, weight="bold")
@@ -153,6 +163,25 @@ class StatsGUI:
             return False
         self.set_status(f"{key} = {_as_text(_get(self.cfg, key))}")
         return True
+
+    def browse(self, key: str) -> str | None:
+        """Tk's file (or folder) dialog for ``key``; the choice goes into its box and the config."""
+        label = dict(TEXT_FIELDS)[key]
+        current = self.boxes[key].text.strip() or None
+        try:
+            if self.chooser is not None:
+                chosen = self.chooser(PICKERS[key], f"Choose the {label.lower()}", current)
+            else:
+                widget = getattr(self.fig.canvas, "get_tk_widget", None)
+                chosen = ask_path(PICKERS[key], f"Choose the {label.lower()}", current,
+                                  parent=widget() if widget is not None else None)
+        except MatchPlantError as exc:
+            self.set_status(f"error: {exc}", error=True)
+            return None
+        if chosen:
+            self.boxes[key].set_val(chosen)
+            self._set(key, chosen)
+        return chosen
 
     def _set_stats(self) -> None:
         chosen = [s for s, on in zip(BASIC_STATS, self.stat_checks.get_status()) if on]
@@ -299,8 +328,12 @@ class StatsGUI:
         return path
 
 
-def launch(cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None) -> StatsGUI:
-    gui = StatsGUI(cfg, config_path, headless=headless)
+def launch(cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None,
+           chooser=None) -> StatsGUI:
+    """The window (the paper's Fig. 9); blocks until it is closed."""
+    if not headless:
+        require_display("python 9_spatial_stat_extractor/spatial_stat_extractor.py --polygons FILE --dsm FILE --dtm FILE")
+    gui = StatsGUI(cfg, config_path, headless=headless, chooser=chooser)
     try:
         ready = cfg.polygons is not None and bool(cfg.date_sets())
     except MatchPlantError as exc:

@@ -17,6 +17,7 @@ from pyproj.exceptions import CRSError
 from matchplant.core.errors import ConfigError, InputError
 from matchplant.core.io import read_json
 from matchplant.core.log import get_logger
+from matchplant.core.validate import check_vector, did_you_mean
 
 log = get_logger("stats")
 
@@ -33,16 +34,21 @@ def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", cr
         raise InputError("polygon file not found", path=path, fix="check 'polygons' in your config")
     if path.suffix.lower() in (".csv", ".txt", ".tsv"):
         gdf = _read_polygon_csv(path, crs)
+        crs_source = gdf.attrs.get("crs_source")
     else:
+        if layer:  # an unknown layer: the layers there, with "did you mean"
+            check_vector(path, layer=layer, require_crs=False, allow_empty=True, what="polygon file")
         try:
             gdf = gpd.read_file(path, layer=layer or None)
         except Exception as exc:  # pyogrio raises several kinds; all mean the file can't be used
             hint = " (is the layer name right?)" if layer else ""
             raise InputError(f"cannot read the polygons{hint}: {exc}", path=path,
                              fix="give a GeoPackage, shapefile, GeoJSON or CSV") from exc
+        crs_source = "the polygon file" if gdf.crs is not None else None
         if crs:
             if gdf.crs is None:
                 gdf = gdf.set_crs(_parse_crs(crs, "polygons_crs"))
+                crs_source = "polygons_crs"
             elif not gdf.crs.equals(_parse_crs(crs, "polygons_crs")):
                 log.warning("polygons_crs=%s ignored: %s declares %s", crs, path.name, gdf.crs.to_string())
     if len(gdf) == 0:
@@ -59,20 +65,54 @@ def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", cr
         raise InputError(f"plant ids are not unique (e.g. {dups})", path=path,
                          fix="set id_column to a column with one value per plant, or 'auto' to number them")
     cols = ["plant_id"] + [c for c in gdf.columns if c not in ("plant_id", gdf.geometry.name)]
-    return gdf[cols + [gdf.geometry.name]]
+    gdf = gdf[cols + [gdf.geometry.name]]
+    gdf.attrs.update(source=str(path), crs_source=crs_source)
+    return gdf
+
+
+def with_crs(gdf, crs, source: str | Path | None):
+    """The polygons with a CRS: their own, else ``crs`` (taken from ``source``, said in the log); none at all
+    is an error (GIS files without a CRS land in the wrong place)."""
+    if gdf.crs is not None:
+        return gdf
+    path = gdf.attrs.get("source")
+    if crs is None:
+        raise InputError("the polygons have no CRS, and neither polygons_crs, a projection_summary.json beside "
+                         "them, nor the rasters give one", path=path,
+                         fix="set polygons_crs to the CRS of the coordinates (e.g. EPSG:32615, your UTM zone)")
+    log.warning("%s has no CRS; using %s of the raster %s (set polygons_crs if that is wrong)",
+                Path(path).name if path else "the polygons", crs.to_string(), source)
+    out = gdf.set_crs(crs)
+    out.attrs.update(gdf.attrs, crs_source=f"raster {source}")
+    return out
 
 
 def _plant_ids(gdf, id_column: str, path: Path) -> pd.Series:
     if id_column and id_column != "auto":
         if id_column not in gdf.columns:
-            raise InputError(f"id column '{id_column}' not found; columns: {list(gdf.columns)}", path=path,
-                             fix="set id_column to one of them, or to 'auto'")
+            names = [str(c) for c in gdf.columns if c != gdf.geometry.name]
+            hint = did_you_mean(id_column, names)
+            raise InputError(f"id column '{id_column}' not found; {hint or 'columns: ' + ', '.join(names)}",
+                             path=path, fix="set id_column to one of the columns, or to 'auto'")
         return gdf[id_column]
     for name in ID_CANDIDATES:
         if name in gdf.columns:
             return gdf[name]
     log.info("%s has no plant id column; plants are numbered 1..%d in file order", path.name, len(gdf))
     return pd.Series(np.arange(1, len(gdf) + 1), index=gdf.index)
+
+
+def _numbers(col: pd.Series, name: str, path: Path) -> np.ndarray:
+    """A box column as floats; decimal commas (a European spreadsheet's export) are read; the first value
+    that is not a finite number is named with its line."""
+    text = col.astype(str).str.strip().str.replace(",", ".", regex=False)
+    values = pd.to_numeric(text, errors="coerce").to_numpy(float)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if len(bad):
+        raise InputError(f"column '{name}', line {bad[0] + 2}: {col.iloc[bad[0]]!r} is not a number "
+                         f"({len(bad)} such value(s))", path=path,
+                         fix="give every box as numbers (coordinates in metres); remove or fill the empty cells")
+    return values
 
 
 def _parse_crs(text: str, key: str):
@@ -85,9 +125,13 @@ def _parse_crs(text: str, key: str):
 
 def _read_polygon_csv(path: Path, crs: str):
     try:
-        df = pd.read_csv(path, sep=None, engine="python")
+        df = pd.read_csv(path, sep=None, engine="python", encoding="utf-8-sig")
     except Exception as exc:
         raise InputError(f"cannot read the CSV: {exc}", path=path, fix="check that it is a CSV with a header") from exc
+    df.columns = [str(c).strip() for c in df.columns]
+    if len(df) == 0:
+        raise InputError("the polygon CSV has a header but no data rows", path=path,
+                         fix="point 'polygons' at the file that holds the plants")
     wkt = next((c for c in WKT_CANDIDATES if c in df.columns), None)
     if wkt is not None:
         try:
@@ -97,7 +141,7 @@ def _read_polygon_csv(path: Path, crs: str):
                              fix="write polygons as WKT, e.g. POLYGON ((x y, ...))") from exc
         df = df.drop(columns=[wkt])
     elif all(c in df.columns for c in BOX_COLUMNS):
-        b = df[list(BOX_COLUMNS)].to_numpy(float)
+        b = np.column_stack([_numbers(df[c], c, path) for c in BOX_COLUMNS])
         if np.any(b[:, 2] < b[:, 0]) or np.any(b[:, 3] < b[:, 1]):
             raise InputError("some boxes have xmax < xmin or ymax < ymin", path=path,
                              fix="check the column order xmin,ymin,xmax,ymax")
@@ -106,10 +150,14 @@ def _read_polygon_csv(path: Path, crs: str):
         raise InputError(f"the CSV has neither a WKT geometry column nor {','.join(BOX_COLUMNS)}; "
                          f"columns: {list(df.columns)}", path=path,
                          fix="add a 'geometry' column (WKT) or box columns xmin,ymin,xmax,ymax")
+    source = "polygons_crs" if crs else None
     if not crs:
         summary = path.parent / "projection_summary.json"  # module 8 writes its CRS there
         if summary.is_file():
             crs = read_json(summary).get("crs") or ""
             if crs:
+                source = str(summary)
                 log.info("polygon CRS %s taken from %s", crs, summary.name)
-    return gpd.GeoDataFrame(df, geometry=geom, crs=_parse_crs(crs, "polygons_crs") if crs else None)
+    gdf = gpd.GeoDataFrame(df, geometry=geom, crs=_parse_crs(crs, "polygons_crs") if crs else None)
+    gdf.attrs["crs_source"] = source
+    return gdf

@@ -11,13 +11,16 @@ from pathlib import Path
 import numpy as np
 import rasterio
 from affine import Affine
-from rasterio.enums import Resampling
+from rasterio.enums import ColorInterp, Resampling
 from rasterio.vrt import WarpedVRT
+from rasterio.warp import transform_bounds
 
 from matchplant.core.errors import InputError
+from matchplant.core.validate import check_raster
 from matchplant.core.log import get_logger
 from matchplant.spatial_stat_extractor.config import Layer
-from matchplant.spatial_stat_extractor.zonal import DifferenceSource, NDVISource, RasterFileSource, pyproj_crs
+from matchplant.spatial_stat_extractor.indices import FormulaSource, check_bands, parse_formula
+from matchplant.spatial_stat_extractor.zonal import ArraySource, DifferenceSource, NDVISource, RasterFileSource, pyproj_crs
 
 log = get_logger("stats")
 
@@ -34,10 +37,16 @@ def _open(path: Path, stack: contextlib.ExitStack):
         raise InputError(f"cannot read the raster: {exc}", path=path, fix="give a GeoTIFF") from exc
 
 
-def _band(ds, band: int, layer: Layer, nodata: float | None) -> RasterFileSource:
+def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band",
+          check: bool = True) -> RasterFileSource:
+    """Band ``band`` (config key ``key``) of ``ds``; with ``check``, a band of only nodata/NaN is an error."""
     if not 1 <= band <= ds.count:
-        raise InputError(f"{layer.name}: band {band} asked for, but the raster has {ds.count} band(s)",
-                         path=ds.name, fix="set the band number (1 = first band)")
+        raise InputError(f"{layer.name}: {key} = {band}, but the raster has {ds.count} band(s), "
+                         f"no band {band}",
+                         path=ds.name, fix=f"set {key} to a band number from 1 to {ds.count} (1 = first band)")
+    # a raster that is all nodata/NaN in this band is named here, not found out as "0 plants with values"
+    if check and not isinstance(ds, WarpedVRT):  # a warped DTM was checked as a file before warping
+        check_raster(ds.name, bands=[band], require_crs=False, what=f"{layer.name} raster")
     extra = [ODM_NODATA] if layer.elevation else []
     if nodata is not None:
         extra.append(nodata)
@@ -47,12 +56,19 @@ def _band(ds, band: int, layer: Layer, nodata: float | None) -> RasterFileSource
 def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None = None):
     """A raster source (``transform, width, height, crs, read()``) for a layer; files stay open in ``stack``."""
     if layer.kind == "band":
-        return _band(_open(layer.paths[0], stack), layer.bands[0], layer, nodata)
+        return _band(_open(layer.paths[0], stack), layer.bands[0], layer, nodata,
+                     key="band" if layer.name == "chm" else f"band of '{layer.name}' (bands)")
     if layer.kind == "ndvi":
         ds = _open(layer.paths[0], stack)
-        return NDVISource(_band(ds, layer.bands[0], layer, nodata), _band(ds, layer.bands[1], layer, nodata))
+        check_bands(ds, {"red": layer.bands[0], "nir": layer.bands[1]}, {"red": "red_band", "nir": "nir_band"})
+        return NDVISource(_band(ds, layer.bands[0], layer, nodata, key="red_band"),
+                          _band(ds, layer.bands[1], layer, nodata, key="nir_band"))
+    if layer.kind == "formula":
+        return _formula(_open(layer.paths[0], stack), layer, nodata)
     dsm = _open(layer.paths[0], stack)
     dtm = _open(layer.paths[1], stack)
+    _check_overlap(dsm, dtm)
+    check_raster(dtm.name, bands=[1], require_crs=False, what=f"{layer.name} DTM")
     if (dsm.crs and dtm.crs and dsm.crs != dtm.crs) or dsm.transform != dtm.transform \
             or dsm.shape != dtm.shape:
         # put the DTM on the DSM's grid (ODM writes them on one grid; other tools may not)
@@ -62,6 +78,49 @@ def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None =
                                             width=dsm.width, height=dsm.height, resampling=Resampling.bilinear))
     return DifferenceSource(_band(dsm, 1, layer, nodata), _band(dtm, 1, layer, nodata))
 
+
+def _check_overlap(dsm, dtm) -> None:
+    """The DTM must cover some of the DSM (same field), whatever its grid."""
+    a = dsm.bounds
+    b = dtm.bounds
+    if dsm.crs and dtm.crs and dsm.crs != dtm.crs:
+        b = transform_bounds(dtm.crs, dsm.crs, *b)
+    if b[0] >= a[2] or b[2] <= a[0] or b[1] >= a[3] or b[3] <= a[1]:
+        raise InputError(f"the DTM does not overlap the DSM {Path(dsm.name).name} (DSM bounds "
+                         f"{tuple(round(v, 1) for v in a)}, DTM bounds {tuple(round(v, 1) for v in b)})",
+                         path=dtm.name, fix="give the DTM of the same field and flight as the DSM")
+
+
+def raster_crs(date_sets) -> tuple[object, Path] | tuple[None, None]:
+    """The CRS of the first raster of ``date_sets`` that declares one, and that raster's path."""
+    for s in date_sets:
+        for layer in s.layers():
+            for path in layer.paths:
+                with contextlib.ExitStack() as stack:
+                    ds = _open(path, stack)
+                    if ds.crs is not None:
+                        return pyproj_crs(ds.crs), Path(path)
+    return None, None
+
+
+def _formula(ds, layer: Layer, nodata: float | None) -> FormulaSource:
+    """An RGB index (layer.bands = red, green, blue) or a user's formula over b1..bN."""
+    alpha = next((i + 1 for i, c in enumerate(ds.colorinterp) if c == ColorInterp.alpha), None)
+    alpha_src = _band(ds, alpha, layer, None, check=False) if alpha is not None and alpha not in layer.bands else None
+    if len(layer.bands) == 3:
+        check_bands(ds, dict(zip(("red", "green", "blue"), layer.bands)),
+                    {"red": "rgb_bands[0] (red)", "green": "rgb_bands[1] (green)", "blue": "rgb_bands[2] (blue)"})
+        names = {"R", "G", "B", "r", "g", "b"}
+        tree = parse_formula(layer.expression, names, f"index '{layer.name}'")
+        bands = {c: _band(ds, b, layer, nodata, key=f"rgb_bands[{i}]")
+                 for i, (c, b) in enumerate(zip("RGB", layer.bands))}
+        return FormulaSource(tree, bands, chromatic=True, alpha=alpha_src)
+    names = {f"b{i}" for i in range(1, ds.count + 1)}
+    tree = parse_formula(layer.expression, names, f"formula '{layer.name}' ({Path(ds.name).name}, "
+                                                  f"{ds.count} bands)")
+    # every band is offered to the formula, used or not: an empty unused band is no error
+    bands = {f"b{i}": _band(ds, i, layer, nodata, check=False) for i in range(1, ds.count + 1)}
+    return FormulaSource(tree, bands, alpha=alpha_src)
 
 
 def preview_layer(layer: Layer, max_side: int = 800, nodata: float | None = None):
@@ -74,7 +133,7 @@ def preview_layer(layer: Layer, max_side: int = 800, nodata: float | None = None
         h, w = (ds.height, ds.width) if scale <= 1 else (max(int(ds.height / scale), 1), max(int(ds.width / scale), 1))
 
         def small(dataset, band):
-            src = _band(dataset, band, layer, nodata)
+            src = _band(dataset, band, layer, nodata, check=False)
             arr = dataset.read(band, out_shape=(h, w), resampling=Resampling.nearest).astype(float)
             for v in src.nodata:
                 arr[arr == v] = np.nan
@@ -82,6 +141,12 @@ def preview_layer(layer: Layer, max_side: int = 800, nodata: float | None = None
 
         if layer.kind == "band":
             arr = small(ds, layer.bands[0])
+        elif layer.kind == "formula":  # the same formula over decimated bands
+            src = _formula(ds, layer, nodata)
+            src.bands = {k: ArraySource(small(ds, b.band), ds.transform) for k, b in src.bands.items()}
+            if src.alpha is not None:
+                src.alpha = ArraySource(small(ds, src.alpha.band), ds.transform)
+            arr = src.read(0, h, 0, w)
         elif layer.kind == "ndvi":
             red, nir = small(ds, layer.bands[0]), small(ds, layer.bands[1])
             with np.errstate(invalid="ignore", divide="ignore"):

@@ -6,14 +6,21 @@ The command line and the window (:mod:`~matchplant.spatial_stat_extractor.gui`) 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
+import pandas as pd
+
+from matchplant.core.guard import staged_outputs
 from matchplant.core.log import get_logger
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import StatsConfig
-from matchplant.spatial_stat_extractor.extract import extract_stats, write_outputs
-from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_gpkg, write_outputs
+from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
+from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
+from matchplant.spatial_stat_extractor.rasters import raster_crs
+from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 
 log = get_logger("stats")
 
@@ -23,19 +30,39 @@ def extract_and_write(cfg: StatsConfig, on_progress: Callable[[float, str], None
     out = Path(cfg.output_dir)
     sets = cfg.date_sets()
     polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs)
+    if polygons.crs is None:
+        polygons = with_crs(polygons, *raster_crs(sets))
     log.info("%d plants from %s", len(polygons), cfg.polygons)
     table, report = extract_stats(polygons, sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata,
                                   layout=cfg.layout, on_progress=on_progress)
+    report["polygons_crs"] = {"crs": polygons.crs.to_string() if polygons.crs is not None else None,
+                              "from": polygons.attrs.get("crs_source")}
+    outlines = unclaimed = None
+    if cfg.canopy.enabled:
+        if on_progress is not None:
+            on_progress(1.0, "plant outlines and canopy statistics")
+        per_date, outlines, unclaimed, report["canopy"] = canopy_traits(polygons, sets, cfg.canopy, cfg.stats,
+                                                                        cfg.percentiles, cfg.nodata)
+        table = merge_columns(table, per_date, cfg.layout, len(sets))
     if on_progress is not None:
         on_progress(1.0, "writing files")
     written = write_outputs(polygons, table, report, out, write_polygons=cfg.write_polygons)
+    if outlines is not None:
+        written["outlines_gpkg"] = write_gpkg(outlines, out / "outlines.gpkg", "outlines")
+        written["outlines_csv"] = write_csv(pd.DataFrame(outlines.drop(columns="geometry")), out / "outlines.csv")
+        written["unclaimed_csv"] = write_csv(unclaimed, out / "unclaimed_canopies.csv")
+    if plots_wanted(cfg.plots):
+        written.update(run_plots(cfg.plots, table, unclaimed, polygons, out))
     if cfg.compare.polygons is not None:
         written.update(run_comparison(cfg, polygons, table, sets, out))
     return polygons, table, report, written
 
 
 def run(cfg: StatsConfig) -> dict:
-    polygons, _, report, written = extract_and_write(cfg)
+    # all files or none: written in a temporary folder, moved into output_dir at the end
+    with staged_outputs(cfg.output_dir) as stage:
+        polygons, _, report, written = extract_and_write(replace(cfg, output_dir=stage))
+    written = {k: Path(cfg.output_dir) / Path(v).relative_to(stage) for k, v in written.items()}
     for key, path in written.items():
         log.info("%-14s %s", key, path)
     return {"plants": len(polygons), "outputs": {k: str(v) for k, v in written.items()}, "report": report}

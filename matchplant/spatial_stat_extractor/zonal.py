@@ -1,26 +1,25 @@
-"""Exact zonal statistics of polygons over a raster, vectorised with numpy (the engine of module 9).
+"""Exact zonal statistics of polygons over a raster (the engine of module 9).
 
 Two pixel rules, each equal to a reference tool:
 
 * ``"center"``: a pixel belongs to a polygon when its centre is inside it - GDAL's scanline rule, as used
-  by ``rasterio.features.rasterize`` and therefore by rasterstats (``all_touched=False``);
+  by ``rasterio.features.rasterize`` and therefore by rasterstats (``all_touched=False``); vectorised
+  numpy: edges cut at row centres are accumulated into a flat buffer of the batch's pixel windows, a
+  cumulative sum gives the crossing parity, statistics are ``reduceat`` runs, quantiles padded sorts;
 * ``"coverage"``: every pixel is weighted by the exact fraction of its area inside the polygon - the
-  coverage-weighted statistics of exactextract (for polygons only a few pixels wide).
+  coverage-weighted statistics of exactextract (quantiles over its histogram of distinct values); one
+  compiled (numba) pass per polygon: edges cut at the pixel grid accumulate signed areas along each
+  window row (as font rasterisers do), then the covered pixels are gathered and reduced in place.
 
-How: every polygon edge is cut at the pixel grid in one vectorised pass; the pieces are accumulated
-into a flat buffer that holds each polygon's pixel window side by side, and a cumulative sum along each
-window row turns the accumulated edges into the inside test (parity of scanline crossings) or into the
-exact covered area (signed-area accumulation, as font rasterisers do). Overlapping polygons are
-independent. Statistics are then reductions over contiguous per-polygon runs (``bincount``,
-``reduceat``); quantiles sort each polygon's values in a padded matrix. Polygons are processed in
-batches sorted by row, and each batch reads only the raster window it covers.
-"""
+Overlapping polygons are independent. Batches of polygons (sorted by row) read only their raster window."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Sequence
 
+import numba
 import numpy as np
 import shapely
 from pyproj import CRS
@@ -245,60 +244,158 @@ def _center_weights(pp: PixelPolygons, b: _Batch) -> np.ndarray:
     return (np.cumsum(crossings) & 1).astype(float)
 
 
-def _grid_crossings(a: np.ndarray, b: np.ndarray):
-    """For segments a -> b along one axis: the edge index and parameter t of every whole-number line
-    strictly between the ends."""
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    first = np.floor(lo) + 1
-    n = np.maximum(np.ceil(hi) - first, 0).astype(np.int64)
-    e = np.repeat(np.arange(len(a)), n)
-    k = _ranges(np.zeros(len(a), np.int64), n) + first[e]
-    return e, (k - a[e]) / (b[e] - a[e])
+# --------------------------------------------------------------------------------------------------
+# coverage-weighted statistics: one compiled pass per polygon (cut edges, accumulate, gather, reduce)
 
 
-def _coverage_weights(pp: PixelPolygons, b: _Batch) -> np.ndarray:
-    """Exact fraction of each pixel's area inside the polygon."""
-    j, x0, y0, x1, y1 = _batch_edges(pp, b)
-    m = len(j)
-    ex, tx = _grid_crossings(x0, x1)
-    ey, ty = _grid_crossings(y0, y1)
-    eid = np.concatenate([np.arange(m), ex, ey, np.arange(m)])
-    t = np.concatenate([np.zeros(m), tx, ty, np.ones(m)])
-    order = np.lexsort((t, eid))
-    eid, t = eid[order], t[order]
-    piece = np.flatnonzero(eid[1:] == eid[:-1])  # consecutive cuts of one edge bound a piece in one cell
-    e = eid[piece]
-    ta, tb = t[piece], t[piece + 1]
-    dx, dyy = x1[e] - x0[e], y1[e] - y0[e]
-    xa, xb = x0[e] + ta * dx, x0[e] + tb * dx
-    d = (tb - ta) * dyy  # the piece's signed height
-    xm = 0.5 * (xa + xb)
-    ym = y0[e] + 0.5 * (ta + tb) * dyy
-    je = j[e]
-    r = np.floor(ym).astype(np.int64)
-    keep = (r >= 0) & (r < b.h[je]) & (d != 0)
-    r, xm, d, je = r[keep], xm[keep], d[keep], je[keep]
-    c = np.floor(xm)
-    frac = xm - c
-    w = b.w[je]
-    # left of the window the whole piece counts for every pixel; right of it, for none (spare column)
-    left, right = c < 0, c >= w
-    c = np.where(left, -1, np.where(right, w - 1, c)).astype(np.int64)
-    frac = np.where(left | right, 1.0, frac)
-    base = b.offset[je] + r * (w + 1)
-    idx = np.concatenate([base + np.maximum(c, 0), base + c + 1])
-    val = np.concatenate([np.where(left, 0.0, d * (1 - frac)), d * frac])
-    acc = np.bincount(idx, val, minlength=b.size)
-    cov = np.cumsum(acc)
-    # restart the running sum at each window row (removes rounding carried over from earlier rows)
-    row_len = np.repeat(b.w + 1, b.h)
-    row_end = np.cumsum(row_len) - 1
-    carried = np.concatenate([[0.0], cov[row_end[:-1]]]) if row_end.size else np.zeros(0)
-    cov -= np.repeat(carried, row_len)
-    cov = np.abs(cov)
-    cov[cov < _EPS_COVER] = 0.0
-    np.minimum(cov, 1.0, out=cov)
-    return cov
+@numba.njit(cache=True, nogil=True)
+def _edge_cuts(a: float, b: float, buf: np.ndarray) -> int:
+    """Parameters t in (0, 1) where the segment a -> b crosses a whole number, in increasing t."""
+    lo, hi = min(a, b), max(a, b)
+    first = math.floor(lo) + 1.0
+    n = max(int(math.ceil(hi) - first), 0)
+    for i in range(n):
+        k = first + i if b >= a else first + (n - 1 - i)
+        buf[i] = (k - a) / (b - a)
+    return n
+
+
+@numba.njit(cache=True, nogil=True)
+def _polygon_coverage(x0, y0, x1, y1, e0, e1, cx, cy, w, h, acc, tx, ty):
+    """Exact covered fraction of each pixel of a ``h`` x ``w`` window (into ``acc``, rows of w + 1).
+
+    Each edge is cut at the pixel grid; a piece in one cell adds its signed height to the cells right
+    of it (the part of its own cell right of its midpoint): the running sum along a row is then the
+    covered area, as font rasterisers accumulate it."""
+    stride = w + 1
+    acc[:h * stride] = 0.0
+    for e in range(e0, e1):
+        ax, ay, bx, by = x0[e] - cx, y0[e] - cy, x1[e] - cx, y1[e] - cy
+        if ay == by:
+            continue  # a horizontal edge covers nothing
+        nx = _edge_cuts(ax, bx, tx)
+        ny = _edge_cuts(ay, by, ty)
+        dx, dy = bx - ax, by - ay
+        i = j = 0
+        ta = 0.0
+        while True:
+            if i < nx and (j >= ny or tx[i] <= ty[j]):
+                tb = tx[i]
+                i += 1
+            elif j < ny:
+                tb = ty[j]
+                j += 1
+            else:
+                tb = 1.0
+            d = (tb - ta) * dy
+            if d != 0.0:
+                ym = ay + 0.5 * (ta + tb) * dy
+                r = int(math.floor(ym))
+                if 0 <= r < h:
+                    xm = ax + 0.5 * (ta + tb) * dx
+                    c = math.floor(xm)
+                    base = r * stride
+                    if c < 0:
+                        acc[base] += d
+                    elif c >= w:
+                        acc[base + w] += d
+                    else:
+                        frac = xm - c
+                        acc[base + int(c)] += d * (1.0 - frac)
+                        acc[base + int(c) + 1] += d * frac
+            if tb == 1.0 and i >= nx and j >= ny:
+                break
+            ta = tb
+    for r in range(h):
+        run = 0.0
+        base = r * stride
+        for c in range(w):
+            run += acc[base + c]
+            v = abs(run)
+            acc[base + c] = 0.0 if v < _EPS_COVER else min(v, 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _weighted_quantile(vals: np.ndarray, wts: np.ndarray, n: int, total: float, q: float) -> float:
+    """exactextract's weighted quantile of sorted distinct ``vals[:n]``: s_k = k w_k + (n - 1) sum_{i<k} w_i,
+    interpolated at q (n - 1) sum w."""
+    target = q * total * (n - 1)
+    cum = 0.0
+    s_prev = 0.0
+    for k in range(n):
+        s = k * wts[k] + (n - 1) * cum
+        if s > target:
+            return vals[k - 1] + (target - s_prev) * (vals[k] - vals[k - 1]) / (s - s_prev)
+        s_prev = s
+        cum += wts[k]
+    return vals[n - 1]
+
+
+@numba.njit(cache=True, nogil=True)
+def _coverage_batch(x0, y0, x1, y1, edge_start, polys, col0, row0, w, h, window, R0, C0, qs, out, quant):
+    """Coverage-weighted statistics of each polygon of a batch over ``window`` (NaN = masked).
+
+    ``out[k]``: count, sum, mean, min, max, std, nodata (sums of covered fractions for count and
+    nodata); ``quant[k]``: the quantiles ``qs``."""
+    big = 0
+    for k in range(len(polys)):
+        big = max(big, h[k] * (w[k] + 1))
+    acc = np.empty(big)
+    vals = np.empty(big)
+    wts = np.empty(big)
+    tx, ty = np.empty(1024), np.empty(1024)
+    for k in range(len(polys)):
+        p = polys[k]
+        e0, e1 = edge_start[p], edge_start[p + 1]
+        span = 2
+        for e in range(e0, e1):
+            span = max(span, int(abs(x1[e] - x0[e])) + 2, int(abs(y1[e] - y0[e])) + 2)
+        if span > tx.size:
+            tx, ty = np.empty(2 * span), np.empty(2 * span)
+        wk, hk = w[k], h[k]
+        _polygon_coverage(x0, y0, x1, y1, e0, e1, float(col0[k]), float(row0[k]), wk, hk, acc, tx, ty)
+        n = 0
+        count = total = nodata = 0.0
+        lo, hi = np.inf, -np.inf
+        for r in range(hk):
+            wr = row0[k] - R0 + r
+            for c in range(wk):
+                f = acc[r * (wk + 1) + c]
+                if f == 0.0:
+                    continue
+                v = window[wr, col0[k] - C0 + c]
+                if math.isnan(v):
+                    nodata += f
+                    continue
+                vals[n] = v
+                wts[n] = f
+                n += 1
+                count += f
+                total += f * v
+                lo = min(lo, v)
+                hi = max(hi, v)
+        out[k, 0], out[k, 1], out[k, 6] = count, total, nodata
+        if n == 0:
+            out[k, 2:6] = np.nan
+            quant[k, :] = np.nan
+            continue
+        mean = total / count
+        dev = 0.0
+        for i in range(n):
+            dev += wts[i] * (vals[i] - mean) ** 2
+        out[k, 2], out[k, 3], out[k, 4], out[k, 5] = mean, lo, hi, math.sqrt(dev / count)
+        if qs.size:
+            order = np.argsort(vals[:n])
+            sv, sw = vals[:n][order], wts[:n][order]
+            m = 1  # equal values are one entry with their summed weight, as exactextract's histogram
+            for i in range(1, n):
+                if sv[i] == sv[m - 1]:
+                    sw[m - 1] += sw[i]
+                else:
+                    sv[m], sw[m] = sv[i], sw[i]
+                    m += 1
+            for qi in range(qs.size):
+                quant[k, qi] = _weighted_quantile(sv, sw, m, count, qs[qi])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -311,13 +408,11 @@ def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.where(t >= 0.5, b - diff * (1 - t), a + diff * t)
 
 
-def _quantiles(v: np.ndarray, w: np.ndarray | None, starts: np.ndarray, counts: np.ndarray,
-               qs: Sequence[float], budget: int = 4_000_000) -> np.ndarray:
-    """Quantiles ``qs`` (0..1) of each group ``v[starts[i]:starts[i] + counts[i]]``.
-
-    Unweighted: numpy's 'linear' method (rasterstats). Weighted: exactextract's weighted quantile.
-    Groups are sorted in padded matrices of groups of similar size, to bound the padding.
-    """
+def _quantiles(v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequence[float],
+               budget: int = 4_000_000) -> np.ndarray:
+    """Quantiles ``qs`` (0..1) of each group ``v[starts[i]:starts[i] + counts[i]]``, numpy's 'linear'
+    method (rasterstats). Groups are sorted in padded matrices of groups of similar size, to bound the
+    padding."""
     out = np.full((len(counts), len(qs)), np.nan)
     order = np.argsort(counts, kind="stable")
     order = order[counts[order] > 0]
@@ -336,41 +431,18 @@ def _quantiles(v: np.ndarray, w: np.ndarray | None, starts: np.ndarray, counts: 
         vals = np.full((len(groups), width), np.inf)
         vals[row, col] = v[idx]
         r = np.arange(len(groups))
-        if w is None:
-            vals.sort(axis=1)
-            for qi, q in enumerate(qs):
-                pos = q * (n - 1)
-                lo = np.floor(pos).astype(np.int64)
-                hi = np.minimum(lo + 1, n - 1)
-                out[groups, qi] = _lerp(vals[r, lo], vals[r, hi], pos - lo)
-            continue
-        wts = np.zeros((len(groups), width))
-        wts[row, col] = w[idx]
-        srt = np.argsort(vals, axis=1)
-        vals = np.take_along_axis(vals, srt, axis=1)
-        wts = np.take_along_axis(wts, srt, axis=1)
-        cum = np.cumsum(wts, axis=1)
-        kk = np.arange(width)
-        # exactextract: s_k = k w_k + (n - 1) sum_{i<k} w_i, looked up at q (n - 1) sum w
-        s = kk * wts + (n[:, None] - 1) * (cum - wts)
-        s[kk[None, :] >= n[:, None]] = np.inf
-        total = cum[r, n - 1]
+        vals.sort(axis=1)
         for qi, q in enumerate(qs):
-            target = q * total * (n - 1)
-            right = np.sum(s <= target[:, None], axis=1)
-            left = right - 1
-            rr = np.minimum(right, n - 1)
-            xl, xr = vals[r, left], vals[r, rr]
-            sl, sr = s[r, left], s[r, rr]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                interp = xl + (target - sl) * (xr - xl) / (sr - sl)
-            out[groups, qi] = np.where(right >= n, xl, interp)
+            pos = q * (n - 1)
+            lo = np.floor(pos).astype(np.int64)
+            hi = np.minimum(lo + 1, n - 1)
+            out[groups, qi] = _lerp(vals[r, lo], vals[r, hi], pos - lo)
     return out
 
 
-def _segment_stats(v: np.ndarray, w: np.ndarray | None, bounds: np.ndarray, stats: Sequence[str],
+def _segment_stats(v: np.ndarray, bounds: np.ndarray, stats: Sequence[str],
                    percentiles: Sequence[float]) -> dict[str, np.ndarray]:
-    """Statistics of the runs ``v[bounds[i]:bounds[i + 1]]`` (weights ``w``; None: all 1)."""
+    """Statistics of the runs ``v[bounds[i]:bounds[i + 1]]`` (the pixel-centre rule: every weight 1)."""
     k = len(bounds) - 1
     counts = np.diff(bounds)
     has = counts > 0
@@ -383,14 +455,13 @@ def _segment_stats(v: np.ndarray, w: np.ndarray | None, bounds: np.ndarray, stat
             col[has] = fn.reduceat(values, starts)
         return col
 
-    count = counts.astype(float) if w is None else per_group(w, empty=0.0)
-    wv = v if w is None else w * v
-    total = per_group(wv)
+    count = counts.astype(float)
+    total = per_group(v)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = total / count
         if "std" in stats:
             dev = v - np.repeat(mean[has], counts[has])
-            out["std"] = np.sqrt(per_group(dev * dev if w is None else w * dev * dev) / count)
+            out["std"] = np.sqrt(per_group(dev * dev) / count)
     out.update(count=count, sum=total, mean=mean)
     if "min" in stats:
         out["min"] = per_group(v, np.minimum)
@@ -398,12 +469,48 @@ def _segment_stats(v: np.ndarray, w: np.ndarray | None, bounds: np.ndarray, stat
         out["max"] = per_group(v, np.maximum)
     qs = [q / 100.0 for q in percentiles] + ([0.5] if "median" in stats else [])
     if qs:
-        qv = _quantiles(v, w, bounds[:-1], counts, qs)
+        qv = _quantiles(v, bounds[:-1], counts, qs)
         for i, q in enumerate(percentiles):
             out[percentile_name(q)] = qv[:, i]
         if "median" in stats:
             out["median"] = qv[:, -1]
     return out
+
+
+def _center_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0: int, C1: int,
+                  stats: Sequence[str], percentiles: Sequence[float]) -> dict[str, np.ndarray]:
+    """The pixel-centre rule's statistics of one batch over its raster window (NaN = masked)."""
+    wbuf = _center_weights(pp, b)
+    k = len(b.polys)
+    # each buffer row is a run of consecutive cells of the raster window: one repeat maps them all
+    row_poly = np.repeat(np.arange(k), b.h)
+    row_len = b.w[row_poly] + 1
+    row_in_poly = _ranges(np.zeros(k, np.int64), b.h)
+    row_at = (b.row0[row_poly] + row_in_poly - R0) * (C1 - C0) + (b.col0[row_poly] - C0)
+    shift = np.repeat(row_at - (np.cumsum(row_len) - row_len), row_len)
+    nz = np.flatnonzero(wbuf)
+    v = window.ravel()[shift[nz] + nz]
+    w = wbuf[nz]
+    bounds = np.searchsorted(nz, b.offset)  # each polygon's run of touched pixels
+    ok = np.isfinite(v)
+    bad = np.concatenate([[0.0], np.cumsum(np.where(ok, 0.0, w))])
+    good = np.concatenate([[0], np.cumsum(ok)])
+    got = _segment_stats(v[ok], good[bounds], stats, percentiles)
+    got["nodata"] = bad[bounds[1:]] - bad[bounds[:-1]]
+    return got
+
+
+def _coverage_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0: int,
+                    percentiles: Sequence[float]) -> dict[str, np.ndarray]:
+    """The coverage-weighted statistics of one batch over its raster window (compiled kernel)."""
+    k = len(b.polys)
+    qs = np.array([q / 100.0 for q in percentiles] + [0.5])
+    out, quant = np.empty((k, 7)), np.empty((k, len(qs)))
+    _coverage_batch(pp.x0, pp.y0, pp.x1, pp.y1, pp.edge_start, b.polys, b.col0, b.row0, b.w, b.h,
+                    window, R0, C0, qs, out, quant)
+    got = dict(zip(("count", "sum", "mean", "min", "max", "std", "nodata"), out.T))
+    got.update({percentile_name(q): quant[:, i] for i, q in enumerate(percentiles)}, median=quant[:, -1])
+    return got
 
 
 # --------------------------------------------------------------------------------------------------
@@ -475,30 +582,15 @@ def zonal_stats(geoms: Sequence, source, stats: Iterable[str] = DEFAULT_STATS,
             result[c][:] = 0.0
     valid_count = np.zeros(n)
     batches = _plan_batches(win, np.flatnonzero(~outside), max_cells, max_window)
-    weights_fn = _center_weights if mode == "center" else _coverage_weights
-    weighted = mode == "coverage"
     for bi, polys in enumerate(batches):
         b = _make_batch(polys, win)
-        wbuf = weights_fn(pp, b)
         R0, C0 = int(b.row0.min()), int(b.col0.min())
         R1, C1 = int((b.row0 + b.h).max()), int((b.col0 + b.w).max())
         window = source.read(R0, R1, C0, C1)
-        # each buffer row is a run of consecutive cells of the raster window: one repeat maps them all
-        row_poly = np.repeat(np.arange(len(polys)), b.h)
-        row_len = b.w[row_poly] + 1
-        row_in_poly = _ranges(np.zeros(len(polys), np.int64), b.h)
-        row_at = (b.row0[row_poly] + row_in_poly - R0) * (C1 - C0) + (b.col0[row_poly] - C0)
-        shift = np.repeat(row_at - (np.cumsum(row_len) - row_len), row_len)
-        nz = np.flatnonzero(wbuf)
-        v = window.ravel()[shift[nz] + nz]
-        w = wbuf[nz]
-        bounds = np.searchsorted(nz, b.offset)  # each polygon's run of touched pixels
-        ok = np.isfinite(v)
-        bad = np.concatenate([[0.0], np.cumsum(np.where(ok, 0.0, w))])
-        nodata_w = bad[bounds[1:]] - bad[bounds[:-1]]
-        good = np.concatenate([[0], np.cumsum(ok)])
-        got = _segment_stats(v[ok], w[ok] if weighted else None, good[bounds], stats, percentiles)
-        got["nodata"] = nodata_w
+        if mode == "center":
+            got = _center_stats(pp, b, window, R0, C0, C1, stats, percentiles)
+        else:
+            got = _coverage_stats(pp, b, window, R0, C0, percentiles)
         for c in columns:
             result[c][polys] = got[c]
         valid_count[polys] = got["count"]

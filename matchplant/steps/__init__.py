@@ -29,6 +29,7 @@ STEPS: dict[str, tuple[str, str]] = {
     "plant_projection": ("8_plant_projection", "put detected plants on the map"),
     "spatial_stat_extractor": ("9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
     "simfield": ("", "generate a synthetic ODM project with exact ground truth"),
+    "inspect": ("", "object sizes of a COCO file; recommended tile size, overlap, min_size, anchors"),
     "run": ("", "run several steps in order from one pipeline.yaml"),
 }
 

@@ -1,4 +1,4 @@
-"""Step 5 (5_img_splitter): tile annotated images and split them into train/val/test; GUI."""
+"""Step 5 (5_img_splitter): tile annotated images and split them into train/val/test; GUI (setup screen, preview)."""
 
 from matchplant.img_splitter.gui import launch
 from matchplant.img_splitter.tiling import TilingConfig, run

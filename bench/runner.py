@@ -1,0 +1,113 @@
+"""Running the comparisons: one child process per comparison, pinned to one core with one thread.
+
+The parent (``python -m bench``) starts ``python -m bench --child NAME`` with every thread pool set to
+one thread in its environment; the child pins itself to one core, builds the data in a temporary folder,
+times ours and the peer in turn and writes its result as JSON for the parent, which prints the table
+and records everything (machine, versions, each time) in ``bench/results/``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench.harness import (Comparison, alternate, machine_info, overhead, pin_one_core, ratio_text,
+                           single_thread_env, summarise, versions)
+
+HERE = Path(__file__).parent
+RESULTS = HERE / "results"
+
+# name -> (module in bench/, what it compares); each module has comparison(name, work, quick, device)
+REGISTRY = {
+    "zonal-center": ("bench.bench_stats", "module 9, pixel-centre rule vs rasterstats"),
+    "zonal-coverage": ("bench.bench_stats", "module 9, coverage-weighted vs exactextract"),
+    "gps-embed": ("bench.bench_gps_embed", "module 0, GPS into EXIF copies vs exiftool -geotag"),
+    "train": ("bench.bench_train", "module 6, training loop vs a bare torchvision loop"),
+    "detect": ("bench.bench_train", "module 7, tiled detection vs the bare model on the same tiles"),
+    "tiling": ("bench.bench_tiling", "module 5, tiling vs SAHI slice_coco"),
+}
+GPU_NAMES = ("train", "detect")  # what --device cuda measures
+PACKAGES = ["matchplant", "numpy", "numba", "shapely", "rasterio", "exactextract", "rasterstats", "piexif",
+            "pillow", "torch", "torchvision", "opencv-python-headless", "opencv-python", "sahi"]
+
+
+def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int:
+    """In the child: pin, set up, alternate, write the result JSON to ``out``."""
+    core = pin_one_core()
+    module = importlib.import_module(REGISTRY[name][0])
+    with tempfile.TemporaryDirectory(prefix=f"bench_{name}_") as tmp:
+        t0 = time.perf_counter()
+        cmp: Comparison = module.comparison(name, Path(tmp), quick, device)
+        setup_s = time.perf_counter() - t0
+        result = {"name": name, "what": cmp.what, "ours": cmp.ours_label, "peer": cmp.peer_label,
+                  "pinned_core": core, "threads": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS",
+                                                                                   "NUMBA_NUM_THREADS")},
+                  "items": cmp.items, "unit": cmp.unit, "setup_s": round(setup_s, 2), "notes": cmp.notes}
+        if cmp.peer is None:
+            result["skipped"] = cmp.skip or "peer not available"
+        else:
+            def show(i, a, b):
+                print(f"  pair {i + 1}: {cmp.ours_label} {a:.3f} s, {cmp.peer_label} {b:.3f} s, "
+                      f"ratio {b / a:.2f}", flush=True)
+
+            a, b = alternate(cmp.ours, cmp.peer, pairs=pairs, warmup=1, reset=cmp.reset, on_pair=show)
+            result["summary"] = summarise(a, b)
+            result["overhead"] = overhead(result["summary"])
+            if cmp.check is not None:
+                result["check"] = cmp.check()
+    out.write_text(json.dumps(result, indent=1, default=str))
+    return 0
+
+
+def describe(r: dict) -> str:
+    if "summary" not in r:
+        return f"{r['name']:<15} SKIPPED: {r.get('skipped') or r.get('error')}"
+    s = r["summary"]
+    line = (f"{r['name']:<15} {r['ours']} {s['ours_median_s']:.3f} s | {r['peer']} {s['peer_median_s']:.3f} s"
+            f" | speed ratio {ratio_text(s)}")
+    if r["items"]:
+        line += f" | {r['items'] / s['ours_median_s']:.1f} vs {r['items'] / s['peer_median_s']:.1f} {r['unit']}/s"
+    if "check" in r:
+        line += " | check: " + ", ".join(f"{k} {v:.2g}" if isinstance(v, float) else f"{k} {v}"
+                                         for k, v in r["check"].items())
+    return line
+
+
+def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool = True) -> int:
+    """In the parent: each comparison in its own single-threaded child; print and record."""
+    env = single_thread_env()
+    env.setdefault("MATCHPLANT_QUIET", "1")
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
+    record = {"command": " ".join(["python -m bench", *sys.argv[1:]]), "quick": quick, "device": device,
+              "pairs": pairs, "machine": machine_info(), "versions": versions(PACKAGES), "results": []}
+    failed = 0
+    for name in names:
+        print(f"\n=== {name}: {REGISTRY[name][1]}{' (quick)' if quick else ''}", flush=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "result.json"
+            cmd = [sys.executable, "-m", "bench", "--child", name, "--device", device, "--pairs", str(pairs),
+                   "--result", str(out)]
+            rc = subprocess.call(cmd + (["--quick"] if quick else []), env=env, cwd=HERE.parent)
+            if rc == 0 and out.exists():
+                r = json.loads(out.read_text())
+            else:
+                r = {"name": name, "error": f"the benchmark process exited with status {rc}"}
+                failed += 1
+        record["results"].append(r)
+        print(describe(r), flush=True)
+    print("\nsummary (speed ratio = peer time / our time, per alternating pair: median (min, max))")
+    for r in record["results"]:
+        print("  " + describe(r))
+    if save:
+        RESULTS.mkdir(exist_ok=True)
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        path = RESULTS / f"bench-{stamp}{'-quick' if quick else ''}.json"
+        path.write_text(json.dumps(record, indent=1, default=str))
+        print(f"recorded in {path}")
+    return 1 if failed else 0

@@ -1,0 +1,114 @@
+"""Canopy-only statistics: every trait over each plant's canopy pixels (:class:`~.outlines.Outlines`)
+instead of its whole box.
+
+A layer on the CHM's grid is read in strips of rows and its values gathered at the canopy pixels; the
+statistics are then reductions over each plant's run of values (``bincount``, ``reduceat``; percentiles
+by one ``lexsort`` and linear interpolation between order statistics, as ``numpy.percentile``). A layer on
+another grid (a multispectral camera at its own resolution) is measured over the outline polygons with
+:func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` (pixel centres inside).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from matchplant.spatial_stat_extractor.outlines import STRIP_ROWS, Outlines
+from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
+
+
+def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarray:
+    """The values of ``source`` (same grid) at every canopy pixel, in the order of ``outlines.pix``."""
+    pix = outlines.pix
+    out = np.full(len(pix), np.nan)
+    if not len(pix):
+        return out
+    rows, cols = pix // outlines.width, pix % outlines.width
+    block = rows // strip_rows
+    order = np.argsort(block, kind="stable")
+    edges = np.flatnonzero(np.diff(block[order])) + 1
+    for part in np.split(order, edges):
+        r, c = rows[part], cols[part]
+        r0, r1, c0, c1 = int(r.min()), int(r.max()) + 1, int(c.min()), int(c.max()) + 1
+        win = source.read(r0, r1, c0, c1)
+        out[part] = win[r - r0, c - c0]
+    return out
+
+
+def _order_within_groups(v: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """The permutation sorting ``v`` within each group of the sorted group labels ``g``: one float sort of
+    ``g + rank-preserving fraction of v`` (a lexsort of two keys is several times slower)."""
+    lo, hi = float(v.min()), float(v.max())
+    frac = (v - lo) / (hi - lo) * 0.5 if hi > lo else np.zeros_like(v)
+    return np.argsort(g + frac, kind="quicksort")
+
+
+def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
+                  percentiles: Sequence[float] = ()) -> dict[str, np.ndarray]:
+    """Statistics of ``values[start[k]:start[k + 1]]`` for every group ``k``, NaN values left out
+    (percentiles: linear interpolation between order statistics, as ``numpy.percentile``)."""
+    n = len(start) - 1
+    group = np.repeat(np.arange(n), np.diff(start))
+    ok = np.isfinite(values)
+    v, g = values[ok], group[ok]
+    cnt = np.bincount(g, minlength=n).astype(float)
+    has = cnt > 0
+    first = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
+    total = np.bincount(g, weights=v, minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(has, total / cnt, np.nan)
+    out: dict[str, np.ndarray] = {}
+
+    def reduce(fn) -> np.ndarray:
+        res = np.full(n, np.nan)
+        if has.any():
+            res[has] = fn.reduceat(v, first[:-1][has])
+        return res
+
+    sorted_v = None
+
+    def pct(q: float) -> np.ndarray:
+        nonlocal sorted_v
+        if sorted_v is None:
+            sorted_v = v[_order_within_groups(v, g)] if v.size else v
+        pos = first[:-1] + q / 100.0 * np.maximum(cnt - 1, 0)
+        lo = np.clip(np.floor(pos).astype(np.int64), 0, max(v.size - 1, 0))
+        hi = np.clip(np.minimum(lo + 1, first[1:] - 1), 0, max(v.size - 1, 0))
+        res = np.full(n, np.nan)
+        if v.size:
+            res[has] = (sorted_v[lo] + (sorted_v[hi] - sorted_v[lo]) * (pos - lo))[has]
+        return res
+
+    for name in stats:
+        if name == "count":
+            out[name] = cnt
+        elif name == "mean":
+            out[name] = mean
+        elif name == "sum":
+            out[name] = np.where(has, total, np.nan)
+        elif name == "nodata":
+            out[name] = np.diff(start) - cnt
+        elif name == "min":
+            out[name] = reduce(np.minimum)
+        elif name == "max":
+            out[name] = reduce(np.maximum)
+        elif name == "std":
+            dev = v - np.nan_to_num(mean)[g]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[name] = np.sqrt(np.where(has, np.bincount(g, weights=dev * dev, minlength=n) / cnt, np.nan))
+        elif name == "median":
+            out[name] = pct(50.0)
+        else:
+            raise ValueError(f"unknown statistic '{name}'")
+    for q in percentiles:
+        out[percentile_name(q)] = pct(float(q))
+    return out
+
+
+def canopy_stats(outlines: Outlines, source, stats: Sequence[str], percentiles: Sequence[float] = ()):
+    """Per-plant statistics of ``source`` over the canopy pixels (see the module doc)."""
+    if outlines.same_grid(source):
+        return grouped_stats(gather(outlines, source), outlines.start, stats, percentiles)
+    res = zonal_stats(outlines.geometry, source, stats, percentiles, mode="center")
+    return {c: res.stats[c] for c in res.columns}

@@ -1,0 +1,441 @@
+"""Plant outlines from the canopy height model: each projected box becomes the plant's canopy.
+
+For every plant box (plus a margin) the CHM is read window by window (strips of rows, never the whole
+raster). The plant's top is the highest local maximum of the CHM inside its box (on a later date: the
+local maximum nearest to the earlier top moved by the plants' median shift, within ``max_shift``).
+Canopy pixels are those at least ``min_height`` above the ground; connected groups of them
+(8-connectivity, ``scipy.ndimage.label``) holding one top belong to that plant, and groups holding
+several tops (touching neighbours) are split by a seeded watershed from the tops (flooding the canopy
+from the tops down, :func:`_flood`). A pixel is then kept for its plant when it lies in the plant's box
+plus margin and reaches ``relative`` times the plant's own top height, so short plants keep their low
+leaves and tall plants do not swallow the soil noise around them.
+
+Plants whose canopy is smaller than ``min_pixels`` (too small for the CHM's resolution) or whose top is
+below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and are flagged
+(``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
+in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
+plant (the same top) is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
+no box claims but that look like plants (a top of at least ``min_top``, ``min_pixels`` or more) are
+listed too (``Outlines.unclaimed``): plants the detector missed, for stand counts.
+
+The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, from
+``rasterio.features.shapes``), the tightened boxes, the tops, canopy area and volume, and the canopy
+pixels themselves (flat raster indices grouped by plant) for canopy-only statistics
+(:mod:`~matchplant.spatial_stat_extractor.canopy`). See docs/DESIGN.md §2 (module 9).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from affine import Affine
+from rasterio.features import shapes
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+from matchplant.core.errors import InputError
+from matchplant.core.progress import progress
+
+FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
+STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
+
+
+@dataclass
+class SegmentSettings:
+    """How a canopy is cut out of the CHM (module 9's ``canopy`` section carries the same keys)."""
+
+    margin: float = 0.05          # m around each box
+    relative: float = 0.1         # keep pixels at least this share of the plant's own top height
+    min_height: float = 0.02      # m above ground: lower pixels are soil
+    min_top: float = 0.05         # m: a lower top is a weed, soil or a plant too small for the CHM (flagged)
+    min_pixels: int = 4           # smaller canopies keep their box (flagged)
+    max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
+    mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
+
+
+@dataclass
+class Outlines:
+    """Per plant (in the order of the boxes given): outline, tightened box, top, canopy measures; plus the
+    canopy pixels (``pix``: flat indices ``row * width + col`` on the CHM grid, plant ``k``'s pixels are
+    ``pix[start[k]:start[k + 1]]``), and the canopies no box claims that look like plants (``unclaimed``:
+    top x, y, height and pixel count; plants the detector missed, for stand counts)."""
+
+    geometry: np.ndarray          # shapely polygons (the box where flagged)
+    tight_box: np.ndarray         # (n, 4) xmin, ymin, xmax, ymax of the canopy pixels
+    top: np.ndarray               # (n, 3) x, y, height above ground of the top
+    pixels: np.ndarray            # canopy pixel count
+    area: np.ndarray              # m²
+    volume: np.ndarray            # m³ (sum of heights x pixel area)
+    flag: np.ndarray              # "" or why the box was kept: "small", "low", "no_top", "outside"
+    pix: np.ndarray
+    start: np.ndarray
+    transform: object
+    width: int
+    height: int
+    crs: object = None
+    shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
+    unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
+
+    @property
+    def from_box(self) -> np.ndarray:
+        return self.flag != ""
+
+    def same_grid(self, source) -> bool:
+        return (source.width, source.height) == (self.width, self.height) and \
+            source.transform.almost_equals(self.transform)
+
+
+def _apply(t, x, y) -> tuple[np.ndarray, np.ndarray]:
+    """An affine transform on arrays."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    return t.a * x + t.b * y + t.c, t.d * x + t.e * y + t.f
+
+
+def _pixel_boxes(geoms, transform) -> np.ndarray:
+    """(n, 4) col0, row0, col1, row1 (continuous pixel coordinates) of each geometry's bounds."""
+    if abs(transform.b) > 1e-12 or abs(transform.d) > 1e-12:
+        raise InputError("the CHM raster is rotated; outlines need a north-up raster",
+                         fix="warp the DSM/DTM to a north-up grid (gdalwarp) first")
+    b = shapely.bounds(np.asarray(geoms, dtype=object))
+    inv = ~transform
+    c0, r0 = _apply(inv, b[:, 0], b[:, 3])
+    c1, r1 = _apply(inv, b[:, 2], b[:, 1])
+    return np.stack([np.minimum(c0, c1), np.minimum(r0, r1), np.maximum(c0, c1), np.maximum(r0, r1)], axis=1)
+
+
+def _peaks(W: np.ndarray, size: int, min_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The CHM with -inf holes, and its local maxima (highest in a ``size`` x ``size`` neighbourhood)."""
+    filled = np.nan_to_num(W, nan=-np.inf)
+    return filled, (filled == ndi.maximum_filter(filled, size=size)) & (filled >= min_height)
+
+
+def _tops(W: np.ndarray, boxes: np.ndarray, windows: np.ndarray, min_height: float) -> np.ndarray:
+    """(k, 3) local row, col and height of each plant's top: the highest local maximum inside its box
+    (integer ``c0, r0, c1, r1``; a taller neighbour's leaves reaching into the box rise towards its own
+    top, outside, so they hold no local maximum), else inside its box plus margin (``windows``: a box
+    cut short of the plant's centre), else the highest pixel of the box; height NaN where the box is
+    empty. Column 3 is 1 where the top is a local maximum. A plain loop: slices and an argmax per plant
+    (~10 µs each)."""
+    filled, peak = _peaks(W, 5, min_height)
+    out = np.full((len(boxes), 4), np.nan)
+    for k in range(len(boxes)):
+        for c0, r0, c1, r1 in (boxes[k], windows[k]):
+            pk = peak[r0:r1, c0:c1]
+            if pk.any():
+                win = filled[r0:r1, c0:c1]
+                j = int(np.argmax(np.where(pk, win, -np.inf)))
+                r, c = divmod(j, win.shape[1])
+                out[k] = (r0 + r, c0 + c, win[r, c], 1)
+                break
+        else:
+            c0, r0, c1, r1 = boxes[k]
+            win = filled[r0:r1, c0:c1]
+            if win.size == 0 or not np.isfinite(win).any():
+                continue
+            j = int(np.argmax(win))
+            r, c = divmod(j, win.shape[1])
+            out[k] = (r0 + r, c0 + c, win[r, c], 0)
+    return out
+
+
+def _tops_near(W: np.ndarray, seeds: np.ndarray, radius_px: float, min_top: float) -> np.ndarray:
+    """Like :func:`_tops` for a later date: the local maximum nearest to where each plant is expected
+    (local row, col), within ``radius_px``; the seed itself when there is none. Expected: the earlier top
+    moved by the median shift of the plants around (the maps of two flights are shifted against each
+    other; a plant's own top is then nearer than its neighbour's, even where the shift nears the
+    spacing)."""
+    filled, peak = _peaks(W, 3, min_top)
+    pr, pc = np.nonzero(peak)
+    out = np.full((len(seeds), 4), np.nan)
+    if len(pr) == 0:
+        return out
+    tree = cKDTree(np.stack([pr, pc], axis=1))
+    offset = np.zeros(2)
+    for _ in range(2):  # the nearest peak to the seed, then to the seed + the median shift
+        d, j = tree.query(seeds + offset, distance_upper_bound=radius_px)
+        found = np.isfinite(d)
+        if not found.any():
+            break
+        shift = np.stack([pr[j[found]], pc[j[found]]], axis=1) - seeds[found]
+        offset = np.median(shift, axis=0)
+    d, j = tree.query(seeds + offset, distance_upper_bound=radius_px)
+    found = np.isfinite(d)
+    found &= np.hypot(pr[np.minimum(j, len(pr) - 1)] - seeds[:, 0], pc[np.minimum(j, len(pr) - 1)] - seeds[:, 1]) \
+        <= radius_px
+    r, c = pr[j[found]], pc[j[found]]
+    out[found] = np.stack([r, c, W[r, c], np.ones(len(r))], axis=1)
+    h, w = W.shape
+    rs, cs = np.round(seeds[:, 0]).astype(int), np.round(seeds[:, 1]).astype(int)
+    keep = ~found & (rs >= 0) & (rs < h) & (cs >= 0) & (cs < w)
+    out[keep] = np.stack([rs[keep], cs[keep], W[rs[keep], cs[keep]], np.zeros(int(keep.sum()))], axis=1)
+    return out
+
+
+def _flood(h: np.ndarray, sub: np.ndarray, rows: np.ndarray, cols: np.ndarray, labels: np.ndarray,
+           levels: int = FLOOD_LEVELS) -> np.ndarray:
+    """Seeded watershed by flooding from the tops down: at each of ``levels`` heights, from the highest
+    seed to the lowest canopy pixel, the pixels newly above water join the nearest labelled pixel (a
+    Euclidean distance transform). Plants thus meet in the valleys between them, and a short plant
+    keeps its own leaves where a taller neighbour's reach down beside them. (``ndimage.watershed_ift``
+    breaks the ties of equal path costs arbitrarily and hands one plant's rim to its neighbour.)"""
+    L = np.zeros(sub.shape, np.int32)
+    L[rows, cols] = labels
+    hv = np.where(sub, h, -np.inf)
+    top, low = float(hv.max()), float(h[sub].min())
+    for level in np.linspace(top, low, levels + 1)[1:]:
+        new = sub & (hv >= level) & (L == 0)
+        if not new.any():
+            continue
+        _, (ir, ic) = ndi.distance_transform_edt(L == 0, return_indices=True)
+        L[new] = L[ir[new], ic[new]]
+    return L
+
+
+def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
+            s: SegmentSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Label image: 1 + the index of the top whose canopy each pixel belongs to, 0 elsewhere; and the
+    canopies no top claims that look like plants (top at least ``min_top``, ``min_pixels`` pixels or more):
+    (m, 4) local row, col, height and pixel count of their tops."""
+    comp, n = ndi.label(mask, structure=np.ones((3, 3), bool))
+    L = np.zeros(W.shape, np.int32)
+    if n == 0 or not ok.any():
+        return L, np.zeros((0, 4))
+    idx = np.flatnonzero(ok)
+    tr, tc = tops[idx, 0].astype(int), tops[idx, 1].astype(int)
+    # a pixel holds one top: a duplicate box (same top) loses it and is flagged later
+    seed_img = np.zeros(W.shape, np.int32)
+    seed_img[tr, tc] = idx + 1
+    seeded = seed_img[tr, tc] == idx + 1
+    idx, tr, tc = idx[seeded], tr[seeded], tc[seeded]
+    cid = comp[tr, tc]
+    idx, tr, tc, cid = idx[cid > 0], tr[cid > 0], tc[cid > 0], cid[cid > 0]
+    nseed = np.bincount(cid, minlength=n + 1)
+    lut = np.zeros(n + 1, np.int32)
+    single = nseed[cid] == 1
+    lut[cid[single]] = idx[single] + 1
+    L = lut[comp]
+    # touching neighbours: a seeded watershed, only over each shared component
+    objects = ndi.find_objects(comp)
+    for k in np.flatnonzero(nseed >= 2):
+        sl = objects[k - 1]
+        mine = cid == k
+        L[sl] = np.where(comp[sl] == k, _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start,
+                                                tc[mine] - sl[1].start, idx[mine] + 1), L[sl])
+    size = np.bincount(comp.ravel(), minlength=n + 1)
+    free = np.flatnonzero((nseed == 0) & (size >= s.min_pixels))
+    free = free[free > 0]
+    if not len(free):
+        return L, np.zeros((0, 4))
+    pos = np.array(ndi.maximum_position(W, comp, free), dtype=np.int64).reshape(-1, 2)
+    h = W[pos[:, 0], pos[:, 1]]
+    tall = h >= s.min_top
+    return L, np.column_stack([pos[tall], h[tall], size[free][tall]])
+
+
+def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarray | None = None,
+            strip_rows: int = STRIP_ROWS) -> Outlines:
+    """Outlines of the plants whose boxes are ``geoms`` (in the CHM's CRS) on the CHM source ``chm``
+    (``transform, width, height, read(row0, row1, col0, col1)``). ``seeds``: (n, 2) map x, y of earlier
+    tops, to re-centre each plant within ``s.max_shift`` (later dates). ``mask_source``: a layer on the
+    same grid (NDVI) whose value must reach ``s.mask_threshold`` on canopy pixels."""
+    geoms = np.asarray(geoms, dtype=object)
+    n = len(geoms)
+    t = chm.transform
+    res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
+    m = s.margin / res
+    pb = _pixel_boxes(geoms, t)
+    box_i = np.stack([np.floor(pb[:, 0] + 0.5), np.floor(pb[:, 1] + 0.5),
+                      np.floor(pb[:, 2] + 0.5), np.floor(pb[:, 3] + 0.5)], axis=1)  # pixel centres inside
+    win_i = np.stack([np.floor(pb[:, 0] - m), np.floor(pb[:, 1] - m), np.ceil(pb[:, 2] + m),
+                      np.ceil(pb[:, 3] + m)], axis=1)
+    box_i = np.nan_to_num(box_i, nan=-1).astype(np.int64)
+    win_i = np.nan_to_num(win_i, nan=-1).astype(np.int64)
+    seed_px = None
+    if seeds is not None:
+        inv = ~t
+        sc, sr = _apply(inv, seeds[:, 0], seeds[:, 1])
+        seed_px = np.stack([sr - 0.5, sc - 0.5], axis=1)  # pixel index (row, col) of the centre
+        reach = int(np.ceil(s.max_shift / res)) + 1
+        win_i = win_i + np.array([-reach, -reach, reach, reach])
+    W_, H_ = chm.width, chm.height
+    outside = (win_i[:, 2] <= 0) | (win_i[:, 0] >= W_) | (win_i[:, 3] <= 0) | (win_i[:, 1] >= H_) | \
+        shapely.is_empty(geoms) | shapely.is_missing(geoms)
+    tops = np.full((n, 3), np.nan)
+    dup = np.full(n, -1)  # a duplicate box: the plant whose top it shares
+    parts_pix, parts_plant, parts_h, free_parts = [], [], [], []
+    geo_parts = _Pieces()
+    no_peak = np.zeros(n, bool)
+    centre_row = (win_i[:, 1] + win_i[:, 3]) // 2
+    live = np.flatnonzero(~outside)
+    strips = np.unique(np.clip(centre_row[live], 0, H_ - 1) // strip_rows) if len(live) else []
+    bar = progress(None, desc="outlines", total=len(strips), unit="strip")
+    for strip in strips:
+        home = live[np.clip(centre_row[live], 0, H_ - 1) // strip_rows == strip]
+        R0 = int(max(0, win_i[home, 1].min()))
+        R1 = int(min(H_, win_i[home, 3].max()))
+        C0 = int(max(0, win_i[home, 0].min()))
+        C1 = int(min(W_, win_i[home, 2].max()))
+        pad = int((win_i[home, 3] - win_i[home, 1]).max())
+        Rr0, Rr1, Cc0, Cc1 = max(0, R0 - pad), min(H_, R1 + pad), max(0, C0 - pad), min(W_, C1 + pad)
+        W = chm.read(Rr0, Rr1, Cc0, Cc1)
+        mask = np.nan_to_num(W, nan=-np.inf) >= s.min_height
+        if mask_source is not None and s.mask_threshold is not None:
+            mv = mask_source.read(Rr0, Rr1, Cc0, Cc1)
+            mask &= np.nan_to_num(mv, nan=-np.inf) >= s.mask_threshold
+        # every plant whose window meets this one competes for the canopy (seeds), only home plants are kept
+        near = live[(win_i[live, 2] > Cc0) & (win_i[live, 0] < Cc1) & (win_i[live, 3] > Rr0) &
+                    (win_i[live, 1] < Rr1)]
+        if seed_px is None:
+            tp = _tops(W, _local(box_i[near], Rr0, Rr1, Cc0, Cc1), _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
+                       s.min_top)
+        else:
+            tp = _tops_near(W, seed_px[near] - np.array([Rr0, Cc0]), s.max_shift / res, s.min_top)
+        ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
+        # two boxes of one plant find the same top: the first keeps it, the others are duplicates
+        flat_top = np.where(ok, np.nan_to_num(tp[:, 0]) * (Cc1 - Cc0) + np.nan_to_num(tp[:, 1]), -1)
+        _, first_i, group = np.unique(flat_top, return_index=True, return_inverse=True)
+        first = np.zeros(len(near), bool)
+        first[first_i] = True
+        is_home = np.zeros(n, bool)
+        is_home[home] = True
+        lost = ok & ~first
+        mine = lost & is_home[near]  # (a neighbour's status is settled in its own strip)
+        dup[near[mine]] = near[first_i[group[mine]]]
+        ok &= first
+        L, free = _assign(W, mask, tp, ok, s)
+        # canopies no box claims, with their top in this strip's own rows (each is found once)
+        in_strip = (free[:, 0] + Rr0) // strip_rows == strip
+        free_parts.append(np.column_stack([free[in_strip, 0] + Rr0, free[in_strip, 1] + Cc0, free[in_strip, 2:]]))
+        rr, cc = np.nonzero(L)
+        k = L[rr, cc] - 1
+        p = near[k]
+        keep = (rr + Rr0 >= win_i[p, 1]) & (rr + Rr0 < win_i[p, 3]) & (cc + Cc0 >= win_i[p, 0]) & \
+               (cc + Cc0 < win_i[p, 2]) & (W[rr, cc] >= s.relative * tp[k, 2])
+        keep &= is_home[p]
+        rr, cc, p = rr[keep], cc[keep], p[keep]
+        hit = is_home[near]
+        tops[near[hit], :2] = tp[hit, :2] + [Rr0, Cc0]
+        tops[near[hit], 2] = tp[hit, 2]
+        no_peak[near[hit]] = tp[hit, 3] == 0
+        parts_pix.append((rr + Rr0).astype(np.int64) * W_ + (cc + Cc0))
+        parts_plant.append(p.astype(np.int32))
+        parts_h.append(W[rr, cc].astype(np.float32))
+        lab = np.zeros(W.shape, np.int32)
+        lab[rr, cc] = p + 1
+        wt = Affine(t.a, t.b, t.c + t.a * Cc0 + t.b * Rr0, t.d, t.e, t.f + t.d * Cc0 + t.e * Rr0)
+        for g, v in shapes(lab, mask=lab > 0, connectivity=8, transform=wt):
+            geo_parts.add(int(v) - 1, g["coordinates"])
+        bar.update(1)
+    bar.close()
+    out = _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h,
+                   geo_parts, chm, dup, no_peak)
+    free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
+    fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
+    out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
+    return out
+
+
+def _local(b: np.ndarray, R0: int, R1: int, C0: int, C1: int) -> np.ndarray:
+    """Integer windows (c0, r0, c1, r1) in the coordinates of the window read, clipped to it."""
+    out = b - np.array([C0, R0, C0, R0])
+    out[:, [0, 2]] = np.clip(out[:, [0, 2]], 0, C1 - C0)
+    out[:, [1, 3]] = np.clip(out[:, [1, 3]], 0, R1 - R0)
+    return out
+
+
+class _Pieces:
+    """Polygons from ``rasterio.features.shapes``, gathered as coordinate arrays and built in one call
+    (``shapely.from_ragged_array``): building them one by one costs more than finding them."""
+
+    def __init__(self):
+        self.rings: list[np.ndarray] = []
+        self.ring_count: list[int] = []
+        self.owner: list[int] = []
+
+    def add(self, owner: int, rings: list) -> None:
+        self.rings.extend(np.asarray(r, dtype=float) for r in rings)
+        self.ring_count.append(len(rings))
+        self.owner.append(owner)
+
+    def polygons(self) -> tuple[np.ndarray, np.ndarray]:
+        if not self.owner:
+            return np.zeros(0, np.int64), np.zeros(0, dtype=object)
+        coords = np.concatenate(self.rings)
+        ring_off = np.concatenate([[0], np.cumsum([len(r) for r in self.rings])])
+        poly_off = np.concatenate([[0], np.cumsum(self.ring_count)])
+        polys = shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, poly_off))
+        return np.asarray(self.owner, np.int64), polys
+
+
+def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h, geo_parts,
+             chm, dup, no_peak) -> Outlines:
+    pix = np.concatenate(parts_pix) if parts_pix else np.zeros(0, np.int64)
+    plant = np.concatenate(parts_plant) if parts_plant else np.zeros(0, np.int64)
+    hv = np.concatenate(parts_h) if parts_h else np.zeros(0)
+    count = np.bincount(plant, minlength=n)
+    flag = np.full(n, "", dtype=object)
+    flag[count < s.min_pixels] = "small"
+    flag[np.isnan(tops[:, 2])] = "no_top"
+    flag[no_peak & np.isfinite(tops[:, 2])] = "no_peak"
+    flag[np.isfinite(tops[:, 2]) & (tops[:, 2] < s.min_top)] = "low"
+    flag[outside] = "outside"
+    flag[dup >= 0] = "duplicate"
+    keep = (flag == "")[plant]
+    pix, plant, hv = pix[keep], plant[keep], hv[keep]
+    extra_pix, extra_plant, extra_h = [pix], [plant], [hv]
+    # duplicates: the canopy of the plant whose top they share (when it has one)
+    shared = np.flatnonzero((dup >= 0) & (flag[np.maximum(dup, 0)] == ""))
+    for k in shared:
+        sel = plant == dup[k]
+        extra_pix.append(pix[sel])
+        extra_plant.append(np.full(int(sel.sum()), k))
+        extra_h.append(hv[sel])
+    # other flagged plants: the pixels whose centre is inside their box
+    boxed = np.setdiff1d(np.flatnonzero((flag != "") & ~outside), shared)
+    b = box_i[boxed]
+    b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, W_)
+    b[:, [1, 3]] = np.clip(b[:, [1, 3]], 0, H_)
+    for k, (c0, r0, c1, r1) in zip(boxed, b):
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        extra_pix.append((rr * W_ + cc).ravel())
+        extra_plant.append(np.full(rr.size, k))
+        extra_h.append(np.full(rr.size, np.nan))
+    pix, plant, hv = np.concatenate(extra_pix), np.concatenate(extra_plant), np.concatenate(extra_h)
+    order = np.argsort(plant, kind="stable")
+    pix, plant, hv = pix[order], plant[order], hv[order]
+    start = np.searchsorted(plant, np.arange(n + 1))
+    count = np.diff(start)
+    px_area = res * res
+    ok = flag == ""
+    area = count * px_area
+    with_canopy = ok.copy()
+    with_canopy[shared] = True
+    volume = np.where(with_canopy, np.bincount(plant, weights=np.nan_to_num(hv), minlength=n) * px_area, np.nan)
+    # tightened box: the canopy pixels' extent (pixel edges)
+    r, c = pix // W_, pix % W_
+    tight = np.full((n, 4), np.nan)
+    has = count > 0
+    if has.any():
+        st = start[:-1][has]
+        rmin, rmax = np.minimum.reduceat(r, st), np.maximum.reduceat(r, st)
+        cmin, cmax = np.minimum.reduceat(c, st), np.maximum.reduceat(c, st)
+        x0, y0 = _apply(t, cmin, rmax + 1)
+        x1, y1 = _apply(t, cmax + 1, rmin)
+        tight[has] = np.stack([x0, y0, x1, y1], axis=1)
+    top = np.full((n, 3), np.nan)
+    tx, ty = _apply(t, tops[:, 1] + 0.5, tops[:, 0] + 0.5)
+    top[:, 0], top[:, 1], top[:, 2] = tx, ty, tops[:, 2]
+    geometry = np.asarray(geoms, dtype=object).copy()
+    owner, polys = geo_parts.polygons()
+    mine = ok[owner]
+    owner, polys = owner[mine], polys[mine]
+    single = np.bincount(owner, minlength=n) == 1
+    geometry[owner[single[owner]]] = polys[single[owner]]
+    for k in np.unique(owner[~single[owner]]):  # a canopy in several pieces (leaves cut by the threshold)
+        geometry[k] = shapely.union_all(polys[owner == k])
+    geometry[shared] = geometry[dup[shared]]
+    return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
+                    flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
+                    crs=getattr(chm, "crs", None))

@@ -1,0 +1,38 @@
+"""Module 9's ``plots`` section: where the plots are, how they were sown, what to report per plot
+(docs/DESIGN.md §7)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from matchplant.core.config import param
+
+
+@dataclass
+class PlotsConfig:
+    """Plots: plot outlines from a GIS file or a grid; stand count, gaps, spacing and trait summaries per plot."""
+
+    polygons: Path | None = param(None, "plot outlines (GeoPackage, shapefile, GeoJSON, or CSV with WKT); empty = "
+                                        "the grid below, or no plots when it is not set either", path="file")
+    id_column: str = param("plot_id", "plot id column of the plot file (or of the field book)")
+    corners: list[list[float]] = param([], "the grid's corners in the map CRS: [[x, y], ...] - plot 1's outer "
+                                           "corner, the far end of the first range across the rows, then (optional) "
+                                           "the two far corners; empty = no grid")
+    columns: int = param(0, "plots side by side across the crop rows", min=0)
+    ranges: int = param(0, "plots one after another along the crop rows", min=0)
+    plot_width: float = param(0.0, "m across the rows of one plot (0 = the grid cell, no alley)", min=0)
+    plot_length: float = param(0.0, "m along the rows of one plot (0 = the grid cell, no alley)", min=0)
+    serpentine: bool = param(False, "number plots back and forth (serpentine) instead of each range from the "
+                                    "same side")
+    rows_per_plot: int = param(2, "crop rows in one plot", min=1)
+    plant_spacing: float = param(0.2, "m between seeds along a row (expected spacing: gaps are counted from it)",
+                                 min=0.001)
+    count_unclaimed: bool = param(True, "count the canopies that no plant box claims but that look like plants "
+                                        "(canopy.min_top, canopy.min_pixels; unclaimed_canopies.csv): plants the "
+                                        "detector missed")
+    field_book: Path | None = param(None, "CSV with one row per plot (plot id -> genotype, rep, ...), joined to "
+                                          "the plot table", path="file")
+    traits: list[str] = param([], "plant columns summarised per plot (mean, sd, cv); empty = heights, canopy "
+                                  "area and the canopy indices")
+    figure_trait: str = param("", "trait colouring the field figure (plot mean); '' = the first of traits")

@@ -1,0 +1,92 @@
+"""The benchmark harness's logic: alternation order, the per-pair ratio statistics, pinning, environment."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bench.harness import (THREAD_VARS, alternate, cpu_model, machine_info, overhead, pin_one_core,
+                           single_thread_env, summarise, versions)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_alternate_runs_warmup_then_ours_peer_pairs_with_resets():
+    calls = []
+
+    def clock(fn, reset):
+        reset()
+        fn()
+        return 1.0
+
+    ours, peer = (lambda: calls.append("A")), (lambda: calls.append("B"))
+    a, b = alternate(ours, peer, pairs=3, warmup=1, reset=lambda side: calls.append(side[0]), clock=clock)
+    # warm-up pair, then three timed pairs, each call preceded by its own side's reset
+    assert calls == ["o", "A", "p", "B"] * 4
+    assert a == b == [1.0, 1.0, 1.0]
+    with pytest.raises(ValueError):
+        alternate(ours, peer, pairs=0)
+
+
+def test_alternate_times_real_work_and_honours_self_timed_sections():
+    a, b = alternate(lambda: sum(range(20000)), lambda: 1e-9, pairs=3, warmup=0)
+    assert all(t > 0 for t in a)
+    assert b == [1e-9] * 3  # a callable returning its own measured seconds (no more than the wall time)
+
+
+def test_summarise_ratios_pair_by_pair():
+    ours = [1.0, 2.0, 4.0]
+    peer = [3.0, 4.0, 4.0]  # ratios 3, 2, 1: a slow spell hits both sides of a pair
+    s = summarise(ours, peer)
+    assert s["ours_median_s"] == 2.0 and s["peer_median_s"] == 4.0
+    assert s["ratios"] == [3.0, 2.0, 1.0]
+    assert (s["ratio_median"], s["ratio_min"], s["ratio_max"]) == (2.0, 1.0, 3.0)
+    # the median of the per-pair ratios, not the ratio of the medians (which would be 2.0 here too)
+    s2 = summarise([1.0, 1.0, 10.0, 10.0], [2.0, 2.0, 10.0, 10.0])
+    assert s2["ratio_median"] == 1.5
+    o = overhead(summarise([1.05, 1.10, 1.02], [1.0, 1.0, 1.0]))
+    assert o["overhead_median"] == pytest.approx(0.05)
+    assert o["overhead_min"] == pytest.approx(0.02) and o["overhead_max"] == pytest.approx(0.10)
+    with pytest.raises(ValueError):
+        summarise([1.0], [1.0, 2.0])
+    with pytest.raises(ValueError):
+        summarise([0.0], [1.0])
+
+
+def test_single_thread_env_and_pinning():
+    env = single_thread_env({"PATH": "/bin", "OMP_NUM_THREADS": "8"})
+    assert env["PATH"] == "/bin"
+    assert all(env[v] == "1" for v in THREAD_VARS)
+    if not hasattr(os, "sched_setaffinity"):
+        assert pin_one_core() is None
+        return
+    code = "from bench.harness import pin_one_core; import os; c = pin_one_core(); print(c, sorted(os.sched_getaffinity(0)))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True).stdout
+    core, allowed = out.split(" ", 1)
+    assert allowed.strip() == f"[{core}]"
+
+
+def test_machine_and_versions():
+    info = machine_info()
+    assert info["cores"] == os.cpu_count() and info["cpu"] == cpu_model() and info["python"]
+    v = versions(["numpy", "surely-not-an-installed-package"])
+    assert v["numpy"] and v["surely-not-an-installed-package"] is None
+
+
+def test_cli_refuses_too_few_pairs_and_unknown_names():
+    run = [sys.executable, "-m", "bench", "--no-save"]
+    r = subprocess.run(run + ["--pairs", "2"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 2 and "at least 3" in r.stderr
+    r = subprocess.run(run + ["--only", "nonsense"], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 2 and "invalid choice" in r.stderr
+
+
+def test_cuda_request_without_a_gpu_says_so():
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    r = subprocess.run([sys.executable, "-m", "bench", "--device", "cuda", "--no-save"], capture_output=True,
+                       text=True, cwd=ROOT)
+    assert r.returncode == 2 and "no CUDA GPU" in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,171 @@
+"""ODM split-merge projects (docs/DESIGN.md §6) read as one project: modules 2, 3, 7 and 8 on the top folder.
+
+The project is the ``tiny`` field rewritten by :mod:`matchplant.simfield.split` (the ``split`` preset does the
+same to the ``small`` field): two submodels sharing a flight line, each in its own topocentric frame with its
+own ``coords.txt``, a misalignment of a few centimetres, merged rasters at the top, exact truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from matchplant.core.coco import read_dataset
+from matchplant.core.config import load_config
+from matchplant.core.errors import InputError
+from matchplant.core.frames import TopocentricFrame
+from matchplant.core.io import read_json
+from matchplant.core.odm import ODMProject
+from matchplant.min_img_finder.config import MinImagesConfig
+from matchplant.min_img_finder.finder import MinImageFinder
+from matchplant.min_img_finder.setcover import reachable_coverage
+from matchplant.model_test.detect import list_images
+from matchplant.odm_runner.outputs import check_outputs
+from matchplant.plant_projection.evaluation import evaluate_boxes
+from matchplant.plant_projection.merge import merge_views
+from matchplant.plant_projection.views import project_predictions
+from matchplant.simfield.layout import FieldPaths
+from matchplant.simfield.split import split_field, split_lines
+
+
+def _split_copy(src: FieldPaths, dst, **kw) -> FieldPaths:
+    shutil.copytree(src.root, dst)
+    return split_field(FieldPaths(dst), **kw)
+
+
+@pytest.fixture(scope="module")
+def split(tiny_field, tmp_path_factory) -> FieldPaths:
+    return _split_copy(tiny_field, tmp_path_factory.mktemp("split") / "field")
+
+
+def _truth_predictions(f: FieldPaths) -> dict:
+    ds = read_dataset(f.boxes_undistorted, validate=False)
+    return {"images": ds["images"], "categories": ds["categories"],
+            "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+
+
+def test_split_lines_share_one_line():
+    assert split_lines(3, 2) == [[0, 1], [1, 2]]
+    assert split_lines(5, 2) == [[0, 1, 2], [2, 3, 4]]
+    assert split_lines(7, 3) == [[0, 1, 2], [2, 3, 4], [4, 5, 6]]
+
+
+def test_layout_is_odm_split_merge(split):
+    root = split.root
+    assert not (root / "opensfm" / "reconstruction.json").exists()
+    for name in ("submodel_0000", "submodel_0001"):
+        sub = root / "submodels" / name
+        for rel in ("opensfm/reconstruction.json", "opensfm/undistorted/reconstruction.json",
+                    "odm_georeferencing/coords.txt", "odm_dem/dsm.tif", "odm_orthophoto/odm_orthophoto.tif"):
+            assert (sub / rel).is_file(), rel
+        assert any((sub / "opensfm/undistorted/images").iterdir())
+    info = read_json(split.truth / "split.json")
+    assert len(info["shared"]) == 3  # the shared flight line of the 3 x 3 flight
+    refs = [s["reference_lla"]["latitude"] for s in info["submodels"]]
+    assert refs[0] != refs[1]  # each submodel its own frame
+    shifts = [np.hypot(*s["misalignment"]["translation_m"][:2]) for s in info["submodels"]]
+    assert all(0.005 < d < 0.05 for d in shifts)
+
+
+def test_reads_as_one_project_each_shot_in_its_own_frame(split, tiny_field, caplog):
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        project = ODMProject(split.root)
+        ids = project.shot_ids()
+    assert project.is_split and len(project.submodels) == 2
+    assert "3 images appear in more than one submodel" in caplog.text
+    single = ODMProject(tiny_field.root)
+    assert ids == single.shot_ids() and set(project.undistorted_images()) == ids
+    info = read_json(split.truth / "split.json")
+    moves = {s["name"]: s["misalignment"] for s in info["submodels"]}
+    for sid in sorted(ids):
+        frame = project.frame_of(sid)
+        assert isinstance(frame, TopocentricFrame)
+        owner = project.owner(sid).name
+        assert sid in next(s["images"] for s in info["submodels"] if s["name"] == owner)
+        # the camera lands where the truth puts it, moved by its submodel's misalignment (a few cm)
+        c = frame.to_map(project.shot(sid).center[None, :])[0]
+        c_true = single.frame().to_map(single.shot(sid).center[None, :])[0]
+        t = np.array(moves[owner]["translation_m"])
+        assert np.linalg.norm(c - c_true - t) < 2e-3
+    assert project.frame().crs.equals(single.frame().crs)
+    with pytest.raises(InputError, match="one reconstruction per submodel"):
+        project.reconstruction()
+
+
+def test_pose_conversion_is_exact_without_misalignment(tiny_field, tmp_path):
+    """Every pixel of every shot, through its submodel's topocentric frame, meets the map where the single
+    project's does (independent of the projection code: points projected both ways)."""
+    f = _split_copy(tiny_field, tmp_path / "exact", misalignment=0.0, rotation_deg=0.0)
+    project, single = ODMProject(f.root), ODMProject(tiny_field.root)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(0, 4, 200), rng.uniform(0, 3, 200), rng.uniform(0, 0.6, 200)])
+    pts += [*single.coords[1][:2], 350.0]
+    for sid in sorted(project.shot_ids()):
+        uv_split = project.shot(sid).project(project.frame_of(sid).from_map(pts))
+        uv_single = single.shot(sid).project(single.frame().from_map(pts))
+        ok = np.isfinite(uv_single).all(axis=1)
+        assert np.nanmax(np.abs(uv_split[ok] - uv_single[ok])) < 0.05  # pixels (the map's scale, ~1e-4, left)
+
+
+def test_projection_over_submodels_places_each_plant_once(split):
+    preds = _truth_predictions(split)
+    views, rejected = project_predictions(ODMProject(split.root), preds)
+    assert len(rejected) == 0
+    plants = merge_views(views)
+    truth = pd.read_csv(split.map_boxes)
+    m = evaluate_boxes(truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
+                       plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    assert m["share_matched"] == 1.0 and m["share_iou_above_0.5"] >= 0.95
+    # tiny's plants are 30 cm across: a 1.5 cm misalignment costs about 0.1 of IoU
+    assert m["iou_median"] >= 0.7
+    counts = plants["truth_plant_id"].value_counts()
+    assert len(plants) == len(truth) and counts.max() == 1  # no plant twice (seen from two submodels)
+    owners = views.table.groupby("truth_plant_id")["shot_id"].agg(
+        lambda s: {ODMProject(split.root).owner(x).name for x in s})
+    assert (owners.map(len) == 2).any()  # some plants merged from views of both submodels
+
+
+def test_module_3_selection_covers_the_whole_field(split, tiny_field, tmp_path):
+    """The selection spans both submodels and covers what the whole flight covers (tiny's flight leaves a
+    sixth of its orthophoto unseen, split or not)."""
+    def finder(root):
+        return MinImageFinder(load_config(MinImagesConfig, None, [f"project_dir={root}", "copy_images=none",
+                                                                  f"output_dir={tmp_path / root.name}"]))
+    f, single = finder(split.root), finder(tiny_field.root)
+    assert len(f.footprints) == 9
+    assert {fp.frame is not None for fp in f.footprints} == {True}
+    result = f.evaluate(f.select())
+    reach = reachable_coverage(f.grid)
+    assert reach == pytest.approx(reachable_coverage(single.grid), abs=0.005)
+    assert result.exact_coverage >= min(0.95, reach) - 0.005
+    owners = {ODMProject(split.root).owner(n).name for n in result.owned}
+    assert owners == {"submodel_0000", "submodel_0001"}
+    assert all(len(px) >= 3 for px in result.owned_pixels.values())
+
+
+def test_module_2_checks_a_split_run(split, tmp_path, caplog):
+    report = check_outputs(split.root)
+    assert report.ok, report.problems
+    assert report.details["split"]["images"] == 9
+    assert report.details["split"]["images_in_several_submodels"] == 3
+    assert set(report.details["split"]["submodels"]) == {"submodel_0000", "submodel_0001"}
+    # the merged DSM missing: reported by module 2; the others fall back to a submodel's, said in the log
+    broken = tmp_path / "broken"
+    shutil.copytree(split.root, broken)
+    (broken / "odm_dem" / "dsm.tif").unlink()
+    (broken / "submodels" / "submodel_0001" / "opensfm" / "undistorted" / "images" / "SIM_0009.JPG.tif").unlink()
+    report = check_outputs(broken)
+    text = "\n".join(report.problems)
+    assert "odm_dem/dsm.tif (the merged" in text and "submodels/submodel_0001: 1 of" in text
+    with caplog.at_level(logging.WARNING, logger="matchplant"):
+        path = ODMProject(broken).path("dsm")
+    assert "submodel_0000" in str(path) and "merged digital surface model missing" in caplog.text
+
+
+def test_module_7_lists_every_submodels_images_once(split):
+    files = list_images(split.root)
+    assert sorted(p.name for p in files) == sorted(f"{s}.tif" for s in ODMProject(split.root).shot_ids())
