@@ -27,6 +27,7 @@ import geopandas as gpd
 import numpy as np
 import pandas as pd
 import yaml
+from PIL import Image
 
 from matchplant.core.config import load_config
 from matchplant.core.errors import MatchPlantError
@@ -43,12 +44,18 @@ from matchplant.spatial_stat_extractor.run import run as run_stats
 
 log = get_logger("demo")
 
+EPOCHS = 2  # a fixed number of epochs, not a time budget: every machine trains the same model
+REPO = Path(__file__).resolve().parents[1]
+# the README's demo table lies between these lines (python -m matchplant.demo --update-docs rewrites it)
+TABLE_START = "<!-- demo table: written by python -m matchplant.demo --update-docs -->"
+TABLE_END = "<!-- end of demo table -->"
+
 
 def _step(name: str, module: str, **config) -> dict:
     return {"name": name, "module": module, "config": config}
 
 
-def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, tile: int) -> dict:
+def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int) -> dict:
     """The demo's pipeline: every module, each reading the files the one before wrote."""
     net = int(round(tile * 2.5))
     # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse feature maps; anchors
@@ -72,7 +79,7 @@ def pipeline_spec(field: Path, crs: str, *, minutes: float, pretrained: str, til
               annotations="${4_annotate.output_dir}/annotations.json", tile_size=tile, overlap=tile // 4,
               negative_share=0.2, split=[0.55, 0.15, 0.3]),
         _step("6_train", "model_train", train_json="${5_tiles.output_dir}/train.json",
-              val_json="${5_tiles.output_dir}/val.json", model=model, epochs=30, max_minutes=minutes, batch_size=4,
+              val_json="${5_tiles.output_dir}/val.json", model=model, epochs=epochs, max_minutes=minutes, batch_size=4,
               num_workers=0, warmup_iters=20, step_size=20, save_every=0,
               lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
         _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
@@ -233,14 +240,14 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
               f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.", ""]
     path = out / "report" / "report.md"
     write_text(path, "\n".join(lines))
-    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare,
+    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare, "training": summary,
                                                               "detector": metrics, "projection": evaluation},
                                                              indent=1, default=str))
     return path
 
 
-def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float = 5.0, pretrained: str = "none",
-             tile: int = 128, from_step: str = "") -> Path:
+def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = EPOCHS, minutes: float = 0.0,
+             pretrained: str = "none", tile: int = 128, from_step: str = "") -> Path:
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
@@ -254,7 +261,7 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float 
     crs = json.loads(meta.read_text())["crs"]
     pipe = out / "pipeline.yaml"
     write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
-               + yaml.safe_dump(pipeline_spec(field, crs, minutes=minutes, pretrained=pretrained, tile=tile),
+               + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile),
                                 sort_keys=False))
     results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step))
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
@@ -268,21 +275,75 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, minutes: float 
     return report
 
 
+def update_docs(out: Path, root: Path = REPO) -> None:
+    """Copy the run's figures into ``docs/`` and rewrite the README's demo table from ``report/summary.json``,
+    so that what the README shows is what this run measured."""
+    summary = json.loads((out / "report" / "summary.json").read_text())
+    figures = {"3_select/coverage.png": "coverage.jpg", "8_plants/evaluation.png": "evaluation.jpg",
+               "6_train/training_curves.png": "training_curves.png", "report/traits_vs_truth.png": "traits_vs_truth.png"}
+    for src, dst in figures.items():
+        if (out / src).is_file():
+            with Image.open(out / src) as im, atomic_path(root / "docs" / dst) as tmp:
+                (im.convert("RGB").save(tmp, quality=85) if dst.endswith(".jpg") else im.save(tmp))
+    readme = root / "README.md"
+    text = readme.read_text(encoding="utf-8")
+    start, end = text.index(TABLE_START), text.index(TABLE_END)
+    write_text(readme, text[:start + len(TABLE_START)] + "\n" + demo_table(summary) + text[end:])
+    log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
+
+
+def demo_table(summary: dict) -> str:
+    """The README's demo table, from a run's ``report/summary.json``."""
+    coco = summary.get("detector", {}).get("coco", {})
+    ev, tr, pl, gr = (summary.get(k, {}) for k in ("projection", "traits", "plots", "growth"))
+    train = summary.get("training", {})
+
+    def f(v, fmt):
+        return fmt.format(v) if isinstance(v, (int, float)) else "n/a"
+
+    rows = [
+        ("detector, held-out test tiles", f"AP50 {f(coco.get('AP50'), '{:.1%}')}, AP {f(coco.get('AP'), '{:.1%}')} "
+                                          f"({train.get('epochs_done', 'n/a')} epochs from random weights)"),
+        ("plants on the map", f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
+                              f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
+                              f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
+                              f"{tr.get('true_plants', 'n/a')} plants"),
+        ("plant height vs truth (Pearson r)", f"over the canopy {f(tr.get('height_r'), '{:.3f}')}, "
+                                              f"over the box {f(tr.get('height_box_r'), '{:.3f}')}"),
+        ("NDVI vs each plant's true NDVI (r)", f"over the canopy {f(tr.get('ndvi_r'), '{:.3f}')}, "
+                                               f"box mean {f(tr.get('ndvi_box_r'), '{:.3f}')}"),
+        ("canopy outline vs the true canopy", f"median IoU {f(tr.get('outline_iou_median'), '{:.2f}')}"),
+        ("plots", f"stand count exact on {f(pl.get('stand_count_exact_share'), '{:.1%}')} of "
+                  f"{pl.get('plots', 'n/a')} plots; {f(pl.get('gaps_found_share'), '{:.1%}')} of the true gaps found, "
+                  f"{f(pl.get('false_gap_share'), '{:.1%}')} false"),
+        ("second date", f"centre error {f(gr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused "
+                        f"boxes, {f(gr.get('recentred_error_median_m'), '{:.3f}')} m re-centred"),
+    ]
+    return "\n".join(["| | |", "|---|---|", *(f"| {a} | {b} |" for a, b in rows)]) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
     p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--minutes", type=float, default=5.0, help="time budget for training the detector")
+    p.add_argument("--epochs", type=int, default=EPOCHS,
+                   help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model")
+    p.add_argument("--minutes", type=float, default=0.0,
+                   help="optional time budget for training (0 = none); the results then depend on the machine")
     p.add_argument("--pretrained", default="none", choices=("none", "imagenet", "coco"),
                    help="starting weights (coco needs internet once; none trains from scratch)")
     p.add_argument("--from", dest="from_step", default="", help="re-run from this step on (e.g. 6_train)")
+    p.add_argument("--update-docs", action="store_true",
+                   help="then copy the figures into docs/ and rewrite the README's demo table from this run")
     p.add_argument("--debug", action="store_true")
     args = p.parse_args(argv)
     setup_console()
     try:
-        run_demo(args.out, preset=args.preset, seed=args.seed, minutes=args.minutes, pretrained=args.pretrained,
-                 from_step=args.from_step)
+        run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, minutes=args.minutes,
+                 pretrained=args.pretrained, from_step=args.from_step)
+        if args.update_docs:
+            update_docs(Path(args.out).resolve())
     except MatchPlantError as exc:
         if args.debug:
             raise

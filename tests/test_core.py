@@ -400,6 +400,21 @@ def test_progress_logs_lines_when_not_on_a_terminal(caplog, monkeypatch):
     assert lines[-1].startswith("detecting: 40/40 image 100%")
 
 
+def test_progress_postfix_updates_do_not_add_lines(caplog, monkeypatch):
+    """Training sets the loss as a postfix on every batch: still one line per interval, not one per batch."""
+    clock = {"t": 1000.0}
+    monkeypatch.setattr("tqdm.std.time", lambda: clock["t"])
+
+    def body(progress):
+        bar = progress(range(60), desc="epoch 1/2", unit="batch")
+        for k in bar:
+            clock["t"] += 2.0  # a batch every 2 s
+            bar.set_postfix(loss=1.0 / (k + 1))
+
+    lines = _progress_records(caplog, monkeypatch, "10", body)
+    assert 10 <= len(lines) <= 14, lines  # 120 s at one line per 10 s (and the last)
+
+
 def test_progress_is_silent_for_short_loops_and_when_quiet(caplog, monkeypatch):
     def body(progress):
         assert list(progress([1, 2, 3], desc="quick")) == [1, 2, 3]

@@ -18,7 +18,7 @@ from pyproj import CRS, Transformer
 from rasterio.transform import from_origin
 from scipy import sparse
 from scipy.spatial.transform import Rotation
-from shapely.geometry import Polygon, box
+from shapely.geometry import box
 
 from matchplant.core.camera import PinholeCamera
 from matchplant.core.config import load_config

@@ -11,7 +11,6 @@ import shutil
 import subprocess
 import sys
 import threading
-import time
 import uuid as uuidlib
 import zipfile
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer

@@ -75,8 +75,12 @@ class LogProgress(std_tqdm):
         n = self.n
         if n == 0 or msg == "":  # the opening call, and the one close() makes to erase a bar
             return True
-        elapsed = self._time() - self.start_t
-        log.info(progress_line(self.desc.rstrip(": "), n, self.total, elapsed, self.unit))
+        now = self._time()
+        # set_postfix() and refresh() also call display: keep to one line per interval whatever calls it
+        if now - getattr(self, "_logged_at", self.start_t) < self.mininterval and n != self.total:
+            return True
+        self._logged_at = now
+        log.info(progress_line(self.desc.rstrip(": "), n, self.total, now - self.start_t, self.unit))
         return True
 
     def close(self):
