@@ -56,6 +56,17 @@ def train_settings(work: Path, train_json: Path, arch: str, size: int, net: int,
             f"device={device}"]
 
 
+def bare_step(model, opt, images, targets, device) -> int:
+    """One step of the bare torchvision training loop (module 6's peer); returns the images it used."""
+    images = [im.to(device) for im in images]
+    targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
+    loss = sum(model(images, targets).values())
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    return len(images)
+
+
 def bare_loop(cfg, train_json: Path, device, epochs: int) -> float:
     """The plain torchvision loop on the same model and data: forward, backward, step. Returns the
     seconds of its epoch loop (data loading included, model building excluded, as ours)."""
@@ -67,12 +78,7 @@ def bare_loop(cfg, train_json: Path, device, epochs: int) -> float:
     t0 = time.perf_counter()
     for _ in range(epochs):
         for images, targets in loader:
-            images = [im.to(device) for im in images]
-            targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
-            loss = sum(model(images, targets).values())
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
+            bare_step(model, opt, images, targets, device)
     if device.type == "cuda":
         torch.cuda.synchronize()
     return time.perf_counter() - t0
@@ -198,13 +204,7 @@ def main() -> None:
     opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9, weight_decay=5e-4)
     n, t0 = 0, time.perf_counter()
     for images, targets in loader:
-        images = [im.to(device) for im in images]
-        targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
-        loss = sum(model(images, targets).values())
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        n += len(images)
+        n += bare_step(model, opt, images, targets, device)
     if device.type == "cuda":
         torch.cuda.synchronize()
     bare_ips = n / (time.perf_counter() - t0)
