@@ -19,16 +19,13 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import math
-import warnings
 
 from matchplant.core.box_files import resolve_image_names
 from matchplant.core.coco import REGION_KEY, DropLog, make_annotation, new_dataset, region_entry, write_dataset
 from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import JPEG_SUFFIXES, list_images
+from matchplant.core.images import image_size, list_images, whole_image_size
 from matchplant.core.io import read_json, write_text
 from matchplant.core.log import get_logger
-from matchplant.core.odm import image_size
-from matchplant.core.validate import check_jpeg
 from matchplant.core.yolo import coco_to_yolo
 
 log = get_logger("annotate")
@@ -49,23 +46,8 @@ EDGE_TOLERANCE = 1.0  # px: boxes reaching further past the image edge are clipp
 
 
 def check_image_file(path: Path) -> None:
-    """A file named like an image must be a whole one: its header readable, a JPEG with its end marker, a
-    PNG with its end chunk (a truncated copy is named, not annotated half grey)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
-            image_size(path)
-    except InputError as exc:
-        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
-                         fix="copy the photo again, or move it out of the image folder") from exc
-    if path.suffix.lower() in JPEG_SUFFIXES:
-        check_jpeg(path)
-    elif path.suffix.lower() == ".png":
-        with open(path, "rb") as fh:
-            fh.seek(max(0, path.stat().st_size - 64))
-            if b"IEND" not in fh.read():
-                raise InputError("the PNG is truncated (no end chunk)", path=path,
-                                 fix="copy the image again, or move it out of the image folder")
+    """A file named like an image must be a whole one (see :func:`matchplant.core.images.whole_image_size`)."""
+    whole_image_size(path)
 
 
 def clip_box(xyxy: Iterable[float], width: float, height: float) -> list[float]:

@@ -10,10 +10,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
+import warnings
+
 import cv2
 import numpy as np
+import rasterio
+from PIL import Image
 
 from matchplant.core.errors import InputError
+from matchplant.core.validate import check_jpeg
 
 # every raster photo format a step may meet; a step that takes fewer passes its own ``suffixes``
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
@@ -96,3 +101,40 @@ def display_rgb(img: np.ndarray) -> np.ndarray:
     finite = a[np.isfinite(a)]
     lo, hi = (np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0))
     return (np.clip((np.nan_to_num(a, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) read from the file header only."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return int(im.width), int(im.height)
+    except Exception:  # noqa: BLE001 - PIL cannot read every GeoTIFF layout; GDAL can
+        try:
+            with rasterio.open(path) as src:
+                return int(src.width), int(src.height)
+        except Exception as exc:  # noqa: BLE001
+            raise InputError(f"cannot read the image size: {exc}", path=path,
+                             fix="check that the file is a complete image") from exc
+
+
+def whole_image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image that must be whole: its header readable, a JPEG with its end marker, a PNG
+    with its end chunk (a truncated copy is named, not tiled or annotated half grey)."""
+    path = Path(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
+            size = image_size(path)
+    except InputError as exc:
+        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
+                         fix="copy the photo again, or move it out of the image folder") from exc
+    if path.suffix.lower() in JPEG_SUFFIXES:
+        check_jpeg(path)
+    elif path.suffix.lower() == ".png":
+        with open(path, "rb") as fh:
+            fh.seek(max(0, path.stat().st_size - 64))
+            if b"IEND" not in fh.read():
+                raise InputError("the PNG is truncated (no end chunk)", path=path,
+                                 fix="copy the image again, or move it out of the image folder")
+    return size

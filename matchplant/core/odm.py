@@ -22,11 +22,10 @@ from functools import cached_property
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from PIL import Image
 
 from matchplant.core.errors import InputError
 from matchplant.core.frames import Frame, OffsetFrame, detect_frame, read_coords_txt
+from matchplant.core.images import image_size
 from matchplant.core.log import get_logger
 from matchplant.core.reconstruction import Reconstruction, Shot, read_reconstruction
 from matchplant.core.validate import match_names
@@ -322,17 +321,3 @@ class ODMProject:
         owner.require(name)
         return owner._read(name).shot(shot_id)
 
-
-def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) read from the file header only."""
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            return int(im.width), int(im.height)
-    except Exception:  # noqa: BLE001 - PIL cannot read every GeoTIFF layout; GDAL can
-        try:
-            with rasterio.open(path) as src:
-                return int(src.width), int(src.height)
-        except Exception as exc:  # noqa: BLE001
-            raise InputError(f"cannot read the image size: {exc}", path=path,
-                             fix="check that the file is a complete image") from exc

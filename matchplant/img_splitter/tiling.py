@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import os
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -39,12 +38,10 @@ from matchplant.core.coco import (DropLog, annotated_region, make_annotation, ne
 from matchplant.core.config import param
 from matchplant.core.errors import ConfigError, InputError
 from matchplant.core.guard import check_outputs, staged_outputs
-from matchplant.core.images import JPEG_SUFFIXES, list_images
+from matchplant.core.images import list_images, whole_image_size
 from matchplant.core.io import atomic_path, read_json, write_json, write_text
 from matchplant.core.log import get_logger
-from matchplant.core.odm import image_size
 from matchplant.core.progress import progress
-from matchplant.core.validate import check_jpeg
 from matchplant.core.yolo import coco_to_yolo, label_files, yolo_to_coco
 from matchplant.img_splitter.regions import clip_boxes, mask_outside, region_share
 from matchplant.img_splitter.splits import SPLITS, read_positions, split_counts, split_images
@@ -232,7 +229,7 @@ def load_sources(cfg: TilingConfig, drops: DropLog | None = None) -> tuple[list[
     files = {p.name: p for p in list_images(cfg.images, min_count=0)}
     if cfg.annotations.is_dir():
         stems = {p.stem for p in label_files(cfg.annotations)}
-        ds = yolo_to_coco(cfg.annotations, {n: _size(p) for n, p in files.items() if Path(n).stem in stems}, drops)
+        ds = yolo_to_coco(cfg.annotations, {n: whole_image_size(p) for n, p in files.items() if Path(n).stem in stems}, drops)
     else:
         ds = read_dataset(cfg.annotations)
     if not ds["images"]:
@@ -257,7 +254,7 @@ def load_sources(cfg: TilingConfig, drops: DropLog | None = None) -> tuple[list[
                 drops.add(cfg.annotations, f"annotation {a.get('id')}", im["file_name"], a["bbox"],
                           "image not in the image folder", unmatched[im["file_name"]])
             continue
-        w, h = _size(files[name])
+        w, h = whole_image_size(files[name])
         if (w, h) != (im["width"], im["height"]):
             raise InputError(f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
                              path=cfg.annotations, fix="annotate the same (unresized) images that you tile")
@@ -291,20 +288,6 @@ def load_sources(cfg: TilingConfig, drops: DropLog | None = None) -> tuple[list[
         raise InputError("two annotated images differ only in their extension; tile names would clash",
                          path=cfg.images, fix="rename one of them")
     return sources, ds["categories"], missing
-
-
-def _size(path: Path) -> tuple[int, int]:
-    """(width, height) of a source photo that must be whole (a truncated JPEG would give grey tiles)."""
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
-            size = image_size(path)
-    except InputError as exc:
-        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
-                         fix="copy the photo again, or move it out of the image folder") from exc
-    if path.suffix.lower() in JPEG_SUFFIXES:
-        check_jpeg(path)
-    return size
 
 
 def check_tile_size(cfg: TilingConfig, sources: list[Source]) -> None:

@@ -26,7 +26,8 @@ from matchplant.core.guard import staged_outputs
 from matchplant.core.images import read_rgb8
 from matchplant.core.io import write_json
 from matchplant.core.log import get_logger
-from matchplant.core.odm import SUBMODELS_DIR, image_size
+from matchplant.core.images import image_size
+from matchplant.core.odm import SUBMODELS_DIR
 from matchplant.core.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.device import select_device, warn_if_slow

@@ -18,7 +18,7 @@ from collections import Counter
 from pathlib import Path
 
 
-from harness import Case, Work
+from harness import Case, Work, write_text_file as write
 from matchplant.core.yolo import coco_to_yolo
 
 IMAGES = "field/opensfm/undistorted/images"
@@ -26,14 +26,6 @@ IMAGES = "field/opensfm/undistorted/images"
 
 def truth(w: Work) -> dict:
     return json.loads((w.artifacts / "field" / "truth" / "boxes_undistorted.json").read_text())
-
-
-def write(path: Path, text: str, *, bom: bool = False, crlf: bool = False) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if crlf:
-        text = text.replace("\n", "\r\n")
-    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + text.encode("utf-8"))
-    return path
 
 
 def coco(w: Work, ds: dict, name: str = "boxes.json", **kw) -> Path:

@@ -16,7 +16,7 @@ import json
 from pathlib import Path
 
 
-from harness import Case, Work
+from harness import Case, Work, write_text_file as write
 from matchplant.cli import run_module
 from matchplant.core.yolo import coco_to_yolo
 
@@ -27,14 +27,6 @@ GRID = ("tile_size=128", "overlap=32", "workers=1")
 
 def truth(w: Work) -> dict:
     return json.loads((w.artifacts / TRUTH).read_text())
-
-
-def write(path: Path, text: str, *, bom: bool = False, crlf: bool = False) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if crlf:
-        text = text.replace("\n", "\r\n")
-    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + text.encode("utf-8"))
-    return path
 
 
 def coco(w: Work, ds: dict, name: str = "annotations.json", **kw) -> Path:

@@ -69,6 +69,15 @@ class Case:
     marks: tuple = field(default_factory=tuple)
 
 
+def write_text_file(path: Path, text: str, *, bom: bool = False, crlf: bool = False) -> Path:
+    """Write ``text`` as a user's editor might: with a UTF-8 byte-order mark and Windows line ends, if asked."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if crlf:
+        text = text.replace("\n", "\r\n")
+    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + text.encode("utf-8"))
+    return path
+
+
 def tree_hashes(folder: Path) -> dict[str, str]:
     if not folder.exists():
         return {}
