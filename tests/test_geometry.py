@@ -303,3 +303,46 @@ def test_march_does_not_step_over_a_thin_first_crossing():
         first = np.flatnonzero(f <= 0)[0]
         assert status[k] == HIT
         assert s[k] == pytest.approx(fine[first], abs=2e-5)
+
+
+def _first_crossing_brute(surface, o, d, clearance, s_max, n=400_001):
+    """The first ray parameter where a march 1,000 times finer than a cell comes down to ``clearance`` above
+    the surface from above it (NaN samples break a bracket, as holes do), or NaN."""
+    s = np.linspace(0.0, s_max, n)
+    p = o + s[:, None] * d
+    f = p[:, 2] - surface.sample(p[:, 0], p[:, 1]) - clearance
+    down = np.flatnonzero((f[:-1] > 0) & (f[1:] <= 0))
+    return s[down[0] + 1] if down.size else np.nan, s[1] - s[0]
+
+
+@pytest.mark.parametrize("clearance", [0.0, 0.02])
+def test_walk_finds_the_brute_force_first_crossing_on_rough_ground_with_holes(clearance):
+    """Rays in every direction over a rough 1 cm surface (plants as spikes and domes, holes): the first crossing
+    is where a brute-force march finds it, within its step, and a ray stopped by a hole says so."""
+    rng = np.random.default_rng(7)
+    data = rng.uniform(0.0, 0.05, (60, 80)).astype(np.float32)
+    data[rng.integers(0, 60, 40), rng.integers(0, 80, 40)] += rng.uniform(0.1, 0.6, 40).astype(np.float32)
+    yy, xx = np.mgrid[0:60, 0:80]
+    data += (0.3 * np.exp(-((xx - 40) ** 2 + (yy - 30) ** 2) / 60.0)).astype(np.float32)
+    data[10:14, 60:66] = np.nan  # a hole
+    surface = Surface(data=data, transform=Affine(0.01, 0, 0, 0, -0.01, 0.6))
+    n = 300
+    o = np.column_stack([rng.uniform(0.05, 0.75, n), rng.uniform(0.05, 0.55, n), rng.uniform(0.7, 1.0, n)])
+    d = np.column_stack([rng.normal(0, 0.25, n), rng.normal(0, 0.25, n), -np.ones(n)])
+    d[:20, :2] = 0.0  # straight down
+    d[20:40, 1] = 0.0  # along a row
+    pts, s, status = surface.intersect(o, d, clearance=clearance)
+    checked = 0
+    for k in range(n):
+        s_max = (o[k, 2] + 0.1) / -d[k, 2]
+        truth, step = _first_crossing_brute(surface, o[k], d[k], clearance, s_max)
+        if np.isfinite(truth):
+            assert status[k] == HIT, k
+            assert s[k] == pytest.approx(truth, abs=1.5 * step), k
+            checked += 1
+        else:
+            assert status[k] in (OUTSIDE, NODATA), k
+    assert checked > 0.6 * n  # the others leave the raster or meet the hole
+    hit = status == HIT
+    above = pts[hit, 2] - surface.sample(pts[hit, 0], pts[hit, 1])
+    np.testing.assert_allclose(above, clearance, atol=1e-6)

@@ -27,11 +27,12 @@ from matchplant.core.errors import MatchPlantError
 from matchplant.core.frames import write_coords_txt
 from matchplant.core.odm import ODMProject
 from matchplant.core.reconstruction import Shot, write_reconstruction
-from matchplant.core.surface import OUTSIDE, STATUS_TEXT
+from matchplant.core.surface import HIT, OUTSIDE, STATUS_TEXT
 from matchplant.plant_projection import dsm
 from matchplant.plant_projection.config import ProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
-from matchplant.plant_projection.geometry import _skimmed, box_outline, outline_boxes
+from matchplant.plant_projection.geometry import box_outline, outline_boxes
+from matchplant.plant_projection.relief import skimmed
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.run import run
 from matchplant.plant_projection.inputs import load_predictions
@@ -196,8 +197,8 @@ def test_ground_under_plants_is_the_terrain():
     assert np.abs(err[~soil]).max() < 0.015 and err[~soil].max() < 0.015  # plants up to 0.45 m tall are gone
 
 
-def test_drop_settles_exact_hits_and_keeps_grazing_ones():
-    """A ray stopped 2 cm above the surface drops onto it when it meets it within 4 cm further down (the
+def test_settle_moves_exact_hits_and_keeps_grazing_ones():
+    """A ray stopped 2 cm above the surface settles onto it when it meets it within 4 cm further down (the
     soil, a plant's side) and stays when it only grazed a top (the soil lies much further down)."""
     from matchplant.core.surface import Surface
 
@@ -205,11 +206,15 @@ def test_drop_settles_exact_hits_and_keeps_grazing_ones():
     Z[90:110, 90:110] = 0.5  # a 20 cm block, 0.5 m tall
     s = Surface(Z, Affine(0.01, 0, 0, 0, -0.01, 2.0))
     d = np.array([[0.5, 0.0, -1.0], [0.5, 0.0, -1.0]])
-    # on flat soil at x = 0.5, and just past the block's far top edge (x = 1.1, 0.02 above its top)
-    p = np.array([[0.5, 1.0, 0.02], [1.1, 1.0, 0.52]])
-    out = s.drop(p, d, 0.04)
-    np.testing.assert_allclose(out[0], [0.51, 1.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(out[1], p[1])
+    # one ray to flat soil at x = 0.51, one passing 1 cm over the block's far top edge (x = 1.095)
+    o = np.array([[0.0, 1.0, 1.02], [0.585, 1.0, 1.53]])
+    stopped, _, st = s.intersect(o, d, clearance=0.02)
+    settled, _, st2 = s.intersect(o, d, clearance=0.02, settle=0.04)
+    assert (st == HIT).all() and (st2 == HIT).all()
+    np.testing.assert_allclose(stopped[0], [0.5, 1.0, 0.02], atol=1e-6)  # 2 cm above the soil
+    np.testing.assert_allclose(settled[0], [0.51, 1.0, 0.0], atol=1e-6)  # on it
+    assert stopped[1, 2] == pytest.approx(0.52, abs=1e-6) and stopped[1, 0] < 1.1  # grazing the top's edge
+    np.testing.assert_allclose(settled[1], stopped[1])  # the soil is 0.5 m further down: it stays
 
 
 def test_rays_that_skimmed_a_plant_are_flagged():
@@ -225,7 +230,7 @@ def test_rays_that_skimmed_a_plant_are_flagged():
     # by 5 cm lands on the soil just behind it
     skimmed_hit = np.array([1.0 + 0.095 * 10.0 / 9.45, 1.0, 0.0])
     open_hit = np.array([0.2, 0.2, 0.0])
-    out = _skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
+    out = skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
     assert out.tolist() == [True, False]
 
 

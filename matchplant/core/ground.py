@@ -26,30 +26,36 @@ def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface,
     return rays_to_ground(shot, shot.ray_directions(uv), frame, surface, clearance=clearance)
 
 
-def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface, *,
-                   clearance: float = 0.0, heights: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface, *, clearance: float = 0.0,
+                   settle: float = 0.0, heights: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`pixels_to_ground` for ray directions (N, 3) in the reconstruction frame, already computed
-    (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces. ``heights``: the range of
-    map heights to search per ray, when known (:meth:`Surface.intersect`)."""
+    (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces. ``settle`` and ``heights`` (the
+    range of map heights to search per ray, when known): :meth:`Surface.intersect`."""
     c = shot.center
     if frame.is_affine:
         origin = frame.to_map(c[None, :])
-        points, _, status = surface.intersect(origin, dirs, clearance=clearance, heights=heights)
+        points, _, status = surface.intersect(origin, dirs, clearance=clearance, settle=settle, heights=heights)
         return points, status
     # Non-affine frame: a straight map-space ray through the centre and a point near the ground...
     c_map = frame.to_map(c[None, :])[0]
     reach = max(c_map[2] - surface.zmin, 1.0) / np.maximum(-dirs[:, 2], 1e-3)
     far_map = frame.to_map(c[None, :] + reach[:, None] * dirs)
     map_dirs = (far_map - c_map) / reach[:, None]
-    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, heights=heights)
+    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, settle=settle,
+                                          heights=heights)
     # ...then secant steps on the exact curve s -> frame.to_map(c + s * dir).
     ok = status == HIT
     if ok.any():
         d = dirs[ok]
+        # each ray's height above the surface: the clearance, or 0 where it settled onto the surface
+        target = np.full(int(ok.sum()), clearance)
+        if settle > 0 and clearance > 0:
+            p = points[ok]
+            target[p[:, 2] - surface.sample(p[:, 0], p[:, 1]) < 0.5 * clearance] = 0.0
 
         def g(sv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             p = frame.to_map(c[None, :] + sv[:, None] * d)
-            return p, p[:, 2] - surface.sample(p[:, 0], p[:, 1]) - clearance
+            return p, p[:, 2] - surface.sample(p[:, 0], p[:, 1]) - target
 
         s0 = s[ok]
         s1 = s0 + 1e-3

@@ -16,6 +16,7 @@ from matchplant.core.frames import Frame
 from matchplant.core.ground import rays_to_ground
 from matchplant.core.reconstruction import Shot
 from matchplant.core.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+from matchplant.plant_projection.relief import apex, skimmed
 
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
 APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for
@@ -106,22 +107,6 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def _skimmed(hits: np.ndarray, cam: np.ndarray, surface: Surface, ground: Surface, hidden_height: float,
-             skim: float, canopy: float, samples: int = 16) -> np.ndarray:
-    """Rays (camera to ``hits`` on the soil) that passed less than ``skim`` above a plant (the DSM standing
-    ``hidden_height`` above the ground) on their way down: they went over the plant's top without a ray
-    grazing it, so where they landed is not the plant's edge."""
-    if len(hits) == 0:
-        return np.zeros(0, dtype=bool)
-    d = hits - cam
-    d /= -d[:, 2:3]  # per metre of descent
-    u = (np.arange(1, samples + 1) / samples) * (canopy + skim)  # heights above the hit
-    p = hits[:, None, :] - u[None, :, None] * d[:, None, :]
-    top = surface.sample(p[..., 0], p[..., 1])
-    plant = top - ground.sample(p[..., 0], p[..., 1]) > hidden_height
-    return (plant & (p[..., 2] - top < skim)).any(axis=1)
-
-
 def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
                      surface: Surface | None = None, *, hidden_height: float = 0.05, apex_grid: int = 9,
                      how: str = "inscribed", cam: np.ndarray | None = None, skim: float = 0.1,
@@ -168,26 +153,17 @@ def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndar
             hidden[far, k] = hit[far, 2] - ground.sample(hit[far, 0], hit[far, 1]) > hidden_height
             if cam is not None and surface is not None:
                 on_soil = np.flatnonzero(far & ~hidden[:, k])
-                hidden[on_soil, k] = _skimmed(hit[on_soil], cam, surface, ground, hidden_height, skim, canopy)
+                hidden[on_soil, k] = skimmed(hit[on_soil], cam, surface, ground, hidden_height, skim, canopy)
     t, r, bo, le = (inner[:, k].copy() for k in range(4))
     # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
     sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
     if surface is not None and sel.size:
         # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
         # stops a grazing ray a little before its tangent point, short of the top)
-        g = (np.arange(apex_grid) + 0.5) / apex_grid
         hs = hidden[sel].astype(float) * APEX_REACH
         a0, a1 = le[sel] - (r - le)[sel] * hs[:, 3], r[sel] + (r - le)[sel] * hs[:, 1]
         b0, b1 = t[sel] - (bo - t)[sel] * hs[:, 0], bo[sel] + (bo - t)[sel] * hs[:, 2]
-        ga = a0[:, None, None] + (a1 - a0)[:, None, None] * g[None, None, :]
-        gb = b0[:, None, None] + (b1 - b0)[:, None, None] * g[None, :, None]
-        ga, gb = np.broadcast_arrays(ga, gb)
-        gx = centre[sel, 0, None, None] + ga * a[sel, 0, None, None] + gb * b[sel, 0, None, None]
-        gy = centre[sel, 1, None, None] + ga * a[sel, 1, None, None] + gb * b[sel, 1, None, None]
-        h = surface.sample(gx, gy).reshape(len(sel), -1)
-        h = np.where(np.isfinite(h), h, -np.inf)
-        top_i = h.argmax(axis=1)
-        aa, ab = ga.reshape(len(sel), -1)[np.arange(len(sel)), top_i], gb.reshape(len(sel), -1)[np.arange(len(sel)), top_i]
+        aa, ab = apex(surface, centre[sel], a[sel], b[sel], a0, a1, b0, b1, apex_grid)
         hs = hidden[sel]
         t2, r2, bo2, le2 = t[sel].copy(), r[sel].copy(), bo[sel].copy(), le[sel].copy()
         t2[hs[:, 0]] = np.minimum(t[sel], 2 * ab - bo[sel])[hs[:, 0]]
@@ -250,12 +226,11 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         rise = 1.0 - ground.max_slope * tan
         with np.errstate(invalid="ignore", divide="ignore"):
             top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
-        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, heights=(top, gz - 0.05))
-        if clearance > 0:
-            # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
-            # exact hit (soil at a leaf tip, a plant's side); one that would fall further grazed a plant's top
-            hit = st == HIT
-            pts[hit] = surface.drop(pts[hit], pts[hit] - cam, 2 * clearance)  # along the ray, in map space
+        # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
+        # exact hit (soil at a leaf tip, a plant's side) and settles there; one that would fall further grazed
+        # a plant's top and stays
+        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, settle=2 * clearance,
+                                 heights=(top, gz - 0.05))
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
