@@ -108,7 +108,7 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
 
 
 def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
-                     surface: Surface | None = None, *, hidden_height: float = 0.05, apex_grid: int = 9,
+                     surface: Surface | None = None, *, hidden_height: float = 0.05,
                      how: str = "inscribed", cam: np.ndarray | None = None, skim: float = 0.1,
                      canopy: float = 0.0) -> dict[str, np.ndarray]:
     """Map boxes (M, 4) of plants from the hits of the rays along their photo box's edges.
@@ -163,7 +163,7 @@ def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndar
         hs = hidden[sel].astype(float) * APEX_REACH
         a0, a1 = le[sel] - (r - le)[sel] * hs[:, 3], r[sel] + (r - le)[sel] * hs[:, 1]
         b0, b1 = t[sel] - (bo - t)[sel] * hs[:, 0], bo[sel] + (bo - t)[sel] * hs[:, 2]
-        aa, ab = apex(surface, centre[sel], a[sel], b[sel], a0, a1, b0, b1, apex_grid)
+        aa, ab = apex(surface, centre[sel], a[sel], b[sel], a0, a1, b0, b1)
         hs = hidden[sel]
         t2, r2, bo2, le2 = t[sel].copy(), r[sel].copy(), bo[sel].copy(), le[sel].copy()
         t2[hs[:, 0]] = np.minimum(t[sel], 2 * ab - bo[sel])[hs[:, 0]]
