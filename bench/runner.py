@@ -31,6 +31,7 @@ REGISTRY = {
     "train": ("bench.bench_train", "module 6, training loop vs a bare torchvision loop"),
     "detect": ("bench.bench_train", "module 7, tiled detection vs the bare model on the same tiles"),
     "tiling": ("bench.bench_tiling", "module 5, tiling vs SAHI slice_coco"),
+    "box-pairs": ("bench.bench_boxes", "module 8, overlapping box pairs vs shapely STRtree"),
 }
 GPU_NAMES = ("train", "detect")  # what --device cuda measures
 PACKAGES = ["matchplant", "numpy", "numba", "shapely", "rasterio", "exactextract", "rasterstats", "piexif",
