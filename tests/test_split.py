@@ -119,14 +119,59 @@ def test_projection_over_submodels_places_each_plant_once(split):
     truth = pd.read_csv(split.map_boxes)
     m = evaluate_boxes(truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
                        plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    # issue 18's acceptance: each shot's boxes meet its own submodel's DSM and the submodels' views are aligned,
+    # so only their common offset (a centimetre) remains: median IoU >= 0.9, no plant twice. Of tiny's 46 plants
+    # 2 (4 %) stay under IoU 0.5: seen only obliquely at the field's edge, their boxes' far sides are guesses
+    # that the moved (resampled) submodel DSMs shift by a decimetre (the small field's split preset matches its
+    # single project there: 98.9 % both)
     assert m["share_matched"] == 1.0 and m["share_iou_above_0.5"] >= 0.95
-    # tiny's plants are 30 cm across: a 1.5 cm misalignment costs about 0.1 of IoU
-    assert m["iou_median"] >= 0.7
+    assert m["iou_median"] >= 0.9
     counts = plants["truth_plant_id"].value_counts()
     assert len(plants) == len(truth) and counts.max() == 1  # no plant twice (seen from two submodels)
     owners = views.table.groupby("truth_plant_id")["shot_id"].agg(
         lambda s: {ODMProject(split.root).owner(x).name for x in s})
     assert (owners.map(len) == 2).any()  # some plants merged from views of both submodels
+
+
+def _seam_side_errors(views, f: FieldPaths) -> np.ndarray:
+    """For each whole view of a plant on the other submodel's side of the merged DSM (where the merged DSM holds
+    the other submodel's surface): its sides minus its truth plant's, moved by its own submodel's misalignment."""
+    t = views.table[~views.table["cut"]]
+    subs = read_json(f.truth / "split.json")["submodels"]
+    pivot = {s["name"]: np.array(s["misalignment"]["pivot"][:2]) for s in subs}
+    move = {s["name"]: np.array(s["misalignment"]["translation_m"][:2]) for s in subs}
+    truth = pd.read_csv(f.map_boxes).set_index("id").loc[t["truth_plant_id"], ["xmin", "ymin", "xmax", "ymax"]]
+    centre = (truth[["xmin", "ymin"]].to_numpy() + truth[["xmax", "ymax"]].to_numpy()) / 2
+    names = sorted(pivot)
+    nearest = np.array(names)[np.argmin([np.hypot(*(centre - pivot[n]).T) for n in names], axis=0)]
+    other = nearest != t["submodel"].to_numpy()
+    shift = np.tile(np.array([move[s] for s in t["submodel"]]), 2)
+    err = t[["xmin", "ymin", "xmax", "ymax"]].to_numpy() - truth.to_numpy() - shift
+    return np.abs(err[other])
+
+
+def test_each_shot_meets_its_own_submodels_dsm(split, tmp_path, caplog):
+    """A submodel's poses and its own DSM are the same world moved by its misalignment, so its views land on the
+    truth moved by it, on the other submodel's side of the seam too; the merged DSM (the other submodel's cells
+    there) is used only for a submodel without a DSM (said in the log), or for every shot when 'dsm' is set."""
+    preds = _truth_predictions(split)
+    own, _ = project_predictions(ODMProject(split.root), preds)
+    merged, _ = project_predictions(ODMProject(split.root), preds, dsm=split.root / "odm_dem" / "dsm.tif")
+    e_own, e_merged = _seam_side_errors(own, split), _seam_side_errors(merged, split)
+    assert len(e_own) >= 50
+    assert np.median(e_own) < 0.0025  # metres (1.9 mm; 3.1 mm on the merged DSM)
+    assert np.median(e_own) < 0.75 * np.median(e_merged)
+    broken = tmp_path / "no_dsm"
+    shutil.copytree(split.root, broken)
+    (broken / "submodels" / "submodel_0001" / "odm_dem" / "dsm.tif").unlink()
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        fallback, rejected = project_predictions(ODMProject(broken), preds)
+    assert "submodel(s) submodel_0001 have no DSM of their own" in caplog.text
+    assert len(rejected) == 0
+    same = (fallback.table["submodel"] == "submodel_0000").to_numpy()
+    assert same.any() and not same.all()
+    np.testing.assert_array_equal(fallback.table["cx"].to_numpy()[same], own.table["cx"].to_numpy()[same])
+    np.testing.assert_array_equal(fallback.table["cx"].to_numpy()[~same], merged.table["cx"].to_numpy()[~same])
 
 
 def test_module_3_selection_covers_the_whole_field(split, tiny_field, tmp_path):

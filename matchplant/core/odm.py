@@ -201,6 +201,13 @@ class ODMProject:
                              "reconstructions", path=self.root / SUBMODELS_DIR,
                              fix="ODM could not place this image; use another image, or check the name") from None
 
+    def own_raster(self, shot_id: str, name: str = "dsm") -> Path | None:
+        """The raster ``name`` of the submodel that places ``shot_id`` (ODM leaves each submodel's own DSM, DTM and
+        orthophoto in its folder; they agree with its poses, the merged one only near its centre); None when
+        that submodel has none. In a single project: the project's raster, or None."""
+        p = self.owner(shot_id).root / OUTPUTS[name].relpath
+        return p if p.is_file() else None
+
     def frame_of(self, shot_id: str) -> Frame:
         """The frame ``shot_id``'s pose is in (its submodel's, in the project's map CRS)."""
         if not self.is_split:

@@ -45,9 +45,13 @@ def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: f
     dm = (far - c_map) / 100.0
     if (dm[:, 2] > -1e-6).any():
         return None
-    pts = [c_map[:2] + ((z - c_map[2]) / dm[:, 2])[:, None] * dm[:, :2] for z in (z_lo, z_hi)]
-    pts = np.concatenate(pts)
-    return np.concatenate([pts.min(axis=0), pts.max(axis=0)])
+    x, y = np.ascontiguousarray(dm[:, 0]), np.ascontiguousarray(dm[:, 1])  # 1-D reductions: fast
+    out = np.array([np.inf, np.inf, -np.inf, -np.inf])
+    for z in (z_lo, z_hi):
+        s = (z - c_map[2]) / dm[:, 2]
+        px, py = c_map[0] + s * x, c_map[1] + s * y
+        out = np.r_[np.minimum(out[:2], [px.min(), py.min()]), np.maximum(out[2:], [px.max(), py.max()])]
+    return out
 
 
 class DsmSurfaces:

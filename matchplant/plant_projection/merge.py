@@ -7,6 +7,7 @@ uncertainty measure.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pandas as pd
 import scipy.sparse as sp
@@ -19,6 +20,8 @@ MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / 
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
 MERGE_GAP = 0.05  # metres: a plant seen only in border-cut slivers this close to a plant seen whole is that plant
 FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
+MERGE_TOLERANCE = 0.01  # metres: how far a seen side of a partly guessed view may stick out of the plant it joins
+# (poses, DSM and the alignment of a split project's submodels disagree by millimetres to a centimetre)
 
 
 def _tile_duplicates(t: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
@@ -56,6 +59,10 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     its far side (relief displacement), so its oblique views contain its near-nadir view rather than
     match it; a view cut by the photo or tile border needs only a modest overlap
     (:data:`MERGE_CUT_INSIDE`) since its cut edge is no plant edge. Near-nadir views are the most accurate, so they anchor the plants.
+    A view with a side it did not see (behind the plant's top or a neighbour: a guess, which may overshoot)
+    joins a view it lies mostly inside, within :data:`MERGE_TOLERANCE`, or whose corner it saw
+    (:func:`_seen_sides_match`); views this close count as overlapping, so a thin visible sliver
+    of a hidden plant beside its plant's box is no second plant.
 
     Views from the submodels of a split-merge project are first brought into one frame
     (:func:`~matchplant.plant_projection.submodels.align_submodels`).
@@ -72,22 +79,19 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     iou_to_rep = np.ones(n)
     if merge != "none" and n:
         order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
-        i, j, iou = overlapping_pairs(box)
-        area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
-        inter = iou * (area[i] + area[j]) / (1.0 + iou)
-        inside = inter / np.minimum(area[i], area[j])
+        # pairs of views that overlap, or come within MERGE_TOLERANCE (a sliver beside its plant's box)
+        i, j, _ = overlapping_pairs(box + [-MERGE_TOLERANCE, -MERGE_TOLERANCE, MERGE_TOLERANCE, MERGE_TOLERANCE])
         cat = t["category_id"].to_numpy()
         cut = t["cut"].to_numpy()
-        # a view cut by a border is partial, and its cut edge is no plant edge (with relief, the ray at the
-        # border passes over the plant): a modest overlap is enough, and the best overlap wins below
-        # a view with a side it did not see (its box partly guessed) that lies inside another is that plant
         partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
         guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
-        smaller = np.where(area[i] <= area[j], i, j)
-        strong = (cat[i] == cat[j]) & ((iou >= merge_iou) | ((inside >= MERGE_CONTAINED) & (iou >= merge_iou / 2))
-                                       | ((inside >= MERGE_CONTAINED) & guessed[smaller])
-                                       | ((cut[i] | cut[j]) & (inside >= MERGE_CUT_INSIDE)))
-        adj = sp.coo_matrix((iou[strong], (i[strong], j[strong])), shape=(n, n)).tocsr()
+        unseen = (t[list(UNSEEN_COLUMNS)].to_numpy(bool) if all(c in t for c in UNSEEN_COLUMNS)
+                  else np.zeros((n, 4), dtype=bool))
+        iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64), cut.astype(np.bool_),
+                                  guessed.astype(np.bool_), np.ascontiguousarray(unseen), float(merge_iou),
+                                  MERGE_CONTAINED, MERGE_CUT_INSIDE, MERGE_TOLERANCE)
+        pair = np.flatnonzero(strong)  # the adjacency holds pair numbers + 1 (an IoU may be 0)
+        adj = sp.coo_matrix((pair + 1.0, (i[pair], j[pair])), shape=(n, n)).tocsr()
         adj = (adj + adj.T).tocsr()
         seed = np.zeros(n, dtype=bool)
         claimed = np.zeros(n, dtype=bool)
@@ -100,7 +104,7 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         # every claimed view joins the representative it overlaps most
         coo = adj.tocoo()
         m = seed[coo.col] & ~seed[coo.row]
-        r, c, v = coo.row[m], coo.col[m], coo.data[m]
+        r, c, v = coo.row[m], coo.col[m], iou[coo.data[m].astype(np.int64) - 1]
         best = np.lexsort((-v, r))
         first = np.r_[True, r[best][1:] != r[best][:-1]] if best.size else np.zeros(0, bool)
         rep[r[best][first]] = c[best][first]
@@ -157,6 +161,61 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         plants["truth_plant_id"] = reps_t["truth_plant_id"].to_numpy()
     plants["view_index"] = reps_pos
     return plants
+
+
+@numba.njit(cache=True, nogil=True)
+def _pair_rules(box, i, j, cat, cut, guessed, unseen, merge_iou, contained, cut_inside, tol):
+    """The IoU of each pair of views ``(i[k], j[k])`` and whether they are one plant (see :func:`merge_views`), in
+    one pass. Two views of one category are when their IoU reaches ``merge_iou``; or one lies ``contained``
+    inside the other with half that IoU; or one is cut by a border and ``cut_inside`` inside the other; or the
+    smaller has a side it did not see (a guess) and lies ``contained`` inside the other grown by ``tol`` (a thin
+    view of a plant mostly hidden by its neighbour is pushed out of its own plant by the millimetres poses and
+    DSM disagree); or one with a guessed side saw a corner of the other: an east or west and a north or south side
+    within ``tol`` of the other's same sides, which it saw too (seen sides are the plant's edges, and a corner
+    pins the plant; a guessed side can overshoot by decimetres)."""
+    m = i.size
+    iou = np.zeros(m)
+    strong = np.zeros(m, dtype=np.bool_)
+    for k in range(m):
+        a, b = i[k], j[k]
+        iw = max(min(box[a, 2], box[b, 2]) - max(box[a, 0], box[b, 0]), 0.0)
+        ih = max(min(box[a, 3], box[b, 3]) - max(box[a, 1], box[b, 1]), 0.0)
+        inter = iw * ih
+        area_a = (box[a, 2] - box[a, 0]) * (box[a, 3] - box[a, 1])
+        area_b = (box[b, 2] - box[b, 0]) * (box[b, 3] - box[b, 1])
+        union = area_a + area_b - inter
+        v = inter / union if union > 0 else 0.0
+        iou[k] = v
+        if cat[a] != cat[b]:
+            continue
+        small, big = (a, b) if area_a <= area_b else (b, a)
+        least = min(area_a, area_b)
+        inside = inter / least if least > 0 else 0.0
+        if (v >= merge_iou or (inside >= contained and v >= merge_iou / 2)
+                or ((cut[a] or cut[b]) and inside >= cut_inside)):
+            strong[k] = True
+        elif guessed[small] and least > 0:
+            w = min(box[small, 2], box[big, 2] + tol) - max(box[small, 0], box[big, 0] - tol)
+            h = min(box[small, 3], box[big, 3] + tol) - max(box[small, 1], box[big, 1] - tol)
+            strong[k] = w > 0 and h > 0 and w * h / least >= contained
+        if not strong[k]:
+            strong[k] = ((guessed[a] and _seen_sides_match(box, unseen, a, b, tol))
+                         or (guessed[b] and _seen_sides_match(box, unseen, b, a, tol)))
+    return iou, strong
+
+
+@numba.njit(cache=True, nogil=True)
+def _seen_sides_match(box, unseen, a, b, tol):
+    """View ``a`` saw an east or west side and a north or south side that lie within ``tol`` of view ``b``'s same
+    sides, which ``b`` saw too: a corner of the plant (its other seen sides may be off, in a steep view)."""
+    x = y = False
+    for q in range(4):
+        if not unseen[a, q] and not unseen[b, q] and abs(box[a, q] - box[b, q]) <= tol:
+            if q % 2 == 0:
+                x = True
+            else:
+                y = True
+    return x and y
 
 
 def _join_slivers(rep: np.ndarray, box: np.ndarray, cut: np.ndarray, cat: np.ndarray) -> None:

@@ -123,6 +123,43 @@ def _cut(boxes: np.ndarray, size: np.ndarray, tile: np.ndarray, border: float) -
     return np.stack([top, right, bottom, left], axis=1)
 
 
+def _per_image(images: list[dict]) -> tuple[list, dict[str, np.ndarray]]:
+    """The image ids (the last entry of a repeated id wins, as a dict would keep it) and, per image, its file
+    name, source photo name, tile offset and size (NaN where the image is not a tile)."""
+    by_id = {im["id"]: im for im in images}
+    ims = list(by_id.values())
+    x0 = np.array([float(im.get("x0", 0) or 0) for im in ims]).reshape(-1)
+    y0 = np.array([float(im.get("y0", 0) or 0) for im in ims]).reshape(-1)
+    tiled = np.array([im.get("x0") is not None or im.get("y0") is not None for im in ims], dtype=bool)
+    tile = np.column_stack([x0, y0, [float(im.get("width") or np.nan) for im in ims],
+                            [float(im.get("height") or np.nan) for im in ims]]).reshape(-1, 4)
+    tile[~tiled] = np.nan
+    return list(by_id), {"image": np.array([im.get("file_name", "") for im in ims], dtype=object),
+                         "source_image": np.array([Path(source_name(im).replace("\\", "/")).name for im in ims],
+                                                  dtype=object),
+                         "offset": np.column_stack([x0, y0]).reshape(-1, 2), "tile": tile}
+
+
+def _dsm_paths(project: ODMProject, keys: list[tuple[str, bool]], dsm: Path | None) -> list[Path]:
+    """The DSM each (shot, undistorted) group's rays meet: ``dsm`` when given; in a split-merge project the
+    shot's own submodel's DSM, which agrees with its poses (the merged one mixes submodels near the seams),
+    or the merged DSM for a submodel without one (said once); else the project's DSM."""
+    if dsm is not None:
+        return [Path(dsm)] * len(keys)
+    if not project.is_split:
+        project.require("dsm")
+        return [project.path("dsm")] * len(keys)
+    own = {sid: project.own_raster(sid, "dsm") for sid in dict.fromkeys(sid for sid, _ in keys)}
+    without = sorted({project.owner(sid).name for sid, p in own.items() if p is None})
+    merged = None
+    if without:
+        project.require("dsm")
+        merged = project.path("dsm")
+        log.info("submodel(s) %s have no DSM of their own (odm_dem/dsm.tif); their shots' boxes meet the merged "
+                 "DSM %s", ", ".join(without), merged)
+    return [own[sid] or merged for sid, _ in keys]
+
+
 def project_predictions(project: ODMProject, predictions: dict, *, image_type: str = "auto",
                         dsm: Path | None = None, min_score: float = 0.0, edge_points: int = 4,
                         map_box: str = "inscribed", border_pixels: float = 2.0,
@@ -132,12 +169,14 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
 
     ``predictions`` is :func:`matchplant.core.coco.read_predictions`'s dict (tile boxes are moved back to their
     source image with the tile's ``x0``, ``y0``). The rejected table has one row per box with its reason.
+    In a split-merge project each shot's boxes meet its own submodel's DSM (docs/DESIGN.md §6) unless ``dsm``
+    is given. The bookkeeping is done per image (names, shots, frames) and per box only in numpy.
     """
-    images = {im["id"]: im for im in predictions["images"]}
+    image_keys, per_image = _per_image(predictions["images"])
     cats = {c["id"]: c.get("name", str(c["id"])) for c in predictions.get("categories", [])}
     preds = predictions["predictions"]
     n = len(preds)
-    log.info("%d detections on %d images", n, len(images))
+    log.info("%d detections on %d images", n, len(image_keys))
     frame = project.frame()
     und_ids, orig_ids = project.shot_ids(undistorted=True), project.shot_ids(undistorted=False)
     if image_type == "original" and not orig_ids:
@@ -147,105 +186,121 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
                                                         any(n.lower().endswith(".tif") for n in names))):
         project.require("undistorted_reconstruction")  # boxes on undistorted images: say what is missing
 
-    # one flat table of boxes in source-image pixels
-    table = pd.DataFrame({"pred_index": np.arange(n), "image_id": [p["image_id"] for p in preds],
-                          "score": [float(p.get("score", 1.0)) for p in preds],
-                          "category_id": [int(p.get("category_id", 1)) for p in preds]})
-    ims = pd.DataFrame({"image_id": list(images),
-                        "image": [im.get("file_name", "") for im in images.values()],
-                        "source_image": [Path(source_name(im).replace("\\", "/")).name for im in images.values()],
-                        "x0": [float(im.get("x0", 0) or 0) for im in images.values()],
-                        "y0": [float(im.get("y0", 0) or 0) for im in images.values()],
-                        "tiled": [im.get("x0") is not None or im.get("y0") is not None for im in images.values()],
-                        "tile_w": [float(im.get("width") or np.nan) for im in images.values()],
-                        "tile_h": [float(im.get("height") or np.nan) for im in images.values()]})
-    per = ims.set_index("image_id").loc[table["image_id"]].reset_index(drop=True)
+    # one flat table of boxes in source-image pixels: one pass per field over the prediction dicts, the rest
+    # per image (its code in image_keys) and per source photo (its code in sources)
+    image_ids = [p["image_id"] for p in preds]
+    score = np.fromiter([p.get("score", 1.0) for p in preds], dtype=float, count=n)
+    category_id = np.fromiter([int(p.get("category_id", 1)) for p in preds], dtype=np.int64, count=n)
+    code = pd.Index(image_keys).get_indexer(pd.Index(image_ids)) if n else np.zeros(0, dtype=np.int64)
+    if (code < 0).any():
+        missing = image_ids[int(np.flatnonzero(code < 0)[0])]
+        raise InputError(f"{int((code < 0).sum())} prediction(s) refer to images not listed in 'images' (e.g. "
+                         f"image_id {missing!r})", fix="regenerate the predictions with module 7")
     b = np.array([p["bbox"] for p in preds], dtype=float).reshape(-1, 4)
-    off = per[["x0", "y0"]].to_numpy(float)
+    off = per_image["offset"][code]
     boxes = np.column_stack([b[:, :2] + off, b[:, :2] + off + b[:, 2:]])
-    table["image"], table["source_image"] = per["image"].to_numpy(), per["source_image"].to_numpy()
-    table["category"] = [cats.get(c, str(c)) for c in table["category_id"]]
-    table[["u1", "v1", "u2", "v2"]] = boxes
+    src_of_image, sources = pd.factorize(per_image["source_image"])
+    src = src_of_image[code]
+    seen = pd.unique(src)  # source photos in order of their first box
+    resolved, hints = resolve_images(sources[seen], und_ids, orig_ids, image_type)
+    shot_of = np.array([resolved.get(s, (None, False))[0] for s in sources], dtype=object)
+    und_of = np.array([bool(resolved.get(s, (None, True))[1]) for s in sources], dtype=bool)
+    cat_codes, cat_values = pd.factorize(category_id)
+    cols = {"pred_index": np.arange(n), "image_id": pd.Series(image_ids).to_numpy(), "score": score,
+            "category_id": category_id,
+            "image": per_image["image"][code], "source_image": per_image["source_image"][code],
+            "category": np.array([cats.get(c, str(c)) for c in cat_values], dtype=object)[cat_codes],
+            "u1": boxes[:, 0], "v1": boxes[:, 1], "u2": boxes[:, 2], "v2": boxes[:, 3]}
     if any("plant_id" in p for p in preds):  # ground-truth ids travel through (synthetic field, tests)
-        table["truth_plant_id"] = [p.get("plant_id", -1) for p in preds]
+        cols["truth_plant_id"] = pd.Series([p.get("plant_id", -1) for p in preds]).to_numpy()
+    cols["hint"] = np.array([hints.get(s, "") for s in sources], dtype=object)[src]
+    cols["shot_id"] = shot_of[src]
+    cols["undistorted"] = und_of[src]
+    known = pd.notna(cols["shot_id"])
+    if project.is_split:  # which submodel's frame placed each box (merge.align_submodels)
+        cols["submodel"] = np.array([project.owner(s).name if s is not None else "" for s in shot_of],
+                                    dtype=object)[src]
 
     reason = np.full(n, "", dtype=object)
-    reason[table["score"].to_numpy() < min_score] = "score below min_score"
-    resolved, hints = resolve_images(table["source_image"].unique(), und_ids, orig_ids, image_type)
-    table["hint"] = [hints.get(name, "") for name in table["source_image"]]
-    table["shot_id"] = table["source_image"].map({k: v[0] for k, v in resolved.items()})
-    table["undistorted"] = table["source_image"].map({k: v[1] for k, v in resolved.items()}).astype(bool)
-    reason[(reason == "") & table["shot_id"].isna().to_numpy()] = NOT_IN_RECONSTRUCTION
-    if project.is_split:  # which submodel's frame placed each box (merge.align_submodels)
-        owners = {sid: project.owner(sid).name for sid in table["shot_id"].dropna().unique()}
-        table["submodel"] = table["shot_id"].map(owners).fillna("")
+    reason[score < min_score] = "score below min_score"
+    reason[(reason == "") & ~known] = NOT_IN_RECONSTRUCTION
     reason[(reason == "") & ~((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))] = EMPTY_BOX
 
-    # one group per (shot, undistorted?): its camera, its boxes
-    known = table["shot_id"].notna().to_numpy()
+    # one group per (shot, undistorted?): its camera, its boxes; groups numbered in order of their first box
+    shot_code, shot_names = pd.factorize(shot_of)  # two names can be one shot (IMG_1.tif, img_1.tif)
+    pair_codes = 2 * shot_code[src] + und_of[src]
     group = np.full(n, -1)
-    shot_codes, shot_ids = pd.factorize(table.loc[known, "shot_id"])
-    codes, pairs = pd.factorize(2 * shot_codes + table.loc[known, "undistorted"].to_numpy(int))
-    group[known] = codes
-    keys = [(shot_ids[p // 2], bool(p % 2)) for p in pairs]
+    group[known], pairs = pd.factorize(pair_codes[known])
+    keys = [(shot_names[p // 2], bool(p % 2)) for p in pairs]
     warned: set = set()
     shots = [_shot(project, sid, bool(und), warned) for sid, und in keys]
     frames = [project.frame_of(sid) for sid, _ in keys]  # a split project's submodels have a frame each
     size = np.full((n, 2), np.nan)
     if keys:
         wh = np.array([[s.camera.width, s.camera.height] for s in shots], dtype=float)
-        size[known] = wh[codes]
+        size[known] = wh[group[known]]
     with np.errstate(invalid="ignore"):
         outside = (boxes[:, 0] < -1) | (boxes[:, 1] < -1) | (boxes[:, 2] > size[:, 0] + 1) | (boxes[:, 3] > size[:, 1] + 1)
     reason[(reason == "") & outside] = BOX_OUTSIDE_IMAGE
     todo = np.flatnonzero(reason == "")
 
-    dsm_path = Path(dsm) if dsm is not None else project.path("dsm")
-    if dsm is None:
-        project.require("dsm")
-    surfaces = DsmSurfaces(dsm_path, frame.crs, ground_window)
     by_group = todo[np.argsort(group[todo], kind="stable")]
     keys_todo, starts = np.unique(group[by_group], return_index=True)
     groups = {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
-    bounds = {k: ray_bounds(shots[k], frames[k], boxes[idx], surfaces.z_lo, surfaces.z_hi)
-              for k, idx in groups.items()}
-    surfaces.prepare(list(bounds.values()))
-
-    P = 4 * (edge_points + 1)
-    outlines = np.full((n, P, 3), np.nan)
-    res_cols = {c: np.full(n, np.nan) for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy", "z", "area_m2",
-                                                  "off_nadir_deg")}
-    unseen = np.zeros((n, 4), dtype=bool)
-    beside_cut = np.zeros((n, 4), dtype=bool)
-    tiles = np.where(per[["tiled"]].to_numpy(), per[["x0", "y0", "tile_w", "tile_h"]].to_numpy(), np.nan)
-    cut_edges = _cut(boxes, size, tiles, border_pixels)
-    for k in progress(list(groups), desc="projecting", unit="image"):
-        idx = groups[k]
-        surface = surfaces.get(bounds[k])
-        r = project_boxes(shots[k], frames[k], surface, boxes[idx], edge_points=edge_points, map_box=map_box,
-                          clearance=clearance, hidden_height=hidden_height, ground_window=ground_window,
-                          cut_edges=cut_edges[idx])
-        good = idx[r["ok"]]
-        bad = idx[~r["ok"]]
-        reason[bad] = [STATUS_TEXT[int(s)] for s in r["status"][~r["ok"]]]
-        outlines[good] = r["outline"][r["ok"]]
-        for j, c in enumerate(("xmin", "ymin", "xmax", "ymax")):
-            res_cols[c][good] = r["bounds"][r["ok"], j]
-        res_cols["cx"][good], res_cols["cy"][good] = r["centroid"][r["ok"]].T
-        res_cols["z"][good], res_cols["area_m2"][good] = r["z"][r["ok"]], r["area"][r["ok"]]
-        res_cols["off_nadir_deg"][good] = r["off_nadir"][r["ok"]]
-        unseen[good], beside_cut[good] = r["unseen"][r["ok"]], r["beside_cut"][r["ok"]]
-    for c, v in res_cols.items():
-        table[c] = v
-    for j, c in enumerate(UNSEEN_COLUMNS):
-        table[c] = unseen[:, j]
-    for j, c in enumerate(BESIDE_CUT_COLUMNS):
-        table[c] = beside_cut[:, j]
-    table["reason"] = reason
+    cut_edges = _cut(boxes, size, per_image["tile"][code], border_pixels)
+    res = _Results(n, edge_points)
+    dsm_of = _dsm_paths(project, [keys[k] for k in groups], dsm)
+    dsms = list(dict.fromkeys(dsm_of))
+    for path in dsms:  # one DSM at a time (a split project: one per submodel), read by window
+        mine = [k for k, p in zip(groups, dsm_of) if p == path]
+        surfaces = DsmSurfaces(path, frame.crs, ground_window)
+        bounds = {k: ray_bounds(shots[k], frames[k], boxes[groups[k]], surfaces.z_lo, surfaces.z_hi) for k in mine}
+        surfaces.prepare(list(bounds.values()))
+        desc = "projecting" if len(dsms) == 1 else f"projecting ({path.parent.parent.name})"
+        for k in progress(mine, desc=desc, unit="image"):
+            idx = groups[k]
+            r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), boxes[idx], edge_points=edge_points,
+                              map_box=map_box, clearance=clearance, hidden_height=hidden_height,
+                              ground_window=ground_window, cut_edges=cut_edges[idx])
+            res.store(idx, r, reason)
+        del surfaces
+    cols.update(res.columns())
+    cols["reason"] = reason
+    cols["cut"] = cut_edges.any(axis=1)
 
     done = reason == ""
-    table["cut"] = cut_edges.any(axis=1)
-    views = table[done].drop(columns=["reason", "hint"]).reset_index(drop=True)
-    rejected = table[~done][["pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score",
-                             "category", "reason", "hint"]].reset_index(drop=True)
-    return ProjectedViews(views, outlines[done], frame.crs), rejected
+    table = pd.DataFrame(cols)
+    rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
+    views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
+    return ProjectedViews(views, res.outlines[done], frame.crs), rejected
+
+
+REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
+                    "reason", "hint")
+RESULT_COLUMNS = ("xmin", "ymin", "xmax", "ymax", "cx", "cy", "z", "area_m2", "off_nadir_deg")
+
+
+class _Results:
+    """project_boxes' results gathered per box: outlines, map bounds, centroid, height, area, sides unseen."""
+
+    def __init__(self, n: int, edge_points: int):
+        self.outlines = np.full((n, 4 * (edge_points + 1), 3), np.nan)
+        self.values = np.full((n, len(RESULT_COLUMNS)), np.nan)
+        self.unseen = np.zeros((n, 4), dtype=bool)
+        self.beside_cut = np.zeros((n, 4), dtype=bool)
+
+    def store(self, idx: np.ndarray, r: dict, reason: np.ndarray) -> None:
+        ok = r["ok"]
+        good = idx[ok]
+        reason[idx[~ok]] = [STATUS_TEXT[int(s)] for s in r["status"][~ok]]
+        self.outlines[good] = r["outline"][ok]
+        self.values[good, :4] = r["bounds"][ok]
+        self.values[good, 4:6] = r["centroid"][ok]
+        self.values[good, 6], self.values[good, 7], self.values[good, 8] = r["z"][ok], r["area"][ok], r["off_nadir"][ok]
+        self.unseen[good], self.beside_cut[good] = r["unseen"][ok], r["beside_cut"][ok]
+
+    def columns(self) -> dict[str, np.ndarray]:
+        out = {c: self.values[:, j] for j, c in enumerate(RESULT_COLUMNS)}
+        out.update({c: self.unseen[:, j] for j, c in enumerate(UNSEEN_COLUMNS)})
+        out.update({c: self.beside_cut[:, j] for j, c in enumerate(BESIDE_CUT_COLUMNS)})
+        return out
