@@ -278,6 +278,31 @@ def test_minus_9999_is_nodata_when_reading(tmp_path):
 
 
 
+@pytest.mark.parametrize("how", ["nodata", "mask band"])
+def test_holes_from_a_declared_nodata_or_a_mask_band(tmp_path, how):
+    """Holes come from the file's own nodata value (not only ODM's -9999) or from its mask band."""
+    import rasterio
+
+    data = np.full((20, 20), 10.0, dtype="float32")
+    data[2:4, 2:4] = -32767 if how == "nodata" else 55.0  # under a mask, any value is a hole
+    path = tmp_path / "dsm.tif"
+    profile = dict(driver="GTiff", width=20, height=20, count=1, dtype="float32", crs=CRS14,
+                   transform=Affine(0.1, 0, 0, 0, -0.1, 2))
+    if how == "nodata":
+        profile["nodata"] = -32767
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:
+        dst.write(data, 1)
+        if how == "mask band":
+            mask = np.full((20, 20), 255, dtype="uint8")
+            mask[2:4, 2:4] = 0
+            dst.write_mask(mask)
+    s = Surface.open(path)
+    assert np.isnan(s.data[2:4, 2:4]).all() and np.isfinite(s.data).sum() == 396
+    assert s.zmin == s.zmax == 10.0
+    win = Surface.open(path, bounds=(0.1, 1.5, 0.6, 1.9))  # a window over the hole
+    assert np.isnan(win.data).sum() == 4
+
+
 def test_march_does_not_step_over_a_thin_first_crossing():
     """A one-cell spike (a leaf tip on a 1 cm DSM) that a ray grazes between two half-cell samples: the first
     crossing is found, as a brute-force march 1,000 times finer finds it, whatever the samples' phase."""

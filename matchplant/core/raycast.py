@@ -24,6 +24,7 @@ import numpy as np
 HIT, NOT_DOWNWARD, OUTSIDE, NODATA, NO_HIT = 0, 1, 2, 3, 4
 REFINE_ITERATIONS = 60  # refinement steps at most (fallback patches)
 REFINE_TOLERANCE = 1e-7  # metres (along the ray, and above the surface) at which refinement stops
+GENTLE_TOLERANCE = 1e-6  # metres of height at which the fixed point over a gentle surface stops (DSM cells: 1 cm)
 FALLBACK_SAMPLES = 4  # samples per cell crossed, on patches that are not bilinear
 
 
@@ -378,7 +379,7 @@ def intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
             if math.isnan(h):
                 break
             s_new = (o[i, 2] - h) / -dz
-            if abs(s_new - s) * -dz < REFINE_TOLERANCE:
+            if abs(s_new - s) * -dz < GENTLE_TOLERANCE:
                 out_s[i] = s_new
                 out_done[i] = True
                 h_start = h  # neighbouring rays (one box's outline) meet the ground at about this height

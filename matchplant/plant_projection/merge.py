@@ -10,7 +10,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pandas as pd
-import scipy.sparse as sp
 
 from matchplant.core.boxes import overlapping_pairs
 from matchplant.plant_projection.submodels import align_submodels
@@ -80,35 +79,19 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     if merge != "none" and n:
         order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
         # pairs of views that overlap, or come within MERGE_TOLERANCE (a sliver beside its plant's box)
-        i, j, _ = overlapping_pairs(box + [-MERGE_TOLERANCE, -MERGE_TOLERANCE, MERGE_TOLERANCE, MERGE_TOLERANCE])
+        i, j, _ = overlapping_pairs(box + [-MERGE_TOLERANCE, -MERGE_TOLERANCE, MERGE_TOLERANCE, MERGE_TOLERANCE],
+                                    ordered=False)  # their order does not matter here
         cat = t["category_id"].to_numpy()
         cut = t["cut"].to_numpy()
         partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
         guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
         unseen = (t[list(UNSEEN_COLUMNS)].to_numpy(bool) if all(c in t for c in UNSEEN_COLUMNS)
                   else np.zeros((n, 4), dtype=bool))
-        iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64), cut.astype(np.bool_),
-                                  guessed.astype(np.bool_), np.ascontiguousarray(unseen), float(merge_iou),
-                                  MERGE_CONTAINED, MERGE_CUT_INSIDE, MERGE_TOLERANCE)
-        pair = np.flatnonzero(strong)  # the adjacency holds pair numbers + 1 (an IoU may be 0)
-        adj = sp.coo_matrix((pair + 1.0, (i[pair], j[pair])), shape=(n, n)).tocsr()
-        adj = (adj + adj.T).tocsr()
-        seed = np.zeros(n, dtype=bool)
-        claimed = np.zeros(n, dtype=bool)
-        indptr, indices = adj.indptr, adj.indices
-        for k in order:  # a loop over views, but only representatives do any work
-            if claimed[k]:
-                continue
-            seed[k] = True
-            claimed[indices[indptr[k]:indptr[k + 1]]] = True
-        # every claimed view joins the representative it overlaps most
-        coo = adj.tocoo()
-        m = seed[coo.col] & ~seed[coo.row]
-        r, c, v = coo.row[m], coo.col[m], iou[coo.data[m].astype(np.int64) - 1]
-        best = np.lexsort((-v, r))
-        first = np.r_[True, r[best][1:] != r[best][:-1]] if best.size else np.zeros(0, bool)
-        rep[r[best][first]] = c[best][first]
-        iou_to_rep[r[best][first]] = v[best][first]
+        iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64),
+                                  cut.astype(np.bool_), guessed.astype(np.bool_), np.ascontiguousarray(unseen),
+                                  float(merge_iou), MERGE_CONTAINED, MERGE_CUT_INSIDE, MERGE_TOLERANCE)
+        pair = np.flatnonzero(strong)
+        seed, rep, iou_to_rep = _claims(order, i[pair], j[pair], iou[pair], n)
         # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
         rank = np.empty(n, dtype=np.int64)
         rank[order] = np.arange(n)
@@ -161,6 +144,50 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         plants["truth_plant_id"] = reps_t["truth_plant_id"].to_numpy()
     plants["view_index"] = reps_pos
     return plants
+
+
+@numba.njit(cache=True, nogil=True)
+def _claims(order, i, j, iou, n):
+    """Representatives and who joins whom, from the pairs of views that overlap enough (``i``, ``j``, their
+    ``iou``). Views visited in ``order`` that no earlier representative claimed become representatives and
+    claim their partners; every claimed view then joins the representative it overlaps most (ties: the
+    lowest index). A loop over views, compiled: only representatives do any work in the first pass.
+    Returns ``(representative?, representative of each view, IoU with it)``."""
+    start = np.zeros(n + 1, dtype=np.int64)  # each view's partners, both directions (a counting sort)
+    for k in range(len(i)):
+        start[i[k] + 1] += 1
+        start[j[k] + 1] += 1
+    start = np.cumsum(start)
+    fill = start[:-1].copy()
+    partner = np.empty(2 * len(i), dtype=np.int64)
+    pair = np.empty(2 * len(i), dtype=np.int64)
+    for k in range(len(i)):
+        a, b = i[k], j[k]
+        partner[fill[a]], pair[fill[a]] = b, k
+        fill[a] += 1
+        partner[fill[b]], pair[fill[b]] = a, k
+        fill[b] += 1
+    seed = np.zeros(n, dtype=np.bool_)
+    claimed = np.zeros(n, dtype=np.bool_)
+    for v in order:
+        if claimed[v]:
+            continue
+        seed[v] = True
+        for q in range(start[v], start[v + 1]):
+            claimed[partner[q]] = True
+    rep = np.arange(n)
+    to_rep = np.ones(n)
+    for v in range(n):
+        if seed[v]:
+            continue
+        best, best_iou = -1, -1.0
+        for q in range(start[v], start[v + 1]):
+            w = partner[q]
+            if seed[w] and (iou[pair[q]] > best_iou or (iou[pair[q]] == best_iou and w < best)):
+                best, best_iou = w, iou[pair[q]]
+        if best >= 0:
+            rep[v], to_rep[v] = best, best_iou
+    return seed, rep, to_rep
 
 
 @numba.njit(cache=True, nogil=True)

@@ -25,7 +25,7 @@ def _skimmed_kernel(dsm, dsm_inv, gnd, gnd_inv, hits, cam, hidden_height, skim, 
             u = (k / samples) * (canopy + skim)  # height above the hit
             x, y, z = hits[i, 0] - u * dx, hits[i, 1] - u * dy, hits[i, 2] + u
             top = bilinear(dsm, dsm_inv, x, y)
-            if top - bilinear(gnd, gnd_inv, x, y) > hidden_height and z - top < skim:
+            if z - top < skim and top - bilinear(gnd, gnd_inv, x, y) > hidden_height:  # the ground only if close
                 out[i] = True
                 break
 
