@@ -238,18 +238,21 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     reason = np.full(m, HIT, dtype=np.int8)
     for code in reversed(RAY_PRIORITY):  # the highest-priority failing status wins
         reason[(status == code).any(axis=1)] = code
-    out = {"ok": ok, "status": reason, "outline": np.where(on_far[..., None], d_pts, g_pts),
+    # the outline: DSM hits on the far edges, ground hits on the others (d_pts started as a copy of g_pts)
+    out = {"ok": ok, "status": reason, "outline": d_pts,
            "bounds": np.full((m, 4), np.nan), "centroid": np.full((m, 2), np.nan),
            "z": np.full(m, np.nan), "area": np.full(m, np.nan), "off_nadir": np.full(m, np.nan),
            "unseen": np.zeros((m, 4), dtype=bool), "beside_cut": np.zeros((m, 4), dtype=bool)}
     if ok.any():
         nr = near[ok]
-        edge_hits = [np.where(nr[:, k, None, None], g_pts[ok][:, e], d_pts[ok][:, e]) for k, e in enumerate(edges)]
-        corners = g_pts[ok][:, [e[0] for e in edges], :2]
+        g_ok, d_ok = (g_pts, d_pts) if ok.all() else (g_pts[ok], d_pts[ok])
+        # a near edge's own hits are on the ground even at a corner it shares with a far edge
+        edge_hits = [np.where(nr[:, k, None, None], g_ok[:, e], d_ok[:, e]) for k, e in enumerate(edges)]
+        corners = g_ok[:, [e[0] for e in edges], :2]
         sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box,
                               cam=cam, skim=SKIM, canopy=surface.canopy_height(ground_window))
         centroid = sb["centre"]
-        z = out["outline"][ok][..., 2].mean(axis=1)
+        z = d_ok[..., 2].mean(axis=1)
         d = np.column_stack([centroid - cam[:2], z - cam[2]])
         off = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
         cut = cut_edges[ok] if cut_edges is not None else np.zeros_like(sb["hidden"])

@@ -244,7 +244,9 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     reason[(reason == "") & outside] = BOX_OUTSIDE_IMAGE
     todo = np.flatnonzero(reason == "")
 
-    by_group = todo[np.argsort(group[todo], kind="stable")]
+    # by image, and within an image by position (bands of 64 pixel rows, then columns): neighbouring boxes
+    # read neighbouring DSM cells, which stay in the CPU's cache (detections come in score order)
+    by_group = todo[np.lexsort((boxes[todo, 0], np.floor(boxes[todo, 1] / 64), group[todo]))]
     keys_todo, starts = np.unique(group[by_group], return_index=True)
     groups = {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
     cut_edges = _cut(boxes, size, per_image["tile"][code], border_pixels)
@@ -272,7 +274,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     table = pd.DataFrame(cols)
     rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
     views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
-    return ProjectedViews(views, res.outlines[done], frame.crs), rejected
+    return ProjectedViews(views, res.outlines if done.all() else res.outlines[done], frame.crs), rejected
 
 
 REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
@@ -284,7 +286,8 @@ class _Results:
     """project_boxes' results gathered per box: outlines, map bounds, centroid, height, area, sides unseen."""
 
     def __init__(self, n: int, edge_points: int):
-        self.outlines = np.full((n, 4 * (edge_points + 1), 3), np.nan)
+        # only projected boxes' outlines are kept (and a field's are hundreds of MB): not filled in advance
+        self.outlines = np.empty((n, 4 * (edge_points + 1), 3))
         self.values = np.full((n, len(RESULT_COLUMNS)), np.nan)
         self.unseen = np.zeros((n, 4), dtype=bool)
         self.beside_cut = np.zeros((n, 4), dtype=bool)
