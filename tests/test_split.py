@@ -18,15 +18,17 @@ from matchplant.core.coco import read_dataset
 from matchplant.core.config import load_config
 from matchplant.core.errors import InputError
 from matchplant.core.frames import TopocentricFrame
-from matchplant.core.io import read_json
+from matchplant.core.io import read_json, write_json
 from matchplant.core.odm import ODMProject
 from matchplant.min_img_finder.config import MinImagesConfig
 from matchplant.min_img_finder.finder import MinImageFinder
 from matchplant.min_img_finder.setcover import reachable_coverage
 from matchplant.model_test.detect import list_images
 from matchplant.odm_runner.outputs import check_outputs
+from matchplant.plant_projection.config import ProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes
 from matchplant.plant_projection.merge import merge_views
+from matchplant.plant_projection.run import run as run_projection_step
 from matchplant.plant_projection.views import project_predictions
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.split import split_field, split_lines
@@ -172,6 +174,21 @@ def test_each_shot_meets_its_own_submodels_dsm(split, tmp_path, caplog):
     assert same.any() and not same.all()
     np.testing.assert_array_equal(fallback.table["cx"].to_numpy()[same], own.table["cx"].to_numpy()[same])
     np.testing.assert_array_equal(fallback.table["cx"].to_numpy()[~same], merged.table["cx"].to_numpy()[~same])
+
+
+def test_module_8_needs_no_merged_dsm_when_every_submodel_has_its_own(split, tmp_path, caplog):
+    """The step itself on a split run whose merge stage left no DSM at the top: every shot meets its own
+    submodel's DSM, so nothing is missing and no 'covers only that submodel's part' warning is given."""
+    field = tmp_path / "field"
+    shutil.copytree(split.root, field)
+    (field / "odm_dem" / "dsm.tif").unlink()
+    write_json(tmp_path / "predictions.json", _truth_predictions(split))
+    cfg = load_config(ProjectionConfig, None, [f"project={field}", f"predictions={tmp_path / 'predictions.json'}",
+                                               f"output_dir={tmp_path / 'out'}", "mode=project"])
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        summary = run_projection_step(cfg)["projection"]
+    assert "covers only" not in caplog.text
+    assert summary["not_projected"] == 0 and summary["plants"] == len(pd.read_csv(split.map_boxes))
 
 
 def test_module_3_selection_covers_the_whole_field(split, tiny_field, tmp_path):

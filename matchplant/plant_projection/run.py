@@ -41,9 +41,8 @@ def run_projection(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
     dest = Path(dest or out)
     project = ODMProject(cfg.project)
     preds = load_predictions(cfg.predictions, cfg.images_from)
-    if cfg.dsm is None:
-        project.require("dsm")
-    check_dsm(Path(cfg.dsm) if cfg.dsm is not None else project.path("dsm"), "dsm" if cfg.dsm is not None else None)
+    for path in dsm_files(project, cfg.dsm):
+        check_dsm(path, "dsm" if cfg.dsm is not None else None)
     scores = np.array([float(p.get("score", 1.0)) for p in preds["predictions"]])
     if not (scores >= cfg.min_score).any():
         raise ConfigError(f"0 of {len(scores)} detections score at least min_score={cfg.min_score:g} (the highest "
@@ -92,6 +91,18 @@ def run_projection(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
     log.info("plants: %s and %s", written["gpkg"], written["csv"])
     return summary
+
+
+def dsm_files(project: ODMProject, dsm: Path | None) -> list[Path]:
+    """The DSM files the rays will meet: ``dsm`` when set; in a split-merge project each submodel's own DSM,
+    and the merged one only when a submodel has none (views.project_predictions); else the project's."""
+    if dsm is not None:
+        return [Path(dsm)]
+    own = [sub.path("dsm") for sub in project.submodels if sub.has("dsm")]
+    if project.is_split and len(own) == len(project.submodels):
+        return own
+    project.require("dsm")
+    return own + [project.path("dsm")]
 
 
 def unknown_images(failed: pd.DataFrame) -> str:
