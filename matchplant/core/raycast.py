@@ -340,7 +340,8 @@ def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, 
     tip, a plant's side; one that would fall further grazed a plant's top and stays)."""
     margin = 0.01 + 1e-6 * (abs(zmax) + abs(zmin))
     for i in range(d.shape[0]):
-        oz, dz = o[i, 2], d[i, 2]
+        oi = o[i] if o.shape[0] > 1 else o[0]  # one origin for every ray, or one each
+        oz, dz = oi[2], d[i, 2]
         out_s[i] = math.nan
         if not dz < -1e-12:
             out_status[i] = NOT_DOWNWARD
@@ -352,9 +353,9 @@ def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, 
         if not s_end > s:
             out_status[i] = NO_HIT
             continue
-        hit, status, _ = march(data, inv, bmax, block, o[i], d[i], clearance, s, s_end, NO_HIT, max_steps)
+        hit, status, _ = march(data, inv, bmax, block, oi, d[i], clearance, s, s_end, NO_HIT, max_steps)
         if status == HIT and settle > 0.0 and clearance > 0.0:
-            low, _, st2, _ = first_crossing(data, inv, o[i], d[i], 0.0, hit, hit + settle / -dz, clearance, NO_HIT,
+            low, _, st2, _ = first_crossing(data, inv, oi, d[i], 0.0, hit, hit + settle / -dz, clearance, NO_HIT,
                                             max_steps)
             if st2 == HIT:
                 hit = low
@@ -369,16 +370,17 @@ def intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
     raster's edge) are left for the walk."""
     h_start = 0.5 * (zmin + zmax)
     for i in range(d.shape[0]):
+        oi = o[i] if o.shape[0] > 1 else o[0]  # one origin for every ray, or one each
         out_done[i] = False
         dz = d[i, 2]
         if not dz < -1e-12:
             continue
-        s = (o[i, 2] - h_start) / -dz
+        s = (oi[2] - h_start) / -dz
         for _ in range(30):
-            h = bilinear(data, inv, o[i, 0] + s * d[i, 0], o[i, 1] + s * d[i, 1])
+            h = bilinear(data, inv, oi[0] + s * d[i, 0], oi[1] + s * d[i, 1])
             if math.isnan(h):
                 break
-            s_new = (o[i, 2] - h) / -dz
+            s_new = (oi[2] - h) / -dz
             if abs(s_new - s) * -dz < GENTLE_TOLERANCE:
                 out_s[i] = s_new
                 out_done[i] = True

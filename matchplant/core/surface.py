@@ -193,11 +193,9 @@ class Surface:
         the height range searched per ray when it is known (NaN: the whole range). Returns ``points (N, 3)``,
         ``s (N,)`` (the ray parameter) and ``status (N,)`` (:data:`STATUS_TEXT`); points without a hit are NaN.
         """
-        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        o = np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3))  # one, or one per ray
         d = np.ascontiguousarray(np.asarray(directions, dtype=np.float64).reshape(-1, 3))
-        if o.shape[0] == 1 and d.shape[0] > 1:
-            o = np.repeat(o, d.shape[0], axis=0)
-        o = np.ascontiguousarray(o)
+        d_all = d
         s = np.empty(d.shape[0], dtype=np.float64)
         status = np.empty(d.shape[0], dtype=np.int8)
         z_top, z_bottom = (np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)) if heights is None else \
@@ -208,7 +206,8 @@ class Surface:
             intersect_gentle(self.data, self._inv, self.zmin, self.zmax, o, d, s, done)
             status[done] = HIT
             todo = np.flatnonzero(~done)
-            o, d = np.ascontiguousarray(o[todo]), np.ascontiguousarray(d[todo])
+            o = o if len(o) == 1 else np.ascontiguousarray(o[todo])
+            d = np.ascontiguousarray(d[todo])
             z_top, z_bottom = z_top[todo], z_bottom[todo]
         s_m = np.empty(d.shape[0], dtype=np.float64)
         st_m = np.empty(d.shape[0], dtype=np.int8)
@@ -216,6 +215,5 @@ class Surface:
                        float(settle), int(max_steps), np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom),
                        s_m, st_m)
         s[todo], status[todo] = s_m, st_m
-        o, d = np.asarray(origins, dtype=np.float64).reshape(-1, 3), np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-        points = o + s[:, None] * d
+        points = np.asarray(origins, dtype=np.float64).reshape(-1, 3) + s[:, None] * d_all
         return points, s, status

@@ -90,8 +90,7 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64),
                                   cut.astype(np.bool_), guessed.astype(np.bool_), np.ascontiguousarray(unseen),
                                   float(merge_iou), MERGE_CONTAINED, MERGE_CUT_INSIDE, MERGE_TOLERANCE)
-        pair = np.flatnonzero(strong)
-        seed, rep, iou_to_rep = _claims(order, i[pair], j[pair], iou[pair], n)
+        seed, rep, iou_to_rep = _claims(order, i, j, iou, strong, n)
         # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
         rank = np.empty(n, dtype=np.int64)
         rank[order] = np.arange(n)
@@ -147,21 +146,24 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
 
 
 @numba.njit(cache=True, nogil=True)
-def _claims(order, i, j, iou, n):
-    """Representatives and who joins whom, from the pairs of views that overlap enough (``i``, ``j``, their
-    ``iou``). Views visited in ``order`` that no earlier representative claimed become representatives and
-    claim their partners; every claimed view then joins the representative it overlaps most (ties: the
-    lowest index). A loop over views, compiled: only representatives do any work in the first pass.
+def _claims(order, i, j, iou, strong, n):
+    """Representatives and who joins whom, from the pairs of views (``i``, ``j``, their ``iou``) that overlap
+    enough (``strong``). Views visited in ``order`` that no earlier representative claimed become
+    representatives and claim their partners; every claimed view then joins the representative it overlaps
+    most (ties: the lowest index). A loop over views, compiled: only representatives do any work in the first pass.
     Returns ``(representative?, representative of each view, IoU with it)``."""
     start = np.zeros(n + 1, dtype=np.int64)  # each view's partners, both directions (a counting sort)
     for k in range(len(i)):
-        start[i[k] + 1] += 1
-        start[j[k] + 1] += 1
+        if strong[k]:
+            start[i[k] + 1] += 1
+            start[j[k] + 1] += 1
     start = np.cumsum(start)
     fill = start[:-1].copy()
-    partner = np.empty(2 * len(i), dtype=np.int64)
-    pair = np.empty(2 * len(i), dtype=np.int64)
+    partner = np.empty(start[-1], dtype=np.int64)
+    pair = np.empty(start[-1], dtype=np.int64)
     for k in range(len(i)):
+        if not strong[k]:
+            continue
         a, b = i[k], j[k]
         partner[fill[a]], pair[fill[a]] = b, k
         fill[a] += 1

@@ -294,8 +294,11 @@ class _Results:
 
     def store(self, idx: np.ndarray, r: dict, reason: np.ndarray) -> None:
         ok = r["ok"]
+        if ok.all():  # the usual case: no copies of the selection
+            ok = slice(None)
         good = idx[ok]
-        reason[idx[~ok]] = [STATUS_TEXT[int(s)] for s in r["status"][~ok]]
+        if not isinstance(ok, slice):
+            reason[idx[~ok]] = [STATUS_TEXT[int(s)] for s in r["status"][~ok]]
         self.outlines[good] = r["outline"][ok]
         self.values[good, :4] = r["bounds"][ok]
         self.values[good, 4:6] = r["centroid"][ok]
