@@ -3,6 +3,7 @@
     python bench/bench_projection.py            # the large synthetic field (generated once into the temp folder)
     python bench/bench_projection.py --quick    # the small field
     python bench/bench_projection.py --field DIR  # an existing synthetic field
+    python bench/bench_projection.py --preset tiny --seed 1 --tilt 20 --slope 10   # another generated field
     NUMBA_NUM_THREADS=1 taskset -c 0 python bench/bench_projection.py   # really one core
 
 Projects the ground-truth boxes of every undistorted image (score 1) and prints boxes/s for the ray/DSM
@@ -33,15 +34,17 @@ from matchplant.plant_projection.geometry import box_outline  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 
-def field(preset: str, given: str | None) -> FieldPaths:
+def field(preset: str, given: str | None, seed: int = 0, tilt: float = 0.0, slope: float = 0.0) -> FieldPaths:
     if given:
         return FieldPaths(Path(given))
-    root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / f"{preset}_seed0"
+    extra = {"tilt_deg": tilt, "slope_pct": slope} if tilt or slope else {}
+    name = f"{preset}_seed{seed}" + "".join(f"_{k}{v:g}" for k, v in extra.items())
+    root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / name
     if not (root / "truth" / "map_boxes.csv").is_file():
         from matchplant.simfield import generate_field
 
         print(f"generating the {preset} synthetic field in {root} (once) ...", flush=True)
-        generate_field(preset=preset, seed=0, out=root)
+        generate_field(preset=preset, seed=seed, out=root, **extra)
     return FieldPaths(root)
 
 
@@ -73,10 +76,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="use the small field instead of the large one")
     ap.add_argument("--field", help="an existing synthetic field folder")
+    ap.add_argument("--preset", help="generate this preset instead (tiny, small, large, split; once, in the temp folder)")
+    ap.add_argument("--seed", type=int, default=0, help="with --preset: the field's seed")
+    ap.add_argument("--tilt", type=float, default=0.0, help="with --preset: forward camera tilt, degrees")
+    ap.add_argument("--slope", type=float, default=0.0, help="with --preset: terrain slope, percent")
     ap.add_argument("--edge-points", type=int, default=4)
     ap.add_argument("--repeat", type=int, default=3, help="runs; the fastest is reported")
     args = ap.parse_args()
-    f = field("small" if args.quick else "large", args.field)
+    f = field(args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope)
     ds = read_dataset(f.boxes_undistorted, validate=False)
     preds = {"images": ds["images"], "categories": ds["categories"],
              "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
