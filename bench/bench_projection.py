@@ -76,7 +76,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="use the small field instead of the large one")
     ap.add_argument("--field", help="an existing synthetic field folder")
-    ap.add_argument("--preset", help="generate this preset instead (tiny, small, large, split; once, in the temp folder)")
+    ap.add_argument("--preset", help="generate this preset instead (tiny, small, large, split; once, in the temp "
+                                     "folder)")
     ap.add_argument("--seed", type=int, default=0, help="with --preset: the field's seed")
     ap.add_argument("--tilt", type=float, default=0.0, help="with --preset: forward camera tilt, degrees")
     ap.add_argument("--slope", type=float, default=0.0, help="with --preset: terrain slope, percent")

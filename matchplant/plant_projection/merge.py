@@ -57,7 +57,8 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     (:data:`MERGE_CONTAINED`) with at least half that IoU: a tall plant seen obliquely projects too far on
     its far side (relief displacement), so its oblique views contain its near-nadir view rather than
     match it; a view cut by the photo or tile border needs only a modest overlap
-    (:data:`MERGE_CUT_INSIDE`) since its cut edge is no plant edge. Near-nadir views are the most accurate, so they anchor the plants.
+    (:data:`MERGE_CUT_INSIDE`) since its cut edge is no plant edge. Near-nadir views are the most accurate,
+    so they anchor the plants.
     A view with a side it did not see (behind the plant's top or a neighbour: a guess, which may overshoot)
     joins a view it lies mostly inside, within :data:`MERGE_TOLERANCE`, or whose corner it saw
     (:func:`_seen_sides_match`); views this close count as overlapping, so a thin visible sliver

@@ -240,7 +240,8 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
         wh = np.array([[s.camera.width, s.camera.height] for s in shots], dtype=float)
         size[known] = wh[group[known]]
     with np.errstate(invalid="ignore"):
-        outside = (boxes[:, 0] < -1) | (boxes[:, 1] < -1) | (boxes[:, 2] > size[:, 0] + 1) | (boxes[:, 3] > size[:, 1] + 1)
+        outside = ((boxes[:, 0] < -1) | (boxes[:, 1] < -1) | (boxes[:, 2] > size[:, 0] + 1)
+                   | (boxes[:, 3] > size[:, 1] + 1))
     reason[(reason == "") & outside] = BOX_OUTSIDE_IMAGE
     todo = np.flatnonzero(reason == "")
 
