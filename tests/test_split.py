@@ -176,6 +176,30 @@ def test_each_shot_meets_its_own_submodels_dsm(split, tmp_path, caplog):
     np.testing.assert_array_equal(fallback.table["cx"].to_numpy()[~same], merged.table["cx"].to_numpy()[~same])
 
 
+def test_rays_that_leave_their_submodels_dsm_meet_the_merged_one(split, tmp_path, caplog):
+    """ODM crops each submodel's DSM inside its reconstruction: an edge image's rays that leave it (or meet a hole
+    in it) are projected on the merged DSM, so no box is lost; without a merged DSM they are reported."""
+    import rasterio
+
+    field = tmp_path / "cropped"
+    shutil.copytree(split.root, field)
+    own = field / "submodels" / "submodel_0000" / "odm_dem" / "dsm.tif"
+    with rasterio.open(own) as src:
+        data, profile = src.read(1), src.profile
+    data[:, : data.shape[1] // 3] = -9999  # a third of it cut away, as a crop would
+    with rasterio.open(own, "w", **profile) as dst:
+        dst.write(data, 1)
+    preds = _truth_predictions(split)
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        views, rejected = project_predictions(ODMProject(field), preds)
+    assert "projected on the merged DSM" in caplog.text
+    assert len(rejected) == 0 and len(views.table) == len(preds["predictions"])
+    (field / "odm_dem" / "dsm.tif").unlink()
+    _, lost = project_predictions(ODMProject(field), preds)
+    assert len(lost) > 0 and set(lost["reason"]) <= {"ray meets the ground in a DSM nodata area",
+                                                     "ray leaves the DSM before reaching the ground"}
+
+
 def test_module_8_needs_no_merged_dsm_when_every_submodel_has_its_own(split, tmp_path, caplog):
     """The step itself on a split run whose merge stage left no DSM at the top: every shot meets its own
     submodel's DSM, so nothing is missing and no 'covers only that submodel's part' warning is given."""

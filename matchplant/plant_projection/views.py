@@ -17,10 +17,10 @@ import pandas as pd
 from matchplant.core.coco import source_name
 from matchplant.core.errors import InputError
 from matchplant.core.log import get_logger
-from matchplant.core.odm import ODMProject
+from matchplant.core.odm import OUTPUTS, ODMProject
 from matchplant.core.progress import progress
 from matchplant.core.reconstruction import Shot
-from matchplant.core.surface import STATUS_TEXT
+from matchplant.core.surface import NODATA, OUTSIDE, STATUS_TEXT
 from matchplant.core.validate import did_you_mean, match_names
 from matchplant.plant_projection.dsm import DsmSurfaces, ray_bounds
 from matchplant.plant_projection.geometry import project_boxes
@@ -254,19 +254,26 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     res = _Results(n, edge_points)
     dsm_of = _dsm_paths(project, [keys[k] for k in groups], dsm)
     dsms = list(dict.fromkeys(dsm_of))
+    settings = dict(edge_points=edge_points, map_box=map_box, clearance=clearance, hidden_height=hidden_height,
+                    ground_window=ground_window)
     for path in dsms:  # one DSM at a time (a split project: one per submodel), read by window
-        mine = [k for k, p in zip(groups, dsm_of) if p == path]
-        surfaces = DsmSurfaces(path, frame.crs, ground_window)
-        bounds = {k: ray_bounds(shots[k], frames[k], boxes[groups[k]], surfaces.z_lo, surfaces.z_hi) for k in mine}
-        surfaces.prepare(list(bounds.values()))
+        mine = {k: groups[k] for k, p in zip(groups, dsm_of) if p == path}
         desc = "projecting" if len(dsms) == 1 else f"projecting ({path.parent.parent.name})"
-        for k in progress(mine, desc=desc, unit="image"):
-            idx = groups[k]
-            r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), boxes[idx], edge_points=edge_points,
-                              map_box=map_box, clearance=clearance, hidden_height=hidden_height,
-                              ground_window=ground_window, cut_edges=cut_edges[idx])
-            res.store(idx, r, reason)
-        del surfaces
+        _project_groups(path, mine, shots, frames, boxes, cut_edges, frame.crs, res, reason, desc, settings)
+    merged = project.root / OUTPUTS["dsm"].relpath
+    if project.is_split and dsm is None and merged.is_file():
+        # ODM crops each submodel's DSM inside its own reconstruction: rays of its edge images that left it, or
+        # met a hole in it, are tried again on the merged DSM, which covers the whole field
+        lost = {STATUS_TEXT[OUTSIDE], STATUS_TEXT[NODATA]}
+        retry = {k: groups[k][np.isin(reason[groups[k]], list(lost))] for k, p in zip(groups, dsm_of) if p != merged}
+        retry = {k: idx for k, idx in retry.items() if idx.size}
+        if retry:
+            count = sum(idx.size for idx in retry.values())
+            log.info("%d box(es) whose rays left their own submodel's DSM: projected on the merged DSM", count)
+            for idx in retry.values():
+                reason[idx] = ""
+            _project_groups(merged, retry, shots, frames, boxes, cut_edges, frame.crs, res, reason,
+                            "projecting (merged DSM)", settings)
     cols.update(res.columns())
     cols["reason"] = reason
     cols["cut"] = cut_edges.any(axis=1)
@@ -276,6 +283,20 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
     rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
     views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
     return ProjectedViews(views, res.outlines if done.all() else res.outlines[done], frame.crs), rejected
+
+
+def _project_groups(path: Path, groups: dict[int, np.ndarray], shots: list, frames: list, boxes: np.ndarray,
+                    cut_edges: np.ndarray, crs, res: "_Results", reason: np.ndarray, desc: str, settings: dict) -> None:
+    """Project the boxes ``groups`` ({group: box indices}, one group per shot) onto the DSM at ``path`` (read by
+    window, :class:`DsmSurfaces`), storing the results in ``res`` and failures in ``reason``."""
+    surfaces = DsmSurfaces(path, crs, settings["ground_window"])
+    bounds = {k: ray_bounds(shots[k], frames[k], boxes[idx], surfaces.z_lo, surfaces.z_hi) for k, idx in groups.items()}
+    surfaces.prepare(list(bounds.values()))
+    for k in progress(list(groups), desc=desc, unit="image"):
+        idx = groups[k]
+        r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), boxes[idx], cut_edges=cut_edges[idx],
+                          **settings)
+        res.store(idx, r, reason)
 
 
 REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
