@@ -184,6 +184,18 @@ def _patch_root(fa, q1, q2, length):
 
 
 @numba.njit(cache=True, nogil=True)
+def _axis_start(a, b, s):
+    """One axis of a grid traversal along the grid coordinate ``a + s b`` from ``s``: the cell index, the ray
+    parameter of the next cell boundary, the ray length between boundaries and the index step."""
+    k = int(math.floor(a + s * b))
+    if b > 0.0:
+        return k, (k + 1 - a) / b, 1.0 / b, 1
+    if b < 0.0:
+        return k, (k - a) / b, -1.0 / b, -1
+    return k, math.inf, math.inf, 1
+
+
+@numba.njit(cache=True, nogil=True)
 def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
     """The first ray parameter in [s0, s1] where the ray comes down to ``clearance`` above the surface.
 
@@ -199,15 +211,8 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
     ra = inv[3] * ox + inv[4] * oy + inv[5] - 0.5
     rb = inv[3] * dx + inv[4] * dy
     s = s0
-    c = int(math.floor(ca + s * cb))
-    r = int(math.floor(ra + s * rb))
-    # ray parameter of the next column and row boundary, and between boundaries (a grid traversal)
-    dtc = 1.0 / abs(cb) if cb != 0.0 else math.inf
-    dtr = 1.0 / abs(rb) if rb != 0.0 else math.inf
-    tc = (c + 1 - ca) / cb if cb > 0.0 else ((c - ca) / cb if cb < 0.0 else math.inf)
-    tr = (r + 1 - ra) / rb if rb > 0.0 else ((r - ra) / rb if rb < 0.0 else math.inf)
-    stc = 1 if cb > 0.0 else -1
-    str_ = 1 if rb > 0.0 else -1
+    c, tc, dtc, stc = _axis_start(ca, cb, s)
+    r, tr, dtr, str_ = _axis_start(ra, rb, s)
     f = f0
     fine = 1.0 / (FALLBACK_SAMPLES * max(abs(cb), abs(rb), 1e-300))  # ray length per quarter cell
     walked = 0
@@ -299,14 +304,8 @@ def march(data, inv, bmax, block, o, d, clearance, s0, s1, status, budget):
     ra = (inv[3] * o[0] + inv[4] * o[1] + inv[5] - 0.5) / block
     rb = (inv[3] * d[0] + inv[4] * d[1]) / block
     s = s0
-    c = int(math.floor(ca + s * cb))
-    r = int(math.floor(ra + s * rb))
-    dtc = 1.0 / abs(cb) if cb != 0.0 else math.inf
-    dtr = 1.0 / abs(rb) if rb != 0.0 else math.inf
-    tc = (c + 1 - ca) / cb if cb > 0.0 else ((c - ca) / cb if cb < 0.0 else math.inf)
-    tr = (r + 1 - ra) / rb if rb > 0.0 else ((r - ra) / rb if rb < 0.0 else math.inf)
-    stc = 1 if cb > 0.0 else -1
-    str_ = 1 if rb > 0.0 else -1
+    c, tc, dtc, stc = _axis_start(ca, cb, s)
+    r, tr, dtr, str_ = _axis_start(ra, rb, s)
     f = math.nan
     walked = 0
     while s < s1 and walked < budget:

@@ -27,7 +27,7 @@ from matchplant.plant_projection.evaluation import evaluate_boxes, evaluation_fi
 from matchplant.plant_projection.inputs import check_dsm, load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.output import write_plants, write_table
-from matchplant.plant_projection.views import (BOX_OUTSIDE_IMAGE, EMPTY_BOX, NOT_IN_RECONSTRUCTION,
+from matchplant.plant_projection.views import (BOX_OUTSIDE_IMAGE, EMPTY_BOX, NOT_IN_RECONSTRUCTION, dsm_files,
                                               project_predictions)
 
 log = get_logger("projection")
@@ -91,18 +91,6 @@ def run_projection(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
     log.info("plants: %s and %s", written["gpkg"], written["csv"])
     return summary
-
-
-def dsm_files(project: ODMProject, dsm: Path | None) -> list[Path]:
-    """The DSM files the rays will meet: ``dsm`` when set; in a split-merge project each submodel's own DSM,
-    and the merged one only when a submodel has none (views.project_predictions); else the project's."""
-    if dsm is not None:
-        return [Path(dsm)]
-    own = [sub.path("dsm") for sub in project.submodels if sub.has("dsm")]
-    if project.is_split and len(own) == len(project.submodels):
-        return own
-    project.require("dsm")
-    return own + [project.path("dsm")]
 
 
 def unknown_images(failed: pd.DataFrame) -> str:

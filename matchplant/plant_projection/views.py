@@ -160,6 +160,23 @@ def _dsm_paths(project: ODMProject, keys: list[tuple[str, bool]], dsm: Path | No
     return [own[sid] or merged for sid, _ in keys]
 
 
+def dsm_files(project: ODMProject, dsm: Path | None) -> list[Path]:
+    """The DSM files :func:`_dsm_paths` will give the shots (checked before a run): ``dsm`` when set; in a
+    split-merge project each submodel's own DSM, and the merged one only when a submodel has none; else the
+    project's."""
+    if dsm is not None:
+        return [Path(dsm)]
+    if not project.is_split:
+        project.require("dsm")
+        return [project.path("dsm")]
+    own = [sub.root / OUTPUTS["dsm"].relpath for sub in project.submodels]
+    have = [p for p in own if p.is_file()]
+    if len(have) < len(own):
+        project.require("dsm")
+        have.append(project.path("dsm"))
+    return have
+
+
 def project_predictions(project: ODMProject, predictions: dict, *, image_type: str = "auto",
                         dsm: Path | None = None, min_score: float = 0.0, edge_points: int = 4,
                         map_box: str = "inscribed", border_pixels: float = 2.0,

@@ -17,7 +17,7 @@ import piexif
 import pytest
 from pyproj import Transformer
 
-from harness import Case, Work
+from harness import Case, Work, read_rows, write_rows
 from matchplant.core.exif import exif_gps, load_exif
 
 
@@ -36,13 +36,11 @@ def args(w: Work, images: Path, log: Path, *extra: str, log_crs: str | None = "f
 
 def events(w: Work) -> list[list[str]]:
     """The field's events.txt as rows (header first)."""
-    return [ln.split("\t") for ln in (w.artifacts / "field" / "gnss" / "events.txt").read_text().splitlines()]
+    return read_rows(w.artifacts / "field" / "gnss" / "events.txt", "\t")
 
 
 def write_events(w: Work, rows: list[list[str]], name: str = "events.txt", sep: str = "\t") -> Path:
-    path = w.inputs / name
-    path.write_text("".join(sep.join(r) + "\n" for r in rows))
-    return path
+    return write_rows(w, rows, name, sep)
 
 
 def images(w: Work, name: str = "images_nogps") -> Path:

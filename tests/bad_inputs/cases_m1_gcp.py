@@ -15,7 +15,7 @@ from pathlib import Path
 
 from pyproj import Transformer
 
-from harness import Case, Work
+from harness import Case, Work, read_rows, write_rows
 from matchplant.core.gcp_list import read_gcp_list
 
 
@@ -35,13 +35,11 @@ AUTO = ("auto=true", "max_center_distance=1.0", "edge_margin_px=0")
 
 
 def survey_rows(w: Work) -> list[list[str]]:
-    return [ln.split(",") for ln in (w.artifacts / "field" / "gcp" / "gcp_survey.csv").read_text().splitlines()]
+    return read_rows(w.artifacts / "field" / "gcp" / "gcp_survey.csv", ",")
 
 
 def write_survey(w: Work, rows: list[list[str]], name: str = "gcp_survey.csv", sep: str = ",") -> Path:
-    path = w.inputs / name
-    path.write_text("".join(sep.join(r) + "\n" for r in rows))
-    return path
+    return write_rows(w, rows, name, sep)
 
 
 def images(w: Work, name: str = "images") -> Path:

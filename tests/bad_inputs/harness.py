@@ -78,6 +78,18 @@ def write_text_file(path: Path, text: str, *, bom: bool = False, crlf: bool = Fa
     return path
 
 
+def read_rows(path: Path, sep: str) -> list[list[str]]:
+    """A delimited text file (events.txt, a survey CSV) as rows of fields, header first."""
+    return [ln.split(sep) for ln in path.read_text().splitlines()]
+
+
+def write_rows(w: "Work", rows: list[list[str]], name: str, sep: str) -> Path:
+    """Rows of fields written as a delimited file among the case's inputs."""
+    path = w.inputs / name
+    path.write_text("".join(sep.join(r) + "\n" for r in rows))
+    return path
+
+
 def tree_hashes(folder: Path) -> dict[str, str]:
     if not folder.exists():
         return {}
