@@ -556,7 +556,7 @@ def test_topocentric_reconstruction_gives_the_same_plants(tiny_field, tmp_path):
         got, rejected = project_predictions(ODMProject(root), preds)
         assert len(rejected) == 0 and len(got.table) == len(ref.table)
         # the ray hits agree within 1 cm (in fact to a fraction of a mm)...
-        ray_err = np.linalg.norm(got.outlines - ref.outlines, axis=-1)
+        ray_err = np.linalg.norm(got.outlines() - ref.outlines(), axis=-1)
         assert np.median(ray_err) < 0.001 and (ray_err < 0.01).mean() >= 0.995
         # ...and so do the boxes, bar a rare grazing ray that stops on the other side of the clearance
         cols = ["xmin", "ymin", "xmax", "ymax", "cx", "cy"]

@@ -18,7 +18,7 @@ from matchplant.core.reconstruction import Shot
 from matchplant.core.surface import Surface
 from matchplant.plant_projection.geometry import box_outline
 
-MAX_SURFACE_CELLS = 40_000_000  # above this the DSM is read per image instead of once
+MAX_SURFACE_CELLS = 64_000_000  # 256 MB of float32 (a 1 cm DSM of 0.64 ha): above this, read per image
 
 
 def approx_heights(path: Path) -> tuple[float, float]:

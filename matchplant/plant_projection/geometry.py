@@ -16,10 +16,9 @@ from matchplant.core.frames import Frame
 from matchplant.core.ground import rays_to_ground
 from matchplant.core.reconstruction import Shot
 from matchplant.core.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
-from matchplant.plant_projection.relief import apex, skimmed
+from matchplant.plant_projection.silhouette import silhouette_boxes
 
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
-APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for
 SKIM = 0.1  # metres: a ray that passed this close over a plant before landing on the soil missed the plant's top
 
 
@@ -107,86 +106,6 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def silhouette_boxes(edges: list[np.ndarray], corners: np.ndarray, near: np.ndarray, ground: Surface,
-                     surface: Surface | None = None, *, hidden_height: float = 0.05,
-                     how: str = "inscribed", cam: np.ndarray | None = None, skim: float = 0.1,
-                     canopy: float = 0.0) -> dict[str, np.ndarray]:
-    """Map boxes (M, 4) of plants from the hits of the rays along their photo box's edges.
-
-    ``edges``: the hits (M, Q, 3) of the top, right, bottom and left edge (:func:`box_outline` order);
-    ``corners`` (M, 4, 2): the box corners on the ground, which set the frame of the projected box (axes
-    along the photo's x and y, so any flight heading works); ``near`` (M, 4): edges facing the image's
-    nadir point (:func:`near_edges`), whose rays met the ground (a leaf tip on the soil, even behind a
-    neighbour). The other edges' rays met the DSM and stopped just above it: such an edge may be the
-    image of the plant's *top* displaced outwards by relief, and only its ray grazing the top (stopped on
-    it by the intersection's clearance) marks where the plant is. So each side is the *innermost* hit of
-    its edge. A side whose innermost hit stands more than ``hidden_height`` above the ground lay behind
-    the plant's top (or behind another plant): it is mirrored from the opposite side about the plant's
-    top (the highest DSM point inside the box), assuming a roughly symmetric plant.
-
-    ``how``: ``inscribed`` = box of the ellipse inscribed in the resulting parallelogram (a round plant's
-    box whatever the flight heading), ``outline`` = box of the parallelogram. Returns ``bounds``,
-    ``centre`` (M, 2), ``area`` (of the parallelogram), ``hidden`` (M, 4: photo edges) and ``faces``
-    (M, 4, 4): which map sides (west, south, east, north) each photo edge bears on.
-    """
-    c0, c1, c2, c3 = (corners[:, k] for k in range(4))
-    centre = (c0 + c1 + c2 + c3) / 4
-    a = (c1 - c0 + c2 - c3) / 4  # half-axis along the photo's x
-    b = (c3 - c0 + c2 - c1) / 4  # half-axis along the photo's y
-    det = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    det = np.where(np.abs(det) > 1e-18, det, np.nan)
-    m = len(corners)
-    inner = np.empty((m, 4))
-    hidden = np.zeros((m, 4), dtype=bool)
-    rows = np.arange(m)
-    for k, e in enumerate(edges):  # top, right, bottom, left: the innermost coordinate of each edge
-        d = e[..., :2] - centre[:, None]
-        if k % 2:  # right, left: -1 left .. 1 right
-            c = (d[..., 0] * b[:, None, 1] - d[..., 1] * b[:, None, 0]) / det[:, None]
-        else:  # top, bottom: -1 top .. 1 bottom
-            c = (a[:, None, 0] * d[..., 1] - a[:, None, 1] * d[..., 0]) / det[:, None]
-        arg = c.argmin(axis=1) if k in (1, 2) else c.argmax(axis=1)
-        inner[:, k] = c[rows, arg]
-        hit = e[rows, arg]
-        far = ~near[:, k]
-        if far.any():
-            hidden[far, k] = hit[far, 2] - ground.sample(hit[far, 0], hit[far, 1]) > hidden_height
-            if cam is not None and surface is not None:
-                on_soil = np.flatnonzero(far & ~hidden[:, k])
-                hidden[on_soil, k] = skimmed(hit[on_soil], cam, surface, ground, hidden_height, skim, canopy)
-    t, r, bo, le = (inner[:, k].copy() for k in range(4))
-    # an inverted box (a side mirrored past the other, or rays crossing) falls back to the corners' box
-    sel = np.flatnonzero(hidden.any(axis=1) & (r > le) & (bo > t))
-    if surface is not None and sel.size:
-        # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
-        # stops a grazing ray a little before its tangent point, short of the top)
-        hs = hidden[sel].astype(float) * APEX_REACH
-        a0, a1 = le[sel] - (r - le)[sel] * hs[:, 3], r[sel] + (r - le)[sel] * hs[:, 1]
-        b0, b1 = t[sel] - (bo - t)[sel] * hs[:, 0], bo[sel] + (bo - t)[sel] * hs[:, 2]
-        aa, ab = apex(surface, centre[sel], a[sel], b[sel], a0, a1, b0, b1)
-        hs = hidden[sel]
-        t2, r2, bo2, le2 = t[sel].copy(), r[sel].copy(), bo[sel].copy(), le[sel].copy()
-        t2[hs[:, 0]] = np.minimum(t[sel], 2 * ab - bo[sel])[hs[:, 0]]
-        bo2[hs[:, 2]] = np.maximum(bo[sel], 2 * ab - t[sel])[hs[:, 2]]
-        r2[hs[:, 1]] = np.maximum(r[sel], 2 * aa - le[sel])[hs[:, 1]]
-        le2[hs[:, 3]] = np.minimum(le[sel], 2 * aa - r[sel])[hs[:, 3]]
-        t[sel], r[sel], bo[sel], le[sel] = t2, r2, bo2, le2
-    good = (r > le) & (bo > t) & np.isfinite(det)
-    t, bo = np.where(good, t, -1.0), np.where(good, bo, 1.0)
-    le, r = np.where(good, le, -1.0), np.where(good, r, 1.0)
-    mid = centre + ((le + r) / 2)[:, None] * a + ((t + bo) / 2)[:, None] * b
-    ha = a * ((r - le) / 2)[:, None]
-    hb = b * ((bo - t) / 2)[:, None]
-    half = np.sqrt(ha ** 2 + hb ** 2) if how == "inscribed" else np.abs(ha) + np.abs(hb)
-    area = np.abs(det) * (r - le) * (bo - t)
-    # the map sides (west, south, east, north) a photo edge bears on: those its outward normal faces
-    normals = np.stack([-b, a, b, -a], axis=1)  # top, right, bottom, left
-    normals /= np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
-    faces = np.stack([-normals[..., 0], -normals[..., 1], normals[..., 0], normals[..., 1]], axis=2) > 0.3
-    return {"bounds": np.concatenate([mid - half, mid + half], axis=1), "centre": mid, "area": area,
-            "hidden": hidden, "faces": faces}
-
-
 def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
                   map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
                   ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
@@ -239,29 +158,8 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     for code in reversed(RAY_PRIORITY):  # the highest-priority failing status wins
         reason[(status == code).any(axis=1)] = code
     # the outline: DSM hits on the far edges, ground hits on the others (d_pts started as a copy of g_pts)
-    out = {"ok": ok, "status": reason, "outline": d_pts,
-           "bounds": np.full((m, 4), np.nan), "centroid": np.full((m, 2), np.nan),
-           "z": np.full(m, np.nan), "area": np.full(m, np.nan), "off_nadir": np.full(m, np.nan),
-           "unseen": np.zeros((m, 4), dtype=bool), "beside_cut": np.zeros((m, 4), dtype=bool)}
-    if ok.any():
-        nr = near[ok]
-        g_ok, d_ok = (g_pts, d_pts) if ok.all() else (g_pts[ok], d_pts[ok])
-        # a near edge's own hits are on the ground even at a corner it shares with a far edge
-        edge_hits = [np.where(nr[:, k, None, None], g_ok[:, e], d_ok[:, e]) for k, e in enumerate(edges)]
-        corners = g_ok[:, [e[0] for e in edges], :2]
-        sb = silhouette_boxes(edge_hits, corners, nr, ground, surface, hidden_height=hidden_height, how=map_box,
-                              cam=cam, skim=SKIM, canopy=surface.canopy_height(ground_window))
-        centroid = sb["centre"]
-        z = d_ok[..., 2].mean(axis=1)
-        d = np.column_stack([centroid - cam[:2], z - cam[2]])
-        off = np.degrees(np.arccos(np.clip(-d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
-        cut = cut_edges[ok] if cut_edges is not None else np.zeros_like(sb["hidden"])
-        unseen_edges = sb["hidden"] | cut
-        # a box cut by a border bounds only the plant's part inside the photo: the edges beside the cut
-        # are the plant's only if its outermost point there lies inside the photo
-        beside = (np.roll(cut, 1, axis=1) | np.roll(cut, -1, axis=1)) & ~unseen_edges
-        out["beside_cut"][ok] = (sb["faces"] & beside[:, :, None]).any(axis=1)
-        out["bounds"][ok], out["centroid"][ok], out["area"][ok] = sb["bounds"], centroid, sb["area"]
-        out["z"][ok], out["off_nadir"][ok] = z, off
-        out["unseen"][ok] = (sb["faces"] & unseen_edges[:, :, None]).any(axis=1)
+    cut = cut_edges if cut_edges is not None else np.zeros((m, 4), dtype=bool)
+    out = silhouette_boxes(g_pts, d_pts, near, ok, cut, surface, ground, cam, hidden_height=hidden_height, how=map_box,
+                           skim=SKIM, canopy=surface.canopy_height(ground_window))
+    out.update(ok=ok, status=reason, outline=d_pts, centroid=out.pop("centre"))
     return out

@@ -25,7 +25,7 @@ def plant_geometries(plants: pd.DataFrame, views: ProjectedViews, geometry: str 
     boxes = shapely.box(plants["xmin"], plants["ymin"], plants["xmax"], plants["ymax"])
     if geometry == "box" or len(plants) == 0:
         return boxes
-    rings = views.outlines[plants["view_index"].to_numpy()]
+    rings = views.outlines(plants["view_index"].to_numpy())
     polys = shapely.polygons(rings)  # 3D: the heights where the rays met the surface
     polys = shapely.make_valid(polys)
     polys = shapely.intersection(polys, boxes)  # the outline overshoots the sides hidden behind the plant
