@@ -104,9 +104,9 @@ class PinholeCamera(Camera):
 
     def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert :meth:`_distort` with Newton's method on the 2x2 Jacobian."""
-        x, y = xd.copy(), yd.copy()
         if not any((self.k1, self.k2, self.k3, self.p1, self.p2)):
-            return x, y
+            return xd, yd
+        x, y = xd.copy(), yd.copy()
         k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
         for _ in range(_NEWTON_ITERATIONS):
             r2 = x * x + y * y
@@ -143,8 +143,10 @@ class PinholeCamera(Camera):
         xd = (n[..., 0] - self.c_x) / self.focal_x
         yd = (n[..., 1] - self.c_y) / self.focal_y
         x, y = self._undistort(xd, yd)
-        b = np.stack([x, y, np.ones_like(x)], axis=-1)
-        return b / np.linalg.norm(b, axis=-1, keepdims=True)
+        inv = 1.0 / np.sqrt(x * x + y * y + 1.0)  # (x, y, 1) scaled to unit length, without temporaries
+        b = np.empty(x.shape + (3,))
+        b[..., 0], b[..., 1], b[..., 2] = x * inv, y * inv, inv
+        return b
 
     def to_opensfm(self) -> dict:
         d = {"projection_type": self.projection_type, "width": self.width, "height": self.height}

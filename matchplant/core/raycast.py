@@ -105,6 +105,17 @@ def sample_many(data, inv, x, y, out):
 
 
 @numba.njit(cache=True, nogil=True)
+def max_tangent(d):
+    """Largest horizontal / vertical ratio of ray directions (N, 3) (looking down; 1e12 for a level ray)."""
+    out = 0.0
+    for i in range(d.shape[0]):
+        t = math.hypot(d[i, 0], d[i, 1]) / max(-d[i, 2], 1e-12)
+        if t > out or math.isnan(t):
+            out = t
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def _inside(data, inv, x, y):
     rows, cols = data.shape
     col = inv[0] * x + inv[1] * y + inv[2]

@@ -68,7 +68,7 @@ class Shot:
 
     def ray_directions(self, uv: np.ndarray) -> np.ndarray:
         """Unit ray directions (N, 3) in the reconstruction frame through pixels ``uv``."""
-        return np.einsum("...i,ij->...j", self.camera.bearings(uv), self.R)  # = bearings @ R
+        return self.camera.bearings(uv) @ self.R  # rows are R^T b: camera to world
 
     def viewing_direction(self) -> np.ndarray:
         """The optical axis in the world frame."""

@@ -24,7 +24,7 @@ from scipy.ndimage import maximum_filter, minimum_filter
 from matchplant.core.errors import InputError
 from matchplant.core.log import get_logger
 from matchplant.core.raycast import (HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, block_stats,
-                                     intersect_gentle, intersect_many, patch_block_max, sample_many)
+                                     intersect_gentle, intersect_many, max_tangent, patch_block_max, sample_many)
 
 log = get_logger("surface")
 
@@ -37,11 +37,6 @@ STATUS_TEXT = {
 }
 _BLOCK = 4  # patches per side of the blocks whose highest points let rays skip empty space
 GROUND_CELL = 0.02  # metres: cell size (at least the DSM's) of the ground estimated from the DSM
-
-
-def _max_tangent(d: np.ndarray) -> float:
-    """Largest horizontal / vertical ratio of ray directions (N, 3)."""
-    return float(np.max(np.hypot(d[:, 0], d[:, 1]) / np.maximum(-d[:, 2], 1e-12)))
 
 
 @dataclass
@@ -198,17 +193,19 @@ class Surface:
         d_all = d
         s = np.empty(d.shape[0], dtype=np.float64)
         status = np.empty(d.shape[0], dtype=np.int8)
-        z_top, z_bottom = (np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)) if heights is None else \
+        z_top, z_bottom = (None, None) if heights is None else \
             (np.asarray(h, dtype=np.float64).reshape(-1) for h in heights)
         todo = slice(None)
-        if clearance == 0.0 and d.shape[0] and self.max_slope * _max_tangent(d) < 0.8:
+        if clearance == 0.0 and d.shape[0] and self.max_slope * max_tangent(d) < 0.8:
             done = np.empty(d.shape[0], dtype=np.bool_)
             intersect_gentle(self.data, self._inv, self.zmin, self.zmax, o, d, s, done)
             status[done] = HIT
             todo = np.flatnonzero(~done)
             o = o if len(o) == 1 else np.ascontiguousarray(o[todo])
             d = np.ascontiguousarray(d[todo])
-            z_top, z_bottom = z_top[todo], z_bottom[todo]
+            z_top, z_bottom = (None, None) if heights is None else (z_top[todo], z_bottom[todo])
+        if heights is None:  # the whole height range
+            z_top, z_bottom = np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)
         s_m = np.empty(d.shape[0], dtype=np.float64)
         st_m = np.empty(d.shape[0], dtype=np.int8)
         intersect_many(self.data, self._inv, self._block_max, _BLOCK, self.zmin, self.zmax, o, d, float(clearance),

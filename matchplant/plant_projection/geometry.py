@@ -141,21 +141,22 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         # the DSM is met between the ground hit and the tallest plant above it (the ground rising at most
         # max_slope per metre towards the camera)
         gz = np.where(g_status[far] == HIT, g_pts[far, 2], np.nan)
-        tan = np.hypot(dirs[far, 0], dirs[far, 1]) / np.maximum(-dirs[far, 2], 1e-12)
+        d_far = dirs[far]
+        tan = np.hypot(d_far[:, 0], d_far[:, 1]) / np.maximum(-d_far[:, 2], 1e-12)
         rise = 1.0 - ground.max_slope * tan
         with np.errstate(invalid="ignore", divide="ignore"):
             top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
         # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
         # exact hit (soil at a leaf tip, a plant's side) and settles there; one that would fall further grazed
         # a plant's top and stays
-        pts, st = rays_to_ground(shot, dirs[far], frame, surface, clearance=clearance, settle=2 * clearance,
+        pts, st = rays_to_ground(shot, d_far, frame, surface, clearance=clearance, settle=2 * clearance,
                                  heights=(top, gz - 0.05))
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
     ok = (status == HIT).all(axis=1)
     reason = np.full(m, HIT, dtype=np.int8)
-    for code in reversed(RAY_PRIORITY):  # the highest-priority failing status wins
+    for code in reversed(RAY_PRIORITY) if not ok.all() else ():  # the highest-priority failing status wins
         reason[(status == code).any(axis=1)] = code
     # the outline: DSM hits on the far edges, ground hits on the others (d_pts started as a copy of g_pts)
     cut = cut_edges if cut_edges is not None else np.zeros((m, 4), dtype=bool)

@@ -234,7 +234,9 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
             "category": np.array([cats.get(c, str(c)) for c in cat_values], dtype=object)[cat_codes],
             "u1": boxes[:, 0], "v1": boxes[:, 1], "u2": boxes[:, 2], "v2": boxes[:, 3]}
     if any("plant_id" in p for p in preds):  # ground-truth ids travel through (synthetic field, tests)
-        cols["truth_plant_id"] = pd.Series([p.get("plant_id", -1) for p in preds]).to_numpy()
+        ids = [p.get("plant_id", -1) for p in preds]
+        integers = all(type(i) is int for i in ids)  # the usual case: a typed array at once, not via pandas
+        cols["truth_plant_id"] = np.fromiter(ids, dtype=np.int64, count=n) if integers else pd.Series(ids).to_numpy()
     cols["hint"] = np.array([hints.get(s, "") for s in sources], dtype=object)[src]
     cols["shot_id"] = shot_of[src]
     cols["undistorted"] = und_of[src]
