@@ -109,7 +109,7 @@ def max_tangent(d):
     """Largest horizontal / vertical ratio of ray directions (N, 3) (looking down; 1e12 for a level ray)."""
     out = 0.0
     for i in range(d.shape[0]):
-        t = math.hypot(d[i, 0], d[i, 1]) / max(-d[i, 2], 1e-12)
+        t = math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1]) / max(-d[i, 2], 1e-12)
         if t > out or math.isnan(t):
             out = t
     return out
@@ -302,6 +302,19 @@ def patch_block_max(data, block):
                         m = v
             out[i, j] = m
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def above_block_max(inv, bmax, block, x, y, z):
+    """Whether height ``z`` is at or above the bilinear surface's highest point around map (x, y): the highest
+    point of the block of patches holding (x, y) (:func:`patch_block_max`). One value read, no interpolation:
+    a cheap way to rule out a sample. False off the raster's patches."""
+    pc = inv[0] * x + inv[1] * y + inv[2] - 0.5  # patch coordinates
+    pr = inv[3] * x + inv[4] * y + inv[5] - 0.5
+    if not (pc >= 0.0 and pr >= 0.0):
+        return False
+    i, j = int(pr) // block, int(pc) // block
+    return i < bmax.shape[0] and j < bmax.shape[1] and bmax[i, j] <= z
 
 
 @numba.njit(cache=True, nogil=True)

@@ -139,6 +139,13 @@ class Surface:
         return self._max_slope
 
     @property
+    def block_max(self) -> tuple[np.ndarray, int]:
+        """The highest point of the bilinear surface over each block of ``block`` x ``block`` patches (+inf where
+        the block touches a hole), and ``block``: what compiled kernels use to skip a sample that cannot be high
+        (:func:`matchplant.core.raycast.patch_block_max`)."""
+        return self._block_max, _BLOCK
+
+    @property
     def inverse(self) -> np.ndarray:
         """The inverse affine as (a, b, c, d, e, f) (col = a x + b y + c, row = d x + e y + f): what the
         compiled kernels (:mod:`matchplant.core.raycast`) take beside ``data``."""

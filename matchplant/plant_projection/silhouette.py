@@ -30,8 +30,8 @@ FACING = 0.3  # a photo edge bears on a map side when its outward normal's compo
 
 
 @numba.njit(cache=True, nogil=True)
-def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, gnd, gnd_inv, cam, hidden_height, skim, canopy,
-                       inscribed, out, unseen, beside):
+def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, gnd_inv, cam, hidden_height, skim,
+                       canopy, inscribed, out, unseen, beside):
     m, p = g.shape[0], g.shape[1]
     inner = np.empty(4)
     hidden = np.zeros(4, dtype=np.bool_)
@@ -66,8 +66,8 @@ def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, gnd, gnd_inv, cam, 
                 hx, hy, hz = src[i, arg, 0], src[i, arg, 1], src[i, arg, 2]
                 hidden[k] = hz - bilinear(gnd, gnd_inv, hx, hy) > hidden_height
                 if not hidden[k]:
-                    hidden[k] = skimmed_one(dsm, dsm_inv, gnd, gnd_inv, hx, hy, hz, cam, hidden_height, skim,
-                                            canopy, SKIM_SAMPLES)
+                    hidden[k] = skimmed_one(dsm, dsm_inv, bmax, block, gnd, gnd_inv, hx, hy, hz, cam, hidden_height,
+                                            skim, canopy, SKIM_SAMPLES)
         t, r, bo, le = inner[0], inner[1], inner[2], inner[3]
         if (hidden[0] or hidden[1] or hidden[2] or hidden[3]) and r > le and bo > t:
             # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
@@ -141,7 +141,7 @@ def silhouette_boxes(g_pts: np.ndarray, d_pts: np.ndarray, near: np.ndarray, ok:
     f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
     b8 = lambda v: np.ascontiguousarray(v, dtype=np.bool_)  # noqa: E731
     _silhouette_kernel(f64(g_pts), f64(d_pts), b8(near), b8(cut), b8(ok), p // 4, surface.data, surface.inverse,
-                       ground.data, ground.inverse, f64(cam), float(hidden_height), float(skim), float(canopy),
+                       *surface.block_max, ground.data, ground.inverse, f64(cam), float(hidden_height), float(skim), float(canopy),
                        how == "inscribed", out, unseen, beside)
     return {"bounds": out[:, :4], "centre": out[:, 4:6], "z": out[:, 6], "area": out[:, 7], "off_nadir": out[:, 8],
             "unseen": unseen, "beside_cut": beside}
