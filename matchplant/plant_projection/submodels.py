@@ -66,5 +66,5 @@ def align_submodels(views: ProjectedViews) -> dict[str, tuple[float, float]]:
         t[c] = t[c].to_numpy() + shift[:, k % 2]
     t["cx"] = t["cx"].to_numpy() + shift[:, 0]
     t["cy"] = t["cy"].to_numpy() + shift[:, 1]
-    views.points[views.rows, :, :2] += shift[:, None, :]  # rows are unique: each view's outline moves once
+    views.origins[views.rows, :2] += shift  # the outlines move with their origin
     return {n: (float(-pos[k, 0]), float(-pos[k, 1])) for k, n in enumerate(names)}
