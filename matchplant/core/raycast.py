@@ -387,10 +387,12 @@ def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, 
 
 
 @numba.njit(cache=True, nogil=True)
-def intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
-    """Rays over a gentle surface (slope x ray tangent < 1 everywhere, so each ray crosses it once): the
-    fixed point s = (z_camera - height(s)) / -dz converges in a few steps. Rays that fail (a hole, the
-    raster's edge) are left for the walk."""
+def intersect_gentle(data, inv, zmin, zmax, slope, o, d, out_s, out_done):
+    """Rays over a gentle surface (``slope``, a bound on its slope, x ray tangent < 1 everywhere, so each ray
+    crosses it once): the fixed point s = (z_camera - height(s)) / -dz converges in a few steps. Its map
+    contracts by L = slope x tangent, so the height error after a step is at most L / (1 - L) times that step:
+    the iteration stops as soon as that bound is below GENTLE_TOLERANCE. Rays that fail (a hole, the raster's
+    edge) are left for the walk."""
     h_start = 0.5 * (zmin + zmax)
     for i in range(d.shape[0]):
         oi = o[i] if o.shape[0] > 1 else o[0]  # one origin for every ray, or one each
@@ -398,13 +400,17 @@ def intersect_gentle(data, inv, zmin, zmax, o, d, out_s, out_done):
         dz = d[i, 2]
         if not dz < -1e-12:
             continue
+        lip = slope * math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1]) / -dz
+        if not lip < 1.0:
+            continue
+        bound = -dz * lip / (1.0 - lip)  # height error per unit of step
         s = (oi[2] - h_start) / -dz
         for _ in range(30):
             h = bilinear(data, inv, oi[0] + s * d[i, 0], oi[1] + s * d[i, 1])
             if math.isnan(h):
                 break
             s_new = (oi[2] - h) / -dz
-            if abs(s_new - s) * -dz < GENTLE_TOLERANCE:
+            if abs(s_new - s) * bound < GENTLE_TOLERANCE:
                 out_s[i] = s_new
                 out_done[i] = True
                 h_start = h  # neighbouring rays (one box's outline) meet the ground at about this height

@@ -205,7 +205,7 @@ class Surface:
         todo = slice(None)
         if clearance == 0.0 and d.shape[0] and self.max_slope * max_tangent(d) < 0.8:
             done = np.empty(d.shape[0], dtype=np.bool_)
-            intersect_gentle(self.data, self._inv, self.zmin, self.zmax, o, d, s, done)
+            intersect_gentle(self.data, self._inv, self.zmin, self.zmax, self.max_slope, o, d, s, done)
             status[done] = HIT
             todo = np.flatnonzero(~done)
             o = o if len(o) == 1 else np.ascontiguousarray(o[todo])
