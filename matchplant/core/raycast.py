@@ -52,6 +52,15 @@ def block_stats(data, block):
 
 
 @numba.njit(cache=True, nogil=True)
+def ray_points(o, d, s, out):
+    """Points ``o + s d`` (N, 3) of rays with one origin (1, 3) or one each (N, 3), in one pass."""
+    for i in range(d.shape[0]):
+        k = i if o.shape[0] > 1 else 0
+        for a in range(3):
+            out[i, a] = o[k, a] + s[i] * d[i, a]
+
+
+@numba.njit(cache=True, nogil=True)
 def bilinear(data, inv, x, y):
     """Height at map (x, y); NaN outside the raster or when all four neighbours are holes.
 

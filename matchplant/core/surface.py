@@ -24,7 +24,8 @@ from scipy.ndimage import maximum_filter, minimum_filter
 from matchplant.core.errors import InputError
 from matchplant.core.log import get_logger
 from matchplant.core.raycast import (HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, block_stats,
-                                     intersect_gentle, intersect_many, max_tangent, patch_block_max, sample_many)
+                                     intersect_gentle, intersect_many, max_tangent, patch_block_max, ray_points,
+                                     sample_many)
 
 log = get_logger("surface")
 
@@ -219,5 +220,6 @@ class Surface:
                        float(settle), int(max_steps), np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom),
                        s_m, st_m)
         s[todo], status[todo] = s_m, st_m
-        points = np.asarray(origins, dtype=np.float64).reshape(-1, 3) + s[:, None] * d_all
+        points = np.empty(d_all.shape)
+        ray_points(np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3)), d_all, s, points)
         return points, s, status
