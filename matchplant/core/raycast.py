@@ -61,17 +61,13 @@ def ray_points(o, d, s, out):
 
 
 @numba.njit(cache=True, nogil=True)
-def bilinear(data, inv, x, y):
-    """Height at map (x, y); NaN outside the raster or when all four neighbours are holes.
-
-    ``inv`` = (a, b, c, d, e, f) of the inverse affine: col = a x + b y + c, row = d x + e y + f, with
-    pixel corners at integers, so pixel centres are at +0.5.
-    """
+def _cell(data, inv, x, y):
+    """Where map (x, y) falls for :func:`bilinear`: ``(inside, r0, c0, r1, c1, fr, fc)``."""
     rows, cols = data.shape
     col = inv[0] * x + inv[1] * y + inv[2]
     row = inv[3] * x + inv[4] * y + inv[5]
     if not (col >= 0.0 and col <= cols and row >= 0.0 and row <= rows):
-        return math.nan
+        return False, 0, 0, 0, 0, 0.0, 0.0
     cf = col - 0.5
     rf = row - 0.5
     c0 = min(max(int(math.floor(cf)), 0), max(cols - 2, 0))
@@ -80,31 +76,66 @@ def bilinear(data, inv, x, y):
     r1 = min(r0 + 1, rows - 1)
     fc = min(max(cf - c0, 0.0), 1.0)
     fr = min(max(rf - r0, 0.0), 1.0)
+    return True, r0, c0, r1, c1, fr, fc
+
+
+@numba.njit(cache=True, nogil=True)
+def _blend(v00, v01, v10, v11, fr, fc):
+    """:func:`bilinear`'s weighted mean of the four neighbours, renormalised over those that are not holes."""
     total = 0.0
     weight = 0.0
     w = (1.0 - fr) * (1.0 - fc)
-    v = data[r0, c0]
-    if not math.isnan(v):
-        total += v * w
+    if not math.isnan(v00):
+        total += v00 * w
         weight += w
     w = (1.0 - fr) * fc
-    v = data[r0, c1]
-    if not math.isnan(v):
-        total += v * w
+    if not math.isnan(v01):
+        total += v01 * w
         weight += w
     w = fr * (1.0 - fc)
-    v = data[r1, c0]
-    if not math.isnan(v):
-        total += v * w
+    if not math.isnan(v10):
+        total += v10 * w
         weight += w
     w = fr * fc
-    v = data[r1, c1]
-    if not math.isnan(v):
-        total += v * w
+    if not math.isnan(v11):
+        total += v11 * w
         weight += w
     if weight > 1e-9:
         return total / weight
     return math.nan
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear(data, inv, x, y):
+    """Height at map (x, y); NaN outside the raster or when all four neighbours are holes.
+
+    ``inv`` = (a, b, c, d, e, f) of the inverse affine: col = a x + b y + c, row = d x + e y + f, with
+    pixel corners at integers, so pixel centres are at +0.5.
+    """
+    inside, r0, c0, r1, c1, fr, fc = _cell(data, inv, x, y)
+    if not inside:
+        return math.nan
+    return _blend(data[r0, c0], data[r0, c1], data[r1, c0], data[r1, c1], fr, fc)
+
+
+@numba.njit(cache=True, nogil=True)
+def bilinear_batch(data, inv, xs, ys, n, scratch, out):
+    """:func:`bilinear` at the first ``n`` points of ``xs``, ``ys`` into ``out``: every point's four values are
+    read first, then blended. The reads do not depend on each other, so the CPU overlaps their cache misses
+    (a DSM is far larger than the cache), which one point at a time it cannot. ``scratch``: (>= n, 6)."""
+    for k in range(n):
+        inside, r0, c0, r1, c1, fr, fc = _cell(data, inv, xs[k], ys[k])
+        if inside:
+            scratch[k, 0], scratch[k, 1] = data[r0, c0], data[r0, c1]
+            scratch[k, 2], scratch[k, 3] = data[r1, c0], data[r1, c1]
+            scratch[k, 4], scratch[k, 5] = fr, fc
+        else:
+            scratch[k, 4] = -1.0
+    for k in range(n):
+        if scratch[k, 4] < 0.0:
+            out[k] = math.nan
+        else:
+            out[k] = _blend(scratch[k, 0], scratch[k, 1], scratch[k, 2], scratch[k, 3], scratch[k, 4], scratch[k, 5])
 
 
 @numba.njit(cache=True, nogil=True)

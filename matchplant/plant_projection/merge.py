@@ -88,8 +88,11 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
         unseen = (t[list(UNSEEN_COLUMNS)].to_numpy(bool) if all(c in t for c in UNSEEN_COLUMNS)
                   else np.zeros((n, 4), dtype=bool))
+        # boxes of one detector image (photo or tile) went through its non-maximum suppression together
+        image = pd.factorize(t["image_id"])[0] if "image_id" in t else np.arange(n)
         iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64),
-                                  cut.astype(np.bool_), guessed.astype(np.bool_), np.ascontiguousarray(unseen),
+                                  np.ascontiguousarray(image, dtype=np.int64), cut.astype(np.bool_),
+                                  guessed.astype(np.bool_), np.ascontiguousarray(unseen),
                                   float(merge_iou), MERGE_CONTAINED, MERGE_CUT_INSIDE, MERGE_TOLERANCE)
         seed, rep, iou_to_rep = _claims(order, i, j, iou, strong, n)
         # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
@@ -194,9 +197,12 @@ def _claims(order, i, j, iou, strong, n):
 
 
 @numba.njit(cache=True, nogil=True)
-def _pair_rules(box, i, j, cat, cut, guessed, unseen, merge_iou, contained, cut_inside, tol):
+def _pair_rules(box, i, j, cat, image, cut, guessed, unseen, merge_iou, contained, cut_inside, tol):
     """The IoU of each pair of views ``(i[k], j[k])`` and whether they are one plant (see :func:`merge_views`), in
-    one pass. Two views of one category are when their IoU reaches ``merge_iou``; or one lies ``contained``
+    one pass. Two boxes of one detector ``image`` are one plant only when their IoU reaches ``merge_iou``: the
+    detector's non-maximum suppression left at most one box per plant there, so a box lying inside another box
+    of its own image is a second plant (a guessed side can make a view swallow its neighbour's).
+    Two views of one category are when their IoU reaches ``merge_iou``; or one lies ``contained``
     inside the other with half that IoU; or one is cut by a border and ``cut_inside`` inside the other; or the
     smaller has a side it did not see (a guess) and lies ``contained`` inside the other grown by ``tol`` (a thin
     view of a plant mostly hidden by its neighbour is pushed out of its own plant by the millimetres poses and
@@ -217,6 +223,9 @@ def _pair_rules(box, i, j, cat, cut, guessed, unseen, merge_iou, contained, cut_
         v = inter / union if union > 0 else 0.0
         iou[k] = v
         if cat[a] != cat[b]:
+            continue
+        if image[a] == image[b]:
+            strong[k] = v >= merge_iou
             continue
         small, big = (a, b) if area_a <= area_b else (b, a)
         least = min(area_a, area_b)
@@ -281,13 +290,19 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame)
     """A side of the representative view that was not seen directly (behind the plant's top or another
     plant, cut by a border, or beside a cut) is replaced by the median of that side in the plant's other
     views that saw it; failing those, in its views cut beside that side that show at least half the
-    representative's area; failing those, by the median of the whole views' guesses of it."""
+    representative's area; failing those, by the median of the whole views' guesses of it.
+
+    A seen side can only overshoot: a ray that passed over the plant's top unnoticed (a thin plant, a DSM
+    that rounds its top) lands on the soil beyond it, taken for the plant's edge. So when the views that saw
+    the side place it beyond every whole view's guess of it (each mirrored about the plant's top from its own
+    direction) by more than :data:`MERGE_TOLERANCE`, the representative's guess is kept."""
     def area(df: pd.DataFrame) -> pd.Series:
         return (df["xmax"] - df["xmin"]) * (df["ymax"] - df["ymin"])
 
     rep_area = t["plant_id"].map(pd.Series(area(reps_t).to_numpy(), index=reps_t["plant_id"].to_numpy()))
     beside_cols = BESIDE_CUT_COLUMNS if all(c in t for c in BESIDE_CUT_COLUMNS) else (None,) * 4
     changed = np.zeros(len(plants), dtype=bool)
+    pid, whole = t["plant_id"].to_numpy(), ~t["cut"].to_numpy()  # plant ids run 1 .. len(plants)
     for side, h, bc in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols):
         beside = t[bc] if bc else pd.Series(False, index=t.index)
         tiers = [t[side].where(~t[h] & ~beside),  # seen whole
@@ -298,6 +313,14 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame)
             m = values.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
             med = np.where(np.isfinite(med), med, m)
         unseen_rep = reps_t[h].to_numpy() | (reps_t[bc].to_numpy() if bc else False)
+        # the outermost guess of the side among the whole views (-inf: none guessed it, nothing to compare)
+        outward = -1.0 if side in ("xmin", "ymin") else 1.0  # larger = further out
+        widest = np.full(len(plants) + 1, -np.inf)
+        np.maximum.at(widest, pid, np.where(t[h].to_numpy() & whole, outward * t[side].to_numpy(), -np.inf))
+        widest = widest[plants["plant_id"].to_numpy()]
+        with np.errstate(invalid="ignore"):  # NaN: no value for this side
+            overshoot = reps_t[h].to_numpy() & np.isfinite(widest) & (outward * med > widest + MERGE_TOLERANCE)
+        med = np.where(overshoot, reps_t[side].to_numpy(), med)
         use = unseen_rep & np.isfinite(med)
         plants.loc[use, side] = med[use]
         changed |= use

@@ -12,7 +12,7 @@ import math
 import numba
 import numpy as np
 
-from matchplant.core.raycast import above_block_max, bilinear
+from matchplant.core.raycast import above_block_max, bilinear, bilinear_batch
 
 
 @numba.njit(cache=True, nogil=True)
@@ -54,30 +54,34 @@ def skimmed(hits: np.ndarray, cam: np.ndarray, surface, ground, hidden_height: f
 
 
 @numba.njit(cache=True, nogil=True)
-def apex_one(dsm, inv, cx, cy, ax, ay, bx, by, lo_a, hi_a, lo_b, hi_b, grid, refine):
+def apex_one(dsm, inv, cx, cy, ax, ay, bx, by, lo_a, hi_a, lo_b, hi_b, grid, refine, work):
     """The highest DSM point of the parallelogram ``(cx, cy) + ga a + gb b`` (ga in [lo_a, hi_a], gb in [lo_b,
     hi_b]), as its (ga, gb): the best of a ``grid`` x ``grid`` lattice of cell centres, then ``refine`` times the
     best of its 3 x 3 neighbours a third of the step away (a plant's top is one smooth dome: 41 samples place
-    it as finely as a 45 x 45 lattice would); the first lattice point when every sample is a hole."""
+    it as finely as a 45 x 45 lattice would); the first lattice point when every sample is a hole. ``work``:
+    scratch (>= grid x grid, 11), sampled a lattice at a time (:func:`~matchplant.core.raycast.bilinear_batch`)."""
     sa, sb = (hi_a - lo_a) / grid, (hi_b - lo_b) / grid  # lattice steps
-    best = -math.inf
-    ba, bb = lo_a + 0.5 * sa, lo_b + 0.5 * sb
+    n = 0
     for jb in range(grid):
-        gb = lo_b + (jb + 0.5) * sb
         for ja in range(grid):
-            ga = lo_a + (ja + 0.5) * sa
-            h = bilinear(dsm, inv, cx + ga * ax + gb * bx, cy + ga * ay + gb * by)
-            if h > best:  # the first highest point; NaN never wins
-                best, ba, bb = h, ga, gb
-    for _ in range(refine):  # a finer lattice around the best point, a third of the step
-        sa, sb = sa / 3.0, sb / 3.0
-        ca, cb = ba, bb
+            work[n, 6], work[n, 7] = lo_a + (ja + 0.5) * sa, lo_b + (jb + 0.5) * sb
+            n += 1
+    best = -math.inf
+    ba, bb = work[0, 6], work[0, 7]
+    for r in range(refine + 1):
+        for k in range(n):  # map points of the lattice (ga, gb)
+            work[k, 8], work[k, 9] = cx + work[k, 6] * ax + work[k, 7] * bx, cy + work[k, 6] * ay + work[k, 7] * by
+        bilinear_batch(dsm, inv, work[:, 8], work[:, 9], n, work, work[:, 10])
+        for k in range(n):
+            if work[k, 10] > best:  # the first highest point; NaN never wins
+                best, ba, bb = work[k, 10], work[k, 6], work[k, 7]
+        if r == refine:
+            break
+        sa, sb = sa / 3.0, sb / 3.0  # a finer lattice around the best point, a third of the step
+        n = 0
         for jb in range(-1, 2):
             for ja in range(-1, 2):
-                if ja == 0 and jb == 0:
-                    continue
-                ga, gb = ca + ja * sa, cb + jb * sb
-                h = bilinear(dsm, inv, cx + ga * ax + gb * bx, cy + ga * ay + gb * by)
-                if h > best:
-                    best, ba, bb = h, ga, gb
+                if ja != 0 or jb != 0:
+                    work[n, 6], work[n, 7] = ba + ja * sa, bb + jb * sb
+                    n += 1
     return ba, bb

@@ -36,6 +36,7 @@ def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, g
     inner = np.empty(4)
     hidden = np.zeros(4, dtype=np.bool_)
     normal = np.empty((4, 2))
+    work = np.empty((APEX_GRID * APEX_GRID, 11))  # apex_one's scratch
     for i in range(m):
         unseen[i, :] = False
         beside[i, :] = False
@@ -75,7 +76,7 @@ def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, g
             w, h = r - le, bo - t
             aa, ab = apex_one(dsm, dsm_inv, cx, cy, ax, ay, bx, by, le - w * (APEX_REACH if hidden[3] else 0.0),
                               r + w * (APEX_REACH if hidden[1] else 0.0), t - h * (APEX_REACH if hidden[0] else 0.0),
-                              bo + h * (APEX_REACH if hidden[2] else 0.0), APEX_GRID, APEX_REFINE)
+                              bo + h * (APEX_REACH if hidden[2] else 0.0), APEX_GRID, APEX_REFINE, work)
             t, r, bo, le = (min(t, 2 * ab - bo) if hidden[0] else t, max(r, 2 * aa - le) if hidden[1] else r,
                             max(bo, 2 * ab - t) if hidden[2] else bo, min(le, 2 * aa - r) if hidden[3] else le)
         if not (r > le and bo > t and math.isfinite(det)):  # inverted (rays crossing): the corners' box
