@@ -9,6 +9,7 @@ edge is no plant edge.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import chain
 from pathlib import Path
 
 import numpy as np
@@ -222,7 +223,11 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
         missing = image_ids[int(np.flatnonzero(code < 0)[0])]
         raise InputError(f"{int((code < 0).sum())} prediction(s) refer to images not listed in 'images' (e.g. "
                          f"image_id {missing!r})", fix="regenerate the predictions with module 7")
-    b = np.array([p["bbox"] for p in preds], dtype=float).reshape(-1, 4)
+    bb = [p["bbox"] for p in preds]
+    if n and (np.fromiter(map(len, bb), dtype=np.int64, count=n) != 4).any():
+        raise InputError("a prediction's bbox is not four numbers [x, y, width, height]",
+                         fix="regenerate the predictions with module 7")
+    b = np.fromiter(chain.from_iterable(bb), dtype=float, count=4 * n).reshape(-1, 4)  # no list per box
     off = per_image["offset"][code]
     boxes = np.column_stack([b[:, :2] + off, b[:, :2] + off + b[:, 2:]])
     src_of_image, sources = pd.factorize(per_image["source_image"])
@@ -239,8 +244,8 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
             "u1": boxes[:, 0], "v1": boxes[:, 1], "u2": boxes[:, 2], "v2": boxes[:, 3]}
     if any("plant_id" in p for p in preds):  # ground-truth ids travel through (synthetic field, tests)
         ids = [p.get("plant_id", -1) for p in preds]
-        integers = all(type(i) is int for i in ids)  # the usual case: a typed array at once, not via pandas
-        cols["truth_plant_id"] = np.fromiter(ids, dtype=np.int64, count=n) if integers else pd.Series(ids).to_numpy()
+        as_array = np.array(ids)  # integer ids (the usual case) make an integer array at once
+        cols["truth_plant_id"] = as_array if as_array.dtype.kind in "iu" else pd.Series(ids).to_numpy()
     cols["hint"] = np.array([hints.get(s, "") for s in sources], dtype=object)[src]
     cols["shot_id"] = shot_of[src]
     cols["undistorted"] = und_of[src]
