@@ -117,12 +117,13 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
 
     reps_pos = ranked  # position of each plant's representative view, in plant id order
     reps_t = t.iloc[reps_pos]
-    g = t.groupby("plant_id", sort=True)
-    mean_c = g[["cx", "cy"]].transform("mean")
-    d2 = (t["cx"] - mean_c["cx"]) ** 2 + (t["cy"] - mean_c["cy"]) ** 2
+    groups = _Groups(t["plant_id"].to_numpy(), len(reps_pos))
+    cx, cy = t["cx"].to_numpy(), t["cy"].to_numpy()
+    mean_x, mean_y = groups.mean(cx), groups.mean(cy)
+    pid = t["plant_id"].to_numpy() - 1
     plants = pd.DataFrame({"plant_id": np.arange(1, len(reps_pos) + 1)})
-    plants["views"] = g.size().to_numpy()
-    plants["spread_m"] = np.sqrt(d2.groupby(t["plant_id"]).mean()).to_numpy()
+    plants["views"] = groups.size
+    plants["spread_m"] = np.sqrt(groups.mean((cx - mean_x[pid]) ** 2 + (cy - mean_y[pid]) ** 2))
     if merge == "fuse":
         only_cut = t.groupby("plant_id")["cut"].transform("min").astype(bool)
         whole = t[~t["cut"] | only_cut]  # cut views are partial: use them only when there is nothing else
@@ -139,10 +140,10 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
         for c in ("xmin", "ymin", "xmax", "ymax", "cx", "cy"):
             plants[c] = reps_t[c].to_numpy()
         if merge == "nadir" and all(c in t for c in UNSEEN_COLUMNS):
-            _observed_sides(plants, t, reps_t)
+            _observed_sides(plants, t, reps_t, groups)
     for c in ("z", "area_m2", "source_image", "score", "category_id", "category", "off_nadir_deg", "cut"):
         plants[c] = reps_t[c].to_numpy()
-    plants["score_max"] = g["score"].max().to_numpy()
+    plants["score_max"] = groups.max(t["score"].to_numpy(float))
     if "truth_plant_id" in reps_t:
         plants["truth_plant_id"] = reps_t["truth_plant_id"].to_numpy()
     plants["view_index"] = reps_pos
@@ -286,7 +287,47 @@ def _join_slivers(rep: np.ndarray, box: np.ndarray, cut: np.ndarray, cat: np.nda
         rep[rep == a] = b_
 
 
-def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame) -> None:
+class _Groups:
+    """The views of each plant (ids 1 .. ``n``, every plant with a view): sums, means, maxima and medians per
+    plant over the views sorted once by plant, where pandas would factorize the ids again for each."""
+
+    def __init__(self, plant_id: np.ndarray, n: int):
+        self.order = np.argsort(plant_id, kind="stable")
+        self.starts = np.searchsorted(plant_id[self.order], np.arange(1, n + 2))
+        self.size = np.diff(self.starts)
+
+    def mean(self, values: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(values[self.order], self.starts[:-1]) / self.size
+
+    def max(self, values: np.ndarray) -> np.ndarray:
+        return np.maximum.reduceat(values[self.order], self.starts[:-1])
+
+    def median(self, values: np.ndarray) -> np.ndarray:
+        """Median of each plant's values that are not NaN (NaN where there are none)."""
+        return _group_median(np.ascontiguousarray(values[self.order], dtype=np.float64), self.starts)
+
+
+@numba.njit(cache=True, nogil=True)
+def _group_median(values, starts):
+    out = np.full(starts.shape[0] - 1, np.nan)
+    buf = np.empty(max(np.max(starts[1:] - starts[:-1]), 1))
+    for g in range(out.shape[0]):
+        k = 0
+        for q in range(starts[g], starts[g + 1]):  # the values that are not NaN, kept sorted (a few dozen)
+            v = values[q]
+            if v == v:
+                p = k
+                while p > 0 and buf[p - 1] > v:
+                    buf[p] = buf[p - 1]
+                    p -= 1
+                buf[p] = v
+                k += 1
+        if k:
+            out[g] = buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
+    return out
+
+
+def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame, groups: _Groups) -> None:
     """A side of the representative view that was not seen directly (behind the plant's top or another
     plant, cut by a border, or beside a cut) is replaced by the median of that side in the plant's other
     views that saw it; failing those, in its views cut beside that side that show at least half the
@@ -310,8 +351,7 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame)
                  t[side].where(~t["cut"])]  # the whole views' guesses
         med = np.full(len(plants), np.nan)
         for values in tiers:
-            m = values.groupby(t["plant_id"]).median().reindex(plants["plant_id"]).to_numpy()
-            med = np.where(np.isfinite(med), med, m)
+            med = np.where(np.isfinite(med), med, groups.median(values.to_numpy(float)))
         unseen_rep = reps_t[h].to_numpy() | (reps_t[bc].to_numpy() if bc else False)
         # the outermost guess of the side among the whole views (-inf: none guessed it, nothing to compare)
         outward = -1.0 if side in ("xmin", "ymin") else 1.0  # larger = further out
