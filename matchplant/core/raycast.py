@@ -265,7 +265,6 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
     c, tc, dtc, stc = _axis_start(ca, cb, s)
     r, tr, dtr, str_ = _axis_start(ra, rb, s)
     f = f0
-    fine = 1.0 / (FALLBACK_SAMPLES * max(abs(cb), abs(rb), 1e-300))  # ray length per quarter cell
     walked = 0
     while s < s1 and walked < budget:
         walked += 1
@@ -297,6 +296,7 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
                 status = OUTSIDE  # wholly outside the raster here; the ray may still come in later
             f = math.nan
         else:  # a hole's edge or the raster's outer half-cell: sample and refine
+            fine = 1.0 / (FALLBACK_SAMPLES * max(abs(cb), abs(rb), 1e-300))  # ray length per quarter cell
             n = max(1, int(math.ceil((se - s) / fine)))
             step = (se - s) / n
             prev = s
