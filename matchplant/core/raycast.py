@@ -52,6 +52,17 @@ def block_stats(data, block):
 
 
 @numba.njit(cache=True, nogil=True)
+def holes_to_nan(data, nodata):
+    """Cells equal to ``nodata`` (NaN: none) or at or below -9999 (ODM's nodata, declared or not) become NaN, in
+    place: one pass, no temporary masks over a raster of tens of millions of cells."""
+    flat = data.reshape(-1)
+    for k in range(flat.shape[0]):
+        v = flat[k]
+        if v == nodata or v <= -9999.0:
+            flat[k] = math.nan
+
+
+@numba.njit(cache=True, nogil=True)
 def ray_points(o, d, s, out):
     """Points ``o + s d`` (N, 3) of rays with one origin (1, 3) or one each (N, 3), in one pass."""
     for i in range(d.shape[0]):

@@ -14,16 +14,16 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rasterio
 from affine import Affine
 from rasterio.enums import MaskFlags
 from rasterio.windows import Window, from_bounds
-from scipy.ndimage import maximum_filter, minimum_filter
 
 from matchplant.core.errors import InputError
 from matchplant.core.log import get_logger
-from matchplant.core.raycast import (HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, block_stats,
+from matchplant.core.raycast import (HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, block_stats, holes_to_nan,
                                      intersect_gentle, intersect_many, max_tangent, patch_block_max, ray_points,
                                      sample_many)
 
@@ -78,8 +78,11 @@ class Surface:
             if used > window * 1.5:
                 log.info("ground estimate: window raised from ground_window=%.3g m to %.3g m (%d cells of %.3g m, "
                          "the least the opening needs)", window, used, size, block * self.pixel_size)
-            eroded = minimum_filter(low, size=size, mode="nearest")
-            opened = maximum_filter(np.where(np.isinf(eroded), -np.inf, eroded), size=size, mode="nearest")
+            # OpenCV's separable min / max filters: the same values as scipy.ndimage's, in a third of the time
+            square = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
+            eroded = cv2.erode(low, square, borderType=cv2.BORDER_REPLICATE)
+            opened = cv2.dilate(np.where(np.isinf(eroded), -np.inf, eroded).astype(np.float32, copy=False), square,
+                                borderType=cv2.BORDER_REPLICATE)
             opened[~np.isfinite(opened) | hole] = np.nan  # DSM holes stay holes: rays meeting them are reported
             with np.errstate(invalid="ignore"):
                 self._canopy[window] = float(np.nanmax(high - opened, initial=0.0))
@@ -116,16 +119,15 @@ class Surface:
                 flags = src.mask_flag_enums[band - 1]
                 if MaskFlags.per_dataset in flags or MaskFlags.alpha in flags:  # a mask band: read it
                     data[src.read_masks(band, window=win) == 0] = np.nan
-                elif MaskFlags.nodata in flags and src.nodata is not None:
-                    # the nodata value alone marks holes: no mask to read (GDAL would build one, at 3x the cost)
-                    data[data == np.float32(src.nodata)] = np.nan
+                # the nodata value alone marks holes: no mask to read (GDAL would build one, at 3x the cost)
+                nodata = src.nodata if MaskFlags.nodata in flags and src.nodata is not None else math.nan
                 crs = src.crs
         except rasterio.errors.WindowError as exc:
             raise InputError("the area of interest does not overlap the raster", path=path,
                              fix="check that the raster and the reconstruction are of the same field and CRS") from exc
         except rasterio.errors.RasterioIOError as exc:
             raise InputError(f"cannot read the raster: {exc}", path=path, fix="check that it is a GeoTIFF") from exc
-        data[data <= -9999] = np.nan  # ODM's nodata even when the file does not declare it
+        holes_to_nan(data, np.float32(nodata))  # and ODM's -9999 even when the file does not declare it
         return cls(data=data, transform=transform, crs=crs, path=path)
 
     @property
