@@ -24,7 +24,7 @@ import numpy as np
 HIT, NOT_DOWNWARD, OUTSIDE, NODATA, NO_HIT = 0, 1, 2, 3, 4
 REFINE_ITERATIONS = 60  # refinement steps at most (fallback patches)
 REFINE_TOLERANCE = 1e-7  # metres (along the ray, and above the surface) at which refinement stops
-GENTLE_TOLERANCE = 1e-5  # metres of height at which the fixed point over a gentle surface stops (DSM cells: 1 cm)
+GENTLE_TOLERANCE = 1e-4  # metres of height error (bounded) at which the fixed point stops: 1 % of a 1 cm DSM cell
 FALLBACK_SAMPLES = 4  # samples per cell crossed, on patches that are not bilinear
 
 
