@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -13,6 +14,7 @@ from typing import Literal
 import numpy as np
 import pytest
 
+import matchplant
 from matchplant.core import coco
 from matchplant.cli import run_module
 from matchplant.steps import StepSpec
@@ -521,3 +523,20 @@ def test_default_outputs_are_git_ignored():
             p = Path(p) if Path(p).is_absolute() else root / p
             r = subprocess.run(["git", "check-ignore", "-q", "--no-index", str(p / "x")], cwd=root)
             assert r.returncode == 0, f"{name}: default output {p} is not git-ignored"
+
+
+def test_numba_cache_is_renewed_when_any_kernel_file_changes(tmp_path):
+    """Numba checks only a kernel's own file before reusing its cache; ours inline kernels of other files, so
+    the cache folder is named by a hash of every kernel file (a git pull updating one starts a fresh cache)."""
+    pkg = Path(matchplant.__file__).resolve().parent
+    assert os.environ["NUMBA_CACHE_DIR"].endswith(f"numba-{matchplant.kernel_digest(pkg)}")
+    root = tmp_path / "pkg"
+    (root / "core").mkdir(parents=True)
+    kernel, other = root / "core" / "kernels.py", root / "other.py"
+    kernel.write_text("import numba\n\n@numba.njit\ndef f(x):\n    return x + 1\n")
+    other.write_text("X = 1\n")
+    before = matchplant.kernel_digest(root)
+    other.write_text("X = 2\n")  # not a kernel file: the cache stays
+    assert matchplant.kernel_digest(root) == before
+    kernel.write_text(kernel.read_text().replace("x + 1", "x + 2"))
+    assert matchplant.kernel_digest(root) != before

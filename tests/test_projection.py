@@ -279,6 +279,20 @@ def test_nadir_undistorted_boxes_land_on_the_plants(nadir_project):
     # truth ids travel through: each plant record holds views of one true plant only
     purity = views.table.groupby("plant_id")["truth_plant_id"].nunique()
     assert (purity == 1).mean() > 0.97
+    # a side is seen across the plant when it faces away from the camera's nadir point: views well east of it
+    # see their east side across the plant and their west side from its own side (and so on for each axis)
+    project = ODMProject(root)
+    t = views.table
+    cam = np.array([project.frame_of(s).to_map(project.shot(s, undistorted=True).center[None, :])[0, :2]
+                    for s in t["shot_id"]])
+    half = np.column_stack([t["xmax"] - t["xmin"], t["ymax"] - t["ymin"]]) / 2
+    off = t[["cx", "cy"]].to_numpy() - cam
+    for axis, (low, high) in enumerate([("across_w", "across_e"), ("across_s", "across_n")]):
+        beyond = off[:, axis] > 2 * half[:, axis]  # the camera's nadir west (south) of the whole box
+        before = off[:, axis] < -2 * half[:, axis]
+        assert beyond.sum() > 20 and before.sum() > 20
+        assert t[high][beyond].all() and not t[low][beyond].any()
+        assert t[low][before].all() and not t[high][before].any()
 
 
 @pytest.mark.parametrize("tilt,heading", [(25.0, 0.0), (20.0, 35.0)], ids=["oblique", "oblique-rotated"])

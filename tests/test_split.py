@@ -29,7 +29,8 @@ from matchplant.plant_projection.config import ProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes
 from matchplant.plant_projection.merge import MERGE_TOLERANCE, merge_views
 from matchplant.plant_projection.run import run as run_projection_step
-from matchplant.plant_projection.views import BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews, project_predictions
+from matchplant.plant_projection.views import (ACROSS_COLUMNS, BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews,
+                                             project_predictions)
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.split import split_field, split_lines
 
@@ -259,15 +260,16 @@ def test_module_7_lists_every_submodels_images_once(split):
 
 
 def _views(rows: list[dict]) -> ProjectedViews:
-    """Projected views made by hand (map boxes, off-nadir angle, unseen sides as a string of w, s, e, n): the
-    merge's inputs, where each view's truth is known exactly."""
+    """Projected views made by hand (map boxes, off-nadir angle, unseen sides and sides seen across the plant as
+    strings of w, s, e, n): the merge's inputs, where each view's truth is known exactly."""
     t = pd.DataFrame([{"xmin": r["box"][0], "ymin": r["box"][1], "xmax": r["box"][2], "ymax": r["box"][3],
                        "off_nadir_deg": r["off_nadir"], "image_id": r["image"], "shot_id": f"SIM_{r['image']:04d}.JPG",
                        "undistorted": True, "submodel": r.get("submodel", "submodel_0000"), "cut": False,
                        "category_id": 1, "category": "plant", "score": 1.0, "source_image": f"SIM_{r['image']:04d}",
                        "u1": 0.0, "v1": 0.0, "u2": 10.0, "v2": 10.0, "z": 0.0, "truth_plant_id": r["plant"],
                        **{c: side in r.get("unseen", "") for c, side in zip(UNSEEN_COLUMNS, "wsen")},
-                       **{c: False for c in BESIDE_CUT_COLUMNS}} for r in rows])
+                       **{c: False for c in BESIDE_CUT_COLUMNS},
+                       **{c: side in r.get("across", "") for c, side in zip(ACROSS_COLUMNS, "wsen")}} for r in rows])
     t["cx"], t["cy"] = (t["xmin"] + t["xmax"]) / 2, (t["ymin"] + t["ymax"]) / 2
     t["area_m2"] = (t["xmax"] - t["xmin"]) * (t["ymax"] - t["ymin"])
     n = len(t)
@@ -278,24 +280,27 @@ def test_a_seen_side_beyond_every_guess_of_it_is_an_overshoot():
     """A thin plant (40 x 10 cm) at the edge of what the flight saw, seen from the south only, by views of two
     submodels: its north side is hidden behind its top in the nearest-nadir view (a guess, mirrored about its top);
     in two views of the other submodel a ray passed over its top unnoticed (a DSM that rounds a thin top) and
-    landed on the soil 17 cm beyond, taken for its edge. A seen side can only overshoot, so when the views that saw
-    it place it beyond every whole view's guess of it, the representative's guess stands."""
+    landed on the soil 17 cm beyond, taken for its edge. A side seen across the plant can only overshoot, so when
+    the views that saw it (all across the plant) place it beyond every whole view's guess of it, the
+    representative's guess stands; a side some view saw from its own side (a leaf tip on the soil) is trusted."""
     truth = (0.0, 0.0, 0.4, 0.1)
 
-    def plant(north_seen_by_b: float, guess: float) -> pd.Series:
+    def plant(north_seen_by_b: float, guess: float, across: str = "n") -> pd.Series:
         views = _views([
             {"box": (0.0, 0.0, 0.4, guess), "off_nadir": 20.0, "image": 1, "plant": 1, "unseen": "n"},
             {"box": (0.0, 0.0, 0.4, guess + 0.005), "off_nadir": 26.0, "image": 2, "plant": 1, "unseen": "n"},
             {"box": (0.001, 0.0, 0.401, north_seen_by_b), "off_nadir": 28.0, "image": 3, "plant": 1,
-             "submodel": "submodel_0001"},
+             "submodel": "submodel_0001", "across": across},
             {"box": (0.001, 0.0, 0.401, north_seen_by_b + 0.005), "off_nadir": 31.0, "image": 4, "plant": 1,
-             "submodel": "submodel_0001"}])
+             "submodel": "submodel_0001", "across": across}])
         plants = merge_views(views)
         assert len(plants) == 1
         return plants.iloc[0]
 
     p = plant(north_seen_by_b=0.27, guess=0.105)  # seen 17 cm out: beyond both guesses
     assert p["ymax"] == pytest.approx(0.105) and p[["xmin", "ymin", "xmax"]].tolist() == list(truth[:3])
+    p = plant(north_seen_by_b=0.27, guess=0.105, across="")  # seen from the north (a leaf tip): trusted
+    assert p["ymax"] == pytest.approx(0.2725)
     p = plant(north_seen_by_b=0.10, guess=0.16)  # guesses overshoot (a lopsided plant): the seen side wins
     assert p["ymax"] == pytest.approx(0.1025)
     # beyond the guesses by less than what poses, DSM and submodel alignment disagree by: the seen side wins

@@ -120,8 +120,9 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     :data:`matchplant.core.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
     ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``beside_cut`` (M, 4:
     map sides beside a border cut), ``unseen`` (M, 4:
-    map sides west, south, east, north not seen directly: behind the plant's top or cut by a border)
-    and ``off_nadir`` (degrees between the plumb line and the ray to the centroid).
+    map sides west, south, east, north not seen directly: behind the plant's top or cut by a border),
+    ``across`` (M, 4: map sides seen across the plant, :func:`silhouette_boxes`) and ``off_nadir`` (degrees
+    between the plumb line and the ray to the centroid).
     """
     boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
     uv = box_outline(boxes, edge_points)

@@ -13,7 +13,7 @@ import pandas as pd
 
 from matchplant.core.boxes import overlapping_pairs
 from matchplant.plant_projection.submodels import align_submodels
-from matchplant.plant_projection.views import BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews
+from matchplant.plant_projection.views import ACROSS_COLUMNS, BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews
 
 MERGE_CONTAINED = 0.75  # a view lying this much inside another (intersection / smaller area) may join it
 MERGE_CUT_INSIDE = 0.25  # the same for a view cut by the photo or tile border
@@ -333,18 +333,21 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
     views that saw it; failing those, in its views cut beside that side that show at least half the
     representative's area; failing those, by the median of the whole views' guesses of it.
 
-    A seen side can only overshoot: a ray that passed over the plant's top unnoticed (a thin plant, a DSM
-    that rounds its top) lands on the soil beyond it, taken for the plant's edge. So when the views that saw
-    the side place it beyond every whole view's guess of it (each mirrored about the plant's top from its own
-    direction) by more than :data:`MERGE_TOLERANCE`, the representative's guess is kept."""
+    A side seen across the plant (``across_*``: the photo edge facing away from the nadir point) can only
+    overshoot: a ray that passed over the plant's top unnoticed (a thin plant, a DSM that rounds its top) lands
+    on the soil beyond it, taken for the plant's edge. So when every view that saw the side saw it across the
+    plant, and they place it beyond every whole view's guess of it (each mirrored about the plant's top from
+    its own direction) by more than :data:`MERGE_TOLERANCE`, the representative's guess is kept. A side that
+    some view saw from its own side (a leaf tip on the soil, facing the nadir point) is taken as seen."""
     def area(df: pd.DataFrame) -> pd.Series:
         return (df["xmax"] - df["xmin"]) * (df["ymax"] - df["ymin"])
 
     rep_area = t["plant_id"].map(pd.Series(area(reps_t).to_numpy(), index=reps_t["plant_id"].to_numpy()))
     beside_cols = BESIDE_CUT_COLUMNS if all(c in t for c in BESIDE_CUT_COLUMNS) else (None,) * 4
+    across_cols = ACROSS_COLUMNS if all(c in t for c in ACROSS_COLUMNS) else (None,) * 4
     changed = np.zeros(len(plants), dtype=bool)
-    pid, whole = t["plant_id"].to_numpy(), ~t["cut"].to_numpy()  # plant ids run 1 .. len(plants)
-    for side, h, bc in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols):
+    whole = ~t["cut"].to_numpy()
+    for side, h, bc, ac in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols, across_cols):
         beside = t[bc] if bc else pd.Series(False, index=t.index)
         tiers = [t[side].where(~t[h] & ~beside),  # seen whole
                  t[side].where(~t[h] & beside & (area(t) >= 0.5 * rep_area)),  # most of the plant in view
@@ -355,11 +358,13 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
         unseen_rep = reps_t[h].to_numpy() | (reps_t[bc].to_numpy() if bc else False)
         # the outermost guess of the side among the whole views (-inf: none guessed it, nothing to compare)
         outward = -1.0 if side in ("xmin", "ymin") else 1.0  # larger = further out
-        widest = np.full(len(plants) + 1, -np.inf)
-        np.maximum.at(widest, pid, np.where(t[h].to_numpy() & whole, outward * t[side].to_numpy(), -np.inf))
-        widest = widest[plants["plant_id"].to_numpy()]
+        widest = groups.max(np.where(t[h].to_numpy() & whole, outward * t[side].to_numpy(), -np.inf))
+        # ... and whether some view saw the side from its own side (nothing then overshoots)
+        seen_near = (~t[h] & ~beside & ~t[ac]).to_numpy() if ac else np.ones(len(t), dtype=bool)
+        trusted = groups.max(seen_near.astype(np.int8)) > 0
         with np.errstate(invalid="ignore"):  # NaN: no value for this side
-            overshoot = reps_t[h].to_numpy() & np.isfinite(widest) & (outward * med > widest + MERGE_TOLERANCE)
+            overshoot = (reps_t[h].to_numpy() & ~trusted & np.isfinite(widest)
+                         & (outward * med > widest + MERGE_TOLERANCE))
         med = np.where(overshoot, reps_t[side].to_numpy(), med)
         use = unseen_rep & np.isfinite(med)
         plants.loc[use, side] = med[use]

@@ -31,7 +31,7 @@ FACING = 0.3  # a photo edge bears on a map side when its outward normal's compo
 
 @numba.njit(cache=True, nogil=True)
 def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, gnd_inv, cam, hidden_height, skim,
-                       canopy, inscribed, out, unseen, beside):
+                       canopy, inscribed, out, unseen, beside, across):
     m, p = g.shape[0], g.shape[1]
     inner = np.empty(4)
     hidden = np.zeros(4, dtype=np.bool_)
@@ -40,6 +40,7 @@ def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, g
     for i in range(m):
         unseen[i, :] = False
         beside[i, :] = False
+        across[i, :] = False
         if not ok[i]:
             out[i, :] = math.nan
             continue
@@ -115,6 +116,8 @@ def _silhouette_kernel(g, d, near, cut, ok, q, dsm, dsm_inv, bmax, block, gnd, g
                     unseen[i, side] = True
                 if faces and by_cut:
                     beside[i, side] = True
+                if faces and not near[i, k]:
+                    across[i, side] = True
 
 
 def silhouette_boxes(g_pts: np.ndarray, d_pts: np.ndarray, near: np.ndarray, ok: np.ndarray, cut: np.ndarray,
@@ -133,16 +136,19 @@ def silhouette_boxes(g_pts: np.ndarray, d_pts: np.ndarray, near: np.ndarray, ok:
     Returns arrays over the M boxes: ``bounds`` (M, 4), ``centre`` (M, 2), ``z`` (mean height of the DSM
     hits), ``area`` (of the parallelogram, m²), ``off_nadir`` (degrees between the plumb line and the ray to
     the centre), ``unseen`` (M, 4: map sides west, south, east, north not seen directly: behind the plant's
-    top or cut by a border) and ``beside_cut`` (M, 4: map sides beside a border cut).
+    top or cut by a border), ``beside_cut`` (M, 4: map sides beside a border cut) and ``across`` (M, 4: map
+    sides borne by an edge facing away from the nadir point, seen across the plant: where a ray that passed
+    over the plant's top unnoticed lands on the soil beyond it).
     """
     m, p = g_pts.shape[:2]
     out = np.empty((m, 9))
     unseen = np.empty((m, 4), dtype=np.bool_)
     beside = np.empty((m, 4), dtype=np.bool_)
+    across = np.empty((m, 4), dtype=np.bool_)
     f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
     b8 = lambda v: np.ascontiguousarray(v, dtype=np.bool_)  # noqa: E731
     _silhouette_kernel(f64(g_pts), f64(d_pts), b8(near), b8(cut), b8(ok), p // 4, surface.data, surface.inverse,
                        *surface.block_max, ground.data, ground.inverse, f64(cam), float(hidden_height), float(skim), float(canopy),
-                       how == "inscribed", out, unseen, beside)
+                       how == "inscribed", out, unseen, beside, across)
     return {"bounds": out[:, :4], "centre": out[:, 4:6], "z": out[:, 6], "area": out[:, 7], "off_nadir": out[:, 8],
-            "unseen": unseen, "beside_cut": beside}
+            "unseen": unseen, "beside_cut": beside, "across": across}

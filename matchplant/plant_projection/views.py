@@ -36,6 +36,9 @@ EMPTY_BOX = "box has no area"
 UNSEEN_COLUMNS = ("unseen_w", "unseen_s", "unseen_e", "unseen_n")
 # sides beside a border cut: they bound only the part of the plant inside the photo (weaker evidence)
 BESIDE_CUT_COLUMNS = ("beside_cut_w", "beside_cut_s", "beside_cut_e", "beside_cut_n")
+# sides seen across the plant (the photo edge facing away from the nadir point): a ray that passed over the
+# plant's top unnoticed lands on the soil beyond it, so such a side can overshoot (merge._observed_sides)
+ACROSS_COLUMNS = ("across_w", "across_s", "across_e", "across_n")
 
 
 @dataclass
@@ -350,6 +353,7 @@ class _Results:
         self.values = np.full((n, len(RESULT_COLUMNS)), np.nan)
         self.unseen = np.zeros((n, 4), dtype=bool)
         self.beside_cut = np.zeros((n, 4), dtype=bool)
+        self.across = np.zeros((n, 4), dtype=bool)
 
     def store(self, idx: np.ndarray, r: dict, reason: np.ndarray) -> None:
         ok = r["ok"]
@@ -365,10 +369,12 @@ class _Results:
         self.values[good, :4] = r["bounds"][ok]
         self.values[good, 4:6] = r["centroid"][ok]
         self.values[good, 6], self.values[good, 7], self.values[good, 8] = r["z"][ok], r["area"][ok], r["off_nadir"][ok]
-        self.unseen[good], self.beside_cut[good] = r["unseen"][ok], r["beside_cut"][ok]
+        for name in ("unseen", "beside_cut", "across"):
+            getattr(self, name)[good] = r[name][ok]
 
     def columns(self) -> dict[str, np.ndarray]:
         out = {c: self.values[:, j] for j, c in enumerate(RESULT_COLUMNS)}
         out.update({c: self.unseen[:, j] for j, c in enumerate(UNSEEN_COLUMNS)})
         out.update({c: self.beside_cut[:, j] for j, c in enumerate(BESIDE_CUT_COLUMNS)})
+        out.update({c: self.across[:, j] for j, c in enumerate(ACROSS_COLUMNS)})
         return out
