@@ -260,6 +260,15 @@ def _axis_start(a, b, s):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")  # inlined: see the module docstring
+def _next_cell(across, c, tc, dtc, stc, r, tr, dtr, str_):
+    """One step of a grid traversal (:func:`_axis_start`): into the next column when the ray crosses a column
+    boundary first (``across``), else into the next row. Returns ``(c, tc, r, tr)``."""
+    if across:
+        return c + stc, tc + dtc, r, tr
+    return c, tc, r + str_, tr + dtr
+
+
+@numba.njit(cache=True, nogil=True, inline="always")  # inlined: see the module docstring
 def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
     """The first ray parameter in [s0, s1] where the ray comes down to ``clearance`` above the surface.
 
@@ -325,12 +334,7 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
                 elif f > 0.0 and fk <= 0.0:
                     return _refine(data, inv, o, d, clearance, prev, sk, f, fk), fk, HIT, walked
                 f, prev = fk, sk
-        if across:
-            c += stc
-            tc += dtc
-        else:
-            r += str_
-            tr += dtr
+        c, tc, r, tr = _next_cell(across, c, tc, dtc, stc, r, tr, dtr, str_)
         s = se
     return math.nan, f, status, walked
 
@@ -397,12 +401,7 @@ def march(data, inv, bmax, block, o, d, clearance, s0, s1, status, budget):
             walked += n
             if status == HIT:
                 return hit, status, walked
-        if across:
-            c += stc
-            tc += dtc
-        else:
-            r += str_
-            tr += dtr
+        c, tc, r, tr = _next_cell(across, c, tc, dtc, stc, r, tr, dtr, str_)
         s = se
     return math.nan, status, walked
 

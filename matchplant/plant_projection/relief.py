@@ -1,4 +1,4 @@
-"""Compiled pieces of the silhouette (:func:`~matchplant.plant_projection.geometry.silhouette_boxes`) that sample
+"""Compiled pieces of the silhouette (:mod:`~matchplant.plant_projection.silhouette`) that sample
 the DSM many times per box: the plant's top inside a box, and rays that skimmed a plant on their way down.
 
 Both are loops with an early exit or a running maximum over a few dozen samples per box; numpy would build

@@ -344,8 +344,8 @@ class _Results:
     """project_boxes' results gathered per box: outlines, map bounds, centroid, height, area, sides unseen."""
 
     def __init__(self, n: int, edge_points: int, order: np.ndarray):
-        # outlines (a field's are hundreds of MB) are kept in projection ``order``: written in sequence, image by
-        # image, where scattering them into prediction order costs a TLB miss per box
+        # outlines (a field's are a hundred MB and more) are kept in projection ``order``, written in sequence
+        # image by image, as float32 offsets: fresh memory costs more to touch than to write (page faults)
         self.points = np.empty((len(order), 4 * (edge_points + 1), 3), dtype=np.float32)
         self.origins = np.empty((len(order), 3))
         self.row = np.full(n, -1, dtype=np.int64)
