@@ -24,7 +24,7 @@ from pathlib import Path
 CHILD = """
 import json, resource, sys, time
 from matchplant.simfield import generate_field
-from matchplant.core.io import read_json
+from matchplant.core.runtime.io import read_json
 def cpu():  # this process and its finished worker processes
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + kids.ru_utime + kids.ru_stime

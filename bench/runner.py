@@ -17,21 +17,30 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.harness import (Comparison, alternate, machine_info, overhead, pin_one_core, ratio_text,
-                           single_thread_env, summarise, versions)
+from bench.harness import (
+    Comparison,
+    alternate,
+    machine_info,
+    overhead,
+    pin_one_core,
+    ratio_text,
+    single_thread_env,
+    summarise,
+    versions,
+)
 
 HERE = Path(__file__).parent
 RESULTS = HERE / "results"
 
 # name -> (module in bench/, what it compares); each module has comparison(name, work, quick, device)
 REGISTRY = {
-    "zonal-center": ("bench.bench_stats", "module 9, pixel-centre rule vs rasterstats"),
-    "zonal-coverage": ("bench.bench_stats", "module 9, coverage-weighted vs exactextract"),
-    "gps-embed": ("bench.bench_gps_embed", "module 0, GPS into EXIF copies vs exiftool -geotag"),
-    "train": ("bench.bench_train", "module 6, training loop vs a bare torchvision loop"),
-    "detect": ("bench.bench_train", "module 7, tiled detection vs the bare model on the same tiles"),
-    "tiling": ("bench.bench_tiling", "module 5, tiling vs SAHI slice_coco"),
-    "box-pairs": ("bench.bench_boxes", "module 8, overlapping box pairs vs shapely STRtree"),
+    "zonal-center": ("bench.bench_spatial_stat_extractor", "module 9, pixel-centre rule vs rasterstats"),
+    "zonal-coverage": ("bench.bench_spatial_stat_extractor", "module 9, coverage-weighted vs exactextract"),
+    "gps-embed": ("bench.bench_gps_embeder", "module 0, GPS into EXIF copies vs exiftool -geotag"),
+    "train": ("bench.bench_model_train", "module 6, training loop vs a bare torchvision loop"),
+    "detect": ("bench.bench_model_train", "module 7, tiled detection vs the bare model on the same tiles"),
+    "tiling": ("bench.bench_img_splitter", "module 5, tiling vs SAHI slice_coco"),
+    "box-pairs": ("bench.bench_core_boxes", "module 8, overlapping box pairs vs shapely STRtree"),
 }
 GPU_NAMES = ("train", "detect")  # what --device cuda measures
 PACKAGES = ["matchplant", "numpy", "numba", "shapely", "rasterio", "exactextract", "rasterstats", "piexif",

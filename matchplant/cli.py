@@ -15,11 +15,11 @@ from pathlib import Path
 from typing import Sequence
 
 from matchplant import __version__
-from matchplant.core.config import load_config, save_config
-from matchplant.core.errors import ConfigError, MatchPlantError
-from matchplant.core.gui import require_display
-from matchplant.core.guard import check_outputs
-from matchplant.core.log import setup_console, start_run_log, stop_run_log
+from matchplant.core.runtime.config import load_config, save_config
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
+from matchplant.core.runtime.guard import check_outputs
+from matchplant.core.runtime.gui import require_display
+from matchplant.core.runtime.log import setup_console, start_run_log, stop_run_log
 from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
 

@@ -29,17 +29,24 @@ import pandas as pd
 import yaml
 from PIL import Image
 
-from matchplant.core.config import load_config
-from matchplant.core.errors import MatchPlantError
-from matchplant.core.gui import figure
-from matchplant.core.io import atomic_path, write_text
-from matchplant.core.log import get_logger, setup_console
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.errors import MatchPlantError
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_path, write_text
+from matchplant.core.runtime.log import get_logger, setup_console
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
-from matchplant.simfield.scoring import (growth_scores, match_to_truth, outline_ious, pearson, plot_scores, positions,
-                                         trait_scores)
-from matchplant.spatial_stat_extractor.config import StatsConfig
+from matchplant.simfield.scoring import (
+    growth_scores,
+    match_to_truth,
+    outline_ious,
+    pearson,
+    plot_scores,
+    positions,
+    trait_scores,
+)
+from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.run import run as run_stats
 
 log = get_logger("demo")
@@ -131,7 +138,7 @@ def compare_with_truth(out: Path, field: Path) -> dict:
 
 def growth_check(out: Path, paths: FieldPaths) -> dict:
     """Module 9 with the second date: the first date's boxes reused, each plant re-centred."""
-    cfg = load_config(StatsConfig, None, [
+    cfg = load_config(SpatialStatExtractorConfig, None, [
         f"polygons={out / '8_plants' / 'plants.gpkg'}", f"output_dir={out / 'report' / 'growth'}",
         "rasters.date=d1", f"rasters.dsm={paths.dsm}", f"rasters.dtm={paths.dtm}", "write_polygons=false",
         f"more_dates=[{{date: d2, dsm: {paths.later.dsm}, dtm: {paths.later.dtm}}}]"])

@@ -15,7 +15,7 @@ overrides). Values may refer to earlier steps and to the pipeline's own keys::
 Before any step runs, every step is checked: its module and keys, the types and ranges of its values, every
 ``${...}`` reference (an earlier step and one of its keys; a later step, the step itself or an unknown name
 is an error), the input paths that do not come from an earlier step (those are checked when their step
-runs), and its outputs (not an input, writable: :mod:`matchplant.core.guard`). All problems are reported
+runs), and its outputs (not an input, writable: :mod:`matchplant.core.runtime.guard`). All problems are reported
 together, so a typo in the last step costs seconds, not the hours of the steps before it.
 
 A step is skipped when it finished before with the same settings and its inputs have not changed since
@@ -35,13 +35,18 @@ from typing import Any
 
 import yaml
 
-from matchplant.core.config import load_config, param, set_value, to_dict, validate
-from matchplant.core.errors import ConfigError, MatchPlantError
-from matchplant.core.guard import (INPUT_KINDS, check_no_overlap, check_outputs_are_not_inputs, check_outputs_writable,
-                                   inputs_and_outputs)
-from matchplant.core.io import write_json
-from matchplant.core.log import get_logger
-from matchplant.core.validate import check_path, did_you_mean, read_text, read_yaml
+from matchplant.core.runtime.config import load_config, param, set_value, to_dict, validate
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
+from matchplant.core.runtime.guard import (
+    INPUT_KINDS,
+    check_no_overlap,
+    check_outputs_are_not_inputs,
+    check_outputs_writable,
+    inputs_and_outputs,
+)
+from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import check_path, did_you_mean, read_text, read_yaml
 from matchplant.steps import STEPS, StepSpec, resolve_step
 
 log = get_logger("pipeline")

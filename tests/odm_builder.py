@@ -19,8 +19,9 @@ from affine import Affine
 from PIL import Image
 from pyproj import CRS
 
-from matchplant.core.frames import write_coords_txt
-from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
+from matchplant.core.formats.reconstruction import Reconstruction, write_reconstruction
+from matchplant.core.geometry.frames import write_coords_txt
+from matchplant.core.geometry.shot import Shot
 
 
 @dataclass

@@ -7,8 +7,17 @@ from pathlib import Path
 
 import pytest
 
-from bench.harness import (THREAD_VARS, alternate, cpu_model, machine_info, overhead, pin_one_core,
-                           single_thread_env, summarise, versions)
+from bench.harness import (
+    THREAD_VARS,
+    alternate,
+    cpu_model,
+    machine_info,
+    overhead,
+    pin_one_core,
+    single_thread_env,
+    summarise,
+    versions,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from matchplant.cli import config_header, run_module
-from matchplant.core.config import load_config, to_yaml
+from matchplant.core.runtime.config import load_config, to_yaml
 from matchplant.steps import STEPS, resolve_step
 
 ROOT = Path(__file__).resolve().parents[1]

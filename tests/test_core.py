@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 import matchplant
-from matchplant.core import coco
 from matchplant.cli import run_module
+from matchplant.core.formats import coco
+from matchplant.core.formats.odm import ODMProject
+from matchplant.core.runtime.config import load_config, param, section, to_yaml, validate
+from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.runtime.io import atomic_open, read_json, write_json
 from matchplant.steps import StepSpec
-from matchplant.core.config import load_config, param, section, to_yaml, validate
-from matchplant.core.errors import ConfigError, InputError, MatchPlantError
-from matchplant.core.io import atomic_open, read_json, write_json
-from matchplant.core.odm import ODMProject
 
 
 @dataclass
@@ -142,7 +142,7 @@ def test_cli_runs_logs_config_and_versions(tmp_path, capsys, monkeypatch):
 
     def run(cfg):
         seen["cfg"] = cfg
-        from matchplant.core.log import get_logger
+        from matchplant.core.runtime.log import get_logger
         get_logger("demo").info("working")
 
     monkeypatch.setattr(cli, "resolve_module", lambda name: _spec(run))
@@ -332,7 +332,7 @@ def test_quiet_keeps_info_off_the_console(tmp_path, capsys, monkeypatch):
     import matchplant.cli as cli
 
     def run(cfg):
-        from matchplant.core.log import get_logger
+        from matchplant.core.runtime.log import get_logger
         get_logger("demo").info("chatter")
         get_logger("demo").warning("important")
 
@@ -374,7 +374,7 @@ class _Records:
 def _progress_records(caplog, monkeypatch, interval: str, body):
     import logging
 
-    from matchplant.core import progress as progress_module
+    from matchplant.core.runtime import progress as progress_module
 
     monkeypatch.delenv("MATCHPLANT_QUIET", raising=False)
     monkeypatch.delenv("MATCHPLANT_PROGRESS", raising=False)
@@ -426,11 +426,11 @@ def test_progress_is_silent_for_short_loops_and_when_quiet(caplog, monkeypatch):
 
     assert _progress_records(caplog, monkeypatch, "10", body) == []
     monkeypatch.setenv("MATCHPLANT_QUIET", "1")
-    assert list(__import__("matchplant.core.progress", fromlist=["x"]).progress([1, 2])) == [1, 2]
+    assert list(__import__("matchplant.core.runtime.progress", fromlist=["x"]).progress([1, 2])) == [1, 2]
 
 
 def test_progress_line_format():
-    from matchplant.core.progress import progress_line
+    from matchplant.core.runtime.progress import progress_line
 
     assert progress_line("tiles", 30, 120, 60.0, "tile") == "tiles: 30/120 tile 25% (1:00 elapsed, 2.0 s/tile, ETA 3:00)"
     assert progress_line("x", 5, None, 2.0) == "x: 5 it (0:02 elapsed, 2.50 it/s)"

@@ -1,7 +1,7 @@
 """``matchplant run`` over modules 0-9 on the tiny synthetic field, checked against its truth; then resume
 after a failed step.
 
-The detector is trained for one short epoch only (its accuracy is tested in test_train.py); module 8
+The detector is trained for one short epoch only (its accuracy is tested in test_model_train.py); module 8
 projects the ground-truth image boxes written as a plain COCO results list, so that the map positions
 and module 9's heights can be checked against the truth exactly.
 """
@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from matchplant.cli import run_module
-from matchplant.core.errors import MatchPlantError
+from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
 

@@ -15,22 +15,21 @@ from pathlib import Path
 import numpy as np
 import piexif
 import pytest
+from gui_events import click, drag, key  # noqa: E402  (tests/ is on sys.path under pytest)
 from PIL import Image
 from pyproj import Transformer
 
-from matchplant.core.config import load_config
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.exif import gps_ifd, jpeg_segments
-from matchplant.core.gcp_list import read_gcp_list, write_gcp_list
+from matchplant.core.formats.exif import gps_ifd, jpeg_segments
+from matchplant.core.formats.gcp_list import read_gcp_list, write_gcp_list
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.gcp_finder.candidates import find_candidates
 from matchplant.gcp_finder.config import GcpFinderConfig
-from matchplant.gcp_finder.finder import run
 from matchplant.gcp_finder.marks import MarkStore
 from matchplant.gcp_finder.metadata import parse_dji_xmp, read_image_info
 from matchplant.gcp_finder.pose import camera_rotation, track_yaw
+from matchplant.gcp_finder.run import run
 from matchplant.gcp_finder.target import detect_target
-
-from gui_events import click, drag, key  # noqa: E402  (tests/ is on sys.path under pytest)
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data" / "gcp_lists"

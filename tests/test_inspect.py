@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from matchplant.cli import main as cli_main
-from matchplant.core.coco import make_annotation, new_dataset, write_dataset
-from matchplant.core.objects import recommend, size_stats
+from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
+from matchplant.detection.objects import recommend, size_stats
 
 
 def _dataset(path, sizes_wh, image=(5472, 3648)):

@@ -1,6 +1,7 @@
-"""The package's layers, enforced on its source (docs/DESIGN.md §1).
+"""The package's layers and the face of a step, enforced on its source (docs/DESIGN.md §1).
 
 core  <-  detection, simfield  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
+inside core:  runtime  <-  geometry  <-  formats
 
 Read with ``ast`` from the files themselves, imports inside functions included, so nothing here depends on
 what happens to be imported at test time. Independent of the camera code.
@@ -9,11 +10,13 @@ what happens to be imported at test time. Independent of the camera code.
 from __future__ import annotations
 
 import ast
+import importlib
+import inspect
 from pathlib import Path
 
 import pytest
 
-from matchplant.steps import STEPS
+from matchplant.steps import ALIASES, STEPS, resolve_step
 
 PACKAGE = Path(__file__).resolve().parents[1] / "matchplant"
 STEP_PACKAGES = {name for name, (folder, _) in STEPS.items() if folder}
@@ -39,6 +42,15 @@ def module_name(path: Path, root: Path = PACKAGE) -> str:
 def layer(module: str) -> str:
     parts = module.split(".")
     return parts[1] if len(parts) > 1 else ""
+
+
+# inside the core, what each role may import (besides itself)
+CORE_ALLOWED = {"runtime": set(), "geometry": {"runtime"}, "formats": {"geometry", "runtime"}}
+
+
+def core_role(module: str) -> str:
+    parts = module.split(".")
+    return parts[2] if len(parts) > 2 else ""
 
 
 def is_module(name: str, root: Path) -> bool:
@@ -89,6 +101,25 @@ def test_layers_are_respected():
             if other != own and other not in ALLOWED[own]:
                 bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'matchplant'})")
     assert not bad, "imports across layers:\n" + "\n".join(bad)
+
+
+def test_core_roles_only_look_down():
+    bad, loose = [], []
+    for path in SOURCES:
+        module = module_name(path)
+        if layer(module) != "core":
+            continue
+        own = core_role(module)
+        if own not in CORE_ALLOWED:
+            if path.name != "__init__.py":
+                loose.append(str(path.relative_to(PACKAGE.parent)))
+            continue
+        for name, line, _ in internal_imports(path):
+            other = core_role(name)
+            if other != own and other not in CORE_ALLOWED[own]:
+                bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'core'})")
+    assert not loose, f"core files outside core/formats, core/geometry and core/runtime: {loose}"
+    assert not bad, "imports across the core's roles:\n" + "\n".join(bad)
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -147,3 +178,49 @@ def test_the_checker_sees_cycles_and_inner_imports(tmp_path):
     graph = {"matchplant.core.a": {"matchplant.core.b"}, "matchplant.core.b": {"matchplant.core.a", "matchplant.steps"}}
     assert find_cycles(graph) == [["matchplant.core.a", "matchplant.core.b", "matchplant.core.a"]]
     assert find_cycles({"x": {"y"}, "y": set()}) == []
+
+
+# -- the face of a step ---------------------------------------------------------------------------------------
+
+def class_prefix(word: str) -> str:
+    return "".join(part.capitalize() for part in word.split("_"))
+
+
+@pytest.mark.parametrize("word", sorted(STEP_PACKAGES))
+def test_every_step_has_the_same_face(word):
+    """config.py with <Word>Config, run.py with run(cfg), gui.py with launch(cfg, config_path) where the step
+    has a GUI, all exported from the package; the command layer names exactly these."""
+    folder = PACKAGE / word
+    assert (folder / "config.py").is_file() and (folder / "run.py").is_file(), f"{word}: config.py and run.py"
+    package = importlib.import_module(f"matchplant.{word}")
+    config = getattr(package, f"{class_prefix(word)}Config")
+    assert config.__module__ == f"matchplant.{word}.config"
+    assert package.run.__module__ == f"matchplant.{word}.run"
+    assert list(inspect.signature(package.run).parameters)[:1] == ["cfg"]
+    spec = resolve_step(word)
+    assert spec.config is config and spec.run is package.run
+    has_gui = (folder / "gui.py").is_file()
+    assert (spec.gui is not None) == has_gui, f"{word}: gui.py and the command's --gui must go together"
+    if has_gui:
+        assert package.launch.__module__ == f"matchplant.{word}.gui" and spec.gui is package.launch
+        assert list(inspect.signature(package.launch).parameters)[:2] == ["cfg", "config_path"]
+
+
+@pytest.mark.parametrize("word", sorted(STEP_PACKAGES))
+def test_a_steps_loggers_carry_its_word(word):
+    names = []
+    for path in (PACKAGE / word).rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "get_logger" and node.args:
+                names.append((path.name, node.args[0].value))
+    wrong = [(f, n) for f, n in names if n.split(".")[0] != word]
+    assert not wrong, f"loggers in matchplant/{word} not named after the step: {wrong}"
+
+
+def test_folder_numbers_come_from_the_folders():
+    root = PACKAGE.parent
+    for name, (folder, _) in STEPS.items():
+        if folder:
+            assert (root / folder).is_dir() and ALIASES[folder.split("_", 1)[0]] == name
+            scripts = sorted(p.name for p in (root / folder).glob("*.py"))
+            assert scripts == [f"{name}.py"], f"{folder}: one script named after the step, found {scripts}"

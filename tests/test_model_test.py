@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import io
-import os
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 import torch
 
-from matchplant.core.coco import make_annotation, new_dataset, read_predictions, write_dataset
-from matchplant.core.config import load_config
+from matchplant.core.formats.coco import make_annotation, new_dataset, read_predictions, write_dataset
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
 from matchplant.detection.model import build_detector, save_checkpoint
 from matchplant.detection.synth import make_photo, make_tiles
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.model_test.detect import (ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts)
-from matchplant.model_train.train import TrainConfig
+from matchplant.model_test.run import ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts
+from matchplant.model_train.run import ModelTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,7 +32,7 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """An (untrained) small detector saved as a module 6 checkpoint: the file contract, not accuracy."""
-    cfg = load_config(TrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+    cfg = load_config(ModelTrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
                                           "model.pretrained=none", "model.min_size=64", "model.max_size=128"],
                       check_paths=False, strict=False)
     torch.manual_seed(0)
@@ -233,15 +233,16 @@ def test_errors(checkpoint, tmp_path):
 
 
 def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
-    from matchplant.core.coco import read_dataset
-    from matchplant.core.images import read_rgb8
+    from matchplant.core.formats.coco import read_dataset
+    from matchplant.core.formats.images import read_rgb8
     from matchplant.detection.data import CocoDetection
-    from matchplant.img_splitter.tiling import TilingConfig, run as run_tiling
+    from matchplant.img_splitter.run import ImgSplitterConfig
+    from matchplant.img_splitter.run import run as run_tiling
 
     truth = read_dataset(tiny_field.boxes_undistorted)
     sizes = np.asarray([a["bbox"][2:] for a in truth["annotations"]])
     overlap = int(sizes.max()) + 4  # more than the largest plant
-    tiling = load_config(TilingConfig, None, [f"images={tiny_field.undistorted_images}",
+    tiling = load_config(ImgSplitterConfig, None, [f"images={tiny_field.undistorted_images}",
                                               f"annotations={tiny_field.boxes_undistorted}",
                                               f"output_dir={tmp_path / 'tiles'}", "tile_size=192",
                                               f"overlap={overlap}", "negative_share=1", "workers=1"])
@@ -315,12 +316,12 @@ class _Records:
 def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
     """A model trained on 128 px tiles: module 7 tiles at 128 by default (tile_size null), and warns when
     asked for 1024 px tiles (plants 8x smaller in the detector's input than in training)."""
-    from matchplant.model_train.train import train
     from matchplant.model_test.scale import check_found_scale
+    from matchplant.model_train.run import train
 
     tiles = make_tiles(tmp_path / "tiles", n_images=4, size=128, plants=(1, 3), radius=(8, 12), negatives=0,
                        name="train.json")
-    cfg = load_config(TrainConfig, None, [f"train_json={tiles}", f"output_dir={tmp_path / 'run'}", "epochs=1",
+    cfg = load_config(ModelTrainConfig, None, [f"train_json={tiles}", f"output_dir={tmp_path / 'run'}", "epochs=1",
                                           "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
                                           "model.pretrained=none", "model.min_size=64", "model.max_size=64",
                                           "model.anchor_sizes=auto", "batch_size=4", "num_workers=0",
@@ -354,8 +355,9 @@ def _tiled_truth(tmp_path: Path):
     """Two photos with known plants tiled by module 5 (overlap: plants in 2-4 tiles); returns the test
     split and, for every tile box, the true plant it is a copy of (an oracle from the truth: the tile box is
     that plant's box clipped to the tile)."""
-    from matchplant.core.coco import read_dataset
-    from matchplant.img_splitter.tiling import TilingConfig, run as run_tiling
+    from matchplant.core.formats.coco import read_dataset
+    from matchplant.img_splitter.run import ImgSplitterConfig
+    from matchplant.img_splitter.run import run as run_tiling
 
     ds = new_dataset(["plant"])
     truth = {}
@@ -367,7 +369,7 @@ def _tiled_truth(tmp_path: Path):
                                                      [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
         truth[name] = boxes
     write_dataset(tmp_path / "ann.json", ds)
-    run_tiling(load_config(TilingConfig, None, [f"images={tmp_path / 'photos'}", f"annotations={tmp_path / 'ann.json'}",
+    run_tiling(load_config(ImgSplitterConfig, None, [f"images={tmp_path / 'photos'}", f"annotations={tmp_path / 'ann.json'}",
                                                 f"output_dir={tmp_path / 'tiles'}", "tile_size=128", "overlap=48",
                                                 "split=[0.0, 0.0, 1.0]", "negative_share=0", "workers=1"]))
     test = read_dataset(tmp_path / "tiles" / "test.json")

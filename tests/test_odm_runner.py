@@ -18,14 +18,14 @@ from pathlib import Path
 
 import pytest
 
-from matchplant.core.config import load_config
-from matchplant.core.errors import ConfigError, DependencyError, InputError
-from matchplant.odm_runner.config import ODMRunError, ODMRunnerConfig
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
+from matchplant.odm_runner.config import ODMRunError, OdmRunnerConfig
 from matchplant.odm_runner.docker import CONTAINER_PROJECT, check_docker, docker_command
 from matchplant.odm_runner.inputs import find_gcp_file, odm_arguments
 from matchplant.odm_runner.nodeodm import NODEODM_OUTPUTS
 from matchplant.odm_runner.outputs import check_outputs
-from matchplant.odm_runner.runner import run
+from matchplant.odm_runner.run import run
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "2_odm_runner"
@@ -41,8 +41,8 @@ def make_project(tmp_path: Path, name: str = "field 1", n_images: int = 3, gcp: 
     return project
 
 
-def cfg_for(project: Path, *overrides: str) -> ODMRunnerConfig:
-    return load_config(ODMRunnerConfig, None, [f"project_dir={project}", *overrides])
+def cfg_for(project: Path, *overrides: str) -> OdmRunnerConfig:
+    return load_config(OdmRunnerConfig, None, [f"project_dir={project}", *overrides])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -102,7 +102,7 @@ def test_docker_command_gcp_and_images_outside_project(tmp_path):
 
 
 def test_docker_command_windows_paths(tmp_path):
-    cfg = ODMRunnerConfig(project_dir=r"C:\Users\Ana Lima\Field 2024", gcp_file=r"C:\Users\Ana Lima\Field 2024\gcp_list.txt")
+    cfg = OdmRunnerConfig(project_dir=r"C:\Users\Ana Lima\Field 2024", gcp_file=r"C:\Users\Ana Lima\Field 2024\gcp_list.txt")
     argv = docker_command(cfg, platform="win32", gcp_file=cfg.gcp_file)
     assert "--user" not in argv  # Docker Desktop on Windows maps ownership itself
     assert argv[argv.index("-v") + 1] == r"C:\Users\Ana Lima\Field 2024:/datasets/code"
@@ -353,7 +353,7 @@ class FakeNodeODM:
         self.server.server_close()
 
 
-def nodeodm_cfg(project: Path, port: int, *extra: str) -> ODMRunnerConfig:
+def nodeodm_cfg(project: Path, port: int, *extra: str) -> OdmRunnerConfig:
     return cfg_for(project, "backend=nodeodm", f"nodeodm.url=http://127.0.0.1:{port}", "nodeodm.poll_seconds=0.05",
                    "nodeodm.parallel_uploads=2", *extra)
 
@@ -404,7 +404,7 @@ def test_nodeodm_unreachable_is_a_clear_error(tmp_path):
 
 
 def test_folder_config_loads_and_help_works():
-    cfg = load_config(ODMRunnerConfig, FOLDER / "config.yaml", check_paths=False)
+    cfg = load_config(OdmRunnerConfig, FOLDER / "config.yaml", check_paths=False)
     assert cfg.odm.dsm and cfg.odm.dtm and cfg.odm.orthophoto_resolution == 0.5 and cfg.backend == "docker"
     text = (FOLDER / "config.yaml").read_text()
     keys = [ln for ln in text.splitlines() if re.match(r"^\s*[a-z_]+:", ln)]

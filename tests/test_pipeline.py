@@ -13,11 +13,11 @@ import pytest
 
 import matchplant.pipeline as pipeline
 from matchplant.cli import run_module
-from matchplant.steps import StepSpec
-from matchplant.core.config import param
-from matchplant.core.errors import ConfigError, InputError, MatchPlantError
-from matchplant.core.io import write_text
+from matchplant.core.runtime.config import param
+from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
+from matchplant.core.runtime.io import write_text
 from matchplant.pipeline import PipelineConfig, run_pipeline
+from matchplant.steps import StepSpec
 
 CALLS: list[str] = []
 

@@ -46,7 +46,7 @@ SKIPS = [
     (r"^torchrun", "needs several GPUs"),
     (r"^(docker|telnet)\b|run_odm\.(sh|ps1)|backend=nodeodm", "needs Docker, OpenDroneMap or a NodeODM server"),
     (r"odm_runner\.py(?!.*check_only)", "runs OpenDroneMap in Docker (the check_only example runs)"),
-    (r"--gui\b", "opens a window: tests/test_setup_screens.py and each module's GUI tests drive the windows"),
+    (r"--gui\b", "opens a window: tests/test_core_gui_setup.py and each module's GUI tests drive the windows"),
     (r"python (-m bench\b|bench/)", "a benchmark (minutes): bench/, not tests"),
     (r"matchplant\.detection\.device --measure", "measures the CPU's detection speed (minutes)"),
     (r"(=|\s)\.\.\.(\s|$)", "a placeholder ('...') for the user's own values"),
@@ -201,7 +201,7 @@ def substitute(command: str, ws) -> list[str]:
 
 def true_predictions(field_root: Path, path: Path) -> None:
     """The true boxes as a detector's predictions file (a perfect detector's output)."""
-    from matchplant.core.coco import write_predictions
+    from matchplant.core.formats.coco import write_predictions
 
     truth = json.loads((field_root / "truth" / "boxes_undistorted.json").read_text())
     images = [{"id": im["id"], "file_name": im["file_name"], "width": im["width"], "height": im["height"],

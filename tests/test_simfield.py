@@ -16,13 +16,13 @@ import piexif
 import pytest
 import rasterio
 
-from matchplant.core.coco import annotations_by_image, boxes_xyxy, read_dataset
-from matchplant.core.errors import ConfigError
-from matchplant.core.frames import TopocentricFrame
-from matchplant.core.ground import ground_to_pixels
-from matchplant.core.io import read_json
-from matchplant.core.odm import ODMProject
-from matchplant.core.reconstruction import read_reconstruction
+from matchplant.core.formats.coco import annotations_by_image, boxes_xyxy, read_dataset
+from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.reconstruction import read_reconstruction
+from matchplant.core.geometry.frames import TopocentricFrame
+from matchplant.core.geometry.ground import ground_to_pixels
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.io import read_json
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
 
@@ -288,9 +288,9 @@ def test_seed_overrides_and_cli(tmp_path):
 
 
 def test_rendering_agrees_with_foundation_ray_casting(tiny_field):
-    """The generator's fast ray marcher against matchplant.core.ground.pixels_to_ground on the written DSM."""
-    from matchplant.core.ground import pixels_to_ground
-    from matchplant.core.surface import HIT, Surface
+    """The generator's fast ray marcher against matchplant.core.geometry.ground.pixels_to_ground on the written DSM."""
+    from matchplant.core.geometry.ground import pixels_to_ground
+    from matchplant.core.geometry.surface import HIT, Surface
 
     project = ODMProject(tiny_field.root)
     frame = project.frame()

@@ -10,10 +10,10 @@ Category keys ``1``-``5`` choose the category of the NEXT box drawn. They relabe
 user picked it (clicked it, or pressed it to drag it); the box just drawn keeps its handles for a quick
 resize but is not picked, so switching category right after drawing never relabels it.
 
-``--gui`` first opens a setup screen (:class:`AnnotateSetup`: images, output folder, optional owned areas
+``--gui`` first opens a setup screen (:class:`BboxDrawerSetup`: images, output folder, optional owned areas
 and boxes to correct, with Tk's file pickers); **Open images** opens this window on them.
 
-Fast on 20 MP photos with thousands of boxes (``bench/bench_annotate_gui.py``): the photo is shown
+Fast on 20 MP photos with thousands of boxes (``bench/bench_bbox_drawer_gui.py``): the photo is shown
 from a display pyramid, cropped to the view (:mod:`matchplant.bbox_drawer.view`); all boxes are one
 collection; while a box is drawn, moved or resized only the dragged outline is redrawn over a saved
 background (blitting), and the whole axes is drawn once at the press and once at the release.
@@ -24,17 +24,17 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.patches import Polygon, Rectangle
 
-from matchplant.bbox_drawer.annotate import AnnotateConfig, annotated_regions, open_session
+from matchplant.bbox_drawer.run import BboxDrawerConfig, annotated_regions, open_session
 from matchplant.bbox_drawer.store import AnnotationStore
 from matchplant.bbox_drawer.view import BoxLayer, PanelImage, PyramidImage
-from matchplant.core.config import validate
-from matchplant.core.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
-from matchplant.core.guard import check_outputs
-from matchplant.core.images import display_rgb, match_name, read_image
-from matchplant.core.log import get_logger
-from matchplant.core.owned_areas import read_owned_areas
+from matchplant.core.formats.images import display_rgb, match_name, read_image
+from matchplant.core.formats.owned_areas import read_owned_areas
+from matchplant.core.runtime.config import validate
+from matchplant.core.runtime.guard import check_outputs
+from matchplant.core.runtime.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
+from matchplant.core.runtime.log import get_logger
 
-log = get_logger("annotate")
+log = get_logger("bbox_drawer")
 
 COLORS = ["#ffd400", "#00e5ff", "#ff3df2", "#7cff4d", "#ff8c1a"]  # category 1..5, visible on green and soil
 HANDLE_PX = 8       # how near (screen pixels) an edge must be to grab it
@@ -71,7 +71,7 @@ Every edit is saved at once;
 reopen to resume."""
 
 
-class AnnotatorGUI:
+class BboxDrawerGUI:
     """The annotation window over ``store``. ``headless=True`` (tests) draws on a figure of its own, outside pyplot."""
 
     def __init__(self, store: AnnotationStore, owned_areas: dict[str, np.ndarray] | None = None,
@@ -432,12 +432,12 @@ class AnnotatorGUI:
         close(self.fig)
 
 
-def open_window(cfg: AnnotateConfig, headless: bool | None = None, dpi: float | None = None) -> AnnotatorGUI:
+def open_window(cfg: BboxDrawerConfig, headless: bool | None = None, dpi: float | None = None) -> BboxDrawerGUI:
     """The drawing window for a config: the session opened or resumed, the imports applied."""
     validate(cfg, source="GUI")
     check_outputs(cfg, source="GUI")
     store = open_session(cfg)
-    return AnnotatorGUI(store, read_owned_areas(cfg.owned_areas), headless=headless, dpi=dpi,
+    return BboxDrawerGUI(store, read_owned_areas(cfg.owned_areas), headless=headless, dpi=dpi,
                         export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen,
                         regions=annotated_regions(cfg, store))
 
@@ -448,18 +448,18 @@ SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("out
                 SetupField("import_predictions", "Predictions (module 7, opt.)", "file")]
 
 
-class AnnotateSetup:
+class BboxDrawerSetup:
     """Module 4's setup screen: the images, the output folder and, optionally, module 3's owned areas and
     boxes to correct, with file pickers; **Open images** opens the drawing window on them (again: the
     previous window is exported and closed first)."""
 
-    def __init__(self, cfg: AnnotateConfig, headless: bool | None = None, chooser=None, dpi: float | None = None):
+    def __init__(self, cfg: BboxDrawerConfig, headless: bool | None = None, chooser=None, dpi: float | None = None):
         self.headless, self.dpi = headless, dpi
-        self.window: AnnotatorGUI | None = None
+        self.window: BboxDrawerGUI | None = None
         self.screen = SetupScreen("Box drawer: choose the images to annotate", cfg, SETUP_FIELDS, self._run,
                                   headless=headless, chooser=chooser, run_label="Open images")
 
-    def _run(self, cfg: AnnotateConfig) -> str:
+    def _run(self, cfg: BboxDrawerConfig) -> str:
         if self.window is not None:
             self.window.finish()
         self.window = open_window(cfg, self.headless, self.dpi)
@@ -469,10 +469,10 @@ class AnnotateSetup:
                 f"to {store.path}")
 
 
-def launch(cfg: AnnotateConfig, config_path=None, chooser=None) -> AnnotateSetup:
+def launch(cfg: BboxDrawerConfig, config_path=None, chooser=None) -> BboxDrawerSetup:
     """The setup screen, then the drawing window; blocks until the windows are closed."""
     require_display("python 4_bbox_drawer/bbox_drawer.py --set images=FOLDER --set output_dir=FOLDER")
-    setup = AnnotateSetup(cfg, chooser=chooser)
+    setup = BboxDrawerSetup(cfg, chooser=chooser)
     show(setup.screen.fig)
     if setup.window is not None:
         setup.window.on_close()  # exported when its window closed; once more is a no-op

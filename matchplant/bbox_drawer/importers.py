@@ -15,15 +15,22 @@ import cv2
 import numpy as np
 
 from matchplant.bbox_drawer.store import ImportedBox, ImportedBoxes
-from matchplant.core.box_files import read_cvat_xml, read_deepforest_csv, read_voc
-from matchplant.core.coco import DropLog, LabelledBox, bbox_values, read_dataset, read_predictions, to_source_pixels
-from matchplant.core.errors import InputError
-from matchplant.core.images import IMAGE_SUFFIXES, read_image
-from matchplant.core.log import get_logger
-from matchplant.core.masks import mask_boxes
-from matchplant.core.yolo import read_yolo
+from matchplant.core.formats.box_files import read_cvat_xml, read_deepforest_csv, read_voc
+from matchplant.core.formats.coco import (
+    DropLog,
+    LabelledBox,
+    bbox_values,
+    read_dataset,
+    read_predictions,
+    to_source_pixels,
+)
+from matchplant.core.formats.images import IMAGE_SUFFIXES, read_image
+from matchplant.core.formats.masks import mask_boxes
+from matchplant.core.formats.yolo import read_yolo
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
 
-log = get_logger("annotate")
+log = get_logger("bbox_drawer")
 
 
 def read_coco_boxes(path: str | Path) -> ImportedBoxes:

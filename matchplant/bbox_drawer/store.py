@@ -14,21 +14,20 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-import math
+from matchplant.core.formats.box_files import resolve_image_names
+from matchplant.core.formats.coco import REGION_KEY, DropLog, make_annotation, new_dataset, region_entry, write_dataset
+from matchplant.core.formats.images import image_size, list_images, whole_image_size
+from matchplant.core.formats.yolo import coco_to_yolo
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.io import read_json, write_text
+from matchplant.core.runtime.log import get_logger
 
-from matchplant.core.box_files import resolve_image_names
-from matchplant.core.coco import REGION_KEY, DropLog, make_annotation, new_dataset, region_entry, write_dataset
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import image_size, list_images, whole_image_size
-from matchplant.core.io import read_json, write_text
-from matchplant.core.log import get_logger
-from matchplant.core.yolo import coco_to_yolo
-
-log = get_logger("annotate")
+log = get_logger("bbox_drawer")
 
 MAX_CATEGORIES = 5
 STATE_NAME = "session.json"
@@ -46,7 +45,7 @@ EDGE_TOLERANCE = 1.0  # px: boxes reaching further past the image edge are clipp
 
 
 def check_image_file(path: Path) -> None:
-    """A file named like an image must be a whole one (see :func:`matchplant.core.images.whole_image_size`)."""
+    """A file named like an image must be a whole one (see :func:`matchplant.core.formats.images.whole_image_size`)."""
     whole_image_size(path)
 
 
@@ -387,7 +386,7 @@ class AnnotationStore:
         """One COCO dataset of the images that were looked at or have boxes (all with ``include_unseen``).
 
         ``regions`` (image name -> polygon in its pixels) records the part of each image that was
-        annotated (``annotated_region``, :mod:`matchplant.core.coco`); images without one were annotated whole.
+        annotated (``annotated_region``, :mod:`matchplant.core.formats.coco`); images without one were annotated whole.
         """
         regions = regions or {}
         ds = new_dataset(self.categories, info={"description": "MatchPlant annotations (module 4)",

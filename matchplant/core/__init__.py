@@ -1,1 +1,3 @@
-"""The core: formats, geometry, configuration, file I/O, errors and logging. It imports no step."""
+"""The core, in three roles that only look down: ``formats`` (every file two steps share) over ``geometry``
+(boxes, cameras, frames, the DSM and rays) over ``runtime`` (configuration, errors, logging, I/O, guard, GUI
+helpers). It imports no step (docs/DESIGN.md §1)."""

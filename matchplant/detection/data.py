@@ -24,13 +24,13 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from matchplant.core.coco import annotations_by_image, bbox_values, read_dataset, validate_dataset
-from matchplant.core.config import param
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import read_image, read_rgb8
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
-from matchplant.core.validate import did_you_mean, name_key
+from matchplant.core.formats.coco import annotations_by_image, bbox_values, read_dataset, validate_dataset
+from matchplant.core.formats.images import read_image, read_rgb8
+from matchplant.core.runtime.config import param
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.core.runtime.validate import did_you_mean, name_key
 
 log = get_logger("data")
 
@@ -285,7 +285,7 @@ def check_dataset(data: dict, json_path: Path, images_dir: Path, *, require_boxe
 
     Errors: no images, a predictions file instead of a dataset, categories missing or not matching the
     annotations, no box at all (``require_boxes``), image files missing, truncated or unreadable, boxes
-    outside the real images; and everything :func:`~matchplant.core.coco.validate_dataset` finds.
+    outside the real images; and everything :func:`~matchplant.core.formats.coco.validate_dataset` finds.
     """
     if not data["images"]:
         raise InputError("the COCO file lists no images", path=json_path,

@@ -13,8 +13,8 @@ import os
 import shutil
 import warnings
 
-from matchplant.core.errors import ConfigError
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.log import get_logger
 from matchplant.detection.model import ModelConfig, build_detector
 
 DEVICE_CHOICES = ("auto", "cuda", "mps", "cpu")
@@ -163,7 +163,7 @@ def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) ->
 if __name__ == "__main__":  # python -m matchplant.detection.device [--measure]: the device and why; CPU rates
     import sys
 
-    from matchplant.core.log import setup_console
+    from matchplant.core.runtime.log import setup_console
 
     setup_console()
     select_device("auto")

@@ -19,9 +19,9 @@ import numpy as np
 from pycocotools.coco import COCO
 from pycocotools.cocoeval import COCOeval
 
-from matchplant.core.gui import figure
-from matchplant.core.io import atomic_path
-from matchplant.core.progress import progress
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import collate
 
 STAT_NAMES = ("AP", "AP50", "AP75", "AP_small", "AP_medium", "AP_large",

@@ -1,7 +1,7 @@
 """The training geometry a checkpoint carries (module 6 writes it, module 7 reads it).
 
 A detector learns plants at one scale: the tiles' size, the resize to the model's input
-(``min_size``/``max_size``, :func:`matchplant.core.objects.input_scale`) and the plants' size in pixels.
+(``min_size``/``max_size``, :func:`matchplant.detection.objects.input_scale`) and the plants' size in pixels.
 ``training_geometry`` records them from the training tiles; module 7 then tiles new images as in
 training by default, and :func:`scale_ratio` / :func:`check_scale` warn when detection would see plants
 at more than ``SCALE_TOLERANCE`` times (or less than 1 / ``SCALE_TOLERANCE``) their training size in the
@@ -23,8 +23,8 @@ from collections import Counter
 
 import numpy as np
 
-from matchplant.core.log import get_logger
-from matchplant.core.objects import box_sizes, input_scale, size_stats
+from matchplant.core.runtime.log import get_logger
+from matchplant.detection.objects import box_sizes, input_scale, size_stats
 
 log = get_logger("geometry")
 

@@ -7,7 +7,7 @@ the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrc
 :class:`ModelConfig` is passed to the model (anchors, RPN and ROI sampling and thresholds, image size,
 detections per image); the RPN and ROI sampling settings concern Faster R-CNN only, ``roi.nms_thresh``
 and ``roi.detections_per_img`` every architecture. ``anchor_sizes: auto`` is computed from the training
-boxes (:func:`resolve_auto_anchors`, :mod:`matchplant.core.objects`).
+boxes (:func:`resolve_auto_anchors`, :mod:`matchplant.detection.objects`).
 
 One-stage models have no ``rpn`` and their ``head`` is the part called ``roi_heads`` (freezing, learning
 rates); they get a ``roi_heads.score_thresh`` too (:class:`ScoreThreshold`), so that code written for
@@ -31,12 +31,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from matchplant.core.coco import read_dataset
-from matchplant.core.config import from_dict, param, section, to_dict
-from matchplant.core.errors import ConfigError, DependencyError, InputError
-from matchplant.core.io import atomic_path
-from matchplant.core.log import get_logger
-from matchplant.core.objects import auto_anchor_sizes, box_sizes
+from matchplant.core.formats.coco import read_dataset
+from matchplant.core.runtime.config import from_dict, param, section, to_dict
+from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
+from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.log import get_logger
+from matchplant.detection.objects import auto_anchor_sizes, box_sizes
 
 log = get_logger("detector")
 
@@ -330,7 +330,7 @@ def set_score_threshold(model, value: float) -> None:
 
 def resolve_auto_anchors(cfg: ModelConfig, dataset: dict | str | Path) -> ModelConfig:
     """``cfg`` with ``anchor_sizes: auto`` replaced by sizes computed from the boxes of ``dataset`` (the
-    training COCO, a dict or a path), in the detector's input pixels (:mod:`matchplant.core.objects`)."""
+    training COCO, a dict or a path), in the detector's input pixels (:mod:`matchplant.detection.objects`)."""
     if cfg.anchor_sizes != "auto":
         return cfg
     data = dataset if isinstance(dataset, dict) else read_dataset(dataset, validate=False)

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from matchplant.core.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
 
 
 def soil(rng: np.random.Generator, height: int, width: int) -> np.ndarray:

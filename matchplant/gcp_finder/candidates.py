@@ -15,16 +15,15 @@ from pathlib import Path
 import numpy as np
 from matplotlib.patches import Polygon
 
-from matchplant.core.errors import InputError
-from matchplant.core.gui import figure
-from matchplant.core.images import list_images
-from matchplant.core.io import atomic_open, atomic_path
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
+from matchplant.core.formats.images import list_images
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_open, atomic_path
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
 from matchplant.gcp_finder.metadata import IMAGE_SUFFIXES, ImageInfo, focal_ratio, read_image_info
-from matchplant.gcp_finder.pose import (camera_heights, camera_positions, footprint, image_yaw, predict_pixels,
-                                        track_yaw)
+from matchplant.gcp_finder.pose import camera_heights, camera_positions, footprint, image_yaw, predict_pixels, track_yaw
 from matchplant.gcp_finder.survey import GCP, read_survey
 
 log = get_logger("gcp_finder")

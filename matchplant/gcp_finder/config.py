@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from matchplant.core.config import param
+from matchplant.core.runtime.config import param
 
 MIN_IMAGES_PER_GCP = 3  # ODM ignores a GCP marked in fewer images
 

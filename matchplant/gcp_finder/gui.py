@@ -14,13 +14,21 @@ import matplotlib
 import numpy as np
 from PIL import Image
 
-from matchplant.core.gui import (SetupField, SetupScreen, figure, is_headless, require_display, reveal, show,
-                                 status_text)
-from matchplant.core.gui import close as close_figure
+from matchplant.core.runtime.gui import (
+    SetupField,
+    SetupScreen,
+    figure,
+    is_headless,
+    require_display,
+    reveal,
+    show,
+    status_text,
+)
+from matchplant.core.runtime.gui import close as close_figure
 from matchplant.gcp_finder.candidates import Finder
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
-from matchplant.gcp_finder.finder import run
 from matchplant.gcp_finder.marks import MarkStore, store_for
+from matchplant.gcp_finder.run import run
 from matchplant.gcp_finder.target import load_gray, locate_target
 
 HELP = "click: mark | drag: move | right-drag: pan | scroll: zoom | n/p: image | ]/[: GCP | h: all keys | q: quit"
@@ -319,7 +327,7 @@ SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("sur
                 SetupField("survey_crs", "Survey CRS", "text"), SetupField("output_dir", "Output folder", "folder")]
 
 
-class GcpSetup:
+class GcpFinderSetup:
     """Module 1's setup screen (the paper's Fig. 2a): images, survey and output folder with file pickers;
     **Find GCPs** writes the candidates (and, with ``auto``, gcp_list.txt) and opens the marking window."""
 
@@ -344,10 +352,10 @@ class GcpSetup:
                 f"; marks go to {Path(self.store.path).name} (marking window open)")
 
 
-def launch(cfg: GcpFinderConfig, config_path: Path | None = None, chooser=None) -> GcpSetup:
+def launch(cfg: GcpFinderConfig, config_path: Path | None = None, chooser=None) -> GcpFinderSetup:
     """The setup screen, then the marking window; blocks until the windows are closed."""
     require_display("python 1_gcp_finder/gcp_finder.py --config FILE --set auto=true")
-    setup = GcpSetup(cfg, chooser=chooser)
+    setup = GcpFinderSetup(cfg, chooser=chooser)
     show(setup.screen.fig)
     if setup.store is not None:
         setup.store.save()

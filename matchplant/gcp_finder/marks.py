@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
-from matchplant.core.errors import ConfigError
-from matchplant.core.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
-from matchplant.core.log import get_logger
+from matchplant.core.formats.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.log import get_logger
 from matchplant.gcp_finder.candidates import Finder
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from matchplant.core.errors import InputError
-from matchplant.core.exif import exif_camera, exif_gps, exif_time, load_exif, read_xmp
-from matchplant.core.validate import check_jpeg
+from matchplant.core.formats.exif import exif_camera, exif_gps, exif_time, load_exif, read_xmp
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.validate import check_jpeg
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff")
 

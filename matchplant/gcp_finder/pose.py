@@ -12,8 +12,8 @@ import math
 import numpy as np
 from pyproj import CRS, Transformer
 
-from matchplant.core.camera import PinholeCamera
-from matchplant.core.errors import ConfigError, InputError
+from matchplant.core.geometry.camera import PinholeCamera
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.gcp_finder.config import GcpFinderConfig
 from matchplant.gcp_finder.metadata import ImageInfo
 

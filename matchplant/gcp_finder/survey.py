@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.frames import parse_crs, utm_crs_for
-from matchplant.core.validate import check_coordinates, read_csv
+from matchplant.core.geometry.frames import parse_crs, utm_crs_for
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.validate import check_coordinates, read_csv
 
 
 @dataclass

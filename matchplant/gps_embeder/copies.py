@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from matchplant.core.exif import write_gps_copy
-from matchplant.core.io import BatchedWrites, atomic_open
-from matchplant.core.progress import progress
+from matchplant.core.formats.exif import write_gps_copy
+from matchplant.core.runtime.io import BatchedWrites, atomic_open
+from matchplant.core.runtime.progress import progress
 from matchplant.gps_embeder.gnss_log import GnssLog
 from matchplant.gps_embeder.matching import ImageRecord
 

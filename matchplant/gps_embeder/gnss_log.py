@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.frames import parse_crs
-from matchplant.core.log import get_logger
-from matchplant.core.validate import read_text
+from matchplant.core.geometry.frames import parse_crs
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import read_text
 from matchplant.gps_embeder.log_checks import UNITS, check_finite, check_positions, check_times, duplicate_events
 
-log = get_logger("gps_embed")
+log = get_logger("gps_embeder")
 
 GPS_EPOCH = calendar.timegm((1980, 1, 6, 0, 0, 0))  # POSIX seconds of the GPS time origin
 LOG_FORMATS = ("auto", "events", "csv", "pos", "mrk")

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from pyproj import CRS, Transformer
 
-from matchplant.core.errors import InputError
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
 
-log = get_logger("gps_embed")
+log = get_logger("gps_embeder")
 
 EARLIEST = calendar.timegm((1980, 1, 6, 0, 0, 0))   # GPS time origin: no GNSS log is older
 LATEST = calendar.timegm((2100, 1, 1, 0, 0, 0))

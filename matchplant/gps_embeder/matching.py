@@ -12,15 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from matchplant.core.errors import InputError
-from matchplant.core.exif import exif_gps, exif_time, has_subseconds, load_exif
-from matchplant.core.images import JPEG_SUFFIXES, list_images
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
-from matchplant.core.validate import check_jpeg
+from matchplant.core.formats.exif import exif_gps, exif_time, has_subseconds, load_exif
+from matchplant.core.formats.images import JPEG_SUFFIXES, list_images
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.core.runtime.validate import check_jpeg
 from matchplant.gps_embeder.gnss_log import GnssLog
 
-log = get_logger("gps_embed")
+log = get_logger("gps_embeder")
 
 
 def estimate_clock_offset(cam: np.ndarray, events: np.ndarray, tolerance: float,

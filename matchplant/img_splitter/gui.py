@@ -1,7 +1,7 @@
 """Module 5's window: settings, a preview of one image's tile grid with kept and lost boxes, a summary,
-and Run. A thin layer over :mod:`matchplant.img_splitter.tiling` (the preview uses the same plan as the run).
+and Run. A thin layer over :mod:`matchplant.img_splitter.run` (the preview uses the same plan as the run).
 
-``--gui`` first opens a setup screen (:class:`TilingSetup`: the images, the annotations and the output
+``--gui`` first opens a setup screen (:class:`ImgSplitterSetup`: the images, the annotations and the output
 folder, with Tk's file pickers); **Preview** opens this window on them.
 """
 
@@ -13,11 +13,11 @@ import numpy as np
 from matplotlib.patches import Polygon, Rectangle
 from matplotlib.widgets import Button, TextBox
 
-from matchplant.core.config import parse_override, save_config, set_value, to_dict_value, validate
-from matchplant.core.errors import InputError, MatchPlantError
-from matchplant.core.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
-from matchplant.core.images import display_rgb, read_image
-from matchplant.img_splitter.tiling import TilingConfig, load_sources, plan_all, run
+from matchplant.core.formats.images import display_rgb, read_image
+from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
+from matchplant.core.runtime.errors import InputError, MatchPlantError
+from matchplant.core.runtime.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
+from matchplant.img_splitter.run import ImgSplitterConfig, load_sources, plan_all, run
 
 FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
           "split", "seed", "split_mode", "negative_share", "yolo"]
@@ -34,11 +34,11 @@ class QuietTextBox(TextBox):
             super().stop_typing()
 
 
-class TilingGUI:
+class ImgSplitterGUI:
     """The settings, the preview of one image and Run. ``headless=True`` (tests) draws on a figure of its
     own, outside pyplot."""
 
-    def __init__(self, cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None,
+    def __init__(self, cfg: ImgSplitterConfig, config_path: Path | None = None, headless: bool | None = None,
                  dpi: float | None = None):
         self.cfg = cfg
         self.config_path = config_path
@@ -173,22 +173,22 @@ SETUP_FIELDS = [SetupField("images", "Images folder", "folder"),
                 SetupField("output_dir", "Output folder", "folder")]
 
 
-class TilingSetup:
+class ImgSplitterSetup:
     """Module 5's setup screen: the annotated images, their boxes (module 4's annotations.json; a YOLO
     labels folder can be typed) and the output folder, with file pickers; **Preview** opens the tiling
     window (settings, preview, Run) on them."""
 
-    def __init__(self, cfg: TilingConfig, config_path: Path | None = None, headless: bool | None = None,
+    def __init__(self, cfg: ImgSplitterConfig, config_path: Path | None = None, headless: bool | None = None,
                  chooser=None, dpi: float | None = None):
         self.config_path, self.headless, self.dpi = config_path, headless, dpi
-        self.preview: TilingGUI | None = None
+        self.preview: ImgSplitterGUI | None = None
         self.screen = SetupScreen("Image splitter: choose the annotated images", cfg, SETUP_FIELDS, self._run,
                                   headless=headless, chooser=chooser, run_label="Preview")
 
-    def _run(self, cfg: TilingConfig) -> str:
+    def _run(self, cfg: ImgSplitterConfig) -> str:
         if self.preview is not None:
             close(self.preview.fig)
-        self.preview = TilingGUI(cfg, self.config_path, headless=self.headless, dpi=self.dpi)
+        self.preview = ImgSplitterGUI(cfg, self.config_path, headless=self.headless, dpi=self.dpi)
         if self.preview.sources is None:  # the preview could not read the images or boxes: its message
             message = self.preview.status.get_text()
             close(self.preview.fig)
@@ -199,10 +199,10 @@ class TilingSetup:
                 "press Run there")
 
 
-def launch(cfg: TilingConfig, config_path: Path | None = None, chooser=None) -> TilingSetup:
+def launch(cfg: ImgSplitterConfig, config_path: Path | None = None, chooser=None) -> ImgSplitterSetup:
     """The setup screen, then the preview window; blocks until the windows are closed."""
     require_display("python 5_img_splitter/img_splitter.py --set images=FOLDER --set annotations=FILE "
                     "--set output_dir=FOLDER")
-    setup = TilingSetup(cfg, config_path, chooser=chooser)
+    setup = ImgSplitterSetup(cfg, config_path, chooser=chooser)
     show(setup.screen.fig)
     return setup

@@ -1,7 +1,7 @@
 """Annotated regions in tiling: only the part of a photo whose plants were all boxed may teach the detector.
 
 Module 4 records, per image, the polygon that was annotated (``annotated_region``: its owned area from
-module 3, every plant touching it boxed; :mod:`matchplant.core.coco`). Outside it, plants are not
+module 3, every plant touching it boxed; :mod:`matchplant.core.formats.coco`). Outside it, plants are not
 boxed, so a tile there would teach the detector that plants are background. Module 5 therefore
 
 - clips each box to the region (a plant cut by the region's edge keeps its visible part, as a plant cut

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from matchplant.core.box_files import resolve_image_names
-from matchplant.core.errors import InputError
-from matchplant.core.validate import read_csv
+from matchplant.core.formats.box_files import resolve_image_names
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.validate import read_csv
 
 SPLITS = ("train", "val", "test")
 

@@ -23,11 +23,11 @@ from rasterio.features import shapes
 from scipy import sparse
 from shapely.geometry import MultiPolygon, Polygon
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.log import get_logger
 from matchplant.min_img_finder.setcover import CoverageGrid
 
-log = get_logger("min_images")
+log = get_logger("min_img_finder")
 
 
 def orthophoto_preview(path: Path, max_size: int = 1500) -> tuple[np.ndarray, np.ndarray, object, object]:

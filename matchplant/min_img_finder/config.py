@@ -6,11 +6,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from matchplant.core.config import param
+from matchplant.core.runtime.config import param
 
 
 @dataclass
-class MinImagesConfig:
+class MinImgFinderConfig:
     """Choose the fewest undistorted images covering the field, and the part of the field each one owns."""
 
     outputs_inside_inputs = ("project_dir",)  # the project is read by fixed names: <project>/min_images is fine

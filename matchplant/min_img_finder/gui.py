@@ -1,6 +1,6 @@
 """Module 3's GUI: the coverage map over the orthophoto, the selection's parameters, click to toggle images, Save.
 
-Thin over :class:`~matchplant.min_img_finder.finder.MinImageFinder`: the window only edits the config, calls
+Thin over :class:`~matchplant.min_img_finder.run.MinImageFinder`: the window only edits the config, calls
 ``select`` / ``evaluate`` / :func:`~matchplant.min_img_finder.output.write_outputs` and draws with
 :func:`~matchplant.min_img_finder.output.draw_coverage`, so what it saves is what the CLI would write.
 
@@ -19,23 +19,31 @@ from pathlib import Path
 import shapely
 from matplotlib.widgets import Button, RadioButtons, TextBox
 
-from matchplant.core.config import save_config, validate
-from matchplant.core.errors import InputError, MatchPlantError
-from matchplant.core.gui import (SetupField, SetupScreen, close, figure, require_display, reveal, show,
-                                 status_text)
-from matchplant.core.log import get_logger
-from matchplant.min_img_finder.config import MinImagesConfig
-from matchplant.min_img_finder.finder import MinImageFinder, Result
+from matchplant.core.runtime.config import save_config, validate
+from matchplant.core.runtime.errors import InputError, MatchPlantError
+from matchplant.core.runtime.gui import (
+    SetupField,
+    SetupScreen,
+    close,
+    figure,
+    require_display,
+    reveal,
+    show,
+    status_text,
+)
+from matchplant.core.runtime.log import get_logger
+from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.output import draw_coverage, write_outputs
+from matchplant.min_img_finder.run import MinImageFinder, Result
 
-log = get_logger("min_images.gui")
+log = get_logger("min_img_finder.gui")
 
 FIELDS = [("uncovered_threshold", "uncovered %"), ("max_overlap", "max overlap %"),
           ("overlap_penalty", "overlap penalty")]
 
 
-class MinImagesGUI:
-    def __init__(self, cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None):
+class MinImgFinderGUI:
+    def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None):
         self.cfg = cfg
         self.config_path = config_path
         self.fig = figure(headless, figsize=(13, 8))
@@ -167,21 +175,21 @@ SETUP_FIELDS = [SetupField("project_dir", "ODM project folder", "folder"),
                 SetupField("output_dir", "Output folder", "folder")]
 
 
-class MinImagesSetup:
+class MinImgFinderSetup:
     """Module 3's setup screen: the ODM project, the area to cover and the output folder with file pickers;
     **Select images** runs the selection, writes every output and opens the map to edit the choice."""
 
-    def __init__(self, cfg: MinImagesConfig, config_path: Path | None = None, headless: bool | None = None,
+    def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None,
                  chooser=None):
         self.config_path, self.headless = config_path, headless
-        self.editor: MinImagesGUI | None = None
+        self.editor: MinImgFinderGUI | None = None
         self.screen = SetupScreen("Minimum image finder: choose the ODM project", cfg, SETUP_FIELDS, self._run,
                                   headless=headless, chooser=chooser, run_label="Select images")
 
-    def _run(self, cfg: MinImagesConfig) -> str:
+    def _run(self, cfg: MinImgFinderConfig) -> str:
         if self.editor is not None:
             close(self.editor.fig)
-        self.editor = MinImagesGUI(cfg, self.config_path, headless=self.headless)
+        self.editor = MinImgFinderGUI(cfg, self.config_path, headless=self.headless)
         reveal(self.editor.fig)
         if self.editor.result is None:  # the finder could not load the project: its message
             raise InputError(self.editor.status.get_text(), path=cfg.project_dir)
@@ -191,9 +199,9 @@ class MinImagesSetup:
                 "click footprints on the map to change the choice, then Save")
 
 
-def open_gui(cfg: MinImagesConfig, config_path: Path | None = None, chooser=None) -> MinImagesSetup:
+def launch(cfg: MinImgFinderConfig, config_path: Path | None = None, chooser=None) -> MinImgFinderSetup:
     """The setup screen, then the coverage map; blocks until the windows are closed."""
     require_display("python 3_min_img_finder/min_img_finder.py --set project_dir=FOLDER")
-    setup = MinImagesSetup(cfg, config_path, chooser=chooser)
+    setup = MinImgFinderSetup(cfg, config_path, chooser=chooser)
     show(setup.screen.fig)
     return setup

@@ -1,11 +1,11 @@
 """Step 3's outputs: what the annotator (step 4) and the user get from a selection.
 
 ``selected_images.csv``, the selected images (copied, hard-linked or only listed), ``owned_areas.json``
-(the shared format of :mod:`matchplant.core.owned_areas`), ``footprints.gpkg`` for GIS, ``coverage.png``
+(the shared format of :mod:`matchplant.core.formats.owned_areas`), ``footprints.gpkg`` for GIS, ``coverage.png``
 and ``selection.json`` (settings and results, so a run can be traced). The coverage map is drawn by
 :func:`draw_coverage`, shared by the figure and the GUI. ``finder`` below is a loaded
-:class:`~matchplant.min_img_finder.finder.MinImageFinder` and ``result`` its
-:class:`~matchplant.min_img_finder.finder.Result` (not imported here: the finder writes through this module).
+:class:`~matchplant.min_img_finder.run.MinImageFinder` and ``result`` its
+:class:`~matchplant.min_img_finder.run.Result` (not imported here: the finder writes through this module).
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ from matplotlib.patches import Patch, PathPatch
 from matplotlib.path import Path as MPath
 from shapely.geometry import MultiPolygon, Polygon
 
-from matchplant.core.gui import figure
-from matchplant.core.io import atomic_open, atomic_path, write_json
-from matchplant.core.log import get_logger
-from matchplant.core.owned_areas import write_owned_areas
-from matchplant.core.progress import progress
+from matchplant.core.formats.owned_areas import write_owned_areas
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
 
-log = get_logger("min_images")
+log = get_logger("min_img_finder")
 
 
 def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, Path]:

@@ -2,7 +2,7 @@
 
 Pure arithmetic on a sparse incidence matrix (``A[i, c]``: image i sees cell c) and cell weights, with no
 notion of cameras, DSMs or polygons, so the solver can be checked against brute force on hand-made arrays
-(``tests/test_min_images.py``) and reused for any "fewest sets covering a weighted universe" question.
+(``tests/test_min_img_finder.py``) and reused for any "fewest sets covering a weighted universe" question.
 The grid is built from the footprints in :mod:`matchplant.min_img_finder.aoi`.
 
 Two solvers share one problem: :func:`select_greedy` (greedy with an overlap penalty, started from several
@@ -20,10 +20,10 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, milp
 
-from matchplant.core.errors import InputError
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
 
-log = get_logger("min_images")
+log = get_logger("min_img_finder")
 
 
 @dataclass

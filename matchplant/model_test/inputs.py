@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.images import is_image_name
-from matchplant.core.images import list_images as list_image_files
-from matchplant.core.log import get_logger
-from matchplant.core.odm import SUBMODELS_DIR, ODMProject
+from matchplant.core.formats.images import is_image_name
+from matchplant.core.formats.images import list_images as list_image_files
+from matchplant.core.formats.odm import SUBMODELS_DIR, ODMProject
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.log import get_logger
 from matchplant.detection.data import check_image_files, image_size
 from matchplant.detection.device import DEVICE_CHOICES
 

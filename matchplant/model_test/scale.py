@@ -14,10 +14,10 @@ import dataclasses
 
 import numpy as np
 
-from matchplant.core.errors import ConfigError
-from matchplant.core.log import get_logger
-from matchplant.core.objects import box_sizes, input_scale
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.log import get_logger
 from matchplant.detection.geometry import check_scale, default_tiling, scale_ratio
+from matchplant.detection.objects import box_sizes, input_scale
 
 log = get_logger("model_test")
 

@@ -12,7 +12,7 @@ import logging
 import os
 from dataclasses import dataclass
 
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.log import get_logger
 
 
 @dataclass

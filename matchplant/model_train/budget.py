@@ -2,7 +2,7 @@
 
 ``max_minutes``: after the first epoch of a session its wall time (training, validation, checkpoints)
 gives how many epochs fit in the budget; when fewer than ``epochs`` fit, the run is planned for that many
-and the learning-rate schedule is shortened in proportion (:func:`matchplant.model_train.train.lr_factor`:
+and the learning-rate schedule is shortened in proportion (:func:`matchplant.model_train.run.lr_factor`:
 a step every ``step_size`` epochs of a 30-epoch plan becomes one every ``step_size * planned / 30``), so
 a budget-limited run still ends at the small learning rates instead of being cut while they are high.
 Each later epoch is still checked against the clock (an epoch that would end past the budget is not
@@ -18,10 +18,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.log import get_logger
 from matchplant.detection.tile_objects import distinct_objects
 
-log = get_logger("train")
+log = get_logger("model_train")
 
 MIN_VAL_OBJECTS = 20
 

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from matchplant.core.config import param, section
-from matchplant.core.errors import ConfigError, MatchPlantError
+from matchplant.core.runtime.config import param, section
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 
 # options that would remove or skip an output later modules need
 FORBIDDEN_OPTIONS = {
@@ -65,7 +65,7 @@ class NodeODMSettings:
 
 
 @dataclass
-class ODMRunnerConfig:
+class OdmRunnerConfig:
     """Run OpenDroneMap (Docker or NodeODM) on a project folder and check its outputs."""
 
     writes_into_inputs = ("output_dir",)  # ODM writes into its project folder (the default output_dir)

@@ -18,9 +18,9 @@ from collections import deque
 from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
 from typing import Sequence
 
-from matchplant.core.errors import ConfigError, DependencyError
-from matchplant.core.log import get_logger
-from matchplant.odm_runner.config import ODMRunError, ODMRunnerConfig
+from matchplant.core.runtime.errors import ConfigError, DependencyError
+from matchplant.core.runtime.log import get_logger
+from matchplant.odm_runner.config import ODMRunError, OdmRunnerConfig
 from matchplant.odm_runner.inputs import find_gcp_file, odm_arguments, odm_images
 
 log = get_logger("odm_runner")
@@ -29,7 +29,7 @@ CONTAINER_ROOT = "/datasets"           # ODM's --project-path inside the contain
 CONTAINER_PROJECT = "/datasets/code"   # the project folder as ODM sees it ("code" is ODM's default name)
 
 
-def docker_command(cfg: ODMRunnerConfig, *, platform: str | None = None, uid: int | None = None,
+def docker_command(cfg: OdmRunnerConfig, *, platform: str | None = None, uid: int | None = None,
                    gid: int | None = None, gcp_file: str | PurePath | None = None) -> list[str]:
     """The ``docker run`` argument list for this configuration (pure: no file or process is touched).
 
@@ -130,7 +130,7 @@ def run_streaming(argv: Sequence[str], log_path: Path, *, tail: int = 30) -> tup
     return code, list(last)
 
 
-def run_docker(cfg: ODMRunnerConfig) -> dict:
+def run_docker(cfg: OdmRunnerConfig) -> dict:
     """Run ODM in Docker; raise ODMRunError with the end of the log if it fails."""
     exe = check_docker(cfg.docker.command)
     odm_images(cfg)

@@ -8,24 +8,24 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from matchplant.core.images import list_images
-from matchplant.odm_runner.config import ODMOptions, ODMRunnerConfig
+from matchplant.core.formats.images import list_images
+from matchplant.odm_runner.config import ODMOptions, OdmRunnerConfig
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png", ".dng")
 
 
-def images_folder(cfg: ODMRunnerConfig) -> Path:
+def images_folder(cfg: OdmRunnerConfig) -> Path:
     """Where the images are: ``images_dir`` when set, else ODM's own place, ``<project_dir>/images``."""
     return Path(cfg.images_dir) if cfg.images_dir is not None else Path(cfg.project_dir) / "images"
 
 
-def odm_images(cfg: ODMRunnerConfig) -> list[Path]:
+def odm_images(cfg: OdmRunnerConfig) -> list[Path]:
     """The images ODM will get; fewer than 2 is an error now rather than after ODM has started."""
     return list_images(images_folder(cfg), IMAGE_SUFFIXES, key="images_dir", min_count=2,
                        fix="put the flight's overlapping images (JPG/TIF) in <project_dir>/images, or set images_dir")
 
 
-def find_gcp_file(cfg: ODMRunnerConfig) -> Path | None:
+def find_gcp_file(cfg: OdmRunnerConfig) -> Path | None:
     """The GCP file to use: the configured one, else ``gcp_list.txt`` in the images or project folder."""
     if not cfg.use_gcp:
         return None

@@ -17,11 +17,11 @@ from pyodm import Node
 from pyodm.exceptions import NodeConnectionError, NodeResponseError, OdmError
 from pyodm.types import TaskStatus
 
-from matchplant.core.errors import ConfigError, DependencyError, MatchPlantError
-from matchplant.core.io import read_json, write_json
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
-from matchplant.odm_runner.config import NodeODMSettings, ODMRunError, ODMRunnerConfig
+from matchplant.core.runtime.errors import ConfigError, DependencyError, MatchPlantError
+from matchplant.core.runtime.io import read_json, write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.odm_runner.config import NodeODMSettings, ODMRunError, OdmRunnerConfig
 from matchplant.odm_runner.inputs import find_gcp_file, odm_images, odm_option_dict
 
 log = get_logger("odm_runner")
@@ -66,7 +66,7 @@ def percent_bar(desc: str):
     return bar, update
 
 
-def run_nodeodm(cfg: ODMRunnerConfig) -> dict:
+def run_nodeodm(cfg: OdmRunnerConfig) -> dict:
     """Upload, process and download through NodeODM; resume the task saved in the state file."""
     settings = cfg.nodeodm
     node = _node(settings)

@@ -13,14 +13,14 @@ from typing import Any, Sequence
 
 import rasterio
 
-from matchplant.core.config import to_dict
-from matchplant.core.errors import MatchPlantError
-from matchplant.core.io import write_json
-from matchplant.core.log import package_versions
-from matchplant.core.odm import OUTPUTS, ODMProject
-from matchplant.core.reconstruction import read_reconstruction
-from matchplant.core.validate import check_raster
-from matchplant.odm_runner.config import ODMRunnerConfig
+from matchplant.core.formats.odm import OUTPUTS, ODMProject
+from matchplant.core.formats.reconstruction import read_reconstruction
+from matchplant.core.runtime.config import to_dict
+from matchplant.core.runtime.errors import MatchPlantError
+from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import package_versions
+from matchplant.core.runtime.validate import check_raster
+from matchplant.odm_runner.config import OdmRunnerConfig
 from matchplant.odm_runner.inputs import odm_option_dict
 
 # outputs modules 3, 8 and 9 read (docs/DESIGN.md §2); the topocentric copy is optional
@@ -147,7 +147,7 @@ def _raster_info(path: Path) -> dict:
         return {"error": str(exc)}
 
 
-def write_manifest(path: str | Path, cfg: ODMRunnerConfig, report: OutputReport, run_info: dict | None) -> Path:
+def write_manifest(path: str | Path, cfg: OdmRunnerConfig, report: OutputReport, run_info: dict | None) -> Path:
     """What was run, with which options, and every output with its size and whether it is there."""
     project = ODMProject(report.project)
     outputs = {}

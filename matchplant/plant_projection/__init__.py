@@ -4,7 +4,7 @@ Plants are detected on the (undistorted) photos; each box is then projected onto
 
 1. rays through the box outline (its corners and points along its edges) leave the camera
    (:meth:`Shot.ray_directions`, exact for perspective, brown and fisheye cameras) and are intersected
-   with the real surface (:func:`matchplant.core.ground.rays_to_ground`) - not a flat plane at the lowest
+   with the real surface (:func:`matchplant.core.geometry.ground.rays_to_ground`) - not a flat plane at the lowest
    height, which is what the published code did: edges facing the image's nadir point (leaf tips on the
    soil) meet the ground estimated from the DSM, the others the DSM itself (they may show the plant's top);
 2. the hits form the plant's polygon in the project's CRS; its centroid and an axis-aligned box follow;
@@ -24,3 +24,8 @@ step from its config). A run writes into a staging folder moved into place at th
 ``output_dir`` as it was (only ``unprojected_boxes.csv`` is kept when no box at all could be projected, to say
 why).
 """
+
+from matchplant.plant_projection.config import PlantProjectionConfig
+from matchplant.plant_projection.run import run
+
+__all__ = ['PlantProjectionConfig', 'run']

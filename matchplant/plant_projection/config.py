@@ -9,8 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from matchplant.core.config import param, section
-from matchplant.core.errors import ConfigError
+from matchplant.core.runtime.config import param, section
+from matchplant.core.runtime.errors import ConfigError
 
 
 @dataclass
@@ -30,7 +30,7 @@ class EvaluateConfig:
 
 
 @dataclass
-class ProjectionConfig:
+class PlantProjectionConfig:
     """Project detected plant boxes from the photos onto the map through the camera poses and the DSM."""
 
     outputs_inside_inputs = ("project",)  # the project is read by fixed names: <project>/plants is fine

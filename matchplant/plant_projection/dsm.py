@@ -12,10 +12,10 @@ import numpy as np
 import rasterio
 from pyproj import CRS
 
-from matchplant.core.errors import InputError
-from matchplant.core.frames import Frame
-from matchplant.core.reconstruction import Shot
-from matchplant.core.surface import Surface
+from matchplant.core.geometry.frames import Frame
+from matchplant.core.geometry.shot import Shot
+from matchplant.core.geometry.surface import Surface
+from matchplant.core.runtime.errors import InputError
 from matchplant.plant_projection.geometry import box_outline
 
 MAX_SURFACE_CELLS = 64_000_000  # 256 MB of float32 (a 1 cm DSM of 0.64 ha): above this, read per image

@@ -1,7 +1,7 @@
 """Projected plants against boxes drawn on the orthophoto: the paper's share matched and IoU, and a figure.
 
 Reference boxes may come as a COCO JSON over the orthophoto (placed on the map through its transform),
-a vector file or a CSV in the map CRS. Matching is one to one, best IoU first (:mod:`matchplant.core.boxes`).
+a vector file or a CSV in the map CRS. Matching is one to one, best IoU first (:mod:`matchplant.core.geometry.boxes`).
 """
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ import numpy as np
 import rasterio
 from matplotlib.collections import PolyCollection
 
-from matchplant.core.boxes import match_boxes
-from matchplant.core.coco import read_dataset, source_name, to_source_pixels
-from matchplant.core.errors import InputError
-from matchplant.core.gui import figure
-from matchplant.core.io import atomic_path
-from matchplant.core.log import get_logger
-from matchplant.core.validate import check_vector, read_csv
+from matchplant.core.formats.coco import read_dataset, source_name, to_source_pixels
+from matchplant.core.geometry.boxes import match_boxes
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import check_vector, read_csv
 
-log = get_logger("projection")
+log = get_logger("plant_projection")
 
 
 def read_boxes(path: Path, *, orthophoto: Path | None = None, crs=None) -> np.ndarray:

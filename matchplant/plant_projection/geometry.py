@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from matchplant.core.frames import Frame
-from matchplant.core.ground import rays_to_ground
-from matchplant.core.reconstruction import Shot
-from matchplant.core.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+from matchplant.core.geometry.frames import Frame
+from matchplant.core.geometry.ground import rays_to_ground
+from matchplant.core.geometry.shot import Shot
+from matchplant.core.geometry.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
 from matchplant.plant_projection.silhouette import silhouette_boxes
 
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
@@ -117,7 +117,7 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     :func:`silhouette_boxes` turns the hits into the plant's map box. ``cut_edges`` (M, 4: top, right,
     bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
     (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
-    :data:`matchplant.core.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
+    :data:`matchplant.core.geometry.surface.STATUS_TEXT`), ``outline`` (M, P, 3) map points, ``bounds`` (M, 4),
     ``centroid`` (M, 2, the box centre), ``z`` (mean height of the hits), ``area`` (m²), ``beside_cut`` (M, 4:
     map sides beside a border cut), ``unseen`` (M, 4:
     map sides west, south, east, north not seen directly: behind the plant's top or cut by a border),

@@ -7,9 +7,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from matchplant.core.coco import read_predictions, source_name
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.validate import check_raster, did_you_mean, read_json
+from matchplant.core.formats.coco import read_predictions, source_name
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.validate import check_raster, did_you_mean, read_json
 
 FIX_PREDICTIONS = "give the predictions JSON written by module 7 (model_test), or regenerate it"
 

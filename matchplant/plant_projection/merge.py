@@ -11,7 +11,7 @@ import numba
 import numpy as np
 import pandas as pd
 
-from matchplant.core.boxes import overlapping_pairs
+from matchplant.core.geometry.boxes import overlapping_pairs
 from matchplant.plant_projection.submodels import align_submodels
 from matchplant.plant_projection.views import ACROSS_COLUMNS, BESIDE_CUT_COLUMNS, UNSEEN_COLUMNS, ProjectedViews
 

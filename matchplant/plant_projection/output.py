@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import shapely
 
-from matchplant.core.io import atomic_open, atomic_path
+from matchplant.core.runtime.io import atomic_open, atomic_path
 from matchplant.plant_projection.views import ProjectedViews
 
 

@@ -2,7 +2,7 @@
 the DSM many times per box: the plant's top inside a box, and rays that skimmed a plant on their way down.
 
 Both are loops with an early exit or a running maximum over a few dozen samples per box; numpy would build
-(boxes x samples) temporaries for them, numba walks them once (:func:`matchplant.core.raycast.bilinear`).
+(boxes x samples) temporaries for them, numba walks them once (:func:`matchplant.core.geometry.raycast.bilinear`).
 """
 
 from __future__ import annotations
@@ -12,13 +12,13 @@ import math
 import numba
 import numpy as np
 
-from matchplant.core.raycast import above_block_max, bilinear, bilinear_batch
+from matchplant.core.geometry.raycast import above_block_max, bilinear, bilinear_batch
 
 
 @numba.njit(cache=True, nogil=True)
 def skimmed_one(dsm, dsm_inv, bmax, block, gnd, gnd_inv, hx, hy, hz, cam, hidden_height, skim, canopy, samples):
     """:func:`skimmed` for one hit (compiled callers); ``bmax``, ``block``: the DSM's block maxima
-    (:attr:`~matchplant.core.surface.Surface.block_max`)."""
+    (:attr:`~matchplant.core.geometry.surface.Surface.block_max`)."""
     dz = hz - cam[2]
     dx, dy = (hx - cam[0]) / -dz, (hy - cam[1]) / -dz  # per metre of descent
     for k in range(1, samples + 1):
@@ -59,7 +59,7 @@ def apex_one(dsm, inv, cx, cy, ax, ay, bx, by, lo_a, hi_a, lo_b, hi_b, grid, ref
     hi_b]), as its (ga, gb): the best of a ``grid`` x ``grid`` lattice of cell centres, then ``refine`` times the
     best of its 3 x 3 neighbours a third of the step away (a plant's top is one smooth dome: 41 samples place
     it as finely as a 45 x 45 lattice would); the first lattice point when every sample is a hole. ``work``:
-    scratch (>= grid x grid, 11), sampled a lattice at a time (:func:`~matchplant.core.raycast.bilinear_batch`)."""
+    scratch (>= grid x grid, 11), sampled a lattice at a time (:func:`~matchplant.core.geometry.raycast.bilinear_batch`)."""
     sa, sb = (hi_a - lo_a) / grid, (hi_b - lo_b) / grid  # lattice steps
     n = 0
     for jb in range(grid):

@@ -17,23 +17,28 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.guard import staged_outputs
-from matchplant.core.io import write_json
-from matchplant.core.log import get_logger
-from matchplant.core.odm import ODMProject
-from matchplant.plant_projection.config import ProjectionConfig
+from matchplant.core.formats.odm import ODMProject
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.guard import staged_outputs
+from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, evaluation_figure, read_boxes, read_plants_boxes
 from matchplant.plant_projection.inputs import check_dsm, load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.output import write_plants, write_table
-from matchplant.plant_projection.views import (BOX_OUTSIDE_IMAGE, EMPTY_BOX, NOT_IN_RECONSTRUCTION, dsm_files,
-                                              project_predictions)
+from matchplant.plant_projection.views import (
+    BOX_OUTSIDE_IMAGE,
+    EMPTY_BOX,
+    NOT_IN_RECONSTRUCTION,
+    dsm_files,
+    project_predictions,
+)
 
-log = get_logger("projection")
+log = get_logger("plant_projection")
 
 
-def run_projection(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
+def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict:
     """Project, merge and write (into ``dest``, the staging folder; default ``output_dir``); the summary (also
     ``projection_summary.json``) counts every box, so none goes missing unnoticed. Nothing projected, or
     nothing scoring ``min_score``, is an error (with ``unprojected_boxes.csv`` saying why for each box)."""
@@ -102,7 +107,7 @@ def unknown_images(failed: pd.DataFrame) -> str:
     return f"; {len(miss)} image(s) not in the reconstruction: {', '.join(names)}{' ...' if len(miss) > 5 else ''}"
 
 
-def nothing_projected(failed: pd.DataFrame, cfg: ProjectionConfig, project: ODMProject, report: Path) -> InputError:
+def nothing_projected(failed: pd.DataFrame, cfg: PlantProjectionConfig, project: ODMProject, report: Path) -> InputError:
     """Why no box at all could be projected, and what to change, by the most common reason."""
     counts = failed["reason"].value_counts()
     top = str(counts.index[0])
@@ -126,7 +131,7 @@ def nothing_projected(failed: pd.DataFrame, cfg: ProjectionConfig, project: ODMP
                       (" (or leave 'dsm' empty)" if cfg.dsm is not None else "") + ", or fill its holes")
 
 
-def run_evaluation(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
+def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict:
     """Score written plants against reference boxes; reads the plants from file so that a projection run
     earlier (or elsewhere) can be evaluated alone (``dest``: the staging folder, where a projection of this
     run wrote its plants)."""
@@ -166,7 +171,7 @@ def run_evaluation(cfg: ProjectionConfig, dest: Path | None = None) -> dict:
     return metrics
 
 
-def run(cfg: ProjectionConfig) -> dict:
+def run(cfg: PlantProjectionConfig) -> dict:
     """The step's entry point (``mode``: project, evaluate or both); all or nothing: a failed run leaves
     ``output_dir`` as it was (apart from its log and, when no box could be projected, the report why)."""
     result = {}

@@ -20,7 +20,7 @@ import math
 import numba
 import numpy as np
 
-from matchplant.core.raycast import bilinear
+from matchplant.core.geometry.raycast import bilinear
 from matchplant.plant_projection.relief import apex_one, skimmed_one
 
 APEX_REACH = 0.25  # how far past a hidden side (share of the box) the plant's top is looked for

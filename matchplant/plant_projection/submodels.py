@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from matchplant.core.boxes import overlapping_pairs
-from matchplant.core.log import get_logger
+from matchplant.core.geometry.boxes import overlapping_pairs
+from matchplant.core.runtime.log import get_logger
 from matchplant.plant_projection.views import UNSEEN_COLUMNS, ProjectedViews
 
-log = get_logger("projection")
+log = get_logger("plant_projection")
 
 MATCH_IOU = 0.3  # whole views of two submodels overlapping this much are taken as one plant
 MIN_PAIRS = 5  # plants two submodels must share before their offset is trusted

@@ -15,20 +15,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from matchplant.core.coco import source_name
-from matchplant.core.errors import InputError
-from matchplant.core.log import get_logger
-from matchplant.core.odm import OUTPUTS, ODMProject
-from matchplant.core.progress import progress
-from matchplant.core.reconstruction import Shot
-from matchplant.core.surface import NODATA, OUTSIDE, STATUS_TEXT
-from matchplant.core.validate import did_you_mean, match_names
+from matchplant.core.formats.coco import source_name
+from matchplant.core.formats.odm import OUTPUTS, ODMProject
+from matchplant.core.geometry.shot import Shot
+from matchplant.core.geometry.surface import NODATA, OUTSIDE, STATUS_TEXT
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.core.runtime.validate import did_you_mean, match_names
 from matchplant.plant_projection.dsm import DsmSurfaces, ray_bounds
 from matchplant.plant_projection.geometry import project_boxes
 
-log = get_logger("projection")
+log = get_logger("plant_projection")
 
-# reasons a box is not projected (besides the ray statuses of matchplant.core.surface)
+# reasons a box is not projected (besides the ray statuses of matchplant.core.geometry.surface)
 NOT_IN_RECONSTRUCTION = "image not in the reconstruction (ODM could not place it)"
 BOX_OUTSIDE_IMAGE = "box lies outside the image (wrong image name or size?)"
 EMPTY_BOX = "box has no area"
@@ -197,7 +197,7 @@ def project_predictions(project: ODMProject, predictions: dict, *, image_type: s
                         ground_window: float = 1.5) -> tuple[ProjectedViews, pd.DataFrame]:
     """Project every prediction box; returns the projected views and the boxes that were not projected.
 
-    ``predictions`` is :func:`matchplant.core.coco.read_predictions`'s dict (tile boxes are moved back to their
+    ``predictions`` is :func:`matchplant.core.formats.coco.read_predictions`'s dict (tile boxes are moved back to their
     source image with the tile's ``x0``, ``y0``). The rejected table has one row per box with its reason.
     In a split-merge project each shot's boxes meet its own submodel's DSM (docs/DESIGN.md §6) unless ``dsm``
     is given. The bookkeeping is done per image (names, shots, frames) and per box only in numpy.

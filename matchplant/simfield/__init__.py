@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from matchplant.simfield.config import PRESETS, SimFieldConfig, Settings, config_from, resolve
+from matchplant.simfield.config import PRESETS, Settings, SimFieldConfig, config_from, resolve
 from matchplant.simfield.generate import generate
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.split import split_field

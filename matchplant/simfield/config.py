@@ -10,8 +10,8 @@ import difflib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
-from matchplant.core.config import param, validate
-from matchplant.core.errors import ConfigError
+from matchplant.core.runtime.config import param, validate
+from matchplant.core.runtime.errors import ConfigError
 
 # Field site: near Lincoln, Nebraska (UTM zone 14N). The south-west corner of the rasters lies here.
 SITE_LON, SITE_LAT = -96.6, 40.85
@@ -63,7 +63,7 @@ PRESETS: dict[str, Settings] = {
     "large": Settings(image_width=1000, aspect=0.75, focal=0.85, altitude=20.0, field_width=70.0,
                       field_length=50.0, raster_res=0.01, n_gcps=9, slope_pct=1.5, undulation=0.15),
     # 4 DJI Mavic 2 Pro-like 5472x3648 (20 MP) photos at 20 m, 85 % overlap, ~2,500 plants per photo:
-    # annotation and detection at real size (bench_annotate_gui, detection speed)
+    # annotation and detection at real size (bench_bbox_drawer_gui, detection speed)
     "realistic": Settings(image_width=5472, aspect=2 / 3, focal=0.777, altitude=20.0, field_width=28.0,
                           field_length=19.0, raster_res=0.005, n_gcps=5, slope_pct=1.5, undulation=0.1),
 }

@@ -1,6 +1,6 @@
 """The camera, the lawn-mower flight, and the rendering of images by ray casting into the field.
 
-Poses are :class:`~matchplant.core.reconstruction.Shot` objects in the local frame (map CRS minus the
+Poses are :class:`~matchplant.core.formats.reconstruction.Shot` objects in the local frame (map CRS minus the
 ``coords.txt`` offset), the frame ODM's ``reconstruction.json`` is in. Rays come from
 ``Shot.ray_directions`` (the foundation's camera conventions) and are intersected with the field's
 surface: terrain (analytic) plus the canopy-height raster, marched in steps finer than a pixel's
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from matchplant.core.camera import PinholeCamera
-from matchplant.core.reconstruction import Shot
+from matchplant.core.geometry.camera import PinholeCamera
+from matchplant.core.geometry.shot import Shot
 from matchplant.simfield.config import Settings
 from matchplant.simfield.scene import Rasters, Terrain
 

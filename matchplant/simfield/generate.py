@@ -22,16 +22,26 @@ from pyproj import CRS, Transformer
 from rasterio.enums import ColorInterp
 from rasterio.windows import Window
 
-from matchplant.core.coco import make_annotation, new_dataset, write_dataset
-from matchplant.core.errors import ConfigError
-from matchplant.core.frames import OffsetFrame, TopocentricFrame, utm_crs_for, write_coords_txt
-from matchplant.core.io import atomic_open, atomic_path, write_json, write_text
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
-from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
-from matchplant.simfield.config import SITE_LAT, SITE_LON, SimFieldConfig, Settings, resolve
-from matchplant.simfield.flight import (SENSOR_WIDTH_MM, SHOT_INTERVAL_S, TURN_S, Exposure, footprint, gps_time_of_week,
-                     make_camera, plan_flight, render)
+from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.formats.reconstruction import Reconstruction, write_reconstruction
+from matchplant.core.geometry.frames import OffsetFrame, TopocentricFrame, utm_crs_for, write_coords_txt
+from matchplant.core.geometry.shot import Shot
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.io import atomic_open, atomic_path, write_json, write_text
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.simfield.config import SITE_LAT, SITE_LON, Settings, SimFieldConfig, resolve
+from matchplant.simfield.flight import (
+    SENSOR_WIDTH_MM,
+    SHOT_INTERVAL_S,
+    TURN_S,
+    Exposure,
+    footprint,
+    gps_time_of_week,
+    make_camera,
+    plan_flight,
+    render,
+)
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
 from matchplant.simfield.traits import grow, plot_truth, traits_rows, vigour

@@ -31,11 +31,12 @@ from pyproj import CRS, Transformer
 from rasterio.windows import Window, from_bounds
 from scipy.ndimage import affine_transform
 
-from matchplant.core.frames import TopocentricFrame, write_coords_txt
-from matchplant.core.io import read_json, write_json
-from matchplant.core.log import get_logger
-from matchplant.core.odm import OUTPUTS, SUBMODELS_DIR, ODMProject
-from matchplant.core.reconstruction import Reconstruction, Shot, write_reconstruction
+from matchplant.core.formats.odm import OUTPUTS, SUBMODELS_DIR, ODMProject
+from matchplant.core.formats.reconstruction import Reconstruction, write_reconstruction
+from matchplant.core.geometry.frames import TopocentricFrame, write_coords_txt
+from matchplant.core.geometry.shot import Shot
+from matchplant.core.runtime.io import read_json, write_json
+from matchplant.core.runtime.log import get_logger
 from matchplant.simfield.layout import FieldPaths
 
 log = get_logger("simfield")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from shapely import box, make_valid, polygons, union_all
 
-from matchplant.core.reconstruction import Shot
+from matchplant.core.geometry.shot import Shot
 from matchplant.simfield.scene import MAX_LEAVES, Plants, Terrain
 
 MIN_BOX_PX = 0.5  # a plant counts as visible when its box reaches a pixel centre (half a pixel in)

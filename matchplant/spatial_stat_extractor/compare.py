@@ -16,14 +16,14 @@ import pandas as pd
 import shapely
 from scipy import stats as st
 
-from matchplant.core.boxes import greedy_matches
-from matchplant.core.errors import ConfigError
-from matchplant.core.gui import figure
-from matchplant.core.io import atomic_path
-from matchplant.core.log import get_logger
+from matchplant.core.geometry.boxes import greedy_matches
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.extract import extract_stats, read_polygons, write_csv
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 
 def match_by_iou(geoms_a, geoms_b, min_iou: float = 0.3) -> pd.DataFrame:

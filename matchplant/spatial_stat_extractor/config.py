@@ -9,8 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from matchplant.core.config import param, section
-from matchplant.core.errors import ConfigError
+from matchplant.core.runtime.config import param, section
+from matchplant.core.runtime.errors import ConfigError
 from matchplant.spatial_stat_extractor.indices import RGB_INDICES
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
@@ -151,7 +151,7 @@ class CanopyConfig:
 
 
 @dataclass
-class StatsConfig:
+class SpatialStatExtractorConfig:
     """Module 9: plant polygons to GIS files, and per-plant statistics (height, NDVI, any band) from rasters."""
 
     polygons: Path = param(None, "plant polygons: module 8's plants.gpkg or plants.csv, a shapefile, GeoJSON, or a "

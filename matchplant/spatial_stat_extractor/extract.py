@@ -40,10 +40,10 @@ import pandas as pd
 import rasterio
 import shapely
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.io import atomic_open, atomic_path, write_json
-from matchplant.core.log import get_logger
-from matchplant.core.progress import progress
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.config import RasterSet
 from matchplant.spatial_stat_extractor.polygons import read_polygons
 from matchplant.spatial_stat_extractor.rasters import open_layer
@@ -53,7 +53,7 @@ from matchplant.spatial_stat_extractor.zonal import DEFAULT_STATS, zonal_stats
 __all__ = ["RasterSet", "read_polygons", "extract_stats", "write_outputs", "write_csv", "write_gpkg",
            "write_shapefile"]
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 
 # --------------------------------------------------------------------------------------------------

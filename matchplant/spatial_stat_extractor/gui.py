@@ -15,17 +15,17 @@ import shapely
 from matplotlib.collections import LineCollection
 from matplotlib.widgets import Button, CheckButtons, RadioButtons, TextBox
 
-from matchplant.core.config import save_config, set_value, validate
-from matchplant.core.errors import ConfigError, MatchPlantError
-from matchplant.core.gui import ask_path, figure, is_headless, require_display, show
-from matchplant.core.log import get_logger
-from matchplant.spatial_stat_extractor.config import StatsConfig
+from matchplant.core.runtime.config import save_config, set_value, validate
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
+from matchplant.core.runtime.gui import ask_path, figure, is_headless, require_display, show
+from matchplant.core.runtime.log import get_logger
+from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.polygons import read_polygons
 from matchplant.spatial_stat_extractor.rasters import preview_layer
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 TEXT_FIELDS = [  # (config key, label)
     ("polygons", "Polygons"),
@@ -68,11 +68,11 @@ class QuietTextBox(TextBox):
             super().stop_typing()
 
 
-class StatsGUI:
-    """The window over a :class:`~matchplant.spatial_stat_extractor.config.StatsConfig`. ``headless=True``
+class SpatialStatExtractorGUI:
+    """The window over a :class:`~matchplant.spatial_stat_extractor.config.SpatialStatExtractorConfig`. ``headless=True``
     (tests) draws on a figure of its own, without a window."""
 
-    def __init__(self, cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None,
+    def __init__(self, cfg: SpatialStatExtractorConfig, config_path: Path | None = None, headless: bool | None = None,
                  chooser=None):
         self.cfg = cfg
         self.chooser = chooser  # replaces Tk's dialog (tests): chooser(kind, title, initial) -> path or None
@@ -328,12 +328,12 @@ class StatsGUI:
         return path
 
 
-def launch(cfg: StatsConfig, config_path: Path | None = None, headless: bool | None = None,
-           chooser=None) -> StatsGUI:
+def launch(cfg: SpatialStatExtractorConfig, config_path: Path | None = None, headless: bool | None = None,
+           chooser=None) -> SpatialStatExtractorGUI:
     """The window (the paper's Fig. 9); blocks until it is closed."""
     if not headless:
         require_display("python 9_spatial_stat_extractor/spatial_stat_extractor.py --polygons FILE --dsm FILE --dtm FILE")
-    gui = StatsGUI(cfg, config_path, headless=headless, chooser=chooser)
+    gui = SpatialStatExtractorGUI(cfg, config_path, headless=headless, chooser=chooser)
     try:
         ready = cfg.polygons is not None and bool(cfg.date_sets())
     except MatchPlantError as exc:

@@ -21,7 +21,7 @@ import re
 import numpy as np
 from rasterio.enums import ColorInterp
 
-from matchplant.core.errors import ConfigError
+from matchplant.core.runtime.errors import ConfigError
 
 RGB_INDICES = {
     "exg": "2 * g - r - b",

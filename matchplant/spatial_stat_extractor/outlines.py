@@ -35,8 +35,8 @@ from rasterio.features import shapes
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from matchplant.core.errors import InputError
-from matchplant.core.progress import progress
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.progress import progress
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)

@@ -34,15 +34,15 @@ import numpy as np
 import pandas as pd
 import shapely
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.gui import close, figure
-from matchplant.core.io import atomic_path
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.gui import close, figure
+from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.extract import write_csv, write_gpkg
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.polygons import read_polygons
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from matchplant.core.config import param
+from matchplant.core.runtime.config import param
 
 
 @dataclass

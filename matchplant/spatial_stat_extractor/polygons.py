@@ -14,12 +14,12 @@ import shapely
 from pyproj import CRS
 from pyproj.exceptions import CRSError
 
-from matchplant.core.errors import ConfigError, InputError
-from matchplant.core.io import read_json
-from matchplant.core.log import get_logger
-from matchplant.core.validate import check_vector, did_you_mean
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.io import read_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import check_vector, did_you_mean
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 ID_CANDIDATES = ("plant_id", "id", "ID", "Id", "fid", "FID", "plant", "label")
 WKT_CANDIDATES = ("geometry", "wkt", "WKT", "geom", "the_geom")

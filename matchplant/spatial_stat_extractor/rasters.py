@@ -15,14 +15,20 @@ from rasterio.enums import ColorInterp, Resampling
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import transform_bounds
 
-from matchplant.core.errors import InputError
-from matchplant.core.validate import check_raster
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import check_raster
 from matchplant.spatial_stat_extractor.config import Layer
 from matchplant.spatial_stat_extractor.indices import FormulaSource, check_bands, parse_formula
-from matchplant.spatial_stat_extractor.zonal import ArraySource, DifferenceSource, NDVISource, RasterFileSource, pyproj_crs
+from matchplant.spatial_stat_extractor.zonal import (
+    ArraySource,
+    DifferenceSource,
+    NDVISource,
+    RasterFileSource,
+    pyproj_crs,
+)
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 ODM_NODATA = -9999.0  # ODM's DEM nodata, masked on elevation rasters even when the file does not declare it
 

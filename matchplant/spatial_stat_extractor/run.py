@@ -12,20 +12,20 @@ from typing import Callable
 
 import pandas as pd
 
-from matchplant.core.guard import staged_outputs
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.guard import staged_outputs
+from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.compare import run_comparison
-from matchplant.spatial_stat_extractor.config import StatsConfig
+from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_gpkg, write_outputs
 from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.rasters import raster_crs
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 
-def extract_and_write(cfg: StatsConfig, on_progress: Callable[[float, str], None] | None = None):
+def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[float, str], None] | None = None):
     """Everything module 9 does for ``cfg``; returns ``(polygons, table, report, written files)``."""
     out = Path(cfg.output_dir)
     sets = cfg.date_sets()
@@ -58,7 +58,7 @@ def extract_and_write(cfg: StatsConfig, on_progress: Callable[[float, str], None
     return polygons, table, report, written
 
 
-def run(cfg: StatsConfig) -> dict:
+def run(cfg: SpatialStatExtractorConfig) -> dict:
     # all files or none: written in a temporary folder, moved into output_dir at the end
     with staged_outputs(cfg.output_dir) as stage:
         polygons, _, report, written = extract_and_write(replace(cfg, output_dir=stage))

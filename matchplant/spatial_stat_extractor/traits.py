@@ -25,14 +25,14 @@ import numpy as np
 import pandas as pd
 import shapely
 
-from matchplant.core.log import get_logger
+from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.canopy import canopy_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
 from matchplant.spatial_stat_extractor.extract import polygons_in
 from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings, segment
 from matchplant.spatial_stat_extractor.rasters import open_layer
 
-log = get_logger("stats")
+log = get_logger("spatial_stat_extractor")
 
 
 def settings_from(cfg: CanopyConfig) -> SegmentSettings:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from matchplant.core.errors import ConfigError
+from matchplant.core.runtime.errors import ConfigError
 
 # name -> (numbered folder, one-line summary); the numbered steps first, in order
 STEPS: dict[str, tuple[str, str]] = {
@@ -33,13 +33,14 @@ STEPS: dict[str, tuple[str, str]] = {
     "run": ("", "run several steps in order from one pipeline.yaml"),
 }
 
-# older command names, and the folder numbers, still work
+# every other name a step answers to, in this one table: older command names, and the number of its folder
+# (``8_plant_projection`` -> ``8``)
 ALIASES: dict[str, str] = {
     "gps_embed": "gps_embeder",
     "train": "model_train",
     "project_boxes": "plant_projection",
     "stat_extractor": "spatial_stat_extractor",
-    **{str(i): name for i, name in enumerate(list(STEPS)[:10])},
+    **{folder.split("_", 1)[0]: name for name, (folder, _) in STEPS.items() if folder},
 }
 
 

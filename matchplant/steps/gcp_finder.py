@@ -1,8 +1,6 @@
 """Step 1 (1_gcp_finder): find the images that see each GCP; GUI to mark them; write gcp_list.txt."""
 
-from matchplant.gcp_finder.config import GcpFinderConfig
-from matchplant.gcp_finder.finder import run
-from matchplant.gcp_finder.gui import launch
+from matchplant.gcp_finder import GcpFinderConfig, launch, run
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="gcp_finder", config=GcpFinderConfig, run=run, gui=launch,

@@ -1,6 +1,6 @@
 """``matchplant inspect <coco.json>``: object sizes in pixels and the tiling and detector settings they call for."""
 
-from matchplant.core.objects import InspectConfig, inspect_dataset
+from matchplant.detection.objects import InspectConfig, inspect_dataset
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="inspect", config=InspectConfig, run=inspect_dataset, output_key=None,

@@ -1,8 +1,8 @@
 """Step 6 (6_model_train): train a plant detector, with transfer learning, from YAML."""
 
-from matchplant.model_train.train import TrainConfig, run
+from matchplant.model_train import ModelTrainConfig, run
 from matchplant.steps import StepSpec
 
-SPEC = StepSpec(name="model_train", config=TrainConfig, run=run,
+SPEC = StepSpec(name="model_train", config=ModelTrainConfig, run=run,
                 flags={"--resume": ("resume", "continue the run in output_dir from its last checkpoint", "true"),
                        "--epochs": ("epochs", "number of epochs (shortcut for --set epochs=N)")})

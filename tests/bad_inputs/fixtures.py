@@ -9,14 +9,14 @@ import json
 import shutil
 
 import pytest
+from harness import Work
 
 from matchplant.cli import run_module
-from matchplant.core.config import load_config
-from matchplant.core.coco import read_dataset
-from matchplant.core.io import write_json
+from matchplant.core.formats.coco import read_dataset
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.io import write_json
 from matchplant.detection.model import build_detector, save_checkpoint
-from matchplant.model_train.train import TrainConfig
-from harness import Work
+from matchplant.model_train.run import ModelTrainConfig
 
 
 @pytest.fixture(scope="session")
@@ -34,7 +34,7 @@ def artifacts(tiny_field, tmp_path_factory):
     assert run_module("plant_projection", ["--set", f"project={field}",
                                            "--set", f"predictions={root / 'predictions.json'}",
                                            "--set", f"output_dir={root / 'plants'}", "--quiet"]) == 0
-    cfg = load_config(TrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+    cfg = load_config(ModelTrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
                                           "model.pretrained=none", "model.min_size=64", "model.max_size=128"],
                       check_paths=False, strict=False)
     save_checkpoint(root / "model.pt", build_detector(cfg.model, 2), cfg.model, ["plant"], [1], epoch=1)

@@ -6,9 +6,8 @@ import importlib
 from pathlib import Path
 
 import pytest
-
 from fixtures import artifacts, work  # noqa: F401  (the fixtures; not a conftest.py, whose module name
-from harness import run_case           # would shadow tests/conftest.py for the tests that import from it)
+from harness import run_case  # would shadow tests/conftest.py for the tests that import from it)
 
 CASES = [case for path in sorted(Path(__file__).parent.glob("cases_*.py"))
          for case in importlib.import_module(path.stem).CASES]

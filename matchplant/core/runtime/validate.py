@@ -1,0 +1,561 @@
+"""Shared input checks: read a file, check its structure, and raise one clear error naming the file, the line
+or key, the problem and the fix (:mod:`matchplant.core.runtime.errors`). Steps call these instead of ``json.load``,
+``csv.reader``, ``rasterio.open``... so that a broken input never ends in a traceback or a silent wrong result.
+
+=========================  ==================================================================================
+names                      :func:`did_you_mean`, :func:`match_name`, :func:`match_names`, :func:`name_key`
+text files                 :func:`read_text` (UTF-8 with or without BOM, UTF-16 with BOM, CRLF, cp1252 last)
+JSON / YAML                :func:`read_json` (truncated, top-level type, required keys), :func:`read_yaml`
+CSV                        :func:`read_csv` -> :class:`Table` (delimiter sniffing, required columns with
+                           "did you mean", numeric columns naming the line, decimal commas with ``;``)
+values and units           :func:`check_range`, :func:`check_coordinates` (degrees vs metres, swapped lat/lon)
+paths                      :func:`check_path`
+rasters / vectors / JPEG   :func:`check_raster`, :func:`check_vector`, :func:`check_jpeg`
+=========================  ==================================================================================
+
+Every function raises :class:`~matchplant.core.runtime.errors.InputError` (or ``ConfigError`` for config keys); none
+returns a partial result silently.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import io
+import json
+import math
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import pyogrio
+import rasterio
+import rasterio.windows
+import yaml
+from PIL import Image
+
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.log import get_logger
+
+log = get_logger("validate")
+
+# --------------------------------------------------------------------------------------------------
+# names
+
+
+def did_you_mean(name: str, choices: Iterable[str], *, cutoff: float = 0.6) -> str:
+    """``"did you mean 'x'?"`` for the closest of ``choices`` (case-insensitive), or ``""``."""
+    choices = [str(c) for c in choices]
+    folded = {c.casefold(): c for c in choices}
+    close = difflib.get_close_matches(str(name).casefold(), list(folded), n=1, cutoff=cutoff)
+    return f"did you mean '{folded[close[0]]}'?" if close else ""
+
+
+_EXT = re.compile(r"\.[A-Za-z][A-Za-z0-9]{0,4}$")
+
+
+def name_key(name: str) -> str:
+    """The loose form of a file name or id: no folder, no extension, case-folded (``IMG_1.JPG`` -> ``img_1``)."""
+    base = str(name).replace("\\", "/").rsplit("/", 1)[-1]
+    return _EXT.sub("", base).casefold()
+
+
+def match_names(names: Iterable[str], targets: Iterable[str]) -> tuple[dict[str, str], list[str]]:
+    """Match ``names`` (e.g. image file names) to ``targets`` (e.g. reconstruction shot ids).
+
+    Exact matches first, then loose ones (:func:`name_key`: case and extension ignored) when they are
+    unique. Returns ``({name: target}, unmatched names)``; a caller should say how many matched loosely.
+    """
+    targets = list(dict.fromkeys(str(t) for t in targets))
+    exact = set(targets)
+    loose: dict[str, list[str]] = {}
+    for t in targets:
+        loose.setdefault(name_key(t), []).append(t)
+    matched: dict[str, str] = {}
+    unmatched: list[str] = []
+    for n in names:
+        n = str(n)
+        if n in exact:
+            matched[n] = n
+        elif len(loose.get(name_key(n), [])) == 1:
+            matched[n] = loose[name_key(n)][0]
+        else:
+            unmatched.append(n)
+    return matched, unmatched
+
+
+def match_name(name: str, choices: Iterable[str], *, what: str, path: str | Path | None = None,
+               fix: str | None = None, error: type = InputError) -> str:
+    """The one of ``choices`` that ``name`` means (exactly, else loosely); else an error with "did you mean"."""
+    choices = [str(c) for c in choices]
+    matched, _ = match_names([name], choices)
+    if name in matched:
+        return matched[name]
+    hint = did_you_mean(name, choices)
+    listing = hint or f"known: {', '.join(choices[:12])}{' ...' if len(choices) > 12 else ''}" if choices else \
+        "there are none"
+    raise error(f"{what} '{name}' not found; {listing}", path=path,
+                fix=fix or f"use one of the existing {what}s")
+
+
+# --------------------------------------------------------------------------------------------------
+# text, JSON, YAML
+
+
+def read_text(path: str | Path, *, what: str = "file") -> str:
+    """A text file as ``str`` whatever a Windows editor saved: UTF-8 (BOM or not), UTF-16 with BOM, CRLF line
+    ends (turned into ``\\n``); cp1252 as a last resort, with a warning."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} not found" if not path.exists() else f"{what} is a folder, not a file",
+                         path=path, fix="check the path in your config")
+    data = path.read_bytes()
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        text = data.decode("utf-16")
+    else:
+        try:
+            text = data.decode("utf-8-sig")
+        except UnicodeDecodeError as exc:
+            if b"\x00" in data[:4096]:
+                raise InputError(f"{what} is binary, not text (byte {exc.start})", path=path,
+                                 fix="point the config at the text file") from exc
+            text = data.decode("cp1252", errors="replace")
+            log.warning("%s is not UTF-8; read it as Windows-1252 (save it as UTF-8 to silence this)", path)
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+def read_json(path: str | Path, *, expect: type | tuple[type, ...] | None = None, required: Sequence[str] = (),
+              what: str = "JSON file") -> Any:
+    """Parse a JSON file; name a truncated file as such, a syntax error's line, a wrong top-level type and
+    missing top-level keys (``required``, with "did you mean" from the keys present)."""
+    path = Path(path)
+    text = read_text(path, what=what)
+    if not text.strip():
+        raise InputError(f"{what} is empty", path=path, fix="regenerate the file (the step that wrote it may "
+                                                            "have been interrupted)")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        tail = text.rstrip()
+        # cut off: the error is at the very end, or the text stops inside a string or before its last bracket
+        cut = exc.pos >= len(tail) - 1 or exc.msg.startswith("Unterminated string") or tail[-1:] not in "}]"
+        if cut and not exc.msg.startswith("Extra data"):
+            raise InputError(f"{what} is not valid JSON: it ends early, at line {exc.lineno} ({exc.msg}), "
+                             "as a truncated file does", path=path,
+                             fix="the file was cut off (disk full, interrupted copy or run); copy or "
+                                 "regenerate it") from exc
+        raise InputError(f"{what} is not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}",
+                         path=path, fix="repair the file there, or regenerate it") from exc
+    if expect is not None and not isinstance(data, expect):
+        raise InputError(f"{what} holds {_kind(data)}, expected {_kind_of(expect)}", path=path,
+                         fix="point the config at the right file")
+    if required:
+        _require_keys(data, required, what, path)
+    return data
+
+
+def _kind(value: Any) -> str:
+    return {dict: "an object {...}", list: "a list [...]", str: "a string", type(None): "null"}.get(
+        type(value), f"a {type(value).__name__}")
+
+
+def _kind_of(expect: type | tuple[type, ...]) -> str:
+    types = expect if isinstance(expect, tuple) else (expect,)
+    return " or ".join({dict: "an object {...}", list: "a list [...]"}.get(t, t.__name__) for t in types)
+
+
+def _require_keys(data: Any, required: Sequence[str], what: str, path: Path) -> None:
+    if not isinstance(data, dict):
+        raise InputError(f"{what} holds {_kind(data)}, expected an object with {list(required)}", path=path,
+                         fix="point the config at the right file")
+    for key in required:
+        if key not in data:
+            hint = did_you_mean(key, data)
+            raise InputError(f"{what} has no '{key}'{'; ' + hint if hint else ''}", path=path,
+                             fix=f"the file needs a top-level '{key}'; regenerate it or point the config "
+                                 "at the right file")
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A SafeLoader that refuses a key given twice in one mapping (YAML would keep the last silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key '{key}' appears twice (lines {seen[key]} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark)
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep)
+
+
+def read_yaml(path: str | Path, *, expect: type | None = dict, what: str = "YAML file",
+              error: type = ConfigError) -> Any:
+    """Parse a YAML file (BOM and CRLF accepted); an empty file, a syntax error (with its line), tabs used
+    for indentation, a key given twice and a wrong top-level type are errors."""
+    path = Path(path)
+    try:
+        text = read_text(path, what=what)
+    except InputError as exc:
+        raise error(exc.problem, path=exc.path, fix=exc.fix) from exc
+    if not text.strip() or all(not ln.strip() or ln.lstrip().startswith("#") for ln in text.splitlines()):
+        raise error(f"{what} is empty", path=path, fix="write its settings as 'key: value' lines")
+    try:
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        tab = next((i + 1 for i, ln in enumerate(text.splitlines()) if re.match(r"^ *\t", ln)), None)
+        if tab is not None:
+            raise error(f"{what}: line {tab} is indented with a tab", path=path,
+                        fix="indent with spaces only (YAML does not allow tabs)") from exc
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise error(f"{what} is not valid YAML{f' at line {line}' if line else ''}: {problem}", path=path,
+                    fix="check the indentation and the 'key: value' syntax there") from exc
+    if expect is not None and not isinstance(data, expect):
+        raise error(f"{what} holds {_kind(data)}, expected {_kind_of(expect)} of 'key: value' lines", path=path,
+                    fix="write one 'key: value' setting per line")
+    return data
+
+
+# --------------------------------------------------------------------------------------------------
+# CSV
+
+
+@dataclass
+class Table:
+    """A checked CSV: ``columns`` as written (stripped), ``rows`` as ``{required column: text}`` (every column,
+    under its name as written, plus the required names), ``lines[i]`` the file line of ``rows[i]``."""
+
+    path: Path
+    columns: list[str]
+    rows: list[dict[str, str]]
+    lines: list[int]
+    delimiter: str
+    numbers: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def column(self, name: str) -> list[str]:
+        return [r[name] for r in self.rows]
+
+
+def _sniff(header: str) -> str | None:
+    counts = {d: header.count(d) for d in (",", ";", "\t", "|")}
+    best = max(counts, key=counts.get)
+    return best if counts[best] else None
+
+
+def _number(text: str, decimal_comma: bool) -> float:
+    t = text.strip()
+    if decimal_comma and "," in t and "." not in t:
+        t = t.replace(",", ".")
+    return float(t)
+
+
+def read_csv(path: str | Path, *, required: Sequence[str] = (), numeric: Sequence[str] = (),
+             aliases: dict[str, Sequence[str]] | None = None, allow_empty: bool = False,
+             comment: str = "#", what: str = "CSV file") -> Table:
+    """Read a delimited table with a header line and check it.
+
+    - delimiter sniffed from the header (``,`` ``;`` TAB ``|``, else whitespace); BOM, CRLF, UTF-16 accepted;
+    - ``required`` columns matched case-insensitively (``aliases`` maps a required name to accepted other
+      names, e.g. ``{"x": ["easting", "lon"]}``); a missing one gives "did you mean" from the header;
+    - ``numeric`` columns must hold finite numbers; the first bad value is named with its line
+      (``;``-separated files may use decimal commas); parsed arrays are in ``Table.numbers``;
+    - a row with more or fewer values than the header, and a file without data rows, are errors.
+    """
+    path = Path(path)
+    text = read_text(path, what=what)
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.split("\n"))
+                if ln.strip() and not (comment and ln.lstrip().startswith(comment))]
+    if not numbered:
+        raise InputError(f"{what} is empty", path=path, fix=f"the first line must be the header: "
+                                                            f"{','.join(required) or 'column names'}")
+    delim = _sniff(numbered[0][1])
+
+    def split(line: str) -> list[str]:
+        if delim is None:
+            return line.split()
+        return [c.strip() for c in next(csv.reader(io.StringIO(line), delimiter=delim, skipinitialspace=True))]
+
+    header = split(numbered[0][1])
+    _check_header(header, required, numeric, aliases or {}, path, what)
+    folded = {h.casefold(): h for h in header}
+    rename = {}
+    for name in [*required, *numeric]:
+        for option in [name, *(aliases or {}).get(name, [])]:
+            if option.casefold() in folded:
+                rename[name] = folded[option.casefold()]
+                break
+    rows, lines = [], []
+    for lineno, line in numbered[1:]:
+        values = split(line)
+        if len(values) != len(header):
+            raise InputError(f"{what}, line {lineno}: {len(values)} values, but the header has {len(header)} "
+                             f"columns", path=path, fix="give every line one value per column (quote values "
+                                                        "that contain the delimiter)")
+        row = dict(zip(header, values))
+        row.update({name: row[col] for name, col in rename.items()})
+        rows.append(row)
+        lines.append(lineno)
+    if not rows and not allow_empty:
+        raise InputError(f"{what} has a header but no data rows", path=path, fix="add the data, or point the "
+                                                                                 "config at the right file")
+    table = Table(path, header, rows, lines, delim or " ")
+    for name in numeric:
+        values = np.empty(len(rows))
+        for i, row in enumerate(rows):
+            try:
+                values[i] = _number(row[name], delim == ";")
+            except ValueError:
+                values[i] = math.nan
+            if not math.isfinite(values[i]):
+                shown = repr(row[name]) if row[name] else "empty"
+                raise InputError(f"{what}, line {lines[i]}: column '{rename[name]}' is {shown}, not a number",
+                                 path=path, fix=f"write a number there (a dot for decimals), or remove line "
+                                                f"{lines[i]}")
+        table.numbers[name] = values
+    return table
+
+
+def _check_header(header: list[str], required: Sequence[str], numeric: Sequence[str],
+                  aliases: dict[str, Sequence[str]], path: Path, what: str) -> None:
+    folded = [h.casefold() for h in header]
+    if len(set(folded)) != len(folded):
+        dup = next(h for h in header if folded.count(h.casefold()) > 1)
+        raise InputError(f"{what}: column '{dup}' appears twice in the header", path=path,
+                         fix="give each column a unique name")
+    needed = list(dict.fromkeys([*required, *numeric]))
+    for name in needed:
+        options = [name, *aliases.get(name, [])]
+        if any(o.casefold() in folded for o in options):
+            continue
+        if header and sum(_is_number(h) for h in header) >= max(1, len(header) // 2):
+            raise InputError(f"{what} has no header line (the first line holds numbers)", path=path,
+                             fix=f"add the header line: {','.join(needed)}")
+        hint = did_you_mean(name, header)
+        raise InputError(f"{what} has no column '{name}'{'; ' + hint if hint else ''} (columns: "
+                         f"{', '.join(header)})", path=path,
+                         fix=f"rename the column to '{name}'" + (f" (or {', '.join(aliases[name])})"
+                                                                  if aliases.get(name) else ""))
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text.replace(",", "."))
+        return True
+    except ValueError:
+        return False
+
+
+# --------------------------------------------------------------------------------------------------
+# values and units
+
+
+def check_range(values: Any, *, lo: float | None = None, hi: float | None = None, what: str,
+                path: str | Path | None = None, lines: Sequence[int] | None = None, unit: str = "",
+                fix: str | None = None, error: type = InputError) -> None:
+    """Every value finite and within ``[lo, hi]``; else name the first bad one (and its line) and the count."""
+    arr = np.asarray(values, dtype=float).ravel()
+    bad = ~np.isfinite(arr)
+    if lo is not None:
+        bad |= arr < lo
+    if hi is not None:
+        bad |= arr > hi
+    if not bad.any():
+        return
+    i = int(np.flatnonzero(bad)[0])
+    where = f"line {lines[i]}: " if lines is not None else ""
+    span = f"[{'' if lo is None else lo}, {'' if hi is None else hi}]{' ' + unit if unit else ''}"
+    raise error(f"{where}{what} = {arr[i]:g} is outside {span} ({int(bad.sum())} of {arr.size} values)",
+                path=path, fix=fix or f"correct {what} (expected {span})")
+
+
+def check_coordinates(x: Any, y: Any, *, geographic: bool, what: str = "coordinates",
+                      path: str | Path | None = None, lines: Sequence[int] | None = None,
+                      fix: str | None = None) -> None:
+    """Coordinates against their units: degrees (``geographic``: x = lon, y = lat) or projected metres.
+
+    Catches projected metres in a lat/lon column, lat/lon swapped, and degrees labelled as a projected CRS.
+    """
+    x = np.asarray(x, dtype=float).ravel()
+    y = np.asarray(y, dtype=float).ravel()
+    check_range(x, what=f"{what} x", path=path, lines=lines)
+    check_range(y, what=f"{what} y", path=path, lines=lines)
+    if not x.size:
+        return
+    if geographic:
+        if np.all(np.abs(x) <= 90) and np.any(np.abs(y) > 90) and np.all(np.abs(y) <= 180):
+            raise InputError(f"{what}: latitude and longitude look swapped (latitude {y[np.abs(y) > 90][0]:g})",
+                             path=path, fix=fix or "swap the two columns (x = longitude, y = latitude)")
+        bad = (np.abs(x) > 180) | (np.abs(y) > 90)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            where = f"line {lines[i]}: " if lines is not None else ""
+            raise InputError(f"{where}{what} ({x[i]:g}, {y[i]:g}) are not degrees: they look like projected "
+                             f"metres ({int(bad.sum())} of {x.size} points)", path=path,
+                             fix=fix or "give the data's projected CRS (e.g. EPSG:326xx for UTM) instead of a "
+                                        "lat/lon one, or convert the coordinates to degrees")
+    elif np.all(np.abs(x) <= 180) and np.all(np.abs(y) <= 90) and np.ptp(x) < 1 and np.ptp(y) < 1:
+        raise InputError(f"{what} ({x[0]:g}, {y[0]:g}) look like degrees, but a projected CRS (metres) is set",
+                         path=path, fix=fix or "set a geographic CRS (EPSG:4326) for them, or convert them to "
+                                               "the projected CRS")
+
+
+# --------------------------------------------------------------------------------------------------
+# paths
+
+
+def check_path(p: str | Path, kind: str, *, key: str, source: str = "config") -> None:
+    """An input path named by config ``key`` exists and is a ``"file"``, a ``"dir"`` or (``"exists"``) either."""
+    p = Path(p)
+    expected = {"file": "file", "dir": "folder"}.get(kind, "path")
+    if not p.exists():
+        raise ConfigError(f"config key '{key}': {expected} not found ({source})", path=p,
+                          fix=f"correct '{key}' (relative paths in a YAML file are relative to that file)")
+    if (kind == "file" and p.is_dir()) or (kind == "dir" and not p.is_dir()):
+        actual = "a folder" if p.is_dir() else "a file"
+        raise ConfigError(f"config key '{key}' must be a {expected}, but this is {actual} ({source})", path=p,
+                          fix=f"point '{key}' at a {expected}")
+
+
+# --------------------------------------------------------------------------------------------------
+# rasters, vectors, JPEG
+
+
+@dataclass
+class RasterInfo:
+    path: Path
+    crs: Any
+    count: int
+    width: int
+    height: int
+    nodata: float | None
+
+
+def check_raster(path: str | Path, *, bands: Sequence[int] | int | None = None, require_crs: bool = True,
+                 allow_empty: bool = False, what: str = "raster") -> RasterInfo:
+    """A GeoTIFF (any GDAL raster) that opens, has a CRS and georeferencing, has the ``bands`` asked for (a
+    count or 1-based indices) and holds some valid data (not all nodata/NaN) in each of them."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} not found", path=path, fix="check the path in your config")
+    try:
+        with warnings.catch_warnings(), rasterio.open(path) as ds:
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)  # said below, in words
+            info = RasterInfo(path, ds.crs, ds.count, ds.width, ds.height, ds.nodata)
+            wanted = list(range(1, bands + 1)) if isinstance(bands, int) else list(bands or range(1, ds.count + 1))
+            if wanted and max(wanted) > ds.count:
+                raise InputError(f"{what} has {ds.count} band(s), band {max(wanted)} is needed", path=path,
+                                 fix="check the band numbers in your config, or use the right raster")
+            if require_crs and (ds.crs is None or ds.transform.is_identity):
+                raise InputError(f"{what} has no {'CRS' if ds.crs is None else 'georeferencing'}", path=path,
+                                 fix="use the georeferenced raster (e.g. ODM's odm_dem/*.tif), or assign its "
+                                     "CRS with gdal_edit.py -a_srs EPSG:xxxx")
+            if not allow_empty:
+                for b in wanted:
+                    if not _has_valid(ds, b):
+                        raise InputError(f"{what}: band {b} holds no valid data (all nodata or NaN)", path=path,
+                                         fix="check the raster in a GIS; regenerate it or choose another band")
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"{what} cannot be read as a raster: {exc}", path=path,
+                         fix="use a GeoTIFF; a truncated or interrupted copy must be copied again") from exc
+    return info
+
+
+def _valid(ds, block: np.ndarray) -> bool:
+    data = np.ma.masked_invalid(block) if np.issubdtype(block.dtype, np.floating) else np.ma.asarray(block)
+    if ds.nodata is not None and not (isinstance(ds.nodata, float) and math.isnan(ds.nodata)):
+        data = np.ma.masked_equal(data, ds.nodata)
+    return bool(data.count())
+
+
+def _has_valid(ds, band: int) -> bool:
+    """Decimated look first (cheap); a band that looks empty is scanned in full strips before saying so."""
+    scale = max(1, int(math.ceil(max(ds.width, ds.height) / 1024)))
+    try:
+        small = ds.read(band, out_shape=(max(1, ds.height // scale), max(1, ds.width // scale)))
+        if _valid(ds, small):
+            return True
+        rows = max(1, 2 ** 24 // max(ds.width, 1))
+        for r0 in range(0, ds.height, rows):
+            window = rasterio.windows.Window(0, r0, ds.width, min(rows, ds.height - r0))
+            if _valid(ds, ds.read(band, window=window)):
+                return True
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"raster band {band} cannot be read (truncated file?): {exc}", path=ds.name,
+                         fix="copy or regenerate the raster") from exc
+    return False
+
+
+def check_vector(path: str | Path, *, layer: str | None = None, require_crs: bool = True,
+                 allow_empty: bool = False, what: str = "vector file") -> str:
+    """A GeoPackage/shapefile/GeoJSON that opens, has the ``layer`` (did you mean), a CRS and features; returns
+    the layer name (the only one when ``layer`` is None; several layers and no ``layer`` is an error)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{what} not found", path=path, fix="check the path in your config")
+    try:
+        layers = [str(name) for name, _ in pyogrio.list_layers(path)]
+    except Exception as exc:  # noqa: BLE001 - pyogrio raises DataSourceError and GDAL errors of several kinds
+        raise InputError(f"{what} cannot be opened as vector data: {exc}", path=path,
+                         fix="use a GeoPackage, shapefile or GeoJSON; copy a truncated file again") from exc
+    if not layers:
+        raise InputError(f"{what} has no layer", path=path, fix="point the config at a file with features")
+    if layer is None:
+        if len(layers) > 1:
+            raise InputError(f"{what} has {len(layers)} layers ({', '.join(layers)}); which one?", path=path,
+                             fix="set the layer name in the config")
+        layer = layers[0]
+    elif layer not in layers:
+        hint = did_you_mean(layer, layers)
+        raise InputError(f"{what} has no layer '{layer}'{'; ' + hint if hint else ''} (layers: "
+                         f"{', '.join(layers)})", path=path, fix="set the layer to one of those")
+    meta = pyogrio.read_info(path, layer=layer)
+    if require_crs and not meta.get("crs"):
+        raise InputError(f"{what}, layer '{layer}', has no CRS", path=path,
+                         fix="assign the CRS in a GIS (or ogr2ogr -a_srs EPSG:xxxx), or give it in the config")
+    if not allow_empty and meta.get("features", 0) == 0:
+        raise InputError(f"{what}, layer '{layer}', has no features", path=path,
+                         fix="point the config at the file that holds the plants/polygons")
+    return layer
+
+
+def check_jpeg(path: str | Path, *, decode: bool = False, what: str = "image") -> None:
+    """A whole JPEG: starts with SOI, ends with EOI (zero padding allowed) and, with ``decode``, decodes
+    without error (at 1/8 scale: the whole entropy-coded stream is still read)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{what} cannot be read: {exc.strerror}", path=path, fix="check the file") from exc
+    if not data.startswith(b"\xff\xd8"):
+        raise InputError(f"{what} is not a JPEG (no start-of-image marker)", path=path,
+                         fix="remove it from the folder, or convert it to JPEG")
+    if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
+        raise InputError(f"{what} is truncated (no end-of-image marker; {len(data)} bytes)", path=path,
+                         fix="copy the photo again from the card, or remove it from the folder")
+    if decode:
+        try:
+            with Image.open(path) as im:
+                im.draft("RGB", (max(1, im.width // 8), max(1, im.height // 8)))
+                im.load()
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise InputError(f"{what} cannot be decoded: {exc}", path=path,
+                             fix="copy the photo again, or remove it from the folder") from exc
+
+
+__all__ = ["did_you_mean", "name_key", "match_names", "match_name", "read_text", "read_json", "read_yaml",
+           "Table", "read_csv", "check_range", "check_coordinates", "check_path", "RasterInfo", "check_raster",
+           "check_vector", "check_jpeg"]

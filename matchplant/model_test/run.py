@@ -1,0 +1,353 @@
+"""Module 7: evaluate a trained detector on test tiles, and detect plants on whole new images.
+
+Evaluation (``evaluate`` section): every box the model finds (no score threshold) is scored by
+pycocotools' COCOeval with ``maxDets`` raised for dense tiles; AP, AP50, AP75, AP by size (from the
+ground-truth area), precision, recall and F1 at the operating threshold, a precision-recall curve, a
+confidence histogram, images with drawn boxes and ``metrics.json``.
+
+Detection (``detect`` section): whole undistorted images of any size are cut into overlapping tiles,
+detected in batches, and the boxes merged across tiles, so a plant cut by a tile border is found once.
+``predictions.json`` (docs/DESIGN.md §2, the input of module 8) holds the boxes in source-image pixels with each
+image's name.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from matchplant.core.formats.coco import write_predictions
+from matchplant.core.formats.images import image_size, read_rgb8
+from matchplant.core.formats.odm import SUBMODELS_DIR
+from matchplant.core.runtime.config import to_dict
+from matchplant.core.runtime.guard import staged_outputs
+from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.detection.data import CocoDetection
+from matchplant.detection.device import select_device, warn_if_slow
+from matchplant.detection.evaluate import (
+    coco_evaluate,
+    draw_boxes,
+    matches_at_iou50,
+    operating_point,
+    plot_pr_curve,
+    plot_score_histogram,
+    predict_dataset,
+    summarise_stats,
+    write_image,
+)
+from matchplant.detection.model import load_detector, read_checkpoint, set_score_threshold
+from matchplant.detection.tile_objects import distinct_objects, found_objects
+from matchplant.model_test.config import EvalConfig, ModelTestConfig
+from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
+from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
+from matchplant.model_test.shard import join
+
+log = get_logger("model_test")
+
+
+# --------------------------------------------------------------------------------------------------
+# evaluation
+
+
+METRIC_UNITS = ("fractions 0..1 for every AP, AR, precision, recall, F1 and threshold (no percents); 'images' "
+                "counts test tiles, 'tile_boxes' annotated boxes in them, 'plants' distinct plants (one seen in two "
+                "overlapping tiles counts once); 'coco' and 'at_threshold' score tile boxes, 'plants_found' "
+                "distinct plants (found when any of their tile boxes is matched at IoU 0.5)")
+
+
+def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
+             ds: CocoDetection | None = None) -> dict:
+    """COCO evaluation of the checkpoint on ``evaluate.dataset_json``; writes metrics, figures and predictions
+    into ``out`` (by default ``output_dir``; :func:`run` gives a staging folder moved into place at the end).
+    ``ck``, ``ds``: the checkpoint and test tiles, when :func:`run` has read and checked them already."""
+    ecfg = cfg.evaluate
+    final = Path(cfg.output_dir)
+    out = Path(out) if out is not None else final
+    device = device or select_device(cfg.device)
+    amp = cfg.amp and device.type == "cuda"
+    ck = ck or read_checkpoint(cfg.checkpoint)
+    ds = ds or test_tiles(cfg, ck)
+    # no score threshold before COCOeval, and as many boxes as maxDets
+    model, ck = load_detector(ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}},
+                              source=cfg.checkpoint)
+    set_score_threshold(model, 0.0)
+    results = predict_dataset(model, ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers, amp=amp,
+                              desc="evaluating")
+    if not results:
+        raise nothing_in_test(len(ds), Path(ecfg.dataset_json), Path(cfg.checkpoint))
+    stats, ev = coco_evaluate(ds.data, results, max_dets=ecfg.max_detections)
+    object_of, n_plants = distinct_objects(ds.data)  # a plant in two overlapping tiles is one plant
+    metrics = {"checkpoint": str(cfg.checkpoint), "dataset": str(ecfg.dataset_json), "units": METRIC_UNITS,
+               "images": len(ds), "plants": n_plants, "tile_boxes": len(ds.data["annotations"]),
+               "detections": len(results), "max_detections": ecfg.max_detections, "coco": stats,
+               "plant_scale_vs_training": check_test_scale(ds.data, ck)}
+    scores, hits, n_gt = matches_at_iou50(ev)
+    metrics["at_threshold"] = operating_point(scores, hits, n_gt, ecfg.operating_threshold)
+    found = found_objects(ev, object_of, ecfg.operating_threshold)
+    metrics["plants_found"] = {"threshold": ecfg.operating_threshold, "plants": n_plants, "found": found,
+                               "recall": found / n_plants if n_plants else 0.0}
+    plot_pr_curve(ev, out / "pr_curve.png", metrics["at_threshold"], ck["class_names"])
+    plot_score_histogram(scores, hits, out / "score_histogram.png", ecfg.operating_threshold)
+    write_predictions(out / "test_predictions.json", [dict(im) for im in ds.images], ds.data["categories"],
+                      [dict(r, id=i + 1) for i, r in enumerate(results)],
+                      info={"description": "MatchPlant module 7 predictions on test tiles (no threshold)",
+                            "checkpoint": str(cfg.checkpoint)})
+    _draw_eval_images(ds, results, ecfg, out / "drawn")
+    metrics["config"] = to_dict(cfg)
+    write_json(out / "metrics.json", metrics)
+    op = metrics["at_threshold"]
+    log.info("test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)", summarise_stats(stats),
+             op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], final / "metrics.json")
+    return metrics
+
+
+def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
+    """The test tiles, checked against their files and the checkpoint's classes."""
+    return CocoDetection(cfg.evaluate.dataset_json, cfg.evaluate.images, class_names=ck["class_names"],
+                         classes_from=f"the checkpoint {cfg.checkpoint}")
+
+
+def _draw_eval_images(ds: CocoDetection, results: list[dict], ecfg: EvalConfig, folder: Path) -> None:
+    if ecfg.drawn_images == 0:
+        return
+    picks = np.unique(np.linspace(0, len(ds) - 1, min(ecfg.drawn_images, len(ds))).round().astype(int))
+    for i in picks:
+        im = ds.images[i]
+        img = read_rgb8(ds.paths[i])
+        gt = ds.target(i)["boxes"].numpy()
+        dets = [r for r in results if r["image_id"] == im["id"] and r["score"] >= ecfg.operating_threshold]
+        b = np.asarray([r["bbox"] for r in dets], dtype=float).reshape(-1, 4)
+        b[:, 2:] += b[:, :2]
+        drawn = draw_boxes(draw_boxes(img, gt, (0, 200, 0)), b, (230, 30, 30), np.asarray([r["score"] for r in dets]))
+        write_image(folder / (Path(im["file_name"]).stem + ".png"), drawn)
+
+
+# --------------------------------------------------------------------------------------------------
+# tiled detection
+
+
+def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
+    """Tile origins along one axis: a step of ``tile - overlap``, the last tile flush with the edge."""
+    if length <= tile:
+        return [0]
+    step = tile - overlap
+    starts = list(range(0, length - tile + 1, step))
+    if starts[-1] != length - tile:
+        starts.append(length - tile)
+    return starts
+
+
+def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    wh = np.clip(rb - lt, 0, None)
+    return wh[..., 0] * wh[..., 1]
+
+
+def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray,
+                     iou: float = 0.5, tiles: np.ndarray | None = None, containment: float = 0.8) -> np.ndarray:
+    """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
+
+    Whole boxes: class-wise NMS at ``iou`` (the same plant seen whole in two tiles). A ``cut`` box (it
+    touches a tile border inside the image) is a part of a plant; it is dropped when at least half of
+    it lies inside a kept whole box of its class, else kept through the same NMS (a plant larger than
+    the overlap, seen cut in every tile). With ``tiles`` (each box's tile number), a box lying at least
+    ``containment`` inside a larger kept box of its class from another tile is a nested duplicate (a
+    part of the plant seen from another tile, IoU too low for NMS) and is dropped, unless its own tile
+    also saw the larger plant (then it is a second plant); boxes of one tile keep the model's decision.
+    """
+    import torch  # lazy: PyTorch is heavy; configs load without it
+    from torchvision.ops import batched_nms
+
+    if len(boxes) == 0:
+        return np.zeros(0, dtype=int)
+    whole = np.flatnonzero(~cut)
+    keep_whole = whole[batched_nms(torch.as_tensor(boxes[whole], dtype=torch.float64),
+                                   torch.as_tensor(scores[whole], dtype=torch.float64),
+                                   torch.as_tensor(labels[whole]), iou).numpy()] if len(whole) else whole
+    parts = np.flatnonzero(cut)
+    if len(parts) and len(keep_whole):
+        inter = _box_intersections(boxes[parts], boxes[keep_whole])
+        area = np.prod(boxes[parts, 2:] - boxes[parts, :2], axis=1)
+        covered = ((inter / np.maximum(area, 1e-9)[:, None] >= 0.5)
+                   & (labels[parts][:, None] == labels[keep_whole][None, :])).any(axis=1)
+        parts = parts[~covered]
+    if len(parts):
+        parts = parts[batched_nms(torch.as_tensor(boxes[parts], dtype=torch.float64),
+                                  torch.as_tensor(scores[parts], dtype=torch.float64),
+                                  torch.as_tensor(labels[parts]), iou).numpy()]
+    kept = np.concatenate([keep_whole, parts])
+    if tiles is not None and len(kept) > 1:
+        kept = kept[~_nested(boxes, labels, np.asarray(tiles), kept, containment, iou)]
+    return kept[np.argsort(-scores[kept], kind="stable")]
+
+
+def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float,
+            iou: float, chunk: int = 512) -> np.ndarray:
+    """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
+    of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
+    >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
+    Largest first: a dropped box drops nothing."""
+    b, lab, til = boxes[kept], labels[kept], tiles[kept]
+    area = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
+    all_area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
+    pairs = []  # (inner, outer) positions in kept
+    for start in range(0, len(b), chunk):
+        inner = np.arange(start, min(start + chunk, len(b)))
+        inter = _box_intersections(b[inner], b)
+        larger = (area[inner][:, None] < area[None, :]) | (
+            (area[inner][:, None] == area[None, :]) & (inner[:, None] > np.arange(len(b))[None, :]))
+        inside = ((inter >= containment * np.maximum(area[inner], 1e-9)[:, None]) & larger
+                  & (lab[inner][:, None] == lab[None, :]) & (til[inner][:, None] != til[None, :]))
+        pairs += [(int(inner[r]), int(c)) for r, c in np.argwhere(inside)]
+    dropped = np.zeros(len(b), bool)
+    for i, j in sorted(pairs, key=lambda p: -area[p[1]]):
+        if dropped[j] or dropped[i]:
+            continue
+        own = np.flatnonzero((tiles == til[i]) & (labels == lab[i]))
+        own = own[own != kept[i]]
+        inter = _box_intersections(b[j][None], boxes[own])[0]
+        seen = inter / np.maximum(area[j] + all_area[own] - inter, 1e-9) >= iou
+        dropped[i] = not seen.any()
+    return dropped
+
+
+Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
+
+
+def model_predictor(model, device, amp: bool = False) -> Predictor:
+    """A function from RGB uint8 tiles to ``(boxes xyxy, scores, labels)`` per tile."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    def predict(tiles: list[np.ndarray]):
+        batch = [torch.from_numpy(t).to(device).permute(2, 0, 1).float().div_(255.0) for t in tiles]
+        with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp and device.type == "cuda"):
+            outputs = model(batch)
+        return [(o["boxes"].float().cpu().numpy(), o["scores"].float().cpu().numpy(), o["labels"].cpu().numpy())
+                for o in outputs]
+    return predict
+
+
+def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, overlap: int, batch_size: int = 4,
+                 score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0,
+                 merge_containment: float = 0.8):
+    """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles."""
+    h, w = image.shape[:2]
+    origins = [(x0, y0) for y0 in tile_starts(h, tile_size, overlap) for x0 in tile_starts(w, tile_size, overlap)]
+    all_b, all_s, all_l, all_cut, all_t = [], [], [], [], []
+    for start in range(0, len(origins), batch_size):
+        chunk = origins[start:start + batch_size]
+        tiles = [image[y0:y0 + tile_size, x0:x0 + tile_size] for x0, y0 in chunk]
+        for (x0, y0), tile, (b, s, lab) in zip(chunk, tiles, predictor(tiles)):
+            sel = s >= score_threshold
+            b, s, lab = b[sel].astype(float), s[sel], lab[sel]
+            th, tw = tile.shape[:2]
+            # a border of the tile that is not a border of the image cuts plants
+            cut = (((b[:, 0] <= edge_margin) & (x0 > 0)) | ((b[:, 1] <= edge_margin) & (y0 > 0))
+                   | ((b[:, 2] >= tw - edge_margin) & (x0 + tw < w)) | ((b[:, 3] >= th - edge_margin) & (y0 + th < h)))
+            all_b.append(b + [x0, y0, x0, y0])
+            all_s.append(s)
+            all_l.append(lab)
+            all_cut.append(cut)
+            all_t.append(np.full(len(b), len(all_t)))
+    boxes, scores = np.concatenate(all_b).reshape(-1, 4), np.concatenate(all_s)
+    labels, cut = np.concatenate(all_l).astype(int), np.concatenate(all_cut).astype(bool)
+    keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou, np.concatenate(all_t), merge_containment)
+    return boxes[keep], scores[keep], labels[keep]
+
+
+def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
+           files: list[Path] | None = None) -> Path:
+    """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
+    ``out`` (by default ``output_dir``). A run that finds no plant at all is an error that says why.
+    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already."""
+    final = Path(cfg.output_dir)
+    out = Path(out) if out is not None else final
+    ck = ck or read_checkpoint(cfg.checkpoint)
+    cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
+    dcfg = cfg.detect
+    check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
+    files = files or detect_images(cfg)
+    shard, device = join(device or select_device(cfg.device))  # one share of the images per torchrun process
+    model, ck = load_detector(ck, device, source=cfg.checkpoint)
+    set_score_threshold(model, dcfg.score_threshold)
+    predictor = model_predictor(model, device, cfg.amp)
+    warn_if_slow(device, ck["model_config"]["architecture"], len(files), *image_size(files[0]))  # before hours of CPU
+    root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
+    cat_ids = [int(c) for c in ck["category_ids"]]
+    categories = [{"id": cid, "name": name, "supercategory": "plant"} for cid, name in zip(cat_ids, ck["class_names"])]
+    draw_every = max(1, int(np.ceil(len(files) / dcfg.drawn_images))) if dcfg.drawn_images else 0
+    tiling = dict(tile_size=dcfg.tile_size, overlap=dcfg.overlap, batch_size=cfg.batch_size,
+                  merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
+    mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
+    for i in progress(shard.take(files), desc="detecting", unit="image"):
+        path = files[i]
+        img = read_rgb8(path)
+        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, **tiling)
+        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        if (root / SUBMODELS_DIR).is_dir():
+            name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
+        mine.append((i, {"id": i + 1, "file_name": name, "width": int(img.shape[1]), "height": int(img.shape[0]),
+                         "source_image": name, "x0": 0, "y0": 0},
+                     [(cat_ids[int(lab) - 1], [round(float(b[0]), 2), round(float(b[1]), 2),
+                                               round(float(b[2] - b[0]), 2), round(float(b[3] - b[1]), 2)],
+                       round(float(s), 5)) for b, s, lab in zip(boxes, scores, labels)]))
+        if draw_every and i % draw_every == 0:
+            write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
+    gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
+    if not shard.main:
+        shard.barrier()
+        return final / "predictions.json"
+    check_found_scale(ck, [(np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
+                            entry["width"], entry["height"]) for _, entry, found in gathered], dcfg.tile_size)
+    images, predictions = [], []
+    for i, entry, found in gathered:
+        images.append(entry)
+        predictions += [{"id": len(predictions) + k + 1, "image_id": i + 1, "category_id": c, "bbox": b, "score": s}
+                        for k, (c, b, s) in enumerate(found)]
+    if not predictions:  # say why (the best score at any threshold, the scale), rather than write an empty file
+        set_score_threshold(model, 0.0)
+        _, scores, _ = detect_image(read_rgb8(files[0]), predictor, score_threshold=0.0, **tiling)
+        error = nothing_found(len(files), files[0], float(scores.max()) if len(scores) else None,
+                              dcfg.score_threshold, dcfg.tile_size, ck["model_config"], Path(cfg.checkpoint))
+        shard.barrier()
+        raise error
+    write_predictions(out / "predictions.json", images, categories, predictions,
+                      info={"description": "MatchPlant module 7 detections (source-image pixels)",
+                            "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
+                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
+    path = final / "predictions.json"
+    log.info("%d plants found on %d image(s)%s: %s", len(predictions), len(files),
+             f" by {shard.world} processes" if shard.world > 1 else "", path)
+    shard.barrier()
+    return path
+
+
+def detect_images(cfg: ModelTestConfig) -> list[Path]:
+    """The images of ``detect.images``, each checked whole (broken files named before any detection)."""
+    files = list_images(Path(cfg.detect.images))
+    check_images(files, cfg.detect.tile_size)
+    return files
+
+
+def run(cfg: ModelTestConfig) -> dict:
+    """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
+    shard, device = join(select_device(cfg.device))
+    # every input read and checked before the first (slow) model pass
+    ck = read_checkpoint(cfg.checkpoint)
+    cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
+    ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
+    files = detect_images(cfg) if cfg.detect.images is not None else None
+    if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
+        Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
+    result: dict = {}
+    with staged_outputs(cfg.output_dir) as out:
+        if cfg.evaluate.dataset_json is not None and shard.main:  # under torchrun: evaluated once
+            result["metrics"] = evaluate(cfg, device, out, ck=ck, ds=ds)
+        if files is not None:
+            result["predictions"] = detect(cfg, device, out, ck=ck, files=files)
+    return result

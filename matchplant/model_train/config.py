@@ -1,0 +1,80 @@
+"""Module 6's settings (the folder's train_config.yaml and transfer_config.yaml are generated from them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from matchplant.core.runtime.config import param, section
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.detection.data import AugmentConfig
+from matchplant.detection.device import DEVICE_CHOICES
+from matchplant.detection.model import PARTS, ModelConfig
+
+
+SCHEDULES = ("step", "multistep", "cosine", "constant")
+
+
+@dataclass
+class LearningRates:
+    """Learning rate of each part of the detector (the paper: backbone 0.005, RPN and ROI heads 0.01)."""
+
+    backbone: float = param(0.005, "ResNet/MobileNet feature extractor", min=0)
+    fpn: float = param(0.005, "feature pyramid (part of the backbone in the paper)", min=0)
+    rpn: float = param(0.01, "region proposal network", min=0)
+    roi_heads: float = param(0.01, "box classification and regression heads", min=0)
+
+
+@dataclass
+class ModelTrainConfig:
+    """Module 6: train a Faster R-CNN detector on COCO tiles (train and validation splits from module 5)."""
+
+    train_json: Path = param(None, "COCO JSON of the training tiles (module 5)", path="file", required=True)
+    train_images: Path | None = param(None, "folder of the training tiles; null = the JSON's folder", path="dir")
+    val_json: Path | None = param(None, "COCO JSON of the validation tiles; null = no validation (then the "
+                                  "last epoch counts as best)", path="file")
+    val_images: Path | None = param(None, "folder of the validation tiles; null = the JSON's folder", path="dir")
+    output_dir: Path = param(Path("runs/train"), "where checkpoints, curves and the summary go", path="out")
+    resume: bool = param(False, "continue the run in output_dir from checkpoints/last.pt (after a crash or "
+                         "to add epochs); same as the --resume flag")
+    model: ModelConfig = section(ModelConfig)
+    trainable_backbone_layers: int = param(3, "backbone stages trained, counted from the top (0 = backbone "
+                                           "frozen; ResNet-50 has 5, MobileNetV3 6)", min=0, max=6)
+    freeze: list[str] = param([], "whole parts kept fixed (transfer learning): any of backbone, fpn, rpn, "
+                              "roi_heads", choices=PARTS)
+    lr: LearningRates = section(LearningRates)
+    optimizer: str = param("sgd", "sgd (the paper) or adamw (use about 10x smaller learning rates)",
+                           choices=("sgd", "adamw"))
+    momentum: float = param(0.9, "SGD momentum", min=0, max=1)
+    weight_decay: float = param(5e-4, "L2 weight decay", min=0)
+    schedule: str = param("step", "learning-rate schedule after warm-up: step (x gamma every step_size "
+                          "epochs), multistep (x gamma at each milestone), cosine, constant", choices=SCHEDULES)
+    step_size: int = param(10, "epochs between decays (schedule: step)", min=1)
+    gamma: float = param(0.1, "decay factor (step, multistep)", min=0, max=1)
+    milestones: list[int] = param([20, 27], "epochs at which to decay (schedule: multistep)", min=1)
+    min_lr_factor: float = param(0.0, "final fraction of the learning rate (schedule: cosine)", min=0, max=1)
+    warmup_iters: int = param(500, "iterations of linear warm-up at the start (0 = none)", min=0)
+    warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up",
+                                 min=0, max=1)
+    epochs: int = param(30, "training epochs", min=1)
+    max_minutes: float = param(0.0, "time budget in minutes (0 = none): after the first epoch, the epochs "
+                               "that fit are planned and the learning-rate schedule shortened to them; an "
+                               "epoch that would end past the budget is not started; the last epoch is "
+                               "validated and saved as usual", min=0)
+    batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
+    num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
+    augment: AugmentConfig = section(AugmentConfig)
+    val_score_threshold: float = param(0.05, "boxes below this score are dropped during validation (the "
+                                       "paper's 0.05)", min=0, max=1)
+    val_every: int = param(1, "validate every N epochs (and always after the last)", min=1)
+    best_metric: str = param("AP50", "validation metric that picks best.pt", choices=("AP50", "AP"))
+    save_every: int = param(5, "also keep checkpoints/epoch_NNN.pt every N epochs (0 = only last and best)",
+                            min=0)
+    device: str = param("auto", "auto picks CUDA, then Apple MPS, then CPU; or cpu, cuda, cuda:N, mps")
+    amp: bool = param(True, "mixed precision on CUDA GPUs (faster, less memory); ignored elsewhere")
+    seed: int = param(0, "random seed (data order, augmentation, new layers)")
+
+    def check(self) -> None:
+        if self.device.split(":")[0] not in DEVICE_CHOICES:
+            raise ConfigError(f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps",
+                              fix="set device: auto")

@@ -1,0 +1,685 @@
+"""Module 6: detector settings, optimisation, augmentation, training run, resume, transfer learning."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+import urllib.error
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from matchplant.cli import build_parser
+from matchplant.core.runtime.config import field_help, load_config
+from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
+from matchplant.detection.data import AugmentConfig, CocoDetection
+from matchplant.detection.model import ModelConfig, apply_freezing, build_detector, load_detector, read_checkpoint
+from matchplant.detection.synth import make_tiles
+from matchplant.model_train.run import ModelTrainConfig, build_optimizer, build_scheduler, lr_factor, train
+from matchplant.steps.model_train import SPEC
+
+ROOT = Path(__file__).resolve().parents[1]
+MOBILE = "fasterrcnn_mobilenet_v3_large_fpn"
+# small and fast: 64 px tiles, few proposals and samples
+FAST = [f"model.architecture={MOBILE}", "model.pretrained=none", "model.min_size=64", "model.max_size=64",
+        "model.anchor_sizes=[[8,16,32],[8,16,32],[8,16,32]]", "model.roi.batch_size_per_image=32",
+        "model.rpn.pre_nms_top_n_train=100", "model.rpn.post_nms_top_n_train=100",
+        "model.rpn.pre_nms_top_n_test=100", "model.rpn.post_nms_top_n_test=100",
+        "batch_size=4", "num_workers=0", "warmup_iters=2", "save_every=2", "epochs=2"]
+
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+@pytest.fixture(scope="module")
+def tiles(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tiles")
+    train_json = make_tiles(d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0,
+                            name="train.json")
+    val_json = make_tiles(d, n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=1, name="val.json")
+    return train_json, val_json
+
+
+def fast_config(tiles, out: Path, *extra: str) -> ModelTrainConfig:
+    return load_config(ModelTrainConfig, None, [f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}",
+                                           *FAST, *extra])
+
+
+@pytest.fixture(scope="module")
+def trained(tiles, tmp_path_factory):
+    """One uninterrupted 2-epoch run (the reference for resume and transfer)."""
+    out = tmp_path_factory.mktemp("run_a")
+    summary = train(fast_config(tiles, out))
+    return out, summary
+
+
+# -- configuration files and CLI ---------------------------------------------------------------------
+
+
+def test_folder_configs_load_and_help(tiles):
+    for name in ("train_config.yaml", "transfer_config.yaml"):
+        cfg = load_config(ModelTrainConfig, ROOT / "6_model_train" / name, [f"train_json={tiles[0]}"], check_paths=False)
+        assert cfg.lr.backbone > 0
+    transfer = load_config(ModelTrainConfig, ROOT / "6_model_train" / "transfer_config.yaml", check_paths=False)
+    assert transfer.freeze == ["backbone", "fpn"] and transfer.model.checkpoint is not None
+    r = subprocess.run([sys.executable, str(ROOT / "6_model_train" / "train.py"), "--help"], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 0 and "--resume" in r.stdout
+    args = build_parser(SPEC).parse_args(["--resume"])
+    assert args.flag__resume == "true"
+
+
+def test_paper_defaults():
+    cfg = ModelTrainConfig()
+    assert (cfg.lr.backbone, cfg.lr.rpn, cfg.lr.roi_heads) == (0.005, 0.01, 0.01)
+    assert (cfg.optimizer, cfg.momentum, cfg.weight_decay) == ("sgd", 0.9, 5e-4)
+    assert (cfg.schedule, cfg.step_size, cfg.gamma) == ("step", 10, 0.1)
+    assert cfg.val_score_threshold == 0.05 and cfg.model.roi.detections_per_img > 100
+    assert cfg.model.architecture == "fasterrcnn_resnet50_fpn" and cfg.model.pretrained == "coco"
+
+
+# -- every model setting takes effect -----------------------------------------------------------------
+
+CHANGED = {  # key -> (new value, how to read it back from the built model)
+    "min_size": (96, lambda m: m.transform.min_size[0]),
+    "max_size": (160, lambda m: m.transform.max_size),
+    "anchor_sizes": ([[12, 24], [48, 64], [96, 128]], lambda m: [list(s) for s in m.rpn.anchor_generator.sizes]),
+    "aspect_ratios": ([0.5, 1.0, 2.0, 4.0], lambda m: [round(float(r), 3) for r in m.rpn.anchor_generator.aspect_ratios[0]]),
+    "rpn.fg_iou_thresh": (0.6, lambda m: m.rpn.proposal_matcher.high_threshold),
+    "rpn.bg_iou_thresh": (0.2, lambda m: m.rpn.proposal_matcher.low_threshold),
+    "rpn.batch_size_per_image": (128, lambda m: m.rpn.fg_bg_sampler.batch_size_per_image),
+    "rpn.positive_fraction": (0.4, lambda m: m.rpn.fg_bg_sampler.positive_fraction),
+    "rpn.pre_nms_top_n_train": (1500, lambda m: m.rpn._pre_nms_top_n["training"]),
+    "rpn.post_nms_top_n_train": (1200, lambda m: m.rpn._post_nms_top_n["training"]),
+    "rpn.pre_nms_top_n_test": (800, lambda m: m.rpn._pre_nms_top_n["testing"]),
+    "rpn.post_nms_top_n_test": (700, lambda m: m.rpn._post_nms_top_n["testing"]),
+    "rpn.nms_thresh": (0.6, lambda m: m.rpn.nms_thresh),
+    "rpn.score_thresh": (0.01, lambda m: m.rpn.score_thresh),
+    "roi.fg_iou_thresh": (0.6, lambda m: m.roi_heads.proposal_matcher.high_threshold),
+    "roi.bg_iou_thresh": (0.4, lambda m: m.roi_heads.proposal_matcher.low_threshold),
+    "roi.batch_size_per_image": (256, lambda m: m.roi_heads.fg_bg_sampler.batch_size_per_image),
+    "roi.positive_fraction": (0.3, lambda m: m.roi_heads.fg_bg_sampler.positive_fraction),
+    "roi.nms_thresh": (0.4, lambda m: m.roi_heads.nms_thresh),
+    "roi.detections_per_img": (150, lambda m: m.roi_heads.detections_per_img),
+}
+
+
+def test_every_model_setting_takes_effect():
+    keys = set(field_help(ModelConfig)) - {"architecture", "pretrained", "checkpoint"}
+    assert keys == set(CHANGED), "each model setting needs a check here"
+    base = build_detector(load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none"]), 2)
+    cfg = load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none",
+                                          *(f"{k}={v}" for k, (v, _) in CHANGED.items())])
+    model = build_detector(cfg, 3)
+    def same(a, b):
+        return a == b if isinstance(b, list) and isinstance(b[0], list) else a == pytest.approx(b)
+
+    for key, (value, read) in CHANGED.items():
+        assert same(read(model), value), key
+        assert not same(read(base), value), key
+    # 2 sizes x 4 ratios: the RPN head has one output per anchor shape, and the model trains with it
+    assert model.rpn.head.cls_logits.out_channels == 8 and model.roi_heads.box_predictor.cls_score.out_features == 3
+    model.train()
+    losses = model([torch.rand(3, 96, 96)], [{"boxes": torch.tensor([[10.0, 10, 40, 30]]), "labels": torch.tensor([2])}])
+    assert all(torch.isfinite(v) for v in losses.values())
+    # min/max size resize the input
+    images, _ = model.transform([torch.rand(3, 300, 600)])
+    assert images.image_sizes[0] == (80, 160)
+    # the default detections per image (300) returns more than torchvision's 100 boxes
+    torch.manual_seed(0)
+    base.eval()
+    base.rpn.nms_thresh = base.roi_heads.nms_thresh = 0.99  # an untrained model: keep overlapping boxes
+    base.roi_heads.score_thresh = 0.0
+    with torch.inference_mode():
+        out = base([torch.rand(3, 128, 128)])[0]
+    assert 100 < len(out["boxes"]) <= 300
+
+
+def test_architectures_build_and_anchor_levels_checked():
+    for arch in ("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn_v2"):
+        m = build_detector(load_config(ModelConfig, None, [f"architecture={arch}", "pretrained=none"]), 4)
+        assert m.roi_heads.box_predictor.cls_score.out_features == 4
+        assert len(m.rpn.anchor_generator.sizes) == 5
+        apply_freezing(m, arch, 3, ["rpn"])  # torchvision's default: conv1 and layer1 frozen
+        frozen = {n.split(".")[2] for n, p in m.named_parameters() if not p.requires_grad and n.startswith("backbone")}
+        assert frozen == {"conv1", "bn1", "layer1"}
+        assert not any(p.requires_grad for p in m.rpn.parameters())
+    with pytest.raises(ConfigError, match="FPN levels"):
+        load_config(ModelConfig, None, ["architecture=fasterrcnn_resnet50_fpn", "anchor_sizes=[[16],[32],[64]]"])
+
+
+def test_offline_weights_give_dependency_error(monkeypatch):
+    import torchvision.models._api as api
+
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("no network")
+
+    monkeypatch.setattr(api, "load_state_dict_from_url", offline)
+    with pytest.raises(DependencyError, match="could not download the COCO weights") as err:
+        build_detector(load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=coco"]), 2)
+    assert "pretrained: none" in str(err.value) and err.value.path.name.endswith(".pth")
+
+
+def test_coco_weights_load_and_rebuild_without_download(monkeypatch, tmp_path):
+    """The structure rebuilt from a checkpoint (no download) is exactly torchvision's pretrained one:
+    torchvision's builder loads "COCO weights" (served here from that rebuilt model) strictly."""
+    import torchvision.models._api as api
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    from matchplant.detection.model import save_checkpoint
+
+    cfg = load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=coco"])
+    torch.manual_seed(3)
+    coco_like = build_detector(cfg, 91, load_weights=False)
+    body = coco_like.backbone.body
+    assert any(isinstance(m, FrozenBatchNorm2d) for m in body.modules())
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in body.modules())
+    served = coco_like.state_dict()
+    monkeypatch.setattr(api, "load_state_dict_from_url", lambda *a, **k: served)
+    model = build_detector(cfg, 2)  # torchvision's builder + load_state_dict(strict) + a new 2-class predictor
+    state = model.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in served.items() if not k.startswith("roi_heads.box_predictor"))
+    assert state["roi_heads.box_predictor.cls_score.weight"].shape[0] == 2
+    path = save_checkpoint(tmp_path / "c.pt", model, cfg, ["plant"], [1])
+    rebuilt, _ = load_detector(path)
+    assert all(torch.equal(rebuilt.state_dict()[k], v) for k, v in state.items())
+
+
+# -- optimisation ---------------------------------------------------------------------------------------
+
+
+def test_optimizer_per_part_and_schedules():
+    cfg = ModelTrainConfig(warmup_iters=10, warmup_factor=0.001)
+    model = build_detector(load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none"]), 2)
+    apply_freezing(model, MOBILE, 6, ["fpn"])
+    opt = build_optimizer(cfg, model)
+    lrs = {g["name"]: g["lr"] for g in opt.param_groups}
+    assert lrs == {"backbone": 0.005, "rpn": 0.01, "roi_heads": 0.01}  # fpn frozen: not optimised
+    assert all(g["momentum"] == 0.9 and g["weight_decay"] == 5e-4 for g in opt.param_groups)
+    n_opt = sum(p.numel() for g in opt.param_groups for p in g["params"])
+    assert n_opt == sum(p.numel() for p in model.parameters() if p.requires_grad)
+    # warm-up from 0.001 to 1, then x0.1 every 10 epochs (100 iterations per epoch)
+    assert lr_factor(cfg, 0, 100) == pytest.approx(0.001)
+    assert lr_factor(cfg, 5, 100) == pytest.approx(0.001 * 0.5 + 0.5)
+    assert [lr_factor(cfg, e * 100, 100) for e in (1, 9, 10, 19, 20)] == pytest.approx([1, 1, 0.1, 0.1, 0.01])
+    multi = ModelTrainConfig(schedule="multistep", milestones=[3, 5], warmup_iters=0)
+    assert [lr_factor(multi, e, 1) for e in (2, 3, 5)] == pytest.approx([1, 0.1, 0.01])
+    cos = ModelTrainConfig(schedule="cosine", epochs=4, warmup_iters=0, min_lr_factor=0.1)
+    assert [lr_factor(cos, i, 1) for i in (0, 2, 4)] == pytest.approx([1, 0.55, 0.1])
+    assert lr_factor(ModelTrainConfig(schedule="constant", warmup_iters=0), 999, 1) == 1
+    # trainable_backbone_layers counts stages from the top, as torchvision does (MobileNetV3: 6 stages)
+    apply_freezing(model, MOBILE, 2, [])
+    grad = {name: p.requires_grad for name, p in model.backbone.body.named_parameters()}
+    assert not grad["0.0.weight"] and not grad["12.block.0.0.weight"]
+    assert grad["13.block.0.0.weight"] and grad["16.0.weight"]
+    adam = build_optimizer(ModelTrainConfig(optimizer="adamw"), model)
+    assert type(adam).__name__ == "AdamW"
+    # the scheduler applies the factor per iteration to each part's own rate
+    sched = build_scheduler(cfg, opt, 100)
+    for _ in range(1000):
+        opt.step()
+        sched.step()
+    assert {g["name"]: g["lr"] for g in opt.param_groups}["rpn"] == pytest.approx(0.01 * 0.1)
+
+
+# -- data -------------------------------------------------------------------------------------------------
+
+
+def test_augmentation_moves_boxes_and_keeps_negatives(tiles):
+    plain = CocoDetection(tiles[0])
+    assert len(plain) == 8 and len(plain[7][1]["boxes"]) == 0  # the negative tile is kept
+    flip = CocoDetection(tiles[0], augment=AugmentConfig(hflip=1, vflip=1, brightness=0, contrast=0, saturation=0))
+    img0, t0 = plain[0]
+    img1, t1 = flip[0]
+    w, h = img0.shape[2], img0.shape[1]
+    expected = torch.stack([w - t0["boxes"][:, 2], h - t0["boxes"][:, 3], w - t0["boxes"][:, 0],
+                            h - t0["boxes"][:, 1]], dim=1)
+    assert torch.allclose(t1["boxes"], expected)
+    assert torch.allclose(img1, img0.flip(1).flip(2))
+    for b in t1["boxes"].round().int():  # the plant's green is inside its moved box
+        patch = img1[:, b[1]:b[3], b[0]:b[2]]
+        assert (patch[1] > patch[0] + 0.2).float().mean() > 0.4
+    jitter = CocoDetection(tiles[0], augment=AugmentConfig(hflip=0, vflip=0, brightness=0.5, contrast=0.5,
+                                                           saturation=0.5))
+    torch.manual_seed(1)
+    img2, t2 = jitter[0]
+    assert torch.equal(t2["boxes"], t0["boxes"]) and not torch.allclose(img2, img0)
+
+
+def test_bad_inputs(tiles, tmp_path):
+    import json
+
+    data = json.loads(Path(tiles[0]).read_text())
+    data["images"][0]["file_name"] = "images/missing.png"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="missing"):
+        CocoDetection(bad, images_dir=Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="nothing to resume"):
+        train(fast_config(tiles, tmp_path / "empty", "resume=true"))
+    with pytest.raises(ConfigError, match="train_json"):
+        load_config(ModelTrainConfig, None, [])
+    with pytest.raises(InputError, match="not a MatchPlant"):
+        torch.save({"a": 1}, tmp_path / "x.pt")
+        read_checkpoint(tmp_path / "x.pt")
+    from matchplant.cli import run_module
+    assert run_module("train", ["--set", f"train_json={tmp_path / 'nope.json'}"]) == 2
+
+
+# -- a training run, resume, transfer ---------------------------------------------------------------------
+
+
+def test_training_run_outputs(trained):
+    out, summary = trained
+    assert summary["status"] == "finished" and summary["epochs_done"] == 2
+    for name in ("last.pt", "best.pt", "epoch_002.pt"):
+        assert (out / "checkpoints" / name).is_file()
+    assert (out / "training_curves.png").stat().st_size > 1000
+    assert (out / "training_summary.json").is_file()
+    for h in summary["history"]:
+        assert {"loss", "loss_classifier", "loss_box_reg", "loss_objectness", "loss_rpn_box_reg"} <= set(h["losses"])
+        assert "AP" in h["val"] and "AP50" in h["val"]
+        assert set(h["lr"]) == {"backbone", "fpn", "rpn", "roi_heads"}
+    ck = read_checkpoint(out / "checkpoints" / "last.pt")  # self-contained (DESIGN §2)
+    for key in ("model_state", "model_config", "class_names", "epoch", "optimizer_state", "scheduler_state",
+                "metrics", "history"):
+        assert key in ck
+    assert ck["epoch"] == 2 and ck["class_names"] == ["plant"]
+    model, _ = load_detector(out / "checkpoints" / "last.pt")
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, ck["model_state"][k])
+
+
+def test_resume_after_crash_continues_the_same_run(tiles, trained, tmp_path):
+    ref_dir, _ = trained
+    out = tmp_path / "run_b"
+
+    class Crash(Exception):
+        pass
+
+    def crash(epoch, record):
+        if epoch == 1:
+            raise Crash
+
+    with pytest.raises(Crash):
+        train(fast_config(tiles, out), on_epoch_end=crash)
+    assert read_checkpoint(out / "checkpoints" / "last.pt")["epoch"] == 1
+    summary = train(fast_config(tiles, out, "resume=true"))
+    assert summary["epochs_done"] == 2
+    a = read_checkpoint(ref_dir / "checkpoints" / "last.pt")
+    b = read_checkpoint(out / "checkpoints" / "last.pt")
+    assert a["epoch"] == b["epoch"] == 2
+    for k in a["model_state"]:
+        assert torch.allclose(a["model_state"][k].float(), b["model_state"][k].float(), atol=1e-5), k
+    assert a["scheduler_state"]["last_epoch"] == b["scheduler_state"]["last_epoch"] == 4
+    assert a["scheduler_state"]["_last_lr"] == pytest.approx(b["scheduler_state"]["_last_lr"])
+    sa, sb = a["optimizer_state"]["state"], b["optimizer_state"]["state"]
+    assert sa.keys() == sb.keys()
+    for k in sa:
+        assert torch.allclose(sa[k]["momentum_buffer"], sb[k]["momentum_buffer"], atol=1e-5)
+    assert [h["losses"]["loss"] for h in a["history"]] == pytest.approx([h["losses"]["loss"] for h in b["history"]],
+                                                                        rel=1e-4)
+
+
+def test_transfer_with_frozen_backbone_changes_only_unfrozen(trained, tmp_path):
+    src_dir, _ = trained
+    # a new dataset with two classes
+    d = tmp_path / "two"
+    js = make_tiles(d, n_images=4, size=64, plants=(1, 2), radius=(5, 9), negatives=0, seed=5, name="t.json")
+    import json
+    data = json.loads(js.read_text())
+    data["categories"].append({"id": 2, "name": "weed", "supercategory": "plant"})
+    data["annotations"][0]["category_id"] = 2
+    js.write_text(json.dumps(data))
+    cfg = load_config(ModelTrainConfig, None, [f"train_json={js}", f"output_dir={tmp_path / 'tl'}", *FAST, "epochs=1",
+                                          f"model.checkpoint={src_dir / 'checkpoints' / 'last.pt'}",
+                                          "freeze=[backbone, fpn]", "trainable_backbone_layers=0"])
+    train(cfg)
+    src = read_checkpoint(src_dir / "checkpoints" / "last.pt")["model_state"]
+    new = read_checkpoint(tmp_path / "tl" / "checkpoints" / "last.pt")
+    assert new["class_names"] == ["plant", "weed"]
+    state = new["model_state"]
+    assert state["roi_heads.box_predictor.cls_score.weight"].shape[0] == 3
+    frozen = [k for k in state if k.startswith("backbone.")]
+    assert frozen and all(torch.equal(state[k], src[k]) for k in frozen)  # weights and BN statistics
+    changed = [k for k in state if k.startswith(("rpn.", "roi_heads.box_head")) and not torch.equal(state[k], src[k])]
+    assert len(changed) >= 4
+
+
+def test_training_reduces_the_loss(tiles, tmp_path):
+    """Fitting a few tiles: the optimisation (per-part SGD) must lower the loss clearly."""
+    cfg = fast_config(tiles, tmp_path, "warmup_iters=0", "lr.backbone=0.01", "lr.fpn=0.01", "lr.rpn=0.02",
+                      "lr.roi_heads=0.02")
+    torch.manual_seed(0)
+    model = build_detector(cfg.model, 2)
+    apply_freezing(model, MOBILE, 6, [])
+    ds = CocoDetection(tiles[0])
+    images, targets = zip(*[ds[i] for i in range(2)])
+    opt = build_optimizer(cfg, model)
+    model.train()
+    losses = []
+    for _ in range(10):
+        loss = sum(model(list(images), list(targets)).values())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert np.mean(losses[-3:]) < 0.85 * np.mean(losses[:2]) and losses[-1] < losses[0], losses
+
+
+@pytest.mark.skipif(not __import__("os").environ.get("MATCHPLANT_TEST_DDP"),
+                    reason="two processes (about 40 s on 2 cores): set MATCHPLANT_TEST_DDP=1")
+def test_torchrun_two_processes(tiles, tmp_path):
+    """DistributedDataParallel on the CPU (gloo): two processes train one run, rank 0 writes it."""
+    import os
+    out = tmp_path / "ddp"
+    args = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29541",
+            str(ROOT / "6_model_train" / "train.py"), "--set", f"train_json={tiles[0]}", "--set",
+            f"val_json={tiles[1]}", "--set", f"output_dir={out}", *[x for s in FAST for x in ("--set", s)],
+            "--set", "batch_size=2"]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    ck = read_checkpoint(out / "checkpoints" / "last.pt")
+    assert ck["epoch"] == 2 and ck["iters_per_epoch"] == 2  # 8 tiles / (2 processes x 2 per batch)
+
+
+def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
+    """A time budget ends training early; the last epoch is still validated and saved as best/last."""
+    out = tmp_path / "budget"
+    summary = train(fast_config(tiles, out, "epochs=50", "max_minutes=0.0001"))
+    assert summary["epochs_done"] == 1
+    assert "val" in summary["history"][-1]  # the stopping epoch was validated
+    assert (out / "checkpoints" / "best.pt").is_file() and (out / "checkpoints" / "last.pt").is_file()
+
+
+# -- one-stage detectors (issue 16) ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("arch", ["retinanet_resnet50_fpn", "fcos_resnet50_fpn"])
+def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_path):
+    """RetinaNet and FCOS beside Faster R-CNN: same targets, checkpoint, transfer learning and evaluation."""
+    from matchplant.detection.evaluate import coco_evaluate, predict_dataset
+    from matchplant.detection.model import (
+        load_matching_weights,
+        model_parts,
+        parameter_groups,
+        save_checkpoint,
+        set_score_threshold,
+    )
+
+    cfg = load_config(ModelConfig, None, [f"architecture={arch}", "pretrained=none", "min_size=64", "max_size=64"])
+    torch.manual_seed(0)
+    model = build_detector(cfg, 2)
+    assert not hasattr(model, "rpn") and model_parts(model)["roi_heads"] is model.head
+    apply_freezing(model, arch, 3, ["rpn"])          # 'rpn' is empty for a one-stage model: nothing else frozen
+    groups = parameter_groups(model, {"backbone": 0.01, "fpn": 0.01, "rpn": 0.01, "roi_heads": 0.01})
+    assert [g["name"] for g in groups] == ["backbone", "fpn", "roi_heads"]
+    ds = CocoDetection(tiles[0])
+    model.train()
+    images, targets = zip(*[ds[i] for i in range(4)])
+    losses = model(list(images), list(targets))       # module 5's targets as they are
+    assert all(torch.isfinite(v) for v in losses.values())
+    opt = torch.optim.SGD([p for g in groups for p in g["params"]], lr=0.001)
+    sum(losses.values()).backward()
+    opt.step()
+    # evaluation: labels 1..N only (label 0 is our background), threshold set the Faster R-CNN way
+    model.eval()
+    model.roi_heads.score_thresh = 0.0
+    assert model.score_thresh == 0.0
+    set_score_threshold(model, 0.01)
+    assert model.roi_heads.score_thresh == pytest.approx(0.01)
+    val = CocoDetection(tiles[1])
+    results = predict_dataset(model, val, torch.device("cpu"))
+    assert results and {r["category_id"] for r in results} <= set(val.category_ids)
+    stats, _ = coco_evaluate(val.data, results)
+    assert 0.0 <= stats["AP50"] <= 1.0
+    # checkpoint: rebuilt alone, same outputs
+    path = save_checkpoint(tmp_path / "c.pt", model, cfg, ["plant"], [1])
+    rebuilt, _ = load_detector(path)
+    x = [torch.rand(3, 64, 64)]
+    set_score_threshold(rebuilt, 0.01)
+    with torch.inference_mode():
+        a, b = model(x)[0], rebuilt(x)[0]
+    assert torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
+    # transfer learning to three classes: everything but the class scores is loaded
+    bigger = build_detector(cfg, 4)
+    loaded, skipped = load_matching_weights(bigger, model.state_dict())
+    assert skipped and all(k.startswith("head.classification_head.cls_logits") for k in skipped)
+    assert len(loaded) == len(model.state_dict()) - len(skipped)
+
+
+def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
+    """As for Faster R-CNN: COCO weights load strictly, our classes get a new classification head, and
+    the checkpoint rebuilds the same structure (frozen batch norms) without a download."""
+    import torchvision.models._api as api
+
+    from matchplant.detection.model import save_checkpoint
+
+    cfg = load_config(ModelConfig, None, ["architecture=retinanet_resnet50_fpn", "pretrained=coco",
+                                          "min_size=64", "max_size=64"])
+    torch.manual_seed(3)
+    served = build_detector(cfg, 91, load_weights=False).state_dict()
+    monkeypatch.setattr(api, "load_state_dict_from_url", lambda *a, **k: served)
+    model = build_detector(cfg, 2)
+    state = model.state_dict()
+    assert all(torch.equal(state[k], v) for k, v in served.items() if "cls_logits" not in k)
+    assert state["head.classification_head.cls_logits.weight"].shape[0] == 9 * 2
+    rebuilt, _ = load_detector(save_checkpoint(tmp_path / "c.pt", model, cfg, ["plant"], [1]))
+    assert all(torch.equal(rebuilt.state_dict()[k], v) for k, v in state.items())
+
+
+def test_anchor_sizes_auto_from_the_training_boxes(tiles, tmp_path):
+    """``anchor_sizes: auto``: sensible anchors for ~40 px objects on 512 px tiles, in the detector's input
+    pixels, and a training run stores the computed sizes in its checkpoint."""
+    from matchplant.core.formats.coco import make_annotation, new_dataset
+    from matchplant.detection.model import resolve_auto_anchors
+
+    rng = np.random.default_rng(0)
+    ds = new_dataset(["plant"])
+    for i in range(20):
+        ds["images"].append({"id": i + 1, "file_name": f"t{i}.png", "width": 512, "height": 512})
+        for _ in range(30):
+            w, h = rng.normal(40, 6, 2)
+            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, i + 1, [100, 100, w, h]))
+    objects = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in ds["annotations"]])
+    for arch, levels in (("fasterrcnn_resnet50_fpn", 5), (MOBILE, 3), ("retinanet_resnet50_fpn", 5)):
+        for scale in (1, 2):  # min_size = 2 x the tile: objects (and anchors) twice as large
+            cfg = load_config(ModelConfig, None, [f"architecture={arch}", "anchor_sizes=auto",
+                                                  f"min_size={512 * scale}", f"max_size={512 * scale}"])
+            sizes = resolve_auto_anchors(cfg, ds).anchor_sizes
+            assert len(sizes) == levels
+            flat = np.array(sorted({s for level in sizes for s in level}), float)
+            # every object between the 1st and 99th percentile has a square anchor with IoU >= 0.5
+            lo, hi = np.percentile(objects * scale, [1, 99])
+            for size in np.linspace(lo, hi, 20):
+                assert (np.minimum(size, flat) ** 2 / np.maximum(size, flat) ** 2).max() >= 0.5, (arch, size, sizes)
+            assert flat.min() <= lo and flat.min() >= 0.5 * lo   # the smallest anchor sits at the small objects
+    with pytest.raises(ConfigError, match="computed from the training boxes"):
+        build_detector(load_config(ModelConfig, None, ["anchor_sizes=auto", "pretrained=none"]), 2)
+    out = tmp_path / "run"
+    train(fast_config(tiles, out, "model.anchor_sizes=auto", "epochs=1", "save_every=0"))
+    stored = read_checkpoint(out / "checkpoints" / "last.pt")["model_config"]["anchor_sizes"]
+    assert isinstance(stored, list) and len(stored) == 3 and stored[0][0] < 32
+
+
+# -- honest reports and the training geometry (issue 16) -------------------------------------------------
+
+
+def test_summary_reports_a_small_validation_set_and_the_geometry(trained, tiles):
+    """Fewer than 20 validation plants: a warning in the summary; every checkpoint carries the training
+    geometry module 7 needs (tile size, input scale, classes, plant sizes)."""
+    import json
+
+    out, summary = trained
+    val = json.loads(Path(tiles[1]).read_text())
+    assert summary["validation"]["plants"] == len(val["annotations"]) < 20  # tiles of their own: no copies
+    assert "only" in summary["validation"]["warning"] and summary["warnings"]
+    assert summary["status"] == "finished" and summary["message"] == "finished all 2 epochs"
+    g = read_checkpoint(out / "checkpoints" / "best.pt")["training_geometry"]
+    train_ds = json.loads(Path(tiles[0]).read_text())
+    sides = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in train_ds["annotations"]])
+    assert g["tile_size"] == 64 and g["min_size"] == 64 and g["input_scale"] == 1.0 and g["class_names"] == ["plant"]
+    assert g["objects_px"]["boxes"] == len(sides)
+    assert g["objects_input_px"] == pytest.approx(np.median(sides), abs=0.01)
+
+
+def test_lr_schedule_shortened_to_the_planned_epochs():
+    from matchplant.model_train.budget import epochs_that_fit
+
+    cfg = load_config(ModelTrainConfig, None, ["train_json=x", "epochs=30", "step_size=10", "warmup_iters=0"],
+                      check_paths=False)
+    # 30 epochs planned as 6: the decays at epochs 10 and 20 come at epochs 2 and 4
+    assert [lr_factor(cfg, e * 5, 5, 6) for e in range(6)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
+    assert [lr_factor(cfg, e * 5, 5) for e in (0, 9, 10, 20)] == pytest.approx([1, 1, 0.1, 0.01])  # as set
+    cfg.schedule = "cosine"
+    assert lr_factor(cfg, 6 * 5, 5, 6) == pytest.approx(0.0) and lr_factor(cfg, 15, 5, 6) == pytest.approx(0.5)
+    assert epochs_that_fit(30, 1, 10.0, 100.0, 100.0) == 6       # 600 s: 1 done + 5 more of 100 s
+    assert epochs_that_fit(30, 1, 10.0, 700.0, 100.0) == 1       # over budget already: the one done
+    assert epochs_that_fit(4, 1, 100.0, 10.0, 10.0) == 4         # everything fits
+
+
+def test_max_minutes_plans_the_epochs_that_fit_and_says_so(tiles, tmp_path, monkeypatch):
+    """A 60 s epoch (a fake clock) and 3.5 minutes: 3 of 10 epochs fit, the step schedule (x0.1 every 5 of
+    10 epochs) is shortened to 3 epochs so it still decays, and the summary says it stopped."""
+    import matchplant.model_train.run as train_mod
+
+    class Clock:
+        offset = 0.0
+
+        @staticmethod
+        def perf_counter():
+            return time.perf_counter() + Clock.offset
+
+    real_epoch = train_mod._train_one_epoch
+
+    def slow_epoch(*a, **k):
+        Clock.offset += 60.0
+        return real_epoch(*a, **k)
+
+    monkeypatch.setattr(train_mod, "time", Clock)
+    monkeypatch.setattr(train_mod, "_train_one_epoch", slow_epoch)
+    out = tmp_path / "budget"
+    summary = train(fast_config(tiles, out, "epochs=10", "max_minutes=3.5", "step_size=5", "warmup_iters=0",
+                                "save_every=0", "val_every=5"))
+    assert summary["status"] == "stopped_by_max_minutes" and summary["epochs_planned"] == 3
+    assert summary["epochs_done"] == 3 and "after 3 of 10 epochs" in summary["message"]
+    assert any("shortened to 3 epochs" in w for w in summary["warnings"])
+    assert "val" in summary["history"][-1]  # the last planned epoch is validated (val_every 5 notwithstanding)
+    ck = read_checkpoint(out / "checkpoints" / "last.pt")
+    assert ck["planned_epochs"] == 3
+    lr = [h["lr"]["roi_heads"] for h in summary["history"]]  # the rate for the next iteration
+    cfg = fast_config(tiles, out, "epochs=10", "step_size=5", "warmup_iters=0")
+    base = cfg.lr.roi_heads
+    assert lr == pytest.approx([base * lr_factor(cfg, 2 * (e + 1), 2, 3) for e in range(3)])
+    assert lr[-1] == pytest.approx(0.01 * base)  # decayed twice within the budget (never at the 10-epoch plan)
+
+
+# -- input checks (issue 15): the dataset against its files, splits, unreadable tiles in loader workers ----------
+
+
+def test_image_size_reads_headers_and_names_truncated_files(tmp_path):
+    import cv2
+
+    from matchplant.detection.data import image_size
+
+    img = np.random.default_rng(0).integers(0, 255, (37, 53, 3), dtype=np.uint8)
+    for ext in (".png", ".jpg", ".tif"):
+        path = tmp_path / f"tile{ext}"
+        cv2.imwrite(str(path), img)
+        assert image_size(path) == (53, 37)  # the header's size is the decoded one (OpenCV, independently)
+        assert cv2.imread(str(path)).shape[:2] == (37, 53)
+        cut = tmp_path / f"cut{ext}"
+        cut.write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
+        with pytest.raises(InputError, match="truncated") as err:
+            image_size(cut)
+        assert err.value.path == cut
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match="empty"):
+        image_size(tmp_path / "empty.png")
+
+
+def _edited(tiles, tmp_path, edit, name="train.json") -> Path:
+    """The training JSON, edited, in ``tmp_path`` (read with the tiles' folder as images_dir)."""
+    import json
+
+    data = json.loads(Path(tiles[0]).read_text())
+    edit(data)
+    path = tmp_path / name
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_json_sizes_against_the_files(tiles, tmp_path, caplog):
+    def doubled(boxes: bool):
+        def edit(data):
+            for im in data["images"]:
+                im["width"], im["height"] = 2 * im["width"], 2 * im["height"]
+            if boxes:
+                for a in data["annotations"]:
+                    a["bbox"] = [2 * v for v in a["bbox"]]
+        return edit
+
+    inside = _edited(tiles, tmp_path, doubled(False), "sizes_inside.json")
+    with caplog.at_level("WARNING"):
+        ds = CocoDetection(inside, Path(tiles[0]).parent)
+    assert any("8 of 8 images" in r.message and "128x128 in the JSON, 64x64 file" in r.message for r in caplog.records)
+    assert {(im["width"], im["height"]) for im in ds.images} == {(64, 64)}  # the files' sizes are used
+    outside = _edited(tiles, tmp_path, doubled(True), "sizes_outside.json")
+    with pytest.raises(InputError, match=r"box\(es\) fall outside their image files.*128x128 px but the file is 64x64"):
+        CocoDetection(outside, Path(tiles[0]).parent)
+
+
+def test_categories_boxes_and_splits_checked(tiles, tmp_path):
+    from matchplant.detection.data import check_disjoint
+
+    def zero_based(data):
+        for a in data["annotations"]:
+            a["category_id"] = 0
+
+    with pytest.raises(InputError, match="numbered from 0"):
+        CocoDetection(_edited(tiles, tmp_path, zero_based, "zero.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="no 'categories'"):
+        CocoDetection(_edited(tiles, tmp_path, lambda d: d.update(categories=[]), "nocat.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="no annotations"):
+        CocoDetection(_edited(tiles, tmp_path, lambda d: d.update(annotations=[]), "noann.json"), Path(tiles[0]).parent)
+    with pytest.raises(InputError, match="not among the model's classes"):
+        CocoDetection(tiles[1], class_names=["weed"])
+    train_ds, val_ds = CocoDetection(tiles[0]), CocoDetection(tiles[1])
+    check_disjoint(train_ds, val_ds)  # module 5-like splits: apart
+    with pytest.raises(ConfigError, match="same file"):
+        check_disjoint(train_ds, CocoDetection(tiles[0]))
+    copy = tmp_path / "copied"  # a validation folder made by copying training tiles
+    (copy / "images").mkdir(parents=True)
+    for p in train_ds.paths[:3]:
+        (copy / "images" / p.name).write_bytes(p.read_bytes())
+    import json
+
+    data = json.loads(Path(tiles[0]).read_text())
+    data["images"] = data["images"][:3]
+    data["annotations"] = [a for a in data["annotations"] if a["image_id"] <= 3]
+    (copy / "val.json").write_text(json.dumps(data))
+    with pytest.raises(InputError, match="3 of the 3 validation tiles are also training tiles"):
+        check_disjoint(train_ds, CocoDetection(copy / "val.json"))
+
+
+def test_unreadable_tile_in_a_loader_worker_is_one_clear_error(tiles, tmp_path):
+    import shutil
+
+    from torch.utils.data import DataLoader
+
+    from matchplant.detection.data import TileReadError, collate
+
+    folder = tmp_path / "t"
+    shutil.copytree(Path(tiles[0]).parent / "images", folder / "images")
+    shutil.copy(tiles[0], folder / "train.json")
+    ds = CocoDetection(folder / "train.json")
+    broken = ds.paths[2]
+    broken.write_bytes(b"\x00" * 100)  # damaged after the checks (a disk error while training)
+    loader = DataLoader(ds, batch_size=4, num_workers=1, collate_fn=collate)
+    with pytest.raises(TileReadError) as err:
+        list(loader)
+    assert "Traceback" not in str(err.value) and err.value.path == broken and err.value.fix
+    assert "data-loading worker" in err.value.problem

@@ -1,0 +1,127 @@
+"""Module 9's window: headless (Agg, synthesised events) and in a real window under Xvfb."""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pandas as pd
+import pytest
+import shapely
+from affine import Affine
+from conftest import run_in_xvfb, xvfb_available
+from gui_events import click
+
+CRS = "EPSG:32615"
+
+
+@pytest.fixture()
+def small_field(tmp_path):
+    """A 1600 x 2000 CHM with 40 plants of known height (a cone each), and their boxes."""
+    import geopandas as gpd
+    import rasterio
+
+    t = Affine(0.005, 0, 400000.0, 0, -0.005, 5000000.0)
+    h, w = 1600, 2000
+    rng = np.random.default_rng(3)
+    gx, gy = np.meshgrid(np.arange(8), np.arange(5))  # plants in rows, 1.2 m apart: boxes never overlap
+    cx = 400000.0 + 0.6 + 1.2 * gx.ravel() + rng.uniform(-0.2, 0.2, 40)
+    cy = 5000000.0 - 0.6 - 1.5 * gy.ravel() + rng.uniform(-0.2, 0.2, 40)
+    heights = rng.uniform(0.1, 0.6, 40)
+    chm = np.zeros((h, w), np.float32)
+    for px, py, hh in zip(cx, cy, heights):  # a cone per plant, drawn in its own small window
+        c0, r0 = int((px - 0.2 - t.c) / t.a), int((py + 0.2 - t.f) / t.e)
+        rows, cols = np.mgrid[r0:r0 + 80, c0:c0 + 80]
+        x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
+        r = np.hypot(x - px, y - py) / 0.15
+        np.maximum(chm[r0:r0 + 80, c0:c0 + 80], np.where(r < 1, hh * (1 - r), 0),
+                   out=chm[r0:r0 + 80, c0:c0 + 80])
+    with rasterio.open(tmp_path / "chm.tif", "w", driver="GTiff", width=w, height=h, count=1, dtype="float32",
+                       crs=CRS, transform=t, nodata=-9999.0, tiled=True) as dst:
+        dst.write(chm, 1)
+    boxes = shapely.box(cx - 0.16, cy - 0.16, cx + 0.16, cy + 0.16)
+    gpd.GeoDataFrame({"plant_id": np.arange(1, 41)}, geometry=boxes, crs=CRS).to_file(tmp_path / "plants.gpkg")
+    pd.DataFrame({"a": [1]}).to_csv(tmp_path / "bad.csv", index=False)
+    return {"dir": tmp_path, "heights": heights}
+
+
+def test_gui_headless(small_field, tmp_path):
+    from matchplant.core.runtime.config import load_config
+    from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+    from matchplant.spatial_stat_extractor.gui import SpatialStatExtractorGUI
+
+    d = small_field["dir"]
+    gui = SpatialStatExtractorGUI(SpatialStatExtractorConfig(), headless=True)
+    gui.boxes["polygons"].set_val(str(d / "plants.gpkg"))
+    gui.boxes["rasters.chm"].set_val(str(d / "chm.tif"))
+    gui.boxes["percentiles"].set_val("10, 90")
+    gui.boxes["output_dir"].set_val(str(d / "out"))
+    assert gui.cfg.percentiles == [10.0, 90.0] and gui.cfg.rasters.chm == d / "chm.tif"
+    gui.stat_checks.set_active(list(gui.stat_checks.labels).index(
+        next(lb for lb in gui.stat_checks.labels if lb.get_text() == "nodata")))
+    assert "nodata" in gui.cfg.stats
+
+    click(gui.fig, gui.btn_preview.ax, 0.5, 0.5)
+    arr = gui.image_artist.get_array()
+    assert max(arr.shape) <= 800, "the preview must be a reduced-resolution read"
+    assert "EPSG:32615" in gui.crs_text.get_text() and "40 plants" in gui.status.get_text()
+
+    click(gui.fig, gui.btn_run.ax, 0.5, 0.5)
+    gui.wait(60)
+    assert gui.status.get_text().startswith("done"), gui.status.get_text()
+    assert gui.bar.get_width() == 1.0
+    table = pd.read_csv(d / "out" / "stats.csv")
+    assert {"chm_p10", "chm_p90", "chm_nodata", "chm_max"} <= set(table.columns)
+    np.testing.assert_allclose(table["chm_max"], small_field["heights"], rtol=0.04)  # cone tip between pixels
+    assert (d / "out" / "polygons.shp").is_file() and (d / "out" / "stats.gpkg").is_file()
+    gui.fig.savefig(tmp_path / "gui.png")
+
+    # an unusable file: the error is shown in the window, in red, not raised
+    gui.boxes["polygons"].set_val(str(d / "bad.csv"))
+    click(gui.fig, gui.btn_run.ax, 0.5, 0.5)
+    gui.wait(60)
+    assert gui.status.get_text().startswith("error") and "xmin,ymin,xmax,ymax" in gui.status.get_text()
+    assert gui.status.get_color() == "#c62828"
+    # a missing file is refused before any work starts
+    gui.boxes["rasters.chm"].set_val(str(d / "nope.tif"))
+    assert not gui.run() and "not found" in gui.status.get_text()
+
+    gui.boxes["rasters.chm"].set_val(str(d / "chm.tif"))
+    gui.boxes["polygons"].set_val(str(d / "plants.gpkg"))
+    saved = gui.save_config()
+    cfg = load_config(SpatialStatExtractorConfig, saved)
+    assert cfg.rasters.chm == d / "chm.tif" and cfg.percentiles == [10.0, 90.0] and "nodata" in cfg.stats
+
+
+@pytest.mark.skipif(not xvfb_available(), reason="Xvfb not installed")
+def test_gui_real_window(small_field, tmp_path):
+    d = small_field["dir"]
+    code = textwrap.dedent(f"""
+        import matplotlib.pyplot as plt
+        from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+        from matchplant.spatial_stat_extractor.gui import SpatialStatExtractorGUI
+        cfg = SpatialStatExtractorConfig()
+        cfg.polygons = __import__("pathlib").Path({str(d / "plants.gpkg")!r})
+        cfg.rasters.chm = __import__("pathlib").Path({str(d / "chm.tif")!r})
+        cfg.output_dir = __import__("pathlib").Path({str(d / "xout")!r})
+        gui = SpatialStatExtractorGUI(cfg, headless=False)
+        assert plt.get_backend().lower().startswith("tk"), plt.get_backend()
+        assert gui.preview()
+        gui.run()
+        def check():
+            if not gui.busy and gui.status.get_text().startswith("done"):
+                gui.fig.savefig({str(tmp_path / "window.png")!r})
+                print("DONE", gui.status.get_text())
+                plt.close("all")
+        t = gui.fig.canvas.new_timer(interval=200)
+        t.add_callback(check)
+        t.start()
+        killer = gui.fig.canvas.new_timer(interval=60000)
+        killer.add_callback(lambda: plt.close("all"))
+        killer.start()
+        plt.show()
+    """)
+    r = run_in_xvfb(code, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "DONE done" in r.stdout, r.stdout + r.stderr[-2000:]
+    assert (d / "xout" / "stats.csv").is_file() and (tmp_path / "window.png").stat().st_size > 20_000
