@@ -65,7 +65,7 @@ def test_folder_configs_load_and_help(tiles):
         assert cfg.lr.backbone > 0
     transfer = load_config(ModelTrainConfig, ROOT / "6_model_train" / "transfer_config.yaml", check_paths=False)
     assert transfer.freeze == ["backbone", "fpn"] and transfer.model.checkpoint is not None
-    r = subprocess.run([sys.executable, str(ROOT / "6_model_train" / "train.py"), "--help"], capture_output=True,
+    r = subprocess.run([sys.executable, str(ROOT / "6_model_train" / "model_train.py"), "--help"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0 and "--resume" in r.stdout
     args = build_parser(SPEC).parse_args(["--resume"])
@@ -377,7 +377,7 @@ def test_torchrun_two_processes(tiles, tmp_path):
     import os
     out = tmp_path / "ddp"
     args = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29541",
-            str(ROOT / "6_model_train" / "train.py"), "--set", f"train_json={tiles[0]}", "--set",
+            str(ROOT / "6_model_train" / "model_train.py"), "--set", f"train_json={tiles[0]}", "--set",
             f"val_json={tiles[1]}", "--set", f"output_dir={out}", *[x for s in FAST for x in ("--set", s)],
             "--set", "batch_size=2"]
     r = subprocess.run(args, capture_output=True, text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
