@@ -468,7 +468,7 @@ def test_cli_end_to_end_with_comparison(field):
     cfg.write_text("polygons: plants.gpkg\nrasters:\n  date: w3\n  dsm: dsm.tif\n  dtm: dtm.tif\n"
                    "  multispectral: ms.tif\nmore_dates:\n  - date: w4\n    chm: chm_w4.tif\n"
                    "percentiles: [5, 95]\nmode: coverage\ncompare:\n  polygons: pred.gpkg\noutput_dir: out\n")
-    r = subprocess.run([sys.executable, str(FOLDER / "stat_extractor.py"), "--config", str(cfg), "--quiet"],
+    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg), "--quiet"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     out = d / "out"
@@ -480,7 +480,7 @@ def test_cli_end_to_end_with_comparison(field):
     assert (out / "compare.png").stat().st_size > 10_000
     assert gpd.read_file(out / "stats.gpkg").crs.to_epsg() == 32615
     # a wrong key is a clear message and exit code 2, not a traceback
-    r = subprocess.run([sys.executable, str(FOLDER / "stat_extractor.py"), "--config", str(cfg),
+    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg),
                         "--set", "mode=centre"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "did you mean 'center'" in r.stderr and "Traceback" not in r.stderr
 
@@ -491,7 +491,7 @@ def test_folder_config_and_help():
 
     cfg = load_config(SpatialStatExtractorConfig, FOLDER / "config.yaml", strict=False)
     assert cfg.mode == "center" and cfg.stats
-    r = subprocess.run([sys.executable, str(FOLDER / "stat_extractor.py"), "--help"], capture_output=True,
+    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--help"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0 and "--gui" in r.stdout and "--dsm" in r.stdout
 
