@@ -33,6 +33,7 @@ from rasterio.windows import Window  # noqa: E402
 
 from matchplant.core.formats.coco import read_dataset  # noqa: E402
 from matchplant.core.formats.odm import ODMProject  # noqa: E402
+from matchplant.core.formats.vectors import write_vector  # noqa: E402
 from matchplant.core.runtime.config import load_config  # noqa: E402
 from matchplant.plant_projection.merge import merge_views  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
@@ -66,9 +67,7 @@ def projected_plants(f: FieldPaths, out: Path) -> Path:
     crs = json.loads(f.field_json.read_text())["crs"]
     geoms = shapely.box(plants["xmin"], plants["ymin"], plants["xmax"], plants["ymax"])
     gdf = gpd.GeoDataFrame({"plant_id": np.arange(1, len(plants) + 1)}, geometry=geoms, crs=crs)
-    out.mkdir(parents=True, exist_ok=True)
-    gdf.to_file(out / "plants.gpkg", driver="GPKG")
-    return out / "plants.gpkg"
+    return write_vector(gdf, out / "plants.gpkg")
 
 
 def accuracy(f: FieldPaths, out: Path) -> dict:

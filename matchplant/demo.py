@@ -140,7 +140,7 @@ def growth_check(out: Path, paths: FieldPaths) -> dict:
     """Module 9 with the second date: the first date's boxes reused, each plant re-centred."""
     cfg = load_config(SpatialStatExtractorConfig, None, [
         f"polygons={out / '8_plants' / 'plants.gpkg'}", f"output_dir={out / 'report' / 'growth'}",
-        "rasters.date=d1", f"rasters.dsm={paths.dsm}", f"rasters.dtm={paths.dtm}", "write_polygons=false",
+        "rasters.date=d1", f"rasters.dsm={paths.dsm}", f"rasters.dtm={paths.dtm}", "vector_formats=[]",
         f"more_dates=[{{date: d2, dsm: {paths.later.dsm}, dtm: {paths.later.dtm}}}]"])
     run_stats(cfg)
     table = pd.read_csv(out / "report" / "growth" / "stats.csv")

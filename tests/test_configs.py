@@ -54,3 +54,17 @@ def test_write_config_keeps_values_and_paths_relative(tmp_path, capsys):
     # without a config: the defaults
     assert run_module("bbox_drawer", ["--write-config", str(tmp_path / "defaults.yaml")]) == 0
     assert load_config(spec.config, tmp_path / "defaults.yaml", strict=False).categories == ["plant"]
+
+
+@pytest.mark.parametrize("step, old, new", [("plant_projection", "write_shapefile", "vector_formats: [gpkg, shp]"),
+                                            ("spatial_stat_extractor", "write_polygons", "vector_formats: [gpkg, shp]")])
+def test_a_renamed_key_names_its_successor(tmp_path, step, old, new):
+    from matchplant.core.runtime.errors import ConfigError
+
+    cls = resolve_step(step).config
+    path = tmp_path / "old.yaml"
+    path.write_text(f"{old}: true\n")
+    for where in ({"path": path}, {"overrides": [f"{old}=true"]}):
+        with pytest.raises(ConfigError, match=f"'{old}'.*replaced by 'vector_formats'") as err:
+            load_config(cls, strict=False, **where)
+        assert new in err.value.fix

@@ -404,7 +404,7 @@ def test_run_writes_outputs_and_reports(tmp_path, nadir_project):
     cfg = load_config(PlantProjectionConfig, None, [f"project={src}", f"predictions={tmp_path / 'preds.json'}",
                                                  f"output_dir={tmp_path / 'out'}", "mode=both",
                                                  f"evaluate.reference={tmp_path / 'ref.csv'}",
-                                                 "write_shapefile=true"])
+                                                 "vector_formats=[gpkg, shp]"])
     result = run(cfg)
     out = tmp_path / "out"
     gdf = gpd.read_file(out / "plants.gpkg", layer="plants")

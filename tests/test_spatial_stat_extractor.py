@@ -388,9 +388,12 @@ def test_csv_inputs(field, tmp_path):
     assert shapely.equals(a.geometry.values, field["boxes"]).all()
     w = read_polygons(tmp_path / "wkt.csv")
     assert w.crs is None and w["plant_id"].tolist() == (field["ids"] * 10).tolist()
-    # a module-8 CSV takes its CRS from projection_summary.json beside it
+    # a module-8 CSV carries its CRS in a 'crs' column (not kept as an attribute); a summary beside it is not read
     (tmp_path / "projection_summary.json").write_text(json.dumps({"crs": "EPSG:32615"}))
-    assert read_polygons(tmp_path / "boxes.csv").crs.to_epsg() == 32615
+    assert read_polygons(tmp_path / "boxes.csv").crs is None
+    pd.read_csv(tmp_path / "boxes.csv").assign(crs="EPSG:32615").to_csv(tmp_path / "plants.csv", index=False)
+    m8 = read_polygons(tmp_path / "plants.csv")
+    assert m8.crs.to_epsg() == 32615 and "crs" not in m8.columns
 
 
 def test_bad_inputs_are_explained(field, tmp_path):

@@ -31,14 +31,6 @@ _ALIASES = {
 }
 
 
-def _crs(text: str, key: str, path: Path):
-    """A CRS from a config key, the error naming that key."""
-    try:
-        return parse_crs(text, source=path)
-    except InputError as exc:
-        raise ConfigError(f"config key '{key}': {exc.problem}", path=path, fix=exc.fix) from None
-
-
 def read_survey(path: str | Path, crs_text: str, output_crs=None) -> tuple[list[GCP], object]:
     """GCP table ``id,x,y,z`` in ``crs_text``; returns the GCPs in the output CRS and that CRS.
 
@@ -52,7 +44,7 @@ def read_survey(path: str | Path, crs_text: str, output_crs=None) -> tuple[list[
     if not crs_text:
         raise ConfigError("the GCP survey's CRS is not set", path=path,
                           fix="set 'survey_crs' to its EPSG code, e.g. EPSG:32614 (UTM 14N) or EPSG:4326 (lon/lat)")
-    src = _crs(crs_text, "survey_crs", path)
+    src = parse_crs(crs_text, source=path, key="survey_crs")
     table = read_csv(path, required=("id",), numeric=("x", "y", "z"), aliases=_ALIASES, what="GCP survey")
     ids = [i.strip() for i in table.column("id")]
     for i, gid in enumerate(ids):
@@ -72,7 +64,7 @@ def read_survey(path: str | Path, crs_text: str, output_crs=None) -> tuple[list[
                       fix=f"check 'survey_crs' (now {crs_text}): EPSG:4326 for lon/lat degrees, the projected "
                           "CRS (e.g. EPSG:32614) for metres; x is the easting or longitude")
     if output_crs is not None:
-        dst = _crs(output_crs, "output_crs", path) if isinstance(output_crs, str) else output_crs
+        dst = parse_crs(output_crs, source=path, key="output_crs")
         if not dst.is_projected:
             raise ConfigError(f"config key 'output_crs' = {output_crs!s} is not a projected CRS: gcp_list.txt and "
                               "the camera model work in metres", fix="leave 'output_crs' empty (the survey's CRS or "

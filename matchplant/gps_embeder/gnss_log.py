@@ -250,10 +250,7 @@ def _log_crs(crs: str | None, default: int | None, own: bool, path: Path) -> CRS
     .pos, .MRK); then a 'log_crs' of another kind (a projected one, say) is ignored with a warning."""
     if not crs:
         return CRS.from_epsg(default)
-    try:
-        the_crs = parse_crs(crs, source=path)
-    except InputError as exc:
-        raise ConfigError(f"config key 'log_crs': {exc.problem}", fix=exc.fix) from None
+    the_crs = parse_crs(crs, key="log_crs")
     if own:
         stated = CRS.from_epsg(default)
         if (the_crs.is_geographic, the_crs.is_geocentric) != (stated.is_geographic, stated.is_geocentric):

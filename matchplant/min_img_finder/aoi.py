@@ -18,11 +18,11 @@ import pyogrio
 import rasterio
 import shapely
 from affine import Affine
-from pyproj import CRS
 from rasterio.features import shapes
 from scipy import sparse
 from shapely.geometry import MultiPolygon, Polygon
 
+from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.min_img_finder.setcover import CoverageGrid
@@ -96,7 +96,7 @@ def read_aoi_file(path: Path, crs) -> Polygon | MultiPolygon:
     if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
         raise InputError("the area-of-interest file (aoi_file) has coordinates that are not numbers", path=path,
                          fix="redraw the polygon")
-    target = CRS.from_user_input(crs) if crs is not None else None
+    target = parse_crs(crs) if crs is not None else None
     if gdf.crs is None:
         guess = f" (its coordinates look like {target.name})" if target is not None and not target.is_geographic \
             and max(abs(x0), abs(x1)) > 180 else ""
@@ -109,7 +109,7 @@ def read_aoi_file(path: Path, crs) -> Polygon | MultiPolygon:
                          f"which are not degrees, but {said}", path=path,
                          fix="save it with its true (projected) CRS, e.g. as a GeoPackage, or convert it to "
                              "WGS84 lat/lon")
-    if target is not None and not CRS.from_user_input(gdf.crs).equals(target):
+    if target is not None and not parse_crs(gdf.crs).equals(target):
         log.info("area of interest %s is in %s: reprojected to the project's %s", path.name, gdf.crs.name,
                  target.name)
         gdf = gdf.to_crs(target)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param
 
 
@@ -38,4 +39,8 @@ class MinImgFinderConfig:
                                                                  "copy, link (hard link, no extra space), or none "
                                                                  "(only list them)",
                                                          choices=["copy", "link", "none"])
+    vector_formats: list[str] = param(["gpkg"], "GIS files of the footprints, owned areas, AOI and uncovered "
+                                                "parts: gpkg (footprints.gpkg, a layer each), shp or geojson "
+                                                "(footprints.<ext> and footprints_<layer>.<ext>)",
+                                      choices=VECTOR_FORMATS)
     output_dir: Path = param(Path("runs/min_img_finder"), "folder for the outputs", path="out")

@@ -1,7 +1,8 @@
 """Step 3's outputs: what the annotator (step 4) and the user get from a selection.
 
 ``selected_images.csv``, the selected images (copied, hard-linked or only listed), ``owned_areas.json``
-(the shared format of :mod:`matchplant.core.formats.owned_areas`), ``footprints.gpkg`` for GIS, ``coverage.png``
+(the shared format of :mod:`matchplant.core.formats.owned_areas`), ``footprints.gpkg`` for GIS (the formats of
+``vector_formats``), ``coverage.png``
 and ``selection.json`` (settings and results, so a run can be traced). The coverage map is drawn by
 :func:`draw_coverage`, shared by the figure and the GUI. ``finder`` below is a loaded
 :class:`~matchplant.min_img_finder.run.MinImageFinder` and ``result`` its
@@ -25,6 +26,7 @@ from matplotlib.path import Path as MPath
 from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.formats.owned_areas import write_owned_areas
+from matchplant.core.formats.vectors import write_formats
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
 from matchplant.core.runtime.log import get_logger
@@ -68,7 +70,7 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
     paths["csv"] = out / "selected_images.csv"
     write_owned_areas(out / "owned_areas.json", {fp.file.name: result.owned_pixels[fp.name] for fp in sel})
     paths["owned_areas"] = out / "owned_areas.json"
-    paths["gpkg"] = write_geopackage(finder, result, out / "footprints.gpkg")
+    paths.update(write_vectors(finder, result, out / "footprints", cfg.vector_formats))
     paths["figure"] = coverage_figure(finder, result, out / "coverage.png")
     s = result.selection
     write_json(out / "selection.json", {
@@ -111,8 +113,9 @@ def place_image(src: Path, dst: Path, mode: str) -> None:
         shutil.copy2(src, tmp)
 
 
-def write_geopackage(finder, result, path: Path) -> Path:
-    """Footprints, owned areas, AOI and uncovered parts as layers, to check a selection in a GIS."""
+def write_vectors(finder, result, base: Path, formats) -> dict[str, Path]:
+    """Footprints, owned areas, AOI and uncovered parts as layers in each of ``formats`` (``base.gpkg``, ...),
+    to check a selection in a GIS."""
     crs = finder.frame.crs
     order = {i: k for k, i in enumerate(result.selection.indices, start=1)}
     fps = gpd.GeoDataFrame({"image": finder.names,
@@ -127,10 +130,7 @@ def write_geopackage(finder, result, path: Path) -> Path:
                              geometry=[_multi(result.owned[f.name]) for f in sel], crs=crs)
     aoi = gpd.GeoDataFrame({"area_m2": [finder.aoi.area]}, geometry=[_multi(finder.aoi)], crs=crs)
     unc = gpd.GeoDataFrame({"area_m2": [result.uncovered.area]}, geometry=[_multi(result.uncovered)], crs=crs)
-    with atomic_path(path) as tmp:
-        for name, gdf in (("footprints", fps), ("owned", owned), ("aoi", aoi), ("uncovered", unc)):
-            gdf.to_file(tmp, layer=name, driver="GPKG")
-    return path
+    return write_formats({"footprints": fps, "owned": owned, "aoi": aoi, "uncovered": unc}, base, formats)
 
 
 def _multi(geom):

@@ -46,11 +46,11 @@ from typing import Sequence
 
 import numpy as np
 import shapely
-from pyproj import CRS
 from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.formats.footprints import Footprint, compute_footprints, open_dsm, polygon_to_pixels
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.log import get_logger
@@ -201,7 +201,7 @@ class MinImageFinder:
 
 def _same_crs(a, b) -> bool:
     try:
-        return CRS.from_user_input(a) == CRS.from_user_input(b)
+        return parse_crs(a) == parse_crs(b)
     except Exception:  # noqa: BLE001 - undecidable: do not block the run
         return True
 

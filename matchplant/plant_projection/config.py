@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
 
@@ -34,6 +35,7 @@ class PlantProjectionConfig:
     """Project detected plant boxes from the photos onto the map through the camera poses and the DSM."""
 
     outputs_inside_inputs = ("project",)  # the project is read by fixed names: <project>/plants is fine
+    renamed_keys = {"write_shapefile": ("vector_formats", "[gpkg, shp] for write_shapefile: true, [gpkg] for false")}
 
     mode: Literal["project", "evaluate", "both"] = param(
         "project", "project: boxes to map plants; evaluate: compare plants with reference boxes; both: one then the other",
@@ -81,7 +83,10 @@ class PlantProjectionConfig:
         "outline", "the plants' geometry: the projected outline (follows the relief) or the axis-aligned box",
         choices=("outline", "box"))
     layer: str = param("plants", "layer name in the GeoPackage")
-    write_shapefile: bool = param(False, "also write plants.shp (for older GIS tools)")
+    vector_formats: list[str] = param(["gpkg"], "vector files of the plants: gpkg (plants.gpkg, what module 9 "
+                                                "reads), shp (plants.shp, for older GIS tools, short column "
+                                                "names), geojson; plants.csv is always written",
+                                      choices=VECTOR_FORMATS)
     write_views: bool = param(True, "also write views.csv: every projected box with the plant it was merged into")
     output_dir: Path = param(Path("runs/plant_projection"), "folder for the outputs and the run log", path="out")
     evaluate: EvaluateConfig = section(EvaluateConfig)

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import rasterio
-from pyproj import CRS
 
-from matchplant.core.geometry.frames import Frame
+from matchplant.core.geometry.frames import Frame, parse_crs
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import Surface
 from matchplant.core.runtime.errors import InputError
@@ -75,7 +74,7 @@ class DsmSurfaces:
         with rasterio.open(self.path) as src:
             res = min(abs(src.transform.a), abs(src.transform.e))
             dsm_crs = src.crs
-        if dsm_crs is not None and self.crs is not None and not CRS.from_user_input(dsm_crs).equals(self.crs):
+        if dsm_crs is not None and self.crs is not None and not parse_crs(dsm_crs).equals(self.crs):
             raise InputError(f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}", path=self.path,
                              fix="use the DSM of this ODM project (or reproject it to the project's CRS)")
         if self._whole is not None:

@@ -67,7 +67,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
         raise nothing_projected(failed, cfg, project, report)
     plants = merge_views(views, merge=cfg.merge, merge_iou=cfg.merge_iou)
     geometry = "box" if cfg.merge == "fuse" else cfg.geometry  # fused boxes have no single outline
-    written = write_plants(plants, views, dest, layer=cfg.layer, geometry=geometry, shapefile=cfg.write_shapefile)
+    written = write_plants(plants, views, dest, layer=cfg.layer, geometry=geometry, vector_formats=cfg.vector_formats)
     written["unprojected"] = write_table(failed, dest / "unprojected_boxes.csv")
     if cfg.write_views:
         written["views"] = write_table(views.table, dest / "views.csv")
@@ -94,7 +94,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
                     written["unprojected"])
     if low.any():
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
-    log.info("plants: %s and %s", written["gpkg"], written["csv"])
+    log.info("plants: %s", " and ".join(str(written[k]) for k in (*cfg.vector_formats, "csv")))
     return summary
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.spatial_stat_extractor.indices import RGB_INDICES
@@ -154,12 +155,14 @@ class CanopyConfig:
 class SpatialStatExtractorConfig:
     """Module 9: plant polygons to GIS files, and per-plant statistics (height, NDVI, any band) from rasters."""
 
+    renamed_keys = {"write_polygons": ("vector_formats", "[gpkg, shp] for write_polygons: true, [] for false")}
+
     polygons: Path = param(None, "plant polygons: module 8's plants.gpkg or plants.csv, a shapefile, GeoJSON, or a "
                                  "CSV with a WKT 'geometry' column or xmin,ymin,xmax,ymax", path="file", required=True)
     id_column: str = param("auto", "column holding the plant id ('auto': plant_id, id or fid; else numbered from 1)")
     layer: str = param("", "layer of a GeoPackage ('' = the first)")
-    polygons_crs: str = param("", "CRS of the polygons when the file has none (a CSV), e.g. EPSG:32615; '' = from "
-                                  "projection_summary.json beside a module-8 CSV, else the raster's CRS")
+    polygons_crs: str = param("", "CRS of the polygons when the file has none (a CSV), e.g. EPSG:32615; '' = the "
+                                  "CSV's 'crs' column (module 8 writes one), else the raster's CRS")
     rasters: RasterSet = section(RasterSet)
     more_dates: list[RasterSet] = param([], "rasters of further dates for the same polygons: a list of sections "
                                             "like 'rasters' (each with its own date)")
@@ -173,7 +176,10 @@ class SpatialStatExtractorConfig:
                                        "elevation rasters are always masked)")
     layout: str = param("wide", "several dates: 'wide' = one row per plant, columns <trait>_<stat>_<date>; "
                                 "'long' = one row per plant and date", choices=("wide", "long"))
-    write_polygons: bool = param(True, "write the polygons as polygons.gpkg and polygons.shp (with their CRS)")
+    vector_formats: list[str] = param(["gpkg", "shp"], "write the polygons (with their CRS) as polygons.gpkg, "
+                                                       "polygons.shp (only plant_id) and/or polygons.geojson; "
+                                                       "[] = none (stats.gpkg is always written)",
+                                      choices=VECTOR_FORMATS)
     compare: CompareConfig = section(CompareConfig)
     canopy: CanopyConfig = section(CanopyConfig)
     plots: PlotsConfig = section(PlotsConfig)

@@ -6,7 +6,8 @@ and the rasters of one or more dates: a canopy height model (CHM), or a DSM and 
 computed window by window), a multispectral raster with its red and near-infrared band numbers (NDVI
 computed), and any single bands.
 
-Outputs in ``output_dir``: ``polygons.gpkg`` and ``polygons.shp`` (with their CRS), ``stats.csv`` and
+Outputs in ``output_dir``: the polygons as ``polygons.gpkg`` and ``polygons.shp`` (with their CRS; the
+formats of ``vector_formats``), ``stats.csv`` and
 ``stats.gpkg`` keyed by ``plant_id`` (wide: one row per plant, columns ``<trait>_<stat>[_<date>]``;
 long: one row per plant and date), ``stats_report.json`` (reprojections, plants outside a raster,
 plants with only nodata), and with ``compare.polygons`` set, a comparison of two plant sets
@@ -28,9 +29,6 @@ Library use::
 from __future__ import annotations
 
 import contextlib
-import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -40,8 +38,9 @@ import pandas as pd
 import rasterio
 import shapely
 
+from matchplant.core.formats.vectors import write_formats, write_vector
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
+from matchplant.core.runtime.io import atomic_open, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.config import RasterSet
@@ -50,8 +49,7 @@ from matchplant.spatial_stat_extractor.rasters import open_layer
 from matchplant.spatial_stat_extractor.zonal import DEFAULT_STATS, zonal_stats
 
 # the library's face (see the module doc): polygons in, statistics out
-__all__ = ["RasterSet", "read_polygons", "extract_stats", "write_outputs", "write_csv", "write_gpkg",
-           "write_shapefile"]
+__all__ = ["RasterSet", "read_polygons", "extract_stats", "write_outputs", "write_csv"]
 
 log = get_logger("spatial_stat_extractor")
 
@@ -176,27 +174,6 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
 # outputs
 
 
-def write_shapefile(gdf, path: Path) -> Path:
-    """A shapefile is several files: written in a temporary folder, then each moved into place.
-    Only ``plant_id`` is kept (shapefile column names are limited to 10 characters)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".shp_", dir=path.parent))
-    try:
-        gdf[["plant_id", gdf.geometry.name]].to_file(tmp / path.name, driver="ESRI Shapefile")
-        for f in tmp.iterdir():
-            os.replace(f, path.parent / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return path
-
-
-def write_gpkg(gdf, path: Path, layer: str) -> Path:
-    with atomic_path(path) as tmp:
-        gdf.to_file(tmp, layer=layer, driver="GPKG")
-    return Path(path)
-
-
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
     with atomic_open(path) as fh:
         df.to_csv(fh, index=False, float_format="%.12g")
@@ -204,16 +181,15 @@ def write_csv(df: pd.DataFrame, path: Path) -> Path:
 
 
 def write_outputs(polygons, table: pd.DataFrame, report: dict, out_dir: Path, *,
-                  write_polygons: bool = True) -> dict[str, Path]:
-    """polygons.gpkg/.shp, stats.csv, stats.gpkg (polygons + statistics) and stats_report.json."""
+                  vector_formats: Sequence[str] = ("gpkg", "shp")) -> dict[str, Path]:
+    """The polygons in each of ``vector_formats`` (``polygons.gpkg``, ``.shp`` with only ``plant_id``,
+    ``.geojson``), stats.csv, stats.gpkg (polygons + statistics) and stats_report.json."""
     out_dir = Path(out_dir)
-    written: dict[str, Path] = {}
-    if write_polygons:
-        written["polygons_gpkg"] = write_gpkg(polygons, out_dir / "polygons.gpkg", "plants")
-        written["polygons_shp"] = write_shapefile(polygons, out_dir / "polygons.shp")
+    formats = write_formats({"plants": polygons}, out_dir / "polygons", vector_formats, shapefile_columns=["plant_id"])
+    written: dict[str, Path] = {f"polygons_{fmt}": path for fmt, path in formats.items()}
     written["stats_csv"] = write_csv(table, out_dir / "stats.csv")
     geom = polygons.set_index("plant_id").geometry
     stats_gdf = gpd.GeoDataFrame(table.copy(), geometry=geom.reindex(table["plant_id"]).values, crs=polygons.crs)
-    written["stats_gpkg"] = write_gpkg(stats_gdf, out_dir / "stats.gpkg", "stats")
+    written["stats_gpkg"] = write_vector(stats_gdf, out_dir / "stats.gpkg", layer="stats")
     written["report"] = write_json(out_dir / "stats_report.json", report)
     return written

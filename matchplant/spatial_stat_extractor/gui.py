@@ -296,8 +296,8 @@ class SpatialStatExtractorGUI:
             self.bar.set_color("#2e7d32")
             polygons, table, written = self.result
             self._show_result(polygons, table)
-            self.set_status(f"done: {len(table)} rows -> {written['stats_csv']} (and stats.gpkg"
-                            f"{', polygons.gpkg, polygons.shp' if 'polygons_gpkg' in written else ''})")
+            polygon_files = "".join(f", {p.name}" for k, p in written.items() if k.startswith("polygons_"))
+            self.set_status(f"done: {len(table)} rows -> {written['stats_csv']} (and stats.gpkg{polygon_files})")
 
     def _show_result(self, polygons, table) -> None:
         """Colour the plants by their first statistic (e.g. chm_max) on the preview."""

@@ -34,11 +34,12 @@ import numpy as np
 import pandas as pd
 import shapely
 
+from matchplant.core.formats.vectors import write_vector
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.gui import close, figure
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.extract import write_csv, write_gpkg
+from matchplant.spatial_stat_extractor.extract import write_csv
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.polygons import read_polygons
 
@@ -247,7 +248,7 @@ def run_plots(cfg: PlotsConfig, table: pd.DataFrame, unclaimed: pd.DataFrame | N
     col = f"{trait}_mean" if f"{trait}_mean" in gdf.columns else ("stand_count" if not trait else trait)
     log.info("%d plots: %d plants in plots, %d gaps", len(per_plot), int(per_plot["stand_count"].fillna(0).sum()),
              len(gaps))
-    return {"plots_gpkg": write_gpkg(gdf, out / "plots.gpkg", "plots"),
+    return {"plots_gpkg": write_vector(gdf, out / "plots.gpkg", layer="plots"),
             "plots_csv": write_csv(per_plot, out / "plots.csv"),
             "plot_gaps_csv": write_csv(gaps, out / "plot_gaps.csv"),
             "plots_figure": field_figure(gdf, _plant_points(table), gaps, col, out / "plots.png")}

@@ -1,6 +1,7 @@
 """Module 9's plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each.
 
-A module-8 CSV carries no CRS; it is taken from the ``projection_summary.json`` written beside it.
+A module-8 CSV carries its CRS in a last column ``crs`` (e.g. ``EPSG:32615``, the same on every row); a CSV
+without one needs ``polygons_crs`` (else the rasters' CRS is assumed, with a warning).
 """
 
 from __future__ import annotations
@@ -11,11 +12,8 @@ import geopandas as gpd
 import numpy as np
 import pandas as pd
 import shapely
-from pyproj import CRS
-from pyproj.exceptions import CRSError
-
-from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.io import read_json
+from matchplant.core.geometry.frames import parse_crs
+from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import check_vector, did_you_mean
 
@@ -47,9 +45,9 @@ def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", cr
         crs_source = "the polygon file" if gdf.crs is not None else None
         if crs:
             if gdf.crs is None:
-                gdf = gdf.set_crs(_parse_crs(crs, "polygons_crs"))
+                gdf = gdf.set_crs(parse_crs(crs, key="polygons_crs"))
                 crs_source = "polygons_crs"
-            elif not gdf.crs.equals(_parse_crs(crs, "polygons_crs")):
+            elif not gdf.crs.equals(parse_crs(crs, key="polygons_crs")):
                 log.warning("polygons_crs=%s ignored: %s declares %s", crs, path.name, gdf.crs.to_string())
     if len(gdf) == 0:
         raise InputError("the polygon file holds no features", path=path, fix="check that it is the right file")
@@ -77,8 +75,8 @@ def with_crs(gdf, crs, source: str | Path | None):
         return gdf
     path = gdf.attrs.get("source")
     if crs is None:
-        raise InputError("the polygons have no CRS, and neither polygons_crs, a projection_summary.json beside "
-                         "them, nor the rasters give one", path=path,
+        raise InputError("the polygons have no CRS, and neither polygons_crs, a 'crs' column, nor the rasters "
+                         "give one", path=path,
                          fix="set polygons_crs to the CRS of the coordinates (e.g. EPSG:32615, your UTM zone)")
     log.warning("%s has no CRS; using %s of the raster %s (set polygons_crs if that is wrong)",
                 Path(path).name if path else "the polygons", crs.to_string(), source)
@@ -115,12 +113,17 @@ def _numbers(col: pd.Series, name: str, path: Path) -> np.ndarray:
     return values
 
 
-def _parse_crs(text: str, key: str):
-    try:
-        return CRS.from_user_input(text)
-    except CRSError as exc:
-        raise ConfigError(f"'{key}' = {text!r} is not a CRS pyproj knows",
-                          fix="write it as EPSG:32615 (your UTM zone)") from exc
+def _crs_column(df: pd.DataFrame, path: Path) -> str:
+    """The CRS in a ``crs`` column (module 8 writes one in plants.csv, the same on every row), taken out of the
+    table; '' when there is none."""
+    if "crs" not in df.columns:
+        return ""
+    values = [v for v in df.pop("crs").dropna().astype(str).str.strip().unique() if v]
+    if len(values) > 1:
+        raise InputError(f"column 'crs' holds several CRSs ({', '.join(values[:3])})", path=path,
+                         fix="give every plant in one CRS (reproject in a GIS), or remove the column and set "
+                             "polygons_crs")
+    return values[0] if values else ""
 
 
 def _read_polygon_csv(path: Path, crs: str):
@@ -150,14 +153,14 @@ def _read_polygon_csv(path: Path, crs: str):
         raise InputError(f"the CSV has neither a WKT geometry column nor {','.join(BOX_COLUMNS)}; "
                          f"columns: {list(df.columns)}", path=path,
                          fix="add a 'geometry' column (WKT) or box columns xmin,ymin,xmax,ymax")
-    source = "polygons_crs" if crs else None
-    if not crs:
-        summary = path.parent / "projection_summary.json"  # module 8 writes its CRS there
-        if summary.is_file():
-            crs = read_json(summary).get("crs") or ""
-            if crs:
-                source = str(summary)
-                log.info("polygon CRS %s taken from %s", crs, summary.name)
-    gdf = gpd.GeoDataFrame(df, geometry=geom, crs=_parse_crs(crs, "polygons_crs") if crs else None)
+    own = _crs_column(df, path)
+    if crs:
+        the_crs, source = parse_crs(crs, key="polygons_crs"), "polygons_crs"
+    elif own:
+        the_crs, source = parse_crs(own, source=path), f"the 'crs' column of {path}"
+        log.info("polygon CRS %s taken from the 'crs' column of %s", own, path.name)
+    else:
+        the_crs = source = None
+    gdf = gpd.GeoDataFrame(df, geometry=geom, crs=the_crs)
     gdf.attrs["crs_source"] = source
     return gdf

@@ -16,7 +16,8 @@ from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_gpkg, write_outputs
+from matchplant.core.formats.vectors import write_vector
+from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_outputs
 from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.rasters import raster_crs
@@ -46,9 +47,9 @@ def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[fl
         table = merge_columns(table, per_date, cfg.layout, len(sets))
     if on_progress is not None:
         on_progress(1.0, "writing files")
-    written = write_outputs(polygons, table, report, out, write_polygons=cfg.write_polygons)
+    written = write_outputs(polygons, table, report, out, vector_formats=cfg.vector_formats)
     if outlines is not None:
-        written["outlines_gpkg"] = write_gpkg(outlines, out / "outlines.gpkg", "outlines")
+        written["outlines_gpkg"] = write_vector(outlines, out / "outlines.gpkg", layer="outlines")
         written["outlines_csv"] = write_csv(pd.DataFrame(outlines.drop(columns="geometry")), out / "outlines.csv")
         written["unclaimed_csv"] = write_csv(unclaimed, out / "unclaimed_canopies.csv")
     if plots_wanted(cfg.plots):

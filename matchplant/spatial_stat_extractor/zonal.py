@@ -22,8 +22,9 @@ from typing import Callable, Iterable, Sequence
 import numba
 import numpy as np
 import shapely
-from pyproj import CRS
 from rasterio.windows import Window
+
+from matchplant.core.geometry.frames import parse_crs
 
 BASIC_STATS = ("count", "min", "max", "mean", "median", "std", "sum", "nodata")
 DEFAULT_STATS = ("count", "min", "max", "mean", "median", "std", "sum")
@@ -61,9 +62,7 @@ class ArraySource:
 
 def pyproj_crs(crs):
     """A rasterio CRS as a pyproj CRS (what GeoPandas uses), None stays None."""
-    if crs is None:
-        return None
-    return CRS.from_user_input(crs.to_wkt() if hasattr(crs, "to_wkt") else crs)
+    return None if crs is None else parse_crs(crs)
 
 
 class RasterFileSource:

@@ -2,7 +2,7 @@
 truncated or of another field, polygons without a CRS anywhere, in another CRS or far from the rasters, band
 numbers beyond the raster, an unknown GeoPackage layer, an empty polygon file, and inputs that must work
 (a DTM on another grid, CSV polygons with BOM/CRLF, non-ASCII paths, CSV polygons whose CRS comes from the
-raster or from module 8's projection_summary.json)."""
+raster or from the 'crs' column of module 8's plants.csv)."""
 
 from __future__ import annotations
 
@@ -60,8 +60,14 @@ def chm_all_nan(w: Work) -> list[str]:
 
 
 def csv_alone(w: Work, name: str = "plants.csv") -> Path:
-    """Module 8's plants.csv copied without its projection_summary.json."""
-    return w.copy("plants/plants.csv", name)
+    """A hand-made CSV: module 8's plants.csv without its 'crs' column."""
+    path = w.copy("plants/plants.csv", name)
+    table = rows(path)
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        out = csv.DictWriter(fh, fieldnames=[k for k in table[0] if k != "crs"], extrasaction="ignore")
+        out.writeheader()
+        out.writerows(table)
+    return path
 
 
 def csv_no_crs_anywhere(w: Work) -> list[str]:
@@ -167,10 +173,9 @@ def csv_box_blank(w: Work) -> list[str]:
     return args(w, path, f"polygons_crs={plant_crs(w).to_string()}")
 
 
-def csv_with_summary(w: Work) -> list[str]:
-    path = csv_alone(w)
-    w.copy("plants/projection_summary.json")
-    return args(w, path)
+def csv_with_crs(w: Work) -> list[str]:
+    """Module 8's plants.csv alone (no projection_summary.json beside it): its 'crs' column places it."""
+    return args(w, w.copy("plants/plants.csv"))
 
 
 # -- checks --------------------------------------------------------------------------------------------------
@@ -281,8 +286,8 @@ CASES = [
          check=lambda w: heights_right(w, tol=1e-6, crs="EPSG:4326")),
     Case("m9-csv-polygons-crs-from-raster", "spatial_stat_extractor", lambda w: args(w, csv_alone(w)),
          expect="ok", check=crs_from("dsm.tif")),
-    Case("m9-csv-polygons-crs-from-summary", "spatial_stat_extractor", csv_with_summary, expect="ok",
-         check=crs_from("projection_summary.json")),
+    Case("m9-csv-polygons-crs-from-column", "spatial_stat_extractor", csv_with_crs, expect="ok",
+         check=crs_from("'crs' column of")),
     Case("m9-csv-polygons-bom-crlf", "spatial_stat_extractor", bom_crlf_csv, expect="ok",
          check=crs_from("polygons_crs")),
     Case("m9-unicode-space-paths", "spatial_stat_extractor", unicode_paths, expect="ok", check=unicode_ok),

@@ -19,16 +19,24 @@ import numpy as np
 from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
-from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import write_text
 from matchplant.core.runtime.validate import read_text
 
 _UTM_TEXT = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
 
-def parse_crs(text: str, *, source: str | Path | None = None) -> CRS:
-    """A CRS from ``EPSG:32615``, ``WGS84 UTM 15N`` (ODM's coords.txt), a PROJ string or WKT."""
-    text = str(text).strip()
+def parse_crs(crs, *, source: str | Path | None = None, key: str | None = None) -> CRS:
+    """The one way a CRS is read: from text (``EPSG:32615``, ``WGS84 UTM 15N`` as in ODM's coords.txt, an EPSG
+    number, a PROJ string or WKT) or from a file's CRS object (pyproj's as it is, rasterio's through its WKT).
+
+    Text that is no CRS is an InputError naming ``source``; with ``key`` (text from that config key) a
+    ConfigError naming the key."""
+    if isinstance(crs, CRS):
+        return crs
+    if hasattr(crs, "to_wkt"):
+        return CRS.from_user_input(crs.to_wkt())
+    text = str(crs).strip()
     m = _UTM_TEXT.match(text)
     try:
         if m:
@@ -38,8 +46,11 @@ def parse_crs(text: str, *, source: str | Path | None = None) -> CRS:
             return CRS.from_epsg(int(text))
         return CRS.from_user_input(text)
     except CRSError as exc:
-        raise InputError(f"unrecognised coordinate reference system {text!r}", path=source,
-                         fix="use an EPSG code such as EPSG:32615, 'WGS84 UTM 15N' or a PROJ string") from exc
+        problem = f"unrecognised coordinate reference system {text!r}"
+        fix = "use an EPSG code such as EPSG:32615, 'WGS84 UTM 15N' or a PROJ string"
+        if key is not None:
+            raise ConfigError(f"config key '{key}': {problem}", path=source, fix=fix) from None
+        raise InputError(problem, path=source, fix=fix) from exc
 
 
 def utm_crs_for(lon: float, lat: float) -> CRS:

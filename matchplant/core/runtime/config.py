@@ -135,7 +135,7 @@ def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", b
         prefix = ".".join(parts[:i])
         names = {f.name: f for f in fields(target)}
         if part not in names:
-            raise _unknown_key(part, names, prefix, source)
+            raise _unknown_key(part, names, prefix, source, type(target))
         if i < len(parts) - 1:
             target = getattr(target, part)
             if not is_dataclass(target):
@@ -145,8 +145,16 @@ def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", b
             setattr(target, part, _coerce(value, hints[part], dotted_key, source, base or Path.cwd()))
 
 
-def _unknown_key(key: str, names: typing.Iterable[str], prefix: str, source: str) -> ConfigError:
+def _unknown_key(key: str, names: typing.Iterable[str], prefix: str, source: str, cls: type) -> ConfigError:
+    """An unknown key: a key the class renamed (its ``renamed_keys``: old -> (new, how to convert)) names its
+    successor, any other the closest valid key."""
     full = f"{prefix}.{key}" if prefix else key
+    renamed = getattr(cls, "renamed_keys", {})
+    if key in renamed:
+        new, how = renamed[key]
+        new = f"{prefix}.{new}" if prefix else new
+        return ConfigError(f"config key '{full}' ({source}) was replaced by '{new}'",
+                           fix=f"write {new}: {how}")
     close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
     hint = f"did you mean '{(prefix + '.') if prefix else ''}{close[0]}'?" if close else \
         f"valid keys here: {', '.join(sorted(names))}"
@@ -165,7 +173,7 @@ def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> An
     hints = get_type_hints(cls)
     for key in data:
         if key not in names:
-            raise _unknown_key(str(key), names, prefix, source)
+            raise _unknown_key(str(key), names, prefix, source, cls)
     kwargs = {}
     for name, value in data.items():
         key = f"{prefix}.{name}" if prefix else str(name)
