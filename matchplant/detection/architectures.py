@@ -84,7 +84,7 @@ class Architecture:
     anchor_free: bool = False           # FCOS: one size per level, which sets the object sizes it learns
     frozen_backbone_norms: bool = True  # torchvision freezes a pretrained backbone's batch norms (not v2)
     head_norm_groups: int | None = None  # GroupNorm groups of a rebuilt RetinaNet head (v2)
-    cpu_seconds_per_megapixel: float | None = None  # measured, see matchplant.detection.device
+    cpu_seconds_per_megapixel: float | None = None  # measured (see ARCHITECTURES); None: not measured
 
     def __post_init__(self) -> None:
         assert len(self.default_anchors) == self.anchors.levels, self.name
@@ -98,26 +98,28 @@ _RESNET_LEVELS = ((32,), (64,), (128,), (256,), (512,))
 _RETINANET_ANCHORS = tuple(_octaves(x) for x in (32, 64, 128, 256, 512))
 _ONE_PER_LEVEL, _OCTAVES = AnchorRule(5, 1), AnchorRule(5, 3)
 
-# CPU seconds per megapixel for one forward pass (detection), measured on this project's 2-core machine
-# (`python -m matchplant.detection.device --measure`, README "How long will it take?"), while other jobs
-# shared the machine: pessimistic; an idle machine is faster
+# cpu_seconds_per_megapixel: one forward pass (detection), measured on this project's 2-core machine
+# (`python -m matchplant.detection.device --measure`, README "How long will it take?") while other jobs
+# shared it: pessimistic; an idle machine is faster. RetinaNet and FCOS were not measured.
 ARCHITECTURES: dict[str, Architecture] = {a.name: a for a in (
     Architecture("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn", "FasterRCNN_ResNet50_FPN_Weights.COCO_V1",
-                 RESNET50, True, _ONE_PER_LEVEL, _RESNET_LEVELS, cpu_seconds_per_megapixel=15.2),
+                 RESNET50, two_stage=True, anchors=_ONE_PER_LEVEL, default_anchors=_RESNET_LEVELS,
+                 cpu_seconds_per_megapixel=15.2),
     Architecture("fasterrcnn_resnet50_fpn_v2", "fasterrcnn_resnet50_fpn_v2",
-                 "FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, True, _ONE_PER_LEVEL, _RESNET_LEVELS,
-                 frozen_backbone_norms=False, cpu_seconds_per_megapixel=28.2),
+                 "FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, two_stage=True, anchors=_ONE_PER_LEVEL,
+                 default_anchors=_RESNET_LEVELS, frozen_backbone_norms=False, cpu_seconds_per_megapixel=28.2),
     Architecture("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_mobilenet_v3_large_fpn",
-                 "FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1", MOBILENET_V3_LARGE, True,
-                 AnchorRule(3, 3, same_sizes_everywhere=True), ((32, 64, 128, 256, 512),) * 3,
-                 cpu_seconds_per_megapixel=9.2),
+                 "FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1", MOBILENET_V3_LARGE, two_stage=True,
+                 anchors=AnchorRule(3, 3, same_sizes_everywhere=True),
+                 default_anchors=((32, 64, 128, 256, 512),) * 3, cpu_seconds_per_megapixel=9.2),
     Architecture("retinanet_resnet50_fpn", "retinanet_resnet50_fpn", "RetinaNet_ResNet50_FPN_Weights.COCO_V1",
-                 RESNET50, False, _OCTAVES, _RETINANET_ANCHORS),
+                 RESNET50, two_stage=False, anchors=_OCTAVES, default_anchors=_RETINANET_ANCHORS),
     Architecture("retinanet_resnet50_fpn_v2", "retinanet_resnet50_fpn_v2",
-                 "RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, False, _OCTAVES, _RETINANET_ANCHORS,
-                 frozen_backbone_norms=False, head_norm_groups=32),
-    Architecture("fcos_resnet50_fpn", "fcos_resnet50_fpn", "FCOS_ResNet50_FPN_Weights.COCO_V1", RESNET50, False,
-                 _ONE_PER_LEVEL, ((8,), (16,), (32,), (64,), (128,)), anchor_free=True),
+                 "RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, two_stage=False, anchors=_OCTAVES,
+                 default_anchors=_RETINANET_ANCHORS, frozen_backbone_norms=False, head_norm_groups=32),
+    Architecture("fcos_resnet50_fpn", "fcos_resnet50_fpn", "FCOS_ResNet50_FPN_Weights.COCO_V1", RESNET50,
+                 two_stage=False, anchors=_ONE_PER_LEVEL, default_anchors=((8,), (16,), (32,), (64,), (128,)),
+                 anchor_free=True),
 )}
 
 
