@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from matchplant.core.runtime.config import load_config
+from matchplant.detection.architectures import get_architecture
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset
 from matchplant.detection.model import load_detector, set_score_threshold
@@ -70,9 +71,8 @@ def anchors_for_40px_on_512px() -> dict:
     w, h = rng.normal(40, 6, 2000), rng.normal(40, 6, 2000)
     lo, hi = np.percentile(np.sqrt(w * h), [1, 99])
     out = {}
-    for arch, levels, per in (("fasterrcnn_resnet50_fpn", 5, 1), ("fasterrcnn_mobilenet_v3_large_fpn", 3, 3),
-                              ("retinanet_resnet50_fpn", 5, 3)):
-        sizes = auto_anchor_sizes(w, h, arch, levels, per)
+    for arch in ("fasterrcnn_resnet50_fpn", "fasterrcnn_mobilenet_v3_large_fpn", "retinanet_resnet50_fpn"):
+        sizes = auto_anchor_sizes(w, h, get_architecture(arch).anchors)
         flat = np.array(sorted({s for level in sizes for s in level}), float)
         worst = min((np.minimum(s, flat) ** 2 / np.maximum(s, flat) ** 2).max() for s in np.linspace(lo, hi, 50))
         out[arch] = {"anchor_sizes": sizes, "objects_p1_p99_px": [round(lo, 1), round(hi, 1)],

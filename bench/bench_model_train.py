@@ -31,6 +31,7 @@ import torch
 
 from matchplant.core.formats.images import read_rgb8
 from matchplant.core.runtime.config import load_config
+from matchplant.detection.architectures import get_architecture
 from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector, load_detector
@@ -45,7 +46,7 @@ def train_settings(work: Path, train_json: Path, arch: str, size: int, net: int,
                    device: str) -> list[str]:
     """The benchmark's training settings (small anchors for small synthetic plants, no checkpoints kept)."""
     anchors = [int(net / 8), int(net / 4), int(net / 2)]
-    levels = 3 if "mobilenet" in arch else 5
+    levels = get_architecture(arch).anchors.levels
     return [f"train_json={train_json}", f"output_dir={work / 'run'}",
             f"model.architecture={arch}", "model.pretrained=none", f"model.min_size={net}", f"model.max_size={net}",
             f"model.anchor_sizes={json.dumps([anchors] * levels)}", "model.roi.batch_size_per_image=128",
@@ -181,7 +182,7 @@ def main() -> None:
                           name="val.json")
     net = int(round(s * args.scale))  # anchors are in the network's (resized) pixels
     anchors = [int(net / 8), int(net / 4), int(net / 2)]
-    levels = 3 if "mobilenet" in args.arch else 5
+    levels = get_architecture(args.arch).anchors.levels
     settings = [f"train_json={train_json}", f"val_json={val_json}", f"output_dir={work / 'run'}",
                 f"model.architecture={args.arch}", "model.pretrained=none", f"model.min_size={net}", f"model.max_size={net}",
                 f"model.anchor_sizes={json.dumps([anchors] * levels)}", "model.roi.batch_size_per_image=128",

@@ -480,12 +480,13 @@ def test_slow_cpu_work_is_announced():
 
     import torch
 
-    from matchplant.detection.device import CPU_SECONDS_PER_MEGAPIXEL, warn_if_slow
+    from matchplant.detection.architectures import get_architecture
+    from matchplant.detection.device import warn_if_slow
 
     with _Records("matchplant.device", logging.INFO) as rec:
         arch = "fasterrcnn_resnet50_fpn"
         est = warn_if_slow(torch.device("cpu"), arch, 1000, 5472, 3648)
-        assert est == pytest.approx(CPU_SECONDS_PER_MEGAPIXEL[arch] * 1000 * 5472 * 3648 / 1e6)
+        assert est == pytest.approx(get_architecture(arch).cpu_seconds_per_megapixel * 1000 * 5472 * 3648 / 1e6)
         assert warn_if_slow(torch.device("cpu"), arch, 2, 400, 300) < 600
         assert warn_if_slow(torch.device("cuda"), arch, 1000, 5472, 3648) is None
     warned = rec.messages(logging.WARNING)

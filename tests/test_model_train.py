@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 import time
@@ -15,6 +16,7 @@ import torch
 from matchplant.cli import build_parser
 from matchplant.core.runtime.config import field_help, load_config
 from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
+from matchplant.detection.architectures import ARCHITECTURES, get_architecture
 from matchplant.detection.data import AugmentConfig, CocoDetection
 from matchplant.detection.model import ModelConfig, apply_freezing, build_detector, load_detector, read_checkpoint
 from matchplant.detection.synth import make_tiles
@@ -149,6 +151,12 @@ def test_architectures_build_and_anchor_levels_checked():
         assert not any(p.requires_grad for p in m.rpn.parameters())
     with pytest.raises(ConfigError, match="FPN levels"):
         load_config(ModelConfig, None, ["architecture=fasterrcnn_resnet50_fpn", "anchor_sizes=[[16],[32],[64]]"])
+
+
+def test_architectures_are_looked_up_by_name_in_one_place():
+    assert all(get_architecture(name).name == name for name in ARCHITECTURES)
+    with pytest.raises(ConfigError, match="did you mean 'fasterrcnn_resnet50_fpn'"):
+        get_architecture("fasterrcnn_resnet50")
 
 
 def test_offline_weights_give_dependency_error(monkeypatch):
@@ -544,7 +552,7 @@ def test_lr_schedule_shortened_to_the_planned_epochs():
 def test_max_minutes_plans_the_epochs_that_fit_and_says_so(tiles, tmp_path, monkeypatch):
     """A 60 s epoch (a fake clock) and 3.5 minutes: 3 of 10 epochs fit, the step schedule (x0.1 every 5 of
     10 epochs) is shortened to 3 epochs so it still decays, and the summary says it stopped."""
-    train_mod = sys.modules["matchplant.model_train.run"]  # the module: the package exports run(), which shadows it
+    train_mod = importlib.import_module("matchplant.model_train.run")  # the package's ``run`` is the function
 
     class Clock:
         offset = 0.0

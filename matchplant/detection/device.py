@@ -4,7 +4,7 @@
 a CPU-only PyTorch build, no NVIDIA driver, a driver too old for this build, a GPU this build was not
 compiled for; MPS; CPU). :func:`warn_if_slow` estimates how long detection will take on the CPU from
 the number and size of the images and warns before a long run (the rates are measured, see the README's
-"How long will it take?").
+"How long will it take?"; each architecture's ``cpu_seconds_per_megapixel``).
 """
 
 from __future__ import annotations
@@ -15,16 +15,11 @@ import warnings
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
 from matchplant.detection.model import ModelConfig, build_detector
 
 DEVICE_CHOICES = ("auto", "cuda", "mps", "cpu")
 log = get_logger("device")
-
-# CPU seconds per megapixel for one forward pass (detection), measured on this project's 2-core machine
-# (`python -m matchplant.detection.device --measure`, README "How long will it take?").
-# (measured while other jobs shared the machine: pessimistic; an idle machine is faster)
-CPU_SECONDS_PER_MEGAPIXEL = {"fasterrcnn_resnet50_fpn": 15.2, "fasterrcnn_resnet50_fpn_v2": 28.2,
-                             "fasterrcnn_mobilenet_v3_large_fpn": 9.2}
 WARN_AFTER_S = 600.0
 
 
@@ -111,9 +106,16 @@ def select_device(preference: str = "auto"):
     return dev
 
 
+def _measured() -> list[Architecture]:
+    return [a for a in ARCHITECTURES.values() if a.cpu_seconds_per_megapixel is not None]
+
+
 def estimate_seconds(architecture: str, n_images: int, width: int, height: int) -> float:
-    """CPU seconds to detect on ``n_images`` of ``width`` x ``height`` pixels (measured rates)."""
-    rate = CPU_SECONDS_PER_MEGAPIXEL.get(architecture, max(CPU_SECONDS_PER_MEGAPIXEL.values()))
+    """CPU seconds to detect on ``n_images`` of ``width`` x ``height`` pixels (measured rates; an architecture
+    not measured is taken as slow as the slowest measured one)."""
+    rate = get_architecture(architecture).cpu_seconds_per_megapixel
+    if rate is None:
+        rate = max(a.cpu_seconds_per_megapixel for a in _measured())
     return rate * n_images * width * height / 1e6
 
 
@@ -128,7 +130,7 @@ def warn_if_slow(device, architecture: str, n_images: int, width: int, height: i
                     "measured on a 2-core machine). Use a CUDA GPU (device: auto picks it) if you have one, "
                     "or detect only on the images module 3 selected.",
                     _duration(seconds), n_images, width, height, architecture,
-                    CPU_SECONDS_PER_MEGAPIXEL.get(architecture, 0.0))
+                    get_architecture(architecture).cpu_seconds_per_megapixel or 0.0)
     return seconds
 
 
@@ -146,7 +148,7 @@ def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) ->
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     rates = {}
-    for arch in architectures or CPU_SECONDS_PER_MEGAPIXEL:
+    for arch in architectures or [a.name for a in _measured()]:
         model = build_detector(ModelConfig(architecture=arch, pretrained="none"), 2, load_weights=False).eval()
         image = torch.rand(3, tile, tile)
         best = float("inf")

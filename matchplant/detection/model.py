@@ -7,7 +7,8 @@ the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrc
 :class:`ModelConfig` is passed to the model (anchors, RPN and ROI sampling and thresholds, image size,
 detections per image); the RPN and ROI sampling settings concern Faster R-CNN only, ``roi.nms_thresh``
 and ``roi.detections_per_img`` every architecture. ``anchor_sizes: auto`` is computed from the training
-boxes (:func:`resolve_auto_anchors`, :mod:`matchplant.detection.objects`).
+boxes (:func:`resolve_auto_anchors`, :mod:`matchplant.detection.objects`). What differs between
+architectures is read from their records (:mod:`matchplant.detection.architectures`).
 
 One-stage models have no ``rpn`` and their ``head`` is the part called ``roi_heads`` (freezing, learning
 rates); they get a ``roi_heads.score_thresh`` too (:class:`ScoreThreshold`), so that code written for
@@ -36,30 +37,15 @@ from matchplant.core.runtime.config import from_dict, param, section, to_dict
 from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
 from matchplant.detection.objects import auto_anchor_sizes, box_sizes
 
 log = get_logger("detector")
 
-ARCHITECTURES = ("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn_v2", "fasterrcnn_mobilenet_v3_large_fpn",
-                 "retinanet_resnet50_fpn", "retinanet_resnet50_fpn_v2", "fcos_resnet50_fpn")
-ONE_STAGE = ("retinanet_resnet50_fpn", "retinanet_resnet50_fpn_v2", "fcos_resnet50_fpn")
 PRETRAINED = ("coco", "imagenet", "none")
 PARTS = ("backbone", "fpn", "rpn", "roi_heads")
 CHECKPOINT_FORMAT = "matchplant-detector"
 CHECKPOINT_VERSION = 1
-
-# the torchvision defaults of each architecture (FPN levels and anchors)
-DEFAULT_ANCHORS = {
-    "fasterrcnn_resnet50_fpn": [[32], [64], [128], [256], [512]],
-    "fasterrcnn_resnet50_fpn_v2": [[32], [64], [128], [256], [512]],
-    "fasterrcnn_mobilenet_v3_large_fpn": [[32, 64, 128, 256, 512]] * 3,
-    "retinanet_resnet50_fpn": [[x, int(x * 2 ** (1 / 3)), int(x * 2 ** (2 / 3))] for x in (32, 64, 128, 256, 512)],
-    "retinanet_resnet50_fpn_v2": [[x, int(x * 2 ** (1 / 3)), int(x * 2 ** (2 / 3))] for x in (32, 64, 128, 256, 512)],
-    "fcos_resnet50_fpn": [[8], [16], [32], [64], [128]],  # anchor-free: one size per level sets its object range
-}
-AUTO_PER_LEVEL = {"fasterrcnn_resnet50_fpn": 1, "fasterrcnn_resnet50_fpn_v2": 1,
-                  "fasterrcnn_mobilenet_v3_large_fpn": 3, "retinanet_resnet50_fpn": 3,
-                  "retinanet_resnet50_fpn_v2": 3, "fcos_resnet50_fpn": 1}
 
 
 @dataclass
@@ -108,7 +94,7 @@ class ModelConfig:
 
     architecture: str = param("fasterrcnn_resnet50_fpn", "torchvision detector: Faster R-CNN (the paper used "
                               "ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the one-stage RetinaNet "
-                              "and FCOS", choices=ARCHITECTURES)
+                              "and FCOS", choices=tuple(ARCHITECTURES))
     pretrained: str = param("coco", "starting weights: coco (whole detector, downloaded once), imagenet "
                             "(backbone only), none (random)", choices=PRETRAINED)
     checkpoint: Path | None = param(None, "start from this MatchPlant checkpoint instead (transfer learning; "
@@ -129,17 +115,18 @@ class ModelConfig:
             raise ConfigError(f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
                               fix="set max_size >= min_size")
         if isinstance(self.anchor_sizes, list):
-            levels = len(DEFAULT_ANCHORS[self.architecture])
+            arch = get_architecture(self.architecture)
+            levels = arch.anchors.levels
             if len(self.anchor_sizes) != levels:
                 raise ConfigError(f"model.anchor_sizes has {len(self.anchor_sizes)} level(s) but "
                                   f"{self.architecture} has {levels} FPN levels",
-                                  fix=f"give {levels} lists, e.g. {DEFAULT_ANCHORS[self.architecture]}")
+                                  fix=f"give {levels} lists, e.g. {[list(s) for s in arch.default_anchors]}")
             if any(s <= 0 for level in self.anchor_sizes for s in level):
                 raise ConfigError("model.anchor_sizes must be positive pixel sizes", fix="correct model.anchor_sizes")
             if len({len(s) for s in self.anchor_sizes}) != 1:
                 raise ConfigError("model.anchor_sizes: every level needs the same number of sizes (one RPN head "
                                   "serves all levels)", fix="give each level's list the same length")
-            if self.architecture.startswith("fcos") and any(len(level) != 1 for level in self.anchor_sizes):
+            if arch.anchor_free and any(len(level) != 1 for level in self.anchor_sizes):
                 raise ConfigError("model.anchor_sizes: FCOS is anchor-free and takes one size per level (it sets "
                                   "the object sizes each level learns)", fix="e.g. [[8], [16], [32], [64], [128]]")
 
@@ -154,30 +141,19 @@ def model_config_from_dict(data: dict) -> ModelConfig:
 # building
 
 
-def _weights(arch: str, pretrained: str):
+def _weights(arch: Architecture, pretrained: str):
     """torchvision weight enums (detector, backbone) for a ``pretrained`` choice."""
-    # lazy: PyTorch is heavy; configs load without it
-    from torchvision.models import MobileNet_V3_Large_Weights, ResNet50_Weights
-    from torchvision.models import detection as d
+    from torchvision.models import get_weight  # lazy: PyTorch is heavy; configs load without it
 
-    detector = {"fasterrcnn_resnet50_fpn": d.FasterRCNN_ResNet50_FPN_Weights.COCO_V1,
-                "fasterrcnn_resnet50_fpn_v2": d.FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1,
-                "fasterrcnn_mobilenet_v3_large_fpn": d.FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1,
-                "retinanet_resnet50_fpn": d.RetinaNet_ResNet50_FPN_Weights.COCO_V1,
-                "retinanet_resnet50_fpn_v2": d.RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1,
-                "fcos_resnet50_fpn": d.FCOS_ResNet50_FPN_Weights.COCO_V1}[arch]
-    backbone = (MobileNet_V3_Large_Weights.IMAGENET1K_V1 if "mobilenet" in arch else ResNet50_Weights.IMAGENET1K_V1)
     if pretrained == "coco":
-        return detector, None
+        return get_weight(arch.coco_weights), None
     if pretrained == "imagenet":
-        return None, backbone
+        return None, get_weight(arch.backbone.imagenet_weights)
     return None, None
 
 
-def _frozen_bn_structure(arch: str, pretrained: str) -> bool:
-    # torchvision freezes the backbone's batch norms of pretrained ResNet-50 FPN and MobileNetV3 models
-    # (not of the v2 models)
-    return pretrained != "none" and not arch.endswith("_v2")
+def _frozen_bn_structure(arch: Architecture, pretrained: str) -> bool:
+    return pretrained != "none" and arch.frozen_backbone_norms
 
 
 def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
@@ -197,10 +173,10 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
     if cfg.anchor_sizes == "auto":
         raise ConfigError("model.anchor_sizes is 'auto' but was not computed from the training boxes",
                           fix="call resolve_auto_anchors(cfg, train_dataset) first (module 6 does)")
-    weights, weights_backbone = _weights(cfg.architecture, cfg.pretrained) if load_weights else (None, None)
-    one_stage = cfg.architecture in ONE_STAGE
+    arch = get_architecture(cfg.architecture)
+    weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
     kwargs = dict(min_size=cfg.min_size, max_size=cfg.max_size, nms_thresh=cfg.roi.nms_thresh,
-                  detections_per_img=cfg.roi.detections_per_img) if one_stage else dict(
+                  detections_per_img=cfg.roi.detections_per_img) if not arch.two_stage else dict(
         min_size=cfg.min_size, max_size=cfg.max_size,
         rpn_pre_nms_top_n_train=cfg.rpn.pre_nms_top_n_train, rpn_pre_nms_top_n_test=cfg.rpn.pre_nms_top_n_test,
         rpn_post_nms_top_n_train=cfg.rpn.post_nms_top_n_train, rpn_post_nms_top_n_test=cfg.rpn.post_nms_top_n_test,
@@ -211,9 +187,9 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
         box_detections_per_img=cfg.roi.detections_per_img, box_fg_iou_thresh=cfg.roi.fg_iou_thresh,
         box_bg_iou_thresh=cfg.roi.bg_iou_thresh, box_batch_size_per_image=cfg.roi.batch_size_per_image,
         box_positive_fraction=cfg.roi.positive_fraction)
-    builder = getattr(d, cfg.architecture)
+    builder = getattr(d, arch.builder)
     # all stages trainable here; train.apply_freezing decides (the same on every rebuild)
-    trainable = 6 if "mobilenet" in cfg.architecture else 5
+    trainable = arch.backbone.stage_count
     try:
         model = builder(weights=weights, weights_backbone=weights_backbone,
                         num_classes=91 if weights is not None else num_classes,
@@ -221,16 +197,16 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
     except (urllib.error.URLError, OSError, ConnectionError) as exc:
         _download_failed(cfg, weights or weights_backbone, exc)
     assert isinstance(model, nn.Module)
-    if one_stage:
-        _adapt_one_stage(model, cfg, num_classes, coco_head=weights is not None, load_weights=load_weights)
+    if not arch.two_stage:
+        _adapt_one_stage(model, cfg, arch, num_classes, coco_head=weights is not None, load_weights=load_weights)
         return model
     if weights is not None:  # COCO has 91 classes: a new box predictor for ours
         in_features = model.roi_heads.box_predictor.cls_score.in_features
         model.roi_heads.box_predictor = FastRCNNPredictor(in_features, num_classes)
-    elif not load_weights and _frozen_bn_structure(cfg.architecture, cfg.pretrained):
+    elif not load_weights and _frozen_bn_structure(arch, cfg.pretrained):
         _freeze_batchnorm(model.backbone.body)
     if cfg.anchor_sizes is not None or list(cfg.aspect_ratios) != [0.5, 1.0, 2.0]:
-        sizes = cfg.anchor_sizes or DEFAULT_ANCHORS[cfg.architecture]
+        sizes = cfg.anchor_sizes or arch.default_anchors
         ratios = tuple(float(r) for r in cfg.aspect_ratios)
         gen = AnchorGenerator(tuple(tuple(int(s) for s in level) for level in sizes), (ratios,) * len(sizes))
         model.rpn.anchor_generator = gen
@@ -253,28 +229,28 @@ def _download_failed(cfg: ModelConfig, weights, exc: Exception):
                               "that path, or set model.pretrained: none, or start from model.checkpoint") from exc
 
 
-def _adapt_one_stage(model, cfg: ModelConfig, num_classes: int, *, coco_head: bool, load_weights: bool) -> None:
+def _adapt_one_stage(model, cfg: ModelConfig, arch: Architecture, num_classes: int, *, coco_head: bool,
+                     load_weights: bool) -> None:
     """RetinaNet / FCOS: our classes, anchors, frozen norms and the score-threshold handle."""
     import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
     from torchvision.models.detection.anchor_utils import AnchorGenerator
     from torchvision.models.detection.retinanet import RetinaNetHead
 
-    fcos = cfg.architecture.startswith("fcos")
-    norm = partial(nn.GroupNorm, 32) if cfg.architecture.endswith("_v2") else None
-    if cfg.anchor_sizes is not None or (not fcos and list(cfg.aspect_ratios) != [0.5, 1.0, 2.0]):
-        sizes = cfg.anchor_sizes or DEFAULT_ANCHORS[cfg.architecture]
-        ratios = (1.0,) if fcos else tuple(float(r) for r in cfg.aspect_ratios)
+    norm = partial(nn.GroupNorm, arch.head_norm_groups) if arch.head_norm_groups else None
+    if cfg.anchor_sizes is not None or (not arch.anchor_free and list(cfg.aspect_ratios) != [0.5, 1.0, 2.0]):
+        sizes = cfg.anchor_sizes or arch.default_anchors
+        ratios = (1.0,) if arch.anchor_free else tuple(float(r) for r in cfg.aspect_ratios)
         model.anchor_generator = AnchorGenerator(tuple(tuple(int(s) for s in level) for level in sizes),
                                                  (ratios,) * len(sizes))
     n = model.anchor_generator.num_anchors_per_location()[0]
     channels = model.backbone.out_channels
-    if not fcos and n != model.head.classification_head.num_anchors:  # one output per anchor shape
+    if not arch.anchor_free and n != model.head.classification_head.num_anchors:  # one output per anchor shape
         model.head = RetinaNetHead(channels, n, num_classes, norm_layer=norm)
         if coco_head:
             log.info("the RetinaNet head was re-initialised for %d anchors per position", n)
     elif coco_head:  # COCO has 91 classes: new class scores for ours (the conv tower is kept)
         _new_class_scores(model.head.classification_head, n, num_classes)
-    if not load_weights and _frozen_bn_structure(cfg.architecture, cfg.pretrained):
+    if not load_weights and _frozen_bn_structure(arch, cfg.pretrained):
         _freeze_batchnorm(model.backbone.body)
     model.roi_heads = ScoreThreshold(model)
     # label 0 is the background of our label convention (1..N), a real class to a one-stage head
@@ -338,8 +314,7 @@ def resolve_auto_anchors(cfg: ModelConfig, dataset: dict | str | Path) -> ModelC
     if not len(w):
         raise InputError("model.anchor_sizes: auto needs boxes in the training set, and it has none",
                          fix="give training tiles with boxes, or set model.anchor_sizes explicitly")
-    levels = len(DEFAULT_ANCHORS[cfg.architecture])
-    sizes = auto_anchor_sizes(w, h, cfg.architecture, levels, AUTO_PER_LEVEL[cfg.architecture])
+    sizes = auto_anchor_sizes(w, h, get_architecture(cfg.architecture).anchors)
     log.info("anchor_sizes: auto -> %s (from %d training boxes, median %.0f px in the detector's input)",
              sizes, len(w), float(np.median(np.sqrt(w * h))))
     return dataclasses.replace(cfg, anchor_sizes=sizes)
@@ -378,13 +353,7 @@ def model_parts(model) -> dict[str, Any]:
 
 def backbone_stages(model, arch: str) -> list[list[Any]]:
     """The backbone's stages from the input on (ResNet-50: 5, MobileNetV3: 6), as torchvision counts them."""
-    body = model.backbone.body
-    if "mobilenet" in arch:
-        blocks = list(body.children())
-        starts = [0] + [i for i, b in enumerate(blocks) if getattr(b, "_is_cn", False)] + [len(blocks) - 1]
-        starts = sorted(set(starts))
-        return [blocks[a:b] for a, b in zip(starts, starts[1:] + [len(blocks)])]
-    return [[body.conv1, body.bn1], [body.layer1], [body.layer2], [body.layer3], [body.layer4]]
+    return get_architecture(arch).backbone.stages(model.backbone.body)
 
 
 def apply_freezing(model, arch: str, trainable_backbone_layers: int, freeze: list[str]) -> None:
@@ -514,7 +483,7 @@ def _check_contents(data: dict, path: Path) -> None:
         if not ok:
             raise InputError(f"the checkpoint's '{key}' is missing or not valid", path=path, fix=fix)
     arch = data["model_config"].get("architecture")
-    if arch not in ARCHITECTURES:
+    if not isinstance(arch, str) or arch not in ARCHITECTURES:
         raise InputError(f"the checkpoint is a '{arch}' model, which MatchPlant cannot build (it builds "
                          f"{', '.join(ARCHITECTURES)})", path=path,
                          fix="use a checkpoint trained by module 6, or update MatchPlant if a newer one wrote it")

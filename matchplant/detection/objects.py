@@ -13,7 +13,9 @@ One piece of advice, used everywhere (modules 5 and 6 READMEs say the same):
   object stays above 24 px: ``min_size >= tile_size * 24 / median``;
 - **anchor_sizes** in the detector's input pixels (after that scaling): the smallest anchor at the
   small objects (5th percentile of sqrt(area), at most median / sqrt 2), each FPN level twice the one
-  before, so the object range falls on the first levels. Aspect ratios from the boxes' height/width (10th, 50th, 90th percentiles).
+  before, so the object range falls on the first levels (each architecture's
+  :class:`~matchplant.detection.architectures.AnchorRule`). Aspect ratios from the boxes' height/width (10th,
+  50th, 90th percentiles).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection.architectures import ARCHITECTURES, AnchorRule
 
 log = get_logger("inspect")
 
@@ -76,18 +79,6 @@ def _round_to(v: float, step: int) -> int:
     return int(step * math.ceil(v / step))
 
 
-def anchor_levels(small: float, levels: int, per_level: int, same_sizes_everywhere: bool = False) -> list[list[int]]:
-    """Anchor sizes from the small objects' size ``small`` (input pixels): level ``i`` starts at
-    ``small * 2**i``; ``per_level`` sizes per level spread by 2^(k/per_level) (RetinaNet's octaves).
-    ``same_sizes_everywhere`` (MobileNetV3 FPN: every level gets every size) gives
-    ``levels`` lists of the sizes ``small * 2**k`` for k < per_level."""
-    base = max(8.0, small)
-    if same_sizes_everywhere:
-        sizes = [int(round(base * 2 ** k)) for k in range(per_level)]
-        return [sizes for _ in range(levels)]
-    return [[int(round(base * 2 ** i * 2 ** (k / per_level))) for k in range(per_level)] for i in range(levels)]
-
-
 def smallest_anchor(stats: dict) -> float:
     """The first FPN level's anchor: at the small objects (5th percentile of sqrt(area)) and at most the
     median / sqrt(2), so the median object lies between the first two levels' anchors (IoU >= 0.5 with one)."""
@@ -118,11 +109,7 @@ def recommend(stats: dict, image_sizes: Iterable[tuple[int, int]] = ()) -> dict:
         "min_size_floor": int(_round_to(tile * MIN_OBJECT_PX / median, 32)) if median > 0 else None,
         "input_scale": round(scale, 3),
         "median_object_px_in_detector": round(median * scale, 1),
-        "anchor_sizes": {
-            "fasterrcnn_resnet50_fpn": anchor_levels(small, 5, 1),
-            "fasterrcnn_mobilenet_v3_large_fpn": anchor_levels(small, 3, 3, same_sizes_everywhere=True),
-            "retinanet_resnet50_fpn": anchor_levels(small, 5, 3),
-        },
+        "anchor_sizes": {name: rule.sizes(small) for rule, name in _first_of_each_anchor_rule().items()},
         "aspect_ratios": ratios if len(ratios) > 1 else [0.5, 1.0, 2.0],
         "why": {
             "overlap": f"the longest 1 % of boxes are {largest:.0f} px or more: neighbouring tiles share "
@@ -138,14 +125,20 @@ def recommend(stats: dict, image_sizes: Iterable[tuple[int, int]] = ()) -> dict:
     }
 
 
-def auto_anchor_sizes(widths: np.ndarray, heights: np.ndarray, architecture: str, levels: int,
-                      per_level: int) -> list[list[int]]:
+def _first_of_each_anchor_rule() -> dict[AnchorRule, str]:
+    """The advice lists anchors once per anchor rule, under the first architecture that uses it."""
+    first: dict[AnchorRule, str] = {}
+    for arch in ARCHITECTURES.values():
+        first.setdefault(arch.anchors, arch.name)
+    return first
+
+
+def auto_anchor_sizes(widths: np.ndarray, heights: np.ndarray, rule: AnchorRule) -> list[list[int]]:
     """``anchor_sizes: auto`` of module 6: anchors from the training boxes, given in detector input pixels."""
     stats = size_stats(widths, heights)
     if not stats.get("boxes"):
         raise ValueError("no boxes")
-    small = smallest_anchor(stats)
-    return anchor_levels(small, levels, per_level, same_sizes_everywhere="mobilenet" in architecture)
+    return rule.sizes(smallest_anchor(stats))
 
 
 @dataclass
@@ -199,5 +192,5 @@ def format_report(r: dict) -> str:
     return "\n".join(rows)
 
 
-__all__ = ["InspectConfig", "inspect_dataset", "format_report", "box_sizes", "input_scale", "size_stats", "recommend", "anchor_levels", "auto_anchor_sizes",
+__all__ = ["InspectConfig", "inspect_dataset", "format_report", "box_sizes", "input_scale", "size_stats", "recommend", "auto_anchor_sizes",
            "smallest_anchor", "MIN_OBJECT_PX"]
