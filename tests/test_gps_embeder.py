@@ -261,7 +261,7 @@ def test_clear_errors(tmp_path):
 def test_folder_config_and_help():
     cfg = load_config(GpsEmbederConfig, ROOT / "0_gps_embeder" / "config.yaml", check_paths=False, strict=False)
     assert cfg.tolerance_s > 0
-    r = subprocess.run([sys.executable, str(ROOT / "0_gps_embeder" / "gps_embed.py"), "--help"],
+    r = subprocess.run([sys.executable, str(ROOT / "0_gps_embeder" / "gps_embeder.py"), "--help"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and "--config" in r.stdout
 
