@@ -28,6 +28,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.device import select_device, warn_if_slow
+from matchplant.detection.distributed import join
 from matchplant.detection.evaluate import (
     coco_evaluate,
     draw_boxes,
@@ -44,7 +45,6 @@ from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
-from matchplant.model_test.shard import join
 
 log = get_logger("model_test")
 
