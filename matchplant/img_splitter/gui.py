@@ -16,16 +16,8 @@ from matplotlib.widgets import Button
 from matchplant.core.formats.images import display_rgb, read_image
 from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import (
-    QuietTextBox,
-    SetupField,
-    SetupScreen,
-    close,
-    figure,
-    require_display,
-    reveal,
-    show,
-)
+from matchplant.core.runtime.gui import (QuietTextBox, SetupField, SetupScreen, close, figure, require_display,
+                                         reveal, show)
 from matchplant.img_splitter.run import ImgSplitterConfig, load_sources, plan_all, run
 
 FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
