@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections import Counter
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from matchplant.bbox_drawer.store import ImportedBox, ImportedBoxes
@@ -27,6 +26,7 @@ from matchplant.core.formats.coco import (
 from matchplant.core.formats.images import IMAGE_SUFFIXES, read_image
 from matchplant.core.formats.masks import mask_boxes
 from matchplant.core.formats.yolo import read_yolo
+from matchplant.core.geometry.boxes import nms
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 
@@ -196,10 +196,12 @@ def _name(image: dict) -> str:
 def _nms(items: list[ImportedBox], iou: float) -> list[ImportedBox]:
     if len(items) < 2:
         return items
-    rects = [[b.xyxy[0], b.xyxy[1], b.xyxy[2] - b.xyxy[0], b.xyxy[3] - b.xyxy[1]] for b in items]
-    scores = [float(b.score if b.score is not None else 1.0) for b in items]
-    keep = cv2.dnn.NMSBoxes(rects, scores, 0.0, iou)
-    return [items[i] for i in sorted(np.asarray(keep).reshape(-1).tolist())]
+    scores = np.array([float(b.score if b.score is not None else 1.0) for b in items])
+    # a box without a positive score goes, as with OpenCV's NMSBoxes (used here before)
+    scored = np.flatnonzero(scores > 0)
+    boxes = np.array([b.xyxy for b in items], dtype=float)
+    keep = scored[nms(boxes[scored], scores[scored], iou)]
+    return [items[i] for i in sorted(keep.tolist())]
 
 
 __all__ = ["read_coco_boxes", "read_yolo_boxes", "read_prediction_boxes", "read_deepforest_boxes", "read_voc_boxes",

@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 from matplotlib.patches import Polygon
 
-from matchplant.core.formats.images import list_images
+from matchplant.core.formats.images import EXIF_SUFFIXES, list_images
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_open, atomic_path
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
-from matchplant.gcp_finder.metadata import IMAGE_SUFFIXES, ImageInfo, focal_ratio, read_image_info
+from matchplant.gcp_finder.metadata import ImageInfo, focal_ratio, read_image_info
 from matchplant.gcp_finder.pose import camera_heights, camera_positions, footprint, image_yaw, predict_pixels, track_yaw
 from matchplant.gcp_finder.survey import GCP, read_survey
 
@@ -65,7 +65,7 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
     """Read the survey and every image's metadata; predict each GCP's pixel in each image; rank."""
     gcps, crs = read_survey(cfg.survey, cfg.survey_crs, cfg.output_crs)
     infos, skipped, damaged = [], [], []
-    files = list_images(cfg.images, IMAGE_SUFFIXES, key="images",
+    files = list_images(cfg.images, EXIF_SUFFIXES, key="images",
                         fix="point 'images' at the folder of the flight's images")
     for p in progress(files, desc="reading EXIF", unit="img"):
         try:

@@ -14,10 +14,9 @@ import numpy as np
 from PIL import Image
 
 from matchplant.core.formats.exif import exif_camera, exif_gps, exif_time, load_exif, read_xmp
+from matchplant.core.formats.images import JPEG_SUFFIXES
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.validate import check_jpeg
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff")
 
 # Sensor width in mm (the long side) of common drone cameras, keyed by lower-case EXIF Model.
 SENSOR_WIDTH_MM: dict[str, float] = {
@@ -83,7 +82,7 @@ def read_image_info(path: str | Path) -> ImageInfo:
     """Read an image's size, EXIF and DJI XMP once (pixels are not decoded; a JPEG cut short is refused,
     since its header alone looks whole)."""
     path = Path(path)
-    if path.suffix.lower() in (".jpg", ".jpeg"):
+    if path.suffix.lower() in JPEG_SUFFIXES:
         check_jpeg(path)
     try:
         with Image.open(path) as im:

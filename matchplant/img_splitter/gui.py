@@ -11,27 +11,19 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.patches import Polygon, Rectangle
-from matplotlib.widgets import Button, TextBox
+from matplotlib.widgets import Button
 
 from matchplant.core.formats.images import display_rgb, read_image
 from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
+from matchplant.core.runtime.gui import (QuietTextBox, SetupField, SetupScreen, close, figure, require_display,
+                                         reveal, show)
 from matchplant.img_splitter.run import ImgSplitterConfig, load_sources, plan_all, run
 
 FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
           "split", "seed", "split_mode", "negative_share", "yolo"]
 KEPT, LOST = "#39ff14", "#ff2a2a"
 TILE_COLORS = ["white", "#ffd400", "#00e5ff", "#ff3df2"]  # neighbouring tiles in different colours
-
-
-class QuietTextBox(TextBox):
-    """Matplotlib's TextBox redraws the whole figure on every click anywhere, for every box (12 full
-    redraws per click here); only a box that was being typed in needs to."""
-
-    def stop_typing(self):
-        if self.capturekeystrokes:
-            super().stop_typing()
 
 
 class ImgSplitterGUI:

@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from matchplant.core.formats.box_files import resolve_image_names
+from matchplant.core.formats.exif import image_gps
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.validate import read_csv
 
@@ -58,29 +58,15 @@ def read_positions(path: Path | None, files: dict[str, Path]) -> dict[str, tuple
                 out[name] = (float(table.numbers["x"][i]), float(table.numbers["y"][i]))
     else:
         for name, p in files.items():
-            gps = _exif_lonlat(p)
+            gps = image_gps(p)
             if gps:
-                lon, lat = gps
+                lat, lon, _ = gps
                 out[name] = (lon * 111320.0 * np.cos(np.radians(lat)), lat * 110540.0)  # metres, for ordering
     missing = sorted(set(files) - set(out))
     if missing:
         raise InputError(f"no position for {len(missing)} image(s) (e.g. {missing[0]}) for the spatial split",
                          path=path, fix="give 'positions' (a CSV image,x,y) or use split_mode: random")
     return out
-
-
-def _exif_lonlat(path: Path) -> tuple[float, float] | None:
-    try:
-        with Image.open(path) as im:
-            gps = im.getexif().get_ifd(0x8825)
-        if not gps or 2 not in gps or 4 not in gps:
-            return None
-        def deg(v, ref):
-            d = float(v[0]) + float(v[1]) / 60 + float(v[2]) / 3600
-            return -d if ref in ("S", "W") else d
-        return deg(gps[4], gps.get(3, "E")), deg(gps[2], gps.get(1, "N"))
-    except Exception:  # noqa: BLE001 - a file without readable EXIF has no position
-        return None
 
 
 __all__ = ["SPLITS", "split_counts", "split_images", "read_positions"]

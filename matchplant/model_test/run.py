@@ -21,6 +21,7 @@ import numpy as np
 from matchplant.core.formats.coco import write_predictions
 from matchplant.core.formats.images import image_size, read_rgb8
 from matchplant.core.formats.odm import SUBMODELS_DIR
+from matchplant.core.geometry.boxes import nms
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
@@ -28,6 +29,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.device import select_device, warn_if_slow
+from matchplant.detection.distributed import join
 from matchplant.detection.evaluate import (
     coco_evaluate,
     draw_boxes,
@@ -44,7 +46,6 @@ from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
-from matchplant.model_test.shard import join
 
 log = get_logger("model_test")
 
@@ -160,15 +161,10 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
     part of the plant seen from another tile, IoU too low for NMS) and is dropped, unless its own tile
     also saw the larger plant (then it is a second plant); boxes of one tile keep the model's decision.
     """
-    import torch  # lazy: PyTorch is heavy; configs load without it
-    from torchvision.ops import batched_nms
-
     if len(boxes) == 0:
         return np.zeros(0, dtype=int)
     whole = np.flatnonzero(~cut)
-    keep_whole = whole[batched_nms(torch.as_tensor(boxes[whole], dtype=torch.float64),
-                                   torch.as_tensor(scores[whole], dtype=torch.float64),
-                                   torch.as_tensor(labels[whole]), iou).numpy()] if len(whole) else whole
+    keep_whole = whole[nms(boxes[whole], scores[whole], iou, labels[whole])]
     parts = np.flatnonzero(cut)
     if len(parts) and len(keep_whole):
         inter = _box_intersections(boxes[parts], boxes[keep_whole])
@@ -177,9 +173,7 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
                    & (labels[parts][:, None] == labels[keep_whole][None, :])).any(axis=1)
         parts = parts[~covered]
     if len(parts):
-        parts = parts[batched_nms(torch.as_tensor(boxes[parts], dtype=torch.float64),
-                                  torch.as_tensor(scores[parts], dtype=torch.float64),
-                                  torch.as_tensor(labels[parts]), iou).numpy()]
+        parts = parts[nms(boxes[parts], scores[parts], iou, labels[parts])]
     kept = np.concatenate([keep_whole, parts])
     if tiles is not None and len(kept) > 1:
         kept = kept[~_nested(boxes, labels, np.asarray(tiles), kept, containment, iou)]

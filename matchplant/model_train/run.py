@@ -19,12 +19,9 @@ classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``l
 from __future__ import annotations
 
 import dataclasses
-import logging
 import math
-import os
 import random
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,6 +35,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection, check_disjoint, collate
 from matchplant.detection.device import select_device
+from matchplant.detection.distributed import Shard, join, world_size
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
 from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (
@@ -107,38 +105,15 @@ def build_scheduler(cfg: ModelTrainConfig, optimizer, iters_per_epoch: int, plan
 # the run
 
 
-@dataclass
-class _Dist:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
 def _init_distributed(cfg: ModelTrainConfig):
     """Join a torchrun job (WORLD_SIZE > 1) and pick this process's device."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return _Dist(), select_device(cfg.device)
-    import torch.distributed as dist  # lazy: PyTorch is heavy; configs load without it
-
-    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if world_size() <= 1:
+        return Shard(), select_device(cfg.device)
     if torch.cuda.is_available() and cfg.device in ("auto", "cuda"):
-        torch.cuda.set_device(local)
-        device = torch.device("cuda", local)
-    else:
-        device = select_device("cpu" if cfg.device == "auto" else cfg.device)
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-    if dist.get_rank() != 0:  # one voice: the other processes report only warnings and errors
-        for h in get_logger().handlers:
-            h.setLevel(logging.WARNING)
-    return _Dist(dist.get_rank(), dist.get_world_size(), local), device
+        return join(torch.device("cuda"))  # join makes it this process's GPU
+    return join(select_device("cpu" if cfg.device == "auto" else cfg.device))
 
 
 def seed_everything(seed: int) -> None:
@@ -326,8 +301,7 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
             write_summary(out, cfg, history, best, class_names, device, "running",
                           time.perf_counter() - run_start, validation=validation, plan=plan)
             plot_curves(history, out / "training_curves.png")
-        if dist_info.world > 1:
-            torch.distributed.barrier()
+        dist_info.barrier()
         epoch_time = time.perf_counter() - t0
         if cfg.max_minutes and not plan.fitted:  # the first epoch's time says how many epochs fit (rank 0's)
             fit_plan(plan, cfg.epochs, epoch + 1, cfg.max_minutes, time.perf_counter() - run_start, epoch_time)
@@ -353,7 +327,7 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
 
 
 def _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp: bool, desc: str,
-                     dist_info: _Dist) -> dict[str, float]:
+                     dist_info: Shard) -> dict[str, float]:
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     model.train()

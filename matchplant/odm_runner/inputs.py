@@ -8,10 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from matchplant.core.formats.images import list_images
+from matchplant.core.formats.images import ODM_SUFFIXES, list_images
 from matchplant.odm_runner.config import ODMOptions, OdmRunnerConfig
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png", ".dng")
 
 
 def images_folder(cfg: OdmRunnerConfig) -> Path:
@@ -21,7 +19,7 @@ def images_folder(cfg: OdmRunnerConfig) -> Path:
 
 def odm_images(cfg: OdmRunnerConfig) -> list[Path]:
     """The images ODM will get; fewer than 2 is an error now rather than after ODM has started."""
-    return list_images(images_folder(cfg), IMAGE_SUFFIXES, key="images_dir", min_count=2,
+    return list_images(images_folder(cfg), ODM_SUFFIXES, key="images_dir", min_count=2,
                        fix="put the flight's overlapping images (JPG/TIF) in <project_dir>/images, or set images_dir")
 
 

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import shapely
 from matplotlib.collections import LineCollection
-from matplotlib.widgets import Button, CheckButtons, RadioButtons, TextBox
+from matplotlib.widgets import Button, CheckButtons, RadioButtons
 
 from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
-from matchplant.core.runtime.gui import ask_path, figure, is_headless, require_display, show
+from matchplant.core.runtime.gui import QuietTextBox, ask_path, figure, is_headless, require_display, show
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.polygons import read_polygons
@@ -57,15 +57,6 @@ def _as_text(value) -> str:
     if isinstance(value, (list, tuple)):
         return ", ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in value)
     return str(value)
-
-
-class QuietTextBox(TextBox):
-    """Matplotlib's TextBox redraws the whole window on every click anywhere, once per box; only
-    the box being typed in needs to stop typing."""
-
-    def stop_typing(self):
-        if self.capturekeystrokes:
-            super().stop_typing()
 
 
 class SpatialStatExtractorGUI:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import piexif
+from PIL import Image
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import BatchedWrites, atomic_open
@@ -33,8 +34,12 @@ OFFSET_TIME_ORIGINAL = 0x9011  # "+02:00"; piexif has no name for it
 
 
 def load_exif(path: str | Path) -> dict:
-    """piexif's dictionary of an image's EXIF (empty IFDs when the image has none)."""
+    """piexif's dictionary of an image's EXIF (empty IFDs when the image has none): JPEG, TIFF, WebP, and
+    PNG (its eXIf chunk, which piexif cannot find itself, read through PIL)."""
     try:
+        if Path(path).suffix.lower() == ".png":
+            with Image.open(path) as im:
+                return piexif.load(im.getexif().tobytes())
         return piexif.load(str(path))
     except Exception as exc:  # noqa: BLE001 - piexif raises several types for damaged files
         raise InputError(f"cannot read the EXIF of this image ({type(exc).__name__}: {exc})", path=path,
@@ -103,6 +108,14 @@ def exif_gps(exif: dict) -> tuple[float, float, float | None] | None:
         if g.get(piexif.GPSIFD.GPSAltitudeRef, 0) in (1, b"\x01"):
             alt = -alt
     return lat, lon, alt
+
+
+def image_gps(path: str | Path) -> tuple[float, float, float | None] | None:
+    """:func:`exif_gps` of an image file; None as well when the file has no readable EXIF."""
+    try:
+        return exif_gps(load_exif(path))
+    except InputError:
+        return None
 
 
 def exif_camera(exif: dict) -> tuple[str, str, float | None, float | None]:

@@ -19,9 +19,13 @@ from PIL import Image
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.validate import check_jpeg
 
-# every raster photo format a step may meet; a step that takes fewer passes its own ``suffixes``
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+# The image suffixes, in one table: every raster photo format a step may meet, and the named subsets of
+# the steps that take fewer (their order is the order a "no image" message lists them in).
 JPEG_SUFFIXES = (".jpg", ".jpeg")
+TIFF_SUFFIXES = (".tif", ".tiff")
+IMAGE_SUFFIXES = JPEG_SUFFIXES + (".png",) + TIFF_SUFFIXES + (".bmp",)
+EXIF_SUFFIXES = JPEG_SUFFIXES + TIFF_SUFFIXES  # photos a camera writes EXIF into (step 1 reads it)
+ODM_SUFFIXES = EXIF_SUFFIXES + (".png", ".dng")  # what ODM takes as input photos
 
 
 def is_image_name(path: Path, suffixes: Iterable[str] = IMAGE_SUFFIXES) -> bool:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from matchplant.core.formats.images import image_size
+from matchplant.core.formats.images import TIFF_SUFFIXES, image_size, is_image_name
 from matchplant.core.formats.reconstruction import Reconstruction, read_reconstruction
 from matchplant.core.geometry.frames import Frame, OffsetFrame, detect_frame, read_coords_txt
 from matchplant.core.geometry.shot import Shot
@@ -293,7 +293,7 @@ class ODMProject:
         out = {}
         if folder.is_dir():
             for p in sorted(folder.iterdir()):
-                if p.suffix.lower() in (".tif", ".tiff") and not p.name.startswith(".") and p.is_file():
+                if is_image_name(p, TIFF_SUFFIXES) and p.is_file():
                     out[p.name[:-4] if p.name.lower().endswith(".tif") else p.stem] = p
         ids = self.shot_ids(undistorted=True) if self.has("undistorted_reconstruction") else set()
         stray = [k for k in out if k not in ids]

@@ -1,7 +1,9 @@
-"""Axis-aligned boxes ``[xmin, ymin, xmax, ymax]``: IoU, overlapping pairs and one-to-one matching.
+"""Axis-aligned boxes ``[xmin, ymin, xmax, ymax]``: IoU, overlapping pairs, one-to-one matching and
+non-maximum suppression.
 
-One implementation for every step that compares boxes or plants: merging the views of one plant and
-scoring projected plants (step 8), matching two plant sets (step 9).
+One implementation for every step that compares boxes or plants: merging imported predictions (step 4),
+merging the detections of overlapping tiles (step 7), merging the views of one plant and scoring projected
+plants (step 8), matching two plant sets (step 9).
 
 Overlapping pairs come from a hierarchical grid compiled with numba (one thread). A box of level ``k``
 spans at most the side ``base * 2**k`` (less :data:`_LEVEL_MARGIN`, for rounding); the boxes are sorted
@@ -347,6 +349,48 @@ def greedy_matches(i: np.ndarray, j: np.ndarray, order: np.ndarray, n_a: int, n_
             used_a[a] = used_b[b] = True
             kept.append(k)
     return np.asarray(kept, dtype=np.int64)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _suppress(box, start, iou):
+    """Greedy NMS within each group ``box[start[g]:start[g + 1]]`` of boxes in visiting order: the positions
+    kept. The arithmetic of torchvision's CPU kernel, operation for operation (the same boxes kept); the
+    boxes are in visiting order so that the inner loop reads memory in sequence."""
+    area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+    suppressed = np.zeros(box.shape[0], dtype=np.bool_)
+    keep = np.empty(box.shape[0], dtype=np.int64)
+    m = 0
+    for g in range(start.shape[0] - 1):
+        for i in range(start[g], start[g + 1]):
+            if suppressed[i]:
+                continue
+            keep[m] = i
+            m += 1
+            for j in range(i + 1, start[g + 1]):
+                if suppressed[j]:
+                    continue
+                iw = max(min(box[i, 2], box[j, 2]) - max(box[i, 0], box[j, 0]), 0.0)
+                ih = max(min(box[i, 3], box[j, 3]) - max(box[i, 1], box[j, 1]), 0.0)
+                inter = iw * ih
+                if inter / (area[i] + area[j] - inter) > iou:
+                    suppressed[j] = True
+    return keep[:m]
+
+
+def nms(boxes: np.ndarray, scores: np.ndarray, iou: float, labels: np.ndarray | None = None) -> np.ndarray:
+    """Non-maximum suppression: indices of the boxes kept, highest score first (equal scores: the earlier
+    box first). A box goes when its IoU with a kept box of its label (of any box, without ``labels``) is
+    above ``iou``: torchvision's ``batched_nms`` on float64 boxes, without PyTorch."""
+    boxes = _as_boxes(boxes, "boxes")
+    by_score = np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")
+    group = np.zeros(len(boxes), dtype=np.int64) if labels is None else np.asarray(labels)
+    order = by_score[np.argsort(group[by_score], kind="stable")]  # one group per label, each in score order
+    g = group[order]
+    start = np.r_[0, np.flatnonzero(g[1:] != g[:-1]) + 1, len(g)]
+    kept = order[_suppress(np.ascontiguousarray(boxes[order]), start, float(iou))]
+    rank = np.empty(len(boxes), dtype=np.int64)
+    rank[by_score] = np.arange(len(boxes))
+    return kept[np.argsort(rank[kept])]
 
 
 def match_boxes(reference: np.ndarray, predicted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,15 @@ except ImportError:  # pragma: no cover - depends on the Python build
     tkinter = filedialog = None
 
 
+class QuietTextBox(TextBox):
+    """Matplotlib's TextBox redraws the whole figure on every click anywhere, once per box (a dozen full
+    redraws per click in a settings panel); only a box that was being typed in needs to stop typing."""
+
+    def stop_typing(self):
+        if self.capturekeystrokes:
+            super().stop_typing()
+
+
 def interactive_backend_available() -> bool:
     """True when a window can be opened (a display on Linux; always on macOS and Windows)."""
     if sys.platform.startswith("linux"):

@@ -1,9 +1,9 @@
-"""Detection sharded over processes: ``torchrun --nproc_per_node N 7_model_test/model_test.py ...``.
+"""Joining a torchrun job, shared by training (module 6) and detection (module 7).
 
-torchrun starts N copies of the script with ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK`` set. Each takes every
-N-th image (one GPU each: ``cuda:LOCAL_RANK``; on the CPU, gloo), and the first gathers every image's
-boxes and writes the one ``predictions.json``, in the order a single process would have written it.
-Without torchrun (``WORLD_SIZE`` unset or 1) nothing changes.
+``torchrun --nproc_per_node N <script> ...`` starts N copies of the script with ``RANK``, ``WORLD_SIZE`` and
+``LOCAL_RANK`` set. Each process joins the job (one GPU each, ``cuda:LOCAL_RANK``, over nccl; on the CPU,
+gloo); rank 0 is the one voice of the job: the other processes log only warnings and errors. Without
+torchrun (``WORLD_SIZE`` unset or 1) nothing changes.
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ from matchplant.core.runtime.log import get_logger
 
 @dataclass
 class Shard:
+    """This process's place in the job: its rank among ``world`` processes."""
+
     rank: int = 0
     world: int = 1
 
@@ -45,17 +47,21 @@ class Shard:
             dist.barrier()
 
 
+def world_size() -> int:
+    """How many processes the torchrun job has (1 without torchrun)."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
 def join(device):
-    """This process's :class:`Shard` and device; joins the torchrun job when there is one."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
+    """This process's :class:`Shard` and device; joins the torchrun job when there is one. A CUDA
+    ``device`` becomes this process's own GPU, ``cuda:LOCAL_RANK``."""
+    if world_size() <= 1:
         return Shard(), device
     import torch  # lazy: PyTorch is heavy; configs load without it
     import torch.distributed as dist  # lazy, as above
 
-    local = int(os.environ.get("LOCAL_RANK", "0"))
     if device.type == "cuda":  # one GPU per process
-        device = torch.device("cuda", local)
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
         torch.cuda.set_device(device)
     if not dist.is_initialized():
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")  # nccl's gather: device set above
@@ -64,3 +70,6 @@ def join(device):
         for h in get_logger().handlers:
             h.setLevel(logging.WARNING)
     return Shard(rank, dist.get_world_size()), device
+
+
+__all__ = ["Shard", "join", "world_size"]
