@@ -38,6 +38,7 @@ from matchplant.plant_projection.inputs import load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.relief import skimmed
 from matchplant.plant_projection.run import run
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions, resolve_images
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,7 +162,8 @@ def tiles_of(gt: dict, tile=240, overlap=40) -> dict:
 
 
 def project_and_score(root: Path, preds: dict, truth: np.ndarray, **kw):
-    views, rejected = project_predictions(ODMProject(root), preds, **{k: v for k, v in kw.items() if k != "merge"})
+    settings = ProjectionSettings.from_config(PlantProjectionConfig(**{k: v for k, v in kw.items() if k != "merge"}))
+    views, rejected = project_predictions(ODMProject(root), preds, settings)
     plants = merge_views(views, merge=kw.get("merge", "nadir"))
     m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     return views, rejected, plants, m

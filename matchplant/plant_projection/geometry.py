@@ -16,6 +16,7 @@ from matchplant.core.geometry.frames import Frame
 from matchplant.core.geometry.ground import rays_to_ground
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.silhouette import silhouette_boxes
 
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
@@ -106,14 +107,13 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
-                  map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
-                  ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, settings: ProjectionSettings, *,
+                  cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Project pixel boxes ``[x1, y1, x2, y2]`` (M, 4) of one image onto the surface, all at once.
 
-    Rays through each box outline meet the ground (estimated from the DSM, :meth:`Surface.ground` with
-    ``ground_window``) on the edges facing the image's nadir point, and the DSM, stopping ``clearance``
-    metres above it (so a ray grazing a plant's top stays on the plant), on the others;
+    Rays through each box outline (``settings.edge_points`` along each edge) meet the ground (estimated from the
+    DSM, :meth:`Surface.ground` with ``settings.ground_window``) on the edges facing the image's nadir point, and
+    the DSM, stopping ``settings.clearance`` metres above it (so a ray grazing a plant's top stays on the plant), on the others;
     :func:`silhouette_boxes` turns the hits into the plant's map box. ``cut_edges`` (M, 4: top, right,
     bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
     (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
@@ -124,6 +124,7 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     ``across`` (M, 4: map sides seen across the plant, :func:`silhouette_boxes`) and ``off_nadir`` (degrees
     between the plumb line and the ray to the centroid).
     """
+    edge_points, clearance, ground_window = settings.edge_points, settings.clearance, settings.ground_window
     boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
     uv = box_outline(boxes, edge_points)
     m, p = uv.shape[:2]
@@ -161,7 +162,7 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         reason[(status == code).any(axis=1)] = code
     # the outline: DSM hits on the far edges, ground hits on the others (d_pts started as a copy of g_pts)
     cut = cut_edges if cut_edges is not None else np.zeros((m, 4), dtype=bool)
-    out = silhouette_boxes(g_pts, d_pts, near, ok, cut, surface, ground, cam, hidden_height=hidden_height, how=map_box,
-                           skim=SKIM, canopy=surface.canopy_height(ground_window))
+    out = silhouette_boxes(g_pts, d_pts, near, ok, cut, surface, ground, cam, hidden_height=settings.hidden_height,
+                           how=settings.map_box, skim=SKIM, canopy=surface.canopy_height(ground_window))
     out.update(ok=ok, status=reason, outline=d_pts, centroid=out.pop("centre"))
     return out

@@ -27,6 +27,7 @@ from matchplant.plant_projection.evaluation import evaluate_boxes, evaluation_fi
 from matchplant.plant_projection.inputs import check_dsm, load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.output import write_plants, write_table
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import (
     BOX_OUTSIDE_IMAGE,
     EMPTY_BOX,
@@ -54,11 +55,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
                           f"scores {scores.max():.3f}), so no box would be projected", path=cfg.predictions,
                           fix=f"lower 'min_score' (e.g. to {np.floor(scores.max() * 100) / 100:.2f}), or check that "
                               "these are the model's predictions")
-    views, rejected = project_predictions(project, preds, image_type=cfg.image_type, dsm=cfg.dsm,
-                                          min_score=cfg.min_score, edge_points=cfg.edge_points,
-                                          map_box=cfg.map_box, border_pixels=cfg.border_pixels,
-                                          clearance=cfg.silhouette_clearance, hidden_height=cfg.hidden_height,
-                                          ground_window=cfg.ground_window)
+    views, rejected = project_predictions(project, preds, ProjectionSettings.from_config(cfg))
     low = rejected["reason"] == "score below min_score"
     failed = rejected[~low]
     if not len(views.table):
