@@ -22,6 +22,7 @@ from pyproj import CRS
 from scipy.spatial.transform import Rotation
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.reconstruction import write_reconstruction
 from matchplant.core.geometry.boxes import iou_pairs, match_boxes
 from matchplant.core.geometry.camera import FisheyeCamera, PinholeCamera
@@ -34,7 +35,6 @@ from matchplant.plant_projection import dsm
 from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
 from matchplant.plant_projection.geometry import box_outline, outline_boxes
-from matchplant.plant_projection.inputs import load_predictions
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.relief import skimmed
 from matchplant.plant_projection.run import run
@@ -487,12 +487,12 @@ def test_resolve_images_matches_names_that_differ_by_case_or_extension():
     (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[10, 10, -3, 3])]), "negative"),
     (lambda d: dict(d, predictions=[dict(d["predictions"][0], score=87)]), "percentage"),
 ])
-def test_load_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
+def test_read_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
     _, _, gt = nadir_project
     path = tmp_path / "p.json"
     path.write_text(json.dumps(change(json.loads(json.dumps(gt["undistorted"])))))
     with pytest.raises(MatchPlantError, match=message) as err:
-        load_predictions(path)
+        read_predictions(path, every_box=True)
     assert "p.json" in str(err.value) and "fix:" in str(err.value)
 
 
