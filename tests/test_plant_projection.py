@@ -36,7 +36,7 @@ from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
 from matchplant.plant_projection.geometry import box_outline, outline_boxes
 from matchplant.plant_projection.merge import merge_views
-from matchplant.plant_projection.relief import skimmed
+from matchplant.plant_projection.relief import Scene, skimmed
 from matchplant.plant_projection.run import run
 from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions, resolve_images
@@ -233,7 +233,7 @@ def test_rays_that_skimmed_a_plant_are_flagged():
     # by 5 cm lands on the soil just behind it
     skimmed_hit = np.array([1.0 + 0.095 * 10.0 / 9.45, 1.0, 0.0])
     open_hit = np.array([0.2, 0.2, 0.0])
-    out = skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
+    out = skimmed(np.array([skimmed_hit, open_hit]), Scene(s.raster, s.ground(1.0).raster, cam, 0.05, 0.1, 0.5))
     assert out.tolist() == [True, False]
 
 
