@@ -499,7 +499,7 @@ def test_read_predictions_names_what_is_wrong(tmp_path, nadir_project, change, m
 def test_folder_config_and_help():
     cfg = load_config(PlantProjectionConfig, FOLDER / "config.yaml", check_paths=False, strict=False)
     assert cfg.mode == "project" and cfg.merge == "nadir"
-    r = subprocess.run([sys.executable, str(FOLDER / "project_boxes.py"), "--help"], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, str(FOLDER / "plant_projection.py"), "--help"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0 and "--predictions" in r.stdout
 
