@@ -30,6 +30,8 @@ from matchplant.core.geometry.surface import Surface  # noqa: E402
 from matchplant.plant_projection.evaluation import evaluate_boxes  # noqa: E402
 from matchplant.plant_projection.geometry import box_outline  # noqa: E402
 from matchplant.plant_projection.merge import merge_views  # noqa: E402
+from matchplant.plant_projection.config import PlantProjectionConfig  # noqa: E402
+from matchplant.plant_projection.settings import ProjectionSettings  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
@@ -90,13 +92,14 @@ def main() -> None:
              "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
     n = len(preds["predictions"])
     project = ODMProject(f.root)
+    settings = ProjectionSettings.from_config(PlantProjectionConfig(edge_points=args.edge_points))
 
     # the core: ray/DSM intersection of every box outline, image by image; the best of a few runs, since a
     # shared virtual machine's speed varies by a third from run to run
     best = None
     for _ in range(args.repeat):
         t0, c0 = time.perf_counter(), time.process_time()
-        views, rejected = project_predictions(project, preds, edge_points=args.edge_points)
+        views, rejected = project_predictions(project, preds, settings)
         t1 = time.perf_counter()
         plants = merge_views(views)
         t2, c2 = time.perf_counter(), time.process_time()

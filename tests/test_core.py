@@ -17,6 +17,7 @@ import pytest
 import matchplant
 from matchplant.cli import run_module
 from matchplant.core.formats import coco
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.runtime.config import load_config, param, section, to_yaml, validate
 from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
@@ -262,14 +263,14 @@ def test_predictions_roundtrip_and_plain_results(tmp_path):
     ds = _dataset()
     preds = [{"image_id": 1, "category_id": 1, "bbox": [1, 2, 3, 4], "score": 0.9}]
     p = coco.write_predictions(tmp_path / "p.json", ds["images"], ds["categories"], preds)
-    got = coco.read_predictions(p)
+    got = read_predictions(p)
     assert got["images"][0]["source_image"] == "a.JPG" and coco.results_list(got) == preds
     plain = tmp_path / "r.json"
     plain.write_text(json.dumps(preds))
     with pytest.raises(InputError, match="no image names"):
-        coco.read_predictions(plain)
+        read_predictions(plain)
     d = coco.write_dataset(tmp_path / "d.json", ds)
-    assert coco.read_predictions(plain, images_from=d)["images"][0]["id"] == 1
+    assert read_predictions(plain, images_from=d)["images"][0]["id"] == 1
 
 
 # --------------------------------------------------------------------------------------------------

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from matchplant.core.formats.coco import make_annotation, new_dataset, read_predictions, write_dataset
+from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point

@@ -22,6 +22,7 @@ from pyproj import CRS
 from scipy.spatial.transform import Rotation
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.reconstruction import write_reconstruction
 from matchplant.core.geometry.boxes import iou_pairs, match_boxes
 from matchplant.core.geometry.camera import FisheyeCamera, PinholeCamera
@@ -34,10 +35,10 @@ from matchplant.plant_projection import dsm
 from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, read_boxes
 from matchplant.plant_projection.geometry import box_outline, outline_boxes
-from matchplant.plant_projection.inputs import load_predictions
 from matchplant.plant_projection.merge import merge_views
-from matchplant.plant_projection.relief import skimmed
+from matchplant.plant_projection.relief import Scene, skimmed
 from matchplant.plant_projection.run import run
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import NOT_IN_RECONSTRUCTION, project_predictions, resolve_images
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -161,7 +162,8 @@ def tiles_of(gt: dict, tile=240, overlap=40) -> dict:
 
 
 def project_and_score(root: Path, preds: dict, truth: np.ndarray, **kw):
-    views, rejected = project_predictions(ODMProject(root), preds, **{k: v for k, v in kw.items() if k != "merge"})
+    settings = ProjectionSettings.from_config(PlantProjectionConfig(**{k: v for k, v in kw.items() if k != "merge"}))
+    views, rejected = project_predictions(ODMProject(root), preds, settings)
     plants = merge_views(views, merge=kw.get("merge", "nadir"))
     m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     return views, rejected, plants, m
@@ -231,7 +233,7 @@ def test_rays_that_skimmed_a_plant_are_flagged():
     # by 5 cm lands on the soil just behind it
     skimmed_hit = np.array([1.0 + 0.095 * 10.0 / 9.45, 1.0, 0.0])
     open_hit = np.array([0.2, 0.2, 0.0])
-    out = skimmed(np.array([skimmed_hit, open_hit]), cam, s, s.ground(1.0), 0.05, 0.1, 0.5)
+    out = skimmed(np.array([skimmed_hit, open_hit]), Scene(s.raster, s.ground(1.0).raster, cam, 0.05, 0.1, 0.5))
     assert out.tolist() == [True, False]
 
 
@@ -485,12 +487,12 @@ def test_resolve_images_matches_names_that_differ_by_case_or_extension():
     (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[10, 10, -3, 3])]), "negative"),
     (lambda d: dict(d, predictions=[dict(d["predictions"][0], score=87)]), "percentage"),
 ])
-def test_load_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
+def test_read_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
     _, _, gt = nadir_project
     path = tmp_path / "p.json"
     path.write_text(json.dumps(change(json.loads(json.dumps(gt["undistorted"])))))
     with pytest.raises(MatchPlantError, match=message) as err:
-        load_predictions(path)
+        read_predictions(path, every_box=True)
     assert "p.json" in str(err.value) and "fix:" in str(err.value)
 
 

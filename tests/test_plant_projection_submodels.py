@@ -29,6 +29,7 @@ from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes
 from matchplant.plant_projection.merge import MERGE_TOLERANCE, merge_views
 from matchplant.plant_projection.run import run as run_projection_step
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import (
     ACROSS_COLUMNS,
     BESIDE_CUT_COLUMNS,
@@ -165,7 +166,8 @@ def test_each_shot_meets_its_own_submodels_dsm(split, tmp_path, caplog):
     there) is used only for a submodel without a DSM (said in the log), or for every shot when 'dsm' is set."""
     preds = _truth_predictions(split)
     own, _ = project_predictions(ODMProject(split.root), preds)
-    merged, _ = project_predictions(ODMProject(split.root), preds, dsm=split.root / "odm_dem" / "dsm.tif")
+    on_merged = ProjectionSettings.from_config(PlantProjectionConfig(dsm=split.root / "odm_dem" / "dsm.tif"))
+    merged, _ = project_predictions(ODMProject(split.root), preds, on_merged)
     e_own, e_merged = _seam_side_errors(own, split), _seam_side_errors(merged, split)
     assert len(e_own) >= 50
     assert np.median(e_own) < 0.0025  # metres (1.9 mm; 3.1 mm on the merged DSM)

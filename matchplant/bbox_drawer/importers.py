@@ -20,11 +20,11 @@ from matchplant.core.formats.coco import (
     LabelledBox,
     bbox_values,
     read_dataset,
-    read_predictions,
     to_source_pixels,
 )
 from matchplant.core.formats.images import IMAGE_SUFFIXES, read_image
 from matchplant.core.formats.masks import mask_boxes
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.yolo import read_yolo
 from matchplant.core.geometry.boxes import nms
 from matchplant.core.runtime.errors import InputError

@@ -16,7 +16,8 @@ Boxes that cannot be projected (image not in the reconstruction, box outside the
 into a DSM hole or leave the DSM) are listed with the reason in ``unprojected_boxes.csv``, never dropped
 silently. ``mode: evaluate`` compares projected plants with boxes drawn on the orthophoto.
 
-Modules: ``config`` (the settings), ``inputs`` (the predictions and the DSM, checked before any ray is cast),
+Modules: ``config`` (the settings), ``settings`` (those of the projection as one record), ``inputs`` (the DSM,
+checked before any ray is cast; the predictions are checked where they are read, in ``core/formats/predictions``),
 ``geometry`` (one image's boxes: rays to the surface, map boxes), ``dsm`` (reading the DSM around the rays),
 ``views`` (predictions to projected views, or reasons), ``merge`` (views of one plant into one record),
 ``output`` (GeoPackage, CSV, shapefile), ``evaluation`` (against reference boxes, and the figure), ``run`` (the

@@ -12,26 +12,37 @@ import numpy as np
 import rasterio
 
 from matchplant.core.geometry.frames import Frame, parse_crs
+from matchplant.core.geometry.raycast import ODM_NODATA
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import Surface
 from matchplant.core.runtime.errors import InputError
 from matchplant.plant_projection.geometry import box_outline
 
 MAX_SURFACE_CELLS = 64_000_000  # 256 MB of float32 (a 1 cm DSM of 0.64 ha): above this, read per image
+DECIMATED = 512  # cells along the longer side of the decimated read that bounds the heights of a large DSM
+PAD = 1.0  # metres, plus PAD_SHARE of the height range: the margin of the rays' height bounds
+PAD_SHARE = 0.2
+RAY_PROBE = 100.0  # ray parameter of the second point that turns a reconstruction-frame ray into a map ray
+UPWARD = -1e-6  # a map ray whose downward component is not below this never comes down to the DSM
+EDGE_CELLS = 4  # DSM cells read beyond the rays' bounds (bilinear neighbours, the ground's blocks)
+
+
+def _padded(lo: float, hi: float) -> tuple[float, float]:
+    """A height range widened by the margin the rays' bounds need."""
+    pad = PAD + PAD_SHARE * (hi - lo)
+    return lo - pad, hi + pad
 
 
 def approx_heights(path: Path) -> tuple[float, float]:
     """DSM height range from a decimated read (for the window of the rays), with a margin."""
     with rasterio.open(path) as src:
-        f = max(1, int(max(src.width, src.height) // 512))
+        f = max(1, int(max(src.width, src.height) // DECIMATED))
         arr = src.read(1, out_shape=(max(1, src.height // f), max(1, src.width // f)), masked=True)
     data = arr.astype(float).filled(np.nan)
-    data[data <= -9999] = np.nan
+    data[data <= ODM_NODATA] = np.nan
     if not np.isfinite(data).any():
         raise InputError("the DSM holds no valid heights", path=path, fix="check the DSM (re-run ODM with --dsm)")
-    lo, hi = float(np.nanmin(data)), float(np.nanmax(data))
-    pad = 1.0 + 0.2 * (hi - lo)
-    return lo - pad, hi + pad
+    return _padded(float(np.nanmin(data)), float(np.nanmax(data)))
 
 
 def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray | None:
@@ -40,9 +51,9 @@ def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: f
     d = shot.ray_directions(uv)
     c = shot.center
     c_map = frame.to_map(c[None, :])[0]
-    far = frame.to_map(c[None, :] + 100.0 * d)
-    dm = (far - c_map) / 100.0
-    if (dm[:, 2] > -1e-6).any():
+    far = frame.to_map(c[None, :] + RAY_PROBE * d)
+    dm = (far - c_map) / RAY_PROBE
+    if (dm[:, 2] > UPWARD).any():
         return None
     x, y = np.ascontiguousarray(dm[:, 0]), np.ascontiguousarray(dm[:, 1])  # 1-D reductions: fast
     out = np.array([np.inf, np.inf, -np.inf, -np.inf])
@@ -63,8 +74,7 @@ class DsmSurfaces:
             small = src.width * src.height <= MAX_SURFACE_CELLS
         if small:  # the whole DSM fits: read it once, its heights bound the rays
             self._whole = Surface.open(path)
-            pad = 1.0 + 0.2 * (self._whole.zmax - self._whole.zmin)
-            self.z_lo, self.z_hi = self._whole.zmin - pad, self._whole.zmax + pad
+            self.z_lo, self.z_hi = _padded(self._whole.zmin, self._whole.zmax)
         else:
             self.z_lo, self.z_hi = approx_heights(path)
 
@@ -89,7 +99,7 @@ class DsmSurfaces:
             self._whole = self._open(union, res)
 
     def _open(self, bounds, res) -> Surface:
-        pad = 4 * res + self.ground_window  # the ground estimate needs terrain around the rays
+        pad = EDGE_CELLS * res + self.ground_window  # the ground estimate needs terrain around the rays
         return Surface.open(self.path, bounds=(bounds[0] - pad, bounds[1] - pad, bounds[2] + pad, bounds[3] + pad))
 
     def get(self, bounds: np.ndarray) -> Surface:

@@ -14,12 +14,18 @@ import numpy as np
 
 from matchplant.core.geometry.frames import Frame
 from matchplant.core.geometry.ground import rays_to_ground
+from matchplant.core.geometry.raycast import LEVEL
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+from matchplant.plant_projection.relief import Scene
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.silhouette import silhouette_boxes
 
 RAY_PRIORITY = (NODATA, OUTSIDE, NOT_DOWNWARD, NO_HIT)  # which failed ray explains a box best
-SKIM = 0.1  # metres: a ray that passed this close over a plant before landing on the soil missed the plant's top
+NADIR_DEPTH = 1000.0  # metres below the camera of the point whose image is the image's nadir point
+STEEP = 0.1  # a far-edge ray whose height range would grow more than tenfold for the ground's slope: no top bound
+TOP_MARGIN = 0.05  # metres: the DSM is searched this much above the tallest plant and below the ground hit
+SETTLE = 2.0  # a ray stopped at the clearance settles onto a surface met within this many clearances further down
 
 
 def box_outline(boxes: np.ndarray, edge_points: int) -> np.ndarray:
@@ -96,7 +102,7 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     """
     cam = frame.to_map(shot.center[None, :])[0]
     with np.errstate(invalid="ignore"):
-        nadir = shot.project(frame.from_map((cam - [0.0, 0.0, 1000.0])[None, :]))[0]
+        nadir = shot.project(frame.from_map((cam - [0.0, 0.0, NADIR_DEPTH])[None, :]))[0]
     out = np.zeros((len(boxes), 4), dtype=bool)
     if not np.isfinite(nadir).all():  # the camera does not look down
         return out
@@ -106,14 +112,14 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, *, edge_points: int = 4,
-                  map_box: str = "inscribed", clearance: float = 0.02, hidden_height: float = 0.05,
-                  ground_window: float = 1.5, cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, settings: ProjectionSettings, *,
+                  cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Project pixel boxes ``[x1, y1, x2, y2]`` (M, 4) of one image onto the surface, all at once.
 
-    Rays through each box outline meet the ground (estimated from the DSM, :meth:`Surface.ground` with
-    ``ground_window``) on the edges facing the image's nadir point, and the DSM, stopping ``clearance``
-    metres above it (so a ray grazing a plant's top stays on the plant), on the others;
+    Rays through each box outline (``settings.edge_points`` along each edge) meet the ground (estimated from the
+    DSM, :meth:`Surface.ground` with ``settings.ground_window``) on the edges facing the image's nadir point, and
+    the DSM, stopping ``settings.clearance`` metres above it (so a ray grazing a plant's top stays on the plant),
+    on the others;
     :func:`silhouette_boxes` turns the hits into the plant's map box. ``cut_edges`` (M, 4: top, right,
     bottom, left) marks edges cut by the photo or tile border. Returns arrays over the M boxes: ``ok``
     (every ray needed hit the surface), ``status`` (the ray status explaining a failure,
@@ -124,6 +130,7 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     ``across`` (M, 4: map sides seen across the plant, :func:`silhouette_boxes`) and ``off_nadir`` (degrees
     between the plumb line and the ray to the centroid).
     """
+    edge_points, clearance, ground_window = settings.edge_points, settings.clearance, settings.ground_window
     boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
     uv = box_outline(boxes, edge_points)
     m, p = uv.shape[:2]
@@ -143,15 +150,16 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         # max_slope per metre towards the camera)
         gz = np.where(g_status[far] == HIT, g_pts[far, 2], np.nan)
         d_far = dirs[far]
-        tan = np.hypot(d_far[:, 0], d_far[:, 1]) / np.maximum(-d_far[:, 2], 1e-12)
+        tan = np.hypot(d_far[:, 0], d_far[:, 1]) / np.maximum(-d_far[:, 2], LEVEL)
         rise = 1.0 - ground.max_slope * tan
         with np.errstate(invalid="ignore", divide="ignore"):
-            top = np.where(rise > 0.1, gz + (surface.canopy_height(ground_window) + clearance) / rise + 0.05, np.nan)
+            top = np.where(rise > STEEP, gz + (surface.canopy_height(ground_window) + clearance) / rise + TOP_MARGIN,
+                           np.nan)
         # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
         # exact hit (soil at a leaf tip, a plant's side) and settles there; one that would fall further grazed
         # a plant's top and stays
-        pts, st = rays_to_ground(shot, d_far, frame, surface, clearance=clearance, settle=2 * clearance,
-                                 heights=(top, gz - 0.05))
+        pts, st = rays_to_ground(shot, d_far, frame, surface, clearance=clearance, settle=SETTLE * clearance,
+                                 heights=(top, gz - TOP_MARGIN))
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
@@ -161,7 +169,8 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         reason[(status == code).any(axis=1)] = code
     # the outline: DSM hits on the far edges, ground hits on the others (d_pts started as a copy of g_pts)
     cut = cut_edges if cut_edges is not None else np.zeros((m, 4), dtype=bool)
-    out = silhouette_boxes(g_pts, d_pts, near, ok, cut, surface, ground, cam, hidden_height=hidden_height, how=map_box,
-                           skim=SKIM, canopy=surface.canopy_height(ground_window))
-    out.update(ok=ok, status=reason, outline=d_pts, centroid=out.pop("centre"))
-    return out
+    scene = Scene.of(surface, cam, settings)
+    sil = silhouette_boxes(g_pts, d_pts, near, ok, cut, scene, settings.map_box == "inscribed")
+    return {"ok": ok, "status": reason, "outline": d_pts, "bounds": sil.bounds, "centroid": sil.centre, "z": sil.z,
+            "area": sil.area, "off_nadir": sil.off_nadir, "unseen": sil.unseen, "beside_cut": sil.beside_cut,
+            "across": sil.across}

@@ -1,98 +1,12 @@
-"""Step 8's inputs checked before any ray is cast: the predictions file (its shape and every box's values)
-and the DSM. Each problem names the file, the prediction (its index and image) and the fix; a COCO dataset
-or a plain results list given where predictions are expected is recognised and said in those words."""
+"""Step 8's DSM checked before any ray is cast (the predictions are checked where they are read,
+:func:`matchplant.core.formats.predictions.read_predictions`)."""
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
-from matchplant.core.formats.coco import read_predictions, source_name
-from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.validate import check_raster, did_you_mean, read_json
-
-FIX_PREDICTIONS = "give the predictions JSON written by module 7 (model_test), or regenerate it"
-
-
-def load_predictions(path: str | Path, images_from: str | Path | None = None) -> dict:
-    """Module 7's predictions (or a COCO results list plus ``images_from``), checked: the right kind of file,
-    at least one detection, and every box four finite numbers of positive size with a score in [0, 1]."""
-    path = Path(path)
-    data = read_json(path, what="predictions file")
-    _check_shape(data, path, images_from)
-    preds = read_predictions(path, images_from)
-    if not preds["predictions"]:
-        raise InputError("the predictions file holds no detections ('predictions' is empty)", path=path,
-                         fix="run module 7 again (check its score threshold), or point 'predictions' at the "
-                             "right file")
-    images = {im["id"]: im for im in preds["images"]}
-    for k, im in enumerate(preds["images"]):
-        name = im.get("source_image") or im.get("file_name")
-        if not isinstance(name, str) or not name.strip():
-            raise InputError(f"images[{k}] (id {im['id']!r}) has no 'file_name'", path=path, fix=FIX_PREDICTIONS)
-        for key in ("x0", "y0", "width", "height"):  # a tile's place in its photo, and the image size
-            if im.get(key) is not None and not (_number(im[key]) and im[key] >= 0):
-                raise InputError(f"images[{k}] ('{name}'): '{key}' is {im[key]!r}, not a number >= 0", path=path,
-                                 fix=FIX_PREDICTIONS)
-    cats = preds.get("categories")
-    if not isinstance(cats, list) or not all(isinstance(c, dict) and "id" in c for c in cats):
-        raise InputError("'categories' must be a list of objects with an 'id'", path=path, fix=FIX_PREDICTIONS)
-    for i, p in enumerate(preds["predictions"]):
-        _check_prediction(i, p, source_name(images[p["image_id"]]), path)
-    return preds
-
-
-def _check_shape(data, path: Path, images_from) -> None:
-    if isinstance(data, list):
-        if images_from is None:
-            raise ConfigError(f"the predictions file is a plain COCO results list ({len(data)} boxes) without "
-                              "image names", path=path,
-                              fix="set 'images_from' to the COCO dataset the predictions were made on (it names "
-                                  "the images), or give module 7's predictions.json")
-        if not all(isinstance(p, dict) for p in data):
-            raise InputError("the predictions file is a list, but not of detections {image_id, bbox, score}",
-                             path=path, fix=FIX_PREDICTIONS)
-        return
-    if not isinstance(data, dict):
-        raise InputError(f"the predictions file holds a {type(data).__name__}, not predictions", path=path,
-                         fix=FIX_PREDICTIONS)
-    if "predictions" not in data and "annotations" in data:
-        raise InputError("this is a COCO dataset ('images' and 'annotations': labelled boxes), not predictions",
-                         path=path, fix="give module 7's predictions JSON; to project labelled boxes, rename "
-                                        "their 'annotations' key to 'predictions'")
-    if "predictions" not in data:
-        hint = did_you_mean("predictions", data)
-        raise InputError(f"the predictions file has no 'predictions'{'; ' + hint if hint else ''} (keys: "
-                         f"{', '.join(map(str, data)) or 'none'})", path=path, fix=FIX_PREDICTIONS)
-    if "images" not in data:
-        raise InputError("the predictions file has 'predictions' but no 'images' (the image names)", path=path,
-                         fix=FIX_PREDICTIONS)
-
-
-def _number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def _check_prediction(i: int, p: dict, image: str, path: Path) -> None:
-    where = f"predictions[{i}] (image '{image}')"
-    bbox = p.get("bbox")
-    if not (isinstance(bbox, (list, tuple)) and len(bbox) == 4 and all(_number(v) for v in bbox)):
-        raise InputError(f"{where}: bbox {bbox!r} is not four finite numbers [x, y, width, height]", path=path,
-                         fix="regenerate the predictions (module 7), or remove that box")
-    x, y, w, h = (float(v) for v in bbox)
-    if w < 0 or h < 0:
-        corners = " (it looks like [x1, y1, x2, y2] with the corners swapped)" if w + x >= 0 and h + y >= 0 else ""
-        raise InputError(f"{where}: bbox {bbox!r} has a negative width or height{corners}", path=path,
-                         fix="COCO boxes are [x, y, width, height] with width, height >= 0; convert the boxes")
-    if "score" in p:
-        s = p["score"]
-        if not _number(s) or not 0.0 <= float(s) <= 1.0:
-            pct = " (a percentage? scores are 0..1)" if _number(s) and 1.0 < float(s) <= 100.0 else ""
-            raise InputError(f"{where}: score {s!r} is not a number in [0, 1]{pct}", path=path,
-                             fix="scores must be probabilities between 0 and 1; divide percentages by 100")
-    cat = p.get("category_id", 1)
-    if not (_number(cat) and float(cat) == int(cat)):
-        raise InputError(f"{where}: category_id {cat!r} is not an integer", path=path, fix=FIX_PREDICTIONS)
+from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.validate import check_raster
 
 
 def check_dsm(path: Path, key: str | None) -> None:

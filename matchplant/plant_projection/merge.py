@@ -21,6 +21,10 @@ MERGE_GAP = 0.05  # metres: a plant seen only in border-cut slivers this close t
 FUSE_QUANTILE = 0.25  # merge "fuse": each side of the box from this quantile of the views' inner bounds
 MERGE_TOLERANCE = 0.01  # metres: how far a seen side of a partly guessed view may stick out of the plant it joins
 # (poses, DSM and the alignment of a split project's submodels disagree by millimetres to a centimetre)
+TILE_REPEAT = 0.7  # a cut box lying this much inside a box of another tile of its photo repeats that box
+SLIVER_SHARE = 0.5  # a plant seen only in slivers joins a whole one at most 1 / SLIVER_SHARE times its size
+MOST_OF_PLANT = 0.5  # a view cut beside a side shows most of its plant with this share of its representative's area
+ROW_DECIMALS = 1  # plants are numbered north to south in rows of 10 ** -ROW_DECIMALS metres, then west to east
 
 
 def _tile_duplicates(t: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
@@ -39,7 +43,7 @@ def _tile_duplicates(t: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
         inside = iou * (area[i] + area[j]) / (1.0 + iou) / np.minimum(area[i], area[j])
         tile = t["image_id"].to_numpy()[idx]
         cut = t["cut"].to_numpy()[idx]
-        keep = (tile[i] != tile[j]) & (cut[i] | cut[j]) & (inside >= 0.7)
+        keep = (tile[i] != tile[j]) & (cut[i] | cut[j]) & (inside >= TILE_REPEAT)
         out_i.append(idx[i[keep]])
         out_j.append(idx[j[keep]])
     if not out_i:
@@ -108,7 +112,7 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     reps = np.unique(rep)
     ry = t["cy"].to_numpy()[reps]
     rx = t["cx"].to_numpy()[reps]
-    ranked = reps[np.lexsort((rx, -np.round(ry, 1)))]
+    ranked = reps[np.lexsort((rx, -np.round(ry, ROW_DECIMALS)))]
     pid_of_rep = np.empty(n, dtype=np.int64)
     pid_of_rep[ranked] = np.arange(1, len(ranked) + 1)
     t["plant_id"] = pid_of_rep[rep]
@@ -274,7 +278,7 @@ def _join_slivers(rep: np.ndarray, box: np.ndarray, cut: np.ndarray, cat: np.nda
     keep = (only_cut[i] != only_cut[j]) & (cat[reps[i]] == cat[reps[j]])
     sliver, whole = np.where(only_cut[i[keep]], i[keep], j[keep]), np.where(only_cut[i[keep]], j[keep], i[keep])
     area = (box[reps, 2] - box[reps, 0]) * (box[reps, 3] - box[reps, 1])
-    small = area[sliver] <= 0.5 * area[whole]
+    small = area[sliver] <= SLIVER_SHARE * area[whole]
     sliver, whole = sliver[small], whole[small]
     if not sliver.size:
         return
@@ -350,7 +354,7 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
     for side, h, bc, ac in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols, across_cols):
         beside = t[bc] if bc else pd.Series(False, index=t.index)
         tiers = [t[side].where(~t[h] & ~beside),  # seen whole
-                 t[side].where(~t[h] & beside & (area(t) >= 0.5 * rep_area)),  # most of the plant in view
+                 t[side].where(~t[h] & beside & (area(t) >= MOST_OF_PLANT * rep_area)),  # most of the plant in view
                  t[side].where(~t["cut"])]  # the whole views' guesses
         med = np.full(len(plants), np.nan)
         for values in tiers:

@@ -2,12 +2,12 @@
 
 Library use::
 
-    views, rejected = project_predictions(ODMProject("field"), load_predictions("predictions.json"))
+    views, rejected = project_predictions(ODMProject("field"), read_predictions("predictions.json", every_box=True))
     plants = merge_views(views)
     metrics = evaluate_boxes(reference_bounds, plant_bounds)
 
-(from :mod:`~matchplant.plant_projection.views`, :mod:`~matchplant.plant_projection.merge` and
-:mod:`~matchplant.plant_projection.evaluation`).
+(from :mod:`~matchplant.core.formats.predictions`, :mod:`~matchplant.plant_projection.views`,
+:mod:`~matchplant.plant_projection.merge` and :mod:`~matchplant.plant_projection.evaluation`).
 """
 
 from __future__ import annotations
@@ -18,15 +18,17 @@ import numpy as np
 import pandas as pd
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes, evaluation_figure, read_boxes, read_plants_boxes
-from matchplant.plant_projection.inputs import check_dsm, load_predictions
+from matchplant.plant_projection.inputs import check_dsm
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.output import write_plants, write_table
+from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.views import (
     BOX_OUTSIDE_IMAGE,
     EMPTY_BOX,
@@ -45,7 +47,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     out = Path(cfg.output_dir)
     dest = Path(dest or out)
     project = ODMProject(cfg.project)
-    preds = load_predictions(cfg.predictions, cfg.images_from)
+    preds = read_predictions(cfg.predictions, cfg.images_from, every_box=True)
     for path in dsm_files(project, cfg.dsm):
         check_dsm(path, "dsm" if cfg.dsm is not None else None)
     scores = np.array([float(p.get("score", 1.0)) for p in preds["predictions"]])
@@ -54,11 +56,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
                           f"scores {scores.max():.3f}), so no box would be projected", path=cfg.predictions,
                           fix=f"lower 'min_score' (e.g. to {np.floor(scores.max() * 100) / 100:.2f}), or check that "
                               "these are the model's predictions")
-    views, rejected = project_predictions(project, preds, image_type=cfg.image_type, dsm=cfg.dsm,
-                                          min_score=cfg.min_score, edge_points=cfg.edge_points,
-                                          map_box=cfg.map_box, border_pixels=cfg.border_pixels,
-                                          clearance=cfg.silhouette_clearance, hidden_height=cfg.hidden_height,
-                                          ground_window=cfg.ground_window)
+    views, rejected = project_predictions(project, preds, ProjectionSettings.from_config(cfg))
     low = rejected["reason"] == "score below min_score"
     failed = rejected[~low]
     if not len(views.table):

@@ -25,6 +25,7 @@ from matchplant.core.runtime.progress import progress
 from matchplant.core.runtime.validate import did_you_mean, match_names
 from matchplant.plant_projection.dsm import DsmSurfaces, ray_bounds
 from matchplant.plant_projection.geometry import project_boxes
+from matchplant.plant_projection.settings import ProjectionSettings
 
 log = get_logger("plant_projection")
 
@@ -39,6 +40,8 @@ BESIDE_CUT_COLUMNS = ("beside_cut_w", "beside_cut_s", "beside_cut_e", "beside_cu
 # sides seen across the plant (the photo edge facing away from the nadir point): a ray that passed over the
 # plant's top unnoticed lands on the soil beyond it, so such a side can overshoot (merge._observed_sides)
 ACROSS_COLUMNS = ("across_w", "across_s", "across_e", "across_n")
+OUTSIDE_SLACK = 1.0  # pixels a box may reach past its image's border (rounding of the detector's boxes)
+BAND_ROWS = 64  # pixel rows per band of the projection order (neighbouring boxes share DSM cells in the cache)
 
 
 @dataclass
@@ -190,149 +193,210 @@ def dsm_files(project: ODMProject, dsm: Path | None) -> list[Path]:
     return have
 
 
-def project_predictions(project: ODMProject, predictions: dict, *, image_type: str = "auto",
-                        dsm: Path | None = None, min_score: float = 0.0, edge_points: int = 4,
-                        map_box: str = "inscribed", border_pixels: float = 2.0,
-                        clearance: float = 0.02, hidden_height: float = 0.05,
-                        ground_window: float = 1.5) -> tuple[ProjectedViews, pd.DataFrame]:
+def project_predictions(project: ODMProject, predictions: dict,
+                        settings: ProjectionSettings | None = None) -> tuple[ProjectedViews, pd.DataFrame]:
     """Project every prediction box; returns the projected views and the boxes that were not projected.
 
-    ``predictions`` is :func:`matchplant.core.formats.coco.read_predictions`'s dict (tile boxes are moved back to their
-    source image with the tile's ``x0``, ``y0``). The rejected table has one row per box with its reason.
-    In a split-merge project each shot's boxes meet its own submodel's DSM (docs/DESIGN.md §6) unless ``dsm``
-    is given. The bookkeeping is done per image (names, shots, frames) and per box only in numpy.
+    ``predictions`` is :func:`matchplant.core.formats.predictions.read_predictions`'s dict, checked there (tile
+    boxes are moved back to their source image with the tile's ``x0``, ``y0``); ``settings`` None: the config's
+    defaults. The rejected table has one row per box with its reason. In a split-merge project each shot's boxes
+    meet its own submodel's DSM (docs/DESIGN.md §6) unless ``settings.dsm`` is given. The bookkeeping is done per
+    image (names, shots, frames) and per box only in numpy.
     """
+    settings = settings if settings is not None else ProjectionSettings.from_config()
+    boxes = _box_table(predictions)
+    log.info("%d detections on %d images", len(boxes.xyxy), boxes.images)
+    frame = project.frame()
+    ids = _shot_ids(project, predictions["images"], settings.image_type)
+    shot_of, und_of = _resolve_sources(project, boxes, ids, settings.image_type)
+    reason = _reasons_before_rays(boxes, shot_of, settings.min_score)
+    shots = _ShotGroups(project, boxes, shot_of, und_of)
+    reason[(reason == "") & _outside(boxes.xyxy, shots.size)] = BOX_OUTSIDE_IMAGE
+    run = _Projection(shots, boxes, frame.crs, settings, reason)
+    dsm_of = run.on_own_dsms(project)
+    run.retry_on_merged_dsm(project, dsm_of)
+    return run.assemble(boxes.cols)
+
+
+@dataclass
+class _Boxes:
+    """The predictions as one flat table of boxes in source-image pixels: its columns so far, and what ties each
+    box to its image and source photo."""
+
+    cols: dict[str, np.ndarray]
+    xyxy: np.ndarray  # (n, 4) x1, y1, x2, y2 in source-image pixels
+    tile: np.ndarray  # (n, 4) the box's tile in its photo: x0, y0, width, height (NaN: the whole photo)
+    src: np.ndarray  # (n,) each box's source photo, a code into sources
+    sources: np.ndarray  # the source photos' names
+    images: int  # how many images (photos or tiles) the predictions list
+
+
+def _box_table(predictions: dict) -> _Boxes:
+    """One pass per field over the prediction dicts, the rest per image (its code in the image ids) and per
+    source photo."""
     image_keys, per_image = _per_image(predictions["images"])
     cats = {c["id"]: c.get("name", str(c["id"])) for c in predictions.get("categories", [])}
     preds = predictions["predictions"]
     n = len(preds)
-    log.info("%d detections on %d images", n, len(image_keys))
-    frame = project.frame()
-    und_ids, orig_ids = project.shot_ids(undistorted=True), project.shot_ids(undistorted=False)
-    if image_type == "original" and not orig_ids:
-        project.require("reconstruction")
-    names = {Path(source_name(im).replace("\\", "/")).name for im in predictions["images"]}
-    if not und_ids and (image_type == "undistorted" or (image_type == "auto" and orig_ids.isdisjoint(names) and
-                                                        any(n.lower().endswith(".tif") for n in names))):
-        project.require("undistorted_reconstruction")  # boxes on undistorted images: say what is missing
-
-    # one flat table of boxes in source-image pixels: one pass per field over the prediction dicts, the rest
-    # per image (its code in image_keys) and per source photo (its code in sources)
     image_ids = [p["image_id"] for p in preds]
     score = np.fromiter([p.get("score", 1.0) for p in preds], dtype=float, count=n)
     category_id = np.fromiter([int(p.get("category_id", 1)) for p in preds], dtype=np.int64, count=n)
     code = pd.Index(image_keys).get_indexer(pd.Index(image_ids)) if n else np.zeros(0, dtype=np.int64)
-    if (code < 0).any():
-        missing = image_ids[int(np.flatnonzero(code < 0)[0])]
-        raise InputError(f"{int((code < 0).sum())} prediction(s) refer to images not listed in 'images' (e.g. "
-                         f"image_id {missing!r})", fix="regenerate the predictions with module 7")
-    bb = [p["bbox"] for p in preds]
-    if n and (np.fromiter(map(len, bb), dtype=np.int64, count=n) != 4).any():
-        raise InputError("a prediction's bbox is not four numbers [x, y, width, height]",
-                         fix="regenerate the predictions with module 7")
-    b = np.fromiter(chain.from_iterable(bb), dtype=float, count=4 * n).reshape(-1, 4)  # no list per box
+    b = np.fromiter(chain.from_iterable(p["bbox"] for p in preds), dtype=float, count=4 * n).reshape(-1, 4)
     off = per_image["offset"][code]
-    boxes = np.column_stack([b[:, :2] + off, b[:, :2] + off + b[:, 2:]])
+    xyxy = np.column_stack([b[:, :2] + off, b[:, :2] + off + b[:, 2:]])
     src_of_image, sources = pd.factorize(per_image["source_image"])
-    src = src_of_image[code]
-    seen = pd.unique(src)  # source photos in order of their first box
-    resolved, hints = resolve_images(sources[seen], und_ids, orig_ids, image_type)
-    shot_of = np.array([resolved.get(s, (None, False))[0] for s in sources], dtype=object)
-    und_of = np.array([bool(resolved.get(s, (None, True))[1]) for s in sources], dtype=bool)
     cat_codes, cat_values = pd.factorize(category_id)
     cols = {"pred_index": np.arange(n), "image_id": pd.Series(image_ids).to_numpy(), "score": score,
             "category_id": category_id,
             "image": per_image["image"][code], "source_image": per_image["source_image"][code],
             "category": np.array([cats.get(c, str(c)) for c in cat_values], dtype=object)[cat_codes],
-            "u1": boxes[:, 0], "v1": boxes[:, 1], "u2": boxes[:, 2], "v2": boxes[:, 3]}
+            "u1": xyxy[:, 0], "v1": xyxy[:, 1], "u2": xyxy[:, 2], "v2": xyxy[:, 3]}
     if any("plant_id" in p for p in preds):  # ground-truth ids travel through (synthetic field, tests)
         ids = [p.get("plant_id", -1) for p in preds]
         as_array = np.array(ids)  # integer ids (the usual case) make an integer array at once
         cols["truth_plant_id"] = as_array if as_array.dtype.kind in "iu" else pd.Series(ids).to_numpy()
-    cols["hint"] = np.array([hints.get(s, "") for s in sources], dtype=object)[src]
-    cols["shot_id"] = shot_of[src]
-    cols["undistorted"] = und_of[src]
-    known = pd.notna(cols["shot_id"])
+    return _Boxes(cols, xyxy, per_image["tile"][code], src_of_image[code], sources, len(image_keys))
+
+
+def _shot_ids(project: ODMProject, images: list[dict], image_type: str) -> tuple[set[str], set[str]]:
+    """The reconstruction's undistorted and original shot ids; a reconstruction the boxes need and the project
+    lacks is said at once."""
+    und_ids, orig_ids = project.shot_ids(undistorted=True), project.shot_ids(undistorted=False)
+    if image_type == "original" and not orig_ids:
+        project.require("reconstruction")
+    names = {Path(source_name(im).replace("\\", "/")).name for im in images}
+    if not und_ids and (image_type == "undistorted" or (image_type == "auto" and orig_ids.isdisjoint(names) and
+                                                        any(n.lower().endswith(".tif") for n in names))):
+        project.require("undistorted_reconstruction")  # boxes on undistorted images: say what is missing
+    return und_ids, orig_ids
+
+
+def _resolve_sources(project: ODMProject, boxes: _Boxes, ids: tuple[set[str], set[str]],
+                     image_type: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each source photo's shot id (None: not in the reconstruction) and whether the boxes are on its undistorted
+    image; adds the boxes' ``hint``, ``shot_id``, ``undistorted`` (and ``submodel``) columns."""
+    src, sources = boxes.src, boxes.sources
+    seen = pd.unique(src)  # source photos in order of their first box
+    resolved, hints = resolve_images(sources[seen], *ids, image_type)
+    shot_of = np.array([resolved.get(s, (None, False))[0] for s in sources], dtype=object)
+    und_of = np.array([bool(resolved.get(s, (None, True))[1]) for s in sources], dtype=bool)
+    boxes.cols["hint"] = np.array([hints.get(s, "") for s in sources], dtype=object)[src]
+    boxes.cols["shot_id"] = shot_of[src]
+    boxes.cols["undistorted"] = und_of[src]
     if project.is_split:  # which submodel's frame placed each box (merge.align_submodels)
-        cols["submodel"] = np.array([project.owner(s).name if s is not None else "" for s in shot_of],
-                                    dtype=object)[src]
+        boxes.cols["submodel"] = np.array([project.owner(s).name if s is not None else "" for s in shot_of],
+                                          dtype=object)[src]
+    return shot_of, und_of
 
-    reason = np.full(n, "", dtype=object)
-    reason[score < min_score] = "score below min_score"
-    reason[(reason == "") & ~known] = NOT_IN_RECONSTRUCTION
-    reason[(reason == "") & ~((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]))] = EMPTY_BOX
 
-    # one group per (shot, undistorted?): its camera, its boxes; groups numbered in order of their first box
-    shot_code, shot_names = pd.factorize(shot_of)  # two names can be one shot (IMG_1.tif, img_1.tif)
-    pair_codes = 2 * shot_code[src] + und_of[src]
-    group = np.full(n, -1)
-    group[known], pairs = pd.factorize(pair_codes[known])
-    keys = [(shot_names[p // 2], bool(p % 2)) for p in pairs]
-    warned: set = set()
-    shots = [_shot(project, sid, bool(und), warned) for sid, und in keys]
-    frames = [project.frame_of(sid) for sid, _ in keys]  # a split project's submodels have a frame each
-    size = np.full((n, 2), np.nan)
-    if keys:
-        wh = np.array([[s.camera.width, s.camera.height] for s in shots], dtype=float)
-        size[known] = wh[group[known]]
+def _reasons_before_rays(boxes: _Boxes, shot_of: np.ndarray, min_score: float) -> np.ndarray:
+    """Why each box is not projected, as far as known before any ray is cast ("": not known to fail)."""
+    xyxy = boxes.xyxy
+    reason = np.full(len(xyxy), "", dtype=object)
+    reason[boxes.cols["score"] < min_score] = "score below min_score"
+    reason[(reason == "") & ~pd.notna(shot_of[boxes.src])] = NOT_IN_RECONSTRUCTION
+    reason[(reason == "") & ~((xyxy[:, 2] > xyxy[:, 0]) & (xyxy[:, 3] > xyxy[:, 1]))] = EMPTY_BOX
+    return reason
+
+
+class _ShotGroups:
+    """One group per (shot, undistorted?): its camera and frame, groups numbered in order of their first box;
+    ``group`` (each box's, -1: no shot) and ``size`` (each box's image width and height, NaN: no shot)."""
+
+    def __init__(self, project: ODMProject, boxes: _Boxes, shot_of: np.ndarray, und_of: np.ndarray):
+        n, src = len(boxes.xyxy), boxes.src
+        known = pd.notna(shot_of[src])
+        shot_code, shot_names = pd.factorize(shot_of)  # two names can be one shot (IMG_1.tif, img_1.tif)
+        pair_codes = 2 * shot_code[src] + und_of[src]
+        self.group = np.full(n, -1)
+        self.group[known], pairs = pd.factorize(pair_codes[known])
+        self.keys = [(shot_names[p // 2], bool(p % 2)) for p in pairs]
+        warned: set = set()
+        self.shots = [_shot(project, sid, bool(und), warned) for sid, und in self.keys]
+        self.frames = [project.frame_of(sid) for sid, _ in self.keys]  # a split project's submodels: a frame each
+        self.size = np.full((n, 2), np.nan)
+        if self.keys:
+            wh = np.array([[s.camera.width, s.camera.height] for s in self.shots], dtype=float)
+            self.size[known] = wh[self.group[known]]
+
+
+def _outside(xyxy: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Boxes reaching more than :data:`OUTSIDE_SLACK` pixels past their image's border."""
     with np.errstate(invalid="ignore"):
-        outside = ((boxes[:, 0] < -1) | (boxes[:, 1] < -1) | (boxes[:, 2] > size[:, 0] + 1)
-                   | (boxes[:, 3] > size[:, 1] + 1))
-    reason[(reason == "") & outside] = BOX_OUTSIDE_IMAGE
-    todo = np.flatnonzero(reason == "")
+        return ((xyxy[:, 0] < -OUTSIDE_SLACK) | (xyxy[:, 1] < -OUTSIDE_SLACK)
+                | (xyxy[:, 2] > size[:, 0] + OUTSIDE_SLACK) | (xyxy[:, 3] > size[:, 1] + OUTSIDE_SLACK))
 
-    # by image, and within an image by position (bands of 64 pixel rows, then columns): neighbouring boxes
-    # read neighbouring DSM cells, which stay in the CPU's cache (detections come in score order)
-    by_group = todo[np.lexsort((boxes[todo, 0], np.floor(boxes[todo, 1] / 64), group[todo]))]
+
+def _by_position(xyxy: np.ndarray, group: np.ndarray, todo: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """The boxes ``todo`` in projection order, and by group ({group: box indices}): by group, within a group by
+    position (bands of :data:`BAND_ROWS` pixel rows, then columns): neighbouring boxes read neighbouring DSM
+    cells, which stay in the CPU's cache (detections come in score order)."""
+    by_group = todo[np.lexsort((xyxy[todo, 0], np.floor(xyxy[todo, 1] / BAND_ROWS), group[todo]))]
     keys_todo, starts = np.unique(group[by_group], return_index=True)
-    groups = {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
-    cut_edges = _cut(boxes, size, per_image["tile"][code], border_pixels)
-    res = _Results(n, edge_points, by_group)
-    dsm_of = _dsm_paths(project, [keys[k] for k in groups], dsm)
-    dsms = list(dict.fromkeys(dsm_of))
-    settings = dict(edge_points=edge_points, map_box=map_box, clearance=clearance, hidden_height=hidden_height,
-                    ground_window=ground_window)
-    for path in dsms:  # one DSM at a time (a split project: one per submodel), read by window
-        mine = {k: groups[k] for k, p in zip(groups, dsm_of) if p == path}
-        desc = "projecting" if len(dsms) == 1 else f"projecting ({path.parent.parent.name})"
-        _project_groups(path, mine, shots, frames, boxes, cut_edges, frame.crs, res, reason, desc, settings)
-    merged = project.root / OUTPUTS["dsm"].relpath
-    if project.is_split and dsm is None and merged.is_file():
-        # ODM crops each submodel's DSM inside its own reconstruction: rays of its edge images that left it, or
-        # met a hole in it, are tried again on the merged DSM, which covers the whole field
+    return by_group, {int(k): idx for k, idx in zip(keys_todo, np.split(by_group, starts[1:]))}
+
+
+class _Projection:
+    """The boxes left after the checks, projected group by group onto the DSMs; their results in ``res`` and
+    the reasons of those that fail in ``reason``."""
+
+    def __init__(self, shots: _ShotGroups, boxes: _Boxes, crs, settings: ProjectionSettings, reason: np.ndarray):
+        self.shots, self.xyxy, self.crs, self.settings, self.reason = shots, boxes.xyxy, crs, settings, reason
+        order, self.groups = _by_position(boxes.xyxy, shots.group, np.flatnonzero(reason == ""))
+        self.cut_edges = _cut(boxes.xyxy, shots.size, boxes.tile, settings.border_pixels)
+        self.res = _Results(len(boxes.xyxy), settings.edge_points, order)
+
+    def on_own_dsms(self, project: ODMProject) -> list[Path]:
+        """Every group onto its DSM, one DSM at a time (a split project: one per submodel, read by window);
+        returns each group's DSM."""
+        dsm_of = _dsm_paths(project, [self.shots.keys[k] for k in self.groups], self.settings.dsm)
+        dsms = list(dict.fromkeys(dsm_of))
+        for path in dsms:
+            mine = {k: self.groups[k] for k, p in zip(self.groups, dsm_of) if p == path}
+            self._project(path, mine, "projecting" if len(dsms) == 1 else f"projecting ({path.parent.parent.name})")
+        return dsm_of
+
+    def retry_on_merged_dsm(self, project: ODMProject, dsm_of: list[Path]) -> None:
+        """ODM crops each submodel's DSM inside its own reconstruction: rays of its edge images that left it, or
+        met a hole in it, are tried again on the merged DSM, which covers the whole field."""
+        merged = project.root / OUTPUTS["dsm"].relpath
+        if not (project.is_split and self.settings.dsm is None and merged.is_file()):
+            return
         lost = {STATUS_TEXT[OUTSIDE], STATUS_TEXT[NODATA]}
-        retry = {k: groups[k][np.isin(reason[groups[k]], list(lost))] for k, p in zip(groups, dsm_of) if p != merged}
+        retry = {k: self.groups[k][np.isin(self.reason[self.groups[k]], list(lost))]
+                 for k, p in zip(self.groups, dsm_of) if p != merged}
         retry = {k: idx for k, idx in retry.items() if idx.size}
         if retry:
             count = sum(idx.size for idx in retry.values())
             log.info("%d box(es) whose rays left their own submodel's DSM: projected on the merged DSM", count)
             for idx in retry.values():
-                reason[idx] = ""
-            _project_groups(merged, retry, shots, frames, boxes, cut_edges, frame.crs, res, reason,
-                            "projecting (merged DSM)", settings)
-    cols.update(res.columns())
-    cols["reason"] = reason
-    cols["cut"] = cut_edges.any(axis=1)
+                self.reason[idx] = ""
+            self._project(merged, retry, "projecting (merged DSM)")
 
-    done = reason == ""
-    table = pd.DataFrame(cols)
-    rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
-    views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
-    return ProjectedViews(views, res.points, res.origins, res.row[done], frame.crs), rejected
+    def _project(self, path: Path, groups: dict[int, np.ndarray], desc: str) -> None:
+        """The boxes ``groups`` ({group: box indices}) onto the DSM at ``path`` (read by window,
+        :class:`DsmSurfaces`)."""
+        shots, frames = self.shots.shots, self.shots.frames
+        surfaces = DsmSurfaces(path, self.crs, self.settings.ground_window)
+        bounds = {k: ray_bounds(shots[k], frames[k], self.xyxy[idx], surfaces.z_lo, surfaces.z_hi)
+                  for k, idx in groups.items()}
+        surfaces.prepare(list(bounds.values()))
+        for k in progress(list(groups), desc=desc, unit="image"):
+            idx = groups[k]
+            r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), self.xyxy[idx], self.settings,
+                              cut_edges=self.cut_edges[idx])
+            self.res.store(idx, r, self.reason)
 
-
-def _project_groups(path: Path, groups: dict[int, np.ndarray], shots: list, frames: list, boxes: np.ndarray,
-                    cut_edges: np.ndarray, crs, res: "_Results", reason: np.ndarray, desc: str, settings: dict) -> None:
-    """Project the boxes ``groups`` ({group: box indices}, one group per shot) onto the DSM at ``path`` (read by
-    window, :class:`DsmSurfaces`), storing the results in ``res`` and failures in ``reason``."""
-    surfaces = DsmSurfaces(path, crs, settings["ground_window"])
-    bounds = {k: ray_bounds(shots[k], frames[k], boxes[idx], surfaces.z_lo, surfaces.z_hi) for k, idx in groups.items()}
-    surfaces.prepare(list(bounds.values()))
-    for k in progress(list(groups), desc=desc, unit="image"):
-        idx = groups[k]
-        r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), boxes[idx], cut_edges=cut_edges[idx],
-                          **settings)
-        res.store(idx, r, reason)
+    def assemble(self, cols: dict[str, np.ndarray]) -> tuple[ProjectedViews, pd.DataFrame]:
+        """The projected views and the rejected boxes, from the box table's columns and the results."""
+        cols = dict(cols, **self.res.columns(), reason=self.reason, cut=self.cut_edges.any(axis=1))
+        done = self.reason == ""
+        table = pd.DataFrame(cols)
+        rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
+        views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
+        res = self.res
+        return ProjectedViews(views, res.points, res.origins, res.row[done], self.crs), rejected
 
 
 REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
@@ -350,10 +414,8 @@ class _Results:
         self.origins = np.empty((len(order), 3))
         self.row = np.full(n, -1, dtype=np.int64)
         self.row[order] = np.arange(len(order))
-        self.values = np.full((n, len(RESULT_COLUMNS)), np.nan)
-        self.unseen = np.zeros((n, 4), dtype=bool)
-        self.beside_cut = np.zeros((n, 4), dtype=bool)
-        self.across = np.zeros((n, 4), dtype=bool)
+        self.values = {c: np.full(n, np.nan) for c in RESULT_COLUMNS}
+        self.sides = {c: np.zeros(n, dtype=bool) for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS + ACROSS_COLUMNS}
 
     def store(self, idx: np.ndarray, r: dict, reason: np.ndarray) -> None:
         ok = r["ok"]
@@ -366,15 +428,14 @@ class _Results:
         origin = np.column_stack([r["centroid"], r["z"]])
         self.origins[rows] = origin
         self.points[rows] = r["outline"] - origin[:, None, :]  # stored as float32 offsets (ProjectedViews)
-        self.values[good, :4] = r["bounds"][ok]
-        self.values[good, 4:6] = r["centroid"][ok]
-        self.values[good, 6], self.values[good, 7], self.values[good, 8] = r["z"][ok], r["area"][ok], r["off_nadir"][ok]
-        for name in ("unseen", "beside_cut", "across"):
-            getattr(self, name)[good] = r[name][ok]
+        v = self.values
+        for k, c in enumerate(("xmin", "ymin", "xmax", "ymax")):
+            v[c][good] = r["bounds"][ok, k]
+        v["cx"][good], v["cy"][good] = r["centroid"][ok, 0], r["centroid"][ok, 1]
+        v["z"][good], v["area_m2"][good], v["off_nadir_deg"][good] = r["z"][ok], r["area"][ok], r["off_nadir"][ok]
+        for key, names in (("unseen", UNSEEN_COLUMNS), ("beside_cut", BESIDE_CUT_COLUMNS), ("across", ACROSS_COLUMNS)):
+            for k, c in enumerate(names):
+                self.sides[c][good] = r[key][ok, k]
 
     def columns(self) -> dict[str, np.ndarray]:
-        out = {c: self.values[:, j] for j, c in enumerate(RESULT_COLUMNS)}
-        out.update({c: self.unseen[:, j] for j, c in enumerate(UNSEEN_COLUMNS)})
-        out.update({c: self.beside_cut[:, j] for j, c in enumerate(BESIDE_CUT_COLUMNS)})
-        out.update({c: self.across[:, j] for j, c in enumerate(ACROSS_COLUMNS)})
-        return out
+        return {**self.values, **self.sides}

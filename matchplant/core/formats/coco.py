@@ -250,36 +250,6 @@ def write_predictions(path: str | Path, images: list[dict], categories: list[dic
     return write_json(path, data, indent=None)
 
 
-def read_predictions(path: str | Path, images_from: str | Path | None = None) -> dict:
-    """Read predictions as ``{"images", "categories", "predictions"}``.
-
-    Accepts MatchPlant's predictions file, or a plain COCO results list with ``images_from`` (a COCO
-    dataset providing the image entries).
-    """
-    path = Path(path)
-    data = read_json(path, what="predictions file")
-    if isinstance(data, list):
-        if images_from is None:
-            raise InputError("this is a plain COCO results list; it has no image names", path=path,
-                             fix="also give the COCO dataset the predictions were made on")
-        ds = read_dataset(images_from, validate=False)
-        data = {"images": ds["images"], "categories": ds["categories"], "predictions": data}
-    if not isinstance(data, dict) or "predictions" not in data or "images" not in data:
-        raise InputError("not a predictions file (needs 'images' and 'predictions')", path=path,
-                         fix="give the predictions JSON written by module 7")
-    if not isinstance(data["images"], list) or not all(isinstance(im, dict) and "id" in im for im in data["images"]) \
-            or not isinstance(data["predictions"], list) or not all(isinstance(p, dict) for p in data["predictions"]):
-        raise InputError("'images' and 'predictions' must be lists of objects (images with an 'id')", path=path,
-                         fix="give the predictions JSON written by module 7")
-    known = {im["id"] for im in data["images"]}
-    orphans = [p for p in data["predictions"] if p.get("image_id") not in known]
-    if orphans:
-        raise InputError(f"{len(orphans)} prediction(s) refer to images not listed in the file", path=path,
-                         fix="regenerate the predictions with module 7")
-    data.setdefault("categories", [{"id": 1, "name": "plant"}])
-    return data
-
-
 def results_list(predictions: dict) -> list[dict[str, Any]]:
     """The plain COCO results list (for pycocotools' ``loadRes``)."""
     return [{"image_id": p["image_id"], "category_id": p["category_id"],

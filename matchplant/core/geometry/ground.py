@@ -14,6 +14,16 @@ from matchplant.core.geometry.frames import Frame
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import HIT, Surface
 
+# a topocentric frame: the straight map-space ray through the camera and the point where the reconstruction-frame
+# ray has come down this far (at least REACH_MIN metres; a ray's descent per unit at least DESCENT_MIN)
+REACH_MIN = 1.0
+DESCENT_MIN = 1e-3
+SECANT_STEP = 1e-3  # the secant steps on the exact curve start this far (ray parameter) from the straight hit
+SECANT_ITERATIONS = 6  # secant steps at most
+SECANT_TOLERANCE = 1e-7  # metres: the largest height error above the target at which they stop
+SECANT_FLAT = 1e-15  # two heights closer than this: no secant through them (the step keeps its point)
+SETTLED = 0.5  # a hit below this share of the clearance above the surface had settled onto it
+
 
 def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface, *,
                      clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -38,7 +48,7 @@ def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface,
         return points, status
     # Non-affine frame: a straight map-space ray through the centre and a point near the ground...
     c_map = frame.to_map(c[None, :])[0]
-    reach = max(c_map[2] - surface.zmin, 1.0) / np.maximum(-dirs[:, 2], 1e-3)
+    reach = max(c_map[2] - surface.zmin, REACH_MIN) / np.maximum(-dirs[:, 2], DESCENT_MIN)
     far_map = frame.to_map(c[None, :] + reach[:, None] * dirs)
     map_dirs = (far_map - c_map) / reach[:, None]
     points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, settle=settle,
@@ -51,23 +61,23 @@ def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface,
         target = np.full(int(ok.sum()), clearance)
         if settle > 0 and clearance > 0:
             p = points[ok]
-            target[p[:, 2] - surface.sample(p[:, 0], p[:, 1]) < 0.5 * clearance] = 0.0
+            target[p[:, 2] - surface.sample(p[:, 0], p[:, 1]) < SETTLED * clearance] = 0.0
 
         def g(sv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             p = frame.to_map(c[None, :] + sv[:, None] * d)
             return p, p[:, 2] - surface.sample(p[:, 0], p[:, 1]) - target
 
         s0 = s[ok]
-        s1 = s0 + 1e-3
+        s1 = s0 + SECANT_STEP
         _, f0 = g(s0)
         p1, f1 = g(s1)
-        for _ in range(6):
-            denom = np.where(np.abs(f1 - f0) > 1e-15, f1 - f0, np.nan)
+        for _ in range(SECANT_ITERATIONS):
+            denom = np.where(np.abs(f1 - f0) > SECANT_FLAT, f1 - f0, np.nan)
             s2 = np.where(np.isfinite(denom), s1 - f1 * (s1 - s0) / denom, s1)
             s0, f0 = s1, f1
             s1 = s2
             p1, f1 = g(s1)
-            if np.nanmax(np.abs(f1), initial=0.0) < 1e-7:
+            if np.nanmax(np.abs(f1), initial=0.0) < SECANT_TOLERANCE:
                 break
         points[ok] = p1
     return points, status

@@ -19,6 +19,7 @@ first compilation (cached afterwards).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -26,8 +27,46 @@ import numpy as np
 HIT, NOT_DOWNWARD, OUTSIDE, NODATA, NO_HIT = 0, 1, 2, 3, 4
 REFINE_ITERATIONS = 60  # refinement steps at most (fallback patches)
 REFINE_TOLERANCE = 1e-7  # metres (along the ray, and above the surface) at which refinement stops
+REFINE_MARGIN = 0.01  # share of the bracket a regula falsi step keeps from its ends (so the bracket shrinks)
 GENTLE_TOLERANCE = 1e-4  # metres of height error (bounded) at which the fixed point stops: 1 % of a 1 cm DSM cell
+GENTLE_ITERATIONS = 30  # fixed-point steps at most; a ray not settled by then is left for the walk
 FALLBACK_SAMPLES = 4  # samples per cell crossed, on patches that are not bilinear
+LEVEL = 1e-12  # a ray whose downward component (unit direction) is not below -LEVEL counts as level
+MIN_WEIGHT = 1e-9  # bilinear weights of the valid neighbours below this sum: the point is a hole
+FLAT_PATCH = 1e-12  # a patch's quadratic term this small against its linear ones: solved as linear
+TINY = 1e-300  # guards a division by a length or slope that can be zero; a height just above 0
+ODM_NODATA = -9999.0  # ODM writes this (or less) for cells without data, declared as nodata or not
+HEIGHT_MARGIN = 0.01  # metres added to the height range a ray is walked through (rounding of zmin, zmax) ...
+HEIGHT_MARGIN_REL = 1e-6  # ... plus this share of the heights' magnitude (float32 DSM cells)
+
+
+class Raster(NamedTuple):
+    """A raster as the compiled kernels take it, built once per surface
+    (:attr:`~matchplant.core.geometry.surface.Surface.raster`)."""
+
+    data: np.ndarray  # float32 heights (rows, cols), NaN for holes
+    inv: np.ndarray  # the inverse affine (a, b, c, d, e, f): col = a x + b y + c, row = d x + e y + f
+    bmax: np.ndarray  # the highest point of each block of patches (patch_block_max), +inf at holes
+    block: int  # patches per side of those blocks
+    zmin: float  # the lowest and highest valid cell
+    zmax: float
+
+
+class Rays(NamedTuple):
+    """Rays for :func:`intersect_many`: one origin (1, 3) or one each (N, 3), directions (N, 3), and per ray the
+    heights between which the surface is searched (NaN: the surface's own)."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    top: np.ndarray
+    bottom: np.ndarray
+
+
+class Hits(NamedTuple):
+    """Where rays met a surface: the ray parameter (NaN: no hit) and the status (HIT, OUTSIDE, ...) per ray."""
+
+    s: np.ndarray
+    status: np.ndarray
 
 
 @numba.njit(cache=True, nogil=True)
@@ -60,7 +99,7 @@ def holes_to_nan(data, nodata):
     flat = data.reshape(-1)
     for k in range(flat.shape[0]):
         v = flat[k]
-        if v == nodata or v <= -9999.0:
+        if v == nodata or v <= ODM_NODATA:
             flat[k] = math.nan
 
 
@@ -113,7 +152,7 @@ def _blend(v00, v01, v10, v11, fr, fc):
     if not math.isnan(v11):
         total += v11 * w
         weight += w
-    if weight > 1e-9:
+    if weight > MIN_WEIGHT:
         return total / weight
     return math.nan
 
@@ -159,10 +198,10 @@ def sample_many(data, inv, x, y, out):
 
 @numba.njit(cache=True, nogil=True)
 def max_tangent(d):
-    """Largest horizontal / vertical ratio of ray directions (N, 3) (looking down; 1e12 for a level ray)."""
+    """Largest horizontal / vertical ratio of ray directions (N, 3) (looking down; 1 / LEVEL for a level ray)."""
     out = 0.0
     for i in range(d.shape[0]):
-        t = math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1]) / max(-d[i, 2], 1e-12)
+        t = math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1]) / max(-d[i, 2], LEVEL)
         if t > out or math.isnan(t):
             out = t
     return out
@@ -177,9 +216,11 @@ def _inside(data, inv, x, y):
 
 
 @numba.njit(cache=True, nogil=True)
-def _refine(data, inv, o, d, clearance, a, b, fa, fb):
-    """The crossing in [a, b] (f(a) > 0 >= f(b)): regula falsi with the Illinois rule (a few steps where
-    bisection needs dozens); a hole inside the bracket counts as below, so the hit stays at its edge."""
+def _refine(r, o, d, clearance, a, b, fa, fb):
+    """The crossing in [a, b] (f(a) > 0 >= f(b)) on :class:`Raster` ``r``: regula falsi with the Illinois rule (a
+    few steps where bisection needs dozens); a hole inside the bracket counts as below, so the hit stays at its
+    edge."""
+    data, inv = r.data, r.inv
     ox, oy, oz = o[0], o[1], o[2]
     dx, dy, dz = d[0], d[1], d[2]
     tol = REFINE_TOLERANCE / math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -189,7 +230,7 @@ def _refine(data, inv, o, d, clearance, a, b, fa, fb):
             break
         if fa - fb > 0.0 and not math.isnan(fb):
             m = b - fb * (b - a) / (fb - fa)
-            m = min(max(m, a + 0.01 * (b - a)), b - 0.01 * (b - a))
+            m = min(max(m, a + REFINE_MARGIN * (b - a)), b - REFINE_MARGIN * (b - a))
         else:
             m = 0.5 * (a + b)
         fm = oz + m * dz - bilinear(data, inv, ox + m * dx, oy + m * dy) - clearance
@@ -224,7 +265,7 @@ def _patch_root(fa, q1, q2, length):
     if fa > 0.0 and f_end > 0.0 and (q2 <= 0.0 or q1 >= 0.0):
         return math.nan  # f is above 0 at both ends, and a dip needs a convex f going down at the start
     lo, hi = math.nan, math.nan
-    if abs(q2) * length <= 1e-12 * (abs(q1) + abs(fa) / max(length, 1e-300)):
+    if abs(q2) * length <= FLAT_PATCH * (abs(q1) + abs(fa) / max(length, TINY)):
         if q1 != 0.0:
             lo = -fa / q1
     else:
@@ -269,13 +310,15 @@ def _next_cell(across, c, tc, dtc, stc, r, tr, dtr, str_):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")  # inlined: see the module docstring
-def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
-    """The first ray parameter in [s0, s1] where the ray comes down to ``clearance`` above the surface.
+def first_crossing(ras, o, d, clearance, s0, s1, f0, status, budget):
+    """The first ray parameter in [s0, s1] where the ray comes down to ``clearance`` above the surface of
+    :class:`Raster` ``ras``.
 
     ``f0``: the ray's height above surface + clearance at ``s0`` (NaN: unknown, no crossing can be claimed
     at ``s0``). Returns ``(s or NaN, f at the end, status, patches walked)``; ``status`` (as given, normally
     NO_HIT) becomes OUTSIDE or NODATA where the ray first meets a part without data, HIT on a crossing.
     """
+    data, inv = ras.data, ras.inv
     rows, cols = data.shape
     ox, oy, oz = o[0], o[1], o[2]
     dx, dy, dz = d[0], d[1], d[2]
@@ -309,7 +352,7 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
                 q2 = -buv * cb * rb
                 length = se - s
                 # entering below the surface just after being above it is a crossing at the entry (rounding)
-                t = _patch_root(fa if (fa > 0.0 or not f > 0.0) else 1e-300, q1, q2, length)
+                t = _patch_root(fa if (fa > 0.0 or not f > 0.0) else TINY, q1, q2, length)
                 if not math.isnan(t):
                     return s + t, 0.0, HIT, walked
                 f = fa + (q1 + q2 * length) * length
@@ -318,7 +361,7 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
                 status = OUTSIDE  # wholly outside the raster here; the ray may still come in later
             f = math.nan
         else:  # a hole's edge or the raster's outer half-cell: sample and refine
-            fine = 1.0 / (FALLBACK_SAMPLES * max(abs(cb), abs(rb), 1e-300))  # ray length per quarter cell
+            fine = 1.0 / (FALLBACK_SAMPLES * max(abs(cb), abs(rb), TINY))  # ray length per quarter cell
             n = max(1, int(math.ceil((se - s) / fine)))
             step = (se - s) / n
             prev = s
@@ -332,7 +375,7 @@ def first_crossing(data, inv, o, d, clearance, s0, s1, f0, status, budget):
                     if status == NO_HIT:
                         status = OUTSIDE if not _inside(data, inv, x, y) else NODATA
                 elif f > 0.0 and fk <= 0.0:
-                    return _refine(data, inv, o, d, clearance, prev, sk, f, fk), fk, HIT, walked
+                    return _refine(ras, o, d, clearance, prev, sk, f, fk), fk, HIT, walked
                 f, prev = fk, sk
         c, tc, r, tr = _next_cell(across, c, tc, dtc, stc, r, tr, dtr, str_)
         s = se
@@ -362,10 +405,11 @@ def patch_block_max(data, block):
 
 
 @numba.njit(cache=True, nogil=True)
-def above_block_max(inv, bmax, block, x, y, z):
+def above_block_max(ras, x, y, z):
     """Whether height ``z`` is at or above the bilinear surface's highest point around map (x, y): the highest
-    point of the block of patches holding (x, y) (:func:`patch_block_max`). One value read, no interpolation:
-    a cheap way to rule out a sample. False off the raster's patches."""
+    point of the block of patches holding (x, y) (:func:`patch_block_max`, :class:`Raster` ``ras``). One value
+    read, no interpolation: a cheap way to rule out a sample. False off the raster's patches."""
+    inv, bmax, block = ras.inv, ras.bmax, ras.block
     pc = inv[0] * x + inv[1] * y + inv[2] - 0.5  # patch coordinates
     pr = inv[3] * x + inv[4] * y + inv[5] - 0.5
     if not (pc >= 0.0 and pr >= 0.0):
@@ -375,10 +419,11 @@ def above_block_max(inv, bmax, block, x, y, z):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")  # inlined: see the module docstring
-def march(data, inv, bmax, block, o, d, clearance, s0, s1, status, budget):
+def march(ras, o, d, clearance, s0, s1, status, budget):
     """:func:`first_crossing` over [s0, s1], block by block (a coarser grid traversal): a block of patches
-    that the ray leaves while still above its highest point (``bmax``, :func:`patch_block_max`) is skipped
+    that the ray leaves while still above its highest point (``ras.bmax``, :func:`patch_block_max`) is skipped
     whole. Returns ``(s or NaN, status, patches walked)``."""
+    inv, bmax, block = ras.inv, ras.bmax, ras.block
     nbr, nbc = bmax.shape
     ca = (inv[0] * o[0] + inv[1] * o[1] + inv[2] - 0.5) / block  # block coordinates at s = 0
     cb = (inv[0] * d[0] + inv[1] * d[1]) / block
@@ -397,7 +442,7 @@ def march(data, inv, bmax, block, o, d, clearance, s0, s1, status, budget):
             f = 1.0  # above the block's highest point all through it (the ray descends)
             walked += 1
         else:
-            hit, f, status, n = first_crossing(data, inv, o, d, clearance, s, se, f, status, budget - walked)
+            hit, f, status, n = first_crossing(ras, o, d, clearance, s, se, f, status, budget - walked)
             walked += n
             if status == HIT:
                 return hit, status, walked
@@ -407,18 +452,21 @@ def march(data, inv, bmax, block, o, d, clearance, s0, s1, status, budget):
 
 
 @numba.njit(cache=True, nogil=True)
-def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, max_steps, z_top, z_bottom, out_s,
-                   out_status):
-    """For each ray: the first point ``clearance`` above the surface (:func:`march`) between the heights
-    ``z_top`` and ``z_bottom`` (per ray; NaN: the surface's). ``settle`` > 0: a ray stopped there that goes
-    on to meet the surface within ``settle`` metres further down moves there (an exact hit: soil at a leaf
-    tip, a plant's side; one that would fall further grazed a plant's top and stays)."""
-    margin = 0.01 + 1e-6 * (abs(zmax) + abs(zmin))
+def intersect_many(ras, rays, clearance, settle, max_steps, out):
+    """For each of the :class:`Rays`: the first point ``clearance`` above the surface of :class:`Raster` ``ras``
+    (:func:`march`) between the ray's heights ``top`` and ``bottom``, into the :class:`Hits` ``out``.
+    ``settle`` > 0: a ray stopped there that goes on to meet the surface within ``settle`` metres further down
+    moves there (an exact hit: soil at a leaf tip, a plant's side; one that would fall further grazed a plant's
+    top and stays)."""
+    zmin, zmax = ras.zmin, ras.zmax
+    o, d, z_top, z_bottom = rays.origins, rays.directions, rays.top, rays.bottom
+    out_s, out_status = out.s, out.status
+    margin = HEIGHT_MARGIN + HEIGHT_MARGIN_REL * (abs(zmax) + abs(zmin))
     for i in range(d.shape[0]):
         oi = o[i] if o.shape[0] > 1 else o[0]  # one origin for every ray, or one each
         oz, dz = oi[2], d[i, 2]
         out_s[i] = math.nan
-        if not dz < -1e-12:
+        if not dz < -LEVEL:
             out_status[i] = NOT_DOWNWARD
             continue
         top = zmax if not z_top[i] < zmax else z_top[i]  # NaN: the whole height range
@@ -428,10 +476,9 @@ def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, 
         if not s_end > s:
             out_status[i] = NO_HIT
             continue
-        hit, status, _ = march(data, inv, bmax, block, oi, d[i], clearance, s, s_end, NO_HIT, max_steps)
+        hit, status, _ = march(ras, oi, d[i], clearance, s, s_end, NO_HIT, max_steps)
         if status == HIT and settle > 0.0 and clearance > 0.0:
-            low, _, st2, _ = first_crossing(data, inv, oi, d[i], 0.0, hit, hit + settle / -dz, clearance, NO_HIT,
-                                            max_steps)
+            low, _, st2, _ = first_crossing(ras, oi, d[i], 0.0, hit, hit + settle / -dz, clearance, NO_HIT, max_steps)
             if st2 == HIT:
                 hit = low
         out_s[i] = hit
@@ -439,25 +486,26 @@ def intersect_many(data, inv, bmax, block, zmin, zmax, o, d, clearance, settle, 
 
 
 @numba.njit(cache=True, nogil=True)
-def intersect_gentle(data, inv, zmin, zmax, slope, o, d, out_s, out_done):
-    """Rays over a gentle surface (``slope``, a bound on its slope, x ray tangent < 1 everywhere, so each ray
-    crosses it once): the fixed point s = (z_camera - height(s)) / -dz converges in a few steps. Its map
-    contracts by L = slope x tangent, so the height error after a step is at most L / (1 - L) times that step:
-    the iteration stops as soon as that bound is below GENTLE_TOLERANCE. Rays that fail (a hole, the raster's
-    edge) are left for the walk."""
-    h_start = 0.5 * (zmin + zmax)
+def intersect_gentle(ras, slope, o, d, out_s, out_done):
+    """Rays over a gentle surface (:class:`Raster` ``ras``; ``slope``, a bound on its slope, x ray tangent < 1
+    everywhere, so each ray crosses it once): the fixed point s = (z_camera - height(s)) / -dz converges in a few
+    steps. Its map contracts by L = slope x tangent, so the height error after a step is at most L / (1 - L)
+    times that step: the iteration stops as soon as that bound is below GENTLE_TOLERANCE. Rays that fail (a
+    hole, the raster's edge) are left for the walk."""
+    data, inv = ras.data, ras.inv
+    h_start = 0.5 * (ras.zmin + ras.zmax)
     for i in range(d.shape[0]):
         oi = o[i] if o.shape[0] > 1 else o[0]  # one origin for every ray, or one each
         out_done[i] = False
         dz = d[i, 2]
-        if not dz < -1e-12:
+        if not dz < -LEVEL:
             continue
         lip = slope * math.sqrt(d[i, 0] * d[i, 0] + d[i, 1] * d[i, 1]) / -dz
         if not lip < 1.0:
             continue
         bound = -dz * lip / (1.0 - lip)  # height error per unit of step
         s = (oi[2] - h_start) / -dz
-        for _ in range(30):
+        for _ in range(GENTLE_ITERATIONS):
             h = bilinear(data, inv, oi[0] + s * d[i, 0], oi[1] + s * d[i, 1])
             if math.isnan(h):
                 break

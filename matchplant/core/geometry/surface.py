@@ -27,6 +27,9 @@ from matchplant.core.geometry.raycast import (
     NODATA,
     NOT_DOWNWARD,
     OUTSIDE,
+    Hits,
+    Raster,
+    Rays,
     block_stats,
     holes_to_nan,
     intersect_gentle,
@@ -50,6 +53,10 @@ STATUS_TEXT = {
 }
 _BLOCK = 4  # patches per side of the blocks whose highest points let rays skip empty space
 GROUND_CELL = 0.02  # metres: cell size (at least the DSM's) of the ground estimated from the DSM
+ROTATION = 1e-12  # affine rotation terms above this: a rotated raster
+WINDOW_RAISED = 1.5  # the ground's window, raised above ground_window by more than this factor, is said in the log
+GENTLE = 0.8  # max_slope x the rays' steepest tangent below this: each ray crosses the surface once (fixed point)
+MAX_STEPS = 200_000  # patches a ray walks at most
 
 
 @dataclass
@@ -61,7 +68,7 @@ class Surface:
 
     def __post_init__(self):
         t = self.transform
-        if abs(t.b) > 1e-12 or abs(t.d) > 1e-12:
+        if abs(t.b) > ROTATION or abs(t.d) > ROTATION:
             raise InputError("rotated rasters are not supported", path=self.path,
                              fix="warp the raster to a north-up grid (gdalwarp)")
         self.data = np.ascontiguousarray(self.data, dtype=np.float32)  # as ODM writes it: half the memory traffic
@@ -71,7 +78,7 @@ class Surface:
         if not self.zmax >= self.zmin:
             raise InputError("the elevation raster holds no valid data in the area of interest", path=self.path,
                              fix="check that the DSM covers the images (same CRS, same field)")
-        self._block_max = patch_block_max(self.data, _BLOCK)
+        self.raster = Raster(self.data, self._inv, patch_block_max(self.data, _BLOCK), _BLOCK, self.zmin, self.zmax)
         self._grounds: dict[float, Surface] = {}
         self._canopy: dict[float, float] = {}
         self._max_slope: float | None = None
@@ -87,7 +94,7 @@ class Surface:
             low, high, hole = block_stats(self.data, block)
             size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
             used = size * block * self.pixel_size
-            if used > window * 1.5:
+            if used > window * WINDOW_RAISED:
                 log.info("ground estimate: window raised from ground_window=%.3g m to %.3g m (%d cells of %.3g m, "
                          "the least the opening needs)", window, used, size, block * self.pixel_size)
             # OpenCV's separable min / max filters: the same values as scipy.ndimage's, in a third of the time
@@ -154,19 +161,6 @@ class Surface:
         return self._max_slope
 
     @property
-    def block_max(self) -> tuple[np.ndarray, int]:
-        """The highest point of the bilinear surface over each block of ``block`` x ``block`` patches (+inf where
-        the block touches a hole), and ``block``: what compiled kernels use to skip a sample that cannot be high
-        (:func:`matchplant.core.geometry.raycast.patch_block_max`)."""
-        return self._block_max, _BLOCK
-
-    @property
-    def inverse(self) -> np.ndarray:
-        """The inverse affine as (a, b, c, d, e, f) (col = a x + b y + c, row = d x + e y + f): what the
-        compiled kernels (:mod:`matchplant.core.geometry.raycast`) take beside ``data``."""
-        return self._inv
-
-    @property
     def pixel_size(self) -> float:
         return float(min(abs(self.transform.a), abs(self.transform.e)))
 
@@ -195,14 +189,14 @@ class Surface:
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, *, clearance: float = 0.0,
-                  settle: float = 0.0, max_steps: int = 200_000,
+                  settle: float = 0.0, max_steps: int = MAX_STEPS,
                   heights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of straight rays (in the raster's CRS) with the surface.
 
         Each ray is walked cell by cell between the heights of the highest and lowest valid cell (so slopes
         and plant edges are found, not a flat plane), and its first crossing is solved exactly on the
         bilinear surface, however thin (a leaf tip; :mod:`matchplant.core.geometry.raycast`). Over a gentle surface
-        (``max_slope`` x the rays' tangent < 0.8: each ray crosses it once) a fixed-point iteration replaces
+        (``max_slope`` x the rays' tangent < :data:`GENTLE`: each ray crosses it once) a fixed-point iteration replaces
         the walk. ``clearance`` > 0 stops a ray where it first comes that close above the surface: a ray that
         grazes a plant's top (the edge of its silhouette) then stays on the plant instead of continuing to
         the ground behind it; ``settle`` > 0 then moves it on to the surface if the ray meets it within that
@@ -218,9 +212,9 @@ class Surface:
         z_top, z_bottom = (None, None) if heights is None else \
             (np.asarray(h, dtype=np.float64).reshape(-1) for h in heights)
         todo = slice(None)
-        if clearance == 0.0 and d.shape[0] and self.max_slope * max_tangent(d) < 0.8:
+        if clearance == 0.0 and d.shape[0] and self.max_slope * max_tangent(d) < GENTLE:
             done = np.empty(d.shape[0], dtype=np.bool_)
-            intersect_gentle(self.data, self._inv, self.zmin, self.zmax, self.max_slope, o, d, s, done)
+            intersect_gentle(self.raster, self.max_slope, o, d, s, done)
             status[done] = HIT
             todo = np.flatnonzero(~done)
             o = o if len(o) == 1 else np.ascontiguousarray(o[todo])
@@ -230,9 +224,8 @@ class Surface:
             z_top, z_bottom = np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)
         s_m = np.empty(d.shape[0], dtype=np.float64)
         st_m = np.empty(d.shape[0], dtype=np.int8)
-        intersect_many(self.data, self._inv, self._block_max, _BLOCK, self.zmin, self.zmax, o, d, float(clearance),
-                       float(settle), int(max_steps), np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom),
-                       s_m, st_m)
+        intersect_many(self.raster, Rays(o, d, np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom)),
+                       float(clearance), float(settle), int(max_steps), Hits(s_m, st_m))
         s[todo], status[todo] = s_m, st_m
         points = np.empty(d_all.shape)
         ray_points(np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3)), d_all, s, points)
