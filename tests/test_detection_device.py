@@ -1,0 +1,62 @@
+"""Device selection (matchplant.detection.device): chosen out loud, CUDA's failures named, slow CPU work
+announced (issue 17)."""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from types import SimpleNamespace
+
+import pytest
+import torch
+from log_records import Records
+
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.detection.device import (
+    CPU_SECONDS_PER_MEGAPIXEL, cuda_unusable_reason, explain_device, select_device, warn_if_slow,
+)
+
+
+def test_device_selection():
+    assert select_device("cpu").type == "cpu"
+    assert select_device("auto").type in ("cpu", "cuda", "mps")
+    with pytest.raises(ConfigError):
+        select_device("tpu")
+
+
+def test_device_is_chosen_out_loud():
+    dev, why = explain_device("auto")
+    if torch.cuda.is_available():
+        assert dev.type == "cuda" and "CUDA GPU found" in why
+    else:
+        assert dev.type in ("cpu", "mps") and cuda_unusable_reason(torch) in why
+    assert explain_device("cpu") == (torch.device("cpu"), "asked for (device: cpu)")
+    with Records("matchplant.device", logging.INFO) as rec:
+        select_device("cpu")
+    assert rec.messages() == ["device: cpu (asked for (device: cpu))"]
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA cannot be used"):
+            explain_device("cuda")
+
+
+def test_cuda_reasons_name_the_cause():
+    cpu_build = SimpleNamespace(version=SimpleNamespace(cuda=None))
+    assert "CPU-only" in cuda_unusable_reason(cpu_build)
+
+    def old_driver():
+        warnings.warn("CUDA initialization: The NVIDIA driver on your system is too old (found version 11040)")
+        return False
+
+    cuda_build = SimpleNamespace(version=SimpleNamespace(cuda="13.0"), cuda=SimpleNamespace(is_available=old_driver))
+    assert "driver on your system is too old" in cuda_unusable_reason(cuda_build)
+
+
+def test_slow_cpu_work_is_announced():
+    with Records("matchplant.device", logging.INFO) as rec:
+        arch = "fasterrcnn_resnet50_fpn"
+        est = warn_if_slow(torch.device("cpu"), arch, 1000, 5472, 3648)
+        assert est == pytest.approx(CPU_SECONDS_PER_MEGAPIXEL[arch] * 1000 * 5472 * 3648 / 1e6)
+        assert warn_if_slow(torch.device("cpu"), arch, 2, 400, 300) < 600
+        assert warn_if_slow(torch.device("cuda"), arch, 1000, 5472, 3648) is None
+    warned = rec.messages(logging.WARNING)
+    assert len(warned) == 1 and f"{est / 3600:.1f} h" in warned[0] and "1000 image(s) of 5472 x 3648" in warned[0]
