@@ -3,25 +3,26 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 
-class Records:
-    """The messages one matchplant logger emits (a handler of its own: independent of propagation)."""
+@contextmanager
+def log_records(name: str, level: int) -> Iterator[list[logging.LogRecord]]:
+    """The records logger ``name`` emits inside the block, at ``level`` and above (a handler of its own:
+    independent of propagation)."""
+    logger, records = logging.getLogger(name), []
+    handler = logging.Handler(level)
+    handler.emit = records.append
+    before = logger.level
+    logger.setLevel(level)
+    logger.addHandler(handler)
+    try:
+        yield records
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(before)
 
-    def __init__(self, name: str, level: int):
-        self.logger, self.level, self.records = logging.getLogger(name), level, []
-        self.handler = logging.Handler(level)
-        self.handler.emit = self.records.append
 
-    def __enter__(self):
-        self.old = self.logger.level
-        self.logger.setLevel(self.level)
-        self.logger.addHandler(self.handler)
-        return self
-
-    def __exit__(self, *exc):
-        self.logger.removeHandler(self.handler)
-        self.logger.setLevel(self.old)
-
-    def messages(self, level: int = 0) -> list[str]:
-        return [r.getMessage() for r in self.records if r.levelno >= level]
+def messages(records: list[logging.LogRecord], level: int = 0) -> list[str]:
+    return [r.getMessage() for r in records if r.levelno >= level]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from log_records import Records
+from log_records import log_records, messages
 
 from matchplant.core.runtime import progress as progress_module
 from matchplant.core.runtime.progress import progress_line
@@ -16,9 +16,9 @@ def _progress_records(monkeypatch, interval: str, body):
     monkeypatch.delenv("MATCHPLANT_PROGRESS", raising=False)
     monkeypatch.setenv("MATCHPLANT_PROGRESS_INTERVAL", interval)
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False, raising=False)
-    with Records("matchplant.progress", logging.INFO) as rec:
+    with log_records("matchplant.progress", logging.INFO) as records:
         body(progress_module.progress)
-    return rec.messages()
+    return messages(records)
 
 
 def test_progress_logs_lines_when_not_on_a_terminal(monkeypatch):

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from log_records import Records
+from log_records import log_records, messages
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.detection.device import (
@@ -31,9 +31,9 @@ def test_device_is_chosen_out_loud():
     else:
         assert dev.type in ("cpu", "mps") and cuda_unusable_reason(torch) in why
     assert explain_device("cpu") == (torch.device("cpu"), "asked for (device: cpu)")
-    with Records("matchplant.device", logging.INFO) as rec:
+    with log_records("matchplant.device", logging.INFO) as records:
         select_device("cpu")
-    assert rec.messages() == ["device: cpu (asked for (device: cpu))"]
+    assert messages(records) == ["device: cpu (asked for (device: cpu))"]
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="CUDA cannot be used"):
             explain_device("cuda")
@@ -52,11 +52,11 @@ def test_cuda_reasons_name_the_cause():
 
 
 def test_slow_cpu_work_is_announced():
-    with Records("matchplant.device", logging.INFO) as rec:
+    with log_records("matchplant.device", logging.INFO) as records:
         arch = "fasterrcnn_resnet50_fpn"
         est = warn_if_slow(torch.device("cpu"), arch, 1000, 5472, 3648)
         assert est == pytest.approx(19961.856 * CPU_SECONDS_PER_MEGAPIXEL[arch])  # 1000 x 19.961856 megapixels
         assert warn_if_slow(torch.device("cpu"), arch, 2, 400, 300) < 600
         assert warn_if_slow(torch.device("cuda"), arch, 1000, 5472, 3648) is None
-    warned = rec.messages(logging.WARNING)
+    warned = messages(records, logging.WARNING)
     assert len(warned) == 1 and f"{est / 3600:.1f} h" in warned[0] and "1000 image(s) of 5472 x 3648" in warned[0]
