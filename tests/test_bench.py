@@ -95,6 +95,7 @@ def test_cli_refuses_too_few_pairs_and_unknown_names():
     assert r.returncode == 2 and "invalid choice" in r.stderr
 
 
+@pytest.mark.slow
 def test_cuda_request_without_a_gpu_says_so():
     torch = pytest.importorskip("torch")
     if torch.cuda.is_available():
