@@ -7,7 +7,7 @@ BIN     = $(VENV)/Scripts
 endif
 STAMP   = $(VENV)/.installed
 
-.PHONY: test demo install bench clean
+.PHONY: test test-fast demo install bench clean
 
 $(STAMP): requirements.txt requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,10 @@ install: $(STAMP)
 
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+
+# the quick loop: everything but the tests marked slow (README, "Test tiers")
+test-fast: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
 
 demo: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS)

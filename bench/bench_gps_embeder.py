@@ -25,16 +25,20 @@ import time
 from pathlib import Path
 
 import numpy as np
+import piexif
+from PIL import Image
+from pyproj import Transformer
+
+from matchplant.core.formats.exif import exif_gps, load_exif, splice_exif
+from matchplant.gps_embeder import GpsEmbederConfig
+from matchplant.gps_embeder import run as embed_gps
+from matchplant.gps_embeder.gnss_log import read_gnss_log
+from matchplant.gps_embeder.matching import estimate_clock_offset, read_images
 
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 
 
 def make_flight(root: Path, n: int, width: int) -> tuple[Path, Path]:
-    import piexif
-    from PIL import Image
-
-    from matchplant.core.formats.exif import splice_exif
-
     rng = np.random.default_rng(0)
     h = width * 3 // 4
     # one textured photo, re-stamped for every image (encoding 1,000 JPEGs would dominate the set-up)
@@ -67,8 +71,6 @@ def make_flight(root: Path, n: int, width: int) -> tuple[Path, Path]:
 def write_gpx(path: Path, log: Path, offset_s: float) -> Path:
     """The events as a GPX track in WGS84, times moved onto the camera clock (exiftool cannot estimate
     the offset; it gets it for free here), for ``exiftool -geotag``."""
-    from pyproj import Transformer
-
     rows = np.loadtxt(log, skiprows=1)
     lon, lat = Transformer.from_crs("EPSG:32614", "EPSG:4326", always_xy=True).transform(rows[:, 1], rows[:, 2])
     pts = []
@@ -84,9 +86,6 @@ def comparison(name: str, work: Path, quick: bool, device: str):
     """For ``python -m bench``: module 0 on 300 JPEGs of 2000 x 1500 (quick: 60) against
     ``exiftool -geotag`` writing copies of the same images into another folder."""
     from bench.harness import Comparison
-    from matchplant.core.formats.exif import exif_gps, load_exif
-    from matchplant.gps_embeder import GpsEmbederConfig
-from matchplant.gps_embeder import run as embed_gps
 
     n = 60 if quick else 300
     images, log = make_flight(work, n, 2000)
@@ -134,11 +133,6 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=2000, help="image width in pixels")
     args = ap.parse_args(argv)
     n = args.n or (200 if args.quick else 1000)
-
-    from matchplant.gps_embeder.gnss_log import read_gnss_log
-    from matchplant.gps_embeder.matching import estimate_clock_offset, read_images
-    from matchplant.gps_embeder import GpsEmbederConfig
-from matchplant.gps_embeder import run as embed_gps
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

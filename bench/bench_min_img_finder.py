@@ -56,7 +56,7 @@ def main() -> None:
             print(f"milp (no cap): {len(best.indices)} images, {'optimal' if best.optimal else 'time limit'}, "
                   f"{best.seconds:.2f} s")
         t = time.perf_counter()
-        result = finder.evaluate(sel)
+        finder.evaluate(sel)
         print(f"owned areas + pixel outlines for {len(sel.indices)} images: {time.perf_counter() - t:.2f} s")
 
 

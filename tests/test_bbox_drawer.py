@@ -21,8 +21,8 @@ from matchplant.core.formats.coco import (
     new_dataset,
     validate_dataset,
     write_dataset,
-    write_predictions,
 )
+from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.formats.yolo import read_yolo, yolo_to_coco
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
@@ -86,6 +86,7 @@ def test_non_images_ignored(photos, tmp_path):
 # -- the GUI, headless -----------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
     import gui_events
@@ -234,6 +235,7 @@ KILLED = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_killed_session_resumes_with_every_saved_edit(photos, tmp_path):
     out = tmp_path / "out"
     code = KILLED.format(tests=str(TESTS), photos=str(photos), out=str(out))
@@ -442,6 +444,7 @@ def test_gui_in_a_real_window(photos, tmp_path):
 # -- real size ----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_gui_on_a_20_megapixel_photo_with_3000_boxes(tmp_path):
     """A 5472 x 3648 photo with 3,000 boxes: the whole photo is shown from a reduced pyramid level and

@@ -1,5 +1,7 @@
-"""The benchmark harness's logic: alternation order, the per-pair ratio statistics, pinning, environment."""
+"""The benchmark harness's logic: alternation order, the per-pair ratio statistics, pinning, environment; every
+benchmark file is valid Python and every registered comparison exists."""
 
+import ast
 import os
 import subprocess
 import sys
@@ -18,6 +20,7 @@ from bench.harness import (
     summarise,
     versions,
 )
+from bench.runner import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -92,6 +95,7 @@ def test_cli_refuses_too_few_pairs_and_unknown_names():
     assert r.returncode == 2 and "invalid choice" in r.stderr
 
 
+@pytest.mark.slow
 def test_cuda_request_without_a_gpu_says_so():
     torch = pytest.importorskip("torch")
     if torch.cuda.is_available():
@@ -99,3 +103,12 @@ def test_cuda_request_without_a_gpu_says_so():
     r = subprocess.run([sys.executable, "-m", "bench", "--device", "cuda", "--no-save"], capture_output=True,
                        text=True, cwd=ROOT)
     assert r.returncode == 2 and "no CUDA GPU" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_every_benchmark_parses_and_each_registered_one_has_its_comparison():
+    """The benchmarks run only by hand or in ``python -m bench``: a broken one would otherwise go unseen."""
+    files = sorted((ROOT / "bench").glob("*.py"))
+    trees = {f"bench.{f.stem}": ast.parse(f.read_text(), str(f)) for f in files}
+    for name, (module, _) in REGISTRY.items():
+        defined = {node.name for node in trees[module].body if isinstance(node, ast.FunctionDef)}
+        assert "comparison" in defined, f"{name}: {module} has no comparison()"

@@ -304,6 +304,7 @@ def test_holes_from_a_declared_nodata_or_a_mask_band(tmp_path, how):
     assert np.isnan(win.data).sum() == 4
 
 
+@pytest.mark.slow
 def test_march_does_not_step_over_a_thin_first_crossing():
     """A one-cell spike (a leaf tip on a 1 cm DSM) that a ray grazes between two half-cell samples: the first
     crossing is found, as a brute-force march 1,000 times finer finds it, whatever the samples' phase."""
@@ -341,6 +342,7 @@ def _first_crossing_brute(surface, o, d, clearance, s_max, n=400_001):
     return s[down[0] + 1] if down.size else np.nan, s[1] - s[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("clearance", [0.0, 0.02])
 def test_walk_finds_the_brute_force_first_crossing_on_rough_ground_with_holes(clearance):
     """Rays in every direction over a rough 1 cm surface (plants as spikes and domes, holes): the first crossing

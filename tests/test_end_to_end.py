@@ -19,6 +19,9 @@ from matchplant.cli import run_module
 from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
+# every test shares the season's run of all ten steps (over a minute)
+pytestmark = pytest.mark.slow
+
 
 def pipeline(field, crs: str) -> dict:
     return {

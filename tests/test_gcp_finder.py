@@ -293,6 +293,7 @@ def _click_all(gui, truth, offset=(0.0, 0.0)):
     return clicks
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_gui_clicks_write_gcp_list(flight, tmp_path):
     root, truth = flight
@@ -439,6 +440,7 @@ def test_field_predictions_and_auto(tiny_field, tmp_path):
         assert math.dist(auto[k], truth[k]) < 2.0, (k, auto[k], truth[k])
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_field_gui_clicks(tiny_field, tmp_path):
     from matchplant.gcp_finder.gui import GcpFinderGUI

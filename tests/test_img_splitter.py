@@ -251,6 +251,7 @@ def test_plan_is_vectorised_and_matches_hand_numbers():
     assert plan.keep[:, 0].tolist() == [True, True, False]
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_gui_preview_and_run(field, tmp_path):
     import gui_events as ge

@@ -207,6 +207,7 @@ def test_overlap_cap_is_respected_or_reported(finder):
         assert len(sel.indices) <= 1.1 * len(best.indices) + 1e-9
 
 
+@pytest.mark.slow
 def test_selection_on_generated_flights_vs_milp(tmp_path):
     """Several flight layouts and thresholds (not chosen to pass): in total the greedy selection uses at most
     10 % more images than the integer-program optimum, never more than one extra, and always reaches the
@@ -267,6 +268,7 @@ def test_solver_on_hand_made_arrays_greedy_trap():
     assert sorted(select_greedy(grid, 1.0).indices) == [0, 1]  # restarts from other images find the optimum
 
 
+@pytest.mark.slow
 @pytest.mark.independent
 def test_solver_on_random_arrays_matches_brute_force():
     """Small random incidence matrices and weights, with and without an overlap cap, against every subset:
@@ -368,6 +370,7 @@ def test_each_point_of_the_field_owned_once():
 # outputs, CLI and folder
 
 
+@pytest.mark.slow
 def test_run_writes_every_output(small_project, tmp_path):
     from matchplant.min_img_finder.run import run
 
@@ -394,6 +397,7 @@ def test_run_writes_every_output(small_project, tmp_path):
         assert im.width > 400 and len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)) > 20
 
 
+@pytest.mark.slow
 def test_folder_config_loads_and_help_works():
     cfg = load_config(MinImgFinderConfig, FOLDER / "config.yaml", check_paths=False)
     assert cfg.method == "greedy"
@@ -405,6 +409,7 @@ def test_folder_config_loads_and_help_works():
     assert res.returncode == 0 and "--gui" in res.stdout
 
 
+@pytest.mark.slow
 def test_missing_dsm_is_a_clear_cli_error(small_project, tmp_path):
     import shutil
 
@@ -420,6 +425,7 @@ def test_missing_dsm_is_a_clear_cli_error(small_project, tmp_path):
 # GUI
 
 
+@pytest.mark.slow
 @pytest.mark.gui
 def test_gui_headless_toggle_select_save(small_project, tmp_path):
     from gui_events import click

@@ -65,6 +65,7 @@ def pycocotools_direct(gt_path: Path, results: list[dict], max_dets: int) -> np.
     return stats
 
 
+@pytest.mark.slow
 def test_folder_config_and_help():
     cfg = load_config(ModelTestConfig, ROOT / "7_model_test" / "test_config.yaml", check_paths=False)
     assert cfg.evaluate.max_detections > 100 and cfg.evaluate.operating_threshold == 0.5
@@ -266,6 +267,7 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     assert len(boxes) == len(gt) and (iou.max(axis=1) > 0.99).all()
 
 
+@pytest.mark.slow
 def test_torchrun_two_processes_write_the_single_process_predictions(checkpoint, tmp_path):
     """``torchrun --nproc_per_node 2`` (gloo on the CPU): the images are split across the processes and one
     predictions file results, equal to a single process's."""
@@ -314,6 +316,7 @@ class _Records:
         return [r.getMessage() for r in self.records if r.levelname == "WARNING"]
 
 
+@pytest.mark.slow
 def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
     """A model trained on 128 px tiles: module 7 tiles at 128 by default (tile_size null), and warns when
     asked for 1024 px tiles (plants 8x smaller in the detector's input than in training)."""

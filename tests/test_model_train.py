@@ -301,6 +301,7 @@ def test_training_run_outputs(trained):
         assert torch.equal(v, ck["model_state"][k])
 
 
+@pytest.mark.slow
 def test_resume_after_crash_continues_the_same_run(tiles, trained, tmp_path):
     ref_dir, _ = trained
     out = tmp_path / "run_b"
@@ -357,6 +358,7 @@ def test_transfer_with_frozen_backbone_changes_only_unfrozen(trained, tmp_path):
     assert len(changed) >= 4
 
 
+@pytest.mark.slow
 def test_training_reduces_the_loss(tiles, tmp_path):
     """Fitting a few tiles: the optimisation (per-part SGD) must lower the loss clearly."""
     cfg = fast_config(tiles, tmp_path, "warmup_iters=0", "lr.backbone=0.01", "lr.fpn=0.01", "lr.rpn=0.02",
@@ -394,6 +396,7 @@ def test_torchrun_two_processes(tiles, tmp_path):
     assert ck["epoch"] == 2 and ck["iters_per_epoch"] == 2  # 8 tiles / (2 processes x 2 per batch)
 
 
+@pytest.mark.slow
 def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
     """A time budget ends training early; the last epoch is still validated and saved as best/last."""
     out = tmp_path / "budget"
@@ -406,6 +409,7 @@ def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
 # -- one-stage detectors (issue 16) ----------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ["retinanet_resnet50_fpn", "fcos_resnet50_fpn"])
 def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_path):
     """RetinaNet and FCOS beside Faster R-CNN: same targets, checkpoint, transfer learning and evaluation."""
@@ -459,6 +463,7 @@ def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_p
     assert len(loaded) == len(model.state_dict()) - len(skipped)
 
 
+@pytest.mark.slow
 def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
     """As for Faster R-CNN: COCO weights load strictly, our classes get a new classification head, and
     the checkpoint rebuilds the same structure (frozen batch norms) without a download."""
@@ -479,6 +484,7 @@ def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
     assert all(torch.equal(rebuilt.state_dict()[k], v) for k, v in state.items())
 
 
+@pytest.mark.slow
 def test_anchor_sizes_auto_from_the_training_boxes(tiles, tmp_path):
     """``anchor_sizes: auto``: sensible anchors for ~40 px objects on 512 px tiles, in the detector's input
     pixels, and a training run stores the computed sizes in its checkpoint."""

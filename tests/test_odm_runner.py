@@ -403,6 +403,7 @@ def test_nodeodm_unreachable_is_a_clear_error(tmp_path):
 # the numbered folder
 
 
+@pytest.mark.slow
 def test_folder_config_loads_and_help_works():
     cfg = load_config(OdmRunnerConfig, FOLDER / "config.yaml", check_paths=False)
     assert cfg.odm.dsm and cfg.odm.dtm and cfg.odm.orthophoto_resolution == 0.5 and cfg.backend == "docker"

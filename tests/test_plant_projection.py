@@ -220,6 +220,7 @@ def test_settle_moves_exact_hits_and_keeps_grazing_ones():
     np.testing.assert_allclose(settled[1], stopped[1])  # the soil is 0.5 m further down: it stays
 
 
+@pytest.mark.slow
 def test_rays_that_skimmed_a_plant_are_flagged():
     """A far-edge ray that passed just over a plant's top and landed on the soil behind it did not mark the
     plant's edge; one that landed on open soil did."""
@@ -609,6 +610,7 @@ def oblique_field(tmp_path_factory, request):
                           slope_pct=10)
 
 
+@pytest.mark.slow
 def test_synthetic_field_oblique_over_slope(oblique_field):
     """Forward-tilted camera (20 degrees) over a 10 % slope, a 3 m flight over plants up to 0.6 m tall: plants
     are seen 15-38 degrees off nadir, their far sides lie behind their tops and many are partly hidden behind a

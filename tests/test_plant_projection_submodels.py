@@ -120,6 +120,7 @@ def test_pose_conversion_is_exact_without_misalignment(tiny_field, tmp_path):
         assert np.nanmax(np.abs(uv_split[ok] - uv_single[ok])) < 0.05  # pixels (the map's scale, ~1e-4, left)
 
 
+@pytest.mark.slow
 def test_projection_over_submodels_places_each_plant_once(split):
     preds = _truth_predictions(split)
     views, rejected = project_predictions(ODMProject(split.root), preds)

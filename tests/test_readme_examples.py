@@ -201,7 +201,7 @@ def substitute(command: str, ws) -> list[str]:
 
 def true_predictions(field_root: Path, path: Path) -> None:
     """The true boxes as a detector's predictions file (a perfect detector's output)."""
-    from matchplant.core.formats.coco import write_predictions
+    from matchplant.core.formats.predictions import write_predictions
 
     truth = json.loads((field_root / "truth" / "boxes_undistorted.json").read_text())
     images = [{"id": im["id"], "file_name": im["file_name"], "width": im["width"], "height": im["height"],
@@ -247,6 +247,7 @@ def test_examples_were_found():
     assert len(COMMANDS) >= 30 and set(STEP_NUMBERS) - {"bbox_drawer"} <= steps, sorted(steps)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where,command", COMMANDS, ids=[f"{w} {c[:60]}" for w, c in COMMANDS])
 def test_readme_command_runs(where, command, workspace, capfd, monkeypatch):
     reason = skip_reason(command)
@@ -286,6 +287,7 @@ def write_pipeline_example(ws) -> None:
         _commit(ws["git"], ws["w"])
 
 
+@pytest.mark.slow
 def test_nothing_written_shows_in_git_status(workspace):
     """Every module's default output goes to the git-ignored runs/ (or a folder the user named)."""
     if workspace["git"] is None:
@@ -295,6 +297,7 @@ def test_nothing_written_shows_in_git_status(workspace):
     assert (workspace["w"] / "runs").is_dir()
 
 
+@pytest.mark.slow
 def test_every_example_ran_or_was_skipped_for_a_reason(workspace):
     done = {(w, c) for w, c in workspace["ran"]} | {(w, c) for w, c, _ in workspace["skipped"]}
     missing = [c for c in COMMANDS if c not in done]

@@ -241,6 +241,7 @@ def test_gnss_log_and_gcps(tiny_field):
     assert np.all((b[:, 0] < tops[:, 0]) & (tops[:, 0] < b[:, 2]) & (b[:, 1] < tops[:, 1]) & (tops[:, 1] < b[:, 3]))
 
 
+@pytest.mark.slow
 def test_tiny_is_fast_and_deterministic(tiny_field, tmp_path):
     import resource
 

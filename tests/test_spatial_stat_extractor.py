@@ -159,6 +159,7 @@ def raster_file(tmp_path_factory, synthetic):
 # the engine
 
 
+@pytest.mark.slow
 @pytest.mark.independent
 @pytest.mark.parametrize("mode", ["center", "coverage"])
 def test_equals_brute_force(synthetic, mode):

@@ -418,5 +418,5 @@ def _summary(cfg: ImgSplitterConfig, sources: list[Source], datasets: dict, miss
                          "min_region_share": cfg.min_region_share}}
 
 
-__all__ = ["ImgSplitterConfig", "tile_origins", "tile_grid", "plan_image", "ImagePlan", "split_counts", "split_images",
+__all__ = ["ImgSplitterConfig", "tile_origins", "tile_grid", "plan_image", "ImagePlan", "split_images",
            "load_sources", "plan_all", "run"]

@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from matchplant.core.formats.coco import write_predictions
+from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.formats.images import image_size, read_rgb8
 from matchplant.core.formats.odm import SUBMODELS_DIR
 from matchplant.core.geometry.boxes import nms

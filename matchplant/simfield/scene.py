@@ -266,10 +266,6 @@ class Grid:
         row = np.clip(((self.y1 - y) / self.res).astype(np.intp), 0, self.height - 1)
         return row, col
 
-    def bounds_map(self, offset: np.ndarray) -> tuple[float, float, float, float]:
-        return (self.x0 + offset[0], self.y1 - self.height * self.res + offset[1],
-                self.x0 + self.width * self.res + offset[0], self.y1 + offset[1])
-
 
 @dataclass
 class Rasters:

@@ -11,6 +11,13 @@ from harness import run_case  # would shadow tests/conftest.py for the tests tha
 
 CASES = [case for path in sorted(Path(__file__).parent.glob("cases_*.py"))
          for case in importlib.import_module(path.stem).CASES]
+# the cases over ~10 s (pytest --durations on 2 shared cores): the slow tier
+SLOW = {"m3-aoi-polygon-and-point-layers", "m6-sizes-differ-boxes-inside", "m6-windows-json-unicode-folder",
+        "m7-nothing-found", "m7-unicode-paths-and-junk", "m8-evaluate-reference-of-another-field"}
+
+
+def marks(case) -> tuple:
+    return (*case.marks, pytest.mark.slow) if case.name in SLOW else case.marks
 
 
 def test_case_names_are_unique():
@@ -18,6 +25,10 @@ def test_case_names_are_unique():
     assert len(names) == len(set(names))
 
 
-@pytest.mark.parametrize("case", [pytest.param(c, id=c.name, marks=c.marks) for c in CASES])
+def test_slow_cases_exist():
+    assert SLOW <= {c.name for c in CASES}
+
+
+@pytest.mark.parametrize("case", [pytest.param(c, id=c.name, marks=marks(c)) for c in CASES])
 def test_case(case, work, capsys):
     run_case(case, work, capsys)

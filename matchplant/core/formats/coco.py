@@ -238,20 +238,3 @@ def region_entry(polygon) -> list[list[float]]:
 
 def source_name(image: dict) -> str:
     return image.get("source_image") or image["file_name"]
-
-
-# -- predictions ---------------------------------------------------------------------------------
-
-
-def write_predictions(path: str | Path, images: list[dict], categories: list[dict],
-                      predictions: list[dict], info: dict | None = None) -> Path:
-    data = {"info": info or {"description": "MatchPlant predictions"}, "images": images,
-            "categories": categories, "predictions": predictions}
-    return write_json(path, data, indent=None)
-
-
-def results_list(predictions: dict) -> list[dict[str, Any]]:
-    """The plain COCO results list (for pycocotools' ``loadRes``)."""
-    return [{"image_id": p["image_id"], "category_id": p["category_id"],
-             "bbox": [float(v) for v in p["bbox"]], "score": float(p["score"])}
-            for p in predictions["predictions"]]

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 from matchplant.core.formats.coco import read_dataset, source_name
 from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.validate import did_you_mean, read_json
 
 FIX_PREDICTIONS = "give the predictions JSON written by module 7 (model_test), or regenerate it"
@@ -137,3 +139,17 @@ def _check_prediction(i: int, p: dict, image: str, path: Path) -> None:
     cat = p.get("category_id", 1)
     if not (_number(cat) and float(cat) == int(cat)):
         raise InputError(f"{where}: category_id {cat!r} is not an integer", path=path, fix=FIX_PREDICTIONS)
+
+
+def write_predictions(path: str | Path, images: list[dict], categories: list[dict],
+                      predictions: list[dict], info: dict | None = None) -> Path:
+    data = {"info": info or {"description": "MatchPlant predictions"}, "images": images,
+            "categories": categories, "predictions": predictions}
+    return write_json(path, data, indent=None)
+
+
+def results_list(predictions: dict) -> list[dict[str, Any]]:
+    """The plain COCO results list (for pycocotools' ``loadRes``)."""
+    return [{"image_id": p["image_id"], "category_id": p["category_id"],
+             "bbox": [float(v) for v in p["bbox"]], "score": float(p["score"])}
+            for p in predictions["predictions"]]

@@ -62,10 +62,6 @@ class Shot:
         """Unit ray directions (N, 3) in the reconstruction frame through pixels ``uv``."""
         return self.camera.bearings(uv) @ self.R  # rows are R^T b: camera to world
 
-    def viewing_direction(self) -> np.ndarray:
-        """The optical axis in the world frame."""
-        return self.R[2]
-
     def to_opensfm(self) -> dict:
         d = {"rotation": [float(v) for v in self.rotation], "translation": [float(v) for v in self.translation],
              "camera": self.camera.id}
