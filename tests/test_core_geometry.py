@@ -11,7 +11,7 @@ from pyproj import CRS, Geod, Transformer
 from scipy.spatial.transform import Rotation
 
 from matchplant.core.formats.reconstruction import read_reconstruction, write_reconstruction
-from matchplant.core.geometry.camera import FisheyeCamera, PinholeCamera, camera_from_opensfm
+from matchplant.core.geometry.camera import camera_from_opensfm
 from matchplant.core.geometry.frames import OffsetFrame, TopocentricFrame, detect_frame, parse_crs, utm_crs_for
 from matchplant.core.geometry.ground import ground_to_pixels, pixels_to_ground
 from matchplant.core.geometry.shot import Shot

@@ -152,7 +152,8 @@ def test_footprint_of_tilted_camera_is_a_trapezoid(tmp_path):
 
 def test_aoi_is_the_orthophoto_valid_area(finder):
     nx, ny, sp, m = 4, 3, (2.0, 1.5), 1.2
-    expected = box(OFFSET[0] + 1 - m, OFFSET[1] + 1 - m, OFFSET[0] + 1 + 3 * sp[0] + m, OFFSET[1] + 1 + 2 * sp[1] + m)
+    expected = box(OFFSET[0] + 1 - m, OFFSET[1] + 1 - m, OFFSET[0] + 1 + (nx - 1) * sp[0] + m,
+                   OFFSET[1] + 1 + (ny - 1) * sp[1] + m)
     notch = box(expected.bounds[2] - 0.8, expected.bounds[1], expected.bounds[2], expected.bounds[1] + 0.8)
     expected = expected.difference(notch)
     assert finder.aoi.symmetric_difference(expected).area / expected.area < 0.02
@@ -345,7 +346,7 @@ def test_owned_area_in_pixels_maps_back_to_the_ground(finder):
     for fp in result.selected:
         uv = result.owned_pixels[fp.name]
         assert len(uv) >= 3
-        w, h = fp.shot.camera.width, fp.shot.camera.height
+        w = fp.shot.camera.width
         assert (uv[:, 0] >= -0.5).all() and (uv[:, 0] <= w - 0.5).all()
         ground, status = pixels_to_ground(fp.shot, uv, finder.frame, finder.surface)
         owned = result.owned[fp.name]

@@ -75,25 +75,12 @@ def scale_ratio(geometry: dict | None, tile_width: int, tile_height: int, model_
     return now / float(geometry["input_scale"])
 
 
-def object_ratio(geometry: dict | None, boxes_xyxy: np.ndarray, tile_width: int, tile_height: int,
-                 model_config: dict) -> float | None:
-    """Median size of found (or annotated) boxes in the detector's input, relative to the training plants';
-    None when unknown or no boxes. ``boxes_xyxy`` are in image pixels; the tiles are ``tile_width`` x
-    ``tile_height``."""
-    boxes = np.asarray(boxes_xyxy, float).reshape(-1, 4)
-    if not geometry or not geometry.get("objects_input_px") or not len(boxes):
-        return None
-    side = np.sqrt(np.clip(boxes[:, 2] - boxes[:, 0], 0, None) * np.clip(boxes[:, 3] - boxes[:, 1], 0, None))
-    scale = input_scale(tile_width, tile_height, model_config["min_size"], model_config["max_size"])
-    return float(np.median(side)) * scale / float(geometry["objects_input_px"])
-
-
 def off_scale(ratio: float | None) -> bool:
     return ratio is not None and not (1 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE)
 
 
 def check_scale(ratio: float | None, what: str, fix: str) -> bool:
-    """Log a warning when ``ratio`` (from :func:`scale_ratio` or :func:`object_ratio`) is off scale."""
+    """Log a warning when ``ratio`` (from :func:`scale_ratio`) is off scale."""
     if not off_scale(ratio):
         return False
     log.warning("%s: plants would be %.2fx their training size in the detector's input (the model learned one "

@@ -42,7 +42,7 @@ TEXT_FIELDS = [  # (config key, label)
 # keys with a file picker ("..." beside the box: Tk's dialogs)
 PICKERS = {"polygons": "file", "rasters.chm": "file", "rasters.dsm": "file", "rasters.dtm": "file",
            "rasters.multispectral": "file", "output_dir": "folder"}
-OK_COLOR, ERROR_COLOR = "#1a7f37", "#c62828"
+ERROR_COLOR = "#c62828"
 
 
 def _get(cfg, key: str):

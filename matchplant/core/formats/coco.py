@@ -27,7 +27,6 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import write_json, write_text
 from matchplant.core.runtime.validate import read_json
 
-PROVENANCE_KEYS = ("source_image", "x0", "y0")
 # an image entry's annotated region: a polygon [[x, y], ...] in that image's pixels (pixel edges, as
 # boxes); every plant touching it is boxed, plants outside it are not. No key: the whole image.
 REGION_KEY = "annotated_region"

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 from matchplant.core.formats.coco import read_dataset, source_name
 from matchplant.core.runtime.errors import ConfigError, InputError
@@ -146,10 +145,3 @@ def write_predictions(path: str | Path, images: list[dict], categories: list[dic
     data = {"info": info or {"description": "MatchPlant predictions"}, "images": images,
             "categories": categories, "predictions": predictions}
     return write_json(path, data, indent=None)
-
-
-def results_list(predictions: dict) -> list[dict[str, Any]]:
-    """The plain COCO results list (for pycocotools' ``loadRes``)."""
-    return [{"image_id": p["image_id"], "category_id": p["category_id"],
-             "bbox": [float(v) for v in p["bbox"]], "score": float(p["score"])}
-            for p in predictions["predictions"]]

@@ -86,7 +86,3 @@ def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface,
 def ground_to_pixels(shot: Shot, points_map: np.ndarray, frame: Frame) -> np.ndarray:
     """Pixels (N, 2) of map points (N, 3) in ``shot``'s image; NaN behind the camera."""
     return shot.project(frame.from_map(np.asarray(points_map, dtype=float).reshape(-1, 3)))
-
-
-def camera_center_map(shot: Shot, frame: Frame) -> np.ndarray:
-    return frame.to_map(shot.center[None, :])[0]
