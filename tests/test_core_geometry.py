@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from affine import Affine
@@ -107,18 +108,18 @@ def test_pixel_bearing_pixel_roundtrip(cam):
 
 
 @pytest.mark.independent
-def test_brown_formula_matches_hand_computation():
+def test_brown_projection_matches_opencv():
+    """OpenSfM's brown model is OpenCV's (k1, k2, p1, p2, k3) with focal and principal point scaled by
+    max(width, height) around the image centre (docs/DESIGN.md §3): cv2.projectPoints is the reference."""
     cam = CAMERAS[1]
-    X = np.array([[0.3, -0.2, 1.0]])
-    x, y = 0.3, -0.2
-    r2 = x * x + y * y
-    radial = 1 + cam.k1 * r2 + cam.k2 * r2 ** 2 + cam.k3 * r2 ** 3
-    xd = x * radial + 2 * cam.p1 * x * y + cam.p2 * (r2 + 2 * x * x)
-    yd = y * radial + cam.p1 * (r2 + 2 * y * y) + 2 * cam.p2 * x * y
+    rng = np.random.default_rng(3)
+    X = np.column_stack([rng.uniform(-0.4, 0.4, (50, 2)), rng.uniform(0.8, 3.0, 50)])
     S = max(cam.width, cam.height)
-    expect = [(cam.focal_x * xd + cam.c_x) * S + (cam.width - 1) / 2,
-              (cam.focal_y * yd + cam.c_y) * S + (cam.height - 1) / 2]
-    np.testing.assert_allclose(cam.project(X)[0], expect, rtol=1e-12)
+    K = np.array([[cam.focal_x * S, 0, cam.c_x * S + (cam.width - 1) / 2],
+                  [0, cam.focal_y * S, cam.c_y * S + (cam.height - 1) / 2], [0, 0, 1]])
+    dist = np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3])
+    expect, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+    np.testing.assert_allclose(cam.project(X), expect.reshape(-1, 2), rtol=1e-10, atol=1e-8)
 
 
 def test_points_behind_camera_are_nan():
