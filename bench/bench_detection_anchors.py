@@ -32,7 +32,8 @@ from matchplant.detection.evaluate import coco_evaluate, predict_dataset
 from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.objects import auto_anchor_sizes
 from matchplant.detection.synth import make_tiles
-from matchplant.model_train.run import ModelTrainConfig, train
+from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.run import train
 
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 

@@ -25,7 +25,8 @@ import numpy as np
 
 from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
 from matchplant.core.runtime.config import load_config
-from matchplant.img_splitter.run import ImgSplitterConfig, run
+from matchplant.img_splitter.config import ImgSplitterConfig
+from matchplant.img_splitter.run import run
 
 
 def make_photos(folder: Path, n: int, width: int, height: int, boxes_per_image: int = 150) -> Path:

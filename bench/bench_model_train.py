@@ -37,7 +37,8 @@ from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector, load_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.run import detect_image, model_predictor, tile_starts
-from matchplant.model_train.run import ModelTrainConfig, train
+from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.run import train
 
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from matchplant.bbox_drawer.run import BboxDrawerConfig, open_session, run
+from matchplant.bbox_drawer.config import BboxDrawerConfig
+from matchplant.bbox_drawer.run import open_session, run
 from matchplant.bbox_drawer.store import AnnotationStore
 from matchplant.core.formats.coco import (
     make_annotation,

@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from matchplant.bbox_drawer.run import BboxDrawerConfig, run
+from matchplant.bbox_drawer.config import BboxDrawerConfig
+from matchplant.bbox_drawer.run import run
 from matchplant.core.formats.masks import mask_boxes
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import InputError

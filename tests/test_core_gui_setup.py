@@ -209,8 +209,8 @@ def check_annotations(out: Path, truth: dict, drawn: dict) -> None:
 def test_bbox_setup_screen_full_run(tiny_field, tmp_path):
     import gui_events as ge
 
+    from matchplant.bbox_drawer.config import BboxDrawerConfig
     from matchplant.bbox_drawer.gui import BboxDrawerSetup
-    from matchplant.bbox_drawer.run import BboxDrawerConfig
 
     out = tmp_path / "labels"
     picker = Picker(("folder", tiny_field.undistorted_images), ("folder", out), ("file", tiny_field.boxes_undistorted))
@@ -240,8 +240,8 @@ def test_bbox_setup_screen_full_run(tiny_field, tmp_path):
 @pytest.mark.slow
 @pytest.mark.gui
 def test_bbox_setup_screen_reports_a_bad_import(tiny_field, tmp_path):
+    from matchplant.bbox_drawer.config import BboxDrawerConfig
     from matchplant.bbox_drawer.gui import BboxDrawerSetup
-    from matchplant.bbox_drawer.run import BboxDrawerConfig
 
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
@@ -277,8 +277,8 @@ def check_tiles(out: Path, field) -> None:
 @pytest.mark.slow
 @pytest.mark.gui
 def test_tiling_setup_screen_full_run(tiny_field, tmp_path):
+    from matchplant.img_splitter.config import ImgSplitterConfig
     from matchplant.img_splitter.gui import ImgSplitterSetup
-    from matchplant.img_splitter.run import ImgSplitterConfig
 
     out = tmp_path / "tiles"
     picker = Picker(("folder", tiny_field.undistorted_images), ("file", tiny_field.boxes_undistorted), ("folder", out))
@@ -301,8 +301,8 @@ def test_tiling_setup_screen_full_run(tiny_field, tmp_path):
 @pytest.mark.slow
 @pytest.mark.gui
 def test_tiling_setup_screen_reports_bad_annotations(tiny_field, tmp_path):
+    from matchplant.img_splitter.config import ImgSplitterConfig
     from matchplant.img_splitter.gui import ImgSplitterSetup
-    from matchplant.img_splitter.run import ImgSplitterConfig
 
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")

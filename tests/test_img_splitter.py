@@ -16,7 +16,8 @@ from matchplant.core.formats.coco import make_annotation, new_dataset, validate_
 from matchplant.core.formats.yolo import coco_to_yolo
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.img_splitter.run import ImgSplitterConfig, plan_image, run, split_images, tile_grid, tile_origins
+from matchplant.img_splitter.config import ImgSplitterConfig
+from matchplant.img_splitter.run import plan_image, run, split_images, tile_grid, tile_origins
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -379,7 +380,7 @@ from pathlib import Path
 import matplotlib
 import matplotlib.pyplot as plt
 from matchplant.core.runtime.config import load_config
-from matchplant.img_splitter.run import ImgSplitterConfig
+from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.gui import ImgSplitterGUI
 cfg = load_config(ImgSplitterConfig, None, {sets!r})
 g = ImgSplitterGUI(cfg, headless=False)

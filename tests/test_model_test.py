@@ -21,8 +21,9 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
 from matchplant.detection.model import build_detector, save_checkpoint
 from matchplant.detection.synth import make_photo, make_tiles
-from matchplant.model_test.run import ModelTestConfig, detect_image, merge_tile_boxes, run, tile_starts
-from matchplant.model_train.run import ModelTrainConfig
+from matchplant.model_test.config import ModelTestConfig
+from matchplant.model_test.run import detect_image, merge_tile_boxes, run, tile_starts
+from matchplant.model_train.config import ModelTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -238,7 +239,7 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     from matchplant.core.formats.coco import read_dataset
     from matchplant.core.formats.images import read_rgb8
     from matchplant.detection.data import CocoDetection
-    from matchplant.img_splitter.run import ImgSplitterConfig
+    from matchplant.img_splitter.config import ImgSplitterConfig
     from matchplant.img_splitter.run import run as run_tiling
 
     truth = read_dataset(tiny_field.boxes_undistorted)
@@ -360,7 +361,7 @@ def _tiled_truth(tmp_path: Path):
     split and, for every tile box, the true plant it is a copy of (an oracle from the truth: the tile box is
     that plant's box clipped to the tile)."""
     from matchplant.core.formats.coco import read_dataset
-    from matchplant.img_splitter.run import ImgSplitterConfig
+    from matchplant.img_splitter.config import ImgSplitterConfig
     from matchplant.img_splitter.run import run as run_tiling
 
     ds = new_dataset(["plant"])

@@ -20,7 +20,8 @@ from matchplant.detection.architectures import ARCHITECTURES, get_architecture
 from matchplant.detection.data import AugmentConfig, CocoDetection
 from matchplant.detection.model import ModelConfig, apply_freezing, build_detector, load_detector, read_checkpoint
 from matchplant.detection.synth import make_tiles
-from matchplant.model_train.run import ModelTrainConfig, build_optimizer, build_scheduler, lr_factor, train
+from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.run import build_optimizer, build_scheduler, lr_factor, train
 from matchplant.steps.model_train import SPEC
 
 ROOT = Path(__file__).resolve().parents[1]

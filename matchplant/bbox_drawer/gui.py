@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.patches import Polygon, Rectangle
 
-from matchplant.bbox_drawer.run import BboxDrawerConfig, annotated_regions, open_session
+from matchplant.bbox_drawer.config import BboxDrawerConfig
+from matchplant.bbox_drawer.run import annotated_regions, open_session
 from matchplant.bbox_drawer.store import AnnotationStore
 from matchplant.bbox_drawer.view import BoxLayer, PanelImage, PyramidImage
 from matchplant.core.formats.images import display_rgb, match_name, read_image

@@ -18,7 +18,8 @@ from matchplant.core.runtime.config import parse_override, save_config, set_valu
 from matchplant.core.runtime.errors import InputError, MatchPlantError
 from matchplant.core.runtime.gui import (QuietTextBox, SetupField, SetupScreen, close, figure, require_display,
                                          reveal, show)
-from matchplant.img_splitter.run import ImgSplitterConfig, load_sources, plan_all, run
+from matchplant.img_splitter.config import ImgSplitterConfig
+from matchplant.img_splitter.run import load_sources, plan_all, run
 
 FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
           "split", "seed", "split_mode", "negative_share", "yolo"]

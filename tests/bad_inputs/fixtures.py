@@ -16,7 +16,7 @@ from matchplant.core.formats.coco import read_dataset
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.io import write_json
 from matchplant.detection.model import build_detector, save_checkpoint
-from matchplant.model_train.run import ModelTrainConfig
+from matchplant.model_train.config import ModelTrainConfig
 
 
 @pytest.fixture(scope="session")
