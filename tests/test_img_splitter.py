@@ -167,6 +167,24 @@ def test_box_across_a_border_is_in_every_tile_where_enough_is_visible(tmp_path):
         [[53, 30, 40, 40]]
 
 
+def test_dropped_csv_names_the_limit_that_dropped_each_box(tmp_path):
+    """Each dropped box's reason names the limit that applies to it: a box under min_box_side everywhere is
+    too small (not "at most 100 % visible"), one cut too thin by every tile is not visible enough."""
+    import csv
+
+    tiny = [40, 40, 6, 6]                       # whole in a tile, but 6 px < min_box_side 10
+    cut = [96, 30, 50, 40]                      # x 96..146: 32/50 in tile 0, 38/50 in tile 108, < 0.9 in both
+    _dataset(tmp_path, {"a.png": (300, 100)}, {"a.png": [(tiny, 1), (cut, 1), ([150, 30, 40, 40], 1)]})
+    cfg = _cfg(tmp_path, tile_size=128, overlap=20, min_visible=0.9, min_box_side=10, split="[1, 0, 0]")
+    run(cfg)
+    rows = list(csv.DictReader(open(cfg.output_dir / "dropped.csv", newline="")))
+    assert len(rows) == 2, rows
+    text = " | ".join(" ".join(r.values()) for r in rows)
+    assert "6x6 px, under min_box_side 10" in text
+    assert "at most 76% of it is visible in a tile (min_visible 0.9)" in text
+    assert "100%" not in text
+
+
 def test_edge_cases_small_empty_missing_and_lossless(field, tmp_path):
     ann = json.loads((field / "annotations.json").read_text())
     ann["images"].append({"id": 99, "file_name": "missing_photo.png", "width": 100, "height": 100})

@@ -398,6 +398,21 @@ def test_run_writes_every_output(small_project, tmp_path):
         assert im.width > 400 and len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)) > 20
 
 
+def test_rerun_into_one_folder_leaves_exactly_the_selection(small_project, tmp_path):
+    """A second run with another coverage target (fewer photos) removes the first run's extra photos from
+    images/, and leaves a file the user put there alone."""
+    from matchplant.min_img_finder.run import run
+
+    out = tmp_path / "out"
+    first = run(cfg_for(small_project, out, "copy_images=copy", "uncovered_threshold=1"))
+    (out / "images" / "my_notes.txt").write_text("mine")
+    second = run(cfg_for(small_project, out, "copy_images=link", "uncovered_threshold=40"))
+    assert len(second.selected) < len(first.selected)
+    listed = {r["file"] for r in csv.DictReader(open(out / "selected_images.csv"))}
+    assert listed == {fp.file.name for fp in second.selected}
+    assert {p.name for p in (out / "images").iterdir()} == listed | {"my_notes.txt"}
+
+
 @pytest.mark.slow
 def test_folder_config_loads_and_help_works():
     cfg = load_config(MinImgFinderConfig, FOLDER / "config.yaml", check_paths=False)

@@ -112,6 +112,18 @@ def plan_image(boxes_xyxy: np.ndarray, width: int, height: int, tile: int, overl
     return ImagePlan(tiles, b, keep, clipped, visible)
 
 
+def drop_reason(plan: ImagePlan, n: int, cfg: ImgSplitterConfig) -> str:
+    """Why box ``n`` is in no tile, naming only the limit that actually dropped it."""
+    best = float(plan.visible[:, n].max()) if plan.visible.size else 0.0
+    x1, y1, x2, y2 = plan.boxes[n]
+    if min(x2 - x1, y2 - y1) < cfg.min_box_side:
+        return f"the box is {x2 - x1:.0f}x{y2 - y1:.0f} px, under min_box_side {cfg.min_box_side:g} px"
+    if best < cfg.threshold:
+        return f"at most {best:.0%} of it is visible in a tile (min_visible {cfg.threshold:g})"
+    return (f"where {best:.0%} of it is visible, the part in the tile is under min_box_side "
+            f"{cfg.min_box_side:g} px")
+
+
 # -- image files --------------------------------------------------------------------------------------
 
 
@@ -359,11 +371,8 @@ def _write(cfg: ImgSplitterConfig, sources: list[Source], categories: list[dict]
         jobs.append((str(s.path), tiles, s.region))
         for n in np.flatnonzero(~s.plan.kept_anywhere):
             x1, y1, x2, y2 = s.boxes[n]
-            best = float(s.plan.visible[:, n].max()) if s.plan.visible.size else 0.0
             drops.add(cfg.annotations, f"annotation {s.ids[n] if n < len(s.ids) else '?'}", s.name,
-                      [x1, y1, x2 - x1, y2 - y1], "in no tile",
-                      f"at most {best:.0%} visible in a tile (min_visible {cfg.threshold:g}), or the part in a "
-                      f"tile is under min_box_side {cfg.min_box_side:g} px")
+                      [x1, y1, x2 - x1, y2 - y1], "in no tile", drop_reason(s.plan, n, cfg))
     _run_jobs(jobs, cfg.workers)
     summary = _summary(cfg, sources, datasets, missing)
     for split, ds in datasets.items():

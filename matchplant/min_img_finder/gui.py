@@ -1,7 +1,7 @@
 """Module 3's GUI: the coverage map over the orthophoto, the selection's parameters, click to toggle images, Save.
 
 Thin over :class:`~matchplant.min_img_finder.run.MinImageFinder`: the window only edits the config, calls
-``select`` / ``evaluate`` / :func:`~matchplant.min_img_finder.output.write_outputs` and draws with
+``select`` / ``evaluate`` / :func:`~matchplant.min_img_finder.output.save_selection` and draws with
 :func:`~matchplant.min_img_finder.output.draw_coverage`, so what it saves is what the CLI would write.
 
 * Left: the map - every footprint in grey, the selected ones numbered with the area each owns, uncovered
@@ -33,7 +33,7 @@ from matchplant.core.runtime.gui import (
 )
 from matchplant.core.runtime.log import get_logger
 from matchplant.min_img_finder.config import MinImgFinderConfig
-from matchplant.min_img_finder.output import draw_coverage, write_outputs
+from matchplant.min_img_finder.output import draw_coverage, save_selection
 from matchplant.min_img_finder.run import MinImageFinder, Result
 
 log = get_logger("min_img_finder.gui")
@@ -159,7 +159,7 @@ class MinImgFinderGUI:
             self.say("nothing to save yet", error=True)
             return None
         try:
-            paths = write_outputs(self.finder, self.result)
+            paths = save_selection(self.finder, self.result)
             out = Path(self.cfg.output_dir)
             save_config(self.cfg, out / "min_img_finder_config.yaml")
         except (MatchPlantError, OSError) as exc:

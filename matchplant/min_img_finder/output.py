@@ -27,12 +27,28 @@ from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.formats.owned_areas import write_owned_areas
 from matchplant.core.formats.vectors import write_formats
+from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 
 log = get_logger("min_img_finder")
+
+
+def save_selection(finder, result, skipped: list[dict] | None = None) -> dict[str, Path]:
+    """Write a selection's outputs into ``output_dir`` whole or not at all (through a staging folder), then
+    remove the images of an earlier selection there that this one does not hold. The command line and the
+    GUI both save through here, so a re-run (greedy then milp, the GUI after the command) leaves nothing stale."""
+    out = Path(finder.cfg.output_dir)
+    previous = previous_images(out)
+    with staged_outputs(out) as stage:
+        paths = write_outputs(finder, result, stage)
+        if skipped:
+            write_rows(stage / "skipped_images.csv", skipped)
+    kept = {fp.file.name for fp in result.selected} if finder.cfg.copy_images != "none" else set()
+    remove_stale(out, previous, kept)
+    return {k: out / Path(v).relative_to(stage) for k, v in paths.items()}
 
 
 def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, Path]:
@@ -84,6 +100,30 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
         "selection_seconds": round(s.seconds, 4), "footprint_seconds": round(finder.footprint_seconds, 3)})
     paths["summary"] = out / "selection.json"
     return paths
+
+
+def previous_images(out: Path) -> set[str]:
+    """The image files an earlier run placed in ``out/images`` (its ``selected_images.csv``, column ``file``)."""
+    path = out / "selected_images.csv"
+    if not path.is_file():
+        return set()
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            return {Path(row["file"]).name for row in csv.DictReader(fh) if row.get("file")}
+    except (OSError, UnicodeError, KeyError, csv.Error):
+        return set()
+
+
+def remove_stale(out: Path, previous: set[str], kept: set[str]) -> None:
+    """Remove the images an earlier run placed that this selection does not hold, so ``images/`` holds
+    exactly the selection (step 4 opens, and step 5 tiles, whatever is there). Only files the earlier run
+    listed are removed: anything else a user put in the folder stays."""
+    stale = sorted(name for name in previous - kept if (out / "images" / name).is_file())
+    for name in stale:
+        (out / "images" / name).unlink()
+    if stale:
+        log.info("removed %d image(s) of the previous selection from %s: %s", len(stale), out / "images",
+                 ", ".join(stale[:5]) + (" ..." if len(stale) > 5 else ""))
 
 
 def write_rows(path: Path, rows: list[dict]) -> Path:

@@ -52,12 +52,11 @@ from matchplant.core.formats.footprints import Footprint, compute_footprints, op
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import check_raster
 from matchplant.min_img_finder.aoi import aoi_from_mask, build_grid, orthophoto_preview, read_aoi_file
 from matchplant.min_img_finder.config import MinImgFinderConfig
-from matchplant.min_img_finder.output import write_outputs, write_rows
+from matchplant.min_img_finder.output import save_selection
 from matchplant.min_img_finder.owned import largest_polygon, owned_areas
 from matchplant.min_img_finder.setcover import Selection, reachable_coverage, select_greedy, select_milp
 
@@ -227,10 +226,7 @@ def run(cfg: MinImgFinderConfig) -> Result:
                          fix="check the area of interest (aoi_file) and uncovered_threshold")
     result = finder.evaluate(selection)
     out = Path(cfg.output_dir)
-    with staged_outputs(out) as stage:
-        write_outputs(finder, result, stage)
-        if finder.skipped:
-            write_rows(stage / "skipped_images.csv", finder.skipped)
+    save_selection(finder, result, finder.skipped)
     if finder.skipped:
         log.warning("%d of %d reconstructed images could not be used (%s); see %s", len(finder.skipped),
                     len(finder.skipped) + len(finder.footprints),
