@@ -7,7 +7,7 @@ BIN     = $(VENV)/Scripts
 endif
 STAMP   = $(VENV)/.installed
 
-.PHONY: test test-fast demo install bench clean
+.PHONY: test test-fast demo install install-cpu bench clean
 
 $(STAMP): requirements.txt requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,12 +18,20 @@ $(STAMP): requirements.txt requirements-dev.txt pyproject.toml
 
 install: $(STAMP)
 
+# PyTorch's CPU build first (no CUDA wheels); `make install` then finds torch and torchvision satisfied
+TORCH_CPU_INDEX ?= https://download.pytorch.org/whl/cpu
+install-cpu:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet --index-url $(TORCH_CPU_INDEX) "torch>=2.14" "torchvision>=0.29"
+	$(MAKE) install
+
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -rs --durations=15 $(PYTEST_ARGS)
 
 # the quick loop: everything but the tests marked slow (README, "Test tiers")
 test-fast: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -rs --durations=15 -m "not slow" $(PYTEST_ARGS)
 
 demo: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS)

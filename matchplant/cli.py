@@ -8,6 +8,7 @@ and ``matchplant plant_projection`` are the same program. The steps come from :m
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import traceback
@@ -28,6 +29,16 @@ def resolve_module(name: str) -> StepSpec:
     return resolve_step(name)
 
 
+def help_example(spec: StepSpec) -> str:
+    """A ``--set`` example that belongs to the step: its first plain number or choice, at its default."""
+    for f in dataclasses.fields(spec.config):
+        if f.name.startswith("_") or dataclasses.is_dataclass(f.default) or f.default is dataclasses.MISSING:
+            continue
+        if isinstance(f.default, (int, float, str)) and not isinstance(f.default, bool) and f.default != "":
+            return f"{f.name}={f.default}"
+    return "KEY=VALUE"
+
+
 def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=f"matchplant {spec.name}",
                                 description=(spec.config.__doc__ or "").strip().split("\n")[0])
@@ -38,7 +49,7 @@ def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
         p.add_argument("config_file", nargs="?", type=Path, help="YAML config (same as --config)")
     p.add_argument("--config", "-c", type=Path, help="YAML config file")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key (repeatable), e.g. --set tile_size=512")
+                   help=f"override a config key (repeatable), e.g. --set {help_example(spec)}")
     if spec.gui is not None:
         p.add_argument("--gui", action="store_true", help="open the graphical interface")
     p.add_argument("--write-config", type=Path, metavar="FILE",
@@ -46,6 +57,10 @@ def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
                         "--config and --set), then exit")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug messages")
     p.add_argument("--quiet", action="store_true", help="only warnings and errors on the console")
+    if spec.output_key and spec.output_key in {f.name for f in dataclasses.fields(spec.config)}:
+        # one name in every module; --out is the older spelling of modules 0, 1 and 8
+        p.add_argument("--output", "--out", dest=f"flag__{spec.output_key}", default=None, metavar="FOLDER",
+                       help=f"sets '{spec.output_key}': the folder for every output of this step")
     for flag, (key, text, *const) in spec.flags.items():
         if const:
             p.add_argument(flag, dest=f"flag__{key}", default=None, action="store_const", const=const[0], help=text)

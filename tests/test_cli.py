@@ -56,3 +56,44 @@ def test_gui_without_display_exits_2_with_the_headless_command(monkeypatch, caps
     assert run_module("min_img_finder", ["--gui"]) == 2
     err = capsys.readouterr().err
     assert "needs a window" in err and "matchplant min_img_finder" in err and "without --gui" in err
+
+
+def test_one_vocabulary_output_flag_and_help_examples():
+    """Every step that writes an output folder takes --output (and the older --out of modules 0, 1 and 8) for
+    the same key, and its --help example names one of its own keys."""
+    import dataclasses
+
+    from matchplant.steps import STEPS, resolve_step
+
+    for name in STEPS:
+        spec = resolve_step(name)
+        keys = {f.name for f in dataclasses.fields(spec.config)}
+        parser = cli.build_parser(spec)
+        if spec.output_key in keys:
+            for flag in ("--output", "--out"):
+                args = parser.parse_args([flag, "somewhere"])
+                assert getattr(args, f"flag__{spec.output_key}") == "somewhere", (name, flag)
+        example = cli.help_example(spec)
+        assert example == "KEY=VALUE" or example.split("=")[0] in keys, (name, example)
+        assert example in parser.format_help().replace("\n", " ").replace("  ", " ") or len(example) > 30
+
+
+def test_key_alias_reads_the_shared_name_with_a_note(tmp_path, caplog):
+    """Module 8 calls its ODM folder 'project'; 'project_dir', its name in modules 2 and 3, is read as the
+    same key (from YAML and --set), with a note; giving both is an error naming both."""
+    from matchplant.core.runtime.config import load_config
+    from matchplant.core.runtime.errors import ConfigError
+    from matchplant.plant_projection.config import PlantProjectionConfig
+
+    (tmp_path / "odm").mkdir()
+    p = write(tmp_path, "project_dir: odm\n")
+    with caplog.at_level("INFO", logger="matchplant"):
+        cfg = load_config(PlantProjectionConfig, p, check_paths=False, strict=False)
+    assert cfg.project == tmp_path / "odm"
+    assert "read as 'project'" in caplog.text
+    cfg = load_config(PlantProjectionConfig, None, [f"project_dir={tmp_path / 'odm'}"], check_paths=False,
+                      strict=False)
+    assert cfg.project == tmp_path / "odm"
+    with pytest.raises(ConfigError, match="'project_dir' and 'project'"):
+        load_config(PlantProjectionConfig, write(tmp_path, "project_dir: odm\nproject: odm\n"),
+                    check_paths=False, strict=False)

@@ -36,6 +36,7 @@ class PlantProjectionConfig:
 
     outputs_inside_inputs = ("project",)  # the project is read by fixed names: <project>/plants is fine
     renamed_keys = {"write_shapefile": ("vector_formats", "[gpkg, shp] for write_shapefile: true, [gpkg] for false")}
+    key_aliases = {"project_dir": "project"}  # the name of the same folder in modules 2 and 3
 
     mode: Literal["project", "evaluate", "both"] = param(
         "project", "project: boxes to map plants; evaluate: compare plants with reference boxes; both: one then the other",

@@ -4,5 +4,4 @@ from matchplant.bbox_drawer import BboxDrawerConfig, launch, run
 from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="bbox_drawer", config=BboxDrawerConfig, run=run, gui=launch,
-                flags={"--images": ("images", "folder of images to annotate"),
-                       "--output": ("output_dir", "folder for the session and the exports")})
+                flags={"--images": ("images", "folder of images to annotate")})

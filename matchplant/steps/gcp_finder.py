@@ -6,5 +6,4 @@ from matchplant.steps import StepSpec
 SPEC = StepSpec(name="gcp_finder", config=GcpFinderConfig, run=run, gui=launch,
                 flags={"--images": ("images", "folder of the images"),
                        "--survey": ("survey", "GCP survey table id,x,y,z"),
-                       "--crs": ("survey_crs", "CRS of the survey, e.g. EPSG:32614"),
-                       "--out": ("output_dir", "output folder")})
+                       "--crs": ("survey_crs", "CRS of the survey, e.g. EPSG:32614")})

@@ -6,5 +6,4 @@ from matchplant.steps import StepSpec
 SPEC = StepSpec(name="gps_embeder", config=GpsEmbederConfig, run=run,
                 flags={"--images": ("images", "folder of the images"),
                        "--log": ("gnss_log", "GNSS event log"),
-                       "--crs": ("log_crs", "CRS of the log, e.g. EPSG:32614"),
-                       "--out": ("output_dir", "output folder")})
+                       "--crs": ("log_crs", "CRS of the log, e.g. EPSG:32614")})

@@ -5,5 +5,4 @@ from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="img_splitter", config=ImgSplitterConfig, run=run, gui=launch,
                 flags={"--images": ("images", "folder of the annotated source images"),
-                       "--annotations": ("annotations", "COCO JSON (or YOLO labels folder) of the boxes"),
-                       "--output": ("output_dir", "folder for the tiles and the split datasets")})
+                       "--annotations": ("annotations", "COCO JSON (or YOLO labels folder) of the boxes")})

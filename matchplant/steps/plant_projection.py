@@ -7,5 +7,4 @@ SPEC = StepSpec(name="plant_projection", config=PlantProjectionConfig, run=run,
                 flags={"--mode": ("mode", "project, evaluate or both"),
                        "--project": ("project", "ODM project folder"),
                        "--predictions": ("predictions", "detections JSON (module 7)"),
-                       "--reference": ("evaluate.reference", "reference boxes for mode evaluate"),
-                       "--out": ("output_dir", "output folder")})
+                       "--reference": ("evaluate.reference", "reference boxes for mode evaluate")})

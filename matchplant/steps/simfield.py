@@ -5,5 +5,4 @@ from matchplant.steps import StepSpec
 
 SPEC = StepSpec(name="simfield", config=SimFieldConfig, run=run,
                 flags={"--preset": ("preset", f"field size: {', '.join(PRESETS)}"),
-                       "--seed": ("seed", "random seed (the same seed gives the same field)"),
-                       "--out": ("output_dir", "folder to write the project into")})
+                       "--seed": ("seed", "random seed (the same seed gives the same field)")})

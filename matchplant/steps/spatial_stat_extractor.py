@@ -8,5 +8,4 @@ SPEC = StepSpec(name="spatial_stat_extractor", config=SpatialStatExtractorConfig
                        "--chm": ("rasters.chm", "canopy height model raster"),
                        "--dsm": ("rasters.dsm", "DSM (with --dtm: CHM = DSM - DTM)"),
                        "--dtm": ("rasters.dtm", "DTM"),
-                       "--multispectral": ("rasters.multispectral", "multispectral raster (NDVI)"),
-                       "--output": ("output_dir", "output folder")})
+                       "--multispectral": ("rasters.multispectral", "multispectral raster (NDVI)")})

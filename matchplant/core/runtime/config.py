@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
 import math
 import os
 import textwrap
@@ -118,7 +119,7 @@ def read_yaml_mapping(path: Path) -> dict:
 def parse_override(item: str) -> tuple[str, Any]:
     if "=" not in item:
         raise ConfigError(f"--set expects key=value, got {item!r}",
-                          fix="write it as --set key=value, for example --set tile_size=512")
+                          fix="write it as --set key=value, for example --set output_dir=runs/mine")
     key, text = item.split("=", 1)
     try:
         value = yaml.safe_load(text) if text.strip() else ""
@@ -134,6 +135,7 @@ def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", b
     for i, part in enumerate(parts):
         prefix = ".".join(parts[:i])
         names = {f.name: f for f in fields(target)}
+        part = next(iter(_resolve_aliases(type(target), {part: None}, prefix, source)))
         if part not in names:
             raise _unknown_key(part, names, prefix, source, type(target))
         if i < len(parts) - 1:
@@ -168,9 +170,30 @@ def from_dict(cls: type, data: dict, *, prefix: str = "", source: str = "a mappi
     return _build(cls, data, prefix=prefix, source=source, base=base or Path.cwd())
 
 
+def _resolve_aliases(cls: type, data: dict, prefix: str, source: str) -> dict:
+    """Keys under another name the class still accepts (its ``key_aliases``: other name -> key), so the same
+    thing has one name in every module while older configs keep working; each use is noted in the log."""
+    aliases = getattr(cls, "key_aliases", {})
+    if not aliases or not any(k in aliases for k in data):
+        return data
+    out = {}
+    for key, value in data.items():
+        name = aliases.get(key, key)
+        if name != key:
+            full = f"{prefix}.{key}" if prefix else str(key)
+            if name in data:
+                raise ConfigError(f"config keys '{full}' and '{name}' ({source}) name the same setting",
+                                  fix=f"keep only '{name}'")
+            logging.getLogger("matchplant.config").info("config key '%s' (%s) is read as '%s', its name in "
+                                                        "every module", full, source, name)
+        out[name] = value
+    return out
+
+
 def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> Any:
     names = {f.name: f for f in fields(cls)}
     hints = get_type_hints(cls)
+    data = _resolve_aliases(cls, data, prefix, source)
     for key in data:
         if key not in names:
             raise _unknown_key(str(key), names, prefix, source, cls)
