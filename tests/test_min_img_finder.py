@@ -496,6 +496,7 @@ assert matplotlib.get_backend().lower() == "tkagg", matplotlib.get_backend()
 timer = gui.fig.canvas.new_timer(interval=1500)
 def done():
     gui.fig.savefig({str(shot)!r})
+    print("title", gui.fig.canvas.manager.get_window_title())
     close(gui.fig)
 timer.add_callback(done)
 timer.start()
@@ -505,6 +506,7 @@ print("images", len(gui.result.selection.indices))
     res = run_in_xvfb(code, timeout=120)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "images" in res.stdout and shot.is_file()
+    assert "title MatchPlant - 3 Minimum image finder" in res.stdout  # the step, not "Figure 1"
 
 
 # --------------------------------------------------------------------------------------------------

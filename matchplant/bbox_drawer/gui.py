@@ -82,7 +82,7 @@ class BboxDrawerGUI:
         # owned-area polygons keyed by this folder's image names (module 3 may name the shot, not the .tif)
         self.owned = {match_name(k, store.files): v for k, v in (owned_areas or {}).items()}
         self.export_options = {"yolo": export_yolo, "include_unseen": include_unseen, "regions": regions}
-        self.fig = figure(headless, figsize=(13, 8), dpi=dpi)
+        self.fig = figure(headless, figsize=(13, 8), dpi=dpi, title="4 Bounding-box drawer")
         self._quiet_default_keys()
         self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
         self.help_ax = self.fig.add_axes([0.76, 0.05, 0.23, 0.90])

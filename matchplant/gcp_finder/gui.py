@@ -52,8 +52,7 @@ class GcpFinderGUI:
         self._press = None       # (kind, display xy, data xy, limits)
         # tests: a coarser canvas draws faster
         offscreen = is_headless(headless) or matplotlib.get_backend().lower() == "agg"
-        self.fig = figure(headless, figsize=(13, 8), dpi=50 if offscreen else None)
-        self.fig.canvas.manager and self.fig.canvas.manager.set_window_title("MatchPlant - GCP marking")
+        self.fig = figure(headless, figsize=(13, 8), dpi=50 if offscreen else None, title="1 GCP finder (marking)")
         manager = self.fig.canvas.manager
         if manager is not None and getattr(manager, "key_press_handler_id", None) is not None:
             self.fig.canvas.mpl_disconnect(manager.key_press_handler_id)  # our keys, not Matplotlib's

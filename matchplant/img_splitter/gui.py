@@ -35,7 +35,7 @@ class ImgSplitterGUI:
                  dpi: float | None = None):
         self.cfg = cfg
         self.config_path = config_path
-        self.fig = figure(headless, figsize=(14, 8.5), dpi=dpi)
+        self.fig = figure(headless, figsize=(14, 8.5), dpi=dpi, title="5 Image splitter")
         self.fig.text(0.02, 0.965, "Tiling and split (module 5)", fontsize=13, weight="bold")
         self.boxes: dict[str, QuietTextBox] = {}
         for i, key in enumerate(FIELDS):

@@ -46,9 +46,7 @@ class MinImgFinderGUI:
     def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None):
         self.cfg = cfg
         self.config_path = config_path
-        self.fig = figure(headless, figsize=(13, 8))
-        if self.fig.canvas.manager is not None:  # a window (a headless figure has no manager)
-            self.fig.canvas.manager.set_window_title("MatchPlant - minimum image finder")
+        self.fig = figure(headless, figsize=(13, 8), title="3 Minimum image finder")
         self.ax = self.fig.add_axes([0.09, 0.08, 0.58, 0.86])
         panel = self.fig.add_axes([0.70, 0.08, 0.28, 0.86])
         panel.axis("off")

@@ -76,13 +76,17 @@ def is_headless(headless: bool | None) -> bool:
     return not interactive_backend_available() or plt.get_backend().lower() == "agg"
 
 
-def figure(headless: bool | None = None, **kwargs) -> Figure:
-    """A new figure (``kwargs`` as for :class:`matplotlib.figure.Figure`: figsize, dpi, ...)."""
+def figure(headless: bool | None = None, title: str | None = None, **kwargs) -> Figure:
+    """A new figure (``kwargs`` as for :class:`matplotlib.figure.Figure`: figsize, dpi, ...); a window is
+    titled "MatchPlant - <title>" (the step), not pyplot's "Figure 2"."""
     if is_headless(headless):
         fig = Figure(**kwargs)
         FigureCanvasAgg(fig)
         return fig
-    return plt.figure(**kwargs)
+    fig = plt.figure(**kwargs)
+    if title and fig.canvas.manager is not None:
+        fig.canvas.manager.set_window_title(f"MatchPlant - {title}")
+    return fig
 
 
 def show(fig: Figure) -> None:
