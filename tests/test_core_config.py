@@ -77,3 +77,21 @@ def test_validate_runs_check_hook():
     validate(C())
     with pytest.raises(ConfigError, match="exceed"):
         validate(C(a=3))
+
+
+def test_paths_of_keys_a_mode_does_not_read_are_not_checked(tmp_path):
+    """Module 8's folder config names module 7's predictions; mode evaluate reads none, so a missing
+    predictions file must not stop it, while mode project still refuses it by name."""
+    from matchplant.plant_projection.config import PlantProjectionConfig
+
+    (tmp_path / "ref.geojson").write_text("{}")
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "plants.gpkg").write_text("")
+    text = (f"predictions: {tmp_path / 'missing.json'}\nevaluate:\n  reference: {tmp_path / 'ref.geojson'}\n"
+            f"output_dir: {tmp_path / 'out'}\n")
+    (tmp_path / "c.yaml").write_text(text + "mode: evaluate\n")
+    cfg = load_config(PlantProjectionConfig, tmp_path / "c.yaml")
+    assert cfg.mode == "evaluate"
+    (tmp_path / "c.yaml").write_text(text + f"mode: project\nproject: {tmp_path}\n")
+    with pytest.raises(ConfigError, match="predictions"):
+        load_config(PlantProjectionConfig, tmp_path / "c.yaml")

@@ -92,6 +92,10 @@ class PlantProjectionConfig:
     output_dir: Path = param(Path("runs/plant_projection"), "folder for the outputs and the run log", path="out")
     evaluate: EvaluateConfig = section(EvaluateConfig)
 
+    def unused_keys(self) -> set[str]:
+        """Mode evaluate compares plants already projected with the reference: it reads no detections."""
+        return {"predictions", "images_from"} if self.mode == "evaluate" else set()
+
     def check(self) -> None:
         if self.mode in ("project", "both"):
             for key in ("project", "predictions"):

@@ -320,7 +320,10 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
 
 
 def validate(cfg: Any, *, source: str = "config", check_paths: bool = True, prefix: str = "") -> None:
-    """Check ranges, choices and paths of every field (recursively); call the class's ``check()``."""
+    """Check ranges, choices and paths of every field (recursively); call the class's ``check()``. Paths of
+    the keys the settings do not read (the class's ``unused_keys()``, e.g. module 7's predictions in module
+    8's mode evaluate) are not checked: a config written for the whole step still runs one part of it."""
+    unused = cfg.unused_keys() if callable(getattr(cfg, "unused_keys", None)) else set()
     for f in fields(cfg):
         key = prefix + f.name
         value = getattr(cfg, f.name)
@@ -350,7 +353,7 @@ def validate(cfg: Any, *, source: str = "config", check_paths: bool = True, pref
                 raise ConfigError(f"config key '{key}' = {v!r} is not one of {list(md['choices'])}{hint} ({source})",
                                   fix=f"set '{key}' to one of {list(md['choices'])}")
             kind = md.get("path")
-            if check_paths and kind in ("file", "dir", "exists") and isinstance(v, Path):
+            if check_paths and kind in ("file", "dir", "exists") and isinstance(v, Path) and f.name not in unused:
                 _check_path(v, kind, key, source)
     check = getattr(cfg, "check", None)
     if callable(check):
