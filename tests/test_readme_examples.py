@@ -39,6 +39,8 @@ COMMAND = re.compile(r"^((python|matchplant|torchrun|docker|telnet|make|source)\
 SKIPS = [
     (r"^make (demo|test)\b", "make demo is the demo itself (minutes; its report is checked by the demo); "
                              "make test runs this suite"),
+    (r"^make install-cpu\b", "installs PyTorch's CPU build from download.pytorch.org (the network; this "
+                             "machine reaches only its package mirror)"),
     (r"(-m venv|-m pip install)", "installs the environment (network, minutes); this test runs inside it"),
     (r"^(source \S*activate|\S*[/\\]activate)", "activates the environment this test runs in"),
     (r"-m pytest", "this test suite itself"),

@@ -18,8 +18,8 @@ class BboxDrawerConfig:
 
     images: Path | None = param(None, "folder of images to annotate (e.g. module 3's selected undistorted images)",
                          path="dir", required=True)
-    output_dir: Path | None = param(None, "folder for the session (session.json, saved after every edit) and exports",
-                             path="out", required=True)
+    output_dir: Path = param(Path("runs/bbox_drawer"), "folder for the session (session.json, saved after every "
+                                                       "edit) and exports", path="out")
     categories: list[str] = param(["plant"], "category names (1 to 5); keys 1-5 choose them in the GUI")
     owned_areas: Path | None = param(None, "optional JSON {image_name: [[u, v], ...]}: the area each image "
                                            "owns (module 3), drawn as a dashed outline", path="file")

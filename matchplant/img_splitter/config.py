@@ -17,8 +17,8 @@ class ImgSplitterConfig:
     images: Path | None = param(None, "folder of the annotated source images", path="dir", required=True)
     annotations: Path | None = param(None, "the boxes: module 4's COCO JSON (annotations.json), or a folder of YOLO "
                                     "labels with classes.txt", path="exists", required=True)
-    output_dir: Path | None = param(None, "folder for the tiles, one COCO JSON per split and summary.json",
-                             path="out", required=True)
+    output_dir: Path = param(Path("runs/img_splitter"), "folder for the tiles, one COCO JSON per split and "
+                                                        "summary.json", path="out")
     tile_size: int = param(1024, "tile side in pixels", min=32)
     overlap: int = param(100, "pixels shared by neighbouring tiles (so a plant cut by one tile is whole in "
                               "the next)", min=0)
