@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
 import matplotlib.pyplot as plt
+from matplotlib.backend_tools import Cursors
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.widgets import Button, TextBox
@@ -34,12 +37,79 @@ except ImportError:  # pragma: no cover - depends on the Python build
 
 
 class QuietTextBox(TextBox):
-    """Matplotlib's TextBox redraws the whole figure on every click anywhere, once per box (a dozen full
-    redraws per click in a settings panel); only a box that was being typed in needs to stop typing."""
+    """A text field that answers at once in a large window.
+
+    Matplotlib's TextBox redraws the whole figure on every keystroke (a photo with thousands of boxes, or a
+    busy machine: typed text appeared a minute later) and on every click anywhere, once per box. This one
+    redraws only its own axes (blitting) when it types, stops typing only when it was typing, and clips its
+    text to the field: a path longer than the field shows its end (the file name), never runs over the
+    Browse button or the window's edge."""
+
+    def __init__(self, ax, label, initial="", **kwargs):
+        super().__init__(ax, label, initial=initial, **kwargs)
+        self._left_x = self.text_disp.get_position()[0]
+        self._left_ha = self.text_disp.get_horizontalalignment()
+        self.text_disp.set_clip_path(ax.patch)
+        self.text_disp.set_clip_on(True)
 
     def stop_typing(self):
         if self.capturekeystrokes:
             super().stop_typing()
+
+    def fit_text(self) -> None:
+        """Align the text as asked while it fits, else to the right so that its end shows."""
+        if self.ax.get_figure(root=True)._get_renderer() is None:
+            return
+        self.text_disp.set_horizontalalignment(self._left_ha)
+        self.text_disp.set_x(self._left_x)
+        if self.text_disp.get_window_extent().width > 0.92 * self.ax.bbox.width:
+            self.text_disp.set_horizontalalignment("right")
+            self.text_disp.set_x(0.98)
+
+    def _rendercursor(self):
+        fig = self.ax.get_figure(root=True)
+        canvas = fig.canvas
+        if fig._get_renderer() is None or not canvas.supports_blit:
+            super()._rendercursor()  # the first draw of a figure is a whole one anyway
+            self.fit_text()
+            return
+        own = "draw" in vars(canvas)  # a headless GUI may have replaced draw on the instance
+        draw = canvas.draw
+        canvas.draw = lambda *args, **kwargs: None
+        try:
+            self.fit_text()
+            super()._rendercursor()
+        finally:
+            if own:
+                canvas.draw = draw
+            else:
+                del canvas.draw
+        fig.draw_artist(self.ax)
+        canvas.blit(self.ax.bbox)
+
+
+@contextmanager
+def busy(fig: Figure, say: Callable[[str], None], text: str, area: Any = None) -> Iterator[None]:
+    """Show ``text`` and a wait cursor at once, before a long action blocks the window's event loop (a plain
+    draw_idle would only paint after the work), and restore the cursor after. ``area``: the axes holding the
+    message, redrawn alone (the whole figure otherwise)."""
+    say(text)
+    canvas = fig.canvas
+    if canvas.manager is not None:
+        with suppress(Exception):  # a backend without cursors still shows the text
+            canvas.set_cursor(Cursors.WAIT)
+        if area is not None and canvas.supports_blit and fig._get_renderer() is not None:
+            fig.draw_artist(area)
+            canvas.blit(area.bbox)
+        else:
+            canvas.draw()
+        canvas.flush_events()
+    try:
+        yield
+    finally:
+        if canvas.manager is not None:
+            with suppress(Exception):
+                canvas.set_cursor(Cursors.POINTER)
 
 
 def interactive_backend_available() -> bool:
@@ -185,8 +255,8 @@ class SetupScreen:
         self.browse_buttons: dict[str, Button] = {}
         for i, f in enumerate(fields):
             y = 1 - (i + 1.6) * row
-            box = TextBox(self.fig.add_axes((0.22, y, 0.62, 0.7 * row)), f.label + " ",
-                          initial=_as_text(_config_value(cfg, f.key)))
+            box = QuietTextBox(self.fig.add_axes((0.22, y, 0.62, 0.7 * row)), f.label + " ",
+                               initial=_as_text(_config_value(cfg, f.key)))
             self.boxes[f.key] = box
             if f.kind != "text":
                 button = Button(self.fig.add_axes((0.86, y, 0.12, 0.7 * row)), "Browse...")
@@ -194,8 +264,11 @@ class SetupScreen:
                 self.browse_buttons[f.key] = button
         self.run_button = Button(self.fig.add_axes((0.86, 0.5 * row, 0.12, 0.8 * row)), run_label)
         self.run_button.on_clicked(lambda _e: self.run())
-        self.status = self.fig.text(0.02, 0.9 * row, "Choose the files (Browse... or type a path), then "
-                                    f"{run_label}.", fontsize=9, family="monospace", va="center")
+        # the status line in an axes of its own, so that "working ..." is drawn alone and at once
+        self.status_area = self.fig.add_axes((0.0, 0.0, 0.85, 1.8 * row))
+        self.status_area.set_axis_off()
+        self.status = self.status_area.text(0.02 / 0.85, 0.5, "Choose the files (Browse... or type a path), "
+                                            f"then {run_label}.", fontsize=9, family="monospace", va="center")
         self.ran = False
 
     def say(self, text: str, error: bool = False) -> None:
@@ -240,9 +313,10 @@ class SetupScreen:
         """Apply the boxes and run the step; True when it finished."""
         if not self.apply():
             return False
-        self.say("running ...")
         try:
-            message = self.on_run(self.cfg)
+            with busy(self.fig, self.say, "working ... (the window answers again when this is done)",
+                      self.status_area):
+                message = self.on_run(self.cfg)
         except MatchPlantError as exc:
             self.say(f"error: {exc}".replace("\n", " | "), error=True)
             return False
