@@ -215,8 +215,7 @@ def run_plots(cfg: PlotsConfig, table: pd.DataFrame, unclaimed: pd.DataFrame | N
         per_plot = per_plot.merge(plot_raster_stats(plots, rasters, cfg.raster_stats, (), mode, nodata),
                                   on="plot_id", how="left")
     if cfg.field_book is not None:
-        per_plot = join_field_book(per_plot, Path(cfg.field_book), cfg.field_book_id_column or cfg.id_column,
-                                   "plots.field_book_id_column" if cfg.field_book_id_column else "plots.id_column")
+        per_plot = join_field_book(per_plot, Path(cfg.field_book), cfg.field_book_id_column or cfg.id_column)
     geoms = plots.set_index("plot_id").geometry.reindex(per_plot["plot_id"]).values
     gdf = gpd.GeoDataFrame(per_plot, geometry=geoms, crs=plots.crs)
     trait = cfg.figure_trait or (traits[0] if traits else "")
