@@ -76,9 +76,11 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
     ax.set_xlabel(f"x (m, {crs})")
     ax.set_ylabel("y (m)")
     if len(gaps):
-        fig.canvas.draw()  # the scale on the page, to size the gap markers from the seed spacing
-        x0, x1 = ax.get_xlim()
-        points_per_m = ax.get_window_extent().width * 72.0 / fig.dpi / max(x1 - x0, 1e-9)
+        # the scale on the page (an equal-aspect axes takes at most ~70 % of the figure's width or height),
+        # to size the gap markers from the seed spacing without drawing the figure twice
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        w, h = fig.get_size_inches()
+        points_per_m = 72.0 * min(0.7 * w / max(x1 - x0, 1e-9), 0.7 * h / max(y1 - y0, 1e-9))
         ms = float(np.clip(0.6 * spacing * points_per_m, 1.0, 5.0))
         ax.plot(gaps["x"], gaps["y"], "x", ms=ms, mew=0.7, alpha=0.7, color="red", label="gaps", zorder=3)
     if len(plots) <= 200:
