@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from matchplant.core.runtime.config import param
+from matchplant.core.runtime.errors import ConfigError
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS
 
 
 @dataclass
@@ -25,14 +27,31 @@ class PlotsConfig:
     plot_length: float = param(0.0, "m along the rows of one plot (0 = the grid cell, no alley)", min=0)
     serpentine: bool = param(False, "number plots back and forth (serpentine) instead of each range from the "
                                     "same side")
+    row_direction: float | None = param(None, "bearing of the crop rows in degrees clockwise from map north "
+                                              "(0 = rows run north-south, 90 = east-west); null = the grid's, the "
+                                              "plot file's row_dir_x/row_dir_y columns, else from the plants",
+                                        min=-360, max=360)
     rows_per_plot: int = param(2, "crop rows in one plot", min=1)
     plant_spacing: float = param(0.2, "m between seeds along a row (expected spacing: gaps are counted from it)",
                                  min=0.001)
     count_unclaimed: bool = param(True, "count the canopies that no plant box claims but that look like plants "
                                         "(canopy.min_top, canopy.min_pixels; unclaimed_canopies.csv): plants the "
                                         "detector missed")
-    field_book: Path | None = param(None, "CSV with one row per plot (plot id -> genotype, rep, ...), joined to "
-                                          "the plot table", path="file")
+    field_book: Path | None = param(None, "CSV or .xlsx with one row per plot (plot id -> genotype, rep, ...), "
+                                          "joined to the plot table", path="file")
+    field_book_id_column: str = param("", "plot id column of the field book; '' = id_column (any case or "
+                                          "spacing, or a usual name such as Plot)")
     traits: list[str] = param([], "plant columns summarised per plot (mean, sd, cv); empty = heights, canopy "
-                                  "area and the canopy indices")
+                                  "area and the canopy indices, or each raster's plant mean without a CHM")
+    raster_stats: list[str] = param(["mean", "std", "median"], "statistics of every raster over each whole plot "
+                                                               "polygon (plot_<trait>_<stat>: plot mean NDVI, "
+                                                               "LAI, ...); [] = none", choices=BASIC_STATS)
     figure_trait: str = param("", "trait colouring the field figure (plot mean); '' = the first of traits")
+
+    def check(self) -> None:
+        if self.field_book is not None and self.polygons is None and not self.corners:
+            raise ConfigError("plots.field_book is set but there are no plots to join it to",
+                              fix="set plots.polygons (a plot file) or plots.corners + columns + ranges (a grid)")
+        if self.corners and self.polygons is not None:
+            raise ConfigError("both plots.polygons and plots.corners are set",
+                              fix="keep one: the plot file, or the grid's corners")

@@ -53,7 +53,7 @@ def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[fl
         written["outlines_csv"] = write_csv(pd.DataFrame(outlines.drop(columns="geometry")), out / "outlines.csv")
         written["unclaimed_csv"] = write_csv(unclaimed, out / "unclaimed_canopies.csv")
     if plots_wanted(cfg.plots):
-        written.update(run_plots(cfg.plots, table, unclaimed, polygons, out))
+        written.update(run_plots(cfg.plots, table, unclaimed, polygons, out, sets, cfg.mode, cfg.nodata))
     if cfg.compare.polygons is not None:
         written.update(run_comparison(cfg, polygons, table, sets, out))
     return polygons, table, report, written

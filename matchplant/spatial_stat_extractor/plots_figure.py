@@ -1,0 +1,93 @@
+"""``plots.png``: the field coloured by a plot column, with the plants and the gaps.
+
+Made to stay readable on any field: the colour bar names its unit and keeps a single value (one plot,
+or plots all alike) mid-scale instead of at its minimum; a few ticks in plain metres, the x labels
+slanted so that long map coordinates do not run into each other on a small extent; the gap markers sized
+from the seed spacing on the page, thin and half transparent, so that they never hide the plots.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import geopandas as gpd
+import numpy as np
+import pandas as pd
+from matplotlib.colors import Normalize
+from matplotlib.ticker import MaxNLocator
+
+from matchplant.core.runtime.gui import close, figure
+from matchplant.core.runtime.io import atomic_path
+
+UNITS = ((r"^(stand_count|expected|gaps|unclaimed|low_boxes)$", "plants"),
+         (r"^canopy_cover$", "share of the plot area"),
+         (r"_cv(_|$)", "coefficient of variation"),
+         (r"area_m2", "m²"), (r"volume_m3", "m³"),
+         (r"(^|_)(chm|height)|_m(_|$)", "m"),
+         (r"(^|_)(ndvi|ndre|gndvi|exg|exgr|vari|gli|ngrdi|savi|evi|lai)(_|$)", "index, no unit"))
+
+
+def unit_of(column: str) -> str:
+    """The unit of a plot column, from its name ('' when it cannot be told: a raw band)."""
+    name = re.sub(r"^plot_", "", column)
+    return next((u for pattern, u in UNITS if re.search(pattern, name)), "raster value")
+
+
+def colour_norm(values: pd.Series) -> Normalize:
+    """The colour scale of the plot values; a single value sits in the middle of a small range."""
+    v = values.to_numpy(float)
+    lo, hi = np.nanmin(v), np.nanmax(v)
+    if not hi > lo:
+        pad = max(abs(lo) * 0.05, 1e-3) if np.isfinite(lo) else 1.0
+        lo, hi = lo - pad, hi + pad
+    return Normalize(vmin=lo, vmax=hi)
+
+
+def field_figure(plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, path: Path,
+                 spacing: float = 0.2) -> Path:
+    fig = figure(headless=True, figsize=(8, 7), constrained_layout=True)
+    try:
+        draw_field(fig, plots, pts, gaps, column, spacing)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+    finally:
+        close(fig)
+    return Path(path)
+
+
+def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, spacing: float):
+    """The figure's one axes (returned) drawn on ``fig``."""
+    ax = fig.add_subplot(1, 1, 1)
+    if column in plots.columns and plots[column].notna().any():
+        unit = unit_of(column)
+        plots.plot(column=column, ax=ax, cmap="viridis", norm=colour_norm(plots[column]), edgecolor="white",
+                   linewidth=0.6, legend=True, legend_kwds={"label": f"{column} ({unit})", "shrink": 0.7})
+    else:
+        plots.plot(ax=ax, color="lightgrey", edgecolor="white")
+    if len(pts):
+        ax.plot(pts[:, 0], pts[:, 1], ".", ms=1.5, color="black", label="plants", zorder=2)
+    ax.set_aspect("equal")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(MaxNLocator(nbins=4, min_n_ticks=2))
+    ax.tick_params(axis="x", labelrotation=30)
+    crs = plots.crs.to_string() if plots.crs is not None else "map units"
+    ax.set_xlabel(f"x (m, {crs})")
+    ax.set_ylabel("y (m)")
+    if len(gaps):
+        # the scale on the page (an equal-aspect axes takes at most ~70 % of the figure's width or height),
+        # to size the gap markers from the seed spacing without drawing the figure twice
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        w, h = fig.get_size_inches()
+        points_per_m = 72.0 * min(0.7 * w / max(x1 - x0, 1e-9), 0.7 * h / max(y1 - y0, 1e-9))
+        ms = float(np.clip(0.6 * spacing * points_per_m, 1.0, 5.0))
+        ax.plot(gaps["x"], gaps["y"], "x", ms=ms, mew=0.7, alpha=0.7, color="red", label="gaps", zorder=3)
+    if len(plots) <= 200:
+        for pid, g in zip(plots["plot_id"], plots.geometry.values):
+            c = g.representative_point()
+            ax.annotate(str(pid), (c.x, c.y), fontsize=6, ha="center", va="center", color="white",
+                        bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.35, "lw": 0})
+    ax.set_title(f"plots: {column}, plants and gaps")
+    ax.legend(loc="upper right", fontsize=7)
+    return ax
