@@ -452,10 +452,18 @@ def test_gui_headless_toggle_select_save(small_project, tmp_path):
     first = list(gui.result.selection.indices)
     assert gui.finder.exact_coverage(first) >= 0.95 - 1e-9
     # click inside a selected image's owned area: it is removed, coverage drops
+    def marks():  # number drawn on each selected image -> its colour
+        return {t.get_text(): t.get_bbox_patch().get_edgecolor() for t in gui.ax.texts if t.get_bbox_patch()}
+
+    before = marks()
+    assert set(before) == {str(i + 1) for i in first}
     name = gui.finder.footprints[first[0]].name
     p = gui.result.owned[name].representative_point()
     click(gui.fig, gui.ax, p.x, p.y)
     assert first[0] not in gui.result.selection.indices and len(gui.result.selection.indices) == len(first) - 1
+    # every other image keeps its number and its colour
+    after = marks()
+    assert after == {k: v for k, v in before.items() if k != str(first[0] + 1)}
     assert gui.result.exact_coverage < gui.finder.exact_coverage(first)
     # click there again: the smallest unselected footprint under the pointer comes back in
     click(gui.fig, gui.ax, p.x, p.y)

@@ -71,7 +71,7 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
     with atomic_open(out / "selected_images.csv", "w") as fh:
         wr = csv.writer(fh)
         wr.writerow(["order", "image", "file", "footprint_area_m2", "owned_area_m2", "new_area_m2",
-                     "cumulative_coverage_pct", "centroid_x", "centroid_y", "max_overlap_pct"])
+                     "cumulative_coverage_pct", "centroid_x", "centroid_y", "max_overlap_pct", "map_number"])
         for k, (i, fp) in enumerate(zip(idx, sel), start=1):
             cells = finder.grid.A[i].indices
             new = float(finder.grid.weights[cells[~covered[cells]]].sum())
@@ -82,7 +82,7 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
             wr.writerow([k, fp.name, fp.file.name, f"{fp.polygon.intersection(finder.aoi).area:.4f}",
                          f"{result.owned[fp.name].area:.4f}", f"{new:.4f}",
                          f"{100 * finder.grid.weights[covered].sum() / finder.grid.total:.3f}",
-                         f"{cx:.3f}", f"{cy:.3f}", f"{100 * max(others, default=0.0):.2f}"])
+                         f"{cx:.3f}", f"{cy:.3f}", f"{100 * max(others, default=0.0):.2f}", i + 1])
     paths["csv"] = out / "selected_images.csv"
     write_owned_areas(out / "owned_areas.json", {fp.file.name: result.owned_pixels[fp.name] for fp in sel})
     paths["owned_areas"] = out / "owned_areas.json"
@@ -191,7 +191,11 @@ def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
     for f in finder.footprints:
         x, y = f.polygon.exterior.xy
         ax.plot(x, y, color="0.55", lw=0.5, alpha=0.6)
-    colors = _palette(len(result.selected))
+    # number and colour follow the image (its place among all the flight's images), not the order of
+    # selection: removing one image in the GUI leaves every other image's number and colour as it was
+    palette = _palette(len(finder.footprints))
+    colors = [palette[i] for i in result.selection.indices]
+    numbers_of = [i + 1 for i in result.selection.indices]
     for k, fp in enumerate(result.selected):
         area = result.owned[fp.name]
         for part in shapely.get_parts(area):
@@ -201,7 +205,7 @@ def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
         ax.plot(x, y, color=colors[k], lw=1.6)
         if numbers:
             cx, cy = fp.centroid
-            ax.text(cx, cy, str(k + 1), ha="center", va="center", fontsize=10, weight="bold", color="black",
+            ax.text(cx, cy, str(numbers_of[k]), ha="center", va="center", fontsize=10, weight="bold", color="black",
                     bbox=dict(boxstyle="circle,pad=0.2", fc="white", ec=colors[k], alpha=0.85))
     for part in shapely.get_parts(result.uncovered):
         if isinstance(part, Polygon) and part.area > 0:
@@ -228,7 +232,8 @@ def _legend(ax, colour, numbers: bool) -> None:
     """What each mark on the coverage map means (proxies, so the legend does not depend on the data)."""
     handles = [Line2D([], [], color="0.55", lw=0.8, label="footprint of an image (all images)"),
                Line2D([], [], color=colour, lw=1.6, marker="o" if numbers else None, mfc="white", mec=colour,
-                      label="selected image (number: order of choice)" if numbers else "selected image"),
+                      label="selected image (number: its map_number in selected_images.csv)" if numbers
+                      else "selected image"),
                Patch(facecolor=colour, alpha=0.28, lw=0, label="area that image owns (its plants)"),
                Patch(facecolor="red", alpha=0.45, hatch="//", lw=0, label="not covered by the selection"),
                Line2D([], [], color="yellow", lw=1.2, ls="--", label="area to cover (AOI)")]
