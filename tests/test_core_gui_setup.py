@@ -431,3 +431,24 @@ def test_setup_screens_4_and_5_in_real_windows(tiny_field, tmp_path):
           "click(p.fig, p.buttons['Run'].ax, 0.5, 0.5)",
           "screen.ran and shown and p.result is not None")
     check_tiles(tmp_path / "tiles", tiny_field)
+
+
+@pytest.mark.gui
+def test_bbox_setup_screen_prefills_module_3s_owned_areas(tmp_path):
+    """Module 3 writes owned_areas.json beside the images/ folder it fills: choosing that folder in module 4
+    fills in the owned-areas box; a box the user filled is left alone."""
+    from matchplant.bbox_drawer.config import BboxDrawerConfig
+    from matchplant.bbox_drawer.gui import BboxDrawerSetup
+
+    sel = tmp_path / "min_images"
+    (sel / "images").mkdir(parents=True)
+    (sel / "owned_areas.json").write_text("{}")
+    setup = BboxDrawerSetup(BboxDrawerConfig(), headless=True, chooser=Picker(("folder", sel / "images")), dpi=50)
+    browse(setup.screen, "images")
+    assert setup.screen.boxes["owned_areas"].text == str(sel / "owned_areas.json")
+    assert "filled in: Owned areas" in setup.screen.status.get_text()
+    mine = tmp_path / "mine.json"
+    cfg = BboxDrawerConfig(owned_areas=mine)
+    setup = BboxDrawerSetup(cfg, headless=True, chooser=Picker(("folder", sel / "images")), dpi=50)
+    browse(setup.screen, "images")
+    assert setup.screen.boxes["owned_areas"].text == str(mine)

@@ -21,6 +21,8 @@ background (blitting), and the whole axes is drawn once at the press and once at
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from matplotlib.patches import Polygon, Rectangle
 
@@ -449,6 +451,13 @@ SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("out
                 SetupField("import_predictions", "Predictions (module 7, opt.)", "file")]
 
 
+def owned_areas_beside(texts: dict[str, str]) -> dict[str, str]:
+    """Module 3 writes ``owned_areas.json`` beside the ``images/`` folder it fills: offer it for those images."""
+    images = texts.get("images")
+    candidate = Path(images).parent / "owned_areas.json" if images else None
+    return {"owned_areas": str(candidate)} if candidate is not None and candidate.is_file() else {}
+
+
 class BboxDrawerSetup:
     """Module 4's setup screen: the images, the output folder and, optionally, module 3's owned areas and
     boxes to correct, with file pickers; **Open images** opens the drawing window on them (again: the
@@ -458,7 +467,8 @@ class BboxDrawerSetup:
         self.headless, self.dpi = headless, dpi
         self.window: BboxDrawerGUI | None = None
         self.screen = SetupScreen("Box drawer: choose the images to annotate", cfg, SETUP_FIELDS, self._run,
-                                  headless=headless, chooser=chooser, run_label="Open images")
+                                  headless=headless, chooser=chooser, run_label="Open images",
+                                  prefill=owned_areas_beside)
 
     def _run(self, cfg: BboxDrawerConfig) -> str:
         if self.window is not None:

@@ -242,9 +242,12 @@ class SetupScreen:
 
     def __init__(self, title: str, cfg: Any, fields: list[SetupField], on_run: Callable[[Any], str],
                  headless: bool | None = None, chooser: Callable[..., str | None] | None = None,
-                 run_label: str = "Run"):
+                 run_label: str = "Run", prefill: Callable[[dict[str, str]], dict[str, str]] | None = None):
         self.cfg, self.fields, self.on_run = cfg, fields, on_run
         self.chooser = chooser
+        # prefill(texts of every box) -> {key: path}: what the previous module wrote where its README says,
+        # put into the boxes that are still empty
+        self.prefill = prefill
         self.fig = figure(headless, figsize=(10, 1.6 + 0.55 * len(fields)))
         if self.fig.canvas.manager is not None:
             self.fig.canvas.manager.set_window_title(f"MatchPlant - {title}")
@@ -270,6 +273,17 @@ class SetupScreen:
         self.status = self.status_area.text(0.02 / 0.85, 0.5, "Choose the files (Browse... or type a path), "
                                             f"then {run_label}.", fontsize=9, family="monospace", va="center")
         self.ran = False
+        self.fill_in()
+
+    def fill_in(self) -> list[str]:
+        """Fill the empty boxes the ``prefill`` hook knows a value for; the keys filled."""
+        if self.prefill is None:
+            return []
+        texts = {key: box.text.strip() for key, box in self.boxes.items()}
+        filled = [key for key, value in self.prefill(texts).items() if key in self.boxes and not texts[key] and value]
+        for key in filled:
+            self.boxes[key].set_val(self.prefill(texts)[key])
+        return filled
 
     def say(self, text: str, error: bool = False) -> None:
         self.status.set_text(text)
@@ -294,11 +308,14 @@ class SetupScreen:
             return None
         if chosen:
             self.boxes[key].set_val(chosen)
-            self.say(f"{f.label}: {chosen}")
+            filled = self.fill_in()
+            labels = [g.label for g in self.fields if g.key in filled]
+            self.say(f"{f.label}: {chosen}" + (f" (filled in: {', '.join(labels)})" if labels else ""))
         return chosen
 
     def apply(self) -> bool:
         """Copy every box into the config and validate it; errors go to the status line."""
+        self.fill_in()
         try:
             for f in self.fields:
                 text = self.boxes[f.key].text.strip()
