@@ -158,8 +158,9 @@ def pick_band(ds, names: BandNames, role: str, given: int | str | None, key: str
     return band
 
 
-def check_bands(ds, names: BandNames, wanted: dict[str, int], keys: dict[str, str]) -> None:
-    """Stop when a configured band (role -> number; ``keys``: its config key) is named as another role."""
+def check_bands(ds, names: BandNames, wanted: dict[str, int], keys: dict[str, str], order_key: bool = True) -> None:
+    """Stop when a configured band (role -> number; ``keys``: its config key) is named as another role;
+    ``order_key``: band_order applies to this raster (the fix may name it)."""
     for role, band in wanted.items():  # (a band number past the count is reported when the band is read)
         said = names.roles.get(band)
         if said is not None and said != role:
@@ -167,4 +168,5 @@ def check_bands(ds, names: BandNames, wanted: dict[str, int], keys: dict[str, st
             hint = f"set {keys[role]}: {right}" if right is not None else f"check {keys[role]}"
             other = "correct band_order" if names.source == "band_order" else "set band_order if those names are wrong"
             raise ConfigError(f"{keys[role]} = {band}, but band {band} of the raster is '{said}' (named by "
-                              f"{names.source}: {names.listing()})", path=file_name(ds), fix=f"{hint}, or {other}")
+                              f"{names.source}: {names.listing()})", path=file_name(ds),
+                              fix=f"{hint}, or {other}" if order_key else hint)

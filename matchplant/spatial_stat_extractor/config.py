@@ -182,9 +182,15 @@ class SpatialStatExtractorConfig:
     renamed_keys = {"write_polygons": ("vector_formats", "[gpkg, shp] for write_polygons: true, [] for false")}
 
     polygons: Path = param(None, "plant polygons: module 8's plants.gpkg or plants.csv, a shapefile, GeoJSON, or a "
-                                 "CSV with a WKT 'geometry' column or xmin,ymin,xmax,ymax", path="file", required=True)
-    id_column: str = param("auto", "column holding the plant id ('auto': plant_id, id or fid; else numbered from 1)")
+                                 "CSV with a WKT 'geometry' column or xmin,ymin,xmax,ymax; or boxes in pixels of a "
+                                 "georeferenced image: a DeepForest CSV (image_path,xmin,ymin,xmax,ymax,label), a "
+                                 "COCO file, module 7's predictions.json", path="file", required=True)
+    id_column: str = param("auto", "column holding the plant id ('auto': plant_id, id or fid, never a class 'label'; "
+                                   "else numbered from 1; 'number': numbered 1..n in file order)")
     layer: str = param("", "layer of a GeoPackage ('' = the first)")
+    boxes_image: Path | None = param(None, "boxes in pixels of a georeferenced image (a DeepForest CSV's image_path, a "
+                                           "COCO file's or module 7's file_name): that image, or the folder holding "
+                                           "them; null = beside the polygon file", path="exists")
     polygons_crs: str = param("", "CRS of the polygons when the file has none (a CSV), e.g. EPSG:32615; '' = the "
                                   "CSV's 'crs' column (module 8 writes one), else the raster's CRS")
     rasters: RasterSet = section(RasterSet)

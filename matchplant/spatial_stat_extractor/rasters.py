@@ -2,10 +2,11 @@
 that :func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` reads window by window, and a
 reduced-resolution preview for the window.
 
-A raster in degrees (EPSG:4326, as many LAI/NDVI products and GIS exports are) is read through a warp onto a
-metric grid (the plants' CRS when that is projected, else the raster's UTM zone), nearest neighbour at its
-own resolution: pixel values stay the file's, and canopy areas, margins and shifts are in metres, never
-in square degrees.
+A raster in degrees (EPSG:4326, as many LAI/NDVI products and GIS exports are): box statistics reproject the
+plants to it (exact: the file's own pixels); for outlines and canopy statistics it is read through a warp onto
+a metric grid (the plants' CRS when that is projected, else the raster's UTM zone), nearest neighbour at its
+own resolution: pixel values stay the file's, and canopy areas, margins and shifts are in metres, never in
+square degrees.
 """
 
 from __future__ import annotations
@@ -24,7 +25,12 @@ from matchplant.core.geometry.frames import utm_crs_for
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import check_raster
-from matchplant.spatial_stat_extractor.bands import band_names, check_bands, file_name, pick_band
+from matchplant.spatial_stat_extractor.bands import (
+    band_names,
+    check_bands,
+    file_name,
+    pick_band,
+)
 from matchplant.spatial_stat_extractor.config import Layer
 from matchplant.spatial_stat_extractor.indices import FormulaSource, parse_formula
 from matchplant.spatial_stat_extractor.zonal import (
@@ -95,23 +101,25 @@ def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band",
     return RasterFileSource(ds, band, extra_nodata=extra)
 
 
-def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None = None, crs=None):
+def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None = None, crs=None, warp: bool = True):
     """A raster source (``transform, width, height, crs, read()``) for a layer; files stay open in ``stack``.
-    ``crs``: the plants' CRS, the metric grid a raster in degrees is warped to when it is projected."""
+    A raster in degrees is warped onto a metric grid (``crs``, the plants' CRS, when it is projected; else its
+    UTM zone), as outlines need; ``warp=False`` leaves it in degrees (box statistics, with the polygons
+    reprojected to it, exact)."""
     if layer.kind == "band":
-        ds = _open(layer.paths[0], stack, crs)
+        ds = _open(layer.paths[0], stack, crs, warp)
         key = "band" if layer.name == "chm" else f"band of '{layer.name}' (bands)"
         band = layer.bands[0]
         if isinstance(band, str):
             band = pick_band(ds, band_names(ds, layer.band_order), band, band, key)
         return _band(ds, band, layer, nodata, key=key)
     if layer.kind == "ndvi":
-        ds = _open(layer.paths[0], stack, crs)
+        ds = _open(layer.paths[0], stack, crs, warp)
         red, nir = ndvi_bands(ds, layer)
         return NDVISource(_band(ds, red, layer, nodata, key="red_band"), _band(ds, nir, layer, nodata, key="nir_band"))
     if layer.kind == "formula":
-        return _formula(_open(layer.paths[0], stack, crs), layer, nodata)
-    dsm = _open(layer.paths[0], stack, crs)
+        return _formula(_open(layer.paths[0], stack, crs, warp), layer, nodata)
+    dsm = _open(layer.paths[0], stack, crs, warp)
     dtm = _open(layer.paths[1], stack, warp=False)  # put on the DSM's grid below, whatever its CRS
     _check_overlap(dsm, dtm)
     check_raster(dtm.name, bands=[1], require_crs=False, what=f"{layer.name} DTM")
@@ -174,7 +182,8 @@ def _formula(ds, layer: Layer, nodata: float | None) -> FormulaSource:
     names = band_names(ds, layer.band_order)
     if len(layer.bands) == 3:
         check_bands(ds, names, dict(zip(("red", "green", "blue"), layer.bands)),
-                    {"red": "rgb_bands[0] (red)", "green": "rgb_bands[1] (green)", "blue": "rgb_bands[2] (blue)"})
+                    {"red": "rgb_bands[0] (red)", "green": "rgb_bands[1] (green)", "blue": "rgb_bands[2] (blue)"},
+                    order_key=bool(layer.band_order))
         names = {"R", "G", "B", "r", "g", "b"}
         tree = parse_formula(layer.expression, names, f"index '{layer.name}'")
         bands = {c: _band(ds, b, layer, nodata, key=f"rgb_bands[{i}]")
