@@ -138,10 +138,10 @@ def ndvi_bands(ds, layer: Layer) -> tuple[int, int]:
     or the raster's band descriptions; a 2-band raster with neither is red, NIR (said in the log)."""
     names = band_names(ds, layer.band_order)
     red, nir = layer.bands
-    if red is None and nir is None and ds.count == 2 and not names.roles:
-        log.info("%s: 2 bands, not named; red_band = 1, nir_band = 2 (set them or band_order if not)",
-                 Path(file_name(ds)).name)
-        return 1, 2
+    if (red is None or nir is None) and ds.count == 2 and not names.roles:
+        log.info("%s: 2 bands, not named; %s (set red_band/nir_band or band_order if not)", Path(file_name(ds)).name,
+                 " and ".join(f"{k} = {v}" for k, v, g in (("red_band", 1, red), ("nir_band", 2, nir)) if g is None))
+        red, nir = 1 if red is None else red, 2 if nir is None else nir
     red = pick_band(ds, names, "red", red, "red_band")
     nir = pick_band(ds, names, "nir", nir, "nir_band")
     if red == nir:
