@@ -172,14 +172,26 @@ def plant_polygons(w: Work, ids: list[str]) -> list:
 
 
 def centre_values(path: Path, boxes, bands):
-    """Per box, the valid values of ``bands`` at the pixels whose centre shapely finds inside."""
+    """Per polygon, the valid values of ``bands`` at the pixels whose centre shapely finds inside (each
+    polygon's bounding window of the raster only)."""
     with rasterio.open(path) as ds:
         data = [ds.read(b).astype(float) for b in bands]
         t, nodata = ds.transform, ds.nodata
-    cols, rws = np.meshgrid(np.arange(data[0].shape[1]) + 0.5, np.arange(data[0].shape[0]) + 0.5)
-    xs, ys = t @ (cols, rws)
     ok = np.all([(a != nodata) & np.isfinite(a) for a in data], axis=0)
-    return [[a[shapely.contains_xy(g, xs, ys) & ok] for a in data] for g in boxes]
+    out = []
+    for g in boxes:
+        x0, y0, x1, y1 = g.bounds
+        c0, r0 = ~t * (x0, y1)
+        c1, r1 = ~t * (x1, y0)
+        ca, cb = sorted((c0, c1))
+        ra, rb = sorted((r0, r1))
+        ca, ra = max(int(np.floor(ca)) - 1, 0), max(int(np.floor(ra)) - 1, 0)
+        cb, rb = int(np.ceil(cb)) + 1, int(np.ceil(rb)) + 1
+        cols, rws = np.meshgrid(np.arange(ca, min(cb, ok.shape[1])) + 0.5, np.arange(ra, min(rb, ok.shape[0])) + 0.5)
+        xs, ys = t @ (cols, rws)
+        inside = shapely.contains_xy(g, xs, ys) & ok[ra:rb, ca:cb]
+        out.append([a[ra:rb, ca:cb][inside] for a in data])
+    return out
 
 
 def ndvi_right(w: Work) -> None:
