@@ -12,6 +12,7 @@ from pathlib import Path
 from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.spatial_stat_extractor.bands import check_order
 from matchplant.spatial_stat_extractor.indices import RGB_INDICES
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
@@ -23,7 +24,9 @@ class BandFile:
 
     name: str = param("band", "column name of this trait (letters, digits, _)")
     path: Path | None = param(None, "raster file", path="file")
-    band: int = param(1, "band number (1 = first)", min=1)
+    band: int | str = param(1, "band number (1 = first), or a band name of band_order (e.g. rededge)", min=1)
+    band_order: list[str] = param([], "names of this raster's bands in file order; [] = rasters.band_order when "
+                                      "path is the multispectral raster")
 
 
 @dataclass
@@ -32,8 +35,11 @@ class Formula:
 
     name: str = param("index", "column name of this index (letters, digits, _)")
     path: Path | None = param(None, "raster file whose bands the formula uses", path="file")
-    expression: str = param("", "the formula over the bands b1, b2, ..., e.g. (b5 - b3) / (b5 + b3); "
-                                "+ - * / ** and parentheses")
+    expression: str = param("", "the formula over the bands b1, b2, ... (or their names from band_order), e.g. "
+                                "(b5 - b3) / (b5 + b3) or (nir - rededge) / (nir + rededge); + - * / ** and "
+                                "parentheses")
+    band_order: list[str] = param([], "names of this raster's bands in file order; [] = rasters.band_order when "
+                                      "path is the multispectral raster")
 
 
 @dataclass
@@ -45,8 +51,15 @@ class RasterSet:
     dsm: Path | None = param(None, "surface model (odm_dem/dsm.tif); with dtm, CHM = DSM - DTM", path="file")
     dtm: Path | None = param(None, "terrain model (odm_dem/dtm.tif, ODM --dtm)", path="file")
     multispectral: Path | None = param(None, "multispectral raster: NDVI from red_band and nir_band", path="file")
-    red_band: int = param(1, "band number of red in the multispectral raster", min=1)
-    nir_band: int = param(2, "band number of near-infrared in the multispectral raster", min=1)
+    red_band: int | str | None = param(None, "band of red in the multispectral raster: a number (1 = first), a "
+                                             "name of band_order, or null = named by band_order or by the "
+                                             "raster's band descriptions (a 2-band raster: 1)", min=1)
+    nir_band: int | str | None = param(None, "band of near-infrared in the multispectral raster (as red_band; a "
+                                             "2-band raster: 2)", min=1)
+    band_order: list[str] = param([], "names of the multispectral raster's bands in file order, e.g. [blue, green, "
+                                      "red, rededge, nir]: they overrule the file's own colour labels, give red_band "
+                                      "and nir_band when unset, and name the bands in formulas; [] = the file's band "
+                                      "descriptions (colour labels count only on 8-bit RGB images)")
     bands: list[BandFile] = param([], "more single bands: a list of {name, path, band}")
     rgb: Path | None = param(None, "RGB orthophoto (ODM's odm_orthophoto/odm_orthophoto.tif): RGB vegetation "
                                    "indices for drones without a multispectral camera", path="file")
@@ -70,15 +83,25 @@ class RasterSet:
             out.append(Layer("chm", "band", (self.chm,), elevation=True))
         if self.dsm is not None:
             out.append(Layer("chm", "difference", (self.dsm, self.dtm), elevation=True))
+        order = check_order(self.band_order, "band_order")
+
+        def order_of(path, own, key):  # a band or formula on the multispectral raster shares its band_order
+            if own:
+                return check_order(own, key)
+            same = self.multispectral is not None and path is not None and Path(path) == Path(self.multispectral)
+            return order if same else ()
+
         if self.multispectral is not None:
-            if self.red_band == self.nir_band:
+            if self.red_band is not None and self.red_band == self.nir_band:
                 raise ConfigError(f"date '{self.date}': red_band and nir_band are both {self.red_band}",
                                   fix="set the band numbers of red and near-infrared of your camera")
-            out.append(Layer("ndvi", "ndvi", (self.multispectral,), bands=(self.red_band, self.nir_band), index=True))
+            out.append(Layer("ndvi", "ndvi", (self.multispectral,), bands=(self.red_band, self.nir_band), index=True,
+                             band_order=order))
         for b in self.bands:
             if b.path is None:
                 raise ConfigError(f"date '{self.date}': band '{b.name}' has no path", fix="set its path")
-            out.append(Layer(b.name, "band", (b.path,), bands=(b.band,)))
+            out.append(Layer(b.name, "band", (b.path,), bands=(b.band,),
+                             band_order=order_of(b.path, b.band_order, f"bands '{b.name}' band_order")))
         if self.rgb is not None:
             if len(self.rgb_bands) != 3 or len(set(self.rgb_bands)) != 3:
                 raise ConfigError(f"date '{self.date}': rgb_bands must be three different band numbers, got "
@@ -90,7 +113,8 @@ class RasterSet:
             if f.path is None or not f.expression.strip():
                 raise ConfigError(f"date '{self.date}': formula '{f.name}' needs a path and an expression",
                                   fix="set both, e.g. {name: ndre, path: ms.tif, expression: (b5 - b4) / (b5 + b4)}")
-            out.append(Layer(f.name, "formula", (f.path,), expression=f.expression, index=True))
+            out.append(Layer(f.name, "formula", (f.path,), expression=f.expression, index=True,
+                             band_order=order_of(f.path, f.band_order, f"formula '{f.name}' band_order")))
         names = [layer.name for layer in out]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
@@ -158,9 +182,15 @@ class SpatialStatExtractorConfig:
     renamed_keys = {"write_polygons": ("vector_formats", "[gpkg, shp] for write_polygons: true, [] for false")}
 
     polygons: Path = param(None, "plant polygons: module 8's plants.gpkg or plants.csv, a shapefile, GeoJSON, or a "
-                                 "CSV with a WKT 'geometry' column or xmin,ymin,xmax,ymax", path="file", required=True)
-    id_column: str = param("auto", "column holding the plant id ('auto': plant_id, id or fid; else numbered from 1)")
+                                 "CSV with a WKT 'geometry' column or xmin,ymin,xmax,ymax; or boxes in pixels of a "
+                                 "georeferenced image: a DeepForest CSV (image_path,xmin,ymin,xmax,ymax,label), a "
+                                 "COCO file, module 7's predictions.json", path="file", required=True)
+    id_column: str = param("auto", "column holding the plant id ('auto': plant_id, id or fid, never a class 'label'; "
+                                   "else numbered from 1; 'number': numbered 1..n in file order)")
     layer: str = param("", "layer of a GeoPackage ('' = the first)")
+    boxes_image: Path | None = param(None, "boxes in pixels of a georeferenced image (a DeepForest CSV's image_path, a "
+                                           "COCO file's or module 7's file_name): that image, or the folder holding "
+                                           "them; null = beside the polygon file", path="exists")
     polygons_crs: str = param("", "CRS of the polygons when the file has none (a CSV), e.g. EPSG:32615; '' = the "
                                   "CSV's 'crs' column (module 8 writes one), else the raster's CRS")
     rasters: RasterSet = section(RasterSet)
@@ -223,8 +253,9 @@ class Layer:
     name: str
     kind: str  # "band" | "difference" | "ndvi" | "formula"
     paths: tuple
-    bands: tuple = (1,)
+    bands: tuple = (1,)  # numbers, names of band_order, or None (ndvi: red and NIR named by the raster)
     elevation: bool = False
     expression: str = ""  # formula: RGB (R, G, B, r, g, b from bands = red, green, blue) or b1, b2, ...
     index: bool = False  # a vegetation index (measured over the canopy by default)
+    band_order: tuple = ()  # the names of the raster's bands in file order (config band_order), () = the file's
 

@@ -105,7 +105,7 @@ def extract_stats(polygons, date_sets: Sequence[RasterSet], stats: Sequence[str]
                     on_progress((k + done / max(total, 1)) / len(jobs), f"{label}: batch {done}/{total}")
 
             with contextlib.ExitStack() as stack:
-                src = open_layer(layer, stack, nodata)
+                src = open_layer(layer, stack, nodata, warp=False)  # degrees: the polygons reprojected, exact
                 geoms = polygons_in(polygons, src.crs, f"raster {Path(layer.paths[0]).name}", entry)
                 try:
                     res = zonal_stats(geoms, src, stats, percentiles, mode=mode, on_progress=step)

@@ -1,25 +1,23 @@
 """Vegetation indices as band formulas: the RGB indices of an ordinary drone's orthophoto (ExG, ExGR,
-VARI, GLI, NGRDI) and any index a user writes, e.g. ``(b5 - b3) / (b5 + b3)``; and band checks.
+VARI, GLI, NGRDI) and any index a user writes, e.g. ``(b5 - b3) / (b5 + b3)`` or, with band_order,
+``(nir - red) / (nir + red)``.
 
 A formula is parsed once (Python syntax, checked node by node: numbers, band names, ``+ - * / **`` and
 parentheses only: nothing is ever ``eval``-ed) and evaluated window by window on float64 arrays; a
 division by zero gives NaN, which the statistics mask. In RGB formulas ``R, G, B`` are the bands and
 ``r, g, b`` the chromatic coordinates ``R / (R + G + B)`` …; in other formulas ``b1``, ``b2`` … are the
-raster's bands. An orthophoto's alpha band (ODM's is band 4) masks the pixels where it is 0.
+raster's bands (and the names band_order gives them). An orthophoto's alpha band (ODM's is band 4)
+masks the pixels where it is 0.
 
-Band checks: when a raster names its bands (colour interpretation Red/Green/Blue, or a description
-such as "red reflectance", "NIR"), the band numbers of the config must agree, or the run stops with the
-numbers the raster declares — a 5-band camera with the default red/NIR numbers would otherwise give a
-plausible but wrong NDVI.
+Which band is which (band_order, band descriptions, colour labels where they mean something) is
+:mod:`~matchplant.spatial_stat_extractor.bands`.
 """
 
 from __future__ import annotations
 
 import ast
-import re
 
 import numpy as np
-from rasterio.enums import ColorInterp
 
 from matchplant.core.runtime.errors import ConfigError
 
@@ -31,8 +29,6 @@ RGB_INDICES = {
     "ngrdi": "(G - R) / (G + R)",
 }
 _OPS = {ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply, ast.Div: np.divide, ast.Pow: np.power}
-_ROLES = {"red": ("red",), "green": ("green",), "blue": ("blue",), "nir": ("nir", "near-infrared", "near infrared"),
-          "rededge": ("red edge", "rededge", "red-edge")}
 
 
 def parse_formula(text: str, names: set[str], key: str) -> ast.Expression:
@@ -104,37 +100,3 @@ class FormulaSource:
         if self.alpha is not None:
             out = np.where(self.alpha.read(row0, row1, col0, col1) > 0, out, np.nan)
         return out
-
-
-def band_roles(ds) -> dict[int, str]:
-    """Band number -> role ('red', 'green', 'blue', 'nir', 'rededge', 'alpha') where the raster says."""
-    roles: dict[int, str] = {}
-    interp = {ColorInterp.red: "red", ColorInterp.green: "green", ColorInterp.blue: "blue",
-              ColorInterp.alpha: "alpha"}
-    for i in range(1, ds.count + 1):
-        desc = (ds.descriptions[i - 1] or "").lower()
-        found = None
-        # the longest names first: "red edge" is not "red", "near-infrared" is not "red"
-        for role, words in sorted(_ROLES.items(), key=lambda kv: -max(len(w) for w in kv[1])):
-            if any(re.search(rf"(^|[^a-z-]){re.escape(w)}($|[^a-z-])", desc) for w in words):
-                found = role
-                break
-        if found is None and ds.count >= 3:
-            found = interp.get(ds.colorinterp[i - 1])
-        if found:
-            roles[i] = found
-    return roles
-
-
-def check_bands(ds, wanted: dict[str, int], keys: dict[str, str]) -> None:
-    """Stop when a configured band (role -> number; ``keys``: its config key) is declared by the raster as
-    another role."""
-    roles = band_roles(ds)
-    declared = {r: b for b, r in roles.items()}
-    for role, band in wanted.items():  # (a band number past the count is reported when the band is read)
-        said = roles.get(band)
-        if said is not None and said != role:
-            hint = f"set {keys[role]}: {declared[role]}" if role in declared else f"check {keys[role]}"
-            listing = ", ".join(f"{b} {r}" for b, r in sorted(roles.items()))
-            raise ConfigError(f"{keys[role]} = {band}, but band {band} of the raster is '{said}' "
-                              f"(it declares: {listing})", path=ds.name, fix=hint)

@@ -1,7 +1,13 @@
-"""Module 9's plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each.
+"""Module 9's plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each; or
+boxes in pixels of a georeferenced image (a DeepForest CSV, a COCO file, module 7's predictions:
+:mod:`~matchplant.spatial_stat_extractor.pixel_boxes`).
 
 A module-8 CSV carries its CRS in a last column ``crs`` (e.g. ``EPSG:32615``, the same on every row); a CSV
 without one needs ``polygons_crs`` (else the rasters' CRS is assumed, with a warning).
+
+Plant ids: ``id_column: auto`` takes the first of plant_id, id, ID, fid, plant (never ``label``: a class name
+such as DeepForest's "Tree", not an id), else numbers the plants 1..n in file order; ``id_column: number``
+numbers them whatever columns there are.
 """
 
 from __future__ import annotations
@@ -12,27 +18,41 @@ import geopandas as gpd
 import numpy as np
 import pandas as pd
 import shapely
+
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import check_vector, did_you_mean
+from matchplant.spatial_stat_extractor.pixel_boxes import (
+    IMAGE_COLUMN,
+    boxes_from_csv,
+    boxes_from_json,
+    is_box_json,
+)
 
 log = get_logger("spatial_stat_extractor")
 
-ID_CANDIDATES = ("plant_id", "id", "ID", "Id", "fid", "FID", "plant", "label")
+ID_CANDIDATES = ("plant_id", "id", "ID", "Id", "fid", "FID", "plant")
+NUMBER = "number"  # id_column: number the plants 1..n in file order
 WKT_CANDIDATES = ("geometry", "wkt", "WKT", "geom", "the_geom")
 BOX_COLUMNS = ("xmin", "ymin", "xmax", "ymax")
 
 
-def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", crs: str = ""):
+def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", crs: str = "",
+                  images: str | Path | None = None):
     """A GeoDataFrame with a ``plant_id`` column from a vector file or a CSV (see the module doc of
-    :mod:`~matchplant.spatial_stat_extractor.extract` for the formats)."""
+    :mod:`~matchplant.spatial_stat_extractor.extract` for the formats), or from boxes in pixels of georeferenced
+    images (``images``: the image, or their folder; default: beside the file)."""
     path = Path(path)
     if not path.is_file():
         raise InputError("polygon file not found", path=path, fix="check 'polygons' in your config")
     if path.suffix.lower() in (".csv", ".txt", ".tsv"):
-        gdf = _read_polygon_csv(path, crs)
+        gdf = _read_polygon_csv(path, crs, images)
         crs_source = gdf.attrs.get("crs_source")
+    elif path.suffix.lower() == ".json" and is_box_json(path):
+        gdf = boxes_from_json(path, images)
+        crs_source = gdf.attrs.get("crs_source")
+        _ignored_crs(crs, gdf, path)
     else:
         if layer:  # an unknown layer: the layers there, with "did you mean"
             check_vector(path, layer=layer, require_crs=False, allow_empty=True, what="polygon file")
@@ -60,8 +80,10 @@ def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", cr
     gdf["plant_id"] = _plant_ids(gdf, id_column, path)
     if gdf["plant_id"].duplicated().any():
         dups = gdf["plant_id"][gdf["plant_id"].duplicated()].unique()[:5].tolist()
-        raise InputError(f"plant ids are not unique (e.g. {dups})", path=path,
-                         fix="set id_column to a column with one value per plant, or 'auto' to number them")
+        which = "id_column" if id_column not in ("", "auto") else "the column id_column: auto chose"
+        raise InputError(f"plant ids are not unique (e.g. {dups}; from {which})", path=path,
+                         fix="set id_column to a column with one value per plant, or id_column: number to number "
+                             "the plants 1..n in file order")
     cols = ["plant_id"] + [c for c in gdf.columns if c not in ("plant_id", gdf.geometry.name)]
     gdf = gdf[cols + [gdf.geometry.name]]
     gdf.attrs.update(source=str(path), crs_source=crs_source)
@@ -85,19 +107,32 @@ def with_crs(gdf, crs, source: str | Path | None):
     return out
 
 
+def _ignored_crs(crs: str, gdf, path: Path) -> None:
+    if crs and gdf.crs is not None and not gdf.crs.equals(parse_crs(crs, key="polygons_crs")):
+        log.warning("polygons_crs=%s ignored: the boxes of %s are placed by their image's georeference (%s)",
+                    crs, path.name, gdf.crs.to_string())
+
+
 def _plant_ids(gdf, id_column: str, path: Path) -> pd.Series:
+    numbered = pd.Series(np.arange(1, len(gdf) + 1), index=gdf.index)
+    if id_column == NUMBER and NUMBER not in gdf.columns:
+        log.info("plants of %s numbered 1..%d in file order (id_column: number)", path.name, len(gdf))
+        return numbered
     if id_column and id_column != "auto":
         if id_column not in gdf.columns:
             names = [str(c) for c in gdf.columns if c != gdf.geometry.name]
             hint = did_you_mean(id_column, names)
             raise InputError(f"id column '{id_column}' not found; {hint or 'columns: ' + ', '.join(names)}",
-                             path=path, fix="set id_column to one of the columns, or to 'auto'")
+                             path=path, fix="set id_column to one of the columns, or to 'number' to number the "
+                                            "plants 1..n in file order")
         return gdf[id_column]
     for name in ID_CANDIDATES:
         if name in gdf.columns:
+            log.info("plant ids of %s from its column '%s' (id_column: auto)", path.name, name)
             return gdf[name]
-    log.info("%s has no plant id column; plants are numbered 1..%d in file order", path.name, len(gdf))
-    return pd.Series(np.arange(1, len(gdf) + 1), index=gdf.index)
+    log.info("%s has no plant id column (%s); plants are numbered 1..%d in file order", path.name,
+             ", ".join(ID_CANDIDATES[:5]), len(gdf))
+    return numbered
 
 
 def _numbers(col: pd.Series, name: str, path: Path) -> np.ndarray:
@@ -126,7 +161,7 @@ def _crs_column(df: pd.DataFrame, path: Path) -> str:
     return values[0] if values else ""
 
 
-def _read_polygon_csv(path: Path, crs: str):
+def _read_polygon_csv(path: Path, crs: str, images=None):
     try:
         df = pd.read_csv(path, sep=None, engine="python", encoding="utf-8-sig")
     except Exception as exc:
@@ -153,6 +188,10 @@ def _read_polygon_csv(path: Path, crs: str):
         raise InputError(f"the CSV has neither a WKT geometry column nor {','.join(BOX_COLUMNS)}; "
                          f"columns: {list(df.columns)}", path=path,
                          fix="add a 'geometry' column (WKT) or box columns xmin,ymin,xmax,ymax")
+    if IMAGE_COLUMN in df.columns or images is not None:  # boxes in pixels of a georeferenced image
+        gdf = boxes_from_csv(df, geom, path, images)
+        _ignored_crs(crs, gdf, path)
+        return gdf
     own = _crs_column(df, path)
     if crs:
         the_crs, source = parse_crs(crs, key="polygons_crs"), "polygons_crs"

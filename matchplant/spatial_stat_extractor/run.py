@@ -30,7 +30,7 @@ def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[fl
     """Everything module 9 does for ``cfg``; returns ``(polygons, table, report, written files)``."""
     out = Path(cfg.output_dir)
     sets = cfg.date_sets()
-    polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs)
+    polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs, cfg.boxes_image)
     if polygons.crs is None:
         polygons = with_crs(polygons, *raster_crs(sets))
     log.info("%d plants from %s", len(polygons), cfg.polygons)
