@@ -74,7 +74,24 @@ def test_gui_headless(small_field, tmp_path):
     assert {"chm_p10", "chm_p90", "chm_nodata", "chm_max"} <= set(table.columns)
     np.testing.assert_allclose(table["chm_max"], small_field["heights"], rtol=0.04)  # cone tip between pixels
     assert (d / "out" / "polygons.shp").is_file() and (d / "out" / "stats.gpkg").is_file()
+    assert gui.colorbar is not None and gui.colorbar.ax.get_ylabel() == "chm_max (m)"  # the map's scale, with unit
     gui.fig.savefig(tmp_path / "gui.png")
+    # the window covers RGB indices, plots, the field book and a later date; every field stays in the window
+    for key in ("rasters.rgb", "plots.polygons", "plots.field_book", "later_chm"):
+        assert key in gui.boxes and key in gui.pickers
+    renderer = gui.fig.canvas.get_renderer()
+    for box in gui.boxes.values():
+        bb = box.ax.get_window_extent(renderer)
+        assert 0 <= bb.y0 and bb.y1 <= gui.fig.bbox.y1 and bb.x1 <= gui.fig.bbox.x1
+    gui.boxes["later_chm"].set_val(str(d / "chm.tif"))
+    gui._set("later_chm", str(d / "chm.tif"))
+    assert [r.date for r in gui.cfg.more_dates] == ["later"] and gui.cfg.more_dates[0].chm == d / "chm.tif"
+    assert gui.cfg.rasters.date == "first"
+    gui._set("later_chm", "")
+    assert gui.cfg.more_dates == []
+    gui.cfg.rasters.date = ""
+    gui._set("rasters.red_band", "")   # empty: from the raster's band names or band_order
+    assert gui.cfg.rasters.red_band is None
 
     # an unusable file: the error is shown in the window, in red, not raised
     gui.boxes["polygons"].set_val(str(d / "bad.csv"))

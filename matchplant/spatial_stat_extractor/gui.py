@@ -19,7 +19,8 @@ from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.gui import QuietTextBox, ask_path, figure, is_headless, require_display, show
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.plots_figure import unit_of
 from matchplant.spatial_stat_extractor.polygons import read_polygons
 from matchplant.spatial_stat_extractor.rasters import preview_layer
 from matchplant.spatial_stat_extractor.run import extract_and_write
@@ -35,20 +36,38 @@ TEXT_FIELDS = [  # (config key, label)
     ("rasters.multispectral", "Multispectral"),
     ("rasters.red_band", "Red band"),
     ("rasters.nir_band", "NIR band"),
+    ("rasters.rgb", "RGB orthophoto"),
+    ("plots.polygons", "Plots"),
+    ("plots.field_book", "Field book"),
+    (LATER_CHM := "later_chm", "Later-date CHM"),
     ("polygons_crs", "Polygons CRS"),
     ("percentiles", "Percentiles"),
     ("output_dir", "Output folder"),
 ]
 # keys with a file picker ("..." beside the box: Tk's dialogs)
 PICKERS = {"polygons": "file", "rasters.chm": "file", "rasters.dsm": "file", "rasters.dtm": "file",
-           "rasters.multispectral": "file", "output_dir": "folder"}
+           "rasters.multispectral": "file", "rasters.rgb": "file", "plots.polygons": "file",
+           "plots.field_book": "file", LATER_CHM: "file", "output_dir": "folder"}
+# the later-date CHM box fills this one entry of more_dates (a config file can list any number of dates)
+LATER_DATE = "later"
 ERROR_COLOR = "#c62828"
 
 
 def _get(cfg, key: str):
+    if key == LATER_CHM:
+        return next((d.chm for d in cfg.more_dates if d.date == LATER_DATE), None)
     for part in key.split("."):
         cfg = getattr(cfg, part)
     return cfg
+
+
+def set_later_chm(cfg, path: str | None) -> None:
+    """The window's one later date: a CHM of a second flight over the same plants (growth per plant)."""
+    cfg.more_dates = [d for d in cfg.more_dates if d.date != LATER_DATE]
+    if path:
+        cfg.more_dates.append(RasterSet(date=LATER_DATE, chm=Path(path)))
+        if not cfg.rasters.date:
+            cfg.rasters.date = "first"
 
 
 def _as_text(value) -> str:
@@ -77,16 +96,16 @@ class SpatialStatExtractorGUI:
         self.ax.set_aspect("equal")
         self.boxes: dict = {}
         self.pickers: dict = {}
-        y = 0.93
+        y = 0.955
         for key, label in TEXT_FIELDS:
             width = 0.225 if key in PICKERS else 0.26
-            box = QuietTextBox(fig.add_axes([0.72, y, width, 0.036]), label + " ", initial=_as_text(_get(cfg, key)))
+            box = QuietTextBox(fig.add_axes([0.72, y, width, 0.03]), label + " ", initial=_as_text(_get(cfg, key)))
             box.on_submit(lambda text, key=key: self._set(key, text))
             self.boxes[key] = box
             if key in PICKERS:
-                self.pickers[key] = Button(fig.add_axes([0.948, y, 0.032, 0.036]), "...")
+                self.pickers[key] = Button(fig.add_axes([0.948, y, 0.032, 0.03]), "...")
                 self.pickers[key].on_clicked(lambda _e, key=key: self.browse(key))
-            y -= 0.045
+            y -= 0.036
         self.crs_text = fig.text(0.62, y + 0.005, "CRS: -", fontsize=9, family="monospace")
         fig.text(0.62, y - 0.03, "Statistics", fontsize=10, weight="bold")
         self.stat_checks = CheckButtons(fig.add_axes([0.62, y - 0.25, 0.17, 0.21]), list(BASIC_STATS),
@@ -120,6 +139,7 @@ class SpatialStatExtractorGUI:
         self.timer.add_callback(self.poll)
         self.poly_artist = None
         self.image_artist = None
+        self.colorbar = None
         self.set_status("Set the files (press Enter in a box), then Preview or Run + save.")
 
     # ---------------------------------------------------------------------------------------------
@@ -139,9 +159,12 @@ class SpatialStatExtractorGUI:
                 value = None
             else:
                 value = text
-            if value is None and key in ("polygons", "output_dir", "rasters.red_band", "rasters.nir_band"):
+            if value is None and key in ("polygons", "output_dir"):
                 raise ConfigError(f"'{key}' cannot be empty", fix="type a value and press Enter")
-            set_value(self.cfg, key, value, source="window")
+            if key == LATER_CHM:
+                set_later_chm(self.cfg, value)
+            else:  # an empty red/NIR band: from the raster's band names or band_order
+                set_value(self.cfg, key, value, source="window")
         except ValueError:
             self.set_status(f"error: percentiles must be numbers separated by commas, got {text!r}", error=True)
             return False
@@ -297,8 +320,12 @@ class SpatialStatExtractorGUI:
         self.poly_artist.remove()
         self.poly_artist = LineCollection(self.segments, array=values[owner], cmap="autumn", linewidths=1.6)
         self.ax.add_collection(self.poly_artist)
+        if self.colorbar is not None:
+            self.colorbar.remove()
+        self.colorbar = self.fig.colorbar(self.poly_artist, ax=self.ax, fraction=0.04, pad=0.02)
+        self.colorbar.set_label(f"{col} ({unit_of(col)})", fontsize=9)
         self.ax.set_title(f"plant outlines coloured by {col} "
-                          f"({np.nanmin(values):.3g} .. {np.nanmax(values):.3g})", fontsize=10)
+                          f"({np.nanmin(values):.3g} .. {np.nanmax(values):.3g} {unit_of(col)})", fontsize=10)
 
     def wait(self, timeout: float = 60) -> None:
         """Wait for the background work and draw its outcome (tests and scripts)."""
