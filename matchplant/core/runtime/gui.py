@@ -146,14 +146,16 @@ def is_headless(headless: bool | None) -> bool:
     return not interactive_backend_available() or plt.get_backend().lower() == "agg"
 
 
-def figure(headless: bool | None = None, title: str | None = None, **kwargs) -> Figure:
+def figure(headless: bool | None = None, title: str | None = None, toolbar: bool = True, **kwargs) -> Figure:
     """A new figure (``kwargs`` as for :class:`matplotlib.figure.Figure`: figsize, dpi, ...); a window is
-    titled "MatchPlant - <title>" (the step), not pyplot's "Figure 2"."""
+    titled "MatchPlant - <title>" (the step), not pyplot's "Figure 2". ``toolbar=False``: a window of
+    forms, without Matplotlib's pan/zoom toolbar (which would sit under the fields and buttons)."""
     if is_headless(headless):
         fig = Figure(**kwargs)
         FigureCanvasAgg(fig)
         return fig
-    fig = plt.figure(**kwargs)
+    with plt.rc_context({} if toolbar else {"toolbar": "None"}):
+        fig = plt.figure(**kwargs)
     if title and fig.canvas.manager is not None:
         fig.canvas.manager.set_window_title(f"MatchPlant - {title}")
     return fig
@@ -248,9 +250,7 @@ class SetupScreen:
         # prefill(texts of every box) -> {key: path}: what the previous module wrote where its README says,
         # put into the boxes that are still empty
         self.prefill = prefill
-        self.fig = figure(headless, figsize=(10, 1.6 + 0.55 * len(fields)))
-        if self.fig.canvas.manager is not None:
-            self.fig.canvas.manager.set_window_title(f"MatchPlant - {title}")
+        self.fig = figure(headless, title=title, toolbar=False, figsize=(10, 1.6 + 0.55 * len(fields)))
         n = len(fields)
         row = 1.0 / (n + 3)
         self.fig.text(0.02, 1 - 0.6 * row, title, fontsize=13, weight="bold", va="center")
