@@ -88,7 +88,7 @@ class SpatialStatExtractorGUI:
         self.chooser = chooser  # replaces Tk's dialog (tests): chooser(kind, title, initial) -> path or None
         self.config_path = Path(config_path) if config_path else None
         self.headless = is_headless(headless)
-        self.fig = fig = figure(self.headless, figsize=(13, 8), title="9 Spatial statistics", toolbar=False)
+        self.fig = fig = figure(self.headless, figsize=(13, 8), title="9 Spatial statistics")
         if self.headless:  # Agg draws at once on every widget event; nobody looks until savefig (which still draws)
             self.fig.canvas.draw_idle = self.fig.canvas.draw = lambda *args, **kwargs: None
         self.ax = fig.add_axes([0.08, 0.13, 0.50, 0.80])
