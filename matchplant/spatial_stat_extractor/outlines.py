@@ -15,8 +15,9 @@ below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
 plant (the same top) is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
-no box claims but that look like plants (a top of at least ``min_top``, ``min_pixels`` or more) are
-listed too (``Outlines.unclaimed``): plants the detector missed, for stand counts.
+no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
+the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
+plants the detector missed, for stand counts; the lower ones are only counted (``noise_bumps``).
 
 The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, from
 ``rasterio.features.shapes`` with 4-connectivity: pixels that touch only at a corner become separate parts
@@ -55,6 +56,8 @@ class SegmentSettings:
     min_pixels: int = 4           # smaller canopies keep their box (flagged)
     max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
+    unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
+    # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
 
 
 @dataclass
@@ -79,6 +82,7 @@ class Outlines:
     crs: object = None
     shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
     unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
+    noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
 
     @property
     def from_box(self) -> np.ndarray:
@@ -334,6 +338,9 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h,
                    geo_parts, chm, dup, no_peak)
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
+    plant_like = free[:, 2] >= max(s.min_top, s.unclaimed_min_top)
+    out.noise_bumps = int((~plant_like).sum())
+    free = free[plant_like]
     fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
     out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
     return out
