@@ -31,7 +31,7 @@ def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: 
               noise_sd: float = 0.03, bias: float = 0.015, smooth_m: float = 0.015,
               heights=(0.15, 0.9)) -> NoisyChm:
     rng = np.random.default_rng(seed)
-    ny, nx = int(round(length_m / res)), int(round(width_m / res))
+    ny, nx = round(length_m / res), round(width_m / res)
     t = Affine(res, 0, 500000.0, 0, -res, 4500000.0 + length_m)
     xs = (np.arange(nx) + 0.5) * res
     ys = (np.arange(ny) + 0.5) * res  # from the top edge down

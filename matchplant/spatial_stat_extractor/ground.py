@@ -181,11 +181,6 @@ def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, 
             raise InputError(f"the CHM from {what} is negative under {int(negative.sum())} of {len(tops)} plants "
                              f"sampled (median {np.median(-down):.2f} m below the ground): {named} look swapped",
                              fix=fix)
-    if noise.measured and abs(base) > 1.0:
-        raise InputError(f"the CHM from {what} puts the bare ground {base:.2f} m from zero (median between the "
-                         f"plants): {named} are not a height above the ground (a DSM given as the CHM, or DSM "
-                         "and DTM in different units or vertical datums)",
-                         fix="give the CHM as DSM - DTM of one flight, both in metres (rasters.dsm + rasters.dtm)")
     if len(tops):
         tall = float(np.median(tops) - base)
         if tall > max_height:
@@ -194,6 +189,12 @@ def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, 
                              f"are {named} in centimetres?",
                              fix="convert them to metres (e.g. gdal_calc.py -A dsm.tif --calc=\"A/100\" "
                                  "--outfile=dsm_m.tif), or raise canopy.max_height for taller plants")
+    if noise.measured and abs(base) > max(1.0, 3 * sd):  # an offset, not a noise in other units
+        raise InputError(f"the CHM from {what} puts the bare ground {base:.2f} m from zero (median between the "
+                         f"plants): {named} are not a height above the ground (a DSM given as the CHM, or DSM "
+                         "and DTM in different units or vertical datums)",
+                         fix="give the CHM as DSM - DTM of one flight, both in metres (rasters.dsm + rasters.dtm)")
+    if len(tops):
         highest = float(np.max(tops))
         for key in ("min_height", "min_top"):
             v = getattr(th, key)
