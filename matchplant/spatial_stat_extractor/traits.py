@@ -25,9 +25,11 @@ import numpy as np
 import pandas as pd
 import shapely
 
+from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.canopy import canopy_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
+from matchplant.spatial_stat_extractor.dates import measure_offset, templates
 from matchplant.spatial_stat_extractor.extract import polygons_in
 from matchplant.spatial_stat_extractor.ground import GroundNoise, Thresholds, check_chm, measure_ground, thresholds
 from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings, segment
@@ -77,6 +79,41 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
     return th
 
 
+def date_offset(earlier, chm, cfg: CanopyConfig, rs: RasterSet, entry: dict) -> np.ndarray:
+    """The offset (m) to move this date's boxes by: zero within ``canopy.max_shift``; beyond it an error,
+    or with ``canopy.register`` the measured offset (:mod:`~matchplant.spatial_stat_extractor.dates`)."""
+    date, crs, tmpl = earlier
+    if tmpl is None:
+        return np.zeros(2)
+    if crs is not None and chm.crs is not None and not crs.equals(chm.crs):
+        log.info("date '%s': its CHM is in another CRS than date '%s'; its offset is not measured", rs.date, date)
+        return np.zeros(2)
+    off = measure_offset(tmpl, chm, cfg.max_shift)
+    entry["offset_to_" + (date or "previous")] = off.report()
+    # a shift clearly beyond max_shift: the peak well above the best correlation near no shift
+    beyond = off.windows > 0 and off.distance > cfg.max_shift + tmpl.resolution and off.score >= 0.3 and \
+        off.score > off.near + 0.05
+    if not beyond:
+        log.info("date '%s': its CHM is %.3f m off date '%s' (east %+.3f m, north %+.3f m; correlation %.2f)",
+                 rs.date, off.distance, date, off.dx, off.dy, off.score)
+        return np.zeros(2)
+    files = ", ".join(Path(p).name for p in ((rs.chm,) if rs.chm is not None else (rs.dsm, rs.dtm)))
+    if not cfg.register:
+        raise InputError(f"date '{rs.date}': its CHM ({files}) is shifted {off.distance:.2f} m (east {off.dx:+.2f} m, "
+                         f"north {off.dy:+.2f} m; correlation {off.score:.2f}, {off.near:.2f} without the shift) "
+                         f"against date '{date}', beyond canopy.max_shift = {cfg.max_shift:g} m: the two flights are "
+                         "georeferenced differently (one without GCPs?), and the boxes would measure the wrong "
+                         "plants", path=rs.chm if rs.chm is not None else rs.dsm,
+                         fix="georeference both flights with the same GCPs, or set canopy.register: true to move "
+                             f"date '{rs.date}' by the measured offset (raise canopy.max_shift only if the plants "
+                             "themselves moved that far)")
+    log.warning("date '%s': its CHM is shifted %.2f m (east %+.3f m, north %+.3f m) against date '%s'; moved back "
+                "by that offset (canopy.register); its box statistics are still over the unmoved boxes, its canopy "
+                "columns are over the moved ones", rs.date, off.distance, off.dx, off.dy, date)
+    entry["registered"] = {"dx": round(off.dx, 3), "dy": round(off.dy, 3)}
+    return np.array([off.dx, off.dy])
+
+
 def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[str, np.ndarray]:
     cols = {"canopy_pixels": o.pixels, "canopy_area_m2": o.area, "canopy_volume_m3": o.volume,
             "top_x": o.top[:, 0], "top_y": o.top[:, 1], "top_height": o.top[:, 2],
@@ -102,6 +139,8 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
     frames = []
     report = {"dates": []}
     previous: Outlines | None = None
+    earlier = None  # (date, crs, Templates) of the last date with a CHM
+    moved = np.zeros(2)  # m: the registration of the current date against the first
     unclaimed = pd.DataFrame(columns=["x", "y", "height", "pixels"])
     for i, rs in enumerate(date_sets):
         layers = rs.layers()
@@ -122,14 +161,22 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                     log.warning("canopy.ndvi_threshold ignored on date '%s': no multispectral raster on the "
                                 "CHM's grid", rs.date)
                     mask = None
+            step = np.zeros(2)
+            if earlier is not None:
+                step = date_offset(earlier, chm, cfg, rs, entry)
+                moved = moved + step
+            if moved.any():  # registered: the boxes onto this date's map
+                geoms = shapely.transform(np.asarray(geoms, dtype=object), lambda c, d=moved: c + d)
             seeds = None
             if previous is not None and cfg.recentre:
-                seeds = previous.top[:, :2].copy()
+                seeds = previous.top[:, :2] + step
                 lost = ~np.isfinite(seeds).all(axis=1)  # no top earlier: start from the box centre
                 centre = shapely.centroid(np.asarray(geoms, dtype=object)[lost])
                 seeds[lost] = np.stack([shapely.get_x(centre), shapely.get_y(centre)], axis=1)
             th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry)
             o = segment(geoms, chm, settings_from(cfg, th), mask_source=mask, seeds=seeds)
+            if i < len(date_sets) - 1:  # windows of this CHM, to measure the next date's offset against
+                earlier = (rs.date, chm.crs, templates(chm, geoms, cfg.max_shift))
             cols = outline_columns(o, previous if seeds is not None else None, geoms)
             hp = list(cfg.height_percentiles)
             for k, v in canopy_stats(o, chm, ["max", "mean"], hp).items():
