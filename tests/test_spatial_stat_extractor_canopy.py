@@ -15,10 +15,15 @@ import rasterio
 import shapely
 from noisy_chm import noisy_chm
 from rasterio.features import rasterize
+from scipy import ndimage as ndi
 
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.config import (
+    CanopyConfig,
+    RasterSet,
+    SpatialStatExtractorConfig,
+)
 from matchplant.spatial_stat_extractor.ground import (
     check_chm,
     measure_ground,
@@ -29,7 +34,9 @@ from matchplant.spatial_stat_extractor.outlines import (
     segment,
     valid_polygons,
 )
+from matchplant.spatial_stat_extractor.polygons import read_polygons
 from matchplant.spatial_stat_extractor.run import extract_and_write
+from matchplant.spatial_stat_extractor.traits import canopy_traits
 from matchplant.spatial_stat_extractor.zonal import ArraySource
 
 CRS = "EPSG:32614"
@@ -114,10 +121,7 @@ def test_valid_polygons_keep_every_pixel():
 
 def write_field(f, folder):
     folder.mkdir(parents=True, exist_ok=True)
-    chm = folder / "chm.tif"
-    with rasterio.open(chm, "w", driver="GTiff", width=f.chm.shape[1], height=f.chm.shape[0], count=1,
-                       dtype="float32", crs=CRS, transform=f.transform, nodata=-9999) as ds:
-        ds.write(np.where(np.isfinite(f.chm), f.chm, -9999).astype("float32"), 1)
+    chm = write_chm(folder / "chm.tif", f.chm, f.transform)
     boxes = folder / "plants.gpkg"
     gpd.GeoDataFrame({"plant_id": np.arange(1, len(f.boxes) + 1)}, geometry=list(f.boxes), crs=CRS).to_file(boxes)
     return chm, boxes
@@ -195,3 +199,40 @@ def test_chm_sanity(field):
                                           r": 0.05 for 5 cm"):
         check_chm(n, thresholds("auto", 5.0, n), 10.0, "chm.tif", ("rasters.chm",))
     check_chm(n, thresholds(*auto, n), 10.0, "chm.tif", ("rasters.chm",))  # the right CHM passes
+
+
+def write_chm(path, chm, transform):
+    with rasterio.open(path, "w", driver="GTiff", width=chm.shape[1], height=chm.shape[0], count=1,
+                       dtype="float32", crs=CRS, transform=transform, nodata=-9999) as ds:
+        ds.write(np.where(np.isfinite(chm), chm, -9999).astype("float32"), 1)
+    return path
+
+
+def test_a_later_flight_georeferenced_apart_is_caught_and_registered(field, tmp_path):
+    """A second flight 1.5 m off (east 1.45 m, north 0.35 m; no GCPs), the plants grown and the ground noise
+    its own: an error naming the shift and the keys; with canopy.register the measured offset moves the boxes
+    and every plant is found again."""
+    f = field
+    rng = np.random.default_rng(7)
+    noise = ndi.gaussian_filter(rng.normal(0, 1, f.chm.shape), 2.0)
+    later = 1.25 * np.nan_to_num(f.chm - f.ground_p50) + f.ground_p50 + 0.02 * noise / noise.std()
+    true = np.array([1.45, 0.35])
+    chm1 = write_chm(tmp_path / "chm1.tif", f.chm, f.transform)
+    chm2 = write_chm(tmp_path / "chm2.tif", later, rasterio.Affine.translation(*true) @ f.transform)
+    _, boxes = write_field(f, tmp_path / "in")
+    plants = read_polygons(boxes)
+    sets = [RasterSet(date="d1", chm=chm1), RasterSet(date="d2", chm=chm2)]
+    with pytest.raises(InputError, match=r"(?s)date 'd2'.*shifted 1\.4\d m.*beyond canopy.max_shift = 0\.1 m.*"
+                                         r"canopy.register: true"):
+        canopy_traits(plants, sets, CanopyConfig(), ["mean"], [])
+    per_date, _, _, report = canopy_traits(plants, sets, CanopyConfig(register=True), ["mean"], [])
+    got = report["dates"][1]["registered"]
+    assert np.hypot(got["dx"] - true[0], got["dy"] - true[1]) < 0.02
+    d1, d2 = per_date["d1"], per_date["d2"]
+    ok = d1["outline_flag"] == ""
+    assert (d2.loc[ok, "outline_flag"] == "").mean() > 0.95
+    moved = np.hypot(d2["top_x"] - d1["top_x"] - true[0], d2["top_y"] - d1["top_y"] - true[1])[ok]
+    assert np.median(moved) < 0.02
+    # the same flight, not shifted: no error, the offset reported near zero
+    _, _, _, report = canopy_traits(plants, [sets[0], RasterSet(date="d2", chm=chm1)], CanopyConfig(), ["mean"], [])
+    assert report["dates"][1]["offset_to_d1"]["distance"] < 0.01 and "registered" not in report["dates"][1]
