@@ -1,6 +1,10 @@
 """Module 9's canopy part: outlines on every date, canopy-only statistics, growth between dates.
 
-For each date with a CHM, every plant is outlined (:mod:`~matchplant.spatial_stat_extractor.outlines`);
+For each date with a CHM, the CHM's ground noise is measured and checked, and ``canopy.min_height`` /
+``min_top`` left at ``auto`` follow from it (:mod:`~matchplant.spatial_stat_extractor.ground`); a later date's
+offset against the date before is measured (:mod:`~matchplant.spatial_stat_extractor.dates`): beyond
+``canopy.max_shift`` an error, or with ``canopy.register`` the boxes are moved by it. Every plant is then
+outlined (:mod:`~matchplant.spatial_stat_extractor.outlines`);
 on later dates, with ``canopy.recentre``, each plant is first re-centred on the local maximum nearest to
 its earlier top moved by the median shift of the plants around (within ``canopy.max_shift``), and the
 shift is reported. Then the CHM's canopy
@@ -10,7 +14,8 @@ percentiles, canopy pixels, area and volume, and every index (or the traits list
 Columns (``_<date>`` appended when there are several dates): ``canopy_pixels``, ``canopy_area_m2``,
 ``canopy_volume_m3``, ``top_x``, ``top_y``, ``top_height``, the tightened box ``tight_xmin`` ...
 ``tight_ymax``, ``outline_from`` (``chm`` or ``box``),
-``outline_flag``, ``shift_x``/``shift_y``/``shift_m`` (later dates), ``chm_canopy_max``,
+``outline_flag``, ``canopy_box_ratio`` and ``fills_box`` (an outline covering 90 % of its box or more: most
+likely its soil), ``shift_x``/``shift_y``/``shift_m`` (later dates), ``chm_canopy_max``,
 ``chm_canopy_pNN``, ``<trait>_canopy_<stat>``.
 """
 
