@@ -76,7 +76,7 @@ def test_ground_noise_measured_and_outlines_inside_low_plants(field):
     assert th.min_height == pytest.approx(f.ground_p50 + 3 * f.ground_sd, abs=0.01)
     o = segment(f.boxes, src, s)
     out = ~o.from_box
-    assert out.mean() > 0.9  # only plants of ~15 cm, which the CHM cannot tell from soil, keep their box
+    assert out.mean() > 0.85  # only plants of 15-30 cm, which the CHM cannot tell from soil, keep their box
     assert (f.height[o.from_box] < 0.3).all()
     ratio = o.area[out] / shapely.area(f.boxes[out])
     assert np.median(ratio) <= 0.5 and ratio.max() <= 0.7

@@ -103,7 +103,10 @@ def templates(chm, geoms, max_shift: float, max_windows: int = MAX_WINDOWS) -> T
     half = max(TEMPLATE_M, 4 * size)
     centre = np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], axis=1)
     order = np.lexsort((centre[:, 0], -centre[:, 1]))  # north to south, then west to east
-    picks = order[np.unique(np.linspace(0, len(order) - 1, max_windows).round().astype(int))]
+    # no more windows than it takes to cover the raster once (on a small field each window holds most of it)
+    res = _res(chm)
+    k_max = int(np.clip(np.ceil(chm.height * chm.width * res * res / (2 * (half + search)) ** 2), 4, max_windows))
+    picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
     n = round(2 * half / r)
     data = np.stack([_sample(chm, x - half, y + half, n, r) for x, y in centre[picks]])
     return Templates(centres=centre[picks], half=half, resolution=r, search=search, data=data)

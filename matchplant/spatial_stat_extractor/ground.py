@@ -34,6 +34,7 @@ FLOOR_HEIGHT, FLOOR_TOP = 0.02, 0.05  # m: the thresholds of an exact CHM (no no
 K_HEIGHT, K_TOP, K_UNCLAIMED = 3.0, 4.0, 6.0  # SDs of the ground noise (see the module doc)
 MIN_GROUND = 500  # ground pixels needed to measure the noise
 MAX_WINDOWS = 32
+MIN_WINDOWS = 4
 MAX_HALF = 256  # px: half the side of a sample window
 GROUND_PER_WINDOW = 20000  # ground values kept per window (evenly strided)
 
@@ -112,7 +113,9 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -
     order = np.flatnonzero(inside)[np.lexsort((centre[inside, 1], centre[inside, 0]))]  # by row, then column
     if not len(order):
         return GroundNoise()
-    picks = order[np.unique(np.linspace(0, len(order) - 1, max_windows).round().astype(int))]
+    # no more windows than it takes to cover the raster once (a small field is read about once)
+    k_max = int(np.clip(np.ceil(chm.height * chm.width / (2 * half) ** 2), MIN_WINDOWS, max_windows))
+    picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
     ground, tops, lows, seen = [], [], [], np.zeros(len(box), bool)
     for k in picks:
         R0 = int(max(0, centre[k, 0] - half))

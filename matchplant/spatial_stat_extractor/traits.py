@@ -198,8 +198,8 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                      fills_box=int(cols["fills_box"].sum()))
         if entry["fills_box"]:
             log.warning("date '%s': %d of %d outlines fill their box (canopy >= %d %% of the box, column fills_box): "
-                        "the CHM's soil may reach canopy.min_height (%.3f m); raise it if these plants are smaller "
-                        "than their boxes", rs.date, entry["fills_box"], entry["outlined"], FILLS_BOX * 100,
+                        "the CHM's soil may reach canopy.min_height (%.3f m; raise it if these plants are smaller "
+                        "than their boxes), or the plants outgrew boxes drawn on an earlier date", rs.date, entry["fills_box"], entry["outlined"], FILLS_BOX * 100,
                         entry["min_height"])
         if o.noise_bumps:
             log.info("date '%s': %d canopies no box claims are ground-noise bumps (top below %.3f m), not plants; "
