@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
@@ -156,10 +157,13 @@ class CanopyConfig:
     margin: float = param(0.05, "m around each box where the canopy may reach", min=0)
     relative: float = param(0.1, "canopy pixels reach at least this share of the plant's own top height",
                             min=0, max=1)
-    min_height: float = param(0.02, "m above the ground: lower pixels are soil (raise it for a noisy CHM)", min=0)
-    min_top: float = param(0.05, "m: a plant's top must reach this height to be outlined; lower ones (weeds, soil, "
-                                 "plants too small for the CHM) keep their box, flagged 'low', and are left out "
-                                 "of stand counts", min=0)
+    min_height: float | Literal["auto"] = param(
+        "auto", "m above the ground: lower pixels are soil; auto = from the CHM's own ground noise (median + 3 SD "
+                "of the CHM between the plants, at least 0.02), logged", min=0)
+    min_top: float | Literal["auto"] = param(
+        "auto", "m: a plant's top must reach this height to be outlined; lower ones (weeds, soil, plants too "
+                "small for the CHM) keep their box, flagged 'low', and are left out of stand counts; auto = median "
+                "+ 4 SD of the ground noise, at least 0.05 (canopies no box claims need median + 6 SD)", min=0)
     min_pixels: int = param(4, "canopies smaller than this many pixels keep their box (flagged 'small')", min=1)
     ndvi_threshold: float | None = param(None, "canopy pixels also need NDVI at least this (the multispectral "
                                                "raster on the CHM's grid); null = height only", min=-1, max=1)
@@ -173,6 +177,11 @@ class CanopyConfig:
                                  "and re-outline it; the shift is reported")
     max_shift: float = param(0.1, "m: how far a plant's top may move between dates (less than the plant "
                                   "spacing)", min=0)
+    register: bool = param(False, "later dates: when a date's CHM is shifted against the first date's by more "
+                                  "than max_shift (a flight georeferenced without GCPs), move it by the measured "
+                                  "offset instead of stopping with an error")
+    max_height: float = param(10.0, "m: the tallest plausible plant; taller median tops stop the run (a CHM in "
+                                    "centimetres); raise it for trees", min=0.1)
 
 
 @dataclass

@@ -15,11 +15,14 @@ below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
 plant (the same top) is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
-no box claims but that look like plants (a top of at least ``min_top``, ``min_pixels`` or more) are
-listed too (``Outlines.unclaimed``): plants the detector missed, for stand counts.
+no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
+the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
+plants the detector missed, for stand counts; the lower ones are only counted (``noise_bumps``).
 
 The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, from
-``rasterio.features.shapes``), the tightened boxes, the tops, canopy area and volume, and the canopy
+``rasterio.features.shapes`` with 4-connectivity: pixels that touch only at a corner become separate parts
+of a multipolygon, so no ring touches itself and every polygon is valid; anything still invalid is repaired
+by :func:`valid_polygons`), the tightened boxes, the tops, canopy area and volume, and the canopy
 pixels themselves (flat raster indices grouped by plant) for canopy-only statistics
 (:mod:`~matchplant.spatial_stat_extractor.canopy`). See docs/DESIGN.md §2 (module 9).
 """
@@ -53,6 +56,8 @@ class SegmentSettings:
     min_pixels: int = 4           # smaller canopies keep their box (flagged)
     max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
+    unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
+    # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
 
 
 @dataclass
@@ -77,6 +82,7 @@ class Outlines:
     crs: object = None
     shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
     unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
+    noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
 
     @property
     def from_box(self) -> np.ndarray:
@@ -325,16 +331,31 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         lab = np.zeros(W.shape, np.int32)
         lab[rr, cc] = p + 1
         wt = Affine(t.a, t.b, t.c + t.a * Cc0 + t.b * Rr0, t.d, t.e, t.f + t.d * Cc0 + t.e * Rr0)
-        for g, v in shapes(lab, mask=lab > 0, connectivity=8, transform=wt):
+        for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
             geo_parts.add(int(v) - 1, g["coordinates"])
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h,
                    geo_parts, chm, dup, no_peak)
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
+    plant_like = free[:, 2] >= max(s.min_top, s.unclaimed_min_top)
+    out.noise_bumps = int((~plant_like).sum())
+    free = free[plant_like]
     fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
     out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
     return out
+
+
+def valid_polygons(geoms: np.ndarray) -> np.ndarray:
+    """The polygons made valid where they are not (a ring touching itself at a pixel corner, a box drawn
+    with its corners crossed), by GEOS's structure method, which keeps every pixel's area (``buffer(0)``
+    may drop one lobe of a bow-tie); collapsed parts (lines, points) are dropped."""
+    geoms = np.asarray(geoms, dtype=object).copy()
+    present = ~(shapely.is_missing(geoms) | shapely.is_empty(geoms))
+    bad = np.flatnonzero(present & ~shapely.is_valid(geoms))
+    if len(bad):
+        geoms[bad] = shapely.make_valid(geoms[bad], method="structure", keep_collapsed=False)
+    return geoms
 
 
 def _local(b: np.ndarray, R0: int, R1: int, C0: int, C1: int) -> np.ndarray:
@@ -436,6 +457,7 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     for k in np.unique(owner[~single[owner]]):  # a canopy in several pieces (leaves cut by the threshold)
         geometry[k] = shapely.union_all(polys[owner == k])
     geometry[shared] = geometry[dup[shared]]
+    geometry = valid_polygons(geometry)
     return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
                     flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
                     crs=getattr(chm, "crs", None))

@@ -1,6 +1,10 @@
 """Module 9's canopy part: outlines on every date, canopy-only statistics, growth between dates.
 
-For each date with a CHM, every plant is outlined (:mod:`~matchplant.spatial_stat_extractor.outlines`);
+For each date with a CHM, the CHM's ground noise is measured and checked, and ``canopy.min_height`` /
+``min_top`` left at ``auto`` follow from it (:mod:`~matchplant.spatial_stat_extractor.ground`); a later date's
+offset against the date before is measured (:mod:`~matchplant.spatial_stat_extractor.dates`): beyond
+``canopy.max_shift`` an error, or with ``canopy.register`` the boxes are moved by it. Every plant is then
+outlined (:mod:`~matchplant.spatial_stat_extractor.outlines`);
 on later dates, with ``canopy.recentre``, each plant is first re-centred on the local maximum nearest to
 its earlier top moved by the median shift of the plants around (within ``canopy.max_shift``), and the
 shift is reported. Then the CHM's canopy
@@ -10,7 +14,8 @@ percentiles, canopy pixels, area and volume, and every index (or the traits list
 Columns (``_<date>`` appended when there are several dates): ``canopy_pixels``, ``canopy_area_m2``,
 ``canopy_volume_m3``, ``top_x``, ``top_y``, ``top_height``, the tightened box ``tight_xmin`` ...
 ``tight_ymax``, ``outline_from`` (``chm`` or ``box``),
-``outline_flag``, ``shift_x``/``shift_y``/``shift_m`` (later dates), ``chm_canopy_max``,
+``outline_flag``, ``canopy_box_ratio`` and ``fills_box`` (an outline covering 90 % of its box or more: most
+likely its soil), ``shift_x``/``shift_y``/``shift_m`` (later dates), ``chm_canopy_max``,
 ``chm_canopy_pNN``, ``<trait>_canopy_<stat>``.
 """
 
@@ -25,27 +30,105 @@ import numpy as np
 import pandas as pd
 import shapely
 
+from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.canopy import canopy_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
+from matchplant.spatial_stat_extractor.dates import measure_offset, templates
 from matchplant.spatial_stat_extractor.extract import polygons_in
+from matchplant.spatial_stat_extractor.ground import GroundNoise, Thresholds, check_chm, measure_ground, thresholds
 from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings, segment
 from matchplant.spatial_stat_extractor.rasters import open_layer
 
 log = get_logger("spatial_stat_extractor")
 
-
-def settings_from(cfg: CanopyConfig) -> SegmentSettings:
-    return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=cfg.min_height, min_top=cfg.min_top,
-                           min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=cfg.ndvi_threshold)
+GUARD = 0.05  # m beyond each box plus margin before the ground sample starts (smoothed plant edges)
 
 
-def outline_columns(o: Outlines, previous: Outlines | None) -> dict[str, np.ndarray]:
+FILLS_BOX = 0.9  # an outline covering this share of its box or more is most likely the box's soil
+
+
+def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSettings:
+    """The segmentation settings; ``th``: the thresholds resolved for one CHM (``auto`` ones from its noise)."""
+    if th is None:
+        th = thresholds(cfg.min_height, cfg.min_top, GroundNoise())
+    return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
+                           min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=cfg.ndvi_threshold,
+                           unclaimed_min_top=th.unclaimed_min_top)
+
+
+def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:
+    """The config keys of a date's CHM, for messages."""
+    where = "rasters" if first else f"more_dates (date '{rs.date}')"
+    return (f"{where}.chm",) if rs.chm is not None else (f"{where}.dsm", f"{where}.dtm")
+
+
+def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool, entry: dict) -> Thresholds:
+    """The CHM's ground noise measured, the canopy thresholds resolved from it, the CHM checked; logged
+    and reported in ``entry``."""
+    noise = measure_ground(chm, geoms, guard_m=cfg.margin + GUARD)
+    th = thresholds(cfg.min_height, cfg.min_top, noise)
+    files = ", ".join(Path(p).name for p in ((rs.chm,) if rs.chm is not None else (rs.dsm, rs.dtm)))
+    check_chm(noise, th, cfg.max_height, files, chm_keys(rs, first))
+    if noise.measured:
+        log.info("date '%s': CHM ground noise p50 %.3f m, p95 %.3f m, SD %.3f m (%d pixels between the plants, "
+                 "%d windows)", rs.date, noise.p50, noise.p95, noise.sd, noise.pixels, noise.windows)
+    else:
+        log.warning("date '%s': too little bare ground between the plants (%d pixels) to measure the CHM's noise",
+                    rs.date, noise.pixels)
+    log.info("date '%s': canopy.min_height %.3f m: %s; canopy.min_top %.3f m: %s; canopies no box claims need a top "
+             "of %.3f m", rs.date, th.min_height, th.source["min_height"], th.min_top, th.source["min_top"],
+             th.unclaimed_min_top)
+    entry.update(ground_noise=noise.report(), min_height=round(th.min_height, 4), min_top=round(th.min_top, 4),
+                 unclaimed_min_top=round(th.unclaimed_min_top, 4), thresholds_from=th.source)
+    return th
+
+
+def date_offset(earlier, chm, cfg: CanopyConfig, rs: RasterSet, entry: dict) -> np.ndarray:
+    """The offset (m) to move this date's boxes by: zero within ``canopy.max_shift``; beyond it an error,
+    or with ``canopy.register`` the measured offset (:mod:`~matchplant.spatial_stat_extractor.dates`)."""
+    date, crs, tmpl = earlier
+    if tmpl is None:
+        return np.zeros(2)
+    if crs is not None and chm.crs is not None and not crs.equals(chm.crs):
+        log.info("date '%s': its CHM is in another CRS than date '%s'; its offset is not measured", rs.date, date)
+        return np.zeros(2)
+    off = measure_offset(tmpl, chm, cfg.max_shift)
+    entry["offset_to_" + (date or "previous")] = off.report()
+    # a shift clearly beyond max_shift: the peak well above the best correlation near no shift
+    beyond = off.windows > 0 and off.distance > cfg.max_shift + tmpl.resolution and off.score >= 0.3 and \
+        off.score > off.near + 0.05
+    if not beyond:
+        log.info("date '%s': its CHM is %.3f m off date '%s' (east %+.3f m, north %+.3f m; correlation %.2f)",
+                 rs.date, off.distance, date, off.dx, off.dy, off.score)
+        return np.zeros(2)
+    files = ", ".join(Path(p).name for p in ((rs.chm,) if rs.chm is not None else (rs.dsm, rs.dtm)))
+    if not cfg.register:
+        raise InputError(f"date '{rs.date}': its CHM ({files}) is shifted {off.distance:.2f} m (east {off.dx:+.2f} m, "
+                         f"north {off.dy:+.2f} m; correlation {off.score:.2f}, {off.near:.2f} without the shift) "
+                         f"against date '{date}', beyond canopy.max_shift = {cfg.max_shift:g} m: the two flights are "
+                         "georeferenced differently (one without GCPs?), and the boxes would measure the wrong "
+                         "plants", path=rs.chm if rs.chm is not None else rs.dsm,
+                         fix="georeference both flights with the same GCPs, or set canopy.register: true to move "
+                             f"date '{rs.date}' by the measured offset (raise canopy.max_shift only if the plants "
+                             "themselves moved that far)")
+    log.warning("date '%s': its CHM is shifted %.2f m (east %+.3f m, north %+.3f m) against date '%s'; moved back "
+                "by that offset (canopy.register); its box statistics are still over the unmoved boxes, its canopy "
+                "columns are over the moved ones", rs.date, off.distance, off.dx, off.dy, date)
+    entry["registered"] = {"dx": round(off.dx, 3), "dy": round(off.dy, 3)}
+    return np.array([off.dx, off.dy])
+
+
+def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[str, np.ndarray]:
     cols = {"canopy_pixels": o.pixels, "canopy_area_m2": o.area, "canopy_volume_m3": o.volume,
             "top_x": o.top[:, 0], "top_y": o.top[:, 1], "top_height": o.top[:, 2],
             "tight_xmin": o.tight_box[:, 0], "tight_ymin": o.tight_box[:, 1], "tight_xmax": o.tight_box[:, 2],
             "tight_ymax": o.tight_box[:, 3],
             "outline_from": np.where(o.from_box, "box", "chm"), "outline_flag": o.flag.astype(str)}
+    if geoms is not None:  # an outline that fills its box has most likely taken the box's soil for leaves
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(o.from_box, np.nan, o.area / shapely.area(np.asarray(geoms, dtype=object)))
+        cols.update(canopy_box_ratio=ratio, fills_box=np.nan_to_num(ratio) >= FILLS_BOX)
     if previous is not None:
         d = o.top[:, :2] - previous.top[:, :2]
         cols.update(shift_x=d[:, 0], shift_y=d[:, 1], shift_m=np.hypot(d[:, 0], d[:, 1]))
@@ -56,14 +139,15 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                   percentiles: Sequence[float], nodata: float | None = None):
     """Returns ``(per-date columns {date: DataFrame}, outlines GeoDataFrame (all dates), the first date's
     canopies that no box claims (DataFrame x, y, height, pixels: plants the detector missed), report)``."""
-    s = settings_from(cfg)
     ids = polygons["plant_id"].to_numpy()
     per_date: dict[str, pd.DataFrame] = {}
     frames = []
     report = {"dates": []}
     previous: Outlines | None = None
+    earlier = None  # (date, crs, Templates) of the last date with a CHM
+    moved = np.zeros(2)  # m: the registration of the current date against the first
     unclaimed = pd.DataFrame(columns=["x", "y", "height", "pixels"])
-    for rs in date_sets:
+    for i, rs in enumerate(date_sets):
         layers = rs.layers()
         chm_layer = next((la for la in layers if la.elevation), None)
         if chm_layer is None:
@@ -82,14 +166,23 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                     log.warning("canopy.ndvi_threshold ignored on date '%s': no multispectral raster on the "
                                 "CHM's grid", rs.date)
                     mask = None
+            step = np.zeros(2)
+            if earlier is not None:
+                step = date_offset(earlier, chm, cfg, rs, entry)
+                moved = moved + step
+            if moved.any():  # registered: the boxes onto this date's map
+                geoms = shapely.transform(np.asarray(geoms, dtype=object), lambda c, d=moved: c + d)
             seeds = None
             if previous is not None and cfg.recentre:
-                seeds = previous.top[:, :2].copy()
+                seeds = previous.top[:, :2] + step
                 lost = ~np.isfinite(seeds).all(axis=1)  # no top earlier: start from the box centre
                 centre = shapely.centroid(np.asarray(geoms, dtype=object)[lost])
                 seeds[lost] = np.stack([shapely.get_x(centre), shapely.get_y(centre)], axis=1)
-            o = segment(geoms, chm, s, mask_source=mask, seeds=seeds)
-            cols = outline_columns(o, previous if seeds is not None else None)
+            th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry)
+            o = segment(geoms, chm, settings_from(cfg, th), mask_source=mask, seeds=seeds)
+            if i < len(date_sets) - 1:  # windows of this CHM, to measure the next date's offset against
+                earlier = (rs.date, chm.crs, templates(chm, geoms, cfg.max_shift))
+            cols = outline_columns(o, previous if seeds is not None else None, geoms)
             hp = list(cfg.height_percentiles)
             for k, v in canopy_stats(o, chm, ["max", "mean"], hp).items():
                 cols[f"{chm_layer.name}_canopy_{k}"] = v
@@ -101,7 +194,16 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                     cols[f"{la.name}_canopy_{k}"] = v
         flags = pd.Series(o.flag[o.flag != ""]).value_counts().to_dict()
         entry.update(outlined=int((o.flag == "").sum()), kept_box={str(k): int(v) for k, v in flags.items()},
-                     unclaimed_canopies=int(len(o.unclaimed)))
+                     unclaimed_canopies=int(len(o.unclaimed)), unclaimed_below_noise=o.noise_bumps,
+                     fills_box=int(cols["fills_box"].sum()))
+        if entry["fills_box"]:
+            log.warning("date '%s': %d of %d outlines fill their box (canopy >= %d %% of the box, column fills_box): "
+                        "the CHM's soil may reach canopy.min_height (%.3f m; raise it if these plants are smaller "
+                        "than their boxes), or the plants outgrew boxes drawn on an earlier date", rs.date, entry["fills_box"], entry["outlined"], FILLS_BOX * 100,
+                        entry["min_height"])
+        if o.noise_bumps:
+            log.info("date '%s': %d canopies no box claims are ground-noise bumps (top below %.3f m), not plants; "
+                     "%d look like plants", rs.date, o.noise_bumps, entry["unclaimed_min_top"], len(o.unclaimed))
         if previous is None:
             unclaimed = pd.DataFrame(o.unclaimed, columns=["x", "y", "height", "pixels"])
         if seeds is not None:

@@ -1,0 +1,208 @@
+"""The CHM's bare ground: how noisy it is, the canopy thresholds that follow, and whether the CHM is plausible.
+
+A photogrammetric CHM (ODM's DSM - DTM) is not zero on bare soil: real ones have a median of ~1.6 cm and a
+95th percentile of ~7 cm there, so a fixed 2 cm threshold takes half the soil for leaves. The noise is
+measured from the data: windows around plants spread over the field are read (a few dozen, never the
+whole raster), and the CHM on the pixels farther than ``guard`` from every plant box is the ground sample.
+Its spread is robust to the weeds and missed plants in it: the larger of 1.4826 x MAD and
+(p90 - p50) / 1.2816 (the upper half, which a skewed, heavy-tailed ground noise widens). With
+``canopy.min_height`` / ``min_top`` left at ``auto``:
+
+* ``min_height`` = max(2 cm, p50 + 3 SD): a canopy pixel is above almost all of the ground (0.1 % of a
+  Gaussian ground);
+* ``min_top`` = max(5 cm, p50 + 4 SD, min_height): a box whose top stays lower holds nothing the CHM tells
+  from soil (flagged ``low``);
+* a canopy no box claims is a plant only with a top of at least max(min_top, p50 + 6 SD) (always, numbers
+  given or not): the highest ground bumps of a whole field reach ~5 SD, and the detector did not see these.
+
+The same windows give each sampled box's highest and lowest CHM value, from which :func:`check_chm` tells
+a CHM that cannot be right: negative under the plants (DSM and DTM swapped), bare ground far from zero (a
+DSM given as the CHM, DSM and DTM in different units or datums), plants taller than ``canopy.max_height``
+(a CHM in centimetres), a ``min_height`` / ``min_top`` above every plant's top (5 meant as 5 cm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+
+from matchplant.core.runtime.errors import ConfigError, InputError
+
+FLOOR_HEIGHT, FLOOR_TOP = 0.02, 0.05  # m: the thresholds of an exact CHM (no noise measured)
+K_HEIGHT, K_TOP, K_UNCLAIMED = 3.0, 4.0, 6.0  # SDs of the ground noise (see the module doc)
+MIN_GROUND = 500  # ground pixels needed to measure the noise
+MAX_WINDOWS = 32
+MIN_WINDOWS = 4
+MAX_HALF = 256  # px: half the side of a sample window
+GROUND_PER_WINDOW = 20000  # ground values kept per window (evenly strided)
+
+
+@dataclass
+class GroundNoise:
+    """The CHM on bare ground (m); ``sd`` NaN when too little ground was seen to measure it."""
+
+    pixels: int = 0
+    windows: int = 0
+    p50: float = np.nan
+    p95: float = np.nan
+    p99: float = np.nan
+    sd: float = np.nan
+    box_max: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per sampled box (plant tops)
+    box_min: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def measured(self) -> bool:
+        return bool(np.isfinite(self.sd))
+
+    def report(self) -> dict:
+        r = {"ground_pixels": self.pixels, "windows": self.windows}
+        if self.measured:
+            r.update(p50=round(self.p50, 4), p95=round(self.p95, 4), p99=round(self.p99, 4), sd=round(self.sd, 4))
+        return r
+
+
+@dataclass
+class Thresholds:
+    min_height: float
+    min_top: float
+    unclaimed_min_top: float
+    source: dict  # key -> "auto (...)" or "set"
+
+
+def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
+    """Pixels inside any of the integer rectangles (c0, r0, c1, r1), clipped to ``shape``: a 2-D
+    difference array summed twice (no loop over boxes)."""
+    h, w = shape
+    r = rects.copy()
+    r[:, [0, 2]] = np.clip(r[:, [0, 2]], 0, w)
+    r[:, [1, 3]] = np.clip(r[:, [1, 3]], 0, h)
+    r = r[(r[:, 2] > r[:, 0]) & (r[:, 3] > r[:, 1])]
+    d = np.zeros((h + 1, w + 1), np.int32)
+    np.add.at(d, (r[:, 1], r[:, 0]), 1)
+    np.add.at(d, (r[:, 1], r[:, 2]), -1)
+    np.add.at(d, (r[:, 3], r[:, 0]), -1)
+    np.add.at(d, (r[:, 3], r[:, 2]), 1)
+    return d.cumsum(0).cumsum(1)[:h, :w] > 0
+
+
+def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -> GroundNoise:
+    """The ground sample (see the module doc) from up to ``max_windows`` windows around plants spread
+    over the field, and the highest / lowest CHM value in each box wholly inside a window."""
+    t = chm.transform
+    res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
+    geoms = np.asarray(geoms, dtype=object)
+    b = shapely.bounds(geoms)
+    ok = np.isfinite(b).all(axis=1)
+    if not ok.any():
+        return GroundNoise()
+    inv = ~t
+    c0, r0 = inv @ (b[ok, 0], b[ok, 3])
+    c1, r1 = inv @ (b[ok, 2], b[ok, 1])
+    box = np.stack([np.minimum(c0, c1), np.minimum(r0, r1), np.maximum(c0, c1), np.maximum(r0, r1)], axis=1)
+    inner = np.stack([np.floor(box[:, 0] + 0.5), np.floor(box[:, 1] + 0.5), np.floor(box[:, 2] + 0.5),
+                      np.floor(box[:, 3] + 0.5)], axis=1).astype(np.int64)  # pixel centres inside
+    g = int(np.ceil(guard_m / res))
+    guarded = np.stack([np.floor(box[:, 0]) - g, np.floor(box[:, 1]) - g, np.ceil(box[:, 2]) + g,
+                        np.ceil(box[:, 3]) + g], axis=1).astype(np.int64)
+    size = np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))
+    half = int(np.clip(3 * size + 2 * g, 32, MAX_HALF))
+    centre = np.stack([(box[:, 1] + box[:, 3]) / 2, (box[:, 0] + box[:, 2]) / 2], axis=1)
+    inside = (centre[:, 0] >= 0) & (centre[:, 0] < chm.height) & (centre[:, 1] >= 0) & (centre[:, 1] < chm.width)
+    order = np.flatnonzero(inside)[np.lexsort((centre[inside, 1], centre[inside, 0]))]  # by row, then column
+    if not len(order):
+        return GroundNoise()
+    # no more windows than it takes to cover the raster once (a small field is read about once)
+    k_max = int(np.clip(np.ceil(chm.height * chm.width / (2 * half) ** 2), MIN_WINDOWS, max_windows))
+    picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
+    ground, tops, lows, seen = [], [], [], np.zeros(len(box), bool)
+    for k in picks:
+        R0 = int(max(0, centre[k, 0] - half))
+        R1 = int(min(chm.height, centre[k, 0] + half))
+        C0 = int(max(0, centre[k, 1] - half))
+        C1 = int(min(chm.width, centre[k, 1] + half))
+        W = np.asarray(chm.read(R0, R1, C0, C1), dtype=float)
+        near = (guarded[:, 2] > C0) & (guarded[:, 0] < C1) & (guarded[:, 3] > R0) & (guarded[:, 1] < R1)
+        off = np.array([C0, R0, C0, R0])
+        free = ~_covered(W.shape, guarded[near] - off) & np.isfinite(W)
+        v = W[free]
+        ground.append(v[:: max(1, v.size // GROUND_PER_WINDOW)])
+        whole = near & ~seen & (inner[:, 0] >= C0) & (inner[:, 2] <= C1) & (inner[:, 1] >= R0) & \
+            (inner[:, 3] <= R1) & (inner[:, 2] > inner[:, 0]) & (inner[:, 3] > inner[:, 1])
+        for j in np.flatnonzero(whole):  # a few dozen boxes per window
+            a = W[inner[j, 1] - R0:inner[j, 3] - R0, inner[j, 0] - C0:inner[j, 2] - C0]
+            if np.isfinite(a).any():
+                tops.append(np.nanmax(a))
+                lows.append(np.nanmin(a))
+        seen |= whole
+    v = np.concatenate(ground) if ground else np.zeros(0)
+    out = GroundNoise(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows))
+    if v.size >= MIN_GROUND:
+        p50, p90, p95, p99 = np.percentile(v, [50, 90, 95, 99])
+        mad = 1.4826 * np.median(np.abs(v - p50))
+        out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
+        out.sd = float(max(mad, (p90 - p50) / 1.2816))
+    return out
+
+
+def thresholds(min_height, min_top, noise: GroundNoise) -> Thresholds:
+    """The canopy thresholds (m): numbers as given, ``"auto"`` from the ground noise (module doc)."""
+    src = {}
+    base = noise.p50 if noise.measured else 0.0
+    sd = noise.sd if noise.measured else 0.0
+    why = f"ground p50 {base:.3f} m + {{k:g}} x SD {sd:.3f} m" if noise.measured else "no ground noise measured"
+    if min_height == "auto":
+        min_height = max(FLOOR_HEIGHT, base + K_HEIGHT * sd)
+        src["min_height"] = f"auto ({why.format(k=K_HEIGHT)}, at least {FLOOR_HEIGHT} m)"
+    else:
+        src["min_height"] = "set"
+    if min_top == "auto":
+        min_top = max(FLOOR_TOP, base + K_TOP * sd, float(min_height))
+        src["min_top"] = f"auto ({why.format(k=K_TOP)}, at least {FLOOR_TOP} m and min_height)"
+    else:
+        src["min_top"] = "set"
+    unclaimed = max(float(min_top), base + K_UNCLAIMED * sd)
+    return Thresholds(float(min_height), float(min_top), float(unclaimed), src)
+
+
+def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:
+    """Clear errors for a CHM that cannot be right (module doc). ``what``: the CHM's files for the
+    message; ``keys``: its config keys (``rasters.chm`` or ``rasters.dsm``, ``rasters.dtm``)."""
+    tops, lows = noise.box_max, noise.box_min
+    base = noise.p50 if noise.measured else 0.0
+    sd = noise.sd if noise.measured else 0.0
+    named = " and ".join(keys)
+    if len(tops) >= 3:
+        down, up = base - lows, tops - base
+        negative = (down > np.maximum(2 * up, max(5 * sd, 0.05)))
+        if negative.mean() > 0.5:
+            if len(keys) == 2:
+                fix = f"swap {keys[0]} and {keys[1]} (the DSM is the surface, the higher one)"
+            else:
+                fix = f"give {keys[0]} as surface minus terrain (DSM - DTM), not the reverse"
+            raise InputError(f"the CHM from {what} is negative under {int(negative.sum())} of {len(tops)} plants "
+                             f"sampled (median {np.median(-down):.2f} m below the ground): {named} look swapped",
+                             fix=fix)
+    if len(tops):
+        tall = float(np.median(tops) - base)
+        if tall > max_height:
+            raise InputError(f"the CHM from {what} makes the plants {tall:.1f} m tall (median of {len(tops)} "
+                             f"sampled, highest {np.max(tops):.1f} m), above canopy.max_height = {max_height:g} m: "
+                             f"are {named} in centimetres?",
+                             fix="convert them to metres (e.g. gdal_calc.py -A dsm.tif --calc=\"A/100\" "
+                                 "--outfile=dsm_m.tif), or raise canopy.max_height for taller plants")
+    if noise.measured and abs(base) > max(1.0, 3 * sd):  # an offset, not a noise in other units
+        raise InputError(f"the CHM from {what} puts the bare ground {base:.2f} m from zero (median between the "
+                         f"plants): {named} are not a height above the ground (a DSM given as the CHM, or DSM "
+                         "and DTM in different units or vertical datums)",
+                         fix="give the CHM as DSM - DTM of one flight, both in metres (rasters.dsm + rasters.dtm)")
+    if len(tops):
+        highest = float(np.max(tops))
+        for key in ("min_height", "min_top"):
+            v = getattr(th, key)
+            if th.source[key] == "set" and v > highest:
+                raise ConfigError(f"canopy.{key} = {v:g} m is above the top of every plant sampled (the highest "
+                                  f"{highest:.2f} m, {len(tops)} plants): heights are in metres",
+                                  fix=f"set canopy.{key}: {v / 100:g} for {v:g} cm, or auto (from the CHM's "
+                                      "ground noise)")

@@ -1,0 +1,238 @@
+"""Module 9's canopy on a photogrammetric-looking CHM (issue 26, points 3 and 4; issue 27, CHM sanity): the
+ground noise measured against the noise put in, outlines that stay inside low plants (canopy/box <= 0.7)
+and match the true footprint, no ground bump counted as a plant, valid polygons in every GIS file of a run,
+and clear errors for a CHM that cannot be right."""
+
+from __future__ import annotations
+
+import json
+
+import geopandas as gpd
+import numpy as np
+import pandas as pd
+import pytest
+import rasterio
+import shapely
+from noisy_chm import noisy_chm
+from rasterio.features import rasterize
+from scipy import ndimage as ndi
+
+from matchplant.core.runtime.config import load_config
+from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.spatial_stat_extractor.config import (
+    CanopyConfig,
+    RasterSet,
+    SpatialStatExtractorConfig,
+)
+from matchplant.spatial_stat_extractor.ground import (
+    check_chm,
+    measure_ground,
+    thresholds,
+)
+from matchplant.spatial_stat_extractor.outlines import (
+    SegmentSettings,
+    segment,
+    valid_polygons,
+)
+from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.run import extract_and_write
+from matchplant.spatial_stat_extractor.traits import canopy_traits
+from matchplant.spatial_stat_extractor.zonal import ArraySource
+
+CRS = "EPSG:32614"
+
+
+@pytest.fixture(scope="module")
+def field():
+    return noisy_chm(seed=1)
+
+
+def pixel_iou(geoms, f) -> np.ndarray:
+    """IoU of each outline (rasterised, pixel centres) with its plant's true footprint (leaf pixels)."""
+    n = len(geoms)
+    pred = rasterize(((g, k + 1) for k, g in enumerate(geoms)), out_shape=f.chm.shape, transform=f.transform,
+                     dtype="int32").ravel()
+    truth = f.truth.ravel()
+    inter = np.bincount(pred[(pred == truth) & (pred > 0)], minlength=n + 1)[1:]
+    union = np.bincount(pred, minlength=n + 1)[1:] + np.bincount(truth, minlength=n + 1)[1:] - inter
+    return inter / union
+
+
+def auto_settings(src, f):
+    noise = measure_ground(src, f.boxes, guard_m=0.1)
+    th = thresholds("auto", "auto", noise)
+    return noise, th, SegmentSettings(min_height=th.min_height, min_top=th.min_top,
+                                      unclaimed_min_top=th.unclaimed_min_top)
+
+
+def test_ground_noise_measured_and_outlines_inside_low_plants(field):
+    f = field
+    src = ArraySource(f.chm, f.transform)
+    noise, th, s = auto_settings(src, f)
+    # the noise put in (correlated N(1.5 cm, 3 cm) between the plants), measured from the CHM alone
+    assert noise.p50 == pytest.approx(f.ground_p50, abs=0.003)
+    assert noise.p95 == pytest.approx(f.ground_p95, abs=0.005)
+    assert noise.sd == pytest.approx(f.ground_sd, rel=0.1)
+    assert th.min_height == pytest.approx(f.ground_p50 + 3 * f.ground_sd, abs=0.01)
+    o = segment(f.boxes, src, s)
+    out = ~o.from_box
+    assert out.mean() > 0.85  # only plants of 15-30 cm, which the CHM cannot tell from soil, keep their box
+    assert (f.height[o.from_box] < 0.3).all()
+    ratio = o.area[out] / shapely.area(f.boxes[out])
+    assert np.median(ratio) <= 0.5 and ratio.max() <= 0.7
+    iou = pixel_iou(o.geometry, f)
+    assert np.median(iou[out]) >= 0.5
+    # no ground bump is taken for a plant the detector missed
+    assert len(o.unclaimed) == 0 and o.noise_bumps > 0
+    # the old fixed thresholds (2 cm, 5 cm) on the same CHM: outlines spill over the boxes, bumps are plants
+    old = segment(f.boxes, src, SegmentSettings())
+    assert np.median(old.area / shapely.area(f.boxes)) > 0.7 and len(old.unclaimed) > 50
+    assert np.median(pixel_iou(old.geometry, f)) < np.median(iou[out]) - 0.15
+
+
+def test_an_exact_chm_keeps_the_fixed_floor():
+    """A CHM without noise (bare ground exactly 0) falls back to 2 cm and 5 cm."""
+    f = noisy_chm(seed=2, noise_sd=1e-9, bias=0.0)
+    src = ArraySource(np.where(np.isfinite(f.chm), np.round(f.chm, 6), np.nan), f.transform)
+    th = thresholds("auto", "auto", measure_ground(src, f.boxes, guard_m=0.1))
+    assert (th.min_height, th.min_top) == (0.02, 0.05)
+    assert thresholds(0.03, "auto", measure_ground(src, f.boxes, 0.1)).source["min_height"] == "set"
+
+
+def test_valid_polygons_keep_every_pixel():
+    """Pixels touching only at a corner: a ring that touches itself is invalid; the repair keeps its area."""
+    bow = shapely.Polygon([(0, 0), (1, 0), (1, 1), (2, 1), (2, 2), (1, 2), (1, 1), (0, 1)])
+    cross = shapely.Polygon([(0, 0), (2, 2), (2, 0), (0, 2)])
+    assert not bow.is_valid and not cross.is_valid
+    fixed = valid_polygons(np.array([bow, cross, shapely.box(0, 0, 1, 1), None], dtype=object))
+    assert shapely.is_valid(fixed[:3]).all() and fixed[3] is None
+    assert fixed[0].area == pytest.approx(2.0) and fixed[1].area == pytest.approx(2.0)
+    # a checkerboard canopy outlined: valid, and its area is the pixels' area
+    t = rasterio.Affine(0.01, 0, 0, 0, -0.01, 1)
+    chm = np.zeros((40, 40))
+    rr, cc = np.mgrid[0:40, 0:40]
+    chm[(rr > 5) & (rr < 35) & (cc > 5) & (cc < 35)] = 0.2
+    chm[((rr + cc) % 2 == 0) & (rr > 8) & (rr < 20)] = 0.0  # leaves touching at their corners
+    chm[20, 20] = 0.3
+    o = segment([shapely.box(0.05, 0.65, 0.35, 0.95)], ArraySource(chm, t), SegmentSettings(margin=0.0))
+    assert o.flag[0] == "" and shapely.is_valid(o.geometry[0])
+    assert o.geometry[0].area == pytest.approx(o.pixels[0] * 1e-4, abs=1e-4)
+
+
+def write_field(f, folder):
+    folder.mkdir(parents=True, exist_ok=True)
+    chm = write_chm(folder / "chm.tif", f.chm, f.transform)
+    boxes = folder / "plants.gpkg"
+    gpd.GeoDataFrame({"plant_id": np.arange(1, len(f.boxes) + 1)}, geometry=list(f.boxes), crs=CRS).to_file(boxes)
+    return chm, boxes
+
+
+def test_module_9_on_a_noisy_chm_writes_only_valid_polygons(field, tmp_path):
+    """A whole module 9 run (outlines, plots from a grid): every geometry of every GIS file is valid; the
+    outlines' area is their pixels' area; plants under 1 m keep to their boxes; the unclaimed bumps stay
+    out of the stand counts; the noise and thresholds are reported."""
+    f = field
+    chm, boxes = write_field(f, tmp_path / "in")
+    x0, y0, x1, y1 = f.transform.c, f.transform.f - 3.2, f.transform.c + 6.0, f.transform.f
+    corners = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]]
+    cfg = load_config(SpatialStatExtractorConfig, None, [
+        f"polygons={boxes}", f"rasters.chm={chm}", f"output_dir={tmp_path / 'out'}",
+        "vector_formats=[gpkg, shp, geojson]", f"plots.corners={json.dumps(corners)}", "plots.columns=2",
+        "plots.ranges=2", "plots.rows_per_plot=2", "plots.plant_spacing=0.3"])
+    _, _, report, written = extract_and_write(cfg)
+    gis = [p for p in written.values() if str(p).endswith((".gpkg", ".shp", ".geojson"))]
+    assert {"outlines.gpkg", "plots.gpkg", "stats.gpkg", "polygons.gpkg"} <= {p.name for p in gis}
+    for path in gis:
+        g = gpd.read_file(path)
+        assert len(g) and g.geometry.is_valid.all(), path.name
+    outlines = gpd.read_file(written["outlines_gpkg"])
+    mine = outlines["outline_from"] == "chm"
+    assert np.allclose(outlines.area[mine], outlines["canopy_pixels"][mine] * 1e-4, atol=1e-4)
+    ratio = outlines["canopy_box_ratio"][mine]
+    assert ratio.max() <= 0.7 and not outlines["fills_box"].any()
+    entry = report["canopy"]["dates"][0]
+    assert entry["ground_noise"]["sd"] == pytest.approx(f.ground_sd, rel=0.1)
+    assert entry["thresholds_from"]["min_height"].startswith("auto")
+    assert entry["unclaimed_below_noise"] > 0 and entry["unclaimed_canopies"] == 0
+    plots = pd.read_csv(written["plots_csv"])
+    assert plots["unclaimed"].sum() == 0
+    assert plots["stand_count"].sum() == (~outlines["outline_flag"].isin(["low", "no_peak"])).sum()
+
+
+def test_fills_box_flagged_when_the_threshold_is_below_the_soil(field, tmp_path):
+    f = field
+    chm, boxes = write_field(f, tmp_path / "in")
+    cfg = load_config(SpatialStatExtractorConfig, None, [
+        f"polygons={boxes}", f"rasters.chm={chm}", f"output_dir={tmp_path / 'out'}", "vector_formats=[]",
+        "canopy.min_height=0.0", "canopy.min_top=0.05", "canopy.margin=0", "canopy.relative=0"])
+    _, table, report, _ = extract_and_write(cfg)
+    assert report["canopy"]["dates"][0]["fills_box"] == int(table["fills_box"].sum()) > len(table) // 2
+    assert (table.loc[table["fills_box"], "canopy_box_ratio"] >= 0.9).all()
+
+
+def sample(f, chm):
+    src = ArraySource(chm, f.transform)
+    noise = measure_ground(src, f.boxes, 0.1)
+    return noise
+
+
+def test_chm_sanity(field):
+    f = field
+    auto = ("auto", "auto")
+    # DSM and DTM swapped: the CHM is negative under the plants
+    n = sample(f, -f.chm)
+    with pytest.raises(InputError, match=r"(?s)negative under \d+ of \d+ plants.*rasters.dsm and rasters.dtm "
+                                         r"look swapped.*swap rasters.dsm and rasters.dtm"):
+        check_chm(n, thresholds(*auto, n), 10.0, "dsm.tif, dtm.tif", ("rasters.dsm", "rasters.dtm"))
+    # in centimetres
+    n = sample(f, 100 * f.chm)
+    with pytest.raises(InputError, match=r"(?s)above canopy.max_height = 10 m.*centimetres.*A/100"):
+        check_chm(n, thresholds(*auto, n), 10.0, "chm.tif", ("rasters.chm",))
+    check_chm(n, thresholds(*auto, n), 100.0, "chm.tif", ("rasters.chm",))  # trees: max_height raised
+    # a DSM given as the CHM: the ground 350 m above zero
+    n = sample(f, 350 + f.chm)
+    with pytest.raises(InputError, match="bare ground 350"):
+        check_chm(n, thresholds(*auto, n), 1000.0, "dsm.tif", ("rasters.chm",))
+    # canopy.min_top: 5 meant as 5 cm
+    n = sample(f, f.chm)
+    with pytest.raises(ConfigError, match=r"(?s)canopy.min_top = 5 m is above the top of every plant.*set canopy.min_top"
+                                          r": 0.05 for 5 cm"):
+        check_chm(n, thresholds("auto", 5.0, n), 10.0, "chm.tif", ("rasters.chm",))
+    check_chm(n, thresholds(*auto, n), 10.0, "chm.tif", ("rasters.chm",))  # the right CHM passes
+
+
+def write_chm(path, chm, transform):
+    with rasterio.open(path, "w", driver="GTiff", width=chm.shape[1], height=chm.shape[0], count=1,
+                       dtype="float32", crs=CRS, transform=transform, nodata=-9999) as ds:
+        ds.write(np.where(np.isfinite(chm), chm, -9999).astype("float32"), 1)
+    return path
+
+
+def test_a_later_flight_georeferenced_apart_is_caught_and_registered(field, tmp_path):
+    """A second flight 1.5 m off (east 1.45 m, north 0.35 m; no GCPs), the plants grown and the ground noise
+    its own: an error naming the shift and the keys; with canopy.register the measured offset moves the boxes
+    and every plant is found again."""
+    f = field
+    rng = np.random.default_rng(7)
+    noise = ndi.gaussian_filter(rng.normal(0, 1, f.chm.shape), 2.0)
+    later = 1.25 * np.nan_to_num(f.chm - f.ground_p50) + f.ground_p50 + 0.02 * noise / noise.std()
+    true = np.array([1.45, 0.35])
+    chm1 = write_chm(tmp_path / "chm1.tif", f.chm, f.transform)
+    chm2 = write_chm(tmp_path / "chm2.tif", later, rasterio.Affine.translation(*true) @ f.transform)
+    _, boxes = write_field(f, tmp_path / "in")
+    plants = read_polygons(boxes)
+    sets = [RasterSet(date="d1", chm=chm1), RasterSet(date="d2", chm=chm2)]
+    with pytest.raises(InputError, match=r"(?s)date 'd2'.*shifted 1\.4\d m.*beyond canopy.max_shift = 0\.1 m.*"
+                                         r"canopy.register: true"):
+        canopy_traits(plants, sets, CanopyConfig(), ["mean"], [])
+    per_date, _, _, report = canopy_traits(plants, sets, CanopyConfig(register=True), ["mean"], [])
+    got = report["dates"][1]["registered"]
+    assert np.hypot(got["dx"] - true[0], got["dy"] - true[1]) < 0.02
+    d1, d2 = per_date["d1"], per_date["d2"]
+    ok = d1["outline_flag"] == ""
+    assert (d2.loc[ok, "outline_flag"] == "").mean() > 0.95
+    moved = np.hypot(d2["top_x"] - d1["top_x"] - true[0], d2["top_y"] - d1["top_y"] - true[1])[ok]
+    assert np.median(moved) < 0.02
+    # the same flight, not shifted: no error, the offset reported near zero
+    _, _, _, report = canopy_traits(plants, [sets[0], RasterSet(date="d2", chm=chm1)], CanopyConfig(), ["mean"], [])
+    assert report["dates"][1]["offset_to_d1"]["distance"] < 0.01 and "registered" not in report["dates"][1]
