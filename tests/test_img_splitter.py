@@ -247,13 +247,24 @@ def test_bad_inputs_are_clear_errors(field, tmp_path):
         _cfg(field, split="[0.5, 0.5]")
     with pytest.raises(ConfigError, match="'split' shares must add up to 1"):   # not normalised silently
         _cfg(field, split="[0.6, 0.3, 0.3]")
-    with pytest.raises(ConfigError, match="tile_size"):                      # larger than every image
-        run(_cfg(field, tile_size=1024, overlap=0))
+    # a tile larger than every image: no tiling, each image whole as one tile (inspect's advice for large
+    # objects), with its boxes as they are
+    whole = run(_cfg(field, tile_size=1024, overlap=0, negative_share=1.0, output_dir=field / "whole",
+                     split="[1, 0, 0]"))
+    ds = _load(field / "whole", "train")
+    assert whole["tiles"] == len(ds["images"]) and all((im["x0"], im["y0"]) == (0, 0) for im in ds["images"])
+    sizes = {im["file_name"]: (im["width"], im["height"]) for im in ann_images(field)}
+    assert {im["source_image"]: (im["width"], im["height"]) for im in ds["images"]} == \
+        {k: v for k, v in sizes.items() if k in {im["source_image"] for im in ds["images"]}}
     ann = json.loads((field / "annotations.json").read_text())
     write_dataset(field / "no_boxes.json", dict(ann, annotations=[]))
     with pytest.raises(InputError, match="no box"):                          # no silent negatives-only tiles
         run(_cfg(field, annotations=field / "no_boxes.json"))
     assert not (field / "out").exists()                                      # nothing written by failed runs
+
+
+def ann_images(field: Path) -> list[dict]:
+    return json.loads((field / "annotations.json").read_text())["images"]
     other = tmp_path / "other"
     other.mkdir()
     cv2.imwrite(str(other / "x.png"), np.zeros((10, 10, 3), np.uint8))

@@ -80,11 +80,10 @@ TINY = ["--set", "model.rpn.pre_nms_top_n_train=200", "--set", "model.rpn.post_n
         "--set", "model.roi.batch_size_per_image=64", "--set", "epochs=1", "--set", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "--set",
         "model.pretrained=none", "--set", "model.min_size=128", "--set", "model.max_size=160", "--set",
         "num_workers=0", "--set", "warmup_iters=0", "--set", "device=cpu", "--set", "batch_size=2"]
-# the tiny field's photos are 400 x 300 px: module 5 cuts them into tiles of 200 px (its default 1024 is
-# larger than the photos)
+# module 5 runs as printed: its default 1024 px tile is larger than the tiny field's 400 x 300 px photos, so
+# each photo is one tile (no tiling), as on the demo's photos
 # module 7: the one-epoch model's boxes score low; keep them all (the true boxes stand in for module 8 anyway)
-EXTRA = {"model_train": TINY, "img_splitter": ["--set", "tile_size=200", "--set", "overlap=40"],
-         "model_test": ["--set", "detect.score_threshold=0.0"]}
+EXTRA = {"model_train": TINY, "model_test": ["--set", "detect.score_threshold=0.0"]}
 # commands that read what a later module writes run after it
 RUN_AFTER = {"import_predictions=": 7.5}
 STEP_NUMBERS = {"gps_embeder": 0, "gcp_finder": 1, "odm_runner": 2, "min_img_finder": 3, "bbox_drawer": 4,
@@ -191,7 +190,7 @@ def substitute(command: str, ws) -> list[str]:
             token = f"{key}={SUBSTITUTIONS[value].format(**names)}"
         elif token in SUBSTITUTIONS:
             token = SUBSTITUTIONS[token].format(**names)
-        elif token == "my.yaml":
+        elif re.fullmatch(r"my(_\w+)?\.yaml", token):  # the user's own config, written with --write-config
             step = step_of(command)
             path = ws["u"] / f"my_{step}.yaml"
             path.write_text(yaml.safe_dump({k: v.format(**names) for k, v in MY_YAML[step].items()}))

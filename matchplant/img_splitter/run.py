@@ -247,17 +247,17 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
 
 
 def check_tile_size(cfg: ImgSplitterConfig, sources: list[Source]) -> None:
-    """A tile larger than every image is an error (each image would be one odd-sized tile); larger than some
-    images, a warning."""
+    """A tile at least as large as every image means no tiling: each image is one tile (what ``matchplant
+    inspect`` advises when the objects are large enough at the photos' own size), said in the log. Larger than
+    only some images: those are one tile each, with a warning (the others are cut)."""
     small = [s for s in sources if cfg.tile_size > s.width or cfg.tile_size > s.height]
     if not small:
         return
-    side = max(max(s.width, s.height) for s in sources)
-    if all(cfg.tile_size > max(s.width, s.height) for s in sources):
-        raise ConfigError(f"'tile_size' ({cfg.tile_size} px) is larger than every image (e.g. {small[0].name}: "
-                          f"{small[0].width}x{small[0].height} px): there is nothing to tile",
-                          fix=f"set tile_size below the image size (e.g. {max(32, min(s.height for s in sources) // 2)}"
-                              f"), or to {side} to use whole images")
+    if all(cfg.tile_size >= max(s.width, s.height) for s in sources):
+        log.info("'tile_size' (%d px) is at least the size of every image (largest %d px): no tiling, each "
+                 "image is one tile (set tile_size below the image size to cut them)", cfg.tile_size,
+                 max(max(s.width, s.height) for s in sources))
+        return
     log.warning("'tile_size' (%d px) is larger than %d of %d image(s) in width or height (e.g. %s: %dx%d px): their "
                 "tiles are cut to the image", cfg.tile_size, len(small), len(sources), small[0].name,
                 small[0].width, small[0].height)
