@@ -12,14 +12,37 @@
    figures (``traits.height_r``, ``traits.ndvi_r``, ``traits.outline_iou_median``,
    ``plots.stand_count_exact_share``, ...).
 
-Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps.
+The detections that are projected and scored come only from photos the detector never saw: every
+photo of the flight outside module 5's train and val splits (module 3's unselected photos and the test
+split), linked into ``heldout_images/``; ``summary.json`` lists them (``held_out``).
+
+With ``--noise realistic`` a second field of the same scene is generated with a photogrammetric DSM/DTM,
+a 5-band multispectral raster and anti-aliased masks (simfield/noise.py); its photos are the exact field's,
+so modules 8 and 9 run again on it with the same detections (``noisy/``), and the report and
+``summary.json`` (``noisy``) give its figures beside the exact field's.
+
+Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps. Ctrl-C
+stops it with one line (exit 130); the finished steps are kept.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
+import signal
 import sys
+
+
+def _interrupted_while_starting(signum, frame):  # Ctrl-C while the libraries load: one line, no traceback
+    print("interrupted (Ctrl-C) while starting; nothing was written", file=sys.stderr)
+    raise SystemExit(130)
+
+
+if __name__ == "__main__":  # installed before the slow imports below (several seconds on a busy machine)
+    signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+import argparse  # (after the Ctrl-C handler on purpose)
+import json
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -56,6 +79,15 @@ REPO = Path(__file__).resolve().parents[1]
 # the README's demo table lies between these lines (python -m matchplant.demo --update-docs rewrites it)
 TABLE_START = "<!-- demo table: written by python -m matchplant.demo --update-docs -->"
 TABLE_END = "<!-- end of demo table -->"
+HELD_OUT = "heldout_images"  # the photos the detector never saw, linked for module 7
+FIRST_STEPS = 6  # steps 0-5 run first: module 5's split decides which photos are held out
+NOISY = "noisy"  # modules 8 and 9 on the realistic field, under <out>/noisy
+# how far another machine's run may land from the README's figures (thread counts and CPU kernels change the
+# training arithmetic; the same machine and thread count give the same figures): issue 29's second machine
+TOLERANCE = ("the same machine and thread count repeat every figure exactly; another machine or thread count "
+             "trains a slightly different detector: AP within about 10 points, plants matched and IoU > 0.5 "
+             "within about 8 points, stand counts within about 5 points; height and NDVI r within 0.01 on the "
+             "exact field")
 
 
 def _step(name: str, module: str, **config) -> dict:
@@ -89,18 +121,61 @@ def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrai
               val_json="${5_tiles.output_dir}/val.json", model=model, epochs=epochs, max_minutes=minutes, batch_size=4,
               num_workers=0, warmup_iters=20, step_size=20, save_every=0,
               lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
+        # detection on the photos the detector never saw (module 5's test split and module 3's unselected
+        # photos): only they are projected and scored
         _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
               evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
-              detect={"images": "${3_select.output_dir}/images", "tile_size": tile, "overlap": tile // 4}),
-        _step("8_plants", "plant_projection", project="${field}", predictions="${7_detect.output_dir}/predictions.json",
-              mode="both", evaluate={"reference": "${field}/truth/map_boxes.csv"}),
-        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg",
-              rasters={"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-                       "multispectral": "${field}/multispectral/multispectral.tif",
-                       "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"},
+              detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4}),
+        *map_steps(field, "${7_detect.output_dir}/predictions.json"),
+    ]
+    return {"output_dir": ".", "field": str(field), "crs": crs, "held_out_images": HELD_OUT, "steps": steps}
+
+
+def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
+    """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics. ``bands``: red and
+    NIR band numbers of the multispectral raster (None: the exact field's, 1 and 2)."""
+    rasters = {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
+               "multispectral": "${field}/multispectral/multispectral.tif",
+               "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"}
+    if bands:
+        rasters.update(red_band=bands[0], nir_band=bands[1])
+    return [
+        _step("8_plants", "plant_projection", project="${field}", predictions=predictions, mode="both",
+              evaluate={"reference": "${field}/truth/map_boxes.csv"}),
+        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg", rasters=rasters,
               plots=_plots_section(field)),
     ]
-    return {"output_dir": ".", "field": str(field), "crs": crs, "steps": steps}
+
+
+def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:
+    """Modules 8 and 9 on the realistic field with the exact run's detections (the photos are the same);
+    its 5-band raster holds red in band 3 and NIR in band 5 (simfield/noise.py)."""
+    return {"output_dir": NOISY, "field": str(field), "crs": crs, "predictions": str(predictions),
+            "steps": map_steps(field, "${predictions}", bands=(3, 5))}
+
+
+def held_out_photos(tiles_summary: dict, photos: list[str]) -> tuple[list[str], dict]:
+    """The photos the detector never saw (outside module 5's train and val splits) and the split itself."""
+    splits = {k: sorted(v.get("source_images", [])) for k, v in tiles_summary.get("splits", {}).items()}
+    seen = set(splits.get("train", [])) | set(splits.get("val", []))
+    return sorted(p for p in photos if p not in seen), splits
+
+
+def link_photos(src: Path, names: list[str], dst: Path) -> None:
+    """``dst`` holds exactly ``names`` from ``src`` (hard links, or copies where links are impossible): files
+    already there are kept as they are, so a re-run with the same split finds step 7 up to date."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in dst.iterdir():
+        if f.name not in names:
+            f.unlink()
+    for name in names:
+        target = dst / name
+        if target.is_file() and target.stat().st_size == (src / name).stat().st_size:
+            continue
+        try:
+            os.link(src / name, target)
+        except OSError:
+            shutil.copy2(src / name, target)
 
 
 def _plots_section(field: Path) -> dict:
@@ -173,7 +248,10 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
 
-def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
+def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: dict | None = None) -> Path:
+    """``report.md`` and ``summary.json``; ``extra``: ``held_out`` (the photos scored), ``noisy`` (the
+    realistic field's figures), ``environment`` (what the figures depend on)."""
+    extra = extra or {}
     def load(p: Path) -> dict:
         return json.loads(p.read_text()) if p.is_file() else {}
 
@@ -245,41 +323,160 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
               f"Boxes of the first date reused on the second: median centre error "
               f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
               f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.", ""]
+    lines += _held_out_section(extra.get("held_out", {})) + _noisy_section({**compare, "projection": evaluation},
+                                                                          extra.get("noisy"))
+    lines += ["## Reproducing these figures", "", TOLERANCE[0].upper() + TOLERANCE[1:] + ". This run: "
+              + ", ".join(f"{k} {v}" for k, v in extra.get("environment", {}).items()) + ".", ""]
     path = out / "report" / "report.md"
     write_text(path, "\n".join(lines))
     write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare, "training": summary,
-                                                              "detector": metrics, "projection": evaluation},
+                                                              "detector": metrics, "projection": evaluation, **extra},
                                                              indent=1, default=str))
     return path
 
 
+def _held_out_section(held: dict) -> list[str]:
+    if not held:
+        return []
+    return ["## Which photos are scored", "",
+            (f"Modules 7 and 8 detect and project on the {len(held.get('photos', []))} photos the detector never "
+             f"saw ({held.get('rule', '')}); training photos projected: "
+             f"{held.get('training_photos_projected', 'n/a')}. Train split: "
+             f"{', '.join(held.get('splits', {}).get('train', []))}."), ""]
+
+
+def _noisy_section(exact: dict, noisy: dict | None) -> list[str]:
+    if not noisy:
+        return []
+    if "error" in noisy:
+        return ["## The realistic field (`--noise realistic`)", "", f"Not measured: {noisy['error']}", ""]
+    rows = [(name, fmt.format(v) if isinstance(v, (int, float)) else "n/a",
+             fmt.format(w) if isinstance(w, (int, float)) else "n/a")
+            for name, v, w, fmt in _trait_figures(exact, noisy)]
+    ground = noisy.get("noise", {}).get("bare_ground_chm_m", {})
+    return ["## The realistic field (`--noise realistic`)", "",
+            ("The same scene and photos with a photogrammetric DSM/DTM (bare-ground CHM p50 "
+             f"{100 * ground.get('p50', float('nan')):.1f} cm, p95 {100 * ground.get('p95', float('nan')):.1f} cm, "
+             "smoothed tops, holes), a 5-band multispectral raster (red band 3, NIR band 5) and the same "
+             "detections; modules 8 and 9 run again on it (`noisy/`)."), "",
+            "| figure | exact field | realistic field |", "|---|---|---|", *(f"| {a} | {b} | {c} |" for a, b, c in rows),
+            ""]
+
+
+def _trait_figures(exact: dict, noisy: dict) -> list[tuple[str, object, object, str]]:
+    """The figures issue 26 asks for on both fields: (name, exact, noisy, format)."""
+    def get(d, *keys):
+        for k in keys:
+            d = d.get(k, {}) if isinstance(d, dict) else {}
+        return d if isinstance(d, (int, float)) else None
+
+    return [("height r (canopy)", get(exact, "traits", "height_r"), get(noisy, "traits", "height_r"), "{:.3f}"),
+            ("canopy NDVI r", get(exact, "traits", "ndvi_r"), get(noisy, "traits", "ndvi_r"), "{:.3f}"),
+            ("outline IoU median", get(exact, "traits", "outline_iou_median"),
+             get(noisy, "traits", "outline_iou_median"), "{:.2f}"),
+            ("stand count exact", get(exact, "plots", "stand_count_exact_share"),
+             get(noisy, "plots", "stand_count_exact_share"), "{:.1%}"),
+            ("plants matched on the map", get(exact, "projection", "share_matched"),
+             get(noisy, "projection", "share_matched"), "{:.1%}")]
+
+
 def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = EPOCHS, minutes: float = 0.0,
-             pretrained: str = "none", tile: int = 128, from_step: str = "") -> Path:
+             pretrained: str = "none", tile: int = 128, from_step: str = "", noise: str = "exact") -> Path:
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
     t0 = time.time()
-    meta = field / "truth" / "field.json"
-    if not (meta.is_file() and json.loads(meta.read_text()).get("preset") == preset
-            and json.loads(meta.read_text()).get("seed") == seed and FieldPaths(field).later.plants_csv.is_file()):
-        log.info("generating the '%s' synthetic field (seed %d) ...", preset, seed)
-        generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True)
+    _field(field, preset, seed, "exact")
     t_field = time.time() - t0
-    crs = json.loads(meta.read_text())["crs"]
+    crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
     pipe = out / "pipeline.yaml"
     write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
                + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile),
                                 sort_keys=False))
-    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step))
+    (out / HELD_OUT).mkdir(exist_ok=True)
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    first = names[:FIRST_STEPS]
+    # steps 0-5 first: module 5's split says which photos the detector will see; the others are held out
+    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
+    photos = sorted(p.name for p in FieldPaths(field).undistorted_images.glob("*.tif"))
+    held, splits = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
+    link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
+    log.info("%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
+             len(held), len(photos))
+    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
+    results.update({k: v for k, v in early.items() if v == "ran"})
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
-    for name in read_pipeline(pipe)[1]:
-        stamp = out / ".pipeline" / f"{name.name}.json"
-        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
-        timings[name.name] = (results.get(name.name, "?"), secs)
+    timings.update(_step_times(out, pipe, results))
     compare = compare_with_truth(out, field)
-    report = write_report(out, field, timings, compare)
+    extra = {"held_out": held_out_record(out, held, splits), "environment": environment()}
+    if noise == "realistic":
+        extra["noisy"] = run_noisy(out, preset, seed, crs, from_step, timings)
+    report = write_report(out, field, timings, compare, extra)
     log.info("report: %s (%.1f min in all)", report, (time.time() - t0) / 60)
     return report
+
+
+def _field(field: Path, preset: str, seed: int, noise: str) -> None:
+    """Generate the demo's field unless the folder already holds it (same preset, seed and noise)."""
+    meta = field / "truth" / "field.json"
+    if meta.is_file() and FieldPaths(field).later.plants_csv.is_file():
+        m = json.loads(meta.read_text())
+        if (m.get("preset"), m.get("seed"), m.get("noise", "exact")) == (preset, seed, noise):
+            return
+    log.info("generating the '%s' synthetic field (seed %d, noise %s) ...", preset, seed, noise)
+    generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True, noise=noise)
+
+
+def _step_times(out: Path, pipe: Path, results: dict, prefix: str = "") -> dict:
+    timings = {}
+    for st in read_pipeline(pipe)[1]:
+        stamp = pipe.parent / read_pipeline(pipe)[0]["output_dir"] / ".pipeline" / f"{st.name}.json"
+        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
+        timings[prefix + st.name] = (results.get(st.name, "?"), secs)
+    return timings
+
+
+def held_out_record(out: Path, held: list[str], splits: dict) -> dict:
+    """Which photos were scored, and a check from module 8's own views that no training photo was projected."""
+    views = out / "8_plants" / "views.csv"
+    projected = sorted(pd.read_csv(views, usecols=["image"])["image"].unique()) if views.is_file() else []
+    train = set(splits.get("train", [])) | set(splits.get("val", []))
+    return {"rule": "every photo of the flight outside module 5's train and val splits: module 3's unselected "
+                    "photos and the test split", "photos": held, "splits": splits,
+            "photos_projected": len(projected),
+            "training_photos_projected": len(set(projected) & train)}
+
+
+def environment() -> dict:
+    """What the figures depend on besides the seeds: the thread count and the library versions."""
+    import torch
+
+    return {"torch": torch.__version__, "torch_threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+            "device": "cuda" if torch.cuda.is_available() else "cpu"}
+
+
+def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timings: dict) -> dict:
+    """The realistic field (same scene and photos): modules 8 and 9 again with the exact run's detections."""
+    t0 = time.time()
+    field = out / "field_noisy"
+    _field(field, preset, seed, "realistic")
+    timings["realistic field"] = ("generated" if time.time() - t0 > 1 else "reused", time.time() - t0)
+    pipe = out / "pipeline_noisy.yaml"
+    write_text(pipe, "# written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic "
+               "field\n" + yaml.safe_dump(noisy_spec(field, crs, out / "7_detect" / "predictions.json"),
+                                          sort_keys=False))
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    try:
+        results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step if from_step in names else ""))
+    except MatchPlantError as exc:  # the exact field's report stands; say why the noisy figures are missing
+        log.warning("the realistic field's modules 8-9 failed: %s", exc)
+        return {"error": str(exc)}
+    timings.update(_step_times(out, pipe, results, prefix="noisy "))
+    result = compare_with_truth(out / NOISY, field)
+    evaluation = out / NOISY / "8_plants" / "evaluation.json"
+    result["projection"] = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
+    result["noise"] = json.loads(FieldPaths(field).noise_json.read_text())
+    return result
 
 
 def update_docs(out: Path, root: Path = REPO) -> None:
@@ -300,21 +497,26 @@ def update_docs(out: Path, root: Path = REPO) -> None:
 
 
 def demo_table(summary: dict) -> str:
-    """The README's demo table, from a run's ``report/summary.json``."""
+    """The README's demo table, from a run's ``report/summary.json``: the exact field's figures, with the
+    realistic field's beside them when the run had ``--noise realistic``, then which photos were scored and
+    the tolerance within which another machine reproduces the figures."""
     coco = summary.get("detector", {}).get("coco", {})
     ev, tr, pl, gr = (summary.get(k, {}) for k in ("projection", "traits", "plots", "growth"))
     train = summary.get("training", {})
+    held = summary.get("held_out", {})
+    noisy = summary.get("noisy") or None
 
     def f(v, fmt):
         return fmt.format(v) if isinstance(v, (int, float)) else "n/a"
 
+    scored = f" on the {len(held['photos'])} photos the detector never saw" if held.get("photos") else ""
     rows = [
         ("detector, held-out test tiles", f"AP50 {f(coco.get('AP50'), '{:.1%}')}, AP {f(coco.get('AP'), '{:.1%}')} "
                                           f"({train.get('epochs_done', 'n/a')} epochs from random weights)"),
-        ("plants on the map", f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
-                              f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
-                              f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
-                              f"{tr.get('true_plants', 'n/a')} plants"),
+        ("plants on the map" + scored, f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
+                                       f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
+                                       f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
+                                       f"{tr.get('true_plants', 'n/a')} plants"),
         ("plant height vs truth (Pearson r)", f"over the canopy {f(tr.get('height_r'), '{:.3f}')}, "
                                               f"over the box {f(tr.get('height_box_r'), '{:.3f}')}"),
         ("NDVI vs each plant's true NDVI (r)", f"over the canopy {f(tr.get('ndvi_r'), '{:.3f}')}, "
@@ -326,7 +528,32 @@ def demo_table(summary: dict) -> str:
         ("second date", f"centre error {f(gr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused "
                         f"boxes, {f(gr.get('recentred_error_median_m'), '{:.3f}')} m re-centred"),
     ]
-    return "\n".join(["| | |", "|---|---|", *(f"| {a} | {b} |" for a, b in rows)]) + "\n"
+    if noisy is None:
+        table = ["| | |", "|---|---|", *(f"| {a} | {b} |" for a, b in rows)]
+    else:
+        nev, ntr, npl, ngr = (noisy.get(k, {}) for k in ("projection", "traits", "plots", "growth"))
+        err = noisy.get("error")
+        other = ["(the same detector)" if not err else "n/a",
+                 (f"{f(nev.get('share_matched'), '{:.1%}')} matched, {f(nev.get('share_iou_above_0.5'), '{:.1%}')} "
+                  f"with IoU > 0.5, median IoU {f(nev.get('iou_median'), '{:.2f}')}"),
+                 f"over the canopy {f(ntr.get('height_r'), '{:.3f}')}, over the box {f(ntr.get('height_box_r'), '{:.3f}')}",
+                 f"over the canopy {f(ntr.get('ndvi_r'), '{:.3f}')}, box mean {f(ntr.get('ndvi_box_r'), '{:.3f}')}",
+                 f"median IoU {f(ntr.get('outline_iou_median'), '{:.2f}')}",
+                 (f"stand count exact on {f(npl.get('stand_count_exact_share'), '{:.1%}')} of "
+                  f"{npl.get('plots', 'n/a')} plots; {f(npl.get('gaps_found_share'), '{:.1%}')} of the true gaps "
+                  f"found, {f(npl.get('false_gap_share'), '{:.1%}')} false"),
+                 (f"centre error {f(ngr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused boxes, "
+                  f"{f(ngr.get('recentred_error_median_m'), '{:.3f}')} m re-centred")]
+        table = ["| | exact field | realistic field (`--noise realistic`) |", "|---|---|---|",
+                 *(f"| {a} | {b} | {c} |" for (a, b), c in zip(rows, other))]
+    notes = []
+    if held:
+        notes.append(f"Scored only on photos outside module 5's train and val splits ({len(held.get('photos', []))} "
+                     f"photos; training photos projected: {held.get('training_photos_projected', 'n/a')}).")
+    if noisy and noisy.get("error"):
+        notes.append(f"Realistic field not measured: {noisy['error']}")
+    notes.append(f"Reproducibility: {TOLERANCE}.")
+    return "\n".join(table) + "\n\n" + "\n".join(notes) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -334,6 +561,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
     p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", default="exact", choices=("exact", "realistic"),
+                   help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
+                        "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
+                        "and report both (a second field folder: about 1 GB more and a few minutes)")
     p.add_argument("--epochs", type=int, default=EPOCHS,
                    help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model")
     p.add_argument("--minutes", type=float, default=0.0,
@@ -345,12 +576,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="then copy the figures into docs/ and rewrite the README's demo table from this run")
     p.add_argument("--debug", action="store_true")
     args = p.parse_args(argv)
-    setup_console()
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # from here on Ctrl-C lets the steps clean up
     try:
+        setup_console()
         run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, minutes=args.minutes,
-                 pretrained=args.pretrained, from_step=args.from_step)
+                 pretrained=args.pretrained, from_step=args.from_step, noise=args.noise)
         if args.update_docs:
             update_docs(Path(args.out).resolve())
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there",
+              file=sys.stderr)
+        return 130
     except MatchPlantError as exc:
         if args.debug:
             raise
