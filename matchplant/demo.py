@@ -406,7 +406,7 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = E
     results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
     results.update({k: v for k, v in early.items() if v == "ran"})
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
-    timings.update(_step_times(out, pipe, results))
+    timings.update(_step_times(pipe, results))
     compare = compare_with_truth(out, field)
     extra = {"held_out": held_out_record(out, held, splits), "environment": environment()}
     if noise == "realistic":
@@ -427,10 +427,12 @@ def _field(field: Path, preset: str, seed: int, noise: str) -> None:
     generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True, noise=noise)
 
 
-def _step_times(out: Path, pipe: Path, results: dict, prefix: str = "") -> dict:
+def _step_times(pipe: Path, results: dict, prefix: str = "") -> dict:
+    """Each step's status and the seconds its last run took (from the pipeline's stamps)."""
     timings = {}
-    for st in read_pipeline(pipe)[1]:
-        stamp = pipe.parent / read_pipeline(pipe)[0]["output_dir"] / ".pipeline" / f"{st.name}.json"
+    top, steps = read_pipeline(pipe)
+    for st in steps:
+        stamp = pipe.parent / top["output_dir"] / ".pipeline" / f"{st.name}.json"
         secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
         timings[prefix + st.name] = (results.get(st.name, "?"), secs)
     return timings
@@ -471,7 +473,7 @@ def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timin
     except MatchPlantError as exc:  # the exact field's report stands; say why the noisy figures are missing
         log.warning("the realistic field's modules 8-9 failed: %s", exc)
         return {"error": str(exc)}
-    timings.update(_step_times(out, pipe, results, prefix="noisy "))
+    timings.update(_step_times(pipe, results, prefix="noisy "))
     result = compare_with_truth(out / NOISY, field)
     evaluation = out / NOISY / "8_plants" / "evaluation.json"
     result["projection"] = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
