@@ -186,3 +186,13 @@ def test_skewed_plot_grid_truth_agrees_with_module_9s_grid_and_the_plants(tmp_pa
     rise = (first["x"] - first["x"].iloc[0]) * np.tan(np.radians(skew))
     phase = np.mod(first["y"] - first["y"].iloc[0] - rise + 0.1, 0.2) - 0.1
     assert np.abs(phase).max() < 0.08  # within the sowing jitter
+
+
+def test_bad_noise_settings_are_named(tmp_path):
+    from matchplant.core.runtime.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="noise"):
+        generate_field("tiny", out=tmp_path / "x", noise="foggy")
+    with pytest.raises(ConfigError, match="plot_skew_deg"):
+        generate_field("tiny", out=tmp_path / "x", plot_skew_deg=50)
+    assert not (tmp_path / "x").exists()
