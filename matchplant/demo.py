@@ -370,7 +370,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise", default="exact", choices=("exact", "realistic"),
                    help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
                         "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
-                        "and report both (a second field folder: about 1 GB more and a few minutes)")
+                        "and report both (a second field folder: about 600 MB more for the small field, and minutes)")
     p.add_argument("--epochs", type=int, default=EPOCHS,
                    help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model")
     p.add_argument("--minutes", type=float, default=0.0,

@@ -50,7 +50,7 @@ NOISY = {"traits": {"height_r": 0.912, "ndvi_r": 0.871, "outline_iou_median": 0.
 def test_table_puts_the_realistic_field_beside_the_exact_one_and_says_what_was_scored():
     held = {"photos": [f"SIM_{i:04d}.JPG.tif" for i in range(31)], "training_photos_projected": 0}
     table = demo_table({**SUMMARY, "noisy": NOISY, "held_out": held})
-    head, rule, *rows = table.split("\n\n")[0].splitlines()
+    head, _rule, *rows = table.split("\n\n")[0].splitlines()
     assert head.count("|") == 4 and "realistic" in head  # a third column
     height = next(r for r in rows if r.startswith("| plant height"))
     assert "over the canopy 0.999" in height and "over the canopy 0.912" in height

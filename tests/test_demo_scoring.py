@@ -11,7 +11,12 @@ import yaml
 from matchplant.core.formats.coco import annotations_by_image, read_dataset
 from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.runtime.io import read_json
-from matchplant.demo import compare_with_truth, held_out_photos, held_out_record, map_steps
+from matchplant.demo import (
+    compare_with_truth,
+    held_out_photos,
+    held_out_record,
+    map_steps,
+)
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
 

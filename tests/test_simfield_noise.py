@@ -142,7 +142,7 @@ def test_the_photos_are_the_exact_fields(noisy_field, tiny_field):
 
 
 def test_exact_run_over_a_noisy_one_leaves_no_noisy_truth(tmp_path):
-    small = dict(image_width=96, field_width=1.6, field_length=1.2)
+    small = {"image_width": 96, "field_width": 1.6, "field_length": 1.2}
     p = generate_field("tiny", out=tmp_path / "f", noise="realistic", **small)
     assert p.noise_json.is_file() and any(p.masks_antialiased_gif.iterdir())
     generate_field("tiny", out=tmp_path / "f", **small)

@@ -79,7 +79,7 @@ class SimFieldConfig:
                                 "images, ~1,300 plants, 320 MB, ~2 min), large (210 images, ~21,000 plants, 1.3 GB, "
                                 "~9 min), realistic (4 photos of 20 MP, ~2,500 plants each: GBs, minutes), split (small "
                                 "as an ODM split-merge project); times on 2 busy cores, noise: realistic adds ~10 % "
-                                "time and about doubles the rasters", choices=tuple(PRESETS))
+                                "time and makes the field about 1.8x larger", choices=tuple(PRESETS))
     seed: int = param(0, "random seed: the same seed and settings give the same files", min=0)
     output_dir: Path = param(Path("runs/simfield"), "folder to write the project into", path="out")
     altitude: float | None = param(None, "flight height above ground, m (null: the preset's)", min=0.5, max=500)

@@ -544,10 +544,9 @@ def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Ter
     # 5 bands as a generic writer leaves them: photometric RGB + 2 extra samples, no descriptions, no nodata
     profile = _profile(grid, len(BAND_ORDER), "float32", crs, transform, None)
     profile["photometric"] = "RGB"
-    with atomic_path(paths.multispectral) as tmp:
-        with rasterio.open(tmp, "w", **profile) as dst:
-            for b, band in enumerate(five_bands(rasters, noise_rng), start=1):
-                dst.write(band, b)
+    with atomic_path(paths.multispectral) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+        for b, band in enumerate(five_bands(rasters, noise_rng), start=1):
+            dst.write(band, b)
     return noise_summary(REALISTIC, dem, rasters)
 
 

@@ -60,7 +60,7 @@ def _standard(a: np.ndarray) -> np.ndarray:
 
 
 def _odd(m: float, res: float, least: int = 3) -> int:
-    k = max(least, int(round(m / res)))
+    k = max(least, round(m / res))
     return k + 1 - k % 2
 
 
@@ -121,7 +121,7 @@ def mask_objects(ids: np.ndarray) -> tuple[int, int, int]:
     plants are one part), plant pixels."""
     binary = (ids > 0).astype(np.uint8)
     parts = cv2.connectedComponents(binary, connectivity=8)[0] - 1
-    return int(len(np.unique(ids[ids > 0]))), int(parts), int(binary.sum())
+    return len(np.unique(ids[ids > 0])), int(parts), int(binary.sum())
 
 
 def bare_ground_chm(chm: np.ndarray, label: np.ndarray, valid: np.ndarray, res: float, clear_m: float = 0.05):
@@ -140,6 +140,6 @@ def noise_summary(m: NoiseModel, dem: NoisyDEM, rasters: Rasters) -> dict:
     return {"model": asdict(m),
             "bare_ground_chm_m": {"p5": float(q[0]), "p50": float(q[1]), "p95": float(q[2]),
                                   "share_above_0.02": float(np.mean(ground > 0.02)) if len(ground) else None,
-                                  "cells": int(len(ground)),
+                                  "cells": len(ground),
                                   "meaning": "DSM - DTM on soil at least 5 cm from any plant, weed or target"},
             "dsm_holes": {"cells": int(dem.holes.sum()), "share": float(dem.holes.mean())}}
