@@ -33,8 +33,10 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -rs --durations=15 -m "not slow" $(PYTEST_ARGS)
 
+# Ctrl-C: the demo prints one line and exits 130; the shell ignores SIGINT (the demo re-enables it) and hides
+# that 130 from make, so make adds no "Error 130"/"Interrupt" line and itself ends by the signal (status 130)
 demo: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS)
+	@trap '' INT; MPLBACKEND=Agg $(BIN)/python -m matchplant.demo $(DEMO_ARGS) || { s=$$?; [ $$s -eq 130 ] || exit $$s; }
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install --quiet -r requirements-bench.txt

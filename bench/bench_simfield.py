@@ -2,6 +2,7 @@
 
     python bench/bench_simfield.py            # tiny, small and large (large takes many minutes)
     python bench/bench_simfield.py --quick    # tiny and small only
+    python bench/bench_simfield.py --quick --noise exact realistic   # each also with noise: realistic
     python bench/bench_simfield.py --presets large --workers 0 --keep /data/large_field
 
 Each preset runs in its own process so that its peak memory is measured alone. Prints a Markdown table
@@ -28,7 +29,7 @@ def cpu():  # this process and its finished worker processes
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + kids.ru_utime + kids.ru_stime
 t, c = time.perf_counter(), cpu()
-p = generate_field(preset=sys.argv[1], seed=0, out=sys.argv[2], workers=int(sys.argv[3]))
+p = generate_field(preset=sys.argv[1], seed=0, out=sys.argv[2], workers=int(sys.argv[3]), noise=sys.argv[4])
 wall, cpu = time.perf_counter() - t, cpu() - c
 field = read_json(p.field_json)
 raw = read_json(p.boxes_raw)
@@ -38,16 +39,16 @@ print(json.dumps({"preset": sys.argv[1], "images": field["flight"]["images"], "p
                   "width": field["camera"]["opensfm"]["width"], "height": field["camera"]["opensfm"]["height"],
                   "gsd_cm": 100 * field["gsd"], "raw_boxes": len(raw["annotations"]),
                   "undistorted_boxes": len(und["annotations"]), "disk_mb": size / 1e6, "wall_s": wall,
-                  "cpu_s": cpu, "workers": int(sys.argv[3]),
+                  "cpu_s": cpu, "workers": int(sys.argv[3]), "noise": sys.argv[4],
                   "peak_mb": max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
                                  resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024}))
 """
 
 
-def run(preset: str, out: Path, workers: int) -> dict:
+def run(preset: str, out: Path, workers: int, noise: str = "exact") -> dict:
     env = dict(os.environ, MATCHPLANT_QUIET="1")
-    res = subprocess.run([sys.executable, "-c", CHILD, preset, str(out), str(workers)], capture_output=True, text=True,
-                         env=env)
+    res = subprocess.run([sys.executable, "-c", CHILD, preset, str(out), str(workers), noise], capture_output=True,
+                         text=True, env=env)
     if res.returncode != 0:
         raise SystemExit(f"{preset} failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -59,6 +60,8 @@ def main() -> None:
     ap.add_argument("--presets", nargs="+", default=None, help="presets to run (default: all)")
     ap.add_argument("--workers", type=int, default=1,
                     help="rendering processes (0: one per core); CPU s is summed over them")
+    ap.add_argument("--noise", nargs="+", default=["exact"], choices=("exact", "realistic"),
+                    help="noise models to generate each preset with (realistic: simfield/noise.py)")
     ap.add_argument("--keep", type=Path, default=None, help="write the fields under this folder and keep them")
     args = ap.parse_args()
     presets = args.presets or (["tiny", "small"] if args.quick else ["tiny", "small", "large"])
@@ -66,19 +69,20 @@ def main() -> None:
     rows = []
     try:
         for preset in presets:
-            t = time.perf_counter()
-            print(f"generating {preset} ...", file=sys.stderr, flush=True)
-            rows.append(run(preset, base / preset, args.workers))
-            print(f"  done in {time.perf_counter() - t:.1f} s", file=sys.stderr, flush=True)
+            for noise in args.noise:
+                t = time.perf_counter()
+                print(f"generating {preset} ({noise}) ...", file=sys.stderr, flush=True)
+                rows.append(run(preset, base / f"{preset}_{noise}", args.workers, noise))
+                print(f"  done in {time.perf_counter() - t:.1f} s", file=sys.stderr, flush=True)
     finally:
         if args.keep is None:
             shutil.rmtree(base, ignore_errors=True)
     print(f"\nmachine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; python {sys.version.split()[0]}")
-    print("| preset | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers | wall s | CPU s "
+    print("| preset | noise | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers | wall s | CPU s "
           "| peak MB |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['preset']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} | {r['plants']} | "
+        print(f"| {r['preset']} | {r['noise']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} | {r['plants']} | "
               f"{r['raw_boxes']} / {r['undistorted_boxes']} | {r['disk_mb']:.0f} | {r['workers']} | {r['wall_s']:.1f} | "
               f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} |")
 

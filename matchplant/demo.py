@@ -12,14 +12,37 @@
    figures (``traits.height_r``, ``traits.ndvi_r``, ``traits.outline_iou_median``,
    ``plots.stand_count_exact_share``, ...).
 
-Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps.
+The detections that are projected and scored come only from photos the detector never saw: every
+photo of the flight outside module 5's train and val splits (module 3's unselected photos and the test
+split), linked into ``heldout_images/``; ``summary.json`` lists them (``held_out``).
+
+With ``--noise realistic`` a second field of the same scene is generated with a photogrammetric DSM/DTM,
+a 5-band multispectral raster and anti-aliased masks (simfield/noise.py); its photos are the exact field's,
+so modules 8 and 9 run again on it with the same detections (``noisy/``), and the report and
+``summary.json`` (``noisy``) give its figures beside the exact field's.
+
+Run ``python -m matchplant.demo --help`` for the options. Re-running skips the finished steps. Ctrl-C
+stops it with one line (exit 130); the finished steps are kept.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
+import signal
 import sys
+
+
+def _interrupted_while_starting(signum, frame):  # Ctrl-C while the libraries load: one line, no traceback
+    print("interrupted (Ctrl-C) while starting; nothing was written", file=sys.stderr)
+    raise SystemExit(130)
+
+
+if __name__ == "__main__":  # installed before the slow imports below (several seconds on a busy machine)
+    signal.signal(signal.SIGINT, _interrupted_while_starting)
+
+import argparse  # (after the Ctrl-C handler on purpose)
+import json
+import os
+import shutil
 import time
 from pathlib import Path
 
@@ -34,6 +57,7 @@ from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path, write_text
 from matchplant.core.runtime.log import get_logger, setup_console
+from matchplant.demo_report import demo_table, write_report
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
@@ -56,6 +80,10 @@ REPO = Path(__file__).resolve().parents[1]
 # the README's demo table lies between these lines (python -m matchplant.demo --update-docs rewrites it)
 TABLE_START = "<!-- demo table: written by python -m matchplant.demo --update-docs -->"
 TABLE_END = "<!-- end of demo table -->"
+HELD_OUT = "heldout_images"  # the photos the detector never saw, linked for module 7
+FIRST_STEPS = 6  # steps 0-5 run first: module 5's split decides which photos are held out
+NOISY = "noisy"  # modules 8 and 9 on the realistic field, under <out>/noisy
+
 
 
 def _step(name: str, module: str, **config) -> dict:
@@ -89,18 +117,61 @@ def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrai
               val_json="${5_tiles.output_dir}/val.json", model=model, epochs=epochs, max_minutes=minutes, batch_size=4,
               num_workers=0, warmup_iters=20, step_size=20, save_every=0,
               lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
+        # detection on the photos the detector never saw (module 5's test split and module 3's unselected
+        # photos): only they are projected and scored
         _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
               evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
-              detect={"images": "${3_select.output_dir}/images", "tile_size": tile, "overlap": tile // 4}),
-        _step("8_plants", "plant_projection", project="${field}", predictions="${7_detect.output_dir}/predictions.json",
-              mode="both", evaluate={"reference": "${field}/truth/map_boxes.csv"}),
-        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg",
-              rasters={"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-                       "multispectral": "${field}/multispectral/multispectral.tif",
-                       "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"},
+              detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4}),
+        *map_steps(field, "${7_detect.output_dir}/predictions.json"),
+    ]
+    return {"output_dir": ".", "field": str(field), "crs": crs, "held_out_images": HELD_OUT, "steps": steps}
+
+
+def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
+    """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics. ``bands``: red and
+    NIR band numbers of the multispectral raster (None: the exact field's, 1 and 2)."""
+    rasters = {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
+               "multispectral": "${field}/multispectral/multispectral.tif",
+               "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"}
+    if bands:
+        rasters.update(red_band=bands[0], nir_band=bands[1])
+    return [
+        _step("8_plants", "plant_projection", project="${field}", predictions=predictions, mode="both",
+              evaluate={"reference": "${field}/truth/map_boxes.csv"}),
+        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg", rasters=rasters,
               plots=_plots_section(field)),
     ]
-    return {"output_dir": ".", "field": str(field), "crs": crs, "steps": steps}
+
+
+def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:
+    """Modules 8 and 9 on the realistic field with the exact run's detections (the photos are the same);
+    its 5-band raster holds red in band 3 and NIR in band 5 (simfield/noise.py)."""
+    return {"output_dir": NOISY, "field": str(field), "crs": crs, "predictions": str(predictions),
+            "steps": map_steps(field, "${predictions}", bands=(3, 5))}
+
+
+def held_out_photos(tiles_summary: dict, photos: list[str]) -> tuple[list[str], dict]:
+    """The photos the detector never saw (outside module 5's train and val splits) and the split itself."""
+    splits = {k: sorted(v.get("source_images", [])) for k, v in tiles_summary.get("splits", {}).items()}
+    seen = set(splits.get("train", [])) | set(splits.get("val", []))
+    return sorted(p for p in photos if p not in seen), splits
+
+
+def link_photos(src: Path, names: list[str], dst: Path) -> None:
+    """``dst`` holds exactly ``names`` from ``src`` (hard links, or copies where links are impossible): files
+    already there are kept as they are, so a re-run with the same split finds step 7 up to date."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in dst.iterdir():
+        if f.name not in names:
+            f.unlink()
+    for name in names:
+        target = dst / name
+        if target.is_file() and target.stat().st_size == (src / name).stat().st_size:
+            continue
+        try:
+            os.link(src / name, target)
+        except OSError:
+            shutil.copy2(src / name, target)
 
 
 def _plots_section(field: Path) -> dict:
@@ -173,113 +244,105 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
 
-def write_report(out: Path, field: Path, timings: dict, compare: dict) -> Path:
-    def load(p: Path) -> dict:
-        return json.loads(p.read_text()) if p.is_file() else {}
-
-    tr, pl, gr = compare.get("traits", {}), compare.get("plots", {}), compare.get("growth", {})
-    metrics = load(out / "7_detect" / "metrics.json")
-    evaluation = load(out / "8_plants" / "evaluation.json")
-    summary = load(out / "6_train" / "training_summary.json")
-    selection = load(out / "3_select" / "selection.json")
-    gps = load(out / "0_gps" / "match_summary.json")
-
-    def fig(rel: str, caption: str) -> str:
-        return f"![{caption}](../{rel})\n\n*{caption}*\n" if (out / rel).is_file() else f"*({caption}: not produced)*\n"
-
-    def num(d: dict, *keys, fmt="{:.3f}") -> str:
-        for k in keys:
-            v = d.get(k) if isinstance(d, dict) else None
-            if isinstance(v, dict):
-                d = v
-                continue
-            if isinstance(v, (int, float)):
-                return fmt.format(v)
-        return "n/a"
-
-    lines = [
-        "# MatchPlant demo report", "",
-        f"Generated {time.strftime('%Y-%m-%d %H:%M')} on the `small` synthetic field (`{field}`).", "",
-        "## Steps", "", "| step | result | seconds |", "|---|---|---|",
-    ]
-    for name, (status, secs) in timings.items():
-        lines.append(f"| {name} | {status} | {secs:.1f} |")
-    lines += ["", "## Georeferencing (module 0)", "",
-              f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
-              f"estimated clock offset {num(gps, 'clock_offset_s', fmt='{:.2f}')} s.", "",
-              "## Coverage (module 3)", "",
-              f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
-              f"covering {num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.", "",
-              fig("3_select/coverage.png", "footprints of the selected undistorted images over the field"),
-              "## Detector (modules 6 and 7)", "",
-              f"Test AP50 = {num(metrics.get('coco', {}), 'AP50', fmt='{:.1%}')}, "
-              f"AP = {num(metrics.get('coco', {}), 'AP', fmt='{:.1%}')} "
-              f"(trained {summary.get('epochs_done', 'n/a')} epochs in {summary.get('train_time_s', 0) / 60:.1f} min "
-              f"on {summary.get('device', 'the CPU')}).", "",
-              fig("6_train/training_curves.png", "training loss and validation AP"),
-              "## Plants on the map (module 8)", "",
-              f"Reference plants matched: {num(evaluation, 'share_matched', fmt='{:.1%}')}; "
-              f"with IoU > 0.5: {num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
-              f"median IoU {num(evaluation, 'iou_median')}.", "",
-              fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
-              "## Per-plant traits against the truth (module 9)", "",
-              f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
-              f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
-              f"median IoU {num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
-              "over the box (as the paper does) and over the canopy pixels.", "",
-              "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
-              "|---|---|---|---|",
-              f"| height (CHM max) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} | "
-              f"{num(tr, 'height_mae_m')} m |",
-              f"| NDVI (mean) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |", "",
-              fig("report/traits_vs_truth.png", "per-plant height and NDVI against the truth (the paper's Figure 10): "
-                                                "left, over the box (the paper's way); right, over the canopy "
-                                                "outlined on the CHM"),
-              "## Plots (module 9)", "",
-              f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
-              f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
-              f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.", "",
-              fig("9_stats/plots.png", "plots coloured by their mean canopy NDVI; black dots: plants, red crosses: "
-                                       "gaps"),
-              "## Growth (module 9, second date)", "",
-              f"Boxes of the first date reused on the second: median centre error "
-              f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
-              f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.", ""]
-    path = out / "report" / "report.md"
-    write_text(path, "\n".join(lines))
-    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare, "training": summary,
-                                                              "detector": metrics, "projection": evaluation},
-                                                             indent=1, default=str))
-    return path
-
-
 def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = EPOCHS, minutes: float = 0.0,
-             pretrained: str = "none", tile: int = 128, from_step: str = "") -> Path:
+             pretrained: str = "none", tile: int = 128, from_step: str = "", noise: str = "exact") -> Path:
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
     t0 = time.time()
-    meta = field / "truth" / "field.json"
-    if not (meta.is_file() and json.loads(meta.read_text()).get("preset") == preset
-            and json.loads(meta.read_text()).get("seed") == seed and FieldPaths(field).later.plants_csv.is_file()):
-        log.info("generating the '%s' synthetic field (seed %d) ...", preset, seed)
-        generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True)
+    _field(field, preset, seed, "exact")
     t_field = time.time() - t0
-    crs = json.loads(meta.read_text())["crs"]
+    crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
     pipe = out / "pipeline.yaml"
     write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
                + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile),
                                 sort_keys=False))
-    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step))
+    (out / HELD_OUT).mkdir(exist_ok=True)
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    first = names[:FIRST_STEPS]
+    # steps 0-5 first: module 5's split says which photos the detector will see; the others are held out
+    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
+    photos = sorted(p.name for p in FieldPaths(field).undistorted_images.glob("*.tif"))
+    held, splits = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
+    link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
+    log.info("%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
+             len(held), len(photos))
+    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
+    results.update({k: v for k, v in early.items() if v == "ran"})
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
-    for name in read_pipeline(pipe)[1]:
-        stamp = out / ".pipeline" / f"{name.name}.json"
-        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
-        timings[name.name] = (results.get(name.name, "?"), secs)
+    timings.update(_step_times(pipe, results))
     compare = compare_with_truth(out, field)
-    report = write_report(out, field, timings, compare)
+    extra = {"held_out": held_out_record(out, held, splits), "environment": environment()}
+    if noise == "realistic":
+        extra["noisy"] = run_noisy(out, preset, seed, crs, from_step, timings)
+    report = write_report(out, field, timings, compare, extra)
     log.info("report: %s (%.1f min in all)", report, (time.time() - t0) / 60)
     return report
+
+
+def _field(field: Path, preset: str, seed: int, noise: str) -> None:
+    """Generate the demo's field unless the folder already holds it (same preset, seed and noise)."""
+    meta = field / "truth" / "field.json"
+    if meta.is_file() and FieldPaths(field).later.plants_csv.is_file():
+        m = json.loads(meta.read_text())
+        if (m.get("preset"), m.get("seed"), m.get("noise", "exact")) == (preset, seed, noise):
+            return
+    log.info("generating the '%s' synthetic field (seed %d, noise %s) ...", preset, seed, noise)
+    generate_field(preset=preset, seed=seed, out=field, vigour=True, second_date=True, noise=noise)
+
+
+def _step_times(pipe: Path, results: dict, prefix: str = "") -> dict:
+    """Each step's status and the seconds its last run took (from the pipeline's stamps)."""
+    timings = {}
+    top, steps = read_pipeline(pipe)
+    for st in steps:
+        stamp = pipe.parent / top["output_dir"] / ".pipeline" / f"{st.name}.json"
+        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
+        timings[prefix + st.name] = (results.get(st.name, "?"), secs)
+    return timings
+
+
+def held_out_record(out: Path, held: list[str], splits: dict) -> dict:
+    """Which photos were scored, and a check from module 8's own views that no training photo was projected."""
+    views = out / "8_plants" / "views.csv"
+    projected = sorted(pd.read_csv(views, usecols=["image"])["image"].unique()) if views.is_file() else []
+    train = set(splits.get("train", [])) | set(splits.get("val", []))
+    return {"rule": "every photo of the flight outside module 5's train and val splits: module 3's unselected "
+                    "photos and the test split", "photos": held, "splits": splits,
+            "photos_projected": len(projected),
+            "training_photos_projected": len(set(projected) & train)}
+
+
+def environment() -> dict:
+    """What the figures depend on besides the seeds: the thread count and the library versions."""
+    import torch
+
+    return {"torch": torch.__version__, "torch_threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+            "device": "cuda" if torch.cuda.is_available() else "cpu"}
+
+
+def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timings: dict) -> dict:
+    """The realistic field (same scene and photos): modules 8 and 9 again with the exact run's detections."""
+    t0 = time.time()
+    field = out / "field_noisy"
+    _field(field, preset, seed, "realistic")
+    timings["realistic field"] = ("generated" if time.time() - t0 > 1 else "reused", time.time() - t0)
+    pipe = out / "pipeline_noisy.yaml"
+    write_text(pipe, "# written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic "
+               "field\n" + yaml.safe_dump(noisy_spec(field, crs, out / "7_detect" / "predictions.json"),
+                                          sort_keys=False))
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    try:
+        results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step if from_step in names else ""))
+    except MatchPlantError as exc:  # the exact field's report stands; say why the noisy figures are missing
+        log.warning("the realistic field's modules 8-9 failed: %s", exc)
+        return {"error": str(exc)}
+    timings.update(_step_times(pipe, results, prefix="noisy "))
+    result = compare_with_truth(out / NOISY, field)
+    evaluation = out / NOISY / "8_plants" / "evaluation.json"
+    result["projection"] = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
+    result["noise"] = json.loads(FieldPaths(field).noise_json.read_text())
+    return result
 
 
 def update_docs(out: Path, root: Path = REPO) -> None:
@@ -299,41 +362,15 @@ def update_docs(out: Path, root: Path = REPO) -> None:
     log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
 
 
-def demo_table(summary: dict) -> str:
-    """The README's demo table, from a run's ``report/summary.json``."""
-    coco = summary.get("detector", {}).get("coco", {})
-    ev, tr, pl, gr = (summary.get(k, {}) for k in ("projection", "traits", "plots", "growth"))
-    train = summary.get("training", {})
-
-    def f(v, fmt):
-        return fmt.format(v) if isinstance(v, (int, float)) else "n/a"
-
-    rows = [
-        ("detector, held-out test tiles", f"AP50 {f(coco.get('AP50'), '{:.1%}')}, AP {f(coco.get('AP'), '{:.1%}')} "
-                                          f"({train.get('epochs_done', 'n/a')} epochs from random weights)"),
-        ("plants on the map", f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
-                              f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
-                              f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
-                              f"{tr.get('true_plants', 'n/a')} plants"),
-        ("plant height vs truth (Pearson r)", f"over the canopy {f(tr.get('height_r'), '{:.3f}')}, "
-                                              f"over the box {f(tr.get('height_box_r'), '{:.3f}')}"),
-        ("NDVI vs each plant's true NDVI (r)", f"over the canopy {f(tr.get('ndvi_r'), '{:.3f}')}, "
-                                               f"box mean {f(tr.get('ndvi_box_r'), '{:.3f}')}"),
-        ("canopy outline vs the true canopy", f"median IoU {f(tr.get('outline_iou_median'), '{:.2f}')}"),
-        ("plots", f"stand count exact on {f(pl.get('stand_count_exact_share'), '{:.1%}')} of "
-                  f"{pl.get('plots', 'n/a')} plots; {f(pl.get('gaps_found_share'), '{:.1%}')} of the true gaps found, "
-                  f"{f(pl.get('false_gap_share'), '{:.1%}')} false"),
-        ("second date", f"centre error {f(gr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused "
-                        f"boxes, {f(gr.get('recentred_error_median_m'), '{:.3f}')} m re-centred"),
-    ]
-    return "\n".join(["| | |", "|---|---|", *(f"| {a} | {b} |" for a, b in rows)]) + "\n"
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
     p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", default="exact", choices=("exact", "realistic"),
+                   help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
+                        "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
+                        "and report both (a second field folder: about 600 MB more for the small field, and minutes)")
     p.add_argument("--epochs", type=int, default=EPOCHS,
                    help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model")
     p.add_argument("--minutes", type=float, default=0.0,
@@ -345,12 +382,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="then copy the figures into docs/ and rewrite the README's demo table from this run")
     p.add_argument("--debug", action="store_true")
     args = p.parse_args(argv)
-    setup_console()
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # from here on Ctrl-C lets the steps clean up
     try:
+        setup_console()
         run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, minutes=args.minutes,
-                 pretrained=args.pretrained, from_step=args.from_step)
+                 pretrained=args.pretrained, from_step=args.from_step, noise=args.noise)
         if args.update_docs:
             update_docs(Path(args.out).resolve())
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there",
+              file=sys.stderr)
+        return 130
     except MatchPlantError as exc:
         if args.debug:
             raise

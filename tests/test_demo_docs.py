@@ -41,3 +41,43 @@ def test_update_docs_rewrites_only_the_table_and_copies_the_figures(tmp_path):
     with Image.open(root / "docs" / "evaluation.jpg") as im:
         assert im.format == "JPEG" and im.size == (30, 20)
     assert not (root / "docs" / "coverage.jpg").exists()  # the run made no coverage map: nothing is invented
+
+
+NOISY = {"traits": {"height_r": 0.912, "ndvi_r": 0.871, "outline_iou_median": 0.61, "height_box_r": 0.9},
+         "plots": {"plots": 63, "stand_count_exact_share": 0.5}, "projection": {"share_matched": 0.95}}
+
+
+def test_table_puts_the_realistic_field_beside_the_exact_one_and_says_what_was_scored():
+    held = {"photos": [f"SIM_{i:04d}.JPG.tif" for i in range(31)], "training_photos_projected": 0}
+    table = demo_table({**SUMMARY, "noisy": NOISY, "held_out": held})
+    head, _rule, *rows = table.split("\n\n")[0].splitlines()
+    assert head.count("|") == 4 and "realistic" in head  # a third column
+    height = next(r for r in rows if r.startswith("| plant height"))
+    assert "over the canopy 0.999" in height and "over the canopy 0.912" in height
+    assert "median IoU 0.61" in table and "stand count exact on 50.0% of 63" in table and "0.871" in table
+    assert "31 photos the detector never saw" in table and "training photos projected: 0" in table
+    assert "Reproducibility:" in table and "thread count" in table
+    failed = demo_table({**SUMMARY, "noisy": {"error": "module 9 refused band 3"}})
+    assert "Realistic field not measured: module 9 refused band 3" in failed
+    assert demo_table(SUMMARY).startswith("| | |\n")  # without --noise realistic: the one-column table
+
+
+def test_held_out_photos_leave_out_the_train_and_val_splits(tmp_path):
+    from matchplant.demo import held_out_photos, link_photos
+
+    summary = {"splits": {"train": {"source_images": ["b.tif", "d.tif"]}, "val": {"source_images": ["c.tif"]},
+                          "test": {"source_images": ["e.tif"]}}}
+    photos = ["a.tif", "b.tif", "c.tif", "d.tif", "e.tif", "f.tif"]
+    held, splits = held_out_photos(summary, photos)
+    assert held == ["a.tif", "e.tif", "f.tif"] and splits["train"] == ["b.tif", "d.tif"]
+    src, dst = tmp_path / "src", tmp_path / "held"
+    src.mkdir()
+    for p in photos:
+        (src / p).write_bytes(p.encode())
+    dst.mkdir()
+    (dst / "b.tif").write_bytes(b"stale")  # a training photo left from an earlier split
+    link_photos(src, held, dst)
+    assert sorted(p.name for p in dst.iterdir()) == held and (dst / "a.tif").read_bytes() == b"a.tif"
+    before = (dst / "a.tif").stat().st_mtime_ns
+    link_photos(src, held, dst)
+    assert (dst / "a.tif").stat().st_mtime_ns == before  # kept: step 7's fingerprint stays

@@ -7,6 +7,7 @@ import datetime as dt
 import io
 import multiprocessing as mp
 import os
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -18,6 +19,7 @@ import numpy as np
 import piexif
 import rasterio
 from affine import Affine
+from PIL import Image
 from pyproj import CRS, Transformer
 from rasterio.enums import ColorInterp
 from rasterio.windows import Window
@@ -43,6 +45,15 @@ from matchplant.simfield.flight import (
     render,
 )
 from matchplant.simfield.layout import FieldPaths
+from matchplant.simfield.noise import (
+    BAND_ORDER,
+    REALISTIC,
+    antialiased_mask,
+    five_bands,
+    mask_objects,
+    noise_summary,
+    photogrammetric_dem,
+)
 from matchplant.simfield.scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
 from matchplant.simfield.traits import grow, plot_truth, traits_rows, vigour
 from matchplant.simfield.truth import candidates_near, image_boxes
@@ -122,10 +133,14 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     jobs = [ImageJob(e, e.shot.with_camera(ucamera), noise_streams[2 * k], noise_streams[2 * k + 1],
                      dt.datetime.fromisoformat(info["camera_time"]), (info["lat"], info["lon"], info["center"][2]))
             for k, (e, info) in enumerate(zip(exposures, image_info))]
-    scene = Scene(s, paths, terrain, rasters, plants, plants.surface_offsets(terrain), top, step, reach)
-    for k, (raw_boxes, und_boxes) in enumerate(progress(_run_jobs(scene, jobs, _workers(cfg)), total=len(jobs),
+    realistic = cfg.noise == "realistic"
+    scene = Scene(s, paths, terrain, rasters, plants, plants.surface_offsets(terrain), top, step, reach, realistic)
+    objects = []
+    for k, (raw_boxes, und_boxes, mask_truth) in enumerate(progress(_run_jobs(scene, jobs, _workers(cfg)), total=len(jobs),
                                                         desc="rendering images", unit="image")):
         e = exposures[k]
+        if mask_truth is not None:
+            objects.append([e.name, *mask_truth])
         for ds, boxes, undist in ((raw_ds, raw_boxes, False), (und_ds, und_boxes, True)):
             cam = ucamera if undist else camera
             entry = {"id": k + 1, "file_name": e.name + (".tif" if undist else ""), "width": cam.width,
@@ -167,7 +182,9 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
                           points=topo.from_map(sparse + offset),
                           reference_lla={"latitude": ref_lat, "longitude": ref_lon, "altitude": terrain.z0})
     write_reconstruction(paths.topocentric_reconstruction, trec)
-    _write_rasters(paths, grid, rasters, terrain, offset, crs)
+    # the noise has streams of its own: an exact and a realistic field of one seed share everything else
+    noise = _write_rasters(paths, grid, rasters, terrain, offset, crs,
+                           np.random.default_rng([cfg.seed, 1904]) if realistic else None)
 
     # -- inputs of modules 0 and 1 -------------------------------------------------------------------
     lines = ["Timestamp\tX\tY\tZ"] + [f"{i['gps_tow']:.3f}\t{i['center'][0]:.4f}\t{i['center'][1]:.4f}\t"
@@ -183,7 +200,10 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     if cfg.second_date:
         later = grow(plants, terrain, np.random.default_rng([cfg.seed, 1902]))
         rasters2 = rasterize(s, grid, later, gcps, np.random.default_rng([cfg.seed, 1903]))
-        _write_rasters(paths.later, grid, rasters2, terrain, offset, crs)
+        noise2 = _write_rasters(paths.later, grid, rasters2, terrain, offset, crs,
+                                np.random.default_rng([cfg.seed, 1905]) if realistic else None)
+        if noise2:
+            write_json(paths.later.noise_json, noise2)
         _write_plants(paths.later, later, rasters2, s.raster_res, offset)
     ext = plants.extents() + np.r_[offset[:2], offset[:2]]
     _write_csv(paths.map_boxes, ["id", "xmin", "ymin", "xmax", "ymax"],
@@ -226,8 +246,20 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
         },
         "elapsed_s": round(time.perf_counter() - t0, 2),
     }
+    field["noise"] = cfg.noise
+    field["multispectral"] = {"bands": list(BAND_ORDER) if realistic else ["red", "nir"],
+                              "gdal_color_interpretation": ["red", "green", "blue", "undefined", "undefined"]
+                              if realistic else ["gray", "undefined"],
+                              "band_descriptions": not realistic}
+    if realistic:
+        write_json(paths.noise_json, {**noise, "multispectral_bands": list(BAND_ORDER),
+                                      "masks": {"folders": ["truth/masks_antialiased (PNG)",
+                                                            "truth/masks_antialiased_jpg (JPEG)",
+                                                            "truth/masks_antialiased_gif (GIF)"],
+                                                "of": "undistorted images", "truth": "truth/mask_objects.csv"}})
+        _write_csv(paths.mask_objects, ["image", "plants", "parts", "pixels"], objects)
     write_json(paths.field_json, field)
-    _remove_stale(paths, {e.name for e in exposures})
+    _remove_stale(paths, {e.name for e in exposures}, realistic)
     log.info("synthetic field written to %s in %.1f s", paths.root, time.perf_counter() - t0)
     return paths
 
@@ -246,6 +278,7 @@ class Scene:
     top: float
     step: float
     reach: float
+    realistic: bool = False  # noise: realistic (anti-aliased masks too)
 
 
 @dataclass
@@ -261,15 +294,19 @@ class ImageJob:
 _SCENE: Scene | None = None
 
 
-def _init_worker(scene: Scene) -> None:
+def _init_worker(scene: Scene, worker: bool = False) -> None:
     global _SCENE
     _SCENE = scene
+    if worker:  # Ctrl-C is the parent's to report (one line); workers just stop with it
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _render_job(job: ImageJob) -> tuple[list, list]:
-    """Render, write and box one exposure (raw and undistorted); returns the boxes of both."""
+def _render_job(job: ImageJob) -> tuple[list, list, tuple | None]:
+    """Render, write and box one exposure (raw and undistorted); returns the boxes of both and, for a
+    realistic field, the truth of its anti-aliased mask."""
     sc = _SCENE
     out = []
+    objects = None
     for shot, seed, undist in ((job.exposure.shot, job.noise_raw, False), (job.ushot, job.noise_und, True)):
         rgb, ids = render(shot, sc.terrain, sc.rasters, sc.top, sc.step)
         noise = np.random.default_rng(seed).normal(0, 1.5, rgb.shape)
@@ -278,6 +315,9 @@ def _render_job(job: ImageJob) -> tuple[list, list]:
         if undist:
             _write_image(sc.paths.undistorted_images / f"{name}.tif", rgb, ".tif")
             _write_mask(sc.paths.masks_undistorted / f"{name}.png", ids)
+            if sc.realistic:
+                objects = mask_objects(ids)
+                _write_antialiased(sc.paths, name, antialiased_mask(ids))
         else:
             jpeg = _encode(rgb, ".jpg", sc.s.jpeg_quality)
             _write_bytes(sc.paths.images / name, _with_exif(jpeg, sc.s, job.cam_time, job.gps))
@@ -288,7 +328,17 @@ def _render_job(job: ImageJob) -> tuple[list, list]:
                                         sc.offsets)
         seen_px = np.bincount(ids.ravel(), minlength=len(sc.plants) + 1)  # rendered pixels per plant id
         out.append([(b.tolist(), int(i), bool(c), int(seen_px[i + 1])) for b, i, c in zip(boxes, which, cut)])
-    return out[0], out[1]
+    return out[0], out[1], objects
+
+
+def _write_antialiased(paths: FieldPaths, name: str, mask: np.ndarray) -> None:
+    """One binary mask with smooth edges as PNG, JPEG (its artefacts too) and GIF."""
+    _write_bytes(paths.masks_antialiased / f"{name}.png", cv2.imencode(".png", mask)[1].tobytes())
+    _write_bytes(paths.masks_antialiased_jpg / f"{name}.jpg",
+                 cv2.imencode(".jpg", mask, [cv2.IMWRITE_JPEG_QUALITY, REALISTIC.mask_jpeg_quality])[1].tobytes())
+    buf = io.BytesIO()
+    Image.fromarray(mask, "L").save(buf, format="GIF")
+    _write_bytes(paths.masks_antialiased_gif / f"{name}.gif", buf.getvalue())
 
 
 def _workers(cfg: SimFieldConfig) -> int:
@@ -310,19 +360,26 @@ def _run_jobs(scene: Scene, jobs: list[ImageJob], workers: int):
         return
     # fork shares the field's rasters with the workers without copying them; elsewhere they are pickled once
     context = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
-    with ProcessPoolExecutor(n, mp_context=context, initializer=_init_worker, initargs=(scene,)) as pool:
+    with ProcessPoolExecutor(n, mp_context=context, initializer=_init_worker, initargs=(scene, True)) as pool:
         yield from pool.map(_render_job, jobs)
 
 
 # -- helpers ------------------------------------------------------------------------------------------
 
 
-def _remove_stale(paths: FieldPaths, names: set[str]) -> None:
-    """Delete images of an earlier, larger run in the same folder (only files this generator names)."""
+def _remove_stale(paths: FieldPaths, names: set[str], realistic: bool = False) -> None:
+    """Delete images of an earlier, larger run in the same folder (only files this generator names), and
+    an earlier realistic run's extra truth from an exact one."""
+    if not realistic:
+        for f in (paths.noise_json, paths.mask_objects, paths.later.noise_json):
+            f.unlink(missing_ok=True)
+    noisy = (paths.masks_antialiased, paths.masks_antialiased_jpg, paths.masks_antialiased_gif)
     for folder, suffix in ((paths.images, ""), (paths.images_nogps, ""), (paths.undistorted_images, ".tif"),
-                           (paths.masks_raw, ".png"), (paths.masks_undistorted, ".png")):
+                           (paths.masks_raw, ".png"), (paths.masks_undistorted, ".png"),
+                           *zip(noisy, (".png", ".jpg", ".gif"))):
+        keep = names if realistic or folder not in noisy else set()
         for f in folder.glob("SIM_*"):
-            if f.name.removesuffix(suffix) not in names:
+            if f.name.removesuffix(suffix) not in keep:
                 f.unlink()
 
 
@@ -437,26 +494,38 @@ def _write_plot_truth(paths: FieldPaths, s, plants: Plants, offset: np.ndarray, 
 
 
 def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terrain, offset: np.ndarray,
-                   crs: CRS) -> None:
+                   crs: CRS, noise_rng: np.random.Generator | None = None) -> dict | None:
+    """DTM, DSM, orthophoto, multispectral and plant ids. With ``noise_rng`` (noise: realistic) the DSM and
+    DTM are photogrammetric and the multispectral raster has 5 bands (simfield/noise.py); returns what was
+    measured on them."""
     transform = Affine(grid.res, 0.0, grid.x0 + offset[0], 0.0, -grid.res, grid.y1 + offset[1])
     block = 512
+    dem = photogrammetric_dem(rasters, noise_rng) if noise_rng is not None else None
 
     def ground(rows: slice) -> np.ndarray:
         x, y = grid.centres(rows)
         return terrain.height(x, y)
 
+    def dsm(rows: slice) -> np.ndarray:
+        if dem is None:
+            return (ground(rows) + rasters.canopy[rows])[None]
+        return np.where(dem.holes[rows], NODATA, ground(rows) + dem.dsm[rows])[None]
+
+    def dtm(rows: slice) -> np.ndarray:
+        return (ground(rows) + (0.0 if dem is None else dem.dtm[rows]))[None]
+
     outputs = [
-        (paths.dtm, 1, "float32", NODATA, lambda r: ground(r)[None]),
-        (paths.dsm, 1, "float32", NODATA, lambda r: (ground(r) + rasters.canopy[r])[None]),
+        (paths.dtm, 1, "float32", NODATA, dtm),
+        (paths.dsm, 1, "float32", NODATA, dsm),
         (paths.orthophoto, 4, "uint8", 0, lambda r: np.concatenate(
             [np.moveaxis(rasters.albedo[r], 2, 0), np.full((1,) + rasters.label[r].shape, 255, np.uint8)])),
-        (paths.multispectral, 2, "float32", NODATA, lambda r: np.stack([rasters.red[r], rasters.nir[r]])),
         (paths.plant_ids, 1, "int32", -9999, lambda r: rasters.label[r][None]),
     ]
+    if dem is None:
+        outputs.insert(3, (paths.multispectral, 2, "float32", NODATA,
+                           lambda r: np.stack([rasters.red[r], rasters.nir[r]])))
     for path, count, dtype, nodata, fn in outputs:
-        profile = dict(driver="GTiff", width=grid.width, height=grid.height, count=count, dtype=dtype, crs=crs,
-                       transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
-                       compress="deflate", zlevel=1, BIGTIFF="IF_SAFER")
+        profile = _profile(grid, count, dtype, crs, transform, nodata)
         if count == 4:
             profile["photometric"] = "RGB"
             profile["alpha"] = "YES"
@@ -470,3 +539,18 @@ def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Ter
                 elif count == 2:
                     dst.set_band_description(1, "red reflectance")
                     dst.set_band_description(2, "near-infrared reflectance")
+    if dem is None:
+        return None
+    # 5 bands as a generic writer leaves them: photometric RGB + 2 extra samples, no descriptions, no nodata
+    profile = _profile(grid, len(BAND_ORDER), "float32", crs, transform, None)
+    profile["photometric"] = "RGB"
+    with atomic_path(paths.multispectral) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+        for b, band in enumerate(five_bands(rasters, noise_rng), start=1):
+            dst.write(band, b)
+    return noise_summary(REALISTIC, dem, rasters)
+
+
+def _profile(grid: Grid, count: int, dtype: str, crs: CRS, transform: Affine, nodata) -> dict:
+    return dict(driver="GTiff", width=grid.width, height=grid.height, count=count, dtype=dtype, crs=crs,
+                transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
+                compress="deflate", zlevel=1, BIGTIFF="IF_SAFER")

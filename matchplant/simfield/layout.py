@@ -55,7 +55,7 @@ class FieldPaths:
 
     # -- other inputs ------------------------------------------------------------------------------
     @property
-    def multispectral(self) -> Path:      # band 1 red, band 2 near-infrared (reflectance 0..1)
+    def multispectral(self) -> Path:      # exact: band 1 red, 2 NIR; realistic: blue, green, red, red edge, NIR
         return self.root / "multispectral" / "multispectral.tif"
 
     @property
@@ -111,6 +111,27 @@ class FieldPaths:
     @property
     def masks_undistorted(self) -> Path:  # <image name>.png: uint16 plant id of every undistorted pixel
         return self.truth / "masks_undistorted"
+
+    # -- noise: realistic (simfield/noise.py) ------------------------------------------------------
+    @property
+    def masks_antialiased(self) -> Path:  # <image name>.png: uint8 binary plant mask, anti-aliased edges
+        return self.truth / "masks_antialiased"
+
+    @property
+    def masks_antialiased_jpg(self) -> Path:  # the same masks as JPEG
+        return self.truth / "masks_antialiased_jpg"
+
+    @property
+    def masks_antialiased_gif(self) -> Path:  # the same masks as GIF
+        return self.truth / "masks_antialiased_gif"
+
+    @property
+    def mask_objects(self) -> Path:       # image,plants,parts,pixels of each anti-aliased mask
+        return self.truth / "mask_objects.csv"
+
+    @property
+    def noise_json(self) -> Path:         # the noise model and what was measured on the written rasters
+        return self.truth / "noise.json"
 
     # -- traits and plots (simfield/traits.py) -----------------------------------------------------
     @property

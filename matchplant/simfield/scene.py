@@ -162,21 +162,30 @@ class Plants:
 
 
 def row_layout(s: Settings) -> tuple[np.ndarray, np.ndarray]:
-    """The sowing plan: x of each crop row and y of each seed position along the rows (local frame)."""
+    """The sowing plan: x of each crop row and y of each seed position along the first row (local frame);
+    row ``r`` has its seeds :func:`row_shift` further north (a skewed grid)."""
     n_rows = max(1, int(np.floor(s.field_width / ROW_SPACING)))
     row_x = (s.field_width - (n_rows - 1) * ROW_SPACING) / 2 + ROW_SPACING * np.arange(n_rows)
-    n_in_row = max(1, int(np.floor((s.field_length - 0.1) / PLANT_SPACING)))
-    y0 = (s.field_length - (n_in_row - 1) * PLANT_SPACING) / 2
+    rise = (row_x[-1] - row_x[0]) * np.tan(np.radians(s.plot_skew_deg))  # the last row starts this much later
+    n_in_row = max(1, int(np.floor((s.field_length - 0.1 - rise) / PLANT_SPACING)))
+    y0 = (s.field_length - (n_in_row - 1) * PLANT_SPACING - rise) / 2
     return row_x, y0 + PLANT_SPACING * np.arange(n_in_row)
+
+
+def row_shift(s: Settings, row_x: np.ndarray) -> np.ndarray:
+    """How much further north each row's seeds start than the first row's: 0 unless the grid is skewed
+    (the ranges' edges run at ``plot_skew_deg`` off the perpendicular to the rows)."""
+    return (row_x - row_x[0]) * np.tan(np.radians(s.plot_skew_deg))
 
 
 def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: np.ndarray) -> Plants:
     row_x, slots = row_layout(s)
+    shift = row_shift(s, row_x)
     n_in_row = len(slots)
     xs, ys, rows = [], [], []
     for r, rx in enumerate(row_x):
         keep = rng.random(n_in_row) > 0.07  # gaps: missing plants
-        yy = slots + np.clip(rng.normal(0, 0.025, n_in_row), -0.05, 0.05)
+        yy = slots + shift[r] + np.clip(rng.normal(0, 0.025, n_in_row), -0.05, 0.05)
         xx = rx + np.clip(rng.normal(0, 0.012, n_in_row), -0.03, 0.03)
         xs.append(xx[keep])
         ys.append(yy[keep])

@@ -21,7 +21,7 @@ import numpy as np
 import shapely
 
 from matchplant.simfield.config import Settings
-from matchplant.simfield.scene import PLANT_SPACING, ROW_SPACING, Plants, Terrain, row_layout
+from matchplant.simfield.scene import PLANT_SPACING, ROW_SPACING, Plants, Terrain, row_layout, row_shift
 
 ROWS_PER_PLOT = 2
 SLOTS_PER_PLOT = 10
@@ -58,15 +58,24 @@ def traits_rows(plants: Plants, label: np.ndarray, res: float, offset: np.ndarra
 
 
 def plot_truth(s: Settings, plants: Plants, offset: np.ndarray, crs: str) -> dict:
-    """The plot layout and its truth (see the module doc); returns the files' contents."""
+    """The plot layout and its truth (see the module doc); returns the files' contents.
+
+    With ``plot_skew_deg`` the grid is a parallelogram: each row's seeds start ``row_shift`` further north,
+    the ranges' edges run along ``across = (width, width tan(skew))`` and every plot is the parallelogram
+    of its cell, as module 9's ``plot_grid`` builds it from the corners."""
     row_x, slots = row_layout(s)
+    shift = row_shift(s, row_x)
+    tan = np.tan(np.radians(s.plot_skew_deg))
     cols, ranges = len(row_x) // ROWS_PER_PLOT, len(slots) // SLOTS_PER_PLOT
     width, length = ROWS_PER_PLOT * ROW_SPACING, SLOTS_PER_PLOT * PLANT_SPACING
-    x0, y0 = row_x[0] - ROW_SPACING / 2, slots[0] - PLANT_SPACING / 2
+    x0 = row_x[0] - ROW_SPACING / 2
+    y0 = slots[0] - PLANT_SPACING / 2 - (row_x[0] - x0) * tan  # the first range's edge at x0
     occupied = np.zeros((len(row_x), len(slots)), bool)
-    slot = np.round((plants.y - slots[0]) / PLANT_SPACING).astype(int)
+    slot = np.round((plants.y - shift[plants.row - 1] - slots[0]) / PLANT_SPACING).astype(int)
     ok = (slot >= 0) & (slot < len(slots))
     occupied[plants.row[ok] - 1, slot[ok]] = True
+    across, along = np.array([width, width * tan]), np.array([0.0, length])  # one plot's sides
+    origin = np.array([x0, y0]) + offset[:2]
     plots, gaps, book = [], [], []
     for j in range(ranges):
         for i in range(cols):
@@ -74,18 +83,22 @@ def plot_truth(s: Settings, plants: Plants, offset: np.ndarray, crs: str) -> dic
             rs = slice(i * ROWS_PER_PLOT, (i + 1) * ROWS_PER_PLOT)
             ss = slice(j * SLOTS_PER_PLOT, (j + 1) * SLOTS_PER_PLOT)
             occ = occupied[rs, ss]
-            outline = shapely.box(x0 + i * width + offset[0], y0 + j * length + offset[1],
-                                  x0 + (i + 1) * width + offset[0], y0 + (j + 1) * length + offset[1])
+            a = origin + i * across + j * along
+            outline = shapely.Polygon([a, a + across, a + across + along, a + along])
             plots.append([pid, j + 1, i + 1, occ.size, int(occ.sum()), int((~occ).sum()), outline.wkt])
             for r, k in zip(*np.nonzero(~occ)):
-                gaps.append([pid, i * ROWS_PER_PLOT + r + 1, f"{row_x[i * ROWS_PER_PLOT + r] + offset[0]:.4f}",
-                             f"{slots[j * SLOTS_PER_PLOT + k] + offset[1]:.4f}"])
+                rr = i * ROWS_PER_PLOT + r
+                gaps.append([pid, rr + 1, f"{row_x[rr] + offset[0]:.4f}",
+                             f"{slots[j * SLOTS_PER_PLOT + k] + shift[rr] + offset[1]:.4f}"])
             book.append([pid, f"G{(pid - 1) % GENOTYPES + 1:02d}", (pid - 1) // GENOTYPES + 1])
-    corners = [[x0, y0], [x0 + cols * width, y0], [x0 + cols * width, y0 + ranges * length],
-               [x0, y0 + ranges * length]]
-    grid = {"crs": crs, "corners": [[c[0] + offset[0], c[1] + offset[1]] for c in corners],
+    c0 = origin
+    corners = [c0, c0 + cols * across, c0 + cols * across + ranges * along, c0 + ranges * along]
+    grid = {"crs": crs, "corners": [[float(c[0]), float(c[1])] for c in corners],
             "corners_meaning": "first plot's outer corner, then along the first range across the rows, "
                                "then the far corners: plot 1 is at corner 1, plots numbered across then along",
             "columns": cols, "ranges": ranges, "plot_width": width, "plot_length": length,
-            "rows_per_plot": ROWS_PER_PLOT, "row_spacing": ROW_SPACING, "plant_spacing": PLANT_SPACING}
+            "rows_per_plot": ROWS_PER_PLOT, "row_spacing": ROW_SPACING, "plant_spacing": PLANT_SPACING,
+            "skew_deg": float(s.plot_skew_deg), "row_direction": [0.0, 1.0],
+            "row_direction_meaning": "unit vector along the crop rows (north); with a skew the ranges' edges "
+                                     "are not perpendicular to it"}
     return {"grid": grid, "plots": plots, "gaps": gaps, "field_book": book}

@@ -1,0 +1,85 @@
+"""Ctrl-C anywhere in the demo: one line, exit 130, no traceback (issue 29, point 3), while the libraries load
+and while a step runs; and ``make demo`` adds no line of its own."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _start(out: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg", MATCHPLANT_QUIET="0")
+    return subprocess.Popen([sys.executable, "-m", "matchplant.demo", "--preset", "tiny", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO,
+                            start_new_session=True)
+
+
+def _interrupt_when(proc: subprocess.Popen, seen, timeout: float = 240) -> tuple[int, list[str]]:
+    """Send SIGINT to the process group (as a terminal's Ctrl-C does) once ``seen(lines)`` holds."""
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")), daemon=True)
+    reader.start()
+    t0 = time.time()
+    while not seen(lines) and proc.poll() is None and time.time() - t0 < timeout:
+        time.sleep(0.05)
+    assert proc.poll() is None, "".join(lines)
+    before = len(lines)
+    os.killpg(proc.pid, signal.SIGINT)
+    rc = proc.wait(timeout=120)
+    reader.join(timeout=10)
+    return rc, [ln.rstrip("\n") for ln in lines[before:] if ln.strip()]
+
+
+def _one_line(rc: int, after: list[str]) -> None:
+    assert rc == 130, after
+    assert not any("Traceback" in ln or "KeyboardInterrupt" in ln for ln in after), after
+    assert after[-1].startswith("interrupted (Ctrl-C)"), after
+    assert len([ln for ln in after if ln.startswith("interrupted")]) == 1
+
+
+@pytest.mark.slow
+def test_ctrl_c_while_starting_gives_one_line_and_130(tmp_path):
+    rc, after = _interrupt_when(_start(tmp_path / "demo"), lambda lines: True)  # at once: during the imports
+    if rc == 130:
+        _one_line(rc, after)
+    assert not (tmp_path / "demo").exists() or rc == 130
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_a_step_gives_one_line_and_130(tmp_path):
+    rc, after = _interrupt_when(_start(tmp_path / "demo"), lambda lines: any("rendering images" in ln or
+                                                                              "running" in ln for ln in lines))
+    _one_line(rc, after)
+    # ours is the only line after the interrupt (progress output aside)
+    assert [ln for ln in after if not ln.startswith(("rendering", "generating", "["))] == [after[-1]], after
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
+def test_make_demo_adds_no_line_of_its_own(tmp_path):
+    """The Makefile's demo recipe, run by make with a stand-in for the venv's python."""
+    bin_dir = tmp_path / "venv" / "bin"
+    bin_dir.mkdir(parents=True)
+    (bin_dir / "python").write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
+    (bin_dir / "python").chmod(0o755)
+    (tmp_path / "venv" / ".installed").touch()  # newer than the requirements: make installs nothing
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen(["make", "-s", "-C", str(REPO), "demo", f"VENV={tmp_path / 'venv'}",
+                             f"DEMO_ARGS=--preset tiny --out {tmp_path / 'demo'}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                            start_new_session=True)
+    rc, after = _interrupt_when(proc, lambda lines: any("rendering images" in ln or "running" in ln
+                                                        for ln in lines))
+    assert rc in (-signal.SIGINT, 130), after  # make ends by the signal: the shell reports 130
+    assert not any(ln.startswith("make") for ln in after), after
+    assert after[-1].startswith("interrupted (Ctrl-C)") and not any("Traceback" in ln for ln in after), after
