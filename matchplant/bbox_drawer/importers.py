@@ -8,6 +8,7 @@ are put back in the photo they were cut from.
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -147,6 +148,7 @@ def _mask_key(name: str) -> str:
     """The photo a mask file's name means, loosely: without folder, upload prefix, extensions and a trailing
     ``_mask``/``_label``-like word, case ignored (``3f2a1b7c-IMG_1.JPG_mask.png`` -> ``img_1``)."""
     stem = strip_upload_prefix(str(name).replace("\\", "/").rsplit("/", 1)[-1]).casefold()
+    stem = re.sub(r"\.[a-z][a-z0-9]{0,4}$", "", stem)  # the file's own extension, whatever it is
     for _ in range(3):  # IMG_1.JPG.tif_mask.png
         base, dot, ext = stem.rpartition(".")
         if dot and "." + ext in MASK_SUFFIXES + (".dng",):

@@ -38,6 +38,8 @@ RULES = {
     "folder": "without the folder the tool wrote before it (CVAT's task paths, images/, obj_train_data/)",
     "upload prefix": "by stripping Label Studio's upload prefix (<8 hex digits>-)",
     "extra suffix": "by removing a second file extension the tool added (IMG_1.JPG.png)",
+    "upload prefix + extra suffix": "by stripping Label Studio's upload prefix (<8 hex digits>-) and a second file "
+                                    "extension (3f2a1b7c-IMG_1.JPG.png)",
     "loose": "up to case and extension",
 }
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".dng")
@@ -85,7 +87,9 @@ def resolve_image_names(names, files, rules: dict[str, str] | None = None) -> tu
         base = base_name(raw)
         bare = strip_upload_prefix(base)
         steps = [("exact", str(raw)), ("folder", base), ("upload prefix", bare)]
-        steps += [("extra suffix", x) for x in {_without_extra_suffix(base), _without_extra_suffix(bare)} if x]
+        steps += [("extra suffix", _without_extra_suffix(base)),
+                  ("upload prefix + extra suffix", _without_extra_suffix(bare) if bare != base else None)]
+        steps = [(r, n) for r, n in steps if n]
         rule, hit = next(((r, h) for r, n in steps if (h := match_name(n, files)) is not None), (None, None))
         if rule == "exact" and Path(str(raw).replace("\\", "/")).name != str(raw):
             rule = "folder"  # match_name already dropped the folder
