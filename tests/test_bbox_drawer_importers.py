@@ -240,7 +240,8 @@ def test_boxes_of_photos_module_3_did_not_select_are_info_not_a_warning(tmp_path
     assert len(info) == 1 and info[0].levelno == logging.INFO and "2 imported box(es) on 2 photo(s)" in info[0].getMessage()
     warn = [r for r in caplog.records if r.levelno == logging.WARNING and "not added" in r.getMessage()]
     assert len(warn) == 1 and warn[0].getMessage().startswith("1 imported box(es) were not added (1 image not in")
-    rows = list(csv.DictReader(open(tmp_path / "out" / "import_dropped.csv", newline="")))
+    with open(tmp_path / "out" / "import_dropped.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
     assert sorted((r["image"], r["reason"]) for r in rows) == [
         ("B.JPG", "photo not in module 3's selection"), ("C.JPG", "photo not in module 3's selection"),
         ("TYPO.JPG", "image not in the image folder")]

@@ -26,9 +26,14 @@ from matchplant.bbox_drawer.importers import (
     read_voc_boxes,
     read_yolo_boxes,
 )
-from matchplant.bbox_drawer.store import NOT_A_FAULT, NOT_IN_FOLDER, STATE_NAME, AnnotationStore
-from matchplant.core.formats.coco import DropLog
+from matchplant.bbox_drawer.store import (
+    NOT_A_FAULT,
+    NOT_IN_FOLDER,
+    STATE_NAME,
+    AnnotationStore,
+)
 from matchplant.core.formats.box_files import resolve_image_names
+from matchplant.core.formats.coco import DropLog
 from matchplant.core.formats.images import is_image_name, match_name
 from matchplant.core.formats.owned_areas import read_owned_areas
 from matchplant.core.runtime.errors import InputError
