@@ -5,6 +5,7 @@ skipped; the whole project passes. The project is the tiny field rewritten by :m
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 from pyproj import Geod
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.reconstruction import read_reconstruction
 from matchplant.core.formats.split_check import check_split, split_problems
 from matchplant.core.runtime.errors import InputError
 from matchplant.odm_runner.outputs import check_outputs
@@ -82,3 +84,15 @@ def test_shared_images_placed_apart_are_named(split, tmp_path):
     assert len(problems) == 1 and "place the 3 images they share" in problems[0]
     gap = float(problems[0].split(") ")[1].split(" m apart")[0])
     assert np.isclose(gap, 300, atol=5)
+
+
+def test_a_reconstruction_that_is_one_object_is_read_and_said(tiny_field, tmp_path, caplog):
+    """Module 2's decision: a reconstruction.json holding one object, not OpenSfM's list, is accepted on purpose."""
+    src = tiny_field.root / "opensfm" / "reconstruction.json"
+    data = json.loads(src.read_text())
+    one = tmp_path / "reconstruction.json"
+    one.write_text(json.dumps(data[0]))
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        rec = read_reconstruction(one)
+    assert "holds one reconstruction object, not OpenSfM's list" in caplog.text
+    assert sorted(rec.shots) == sorted(read_reconstruction(src).shots)
