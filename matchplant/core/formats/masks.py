@@ -33,6 +33,7 @@ MASK_SUFFIXES = IMAGE_SUFFIXES + (".gif", ".webp")  # GIF: what web tools and so
 MODES = ("auto", "binary", "instance")
 SAME_PEAK = 0.04   # objects whose peak value is within 4 % of the mask's top value share its population
 BINARY_SHARE = 0.7  # ... and when this share of the objects does, the mask is binary
+FLAT_TOP_SHARE = 0.9  # ... or when this share of its flat (interior) pixels is at the top value
 MIN_BLOB = 4       # px: blobs smaller than this do not vote (JPEG speckle)
 FAINT = 0.15      # with many levels, pixels under this share of the top value are noise, not objects
 FEW_LEVELS = 16   # (an instance mask of a few ids may have faint ids: 1 and 7)
@@ -138,17 +139,30 @@ def decide_mode(values: np.ndarray, kind: str = "grey") -> tuple[str, str]:
     if not voting.any():
         voting = sizes > 0
     share = float(np.mean(peaks[voting] >= top * (1 - SAME_PEAK)))
-    if share < BINARY_SHARE:
+    flat_top = _flat_top_share(values, top)  # pixel-weighted: small blurred objects do not sway it
+    if share < BINARY_SHARE and flat_top < FLAT_TOP_SHARE:
         return "instance", (f"{len(levels)} values whose objects peak at different values (only {share:.0%} of "
-                            f"{int(voting.sum())} blobs at the top value {top:g}): one object per value")
+                            f"{int(voting.sum())} blobs, {flat_top:.0%} of the flat pixels at the top value "
+                            f"{top:g}): one object per value")
     fg = values >= top / 2
     edge = ndimage.binary_dilation(fg, iterations=EDGE_PX) & ~ndimage.binary_erosion(fg, iterations=EDGE_PX)
     between = nz & (values > 0.15 * top) & (values < 0.85 * top)
     at_edges = float(edge[between].mean()) if between.any() else 1.0
     what = "one colour on black" if kind == "one-colour" else f"{len(levels)} grey levels"
     return "binary", (f"{what}, but {share:.0%} of the {int(voting.sum())} objects peak at the same value {top:g} "
-                      f"(two populations: background 0, foreground ~{top:g}) and {at_edges:.0%} of the in-between "
-                      f"pixels lie at object edges (anti-aliasing)")
+                      f"and {flat_top:.0%} of the interior pixels are at it (two populations: background 0, "
+                      f"foreground ~{top:g}), and {at_edges:.0%} of the in-between pixels lie at object edges "
+                      "(anti-aliasing)")
+
+
+def _flat_top_share(values: np.ndarray, top: float) -> float:
+    """Of the non-zero pixels equal to their four neighbours (object interiors), the share at the top value: ~1
+    in a binary mask (its edges are gradients, never flat), low in an instance mask (every id has an interior)."""
+    v = values
+    flat = (v[1:-1, 1:-1] > 0) & (v[1:-1, 1:-1] == v[:-2, 1:-1]) & (v[1:-1, 1:-1] == v[2:, 1:-1]) & \
+        (v[1:-1, 1:-1] == v[1:-1, :-2]) & (v[1:-1, 1:-1] == v[1:-1, 2:])
+    inner = v[1:-1, 1:-1][flat]
+    return float(np.mean(inner >= top * (1 - SAME_PEAK))) if inner.size else 0.0
 
 
 def mask_objects(mask: np.ndarray, min_area: int = 1, label: str = "plant", mode: str = "auto",
