@@ -101,7 +101,7 @@ def mask_values(mask: np.ndarray) -> tuple[np.ndarray, str]:
     rgb = mask[..., :3].astype(np.uint32)
     packed = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
     colours = np.unique(packed[packed != 0])
-    bright = mask[..., :3].max(axis=2)
+    bright = np.maximum(np.maximum(mask[..., 0], mask[..., 1]), mask[..., 2])  # (faster than max(axis=2))
     if len(colours) <= 1 or _one_hue(mask[..., :3], bright):
         return bright, "one-colour"
     return packed, "colour"
@@ -131,10 +131,11 @@ def decide_mode(values: np.ndarray, kind: str = "grey") -> tuple[str, str]:
     top = float(levels.max())
     # with many levels (JPEG, anti-aliasing) faint pixels are background noise that would join the objects
     solid = nz if len(levels) <= FEW_LEVELS else values > FAINT * top
-    blobs, n = ndimage.label(solid, structure=np.ones((3, 3), bool))
-    idx = np.arange(1, n + 1)
+    n, blobs = _blobs(solid)
     sizes = np.bincount(blobs.ravel(), minlength=n + 1)[1:]
-    peaks = np.asarray(ndimage.maximum(values, blobs, idx), dtype=float)
+    peaks = np.zeros(n + 1)
+    np.maximum.at(peaks, blobs[solid], values[solid].astype(float))  # only the objects' pixels
+    peaks = peaks[1:]
     voting = sizes >= MIN_BLOB
     if not voting.any():
         voting = sizes > 0
@@ -144,8 +145,9 @@ def decide_mode(values: np.ndarray, kind: str = "grey") -> tuple[str, str]:
         return "instance", (f"{len(levels)} values whose objects peak at different values (only {share:.0%} of "
                             f"{int(voting.sum())} blobs, {flat_top:.0%} of the flat pixels at the top value "
                             f"{top:g}): one object per value")
-    fg = values >= top / 2
-    edge = ndimage.binary_dilation(fg, iterations=EDGE_PX) & ~ndimage.binary_erosion(fg, iterations=EDGE_PX)
+    fg = (values >= top / 2).astype(np.uint8)
+    kernel = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
+    edge = (cv2.dilate(fg, kernel) > 0) & ~(cv2.erode(fg, kernel) > 0)
     between = nz & (values > 0.15 * top) & (values < 0.85 * top)
     at_edges = float(edge[between].mean()) if between.any() else 1.0
     what = "one colour on black" if kind == "one-colour" else f"{len(levels)} grey levels"
@@ -153,6 +155,12 @@ def decide_mode(values: np.ndarray, kind: str = "grey") -> tuple[str, str]:
                       f"and {flat_top:.0%} of the interior pixels are at it (two populations: background 0, "
                       f"foreground ~{top:g}), and {at_edges:.0%} of the in-between pixels lie at object edges "
                       "(anti-aliasing)")
+
+
+def _blobs(mask: np.ndarray) -> tuple[int, np.ndarray]:
+    """(count, labels 1..count) of the 8-connected blobs of a boolean image (OpenCV: fast on 20 Mpx)."""
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8, ltype=cv2.CV_32S)
+    return int(n) - 1, labels
 
 
 def _flat_top_share(values: np.ndarray, top: float) -> float:
@@ -233,7 +241,7 @@ def _instances(values: np.ndarray, min_area: int, label: str, reason: str) -> Ma
 
 def _pieces(ids: np.ndarray, nz: np.ndarray, k: int) -> np.ndarray:
     """For each instance label 1..K, the number of separate blobs of the mask it has pixels in."""
-    blobs, n = ndimage.label(nz, structure=np.ones((3, 3), bool))
+    n, blobs = _blobs(nz)
     pairs = np.unique(ids[nz].astype(np.int64) * (n + 1) + blobs[nz])
     return np.bincount(pairs // (n + 1), minlength=k + 1)[1:]
 
