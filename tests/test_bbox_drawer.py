@@ -329,7 +329,8 @@ def test_imports_coco_yolo_and_predictions(photos, tmp_path):
     (yolo / "classes.txt").write_text("plant\nweed\n")
     (yolo / "a.txt").write_text("1 0.5 0.5 0.1 0.2\n")
     cfg2 = load_config(BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'out2'}",
-                                              f"import_coco={tmp_path / 'in.json'}", f"import_yolo={yolo}"])
+                                              f"import_coco={tmp_path / 'in.json'}", f"import_yolo={yolo}",
+                                              "categories=[plant, weed]"])   # an import's labels must be categories
     store2 = open_session(cfg2)
     assert _xyxy(store2, "b.png") == [[5.5, 6, 25.5, 16]]
     assert _xyxy(store2, "a.png") == [[90, 60, 110, 90]] and store2.categories == ["plant", "weed"]

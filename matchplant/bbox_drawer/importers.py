@@ -8,13 +8,19 @@ are put back in the photo they were cut from.
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from matchplant.bbox_drawer.store import ImportedBox, ImportedBoxes
-from matchplant.core.formats.box_files import read_cvat_xml, read_deepforest_csv, read_voc
+from matchplant.core.formats.box_files import (
+    read_cvat_xml,
+    read_deepforest_csv,
+    read_voc,
+    strip_upload_prefix,
+)
 from matchplant.core.formats.coco import (
     DropLog,
     LabelledBox,
@@ -22,8 +28,7 @@ from matchplant.core.formats.coco import (
     read_dataset,
     to_source_pixels,
 )
-from matchplant.core.formats.images import IMAGE_SUFFIXES, read_image
-from matchplant.core.formats.masks import mask_boxes
+from matchplant.core.formats.masks import MASK_SUFFIXES, mask_objects, read_mask
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.yolo import read_yolo
 from matchplant.core.geometry.boxes import nms
@@ -64,7 +69,7 @@ def read_prediction_boxes(path: str | Path, min_score: float = 0.5, nms_iou: flo
             scores.append(float("nan"))
     preds = [p for p, s in zip(data["predictions"], scores) if s >= min_score]
     if data["predictions"] and not preds:
-        best = max((s for s in scores if s == s), default=float("nan"))
+        best = max((s for s in scores if not np.isnan(s)), default=float("nan"))
         raise InputError(f"none of the {len(scores)} predictions has a score >= min_score {min_score:g} "
                          f"(the highest is {best:g})", path=path,
                          fix=f"lower min_score (e.g. --set min_score={max(0.0, round(best, 2) - 0.05):g})")
@@ -89,31 +94,106 @@ def read_cvat_boxes(path: str | Path) -> ImportedBoxes:
 
 
 def read_mask_boxes(masks_dir: str | Path, images: list[str], min_area: int = 20, category: str = "plant",
-                    sizes: dict[str, tuple[int, int]] | None = None) -> ImportedBoxes:
-    """Boxes from label images: for each image, a mask named ``<image stem>.<ext>`` or ``<image name>.png``
-    in ``masks_dir`` (instance ids or a binary mask; objects under ``min_area`` pixels dropped). With
-    ``sizes`` (image name -> (width, height)), a mask of another size than its photo is an error."""
+                    sizes: dict[str, tuple[int, int]] | None = None, mode: str = "auto",
+                    threshold: float | None = None) -> ImportedBoxes:
+    """Boxes from label images: for each image, the mask named after it in ``masks_dir`` (``<stem>.<ext>`` in
+    any image format, ``<image name>.png``, ``<stem>_mask.png``, Label Studio's upload prefix ignored).
+
+    Each mask is read as instances or as a binary mask (``mode`` "auto": decided from its pixels and said in
+    the log, :func:`matchplant.core.formats.masks.decide_mode`); objects under ``min_area`` pixels are
+    dropped and counted. With ``sizes`` (image name -> (width, height)), a mask of another size than its
+    photo is an error."""
     masks_dir = Path(masks_dir)
     if not masks_dir.is_dir():
         raise InputError("mask folder not found", path=masks_dir, fix="set import_masks to the folder of label images")
+    found = _mask_files(masks_dir, images)
     out = ImportedBoxes()
-    for name in images:
-        stem = Path(name).stem
-        for candidate in [masks_dir / (stem + s) for s in IMAGE_SUFFIXES] + [masks_dir / (name + ".png"),
-                                                                             masks_dir / (Path(stem).stem + ".png")]:
-            if candidate.is_file() and candidate.name != name:  # never the photo itself
-                mask = read_image(candidate)
-                if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
-                    raise InputError(f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
-                                     f"{sizes[name][0]}x{sizes[name][1]} px", path=candidate,
-                                     fix="give masks of the same size as the photos (not resized)")
-                out[name] = [ImportedBox(b.xyxy, b.category, where=candidate.name)
-                             for b in mask_boxes(mask, min_area, category)]
-                break
-    if not out:
-        raise InputError("no mask matches an image (masks are named like their image: <stem>.png)", path=masks_dir,
-                         fix="name each mask after its photo, e.g. IMG_0001.png for IMG_0001.JPG")
+    modes: Counter = Counter()
+    reasons: dict[str, str] = {}
+    dropped = total = 0
+    for name, path in found.items():
+        mask = read_mask(path)
+        if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
+            raise InputError(f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
+                             f"{sizes[name][0]}x{sizes[name][1]} px", path=path,
+                             fix="give masks of the same size as the photos (not resized)")
+        objects = mask_objects(mask, min_area, category, mode, threshold)
+        log.debug("%s: read as %s (%s): %d object(s), %d under mask_min_area", path.name, objects.mode,
+                  objects.reason, len(objects.boxes), objects.dropped)
+        modes[objects.mode] += 1
+        reasons.setdefault(objects.mode, f"{path.name}: {objects.reason}")
+        for warning in objects.warnings:
+            log.warning("mask %s: %s; if so, set mask_mode: binary (and mask_threshold)", path.name, warning)
+        dropped += objects.dropped
+        total += objects.dropped + len(objects.boxes)
+        out[name] = [ImportedBox(b.xyxy, b.category, where=path.name) for b in objects.boxes]
+    for kind, n in sorted(modes.items()):
+        log.info("%d mask(s) read as %s (%s), e.g. %s", n, kind,
+                 "mask_mode" if mode != "auto" or threshold is not None else "decided from the pixels",
+                 reasons[kind])
+    if len(modes) > 1:
+        log.warning("the masks of %s were read as %s: %s; set mask_mode: binary or instance if they are all of one "
+                    "kind", masks_dir, " and ".join(f"{kind} ({n})" for kind, n in sorted(modes.items())),
+                    "; ".join(reasons.values()))
+    if dropped:
+        log.info("mask_min_area %d: %d of the %d mask object(s) were smaller and not imported (specks)", min_area,
+                 dropped, total)
     return out
+
+
+MASK_WORDS = ("_mask", "-mask", "_masks", "_label", "-label", "_labels", "_seg", "_gt", "_instances")
+
+
+def _mask_key(name: str) -> str:
+    """The photo a mask file's name means, loosely: without folder, upload prefix, extensions and a trailing
+    ``_mask``/``_label``-like word, case ignored (``3f2a1b7c-IMG_1.JPG_mask.png`` -> ``img_1``)."""
+    stem = strip_upload_prefix(str(name).replace("\\", "/").rsplit("/", 1)[-1]).casefold()
+    stem = re.sub(r"\.[a-z][a-z0-9]{0,4}$", "", stem)  # the file's own extension, whatever it is
+    for _ in range(3):  # IMG_1.JPG.tif_mask.png
+        base, dot, ext = stem.rpartition(".")
+        if dot and "." + ext in MASK_SUFFIXES + (".dng",):
+            stem = base
+        for word in MASK_WORDS:
+            stem = stem.removesuffix(word)
+    return stem
+
+
+def _mask_files(masks_dir: Path, images: list[str]) -> dict[str, Path]:
+    """Image name -> its mask file; a mask format that is not read, or two masks for one photo, are errors."""
+    by_key: dict[str, list[Path]] = {}
+    for p in sorted(masks_dir.iterdir()):
+        if p.is_file() and not p.name.startswith("."):
+            by_key.setdefault(_mask_key(p.name), []).append(p)
+    found: dict[str, Path] = {}
+    unread: list[Path] = []
+    for name in images:
+        cands = [p for p in by_key.get(_mask_key(name), []) if p.name != name]  # never the photo itself
+        masks = [p for p in cands if p.suffix.lower() in MASK_SUFFIXES]
+        unread += [p for p in cands if p.suffix.lower() not in MASK_SUFFIXES]
+        if len(masks) > 1:
+            raise InputError(f"{len(masks)} masks fit the photo {name}: {', '.join(p.name for p in masks)}",
+                             path=masks_dir, fix="keep one mask per photo in the folder (move the others away)")
+        if masks:
+            found[name] = masks[0]
+    if not found:
+        kinds = "/".join(s.lstrip(".").upper() for s in MASK_SUFFIXES)
+        if unread:
+            raise InputError(f"the masks named after the photos are {', '.join(sorted({p.suffix for p in unread}))} "
+                             f"files (e.g. {unread[0].name}), which are not read as images ({kinds} are)",
+                             path=masks_dir, fix="save the masks as PNG (grey ids, a binary mask or RGB colours)")
+        files = sorted(p.name for p in masks_dir.iterdir() if p.is_file())
+        example = f"; the folder holds e.g. {', '.join(files[:3])}" if files else "; the folder is empty"
+        raise InputError(f"no mask is named after any of the {len(images)} photos (e.g. {images[0] if images else '-'})"
+                         f"{example}", path=masks_dir,
+                         fix="name each mask after its photo, e.g. IMG_0001.png for IMG_0001.JPG")
+    if unread:
+        log.warning("%d file(s) in %s named after a photo are not read as masks (e.g. %s): convert them to PNG",
+                    len(unread), masks_dir, unread[0].name)
+    missing = [n for n in images if n not in found]
+    if missing:
+        log.info("%d of the %d photos have no mask in %s (e.g. %s): no boxes imported for them", len(missing),
+                 len(images), masks_dir, missing[0])
+    return found
 
 
 def _imported(boxes: dict[str, list[LabelledBox]], sizes: dict[str, tuple[int, int]] | None = None) -> ImportedBoxes:
@@ -204,5 +284,12 @@ def _nms(items: list[ImportedBox], iou: float) -> list[ImportedBox]:
     return [items[i] for i in sorted(keep.tolist())]
 
 
-__all__ = ["read_coco_boxes", "read_yolo_boxes", "read_prediction_boxes", "read_deepforest_boxes", "read_voc_boxes",
-           "read_cvat_boxes", "read_mask_boxes"]
+__all__ = [
+    "read_coco_boxes",
+    "read_cvat_boxes",
+    "read_deepforest_boxes",
+    "read_mask_boxes",
+    "read_prediction_boxes",
+    "read_voc_boxes",
+    "read_yolo_boxes",
+]

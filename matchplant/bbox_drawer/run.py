@@ -26,9 +26,15 @@ from matchplant.bbox_drawer.importers import (
     read_voc_boxes,
     read_yolo_boxes,
 )
-from matchplant.bbox_drawer.store import NOT_A_FAULT, STATE_NAME, AnnotationStore
+from matchplant.bbox_drawer.store import (
+    NOT_A_FAULT,
+    NOT_IN_FOLDER,
+    STATE_NAME,
+    AnnotationStore,
+)
+from matchplant.core.formats.box_files import resolve_image_names
 from matchplant.core.formats.coco import DropLog
-from matchplant.core.formats.images import match_name
+from matchplant.core.formats.images import is_image_name, match_name
 from matchplant.core.formats.owned_areas import read_owned_areas
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.guard import check_outputs, staged_outputs
@@ -38,6 +44,7 @@ from matchplant.core.runtime.log import get_logger
 log = get_logger("bbox_drawer")
 
 DROPPED_NAME = "import_dropped.csv"  # every imported box left out, where it came from and why
+NOT_SELECTED = "photo not in module 3's selection"  # expected: an import made for the whole flight
 IMPORT_KEYS = ("import_coco", "import_yolo", "import_predictions", "import_masks", "import_deepforest",
                "import_voc", "import_cvat")
 
@@ -51,7 +58,7 @@ def open_session(cfg: BboxDrawerConfig, output_dir: Path | None = None) -> Annot
     """
     out = Path(output_dir or cfg.output_dir)
     store = AnnotationStore(cfg.images, out, cfg.categories, min_box_size=cfg.min_box_size,
-                            resume_from=Path(cfg.output_dir) / STATE_NAME)
+                            resume_from=Path(cfg.output_dir) / STATE_NAME, label_map=cfg.label_map)
     drops = DropLog()
     for key in IMPORT_KEYS:
         path = getattr(cfg, key)
@@ -68,10 +75,62 @@ def open_session(cfg: BboxDrawerConfig, output_dir: Path | None = None) -> Annot
         if added == 0 and (faults or not any(boxes.values())):
             _fail_import(cfg, key, path, drops, faults, before)
     if len(drops):
+        unselected = _not_selected(cfg, drops)
         drops.write_csv(out / DROPPED_NAME)
-        log.warning("%d imported box(es) were not added (%s); each one, where it came from and why: %s",
-                    len(drops), drops.summary(), Path(cfg.output_dir) / DROPPED_NAME)
+        listed = Path(cfg.output_dir) / DROPPED_NAME
+        if unselected:
+            photos = len({r["image"] for r in unselected})
+            log.info("%d imported box(es) on %d photo(s) module 3 did not select were not added: those photos are "
+                     "not in the selection (%s; e.g. %s); listed in %s", len(unselected), photos, cfg.images,
+                     unselected[0]["image"], listed)
+        others = DropLog([r for r in drops.rows if r["reason"] != NOT_SELECTED])
+        if len(others):
+            log.warning("%d imported box(es) were not added (%s); each one, where it came from and why: %s",
+                        len(others), others.summary(), listed)
     return store
+
+
+def _selection(images: Path) -> dict | None:
+    """Module 3's selection.json when ``images`` is its folder of selected images (``<output_dir>/images``)."""
+    for folder in (images, images.parent):
+        path = folder / "selection.json"
+        if path.is_file() and (folder / "selected_images.csv").is_file():
+            try:
+                data = read_json(path)
+            except InputError:
+                return None
+            return data if isinstance(data, dict) else None
+    return None
+
+
+def _not_selected(cfg: BboxDrawerConfig, drops: DropLog) -> list[dict]:
+    """The boxes left out because their photo is one module 3 did not select (expected when an import covers the
+    whole flight and ``images`` is module 3's selection): their reason becomes NOT_SELECTED."""
+    selection = _selection(Path(cfg.images))
+    rows = [r for r in drops.rows if r["reason"] == NOT_IN_FOLDER]
+    if selection is None or not rows:
+        return []
+    flight = _flight_images(selection.get("project_dir"))
+    names = sorted({r["image"] for r in rows})
+    if flight:  # the project is at hand: only names of its photos are expected
+        matched, _ = resolve_image_names(names, flight)
+        names = [n for n in names if n in matched]
+    out = []
+    for r in rows:
+        if r["image"] in names:
+            r["reason"], r["detail"] = NOT_SELECTED, f"module 3 did not select it ({Path(cfg.images).parent})"
+            out.append(r)
+    return out
+
+
+def _flight_images(project_dir) -> list[str]:
+    """The photo names of module 3's ODM project (its undistorted images, every submodel's), [] if not at hand."""
+    if not project_dir or not Path(project_dir).is_dir():
+        return []
+    root = Path(project_dir)
+    folders = [root / "opensfm/undistorted/images", root / "images"] + \
+        sorted(root.glob("submodels/submodel_*/opensfm/undistorted/images"))
+    return sorted({p.name for f in folders if f.is_dir() for p in f.iterdir() if is_image_name(p)})
 
 
 def _read_import(cfg: BboxDrawerConfig, key: str, path: Path, store: AnnotationStore):
@@ -83,7 +142,7 @@ def _read_import(cfg: BboxDrawerConfig, key: str, path: Path, store: AnnotationS
         return read_prediction_boxes(path, cfg.min_score)
     if key == "import_masks":
         return read_mask_boxes(path, store.images, cfg.mask_min_area, store.categories[0],
-                               {n: store.size(n) for n in store.images})
+                               {n: store.size(n) for n in store.images}, cfg.mask_mode, cfg.mask_threshold)
     return {"import_deepforest": read_deepforest_boxes, "import_voc": read_voc_boxes,
             "import_cvat": read_cvat_boxes}[key](path)
 

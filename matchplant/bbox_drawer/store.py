@@ -15,12 +15,21 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import math
+from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
-from matchplant.core.formats.box_files import resolve_image_names
-from matchplant.core.formats.coco import REGION_KEY, DropLog, make_annotation, new_dataset, region_entry, write_dataset
+from matchplant.core.formats.box_files import RULES, resolve_image_names
+from matchplant.core.formats.coco import (
+    REGION_KEY,
+    DropLog,
+    make_annotation,
+    new_dataset,
+    region_entry,
+    write_dataset,
+)
 from matchplant.core.formats.images import image_size, list_images, whole_image_size
 from matchplant.core.formats.yolo import coco_to_yolo
 from matchplant.core.runtime.errors import ConfigError, InputError
@@ -41,6 +50,7 @@ DECIMALS = 2   # boxes are stored to 0.01 px
 
 # reasons a box is not imported that are no fault of the file (not counted against it)
 NOT_A_FAULT = "image already has boxes in this session"
+NOT_IN_FOLDER = "image not in the image folder"
 EDGE_TOLERANCE = 1.0  # px: boxes reaching further past the image edge are clipped with a warning
 
 
@@ -90,11 +100,13 @@ class AnnotationStore:
     """
 
     def __init__(self, images_dir: str | Path, output_dir: str | Path, categories: Iterable[str] = ("plant",),
-                 *, min_box_size: float = 2.0, resume_from: str | Path | None = None):
+                 *, min_box_size: float = 2.0, resume_from: str | Path | None = None,
+                 label_map: dict[str, str] | None = None):
         self.images_dir = Path(images_dir)
         self.output_dir = Path(output_dir)
         self.path = self.output_dir / STATE_NAME
         self.min_box_size = float(min_box_size)
+        self.label_map = {str(k): str(v) for k, v in (label_map or {}).items()}  # imported label -> category
         files = list_images(self.images_dir, min_count=0)
         if not files:
             raise InputError("no images (.jpg, .png, .tif, ...) in the image folder", path=self.images_dir,
@@ -296,19 +308,15 @@ class AnnotationStore:
             log.info("%s was already imported into this session; skipped", source)
             return 0
         drops = drops if drops is not None else getattr(boxes, "drops", DropLog())
-        matched, unmatched = resolve_image_names(list(boxes), self.files)
-        loose = [(raw, name) for raw, name in matched.items() if Path(str(raw).replace("\\", "/")).name not in
-                 (name, name[:-4] if name.lower().endswith(".tif") else name)]
-        if loose:
-            log.info("%d image name(s) of %s matched a photo only loosely (e.g. '%s' -> '%s')", len(loose),
-                     Path(source).name, *loose[0])
+        matched, unmatched = self._match_names(boxes, source)
+        labels = self._resolve_labels(boxes, source)
         self._check_sizes(getattr(boxes, "sizes", {}), matched, source)
         added = clipped = 0
         for raw_name, items in boxes.items():
             name = matched.get(raw_name)
             if name is None:
                 for item in items:
-                    drops.add(source, item.where, raw_name, item.xyxy, "image not in the image folder",
+                    drops.add(source, item.where, raw_name, item.xyxy, NOT_IN_FOLDER,
                               unmatched[raw_name] or f"no photo named like it in {self.images_dir}")
                 continue
             if self.state["images"][name]["boxes"]:
@@ -322,7 +330,8 @@ class AnnotationStore:
                     drops.add(source, item.where, name, item.xyxy, why[0], why[1])
                     continue
                 clipped += was_clipped
-                new = {"id": int(self.state["next_id"]), "xyxy": box, "category_id": self._category_for(item.category)}
+                new = {"id": int(self.state["next_id"]), "xyxy": box,
+                       "category_id": self.categories.index(labels[item.category]) + 1}
                 if item.score is not None:
                     new["score"] = round(float(item.score), 4)
                 self.state["next_id"] += 1
@@ -341,7 +350,7 @@ class AnnotationStore:
         for raw, size in sizes.items():
             name = matched.get(raw)
             try:
-                w, h = (int(round(float(v))) for v in size)
+                w, h = (round(float(v)) for v in size)
             except (TypeError, ValueError):
                 continue
             if name is None or w <= 0 or h <= 0:
@@ -372,14 +381,68 @@ class AnnotationStore:
         t = EDGE_TOLERANCE
         return box, ("", ""), x1 < -t or y1 < -t or x2 > w + t or y2 > h + t
 
-    def _category_for(self, name: str) -> int:
-        cats = self.state["categories"]
-        if name not in cats:
-            if len(cats) >= MAX_CATEGORIES:
-                raise InputError(f"imported category '{name}' is not one of {cats} and there is no room "
-                                 f"for a sixth", fix="rename the categories in the imported file")
-            cats.append(name)
-        return cats.index(name) + 1
+    def _match_names(self, boxes: dict, source: str) -> tuple[dict[str, str], dict[str, str]]:
+        """The photo each image name of an import means (:func:`resolve_image_names`), each rule beyond the
+        exact name counted in the log; a name that fits several photos, or two names that fit one, are errors."""
+        rules: dict[str, str] = {}
+        matched, unmatched = resolve_image_names(list(boxes), self.files, rules)
+        ambiguous = {raw: why for raw, why in unmatched.items() if why.startswith("ambiguous")}
+        if ambiguous:
+            raw, why = next(iter(ambiguous.items()))
+            raise InputError(f"{len(ambiguous)} image name(s) fit more than one photo, e.g. '{raw}' ({why})",
+                             path=source, fix="give the photos distinct names, or import a file whose image names "
+                                              "are the photos' file names")
+        by_photo: dict[str, list[str]] = {}
+        for raw, name in matched.items():
+            by_photo.setdefault(name, []).append(raw)
+        twice = {name: raws for name, raws in by_photo.items() if len(raws) > 1}
+        if twice:
+            name, raws = next(iter(twice.items()))
+            raise InputError(f"{len(twice)} photo(s) are named by more than one image of the file, e.g. {name} by "
+                             f"{', '.join(repr(r) for r in raws[:3])}: their boxes would be mixed", path=source,
+                             fix="import the boxes of each folder of photos on its own (photos with the same name "
+                                 "in different folders), or rename the photos")
+        used = Counter(rules.values())
+        for rule, n in used.items():
+            if rule != "exact":
+                example = next(raw for raw, r in rules.items() if r == rule)
+                log.info("%s: matched %d image name(s) %s (e.g. '%s' -> %s)", Path(source).name, n, RULES[rule],
+                         example, matched[example])
+        return matched, unmatched
+
+    def _resolve_labels(self, boxes: dict, source: str) -> dict[str, str]:
+        """Imported label -> session category: the same name, a ``label_map`` entry, or the same name up to case
+        (said in the log). Labels that are none of these are an error that names them and the keys to set."""
+        counts = Counter(item.category for items in boxes.values() for item in items)
+        cats = self.categories
+        folded = {c.casefold(): c for c in cats}
+        out, unknown, by_case = {}, {}, []
+        for label, n in counts.items():
+            label = str(label)
+            if label in self.label_map:
+                out[label] = self.label_map[label]
+            elif label in cats:
+                out[label] = label
+            elif label.casefold() in folded:
+                out[label] = folded[label.casefold()]
+                by_case.append(f"'{label}' -> {out[label]}")
+            else:
+                unknown[label] = n
+        if by_case:
+            log.info("%s: label(s) %s taken as the categories of the same name up to case", Path(source).name,
+                     ", ".join(by_case))
+        mapped = [f"'{k}' -> {v}" for k, v in out.items() if k != v and k in self.label_map]
+        if mapped:
+            log.info("%s: label(s) %s mapped by label_map", Path(source).name, ", ".join(mapped))
+        if unknown:
+            names = ", ".join(f"'{k}' ({n} box{'es' if n != 1 else ''})" for k, n in sorted(unknown.items()))
+            first = min(unknown)
+            key = repr(first) if first.lstrip("-").isdigit() else first
+            extended = ", ".join(cats + [k for k in sorted(unknown) if k not in cats])
+            raise InputError(f"the imported label(s) {names} are not among the categories [{', '.join(cats)}]",
+                             path=source, fix=f"map them onto a category (label_map: {{{key}: {cats[0]}}}) or add "
+                                              f"them to the categories (categories: [{extended}])")
+        return out
 
     # -- exports
     def to_coco(self, include_unseen: bool = False, regions: dict[str, Any] | None = None) -> dict:
@@ -420,5 +483,13 @@ class AnnotationStore:
         return out
 
 
-__all__ = ["AnnotationStore", "ImportedBox", "ImportedBoxes", "check_image_file", "clip_box", "MAX_CATEGORIES",
-           "NOT_A_FAULT"]
+__all__ = [
+    "MAX_CATEGORIES",
+    "NOT_A_FAULT",
+    "NOT_IN_FOLDER",
+    "AnnotationStore",
+    "ImportedBox",
+    "ImportedBoxes",
+    "check_image_file",
+    "clip_box",
+]

@@ -50,6 +50,7 @@ from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.formats.footprints import Footprint, compute_footprints, open_dsm, polygon_to_pixels
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.split_check import check_split
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
@@ -86,6 +87,7 @@ class MinImageFinder:
         self.cfg = cfg
         t0 = time.perf_counter()
         self.project = ODMProject(cfg.project_dir)
+        check_split(self.project)  # a failed or foreign submodel: named, not skipped
         self.project.require("undistorted_reconstruction", "undistorted_images", "dsm")
         self.frame = self.project.frame()
         check_raster(self.project.path("dsm"), bands=1, what="DSM")

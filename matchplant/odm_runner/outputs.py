@@ -15,6 +15,7 @@ import rasterio
 
 from matchplant.core.formats.odm import OUTPUTS, ODMProject
 from matchplant.core.formats.reconstruction import read_reconstruction
+from matchplant.core.formats.split_check import split_problems
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.core.runtime.io import write_json
@@ -49,6 +50,7 @@ def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OU
     problems = [f"{rel} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
                 for rel, n in project.missing_paths([n for n in required if not present[n]])]
     details: dict[str, Any] = {}
+    problems += split_problems(project)  # submodels that failed or come from another run
     readable = True
     for sub in project.submodels or [project]:
         where = f"submodels/{sub.name}/" if project.is_split else ""

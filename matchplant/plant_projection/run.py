@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.split_check import check_split
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.guard import staged_outputs
@@ -47,6 +48,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     out = Path(cfg.output_dir)
     dest = Path(dest or out)
     project = ODMProject(cfg.project)
+    check_split(project)  # a failed or foreign submodel: named, not skipped
     preds = read_predictions(cfg.predictions, cfg.images_from, every_box=True)
     for path in dsm_files(project, cfg.dsm):
         check_dsm(path, "dsm" if cfg.dsm is not None else None)

@@ -1,16 +1,20 @@
 """Box files of other annotation tools, read as ``{image name: [LabelledBox]}`` in pixel-edge
 coordinates of that image (``x = 0`` is the left edge of the first pixel; docs/DESIGN.md §3).
 
-- **DeepForest CSV**: ``image_path,xmin,ymin,xmax,ymax,label`` (extra columns such as ``score`` kept as
-  the box's score); coordinates as written.
+- **DeepForest CSV**: ``image_path,xmin,ymin,xmax,ymax,label`` (``score`` or, as older DeepForest releases
+  write it, ``scores`` kept as the box's score; other columns such as ``geometry`` ignored); coordinates as
+  written. Labels are kept as written (``Tree``, or DeepForest's numeric ``0``); module 4 maps them onto
+  its categories (``label_map``).
 - **Pascal VOC XML** (one ``<annotation>`` per image, a file or a folder of them): ``<bndbox>`` values
   as written, as LabelImg, CVAT/Datumaro and DeepForest write and read them (the original VOC
   devkit counted pixels from 1; such files come out 1 px right and down).
 - **CVAT for images 1.1 XML** (one file for the task): ``<image name width height>`` holding
   ``<box label xtl ytl xbr ybr>``, pixel edges.
 
-COCO files exported by CVAT and Label Studio are read by :mod:`matchplant.core.formats.coco` (Label Studio's
-``<8 hex digits>-`` upload prefix on file names is removed by :func:`strip_upload_prefix`).
+COCO files exported by CVAT and Label Studio are read by :mod:`matchplant.core.formats.coco`; the image
+names such tools write (a task folder, Label Studio's ``<8 hex digits>-`` upload prefix and local-storage
+``?d=`` paths, an extra extension as in ``images/3f2a1b7c-IMG_1.JPG.png``) are matched to the photos by
+:func:`resolve_image_names`.
 """
 
 from __future__ import annotations
@@ -20,13 +24,25 @@ import difflib
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from urllib.parse import unquote
 
 from matchplant.core.formats.coco import LabelledBox
 from matchplant.core.formats.images import match_name
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.validate import match_names
+from matchplant.core.runtime.validate import name_key
 
 UPLOAD_PREFIX = re.compile(r"^[0-9a-f]{8}-")
+# ways an annotation tool writes a photo's name, tried in this order (the log counts each one used)
+RULES = {
+    "exact": "the same name",
+    "folder": "without the folder the tool wrote before it (CVAT's task paths, images/, obj_train_data/)",
+    "upload prefix": "by stripping Label Studio's upload prefix (<8 hex digits>-)",
+    "extra suffix": "by removing a second file extension the tool added (IMG_1.JPG.png)",
+    "upload prefix + extra suffix": "by stripping Label Studio's upload prefix (<8 hex digits>-) and a second file "
+                                    "extension (3f2a1b7c-IMG_1.JPG.png)",
+    "loose": "up to case and extension",
+}
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".dng")
 
 
 def strip_upload_prefix(name: str) -> str:
@@ -34,29 +50,62 @@ def strip_upload_prefix(name: str) -> str:
     return UPLOAD_PREFIX.sub("", name)
 
 
-def resolve_image_names(names, files) -> tuple[dict[str, str], dict[str, str]]:
+def base_name(raw: str) -> str:
+    """The file name an annotation file means: URL-decoded, Label Studio's local-storage ``?d=folder/x.jpg``
+    read as ``x.jpg``, without the folder (either slash)."""
+    text = unquote(str(raw))
+    if "?d=" in text:
+        text = text.split("?d=", 1)[1]
+    return text.replace("\\", "/").rstrip("/").rsplit("/", 1)[-1]
+
+
+def _without_extra_suffix(name: str) -> str | None:
+    """``IMG_1.JPG.png`` -> ``IMG_1.JPG`` (a photo's name with another image extension added), else None."""
+    stem, dot, ext = name.rpartition(".")
+    if dot and "." + ext.lower() in PHOTO_SUFFIXES and "." in stem and \
+            "." + stem.rpartition(".")[2].lower() in PHOTO_SUFFIXES:
+        return stem
+    return None
+
+
+def resolve_image_names(names, files, rules: dict[str, str] | None = None) -> tuple[dict[str, str], dict[str, str]]:
     """Which of ``files`` (image file names on disk) each name of an annotation file means.
 
-    Exact or up to ODM's ``.tif`` first, then without Label Studio's upload prefix, then loosely (case and
-    extension ignored) when that is unique. Returns ``({name: file}, {unmatched name: "did you mean ..."})``;
-    the caller says how many names matched only loosely (``name != file`` after the first two rules).
+    Tried in order (:data:`RULES`): the exact name (or up to ODM's ``.tif``), the name without its folder,
+    without Label Studio's upload prefix, without an extra extension, then loosely (case and extension
+    ignored) when that is unique. Returns ``({name: file}, {unmatched name: why})``: "why" is a "did you
+    mean" hint, or starts with "ambiguous" when the name fits several files. ``rules``, when given, receives
+    the rule each matched name needed (name -> key of :data:`RULES`).
     """
     files = list(files)
-    stems = {}
+    stems: dict[str, list[str]] = {}
     for f in files:  # ODM's undistorted <photo>.tif: its loose key is the photo's
-        stems[f[:-4] if f.lower().endswith(".tif") and "." in f[:-4] else f] = f
+        stems.setdefault(name_key(f[:-4] if f.lower().endswith(".tif") and "." in f[:-4] else f), []).append(f)
     matched: dict[str, str] = {}
     unmatched: dict[str, str] = {}
     for raw in names:
-        base = str(raw).replace("\\", "/").rsplit("/", 1)[-1]
-        hit = match_name(raw, files) or match_name(strip_upload_prefix(base), files)
+        base = base_name(raw)
+        bare = strip_upload_prefix(base)
+        steps = [("exact", str(raw)), ("folder", base), ("upload prefix", bare)]
+        steps += [("extra suffix", _without_extra_suffix(base)),
+                  ("upload prefix + extra suffix", _without_extra_suffix(bare) if bare != base else None)]
+        steps = [(r, n) for r, n in steps if n]
+        rule, hit = next(((r, h) for r, n in steps if (h := match_name(n, files)) is not None), (None, None))
+        if rule == "exact" and Path(str(raw).replace("\\", "/")).name != str(raw):
+            rule = "folder"  # match_name already dropped the folder
         if hit is None:
-            loose, _ = match_names([strip_upload_prefix(base)], list(stems))
-            hit = stems[loose[strip_upload_prefix(base)]] if loose else None
+            keys = {name_key(n) for _, n in steps[2:]} | {name_key(bare)}
+            cands = sorted({f for k in keys for f in stems.get(k, [])})
+            if len(cands) > 1:
+                unmatched[raw] = f"ambiguous: it could be any of {', '.join(cands[:4])}"
+                continue
+            rule, hit = ("loose", cands[0]) if cands else (None, None)
         if hit is None:
             unmatched[raw] = _closest(base, files)
         else:
             matched[raw] = hit
+            if rules is not None:
+                rules[raw] = rule
     return matched, unmatched
 
 
@@ -77,11 +126,15 @@ def read_deepforest_csv(path: str | Path) -> dict[str, list[LabelledBox]]:
         if not reader.fieldnames or not need <= set(reader.fieldnames):
             raise InputError(f"the CSV lacks the column(s) {sorted(need - set(reader.fieldnames or []))}",
                              path=path, fix=fix)
+        # DeepForest's predict_image writes "score" (1.x) or "scores" (older releases)
+        score_key = next((k for k in ("score", "scores") if k in reader.fieldnames), None)
         for row in reader:
             line = reader.line_num
+            if not any((v or "").strip() for v in row.values()):
+                continue  # an empty line (Excel leaves them at the end)
             try:
                 xyxy = [float(row[k]) for k in ("xmin", "ymin", "xmax", "ymax")]
-                score = float(row["score"]) if row.get("score") not in (None, "") else None
+                score = float(row[score_key]) if score_key and row.get(score_key) not in (None, "") else None
             except (TypeError, ValueError):
                 raise InputError(f"line {line}: a coordinate or score is missing or not a number "
                                  f"({', '.join(f'{k}={row.get(k)!r}' for k in ('xmin', 'ymin', 'xmax', 'ymax'))})",
@@ -160,4 +213,5 @@ def read_cvat_xml(path: str | Path) -> tuple[dict[str, list[LabelledBox]], dict[
     return boxes, sizes
 
 
-__all__ = ["read_deepforest_csv", "read_voc", "read_cvat_xml", "resolve_image_names", "strip_upload_prefix"]
+__all__ = ["RULES", "base_name", "read_cvat_xml", "read_deepforest_csv", "read_voc", "resolve_image_names",
+           "strip_upload_prefix"]

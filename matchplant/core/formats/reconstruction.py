@@ -16,6 +16,7 @@ from matchplant.core.geometry.camera import Camera, camera_from_opensfm
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import InputError, MatchPlantError
 from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import did_you_mean, read_json
 
 
@@ -46,6 +47,8 @@ class Reconstruction:
         return [rec]
 
 
+log = get_logger("odm")
+
 RESTORE = "restore the file from ODM's output, or re-run ODM (module 2) on this project"
 
 
@@ -57,6 +60,9 @@ def read_reconstruction(path: str | Path) -> Reconstruction:
     path = Path(path)
     data = read_json(path, what="reconstruction file")
     if isinstance(data, dict):
+        # accepted on purpose: tools that write one reconstruction (OpenSfM's own API, converters) drop the list
+        if "shots" in data or "cameras" in data:
+            log.info("%s holds one reconstruction object, not OpenSfM's list of them: read as a list of one", path)
         data = [data]
     if not isinstance(data, list) or not data or not all(isinstance(r, dict) for r in data):
         raise InputError("not an OpenSfM reconstruction (expected a list of reconstructions, each with 'cameras' "
