@@ -212,7 +212,7 @@ class _Session:
 
 
 def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: Plan, total: int, done: int,
-                    resumed_plan: bool, probe=None) -> tuple[Costs, dict]:
+                    resumed_plan: bool, probe=None, started: float | None = None) -> tuple[Costs, dict]:
     """The measured estimate before training, logged with advice; the plan fitted to the budget."""
     budget_s = cfg.max_minutes * 60.0
     cap = min(PROBE_CAP_S, 0.05 * budget_s) if budget_s else PROBE_CAP_S
@@ -229,7 +229,8 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
                                     architecture=model_cfg.architecture, device=device, val_every=cfg.val_every,
                                     validated=validated, max_minutes=cfg.max_minutes)
     if budget_s and not resumed_plan:
-        fit_plan(plan, total, done, costs, budget_s - 2.0, cfg.val_every, validated, "measured by the probe",
+        spent = time.perf_counter() - started if started is not None else 0.0  # set-up and probe count too
+        fit_plan(plan, total, done, costs, budget_s - spent - 2.0, cfg.val_every, validated, "measured by the probe",
                  cfg.max_minutes)
     hint = advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters, total)
     if plan.iters < total:
@@ -345,9 +346,14 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
             plan.iters, plan.fitted = min(int(resume["planned_epochs"]) * iters, total), True
         if not resume.get("planned_iters") and not cfg.max_minutes:
             plan.fitted = True
+        if plan.iters <= done < total:  # the budget's plan is done: this session plans the rest with its budget
+            log.info("the run's plan of %d iterations (fitted to its max_minutes) is done; the remaining %d of %d "
+                     "are planned now%s (the learning-rate schedule is laid over the longer run)", plan.iters,
+                     total - done, total, f" with max_minutes = {cfg.max_minutes:g}" if cfg.max_minutes else "")
+            plan.iters, plan.fitted, plan.source = total, False, "configured"
 
     costs, estimate = _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan, total, done,
-                                      resume is not None and plan.fitted, probe=choice_probe)
+                                      resume is not None and plan.fitted, probe=choice_probe, started=session_start)
     warning = schedule_warning(cfg, iters, plan.iters)
     if warning:
         log.warning(warning)
@@ -358,12 +364,14 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
     extras = {"threads": threads, "estimate": estimate, "schedule_warning": warning,
               "architecture": {"chosen": model_cfg.architecture, "reason": choice_reason or "as set"}}
 
+    stop_rng = None
+
     def save(name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
         state = dict(epoch=epoch_done, iteration=done, optimizer_state=optimizer.state_dict(),
                      scheduler_state=scheduler.state_dict(), scaler_state=scaler.state_dict() if amp else None,
                      history=history, best=best, metrics=(record or {}).get("val"), train_config=to_dict(cfg),
                      iters_per_epoch=iters, training_geometry=geometry, planned_iters=plan.iters,
-                     epoch_progress=partial, random_state=random_state(device) if partial else None)
+                     epoch_progress=partial, random_state=stop_rng if partial else None)
         save_checkpoint(ck_dir / name, core, model_cfg, class_names, train_ds.category_ids, **state)
 
     stop_flag = StopOnInterrupt()
@@ -398,6 +406,8 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
                                            slow=costs.iteration >= HEARTBEAT_S / 2 or not session.step_times,
                                            limit=epoch_iters - start)
             train_time = time.perf_counter() - t0
+            # the random state where training stopped (validation draws from it too; a resumed run starts here)
+            stop_rng = random_state(device) if batches < iters else None
             means = {k: v / max(batches, 1) for k, v in sums.items()}
             if dist_info.world > 1:  # the mean over every process
                 keys = sorted(means)
