@@ -14,7 +14,12 @@ import dataclasses
 
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.architectures import get_architecture
-from matchplant.detection.model import apply_freezing, backbone_stages, build_detector, resolve_auto_anchors
+from matchplant.detection.model import (
+    apply_freezing,
+    backbone_stages,
+    build_detector,
+    resolve_auto_anchors,
+)
 from matchplant.model_train.budget import LONG_RUN_S, duration
 from matchplant.model_train.probe import Probe, heartbeat, probe_speed
 

@@ -12,7 +12,6 @@ from matchplant.detection.data import AugmentConfig
 from matchplant.detection.device import DEVICE_CHOICES
 from matchplant.detection.model import PARTS, ModelConfig
 
-
 SCHEDULES = ("step", "multistep", "cosine", "constant")
 
 

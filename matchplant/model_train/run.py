@@ -12,6 +12,14 @@ logs the losses, scores the validation split with COCOeval (AP, AP50) and writes
   ``training_curves.png``. Every checkpoint also carries the training geometry module 7 detects with
   (:mod:`matchplant.detection.geometry`).
 
+Before the first step a short probe measures the speed on this device and logs the estimate with advice
+(:mod:`~matchplant.model_train.probe`); ``max_minutes`` plans the iterations that fit and stops inside an
+epoch when the budget ends (:mod:`~matchplant.model_train.budget`); the learning-rate schedule is laid over the
+planned iterations (:mod:`~matchplant.model_train.schedule`); Ctrl-C and the budget write a checkpoint that
+``--resume`` continues from exactly (:mod:`~matchplant.model_train.resume`); ``model.architecture: auto`` picks
+the detector for the device (:mod:`~matchplant.model_train.choose`); the CPU thread count follows the free
+cores (:func:`matchplant.detection.device.configure_threads`, ``threads`` overrules it).
+
 Transfer learning: ``model.checkpoint`` starts from an earlier MatchPlant model (a different number of
 classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``lr`` sets a rate per part.
 """
@@ -30,14 +38,21 @@ import numpy as np
 
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
-from matchplant.core.runtime.gui import figure
-from matchplant.core.runtime.io import atomic_path, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.detection.data import CocoDetection, EpochSampler, check_disjoint, collate
+from matchplant.detection.data import (
+    CocoDetection,
+    EpochSampler,
+    check_disjoint,
+    collate,
+)
 from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import Shard, join, world_size
-from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
+from matchplant.detection.evaluate import (
+    coco_evaluate,
+    predict_dataset,
+    summarise_stats,
+)
 from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (
     AUTO,
@@ -53,7 +68,13 @@ from matchplant.detection.model import (
     resolve_auto_anchors,
     save_checkpoint,
 )
-from matchplant.model_train.budget import Costs, Plan, fit_plan, stop_status, validation_report
+from matchplant.model_train.budget import (
+    Costs,
+    Plan,
+    fit_plan,
+    stop_status,
+    validation_report,
+)
 from matchplant.model_train.choose import choose_architecture
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import (
@@ -66,6 +87,7 @@ from matchplant.model_train.probe import (
     log_estimate,
     probe_speed,
 )
+from matchplant.model_train.report import plot_curves, write_summary
 from matchplant.model_train.resume import (
     StopOnInterrupt,
     ignore_sigint,
@@ -545,70 +567,6 @@ def validate_model(model, val_ds: CocoDetection, model_cfg: ModelConfig, cfg: Mo
     stats, _ = coco_evaluate(val_ds.data, results, max_dets=model_cfg.roi.detections_per_img)
     stats["detections"] = len(results)
     return stats
-
-
-# --------------------------------------------------------------------------------------------------
-# reporting
-
-
-def write_summary(out: Path, cfg: ModelTrainConfig, history: list[dict], best: dict, class_names: list[str],
-                  device, status: str, seconds: float, *, validation: dict | None = None, plan: Plan | None = None,
-                  message: str | None = None, extras: dict | None = None) -> dict:
-    """training_summary.json. ``status``: running, finished, interrupted or stopped_by_max_minutes (``message``
-    says after how many of how many iterations); ``validation``: tiles, boxes and distinct plants, with a warning
-    when too few; ``extras``: threads, the probe's estimate, the architecture chosen and why; metrics are
-    fractions 0..1."""
-    times = [h["train_time_s"] for h in history]
-    warnings = [validation["warning"]] if validation and validation.get("warning") else []
-    total = cfg.epochs * plan.iters_per_epoch if plan is not None else None
-    if plan is not None and plan.iters < total:
-        warnings.append(f"max_minutes ({cfg.max_minutes:g}) fits {plan.iters} of {total} iterations ({plan.source}): "
-                        f"the learning-rate schedule was laid over {plan.iters} iterations")
-    if extras and extras.get("schedule_warning"):
-        warnings.append(extras["schedule_warning"])
-    if extras and (extras.get("estimate") or {}).get("advice"):
-        warnings.append(extras["estimate"]["advice"])
-    done = max((h.get("iterations", 0) for h in history), default=0)
-    summary = {
-        "status": status, "message": message or status,
-        "epochs_done": sum(1 for h in history if not h.get("partial")), "epochs": cfg.epochs,
-        "epochs_planned": plan.epochs if plan is not None else cfg.epochs,
-        "iterations_done": done, "iterations_planned": plan.iters if plan is not None else None,
-        "iterations_per_epoch": plan.iters_per_epoch if plan is not None else None, "max_minutes": cfg.max_minutes,
-        "warnings": warnings, "validation": validation, "units": "AP, AP50 and the other metrics are fractions 0..1",
-        "class_names": class_names, "best": best, "device": str(device), **(extras or {}),
-        "checkpoints": {"best": str(out / "checkpoints" / "best.pt"), "last": str(out / "checkpoints" / "last.pt")},
-        "mean_train_images_per_s": (float(np.mean([h["train_images_per_s"] for h in history]))
-                                    if history else None),
-        "train_time_s": float(sum(times)), "this_session_s": round(seconds, 3),
-        "history": history, "config": to_dict(cfg),
-    }
-    write_json(out / "training_summary.json", summary)
-    return summary
-
-
-def plot_curves(history: list[dict], path: Path) -> Path:
-    """Loss components and validation AP / AP50 per epoch."""
-    fig = figure(headless=True, figsize=(10, 4))
-    ax1, ax2 = fig.subplots(1, 2)
-    epochs = [h["epoch"] for h in history]
-    for key in history[0]["losses"]:
-        ax1.plot(epochs, [h["losses"][key] for h in history], marker=".", lw=2 if key == "loss" else 1,
-                 label=key.replace("loss_", ""))
-    ax1.set(xlabel="epoch", ylabel="training loss", title="losses")
-    ax1.legend(fontsize=8)
-    val = [h for h in history if "val" in h]
-    for key in ("AP50", "AP"):
-        ax2.plot([h["epoch"] for h in val], [100 * (h["val"][key] or 0) for h in val], marker="o", label=key)
-    ax2.set(xlabel="epoch", ylabel="%", title="validation", ylim=(0, 100))
-    if val:
-        ax2.legend(fontsize=8)
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    return path
 
 
 def run(cfg: ModelTrainConfig) -> dict:
