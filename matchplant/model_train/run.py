@@ -71,7 +71,9 @@ from matchplant.detection.model import (
 from matchplant.model_train.budget import (
     Costs,
     Plan,
+    duration,
     fit_plan,
+    run_seconds,
     stop_status,
     validation_report,
 )
@@ -256,8 +258,11 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
                  cfg.max_minutes)
     hint = advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters, total)
     if plan.iters < total:
+        planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, validated) - \
+            run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, validated)
         lines.append(f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
-                     f"{cfg.epochs} epochs) in max_minutes = {cfg.max_minutes:g}")
+                     f"{cfg.epochs} epochs) in max_minutes = {cfg.max_minutes:g}: about {duration(planned_s)} of "
+                     "training and validation from here")
     log_estimate(lines, hint)
     estimate = {"probe": probe.as_dict(), "seconds_per_iteration": round(costs.iteration, 4),
                 "validation_s": round(costs.validation, 2), "checkpoint_s": round(costs.checkpoint, 2),
@@ -285,6 +290,7 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
 
+    session_start = time.perf_counter()  # max_minutes counts the data checks, the probe and the set-up too
     dist_info, device = _init_distributed(cfg)
     threads = configure_threads(cfg.threads or None)
     out = Path(cfg.output_dir)
@@ -311,7 +317,6 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
                  resume.get("iteration", resume["epoch"] * iters), resume["epoch"],
                  f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
                  if resume.get("epoch_progress") else " done")
-    session_start = time.perf_counter()
     choice_probe, choice_reason = None, None
     if resume is None:
         cfg, choice_probe, choice_reason = _choose_model_config(cfg, device, train_ds, total)
