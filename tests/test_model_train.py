@@ -645,6 +645,7 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
     _compare_runs(trained[0], out)
 
 
+@pytest.mark.slow
 def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tiles, trained, tmp_path, monkeypatch,
                                                                            capsys):
     """Ctrl-C (a real SIGINT) during epoch 2: the command writes the checkpoint, prints one line and exits 130;
