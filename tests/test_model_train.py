@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import importlib
+import json
+import os
 import subprocess
 import sys
-import time
 import urllib.error
 from pathlib import Path
 
@@ -81,7 +82,7 @@ def test_paper_defaults():
     assert (cfg.optimizer, cfg.momentum, cfg.weight_decay) == ("sgd", 0.9, 5e-4)
     assert (cfg.schedule, cfg.step_size, cfg.gamma) == ("step", 10, 0.1)
     assert cfg.val_score_threshold == 0.05 and cfg.model.roi.detections_per_img > 100
-    assert cfg.model.architecture == "fasterrcnn_resnet50_fpn" and cfg.model.pretrained == "coco"
+    assert cfg.model.architecture == "auto" and cfg.model.pretrained == "coco"  # auto: ResNet-50 FPN on a GPU
 
 
 # -- every model setting takes effect -----------------------------------------------------------------
@@ -398,12 +399,14 @@ def test_torchrun_two_processes(tiles, tmp_path):
 
 
 @pytest.mark.slow
-def test_max_minutes_stops_after_the_epoch_that_passes_it(tiles, tmp_path):
-    """A time budget ends training early; the last epoch is still validated and saved as best/last."""
+def test_max_minutes_shorter_than_an_iteration_still_trains_one_and_saves(tiles, tmp_path):
+    """A budget shorter than one iteration: one iteration, validated and saved (best and last), and the summary
+    says the budget stopped it inside the first epoch."""
     out = tmp_path / "budget"
     summary = train(fast_config(tiles, out, "epochs=50", "max_minutes=0.0001"))
-    assert summary["epochs_done"] == 1
-    assert "val" in summary["history"][-1]  # the stopping epoch was validated
+    assert summary["iterations_done"] == 1 and summary["epochs_done"] == 0
+    assert summary["status"] == "stopped_by_max_minutes" and "after 1 of 100 iterations" in summary["message"]
+    assert "val" in summary["history"][-1] and summary["history"][-1]["partial"]  # the stopping point was validated
     assert (out / "checkpoints" / "best.pt").is_file() and (out / "checkpoints" / "last.pt").is_file()
 
 
@@ -532,7 +535,7 @@ def test_summary_reports_a_small_validation_set_and_the_geometry(trained, tiles)
     val = json.loads(Path(tiles[1]).read_text())
     assert summary["validation"]["plants"] == len(val["annotations"]) < 20  # tiles of their own: no copies
     assert "only" in summary["validation"]["warning"] and summary["warnings"]
-    assert summary["status"] == "finished" and summary["message"] == "finished all 2 epochs"
+    assert summary["status"] == "finished" and summary["message"] == "finished all 2 epochs (4 iterations)"
     g = read_checkpoint(out / "checkpoints" / "best.pt")["training_geometry"]
     train_ds = json.loads(Path(tiles[0]).read_text())
     sides = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in train_ds["annotations"]])
@@ -541,56 +544,200 @@ def test_summary_reports_a_small_validation_set_and_the_geometry(trained, tiles)
     assert g["objects_input_px"] == pytest.approx(np.median(sides), abs=0.01)
 
 
-def test_lr_schedule_shortened_to_the_planned_epochs():
-    from matchplant.model_train.budget import epochs_that_fit
+def test_lr_schedule_laid_over_the_planned_iterations():
+    from matchplant.model_train.budget import Costs, plan_iterations
 
     cfg = load_config(ModelTrainConfig, None, ["train_json=x", "epochs=30", "step_size=10", "warmup_iters=0"],
                       check_paths=False)
-    # 30 epochs planned as 6: the decays at epochs 10 and 20 come at epochs 2 and 4
-    assert [lr_factor(cfg, e * 5, 5, 6) for e in range(6)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
+    # 30 epochs of 5 iterations planned as 30 iterations: the decays at epochs 10 and 20 come at 1/3 and 2/3
+    assert [lr_factor(cfg, e * 5, 5, 30) for e in range(6)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
     assert [lr_factor(cfg, e * 5, 5) for e in (0, 9, 10, 20)] == pytest.approx([1, 1, 0.1, 0.01])  # as set
     cfg.schedule = "cosine"
-    assert lr_factor(cfg, 6 * 5, 5, 6) == pytest.approx(0.0) and lr_factor(cfg, 15, 5, 6) == pytest.approx(0.5)
-    assert epochs_that_fit(30, 1, 10.0, 100.0, 100.0) == 6       # 600 s: 1 done + 5 more of 100 s
-    assert epochs_that_fit(30, 1, 10.0, 700.0, 100.0) == 1       # over budget already: the one done
-    assert epochs_that_fit(4, 1, 100.0, 10.0, 10.0) == 4         # everything fits
+    assert lr_factor(cfg, 30, 5, 30) == pytest.approx(0.0) and lr_factor(cfg, 15, 5, 30) == pytest.approx(0.5)
+    # the plan: iterations of 10 s, a 5 s validation and a 2 s checkpoint per epoch of 4 iterations, 100 s budget
+    costs = Costs(iteration=10.0, validation=5.0, checkpoint=2.0)
+    n = plan_iterations(40, 0, 4, costs, 100.0, 1, True)
+    # computed by hand: 8 iterations = 80 s + 2 validations + 2 checkpoints = 94 s; 9 = 90 + 3 x 7 = 111 s
+    assert n == 8
+    assert plan_iterations(40, 0, 4, costs, 10_000.0, 1, True) == 40       # everything fits
+    assert plan_iterations(40, 6, 4, costs, 0.0, 1, True) == 6             # over budget already: the ones done
+    assert plan_iterations(40, 0, 4, costs, 100.0, 1, False) == 9          # no validation: 90 + 3 x 2 = 96 s
 
 
-def test_max_minutes_plans_the_epochs_that_fit_and_says_so(tiles, tmp_path, monkeypatch):
-    """A 60 s epoch (a fake clock) and 3.5 minutes: 3 of 10 epochs fit, the step schedule (x0.1 every 5 of
-    10 epochs) is shortened to 3 epochs so it still decays, and the summary says it stopped."""
-    train_mod = importlib.import_module("matchplant.model_train.run")  # the package's ``run`` is the function
+def test_schedule_scales_with_the_dataset_and_warns_when_it_cannot_reach_the_rate():
+    """Issue 28: a fixed 500-iteration warm-up on a 9-iteration-per-epoch dataset never reaches the nominal rate;
+    the default warm-up is a fraction of the planned iterations, and milestones can be fractions too."""
+    from matchplant.model_train.schedule import peak_factor, schedule_warning, warmup_length
 
-    class Clock:
-        offset = 0.0
+    fixed = load_config(ModelTrainConfig, None, ["train_json=x", "warmup_iters=500"], check_paths=False)
+    planned = 9 * 30  # 270 iterations: decays at 90 and 180, both inside the 500-iteration warm-up
+    # by hand: the peak is just before the first decay, at iteration 89 of the warm-up: 0.001 + 0.999 * 89 / 500
+    assert peak_factor(fixed, 9, planned) == pytest.approx(0.001 + 0.999 * 89 / 500, rel=1e-6)
+    warning = schedule_warning(fixed, 9, planned)
+    assert warning and "17.9 %" in warning and "warmup_iters: null" in warning
+    default = load_config(ModelTrainConfig, None, ["train_json=x"], check_paths=False)
+    assert default.warmup_iters is None and warmup_length(default, planned) == round(0.05 * planned)
+    assert schedule_warning(default, 9, planned) is None and peak_factor(default, 9, planned) == pytest.approx(1.0)
+    assert warmup_length(default, 10 * planned) == round(0.05 * 10 * planned)  # scales with the dataset
+    frac = load_config(ModelTrainConfig, None, ["train_json=x", "schedule=multistep", "milestone_fractions=[0.5, 0.75]",
+                                                "warmup_iters=0"], check_paths=False)
+    assert [lr_factor(frac, i, 9, 100) for i in (49, 50, 74, 75)] == pytest.approx([1, 0.1, 0.1, 0.01])
 
-        @staticmethod
-        def perf_counter():
-            return time.perf_counter() + Clock.offset
 
-    real_epoch = train_mod._train_one_epoch
+def _fake_probe(iteration_s: float):
+    from matchplant.model_train.probe import Probe
 
-    def slow_epoch(*a, **k):
-        Clock.offset += 60.0
-        return real_epoch(*a, **k)
+    def probe(*args, **kwargs):
+        return Probe(first_s=iteration_s, iteration_s=iteration_s, iterations=1, load_s=0.0, inference_s_per_image=0.1,
+                     peak_memory_mb=100.0, batch=4, input_px=(64, 64))
+    return probe
 
-    monkeypatch.setattr(train_mod, "time", Clock)
-    monkeypatch.setattr(train_mod, "_train_one_epoch", slow_epoch)
+
+class _Clock:
+    """A clock for run.py that only moves when told (a training iteration 'takes' what the test says)."""
+
+    now = 1000.0
+
+    @classmethod
+    def perf_counter(cls):
+        return cls.now
+
+
+def _compare_runs(a_dir: Path, b_dir: Path) -> None:
+    a = read_checkpoint(a_dir / "checkpoints" / "last.pt")
+    b = read_checkpoint(b_dir / "checkpoints" / "last.pt")
+    assert a["iteration"] == b["iteration"] == 4 and a["epoch"] == b["epoch"] == 2
+    for k in a["model_state"]:
+        assert torch.allclose(a["model_state"][k].float(), b["model_state"][k].float(), atol=1e-5), k
+    assert a["scheduler_state"]["last_epoch"] == b["scheduler_state"]["last_epoch"] == 4
+    assert a["scheduler_state"]["_last_lr"] == pytest.approx(b["scheduler_state"]["_last_lr"])
+    la = [h["losses"]["loss"] for h in a["history"]]
+    lb = [h["losses"]["loss"] for h in b["history"]]
+    assert la == pytest.approx(lb, rel=1e-4)
+
+
+def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, trained, tmp_path, monkeypatch):
+    """The probe says 1 s per iteration, so the plan is the whole run; the first real iteration 'takes' 100 s of a
+    1-minute budget: training stops inside epoch 1, validates, writes a mid-epoch checkpoint, and --resume
+    finishes the run with the same weights, schedule and losses as the uninterrupted run."""
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
+    monkeypatch.setattr(run_mod, "time", _Clock)
+    real_after = run_mod._Session.after_step
+
+    def slow(self, done, step_s):
+        _Clock.now += 100.0
+        return real_after(self, done, 100.0)
+
+    monkeypatch.setattr(run_mod._Session, "after_step", slow)
     out = tmp_path / "budget"
-    summary = train(fast_config(tiles, out, "epochs=10", "max_minutes=3.5", "step_size=5", "warmup_iters=0",
-                                "save_every=0", "val_every=5"))
-    assert summary["status"] == "stopped_by_max_minutes" and summary["epochs_planned"] == 3
-    assert summary["epochs_done"] == 3 and "after 3 of 10 epochs" in summary["message"]
-    assert any("shortened to 3 epochs" in w for w in summary["warnings"])
-    assert "val" in summary["history"][-1]  # the last planned epoch is validated (val_every 5 notwithstanding)
+    summary = train(fast_config(tiles, out, "max_minutes=1"))
+    assert summary["status"] == "stopped_by_max_minutes" and summary["iterations_done"] == 1
+    assert summary["iterations_planned"] == 4 and "--resume continues the planned 4 iterations" in summary["message"]
+    last = summary["history"][-1]
+    assert last["partial"] and last["batches"] == 1 and "val" in last  # validated where it stopped
     ck = read_checkpoint(out / "checkpoints" / "last.pt")
-    assert ck["planned_epochs"] == 3
-    lr = [h["lr"]["roi_heads"] for h in summary["history"]]  # the rate for the next iteration
-    cfg = fast_config(tiles, out, "epochs=10", "step_size=5", "warmup_iters=0")
-    base = cfg.lr.roi_heads
-    assert lr == pytest.approx([base * lr_factor(cfg, 2 * (e + 1), 2, 3) for e in range(3)])
-    assert lr[-1] == pytest.approx(0.01 * base)  # decayed twice within the budget (never at the 10-epoch plan)
+    assert ck["epoch"] == 0 and ck["iteration"] == 1 and ck["epoch_progress"]["batches"] == 1
+    assert ck["planned_iters"] == 4 and ck["random_state"] is not None
+    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    summary = train(fast_config(tiles, out, "resume=true"))
+    assert summary["status"] == "finished" and summary["iterations_done"] == 4
+    _compare_runs(trained[0], out)
 
+
+@pytest.mark.slow
+def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tiles, trained, tmp_path, monkeypatch,
+                                                                           capsys):
+    """Ctrl-C (a real SIGINT) during epoch 2: the command writes the checkpoint, prints one line and exits 130;
+    --resume then ends where the uninterrupted run ended."""
+    import os
+    import signal
+
+    from matchplant.cli import run_module
+
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    real_after = run_mod._Session.after_step
+
+    def interrupt(self, done, step_s):
+        if done == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_after(self, done, step_s)
+
+    monkeypatch.setattr(run_mod._Session, "after_step", interrupt)
+    out = tmp_path / "ctrl_c"
+    argv = [x for s in (f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}", *FAST)
+            for x in ("--set", s)]
+    capsys.readouterr()
+    assert run_module("model_train", [*argv, "--quiet"]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("interrupted") and not any("Traceback" in line for line in err)
+    ck = read_checkpoint(out / "checkpoints" / "last.pt")
+    assert ck["iteration"] == 3 and ck["epoch"] == 1 and ck["epoch_progress"]["batches"] == 1
+    summary = json.loads((out / "training_summary.json").read_text())
+    assert summary["status"] == "interrupted"
+    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    assert run_module("model_train", [*argv, "--resume", "--quiet"]) == 0
+    _compare_runs(trained[0], out)
+
+
+def test_resume_refuses_a_changed_architecture_and_fresh_starts_over(tiles, trained, tmp_path):
+    import shutil
+
+    out = tmp_path / "changed"
+    shutil.copytree(trained[0], out)
+    last = out / "checkpoints" / "last.pt"
+    with pytest.raises(ConfigError) as err:
+        train(fast_config(tiles, out, "resume=true", "model.architecture=fasterrcnn_resnet50_fpn",
+                          "model.anchor_sizes=null"))
+    assert "model.architecture" in str(err.value) and err.value.path == last and "--fresh" in err.value.fix
+    assert "fasterrcnn_mobilenet_v3_large_fpn" in err.value.fix
+    with pytest.raises(ConfigError, match="model.min_size is 96"):
+        train(fast_config(tiles, out, "resume=true", "model.min_size=96", "model.max_size=96"))
+    before = read_checkpoint(last)["model_state"]
+    summary = train(fast_config(tiles, out, "resume=fresh", "epochs=1", "save_every=0"))
+    assert summary["status"] == "finished" and summary["epochs_done"] == 1
+    assert not (out / "checkpoints" / "epoch_002.pt").exists()  # the earlier run's checkpoints are gone
+    assert read_checkpoint(last)["epoch"] == 1
+    assert not all(torch.equal(v, read_checkpoint(last)["model_state"][k]) for k, v in before.items())
+
+
+def test_threads_chosen_from_the_usable_cores_and_the_load(monkeypatch):
+    from matchplant.detection.device import choose_threads, configure_threads, usable_cores
+
+    assert choose_threads(cores=8, load=0.2)[0] == 8
+    assert choose_threads(cores=8, load=3.4)[0] == 5                  # 3 cores busy with other work
+    assert choose_threads(cores=2, load=9.0)[0] == 1                  # always at least one
+    threads, why = choose_threads(3, cores=8, load=0.0)
+    assert threads == 3 and "set in the config" in why
+    if hasattr(os, "sched_getaffinity"):
+        assert usable_cores()[0] <= len(os.sched_getaffinity(0))
+    before = torch.get_num_threads()
+    try:
+        assert configure_threads(1) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_architecture_auto_fits_the_device_and_the_budget(tiles):
+    """auto: the paper's ResNet-50 FPN on a GPU; on a CPU, MobileNetV3 when the probe shows ResNet-50 would not
+    fit the budget, ResNet-50 when it would; an anchor list of 3 FPN levels allows only MobileNetV3."""
+    from matchplant.model_train.choose import MOBILE, PAPER, RESNET_TRAIN_COST, choose_architecture
+
+    ds = CocoDetection(tiles[0])
+    cpu = torch.device("cpu")
+
+    def choose(*extra, device=cpu):
+        cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", *extra)
+        return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0])
+
+    arch, why, _ = choose("model.anchor_sizes=null", device=torch.device("meta"))  # any non-CPU device
+    assert arch == PAPER and "GPU" in why
+    assert choose()[0] == MOBILE and "3 FPN levels" in choose()[1]
+    arch, why, probe = choose("model.anchor_sizes=null", "max_minutes=0.01")
+    assert arch == MOBILE and probe is not None and "more than max_minutes = 0.01" in why
+    # 100 iterations of ResNet-50 at the measured ratio: a budget of 100 x that fits it
+    budget_min = 100 * probe.iteration_s * RESNET_TRAIN_COST * 100 / 60
+    assert choose("model.anchor_sizes=null", f"max_minutes={budget_min:.3f}")[0] == PAPER
 
 # -- input checks (issue 15): the dataset against its files, splits, unreadable tiles in loader workers ----------
 

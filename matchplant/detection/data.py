@@ -396,6 +396,12 @@ class CocoDetection:
         self.images = list(self.data["images"])
         self.anns = annotations_by_image(self.data)
         self.transform = build_augmentation(augment)
+        self.seed: int | None = None  # set per epoch by training: augmentation then depends on (seed, index) only
+
+    def set_seed(self, seed: int | None) -> None:
+        """Make each tile's augmentation a function of ``(seed, index)``, drawn from its own random stream (not
+        the process's): a run resumed mid-epoch augments the remaining tiles exactly as the first run would."""
+        self.seed = seed
 
     def __len__(self) -> int:
         return len(self.images)
@@ -425,7 +431,11 @@ class CocoDetection:
         image = tv_tensors.Image(torch.from_numpy(img).permute(2, 0, 1))
         target = self.target(index)
         target["boxes"] = tv_tensors.BoundingBoxes(target["boxes"], format="XYXY", canvas_size=img.shape[:2])
-        if self.transform is not None:
+        if self.transform is not None and self.seed is not None:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed((self.seed * 1_000_003 + index) % 2**63)
+                image, target = self.transform(image, target)
+        elif self.transform is not None:
             image, target = self.transform(image, target)
         target["boxes"] = target["boxes"].as_subclass(torch.Tensor)
         return image.as_subclass(torch.Tensor).float().div_(255.0), target
@@ -434,3 +444,33 @@ class CocoDetection:
 def collate(batch):
     """Detection batches are lists: images may differ in size."""
     return tuple(zip(*batch))
+
+
+class EpochSampler:
+    """The training order: a shuffle that depends only on ``(seed, epoch)``, split between ``world`` processes
+    (padded to a multiple of it, as DistributedSampler does), and resumable: ``set_epoch(epoch, start)`` skips
+    the first ``start`` indices of this process's share, so a run resumed mid-epoch sees exactly the samples
+    the interrupted one had left, in the same order (``len(loader)`` then counts the remaining batches)."""
+
+    def __init__(self, n: int, seed: int, rank: int = 0, world: int = 1):
+        self.n, self.seed, self.rank, self.world = n, seed, rank, world
+        self.epoch, self.start = 0, 0
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        self.epoch, self.start = epoch, start
+
+    def order(self) -> list[int]:
+        import torch  # lazy: PyTorch is heavy; configs load without it
+
+        g = torch.Generator()
+        g.manual_seed(self.seed * 100003 + self.epoch)
+        perm = torch.randperm(self.n, generator=g).tolist()
+        total = -(-self.n // self.world) * self.world
+        perm = (perm * (total // max(self.n, 1) + 1))[:total]
+        return perm[self.rank::self.world]
+
+    def __iter__(self):
+        return iter(self.order()[self.start:])
+
+    def __len__(self) -> int:
+        return max(-(-self.n // self.world) - self.start, 0)

@@ -2,7 +2,10 @@
 
 :func:`select_device` logs the device and why it was chosen (a GPU found; CUDA not usable and the reason:
 a CPU-only PyTorch build, no NVIDIA driver, a driver too old for this build, a GPU this build was not
-compiled for; MPS; CPU). :func:`warn_if_slow` estimates how long detection will take on the CPU from
+compiled for; MPS; CPU). :func:`choose_threads` picks torch's CPU thread count from the cores this
+process may use (its affinity and cgroup quota) less those other work keeps busy (the load average), and
+:func:`configure_threads` applies and logs it (modules 6 and 7 and the demo; a ``threads`` key overrules it).
+:func:`warn_if_slow` estimates how long detection will take on the CPU from
 the number and size of the images and warns before a long run (the rates are measured, see the README's
 "How long will it take?"; each architecture's ``cpu_seconds_per_megapixel``).
 """
@@ -104,6 +107,62 @@ def select_device(preference: str = "auto"):
     dev, why = explain_device(preference)
     log.info("device: %s (%s)", dev, why)
     return dev
+
+
+def usable_cores() -> tuple[int, str]:
+    """``(cores, where from)``: the cores this process may run on (its CPU affinity, e.g. ``taskset`` or a
+    container's cpuset; a cgroup CPU quota lowers it), not the machine's count."""
+    if hasattr(os, "sched_getaffinity"):
+        cores, source = len(os.sched_getaffinity(0)), "CPU affinity"
+    else:
+        cores, source = os.cpu_count() or 1, "os.cpu_count()"
+    quota = _cgroup_quota()
+    if quota is not None and quota < cores:
+        cores, source = max(1, int(quota + 0.5)), f"cgroup CPU quota {quota:g}"
+    return max(1, cores), source
+
+
+def _cgroup_quota() -> float | None:
+    """CPUs allowed by a cgroup v2 quota (``cpu.max``: "quota period"), None when unlimited or unknown."""
+    try:
+        with open("/sys/fs/cgroup/cpu.max") as fh:
+            quota, period = fh.read().split()[:2]
+        return None if quota == "max" else float(quota) / float(period)
+    except (OSError, ValueError):
+        return None
+
+
+def choose_threads(requested: int | None = None, *, load: float | None = None,
+                   cores: int | None = None) -> tuple[int, str]:
+    """``(threads, reason)`` for torch on the CPU. ``requested`` (a ``threads`` key > 0) is used as given;
+    otherwise the usable cores less the busy ones: the 1-minute load average (other processes' runnable
+    work, ``os.getloadavg``) is subtracted, rounded, and at least one thread is kept. On a shared 2-core
+    machine PyTorch's default (every core) ran small training steps 5-10x slower than one thread,
+    because its threads wait for cores that other work holds (issue 29)."""
+    if requested:
+        return int(requested), f"threads: {requested} (set in the config)"
+    n, source = (cores, "given") if cores else usable_cores()
+    if load is None:
+        try:
+            load = os.getloadavg()[0]
+        except (OSError, AttributeError):  # Windows: no load average
+            load = 0.0
+    busy = min(n - 1, round(max(load, 0.0)))
+    threads = max(1, n - busy)
+    why = f"{n} usable core(s) ({source}), load average {load:.1f}"
+    if busy:
+        why += f": {busy} busy, so {threads}"
+    return threads, f"{why} (set 'threads' to overrule)"
+
+
+def configure_threads(requested: int | None = None) -> int:
+    """Set torch's CPU thread count (:func:`choose_threads`) and log it with the reason; returns it."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    threads, why = choose_threads(requested)
+    torch.set_num_threads(threads)
+    log.info("CPU threads: %d (%s)", threads, why)
+    return threads
 
 
 def _measured() -> list[Architecture]:

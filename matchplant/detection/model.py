@@ -43,6 +43,7 @@ from matchplant.detection.objects import auto_anchor_sizes, box_sizes
 log = get_logger("detector")
 
 PRETRAINED = ("coco", "imagenet", "none")
+AUTO = "auto"  # model.architecture chosen by module 6 (matchplant.model_train.choose)
 PARTS = ("backbone", "fpn", "rpn", "roi_heads")
 CHECKPOINT_FORMAT = "matchplant-detector"
 CHECKPOINT_VERSION = 1
@@ -92,9 +93,10 @@ class ROIConfig:
 class ModelConfig:
     """The detector: architecture, starting weights, input size, anchors, RPN and ROI settings."""
 
-    architecture: str = param("fasterrcnn_resnet50_fpn", "torchvision detector: Faster R-CNN (the paper used "
-                              "ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the one-stage RetinaNet "
-                              "and FCOS", choices=tuple(ARCHITECTURES))
+    architecture: str = param(AUTO, "torchvision detector: auto (module 6: the paper's ResNet-50 FPN on a GPU; "
+                              "on a CPU what a measured probe shows can train in the time budget, logged with the "
+                              "reason), Faster R-CNN (the paper used ResNet-50 FPN; MobileNetV3 is much faster on "
+                              "a CPU), or the one-stage RetinaNet and FCOS", choices=(AUTO, *ARCHITECTURES))
     pretrained: str = param("coco", "starting weights: coco (whole detector, downloaded once), imagenet "
                             "(backbone only), none (random)", choices=PRETRAINED)
     checkpoint: Path | None = param(None, "start from this MatchPlant checkpoint instead (transfer learning; "
@@ -114,7 +116,7 @@ class ModelConfig:
         if self.max_size < self.min_size:
             raise ConfigError(f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
                               fix="set max_size >= min_size")
-        if isinstance(self.anchor_sizes, list):
+        if isinstance(self.anchor_sizes, list) and self.architecture != AUTO:  # auto: module 6 picks a fitting one
             arch = get_architecture(self.architecture)
             levels = arch.anchors.levels
             if len(self.anchor_sizes) != levels:
@@ -173,6 +175,9 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
     if cfg.anchor_sizes == "auto":
         raise ConfigError("model.anchor_sizes is 'auto' but was not computed from the training boxes",
                           fix="call resolve_auto_anchors(cfg, train_dataset) first (module 6 does)")
+    if cfg.architecture == AUTO:
+        raise ConfigError("model.architecture is 'auto', which module 6 resolves before it builds a model",
+                          fix="set model.architecture to one of " + ", ".join(ARCHITECTURES))
     arch = get_architecture(cfg.architecture)
     weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
     kwargs = dict(min_size=cfg.min_size, max_size=cfg.max_size, nms_thresh=cfg.roi.nms_thresh,

@@ -1,12 +1,15 @@
-"""Honest training reports: the time budget (``max_minutes``) and the size of the validation set.
+"""Honest training reports: the time plan (``max_minutes``) and the size of the validation set.
 
-``max_minutes``: after the first epoch of a session its wall time (training, validation, checkpoints)
-gives how many epochs fit in the budget; when fewer than ``epochs`` fit, the run is planned for that many
-and the learning-rate schedule is shortened in proportion (:func:`matchplant.model_train.run.lr_factor`:
-a step every ``step_size`` epochs of a 30-epoch plan becomes one every ``step_size * planned / 30``), so
-a budget-limited run still ends at the small learning rates instead of being cut while they are high.
-Each later epoch is still checked against the clock (an epoch that would end past the budget is not
-started). The summary then says "stopped by max_minutes after 6 of 30 epochs", not "finished".
+The plan: a short probe (:mod:`matchplant.model_train.probe`) measures seconds per iteration and the
+validation's cost before training; :func:`plan_iterations` then gives how many iterations of the configured
+``epochs`` x iterations fit in the budget, counting each validation and checkpoint on the way (binary search
+over :func:`run_seconds`). The learning-rate schedule is laid over that many iterations
+(:mod:`matchplant.model_train.schedule`), so a budget-limited run still ends at the small learning rates
+instead of being cut while they are high. The plan is refitted once from the measured speed of the real
+iterations (after the first epoch or a tenth of the plan, whichever comes first), and the clock is read after
+every iteration: when the next one would leave too little time to validate and save, training stops inside
+the epoch, validates, and writes a checkpoint ``--resume`` continues from. The summary then says "stopped by
+max_minutes after 412 of 1500 iterations", not "finished".
 
 Validation: best.pt is the epoch with the best validation metric; on a handful of plants that choice is
 noise (one plant moves AP50 by 1/N), so fewer than ``MIN_VAL_OBJECTS`` distinct plants give a warning
@@ -24,43 +27,95 @@ from matchplant.detection.tile_objects import distinct_objects
 log = get_logger("model_train")
 
 MIN_VAL_OBJECTS = 20
+LONG_RUN_S = 3 * 3600.0  # "a few hours": without a budget, a longer estimate gets the advice too
+
+
+@dataclass
+class Costs:
+    """Measured seconds: one training iteration, one validation pass, one epoch's checkpoints."""
+
+    iteration: float
+    validation: float = 0.0
+    checkpoint: float = 0.0
 
 
 @dataclass
 class Plan:
-    """The number of epochs the run is planned for (``epochs``, or fewer when the budget is short)."""
+    """The iterations the run is planned for (``epochs`` x per epoch, or fewer when the budget is short)."""
 
-    epochs: int
-    fitted: bool = False        # the budget has been taken into account in this run
-    first_epoch_s: float | None = None
+    iters: int
+    iters_per_epoch: int
+    fitted: bool = False          # refitted from the real iterations' speed (once per run)
+    source: str = "configured"    # configured, probe, measured
 
-
-def epochs_that_fit(total_epochs: int, done: int, max_minutes: float, elapsed_s: float, epoch_s: float) -> int:
-    """Epochs the run can complete within ``max_minutes``: those done plus whole epochs of ``epoch_s``
-    in the time left (at least the ones done, at most ``total_epochs``)."""
-    left = max_minutes * 60.0 - elapsed_s
-    more = math.floor(left / epoch_s) if epoch_s > 0 else total_epochs
-    return int(min(total_epochs, max(done, done + more)))
+    @property
+    def epochs(self) -> int:
+        return math.ceil(self.iters / max(self.iters_per_epoch, 1))
 
 
-def fit_plan(plan: Plan, total_epochs: int, done: int, max_minutes: float, elapsed_s: float, epoch_s: float) -> None:
-    """Shorten ``plan`` to the epochs that fit (once per run), with a log line saying so."""
-    plan.fitted, plan.first_epoch_s = True, round(epoch_s, 3)
-    fit = epochs_that_fit(total_epochs, done, max_minutes, elapsed_s, epoch_s)
-    if fit < plan.epochs:
-        plan.epochs = max(fit, done)
-        log.warning("max_minutes = %g: an epoch takes %.0f s, so %d of the %d epochs fit; the learning-rate "
-                    "schedule is shortened to %d epochs (raise max_minutes, or lower epochs, to train as set)",
-                    max_minutes, epoch_s, plan.epochs, total_epochs, plan.epochs)
+def run_seconds(n: int, iters_per_epoch: int, costs: Costs, val_every: int, validated: bool) -> float:
+    """Seconds for ``n`` iterations: training, a validation every ``val_every`` epochs and after the last
+    iteration, checkpoints after each epoch and at the end."""
+    epochs_done = n // max(iters_per_epoch, 1)
+    vals = (epochs_done // val_every + (n % iters_per_epoch != 0 or epochs_done % val_every != 0)) if validated else 0
+    saves = epochs_done + (n % iters_per_epoch != 0)
+    return n * costs.iteration + vals * costs.validation + saves * costs.checkpoint
 
 
-def stop_status(done: int, total_epochs: int, max_minutes: float) -> tuple[str, str]:
-    """``(status, message)`` for the summary of a run that ended after ``done`` epochs."""
-    if done >= total_epochs:
-        return "finished", f"finished all {total_epochs} epochs"
-    return ("stopped_by_max_minutes",
-            f"stopped by max_minutes ({max_minutes:g}) after {done} of {total_epochs} epochs (the learning-rate "
-            f"schedule was fitted to the epochs that fit)")
+def plan_iterations(total: int, done: int, iters_per_epoch: int, costs: Costs, budget_s: float, val_every: int,
+                    validated: bool) -> int:
+    """The most iterations (at least ``done``, at most ``total``) whose remaining work fits ``budget_s``."""
+    def fits(n: int) -> bool:
+        return run_seconds(n, iters_per_epoch, costs, val_every, validated) - \
+            run_seconds(done, iters_per_epoch, costs, val_every, validated) <= budget_s
+
+    lo, hi = done, total
+    if fits(hi):
+        return hi
+    while lo < hi - 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+def fit_plan(plan: Plan, total: int, done: int, costs: Costs, budget_s: float, val_every: int, validated: bool,
+             source: str, max_minutes: float) -> None:
+    """Set ``plan.iters`` to what fits in ``budget_s`` (seconds left), with a log line when it is shorter than
+    configured."""
+    before = plan.iters
+    plan.iters = max(plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, val_every, validated),
+                     done, 1)
+    plan.source = source
+    if plan.iters < total and plan.iters != before:
+        log.warning("max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
+                    "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
+                    "epochs, to train as set)", max_minutes, costs.iteration, source, plan.iters, total,
+                    plan.iters / plan.iters_per_epoch, math.ceil(total / plan.iters_per_epoch), plan.iters)
+
+
+def stop_status(done_iters: int, total: int, iters_per_epoch: int, max_minutes: float, interrupted: bool = False,
+                planned: int | None = None) -> tuple[str, str]:
+    """``(status, message)`` for the summary of a run that ended after ``done_iters`` iterations."""
+    epochs = f"{done_iters / iters_per_epoch:.2f}".rstrip("0").rstrip(".")
+    where = f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
+    if interrupted:
+        return "interrupted", f"interrupted (Ctrl-C) {where}; --resume continues exactly there"
+    if done_iters >= total:
+        return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
+    if planned is not None and done_iters >= planned:
+        return ("stopped_by_max_minutes", (f"stopped by max_minutes ({max_minutes:g}) {where}, the end of the plan "
+                                           "fitted to the budget (the learning-rate schedule ran its course)"))
+    return ("stopped_by_max_minutes", f"stopped by max_minutes ({max_minutes:g}) {where}; --resume continues "
+            f"the planned {planned} iterations" if planned else f"stopped by max_minutes {where}")
+
+
+def duration(seconds: float) -> str:
+    """A duration in words a user reads at a glance."""
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds >= 120:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds:.0f} s"
 
 
 def validation_report(val_data: dict | None) -> dict:

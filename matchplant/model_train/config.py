@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.detection.data import AugmentConfig
 from matchplant.detection.device import DEVICE_CHOICES
 from matchplant.detection.model import PARTS, ModelConfig
-
 
 SCHEDULES = ("step", "multistep", "cosine", "constant")
 
@@ -35,8 +35,10 @@ class ModelTrainConfig:
                                   "last epoch counts as best)", path="file")
     val_images: Path | None = param(None, "folder of the validation tiles; null = the JSON's folder", path="dir")
     output_dir: Path = param(Path("runs/train"), "where checkpoints, curves and the summary go", path="out")
-    resume: bool = param(False, "continue the run in output_dir from checkpoints/last.pt (after a crash or "
-                         "to add epochs); same as the --resume flag")
+    resume: bool | Literal["fresh"] = param(False, "true: continue the run in output_dir from checkpoints/last.pt "
+                                            "(after a crash, Ctrl-C or max_minutes; exactly where it stopped, "
+                                            "mid-epoch too), the --resume flag; fresh: start a new run there "
+                                            "(the --fresh flag), replacing its checkpoints")
     model: ModelConfig = section(ModelConfig)
     trainable_backbone_layers: int = param(3, "backbone stages trained, counted from the top (0 = backbone "
                                            "frozen; ResNet-50 has 5, MobileNetV3 6)", min=0, max=6)
@@ -51,16 +53,25 @@ class ModelTrainConfig:
                           "epochs), multistep (x gamma at each milestone), cosine, constant", choices=SCHEDULES)
     step_size: int = param(10, "epochs between decays (schedule: step)", min=1)
     gamma: float = param(0.1, "decay factor (step, multistep)", min=0, max=1)
-    milestones: list[int] = param([20, 27], "epochs at which to decay (schedule: multistep)", min=1)
+    milestones: list[int] = param([20, 27], "epochs at which to decay (schedule: multistep), of the 'epochs' "
+                                  "configured; a shorter planned run (max_minutes) moves them in proportion", min=1)
+    milestone_fractions: list[float] | None = param(None, "decay points as fractions of the planned iterations, "
+                                                    "e.g. [0.67, 0.9] (schedule: multistep); null = milestones",
+                                                    min=0, max=1)
     min_lr_factor: float = param(0.0, "final fraction of the learning rate (schedule: cosine)", min=0, max=1)
-    warmup_iters: int = param(500, "iterations of linear warm-up at the start (0 = none)", min=0)
+    warmup_iters: int | None = param(None, "iterations of linear warm-up at the start (0 = none); null = "
+                                     "warmup_fraction of the planned iterations", min=0)
+    warmup_fraction: float = param(0.05, "warm-up as a fraction of the planned iterations (scales with the "
+                                   "dataset and the budget; used when warmup_iters is null)", min=0, max=0.5)
     warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up",
                                  min=0, max=1)
     epochs: int = param(30, "training epochs", min=1)
-    max_minutes: float = param(0.0, "time budget in minutes (0 = none): after the first epoch, the epochs "
-                               "that fit are planned and the learning-rate schedule shortened to them; an "
-                               "epoch that would end past the budget is not started; the last epoch is "
-                               "validated and saved as usual", min=0)
+    max_minutes: float = param(0.0, "time budget in minutes for the whole run (0 = none): a short probe "
+                               "measures the speed, the iterations that fit are planned and the learning-rate "
+                               "schedule fitted to them; training stops inside an epoch when the budget ends, "
+                               "validates and writes a checkpoint that --resume continues from", min=0)
+    threads: int = param(0, "CPU threads for torch (0 = auto: the cores this process may use less those busy "
+                         "with other work, logged)", min=0)
     batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
     num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
     augment: AugmentConfig = section(AugmentConfig)

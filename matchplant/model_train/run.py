@@ -12,6 +12,14 @@ logs the losses, scores the validation split with COCOeval (AP, AP50) and writes
   ``training_curves.png``. Every checkpoint also carries the training geometry module 7 detects with
   (:mod:`matchplant.detection.geometry`).
 
+Before the first step a short probe measures the speed on this device and logs the estimate with advice
+(:mod:`~matchplant.model_train.probe`); ``max_minutes`` plans the iterations that fit and stops inside an
+epoch when the budget ends (:mod:`~matchplant.model_train.budget`); the learning-rate schedule is laid over the
+planned iterations (:mod:`~matchplant.model_train.schedule`); Ctrl-C and the budget write a checkpoint that
+``--resume`` continues from exactly (:mod:`~matchplant.model_train.resume`); ``model.architecture: auto`` picks
+the detector for the device (:mod:`~matchplant.model_train.choose`); the CPU thread count follows the free
+cores (:func:`matchplant.detection.device.configure_threads`, ``threads`` overrules it).
+
 Transfer learning: ``model.checkpoint`` starts from an earlier MatchPlant model (a different number of
 classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``lr`` sets a rate per part.
 """
@@ -22,23 +30,32 @@ import dataclasses
 import math
 import random
 import time
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from matchplant.core.runtime.config import to_dict
-from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
-from matchplant.core.runtime.gui import figure
-from matchplant.core.runtime.io import atomic_path, write_json
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.detection.data import CocoDetection, check_disjoint, collate
-from matchplant.detection.device import select_device
+from matchplant.detection.data import (
+    CocoDetection,
+    EpochSampler,
+    check_disjoint,
+    collate,
+)
+from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import Shard, join, world_size
-from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
+from matchplant.detection.evaluate import (
+    coco_evaluate,
+    predict_dataset,
+    summarise_stats,
+)
 from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (
+    AUTO,
     ModelConfig,
     apply_freezing,
     backbone_stages,
@@ -51,10 +68,39 @@ from matchplant.detection.model import (
     resolve_auto_anchors,
     save_checkpoint,
 )
-from matchplant.model_train.budget import Plan, fit_plan, stop_status, validation_report
+from matchplant.model_train.budget import (
+    Costs,
+    Plan,
+    duration,
+    fit_plan,
+    run_seconds,
+    stop_status,
+    validation_report,
+)
+from matchplant.model_train.choose import choose_architecture
 from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.probe import (
+    HEARTBEAT_S,
+    PROBE_CAP_S,
+    advice,
+    costs_from_probe,
+    estimate_lines,
+    heartbeat,
+    log_estimate,
+    probe_speed,
+)
+from matchplant.model_train.report import plot_curves, write_summary
+from matchplant.model_train.resume import (
+    StopOnInterrupt,
+    ignore_sigint,
+    open_resume,
+    random_state,
+    set_random_state,
+)
+from matchplant.model_train.schedule import lr_factor, schedule_warning, warmup_length
 
 log = get_logger("model_train")
+__all__ = ["build_optimizer", "build_scheduler", "lr_factor", "run", "train"]
 
 # --------------------------------------------------------------------------------------------------
 # optimisation
@@ -69,36 +115,13 @@ def build_optimizer(cfg: ModelTrainConfig, model):
     return torch.optim.AdamW(groups, lr=groups[0]["lr"], weight_decay=cfg.weight_decay)
 
 
-def lr_factor(cfg: ModelTrainConfig, iteration: int, iters_per_epoch: int, planned_epochs: int | None = None) -> float:
-    """The learning-rate multiplier at a (0-based) iteration: warm-up times the epoch schedule.
-
-    ``planned_epochs`` (fewer than ``epochs`` when ``max_minutes`` is short) shortens the schedule in
-    proportion: epoch ``e`` of the plan is at epoch ``e * epochs / planned_epochs`` of the configured one
-    (the warm-up, in iterations, is kept)."""
-    planned = planned_epochs or cfg.epochs
-    epoch = (iteration // max(iters_per_epoch, 1)) * cfg.epochs / planned
-    if cfg.schedule == "step":
-        f = cfg.gamma ** math.floor(epoch / cfg.step_size + 1e-9)
-    elif cfg.schedule == "multistep":
-        f = cfg.gamma ** sum(epoch >= m - 1e-9 for m in cfg.milestones)
-    elif cfg.schedule == "cosine":
-        total = max(planned * iters_per_epoch, 1)
-        f = cfg.min_lr_factor + (1 - cfg.min_lr_factor) * 0.5 * (1 + math.cos(math.pi * min(iteration / total, 1)))
-    else:
-        f = 1.0
-    if iteration < cfg.warmup_iters:
-        alpha = iteration / cfg.warmup_iters
-        f *= cfg.warmup_factor * (1 - alpha) + alpha
-    return f
-
-
 def build_scheduler(cfg: ModelTrainConfig, optimizer, iters_per_epoch: int, plan: Plan | None = None):
     """A per-iteration LambdaLR (its state is the iteration count, so a resumed run continues exactly);
-    it follows ``plan.epochs`` when the time budget shortens the run."""
+    it follows ``plan.iters`` (read at every step: a refitted plan moves the schedule)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     return torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch, plan.epochs if plan else None))
+        optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch, plan.iters if plan else None))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -134,11 +157,14 @@ def _initial_model(cfg: ModelTrainConfig, class_names: list[str], resume: dict |
     if cfg.model.checkpoint is not None:
         src = read_checkpoint(cfg.model.checkpoint)
         src_cfg = src["model_config"]
-        if src_cfg["architecture"] != cfg.model.architecture:
+        if cfg.model.architecture == AUTO:
+            log.info("model.architecture: auto -> %s, the architecture of model.checkpoint", src_cfg["architecture"])
+        elif src_cfg["architecture"] != cfg.model.architecture:
             raise ConfigError(f"model.checkpoint is a {src_cfg['architecture']} but model.architecture is "
                               f"{cfg.model.architecture}", path=cfg.model.checkpoint,
-                              fix=f"set model.architecture: {src_cfg['architecture']}")
-        mcfg = dataclasses.replace(cfg.model, pretrained=src_cfg["pretrained"], checkpoint=None)
+                              fix=f"set model.architecture: {src_cfg['architecture']} (or auto)")
+        mcfg = dataclasses.replace(cfg.model, architecture=src_cfg["architecture"], pretrained=src_cfg["pretrained"],
+                                   checkpoint=None)
         mcfg = resolve_auto_anchors(mcfg, cfg.train_json)  # anchor_sizes: auto -> from the training boxes
         model = build_detector(mcfg, len(class_names) + 1, load_weights=False)
         loaded, skipped = load_matching_weights(model, src["model_state"])
@@ -147,16 +173,6 @@ def _initial_model(cfg: ModelTrainConfig, class_names: list[str], resume: dict |
         return model, mcfg
     mcfg = resolve_auto_anchors(dataclasses.replace(cfg.model, checkpoint=None), cfg.train_json)
     return build_detector(mcfg, len(class_names) + 1), mcfg
-
-
-def _check_resumable(cfg: ModelTrainConfig, ck: dict, class_names: list[str], path: Path) -> None:
-    if ck.get("class_names") != class_names:
-        raise ConfigError(f"cannot resume: the checkpoint's classes {ck.get('class_names')} differ from the "
-                          f"dataset's {class_names}", path=path,
-                          fix="resume with the same dataset, or start a new run in another output_dir")
-    if ck.get("epoch", 0) >= cfg.epochs:
-        log.warning("the run in %s already finished its %d epochs; raise 'epochs' to train longer",
-                    cfg.output_dir, ck["epoch"])
 
 
 def _rank0_value(value: float, dist_info, device) -> float:
@@ -170,24 +186,113 @@ def _rank0_value(value: float, dist_info, device) -> float:
     return float(t.item())
 
 
-def _out_of_time(cfg: ModelTrainConfig, run_start: float, epoch_time: float, dist_info, device) -> bool:
-    """Whether another epoch (as long as the last: training, validation, checkpoints) would end past
-    ``max_minutes``; one answer for all processes under torchrun (rank 0's clock)."""
-    if not cfg.max_minutes:
-        return False
-    over = (time.perf_counter() - run_start) + epoch_time > cfg.max_minutes * 60.0
-    return bool(_rank0_value(1.0 if over else 0.0, dist_info, device))
+class _Session:
+    """The clock and the stop decisions of one training session (``max_minutes`` counts from its start)."""
+
+    def __init__(self, cfg: ModelTrainConfig, plan: Plan, total: int, costs: Costs, dist_info, device, stop_flag,
+                 validated: bool):
+        self.cfg, self.plan, self.total, self.costs = cfg, plan, total, costs
+        self.dist_info, self.device, self.stop_flag, self.validated = dist_info, device, stop_flag, validated
+        self.start = time.perf_counter()
+        self.step_times: list[float] = []
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def reserve(self) -> float:
+        """Seconds kept for the last validation and checkpoints."""
+        return (self.costs.validation if self.validated else 0.0) + self.costs.checkpoint
+
+    def iteration_s(self) -> float:
+        recent = self.step_times[1:][-20:] or self.step_times or [self.costs.iteration]
+        return float(np.mean(recent))
+
+    def after_step(self, done: int, step_s: float) -> str | None:
+        """After an iteration: refit the plan once from the real speed; then why to stop (None: go on)."""
+        self.step_times.append(step_s)
+        cfg, plan = self.cfg, self.plan
+        if cfg.max_minutes and not plan.fitted and len(self.step_times) >= max(3, min(plan.iters_per_epoch,
+                                                                                    plan.iters // 10)):
+            plan.fitted = True
+            measured = dataclasses.replace(self.costs, iteration=self.iteration_s())
+            fit_plan(plan, self.total, done, measured, cfg.max_minutes * 60.0 - self.elapsed(), cfg.val_every,
+                     self.validated, "measured on the first iterations", cfg.max_minutes)
+            plan.iters = int(_rank0_value(plan.iters, self.dist_info, self.device))
+        reason = 0.0
+        if self.stop_flag.requested:
+            reason = 2.0
+        elif cfg.max_minutes and done < plan.iters and \
+                self.elapsed() + self.iteration_s() + self.reserve() > cfg.max_minutes * 60.0:
+            reason = 1.0
+        reason = _rank0_value(reason, self.dist_info, self.device)
+        return {0.0: None, 1.0: "budget", 2.0: "interrupt"}[reason]
+
+    def out_of_time_for(self, seconds: float) -> bool:
+        """Whether ``seconds`` more work (an epoch's validation) leaves too little for the rest."""
+        if not self.cfg.max_minutes:
+            return False
+        over = self.elapsed() + seconds + self.iteration_s() + self.reserve() > self.cfg.max_minutes * 60.0
+        return bool(_rank0_value(1.0 if over else 0.0, self.dist_info, self.device))
 
 
-def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None) -> dict:
+def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: Plan, total: int, done: int,
+                    resumed_plan: bool, probe=None, started: float | None = None) -> tuple[Costs, dict]:
+    """The measured estimate before training, logged with advice; the plan fitted to the budget."""
+    budget_s = cfg.max_minutes * 60.0
+    cap = min(PROBE_CAP_S, 0.05 * budget_s) if budget_s else PROBE_CAP_S
+    if probe is None:
+        log.info("measuring the training speed: %d tile(s) per batch at the config's input size on %s", cfg.batch_size,
+                 device)
+        with heartbeat("measuring the training speed (the first batch on a CPU can take minutes)"):
+            probe = probe_speed(core, train_ds, cfg.batch_size, device, amp, cap_s=cap, num_workers=cfg.num_workers,
+                                run_iters=total - done)
+    n_params = sum(p.numel() for p in core.parameters())
+    costs = costs_from_probe(probe, len(val_ds) if val_ds is not None else 0, n_params)
+    validated = val_ds is not None
+    lines, total_s = estimate_lines(probe, costs, iters_per_epoch=plan.iters_per_epoch, epochs=cfg.epochs,
+                                    architecture=model_cfg.architecture, device=device, val_every=cfg.val_every,
+                                    validated=validated, max_minutes=cfg.max_minutes)
+    if budget_s and not resumed_plan:
+        spent = time.perf_counter() - started if started is not None else 0.0  # set-up and probe count too
+        fit_plan(plan, total, done, costs, budget_s - spent - 2.0, cfg.val_every, validated, "measured by the probe",
+                 cfg.max_minutes)
+    hint = advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters, total)
+    if plan.iters < total:
+        planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, validated) - \
+            run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, validated)
+        lines.append(f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
+                     f"{cfg.epochs} epochs) in max_minutes = {cfg.max_minutes:g}: about {duration(planned_s)} of "
+                     "training and validation from here")
+    log_estimate(lines, hint)
+    estimate = {"probe": probe.as_dict(), "seconds_per_iteration": round(costs.iteration, 4),
+                "validation_s": round(costs.validation, 2), "checkpoint_s": round(costs.checkpoint, 2),
+                "run_as_configured_s": round(total_s, 1), "advice": hint}
+    return costs, estimate
+
+
+def _choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int):
+    """``cfg`` with ``model.architecture: auto`` resolved (logged with the reason), and the probe it made."""
+    if cfg.model.architecture != AUTO or cfg.model.checkpoint is not None:
+        return cfg, None, None
+    arch, why, probe = choose_architecture(cfg, cfg.model, device, train_ds, len(train_ds.class_names), total,
+                                           cfg.train_json)
+    log.info("model.architecture: auto -> %s (%s)", arch, why)
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, architecture=arch)), probe, why
+
+
+def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None,
+          on_iteration: Callable[[int], Any] | None = None) -> dict:
     """Train as configured; returns the training summary (also written as training_summary.json).
 
-    ``on_epoch_end(epoch, record)`` is called after each epoch's checkpoints are written.
+    ``on_epoch_end(epoch, record)`` is called after each epoch's checkpoints are written,
+    ``on_iteration(iterations_done)`` after each training iteration.
     """
     import torch  # lazy: PyTorch is heavy; configs load without it
-    from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
+    from torch.utils.data import DataLoader
 
+    session_start = time.perf_counter()  # max_minutes counts the data checks, the probe and the set-up too
     dist_info, device = _init_distributed(cfg)
+    threads = configure_threads(cfg.threads or None)
     out = Path(cfg.output_dir)
     ck_dir = out / "checkpoints"
     seed_everything(cfg.seed)
@@ -203,15 +308,18 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
              len(train_ds), n_neg, len(val_ds) if val_ds else "none", ", ".join(class_names))
     validation = validation_report(val_ds.data if val_ds is not None else None)
 
-    resume = None
-    if cfg.resume:
-        last = ck_dir / "last.pt"
-        if not last.is_file():
-            raise InputError("nothing to resume: no checkpoint of an earlier run here", path=last,
-                             fix="set output_dir to the crashed run's folder, or start without --resume")
-        resume = read_checkpoint(last)
-        _check_resumable(cfg, resume, class_names, last)
-        log.info("resuming %s after epoch %d", last, resume["epoch"])
+    sampler = EpochSampler(len(train_ds), cfg.seed, dist_info.rank, dist_info.world)
+    iters = math.ceil(len(sampler) / cfg.batch_size)
+    total = cfg.epochs * iters
+    resume = open_resume(cfg, ck_dir, class_names)
+    if resume is not None:
+        log.info("resuming %s after %d iteration(s) (epoch %d%s)", ck_dir / "last.pt",
+                 resume.get("iteration", resume["epoch"] * iters), resume["epoch"],
+                 f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
+                 if resume.get("epoch_progress") else " done")
+    choice_probe, choice_reason = None, None
+    if resume is None:
+        cfg, choice_probe, choice_reason = _choose_model_config(cfg, device, train_ds, total)
 
     model, model_cfg = _initial_model(cfg, class_names, resume)
     # what module 7 needs to detect as trained: tile size, input scale, classes, plant sizes
@@ -232,92 +340,160 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None)
 
+    # the loader's own generator: the workers' seeds do not draw from the process's random state
     generator = torch.Generator()
-    sampler = (DistributedSampler(train_ds, dist_info.world, dist_info.rank, shuffle=True, seed=cfg.seed)
-               if dist_info.world > 1 else RandomSampler(train_ds, generator=generator))
+    generator.manual_seed(cfg.seed)
     loader = DataLoader(train_ds, batch_size=cfg.batch_size, sampler=sampler, num_workers=cfg.num_workers,
-                        collate_fn=collate, generator=generator, pin_memory=device.type == "cuda")
-    iters = len(loader)
+                        collate_fn=collate, generator=generator, pin_memory=device.type == "cuda",
+                        worker_init_fn=ignore_sigint if cfg.num_workers else None)
     optimizer = build_optimizer(cfg, core)
-    plan = Plan(cfg.epochs)
+    plan = Plan(total, iters)
     scheduler = build_scheduler(cfg, optimizer, iters, plan)
     amp = cfg.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=amp)
 
-    start_epoch, history, best = 0, [], {"epoch": None, "value": None}
+    done, history, best, progress_state, rng = 0, [], {"epoch": None, "value": None}, None, None
     if resume is not None:
+        if resume.get("iters_per_epoch", iters) != iters and resume.get("epoch_progress"):
+            raise ConfigError(f"cannot resume inside epoch {resume['epoch'] + 1}: the run had "
+                              f"{resume['iters_per_epoch']} iterations per epoch, this config gives {iters} "
+                              "(batch_size or the training set changed)", path=ck_dir / "last.pt",
+                              fix="resume with the run's batch_size and training set, or start with --fresh")
         optimizer.load_state_dict(resume["optimizer_state"])
         scheduler.load_state_dict(resume["scheduler_state"])
         if resume.get("scaler_state"):
             scaler.load_state_dict(resume["scaler_state"])
-        start_epoch, history, best = resume["epoch"], list(resume["history"]), dict(resume["best"])
-        if cfg.max_minutes and resume.get("planned_epochs"):  # the budget's plan of the run resumed
-            plan.epochs, plan.fitted = min(int(resume["planned_epochs"]), cfg.epochs), True
+        done = int(resume.get("iteration", resume["epoch"] * iters))
+        history = [h for h in resume["history"] if not h.get("partial")]
+        best = dict(resume["best"])
+        progress_state, rng = resume.get("epoch_progress"), resume.get("random_state")
+        if resume.get("planned_iters"):
+            plan.iters, plan.fitted, plan.source = min(int(resume["planned_iters"]), total), True, "resumed"
+        elif cfg.max_minutes and resume.get("planned_epochs"):  # a checkpoint of the epoch-based budget
+            plan.iters, plan.fitted = min(int(resume["planned_epochs"]) * iters, total), True
+        if not resume.get("planned_iters") and not cfg.max_minutes:
+            plan.fitted = True
+        if plan.iters <= done < total:  # the budget's plan is done: this session plans the rest with its budget
+            log.info("the run's plan of %d iterations (fitted to its max_minutes) is done; the remaining %d of %d "
+                     "are planned now%s (the learning-rate schedule is laid over the longer run)", plan.iters,
+                     total - done, total, f" with max_minutes = {cfg.max_minutes:g}" if cfg.max_minutes else "")
+            plan.iters, plan.fitted, plan.source = total, False, "configured"
 
-    log.info("device %s%s, %s, %d trainable parameters, %d iterations per epoch", device,
+    costs, estimate = _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan, total, done,
+                                      resume is not None and plan.fitted, probe=choice_probe, started=session_start)
+    warning = schedule_warning(cfg, iters, plan.iters)
+    if warning:
+        log.warning(warning)
+    log.info("device %s%s, %s, %d trainable parameters, %d iterations per epoch, %d planned (warm-up %d)", device,
              " (mixed precision)" if amp else "", model_cfg.architecture,
-             sum(p.numel() for p in core.parameters() if p.requires_grad), iters)
-    run_start = time.perf_counter()
-    epoch_time = None  # wall time of the last whole epoch (training, validation, checkpoints)
-    for epoch in range(start_epoch, cfg.epochs):
-        if epoch >= plan.epochs:  # a resumed run whose budget plan is done
-            break
-        # each epoch's randomness depends only on (seed, epoch): a resumed run repeats it exactly
-        seed_everything(cfg.seed * 100003 + epoch)
-        generator.manual_seed(cfg.seed * 100003 + epoch)
-        if dist_info.world > 1:
-            sampler.set_epoch(epoch)
-        t0 = time.perf_counter()
-        losses = _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp,
-                                  f"epoch {epoch + 1}/{plan.epochs}", dist_info)
-        train_time = time.perf_counter() - t0
-        record = {"epoch": epoch + 1, "lr": {g["name"]: g["lr"] for g in optimizer.param_groups},
-                  "losses": losses, "train_time_s": round(train_time, 3),
-                  "train_images_per_s": round(len(train_ds) / max(train_time, 1e-9), 3)}
-        out_of_time = _out_of_time(cfg, run_start, epoch_time or train_time, dist_info, device)
-        last = epoch + 1 >= plan.epochs or out_of_time
-        validate = val_ds is not None and ((epoch + 1) % cfg.val_every == 0 or last)
-        if validate and dist_info.main:
-            record["val"] = validate_model(core, val_ds, model_cfg, cfg, device, amp)
-        history.append(record)
-        value = record.get("val", {}).get(cfg.best_metric) if val_ds is not None else float(epoch)
-        improved = value is not None and (best["value"] is None or value > best["value"])
-        if improved:
-            best = {"epoch": epoch + 1, "value": value, "metric": cfg.best_metric if val_ds else "last epoch"}
-        log.info("epoch %d/%d: loss %.4f%s (%.1f s)", epoch + 1, plan.epochs, losses["loss"],
-                 f"; validation {summarise_stats(record['val'])}" if "val" in record else "", train_time)
-        if dist_info.main:
-            state = dict(epoch=epoch + 1, optimizer_state=optimizer.state_dict(),
-                         scheduler_state=scheduler.state_dict(), scaler_state=scaler.state_dict() if amp else None,
-                         history=history, best=best, metrics=record.get("val"), train_config=to_dict(cfg),
-                         iters_per_epoch=iters, training_geometry=geometry,
-                         planned_epochs=plan.epochs if plan.epochs < cfg.epochs else None)
-            save_checkpoint(ck_dir / "last.pt", core, model_cfg, class_names, train_ds.category_ids, **state)
+             sum(p.numel() for p in core.parameters() if p.requires_grad), iters, plan.iters,
+             warmup_length(cfg, plan.iters))
+    extras = {"threads": threads, "estimate": estimate, "schedule_warning": warning,
+              "architecture": {"chosen": model_cfg.architecture, "reason": choice_reason or "as set"}}
+
+    stop_rng = None
+
+    def save(name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
+        state = dict(epoch=epoch_done, iteration=done, optimizer_state=optimizer.state_dict(),
+                     scheduler_state=scheduler.state_dict(), scaler_state=scaler.state_dict() if amp else None,
+                     history=history, best=best, metrics=(record or {}).get("val"), train_config=to_dict(cfg),
+                     iters_per_epoch=iters, training_geometry=geometry, planned_iters=plan.iters,
+                     epoch_progress=partial, random_state=stop_rng if partial else None)
+        save_checkpoint(ck_dir / name, core, model_cfg, class_names, train_ds.category_ids, **state)
+
+    stop_flag = StopOnInterrupt()
+    session = _Session(cfg, plan, total, costs, dist_info, device, stop_flag, val_ds is not None)
+    session.start = session_start  # the budget counts the probe and the model's set-up
+    reason = None
+    with stop_flag:
+        while done < plan.iters and reason is None:
+            epoch, start = divmod(done, iters)
+            # each epoch's order and augmentation depend only on (seed, epoch); mid-epoch, the random state
+            # the interrupted run had is restored too: a resumed run repeats the uninterrupted one exactly
+            seed_everything(cfg.seed * 100003 + epoch)
+            if start and rng is not None:
+                set_random_state(rng, device)
+            train_ds.set_seed(cfg.seed * 100003 + epoch)
+            sampler.set_epoch(epoch, start * cfg.batch_size)
+            sums = dict(progress_state["sums"]) if start and progress_state else {}
+            batches = int(progress_state["batches"]) if start and progress_state else 0
+            progress_state, rng = None, None
+            t0 = time.perf_counter()
+            epoch_iters = min(iters, plan.iters - epoch * iters)
+
+            def after(step_s: float) -> str | None:
+                nonlocal done
+                done += 1
+                if on_iteration is not None:
+                    on_iteration(done)
+                return session.after_step(done, step_s)
+
+            reason, batches = _train_epoch(model, loader, optimizer, scheduler, scaler, device, amp,
+                                           f"epoch {epoch + 1}/{plan.epochs}", sums, batches, after,
+                                           slow=costs.iteration >= HEARTBEAT_S / 2 or not session.step_times,
+                                           limit=epoch_iters - start)
+            train_time = time.perf_counter() - t0
+            # the random state where training stopped (validation draws from it too; a resumed run starts here)
+            stop_rng = random_state(device) if batches < iters else None
+            means = {k: v / max(batches, 1) for k, v in sums.items()}
+            if dist_info.world > 1:  # the mean over every process
+                keys = sorted(means)
+                t = torch.tensor([means[k] for k in keys], device=device)
+                torch.distributed.all_reduce(t)
+                means = dict(zip(keys, (t / dist_info.world).tolist()))
+            complete = batches >= iters
+            record = {"epoch": epoch + 1, "iterations": done, "lr": {g["name"]: g["lr"] for g in optimizer.param_groups},
+                      "losses": means, "train_time_s": round(train_time, 3),
+                      "train_images_per_s": round((done - epoch * iters - start) * cfg.batch_size * dist_info.world
+                                                  / max(train_time, 1e-9), 3)}
+            if not complete:
+                record.update(partial=True, batches=batches)
+            if reason == "interrupt":  # no validation: the user wants out; the checkpoint continues exactly here
+                if dist_info.main:
+                    save("last.pt", epoch, record, {"batches": batches, "sums": sums})
+                    write_summary(out, cfg, history + [record], best, class_names, device, "interrupted",
+                                  session.elapsed(), validation=validation, plan=plan, extras=extras,
+                                  message=stop_status(done, total, iters, cfg.max_minutes, True)[1])
+                log.warning("interrupted after %d of %d planned iterations: %s written; --resume continues there",
+                            done, plan.iters, ck_dir / "last.pt")
+                raise KeyboardInterrupt
+            if reason is None and done < plan.iters and session.out_of_time_for(
+                    costs.validation if (epoch + 1) % cfg.val_every == 0 and val_ds is not None else 0.0):
+                reason = "budget"
+            last = done >= plan.iters or reason is not None
+            validate = val_ds is not None and ((complete and (epoch + 1) % cfg.val_every == 0) or last)
+            if validate and dist_info.main:
+                record["val"] = validate_model(core, val_ds, model_cfg, cfg, device, amp)
+            history.append(record)
+            value = record.get("val", {}).get(cfg.best_metric) if val_ds is not None else float(done)
+            improved = value is not None and (best["value"] is None or value > best["value"])
             if improved:
-                save_checkpoint(ck_dir / "best.pt", core, model_cfg, class_names, train_ds.category_ids, **state)
-            if cfg.save_every and (epoch + 1) % cfg.save_every == 0:
-                save_checkpoint(ck_dir / f"epoch_{epoch + 1:03d}.pt", core, model_cfg, class_names,
-                                train_ds.category_ids, **state)
-            write_summary(out, cfg, history, best, class_names, device, "running",
-                          time.perf_counter() - run_start, validation=validation, plan=plan)
-            plot_curves(history, out / "training_curves.png")
-        dist_info.barrier()
-        epoch_time = time.perf_counter() - t0
-        if cfg.max_minutes and not plan.fitted:  # the first epoch's time says how many epochs fit (rank 0's)
-            fit_plan(plan, cfg.epochs, epoch + 1, cfg.max_minutes, time.perf_counter() - run_start, epoch_time)
-            plan.epochs = int(_rank0_value(plan.epochs, dist_info, device))
-        if on_epoch_end is not None:
-            on_epoch_end(epoch + 1, record)
-        if epoch + 1 < cfg.epochs and (out_of_time or epoch + 1 >= plan.epochs):
-            log.info("stopping after epoch %d of %d: the next would pass max_minutes = %g", epoch + 1, cfg.epochs,
-                     cfg.max_minutes)
-            break
+                best = {"epoch": epoch + 1, "iterations": done, "value": value,
+                        "metric": cfg.best_metric if val_ds else "last epoch"}
+            log.info("epoch %d/%d%s: loss %.4f%s (%.1f s)", epoch + 1, plan.epochs,
+                     "" if complete else f" (stopped after {batches} of {iters} batches)", means.get("loss", math.nan),
+                     f"; validation {summarise_stats(record['val'])}" if "val" in record else "", train_time)
+            if dist_info.main:
+                partial = None if complete else {"batches": batches, "sums": sums}
+                save("last.pt", epoch + complete, record, partial)
+                if improved:
+                    save("best.pt", epoch + complete, record, partial)
+                if complete and cfg.save_every and (epoch + 1) % cfg.save_every == 0:
+                    save(f"epoch_{epoch + 1:03d}.pt", epoch + 1, record, None)
+                write_summary(out, cfg, history, best, class_names, device, "running", session.elapsed(),
+                              validation=validation, plan=plan, extras=extras)
+                plot_curves(history, out / "training_curves.png")
+            dist_info.barrier()
+            if on_epoch_end is not None and complete:
+                on_epoch_end(epoch + 1, record)
+    if reason == "budget" or (done >= plan.iters and plan.iters < total):
+        log.info("stopping after %d of %d iterations: max_minutes = %g", done, total, cfg.max_minutes)
     summary = {}
     if dist_info.main:
-        status, message = stop_status(len(history), cfg.epochs, cfg.max_minutes)
-        summary = write_summary(out, cfg, history, best, class_names, device, status, time.perf_counter() - run_start,
-                                validation=validation, plan=plan, message=message)
-        log.info("training %s", message)
+        status, message = stop_status(done, total, iters, cfg.max_minutes, planned=plan.iters)
+        summary = write_summary(out, cfg, history, best, class_names, device, status, session.elapsed(),
+                                validation=validation, plan=plan, message=message, extras=extras)
+        log.info("training %s (%s)", message, _clock_words(session.elapsed()))
     if dist_info.main and best["epoch"] is not None:
         log.info("best epoch %d (%s %.4f); model: %s", best["epoch"], best.get("metric"), best["value"],
                  ck_dir / "best.pt")
@@ -326,43 +502,60 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
     return summary
 
 
-def _train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp: bool, desc: str,
-                     dist_info: Shard) -> dict[str, float]:
+def _clock_words(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
+def _train_epoch(model, loader, optimizer, scheduler, scaler, device, amp: bool, desc: str, sums: dict[str, float],
+                 batches: int, after: Callable[[float], str | None], *, slow: bool, limit: int) -> tuple[str | None, int]:
+    """Train on the loader's batches (at most ``limit``), adding the losses into ``sums``; ``after(step_s)`` after
+    each iteration says whether to stop. Returns ``(why it stopped or None, batches done in this epoch)``. A
+    heartbeat line shows life during slow iterations (the first one, or all when the probe found them slow)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     model.train()
     keep_frozen_norms_fixed(model)
-    sums: dict[str, float] = {}
-    n = 0
-    bar = progress(loader, desc=desc, unit="batch")
-    for images, targets in bar:
-        images = [im.to(device, non_blocking=True) for im in images]
-        targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
-        with torch.autocast(device_type=device.type, enabled=amp):
-            loss_dict = model(images, targets)
-            loss = sum(loss_dict.values())
-        # every loss to the host in one transfer: one device sync per step, not one per value
-        values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()]).tolist()
-        if not math.isfinite(values[-1]):
-            raise MatchPlantError(f"the training loss became {values[-1]} ({desc})",
-                                  fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes")
-        optimizer.zero_grad(set_to_none=True)
-        scaler.scale(loss).backward()
-        scaler.step(optimizer)
-        scaler.update()
-        scheduler.step()
-        for k, v in zip((*loss_dict, "loss"), values):
-            sums[k] = sums.get(k, 0.0) + v
-        n += 1
-        if hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{sums['loss'] / n:.3f}")
-    means = {k: v / max(n, 1) for k, v in sums.items()}
-    if dist_info.world > 1:  # the mean over every process
-        keys = sorted(means)
-        t = torch.tensor([means[k] for k in keys], device=device)
-        torch.distributed.all_reduce(t)
-        means = dict(zip(keys, (t / dist_info.world).tolist()))
-    return means
+    bar = progress(loader, desc=desc, unit="batch", total=min(len(loader), limit))
+    batch_iter = iter(bar)
+    reason = None
+    first = True
+    try:
+        for _ in range(limit):
+            t0 = time.perf_counter()
+            with heartbeat(f"{desc}, batch {batches + 1}") if (slow or first) else nullcontext():
+                try:
+                    images, targets = next(batch_iter)
+                except StopIteration:
+                    break
+                images = [im.to(device, non_blocking=True) for im in images]
+                targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
+                with torch.autocast(device_type=device.type, enabled=amp):
+                    loss_dict = model(images, targets)
+                    loss = sum(loss_dict.values())
+                # every loss to the host in one transfer: one device sync per step, not one per value
+                values = torch.stack([*(v.detach().float() for v in loss_dict.values()),
+                                      loss.detach().float()]).tolist()
+                if not math.isfinite(values[-1]):
+                    raise MatchPlantError(f"the training loss became {values[-1]} ({desc})",
+                                          fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes")
+                optimizer.zero_grad(set_to_none=True)
+                scaler.scale(loss).backward()
+                scaler.step(optimizer)
+                scaler.update()
+                scheduler.step()
+            first = False
+            for k, v in zip((*loss_dict, "loss"), values):
+                sums[k] = sums.get(k, 0.0) + v
+            batches += 1
+            if hasattr(bar, "set_postfix"):
+                bar.set_postfix(loss=f"{sums['loss'] / batches:.3f}")
+            reason = after(time.perf_counter() - t0)
+            if reason is not None:
+                break
+    finally:
+        if hasattr(bar, "close"):
+            bar.close()
+    return reason, batches
 
 
 def validate_model(model, val_ds: CocoDetection, model_cfg: ModelConfig, cfg: ModelTrainConfig, device,
@@ -379,60 +572,6 @@ def validate_model(model, val_ds: CocoDetection, model_cfg: ModelConfig, cfg: Mo
     stats, _ = coco_evaluate(val_ds.data, results, max_dets=model_cfg.roi.detections_per_img)
     stats["detections"] = len(results)
     return stats
-
-
-# --------------------------------------------------------------------------------------------------
-# reporting
-
-
-def write_summary(out: Path, cfg: ModelTrainConfig, history: list[dict], best: dict, class_names: list[str],
-                  device, status: str, seconds: float, *, validation: dict | None = None, plan: Plan | None = None,
-                  message: str | None = None) -> dict:
-    """training_summary.json. ``status``: running, finished, or stopped_by_max_minutes (``message`` says
-    after how many of how many epochs); ``validation``: tiles, boxes and distinct plants, with a warning
-    when too few; metrics are fractions 0..1."""
-    times = [h["train_time_s"] for h in history]
-    warnings = [validation["warning"]] if validation and validation.get("warning") else []
-    if plan is not None and plan.epochs < cfg.epochs:
-        warnings.append(f"max_minutes ({cfg.max_minutes:g}) fits {plan.epochs} of {cfg.epochs} epochs (first epoch "
-                        f"{plan.first_epoch_s} s): the learning-rate schedule was shortened to {plan.epochs} epochs")
-    summary = {
-        "status": status, "message": message or status, "epochs_done": len(history), "epochs": cfg.epochs,
-        "epochs_planned": plan.epochs if plan is not None else cfg.epochs, "max_minutes": cfg.max_minutes,
-        "warnings": warnings, "validation": validation, "units": "AP, AP50 and the other metrics are fractions 0..1",
-        "class_names": class_names, "best": best, "device": str(device),
-        "checkpoints": {"best": str(out / "checkpoints" / "best.pt"), "last": str(out / "checkpoints" / "last.pt")},
-        "mean_train_images_per_s": (float(np.mean([h["train_images_per_s"] for h in history]))
-                                    if history else None),
-        "train_time_s": float(sum(times)), "this_session_s": round(seconds, 3),
-        "history": history, "config": to_dict(cfg),
-    }
-    write_json(out / "training_summary.json", summary)
-    return summary
-
-
-def plot_curves(history: list[dict], path: Path) -> Path:
-    """Loss components and validation AP / AP50 per epoch."""
-    fig = figure(headless=True, figsize=(10, 4))
-    ax1, ax2 = fig.subplots(1, 2)
-    epochs = [h["epoch"] for h in history]
-    for key in history[0]["losses"]:
-        ax1.plot(epochs, [h["losses"][key] for h in history], marker=".", lw=2 if key == "loss" else 1,
-                 label=key.replace("loss_", ""))
-    ax1.set(xlabel="epoch", ylabel="training loss", title="losses")
-    ax1.legend(fontsize=8)
-    val = [h for h in history if "val" in h]
-    for key in ("AP50", "AP"):
-        ax2.plot([h["epoch"] for h in val], [100 * (h["val"][key] or 0) for h in val], marker="o", label=key)
-    ax2.set(xlabel="epoch", ylabel="%", title="validation", ylim=(0, 100))
-    if val:
-        ax2.legend(fontsize=8)
-    for ax in (ax1, ax2):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    return path
 
 
 def run(cfg: ModelTrainConfig) -> dict:
