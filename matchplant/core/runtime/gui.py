@@ -16,12 +16,7 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
-
-import matplotlib.pyplot as plt
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.widgets import Button, TextBox
+from typing import TYPE_CHECKING, Any, Callable
 
 from matchplant.core.runtime.config import set_value, validate
 from matchplant.core.runtime.errors import DependencyError, MatchPlantError
@@ -32,14 +27,44 @@ try:  # Tk's file dialogs come with Python (and Matplotlib's TkAgg backend); som
 except ImportError:  # pragma: no cover - depends on the Python build
     tkinter = filedialog = None
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
-class QuietTextBox(TextBox):
-    """Matplotlib's TextBox redraws the whole figure on every click anywhere, once per box (a dozen full
-    redraws per click in a settings panel); only a box that was being typed in needs to stop typing."""
+# Matplotlib is imported on first use, not with this module: every command imports this module (for
+# require_display) and pyplot alone costs ~2 s of CPU at start-up, which a headless run never needs.
 
-    def stop_typing(self):
-        if self.capturekeystrokes:
-            super().stop_typing()
+
+def _pyplot():
+    import matplotlib.pyplot as plt  # on demand (see above)
+
+    return plt
+
+
+def _widgets():
+    from matplotlib import widgets  # on demand (see above)
+
+    return widgets
+
+
+def _quiet_text_box() -> type:
+    class QuietTextBox(_widgets().TextBox):
+        """Matplotlib's TextBox redraws the whole figure on every click anywhere, once per box (a dozen full
+        redraws per click in a settings panel); only a box that was being typed in needs to stop typing."""
+
+        def stop_typing(self):
+            if self.capturekeystrokes:
+                super().stop_typing()
+
+    QuietTextBox.__module__ = __name__
+    return QuietTextBox
+
+
+def __getattr__(name: str):
+    # QuietTextBox subclasses a Matplotlib widget: made (once) when a GUI first asks for it
+    if name == "QuietTextBox":
+        cls = globals()["QuietTextBox"] = _quiet_text_box()
+        return cls
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def interactive_backend_available() -> bool:
@@ -53,7 +78,7 @@ def gui_unavailable_reason() -> str | None:
     """None when a window can be opened here, else why not (no display, or no interactive backend)."""
     if not interactive_backend_available():
         return "there is no display here (DISPLAY and WAYLAND_DISPLAY are not set)"
-    backend = plt.get_backend().lower()
+    backend = _pyplot().get_backend().lower()
     if backend in ("agg", "pdf", "ps", "svg", "cairo", "pgf", "template") or backend.startswith("module://"):
         return f"Matplotlib's backend is '{backend}', which cannot open a window (MPLBACKEND={os.environ.get('MPLBACKEND', '')!r})"
     return None
@@ -73,23 +98,27 @@ def is_headless(headless: bool | None) -> bool:
     """``headless`` as asked, or, when None, whether this process cannot show a window."""
     if headless is not None:
         return headless
-    return not interactive_backend_available() or plt.get_backend().lower() == "agg"
+    return not interactive_backend_available() or _pyplot().get_backend().lower() == "agg"
 
 
 def figure(headless: bool | None = None, **kwargs) -> Figure:
     """A new figure (``kwargs`` as for :class:`matplotlib.figure.Figure`: figsize, dpi, ...)."""
     if is_headless(headless):
+        # on demand (see above)
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
         fig = Figure(**kwargs)
         FigureCanvasAgg(fig)
         return fig
-    return plt.figure(**kwargs)
+    return _pyplot().figure(**kwargs)
 
 
 def show(fig: Figure) -> None:
     """Show a window figure and block until it is closed (does nothing for a headless figure)."""
     if fig.canvas.manager is None:  # a headless figure: nothing to show
         return
-    plt.show(block=True)
+    _pyplot().show(block=True)
 
 
 def reveal(fig: Figure) -> None:
@@ -102,7 +131,7 @@ def reveal(fig: Figure) -> None:
 def close(fig: Figure) -> None:
     """Release a figure (a window figure is also removed from pyplot's list)."""
     if fig.canvas.manager is not None:
-        plt.close(fig)
+        _pyplot().close(fig)
 
 
 def status_text(ax, text: str = ""):
@@ -177,18 +206,19 @@ class SetupScreen:
         n = len(fields)
         row = 1.0 / (n + 3)
         self.fig.text(0.02, 1 - 0.6 * row, title, fontsize=13, weight="bold", va="center")
-        self.boxes: dict[str, TextBox] = {}
-        self.browse_buttons: dict[str, Button] = {}
+        widgets = _widgets()
+        self.boxes: dict[str, widgets.TextBox] = {}
+        self.browse_buttons: dict[str, widgets.Button] = {}
         for i, f in enumerate(fields):
             y = 1 - (i + 1.6) * row
-            box = TextBox(self.fig.add_axes((0.22, y, 0.62, 0.7 * row)), f.label + " ",
-                          initial=_as_text(_config_value(cfg, f.key)))
+            box = widgets.TextBox(self.fig.add_axes((0.22, y, 0.62, 0.7 * row)), f.label + " ",
+                                  initial=_as_text(_config_value(cfg, f.key)))
             self.boxes[f.key] = box
             if f.kind != "text":
-                button = Button(self.fig.add_axes((0.86, y, 0.12, 0.7 * row)), "Browse...")
+                button = widgets.Button(self.fig.add_axes((0.86, y, 0.12, 0.7 * row)), "Browse...")
                 button.on_clicked(lambda _e, key=f.key: self.browse(key))
                 self.browse_buttons[f.key] = button
-        self.run_button = Button(self.fig.add_axes((0.86, 0.5 * row, 0.12, 0.8 * row)), run_label)
+        self.run_button = widgets.Button(self.fig.add_axes((0.86, 0.5 * row, 0.12, 0.8 * row)), run_label)
         self.run_button.on_clicked(lambda _e: self.run())
         self.status = self.fig.text(0.02, 0.9 * row, "Choose the files (Browse... or type a path), then "
                                     f"{run_label}.", fontsize=9, family="monospace", va="center")
