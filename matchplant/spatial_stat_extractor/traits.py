@@ -26,11 +26,12 @@ import pandas as pd
 import shapely
 
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.canopy import canopy_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
 from matchplant.spatial_stat_extractor.extract import polygons_in
-from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings, segment
+from matchplant.spatial_stat_extractor.memory import DEFAULT_MEMORY
+from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings
 from matchplant.spatial_stat_extractor.rasters import open_layer
+from matchplant.spatial_stat_extractor.strips import Measure, outline_field
 
 log = get_logger("spatial_stat_extractor")
 
@@ -53,7 +54,8 @@ def outline_columns(o: Outlines, previous: Outlines | None) -> dict[str, np.ndar
 
 
 def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, stats: Sequence[str],
-                  percentiles: Sequence[float], nodata: float | None = None):
+                  percentiles: Sequence[float], nodata: float | None = None, *, max_memory: int = DEFAULT_MEMORY,
+                  workers: int = 0):
     """Returns ``(per-date columns {date: DataFrame}, outlines GeoDataFrame (all dates), the first date's
     canopies that no box claims (DataFrame x, y, height, pixels: plants the detector missed), report)``."""
     s = settings_from(cfg)
@@ -74,31 +76,28 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
             chm = open_layer(chm_layer, stack, nodata)
             entry: dict = {"date": rs.date}
             geoms = polygons_in(polygons, chm.crs, f"CHM {Path(chm_layer.paths[0]).name}", entry)
-            mask = None
+            mask = mask_layer = None
             if cfg.ndvi_threshold is not None:
-                ndvi = next((la for la in layers if la.kind == "ndvi"), None)
-                mask = open_layer(ndvi, stack, nodata) if ndvi is not None else None
+                mask_layer = next((la for la in layers if la.kind == "ndvi"), None)
+                mask = open_layer(mask_layer, stack, nodata) if mask_layer is not None else None
                 if mask is None or (mask.width, mask.height) != (chm.width, chm.height):
                     log.warning("canopy.ndvi_threshold ignored on date '%s': no multispectral raster on the "
                                 "CHM's grid", rs.date)
-                    mask = None
+                    mask = mask_layer = None
             seeds = None
             if previous is not None and cfg.recentre:
                 seeds = previous.top[:, :2].copy()
                 lost = ~np.isfinite(seeds).all(axis=1)  # no top earlier: start from the box centre
                 centre = shapely.centroid(np.asarray(geoms, dtype=object)[lost])
                 seeds[lost] = np.stack([shapely.get_x(centre), shapely.get_y(centre)], axis=1)
-            o = segment(geoms, chm, s, mask_source=mask, seeds=seeds)
+            # strip by strip within max_memory, only per-plant results kept (strips.py)
+            measures = [Measure(f"{chm_layer.name}_canopy", chm_layer, ("max", "mean"), tuple(cfg.height_percentiles))]
+            measures += [Measure(f"{la.name}_canopy", la, tuple(stats), tuple(percentiles)) for la in layers
+                         if not la.elevation and la.name in wanted]
+            o, measured = outline_field(geoms, chm_layer, mask_layer, measures, s, nodata=nodata, seeds=seeds,
+                                        max_memory=max_memory, workers=workers)
             cols = outline_columns(o, previous if seeds is not None else None)
-            hp = list(cfg.height_percentiles)
-            for k, v in canopy_stats(o, chm, ["max", "mean"], hp).items():
-                cols[f"{chm_layer.name}_canopy_{k}"] = v
-            for la in layers:
-                if la.elevation or la.name not in wanted:
-                    continue
-                src = open_layer(la, stack, nodata)
-                for k, v in canopy_stats(o, src, stats, percentiles).items():
-                    cols[f"{la.name}_canopy_{k}"] = v
+            cols.update(measured)
         flags = pd.Series(o.flag[o.flag != ""]).value_counts().to_dict()
         entry.update(outlined=int((o.flag == "").sum()), kept_box={str(k): int(v) for k, v in flags.items()},
                      unclaimed_canopies=int(len(o.unclaimed)))
