@@ -126,7 +126,8 @@ def run_module(cfg_path: Path, args) -> dict:
         env["PYTHONPATH"] = args.pythonpath
     cmd = [args.python, "-m", "matchplant.cli", "spatial_stat_extractor", "--config", str(cfg_path)]
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    # cwd: the run's own folder, so that -m finds matchplant on PYTHONPATH, not in the current folder
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=cfg_path.parent)
     out = proc.stdout.read()
     _, status, ru = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0

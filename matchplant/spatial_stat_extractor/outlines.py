@@ -228,7 +228,15 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
     free = free[free > 0]
     if not len(free):
         return L, np.zeros((0, 4))
-    pos = np.array(ndi.maximum_position(W, comp, free), dtype=np.int64).reshape(-1, 2)
+    # each free component's highest pixel (first in row order on ties), from its own pixels only: scipy's
+    # maximum_position sorts every pixel of the strip's label image (40% of the outlining time on a survey)
+    wanted = np.zeros(n + 1, bool)
+    wanted[free] = True
+    rr, cc = np.nonzero(wanted[comp])
+    lab = comp[rr, cc]
+    order = np.lexsort((-W[rr, cc], lab))
+    first = order[np.searchsorted(lab[order], free)]
+    pos = np.stack([rr[first], cc[first]], axis=1).astype(np.int64)
     h = W[pos[:, 0], pos[:, 1]]
     tall = h >= s.min_top
     return L, np.column_stack([pos[tall], h[tall], size[free][tall]])
