@@ -42,8 +42,8 @@ STRIP = 512
 
 def make_field(root: Path, scale: float, seed: int = 0) -> dict:
     """The CHM (written strip by strip, never whole in memory) and the plant boxes; cached in ``root``."""
-    side = max(256, int(round(FULL_SIDE * scale)))
-    per_row = max(2, int(round(np.sqrt(FULL_PLANTS) * side / FULL_SIDE)))
+    side = max(256, round(FULL_SIDE * scale))
+    per_row = max(2, round(np.sqrt(FULL_PLANTS) * side / FULL_SIDE))
     meta_path = root / "field.json"
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
@@ -62,8 +62,8 @@ def make_field(root: Path, scale: float, seed: int = 0) -> dict:
     cx, cy, h, r = cx[order], cy[order], h[order], r[order]
     t = Affine(RES, 0, ORIGIN[0], 0, -RES, ORIGIN[1])
     path = root / "chm.tif"
-    profile = dict(driver="GTiff", width=side, height=side, count=1, dtype="float32", crs=CRS, transform=t,
-                   tiled=True, blockxsize=512, blockysize=512, compress="deflate", nodata=-9999.0, BIGTIFF="IF_SAFER")
+    profile = {"driver": "GTiff", "width": side, "height": side, "count": 1, "dtype": "float32", "crs": CRS, "transform": t,
+                   "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate", "nodata": -9999.0, "BIGTIFF": "IF_SAFER"}
     tmp = path.with_suffix(".partial.tif")
     with rasterio.open(tmp, "w", **profile) as ds:
         for r0 in range(0, side, STRIP):
@@ -94,7 +94,7 @@ def make_field(root: Path, scale: float, seed: int = 0) -> dict:
     extra["plant_id"] = np.arange(len(cx) + 1, len(cx) + 1 + len(dup))
     boxes = pd.concat([boxes, extra], ignore_index=True)
     boxes.to_csv(root / "plants.csv", index=False)
-    meta = {"side": side, "seed": seed, "plants": int(len(boxes)), "spacing_px": spacing, "per_row": per_row,
+    meta = {"side": side, "seed": seed, "plants": len(boxes), "spacing_px": spacing, "per_row": per_row,
             "chm": str(path), "plants_csv": str(root / "plants.csv"),
             "chm_mb": round(path.stat().st_size / 1e6, 1)}
     meta_path.write_text(json.dumps(meta, indent=1))
@@ -110,8 +110,8 @@ def config(meta: dict, out: Path, chm: str, plants: str, canopy: bool, plots: bo
     if plots:
         x0, y0 = ORIGIN[0], ORIGIN[1] - side * RES
         x1, y1 = ORIGIN[0] + side * RES, ORIGIN[1]
-        columns = max(1, int(round(50 * side / FULL_SIDE)))
-        ranges = max(1, int(round(197 * side / FULL_SIDE)))
+        columns = max(1, round(50 * side / FULL_SIDE))
+        ranges = max(1, round(197 * side / FULL_SIDE))
         cfg["plots"] = {"corners": [[x0, y0], [x0, y1], [x1, y1], [x1, y0]], "columns": columns, "ranges": ranges,
                         "rows_per_plot": max(1, per_row // columns), "plant_spacing": meta["spacing_px"] * RES}
     path = out.parent / f"{out.name}.yaml"
@@ -166,7 +166,7 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
     tol = 1e-6 * (1 + a[num].astype(float).abs())
     bad = ~((diff <= tol) | (a[num].isna() & b[num].isna()))
     flags_same = float((a["outline_flag"].astype(object).fillna("") == b["outline_flag"].astype(object).fillna("")).mean())
-    return {"plants": int(len(inside)), "columns": len(num), "plants_differing": int(bad.any(axis=1).sum()),
+    return {"plants": len(inside), "columns": len(num), "plants_differing": int(bad.any(axis=1).sum()),
             "max_abs_diff": float(np.nanmax(diff.to_numpy(dtype=float, na_value=np.nan), initial=0.0)), "flags_same": flags_same,
             "differing_columns": sorted(c for c in num if bad[c].any())}
 

@@ -17,7 +17,11 @@ from affine import Affine
 from matchplant.core.runtime.errors import ConfigError, DependencyError
 from matchplant.spatial_stat_extractor import strips
 from matchplant.spatial_stat_extractor.canopy import canopy_stats
-from matchplant.spatial_stat_extractor.config import Layer, RasterSet, SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.config import (
+    Layer,
+    RasterSet,
+    SpatialStatExtractorConfig,
+)
 from matchplant.spatial_stat_extractor.memory import memory_stage, parse_memory
 from matchplant.spatial_stat_extractor.outlines import SegmentSettings, segment
 from matchplant.spatial_stat_extractor.rasters import open_layer
@@ -44,7 +48,7 @@ def field(tmp_path_factory):
     for k in range(cy.size):
         chm = np.maximum(chm, h[k] * (1 - ((yy - cy[k]) ** 2 + (xx - cx[k]) ** 2) / r[k] ** 2))
     other = np.sin(xx / 7) * np.cos(yy / 5)
-    prof = dict(driver="GTiff", width=W, height=H, count=1, dtype="float32", crs="EPSG:32615", transform=T)
+    prof = {"driver": "GTiff", "width": W, "height": H, "count": 1, "dtype": "float32", "crs": "EPSG:32615", "transform": T}
     for name, a in (("chm.tif", chm), ("other.tif", other)):
         with rasterio.open(root / name, "w", **prof) as ds:
             ds.write(a.astype(np.float32), 1)
