@@ -156,6 +156,8 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
     x0, y1 = ORIGIN[0] + c0 * RES, ORIGIN[1] - r0 * RES
     x1, y0 = x0 + size * RES, y1 - size * RES
     inside = plants[(plants.xmin > x0 + m) & (plants.xmax < x1 - m) & (plants.ymin > y0 + m) & (plants.ymax < y1 - m)]
+    if len(inside) == 0:
+        return {"plants": 0, "skipped": "no plant well inside the crop (raise --scale)"}
     inside.to_csv(work / "crop_plants.csv", index=False)
     out = work / "crop_out"
     run_module(config(meta, out, str(crop), str(work / "crop_plants.csv"), True, False, args), args)
