@@ -47,8 +47,10 @@ from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 log = get_logger("spatial_stat_extractor.strips")
 
-# peak bytes per pixel of a strip's window, outlining and measuring together (measured with
-# bench/bench_spatial_stat_extractor_survey.py: ~70-90 on a dense canopy; rounded up)
+# peak bytes per pixel of a strip's window, outlining and measuring together: an estimate from the arrays a
+# strip holds at once (the CHM and two filtered float64 copies, four int32 label images, masks, the canopy
+# pixels' indices); bench/bench_spatial_stat_extractor_survey.py's peaks (1.1-1.3 GB at 9000-15000 px wide,
+# max_memory 3GB) stay within the budget, but it has not been fitted to a measurement per pixel
 BYTES_PER_PIXEL = 110
 STRIP_SHARE = 0.5  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
 MIN_STRIP_ROWS = 64
