@@ -14,7 +14,6 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 import shapely
-from scipy import stats as st
 
 from matchplant.core.geometry.boxes import greedy_matches
 from matchplant.core.runtime.errors import ConfigError
@@ -55,6 +54,8 @@ def default_traits(columns: Sequence[str], trait_names: Sequence[str], dates: Se
 def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.DataFrame,
                    traits: Sequence[str], label_a: str = "a", label_b: str = "b") -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-trait summary (KS, Pearson r, absolute differences) and the matched pairs table."""
+    # scipy.stats on demand: ~1 s of imports that a run without compare.polygons never needs
+    from scipy import stats as st
 
     ia, ib = matches["index_a"].to_numpy(), matches["index_b"].to_numpy()
     pairs = pd.DataFrame({f"plant_id_{label_a}": table_a["plant_id"].to_numpy()[ia],

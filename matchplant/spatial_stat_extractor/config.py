@@ -15,6 +15,7 @@ from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.spatial_stat_extractor.bands import check_order
 from matchplant.spatial_stat_extractor.indices import RGB_INDICES
+from matchplant.spatial_stat_extractor.memory import parse_memory
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
 
@@ -222,7 +223,14 @@ class SpatialStatExtractorConfig:
     compare: CompareConfig = section(CompareConfig)
     canopy: CanopyConfig = section(CanopyConfig)
     plots: PlotsConfig = section(PlotsConfig)
+    max_memory: str = param("3GB", "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "
+                                   "sized to fit, so any field size runs; lower it if the computer runs short")
+    workers: int = param(0, "processes outlining strips in parallel (0 = one per core; 1 = this process only)",
+                         min=0)
     output_dir: Path = param(Path("runs/spatial_stat_extractor"), "output folder", path="out")
+
+    def memory_bytes(self) -> int:
+        return parse_memory(self.max_memory)
 
     def date_sets(self) -> list[RasterSet]:
         sets = ([] if self.rasters.empty() else [self.rasters]) + list(self.more_dates)
@@ -233,6 +241,7 @@ class SpatialStatExtractorConfig:
         return sets
 
     def check(self) -> None:
+        self.memory_bytes()
         sets = self.date_sets()
         if not sets:
             raise ConfigError("no raster given", fix="set rasters.chm, rasters.dsm + rasters.dtm, "

@@ -7,10 +7,12 @@ The command line and the window (:mod:`~matchplant.spatial_stat_extractor.gui`) 
 from __future__ import annotations
 
 from dataclasses import replace
+import time
 from pathlib import Path
 from typing import Callable
 
 import pandas as pd
+import rasterio
 
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.log import get_logger
@@ -18,6 +20,7 @@ from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.core.formats.vectors import write_vector
 from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_outputs
+from matchplant.spatial_stat_extractor.memory import gdal_cache_bytes, memory_report, memory_stage
 from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.rasters import raster_crs
@@ -28,34 +31,69 @@ log = get_logger("spatial_stat_extractor")
 
 def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[float, str], None] | None = None):
     """Everything module 9 does for ``cfg``; returns ``(polygons, table, report, written files)``."""
+    budget = cfg.memory_bytes()
+    # GDAL's block cache counts against max_memory too (its default is 5% of the computer's memory); in bytes:
+    # rasterio hands a small number to GDAL as bytes, and a cache smaller than a row of tiles makes every
+    # decimated or windowed read decompress the same tiles again and again (100x slower)
+    with rasterio.Env(GDAL_CACHEMAX=gdal_cache_bytes(budget)):
+        return _extract_and_write(cfg, budget, on_progress)
+
+
+def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress):
     out = Path(cfg.output_dir)
     sets = cfg.date_sets()
     polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs, cfg.boxes_image)
     if polygons.crs is None:
         polygons = with_crs(polygons, *raster_crs(sets))
     log.info("%d plants from %s", len(polygons), cfg.polygons)
-    table, report = extract_stats(polygons, sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata,
-                                  layout=cfg.layout, on_progress=on_progress)
+    stages: dict[str, dict] = {}
+
+    def done(stage: str, t0: float, c0: float) -> None:
+        stages[stage] = {"wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3),
+                         **memory_report(budget)}
+        log.info("%s: %.1f s (CPU %.1f s), peak memory so far %s MB", stage, stages[stage]["wall_s"],
+                 stages[stage]["cpu_s"], stages[stage]["peak_mb"])
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    with memory_stage("the box statistics", budget):
+        table, report = extract_stats(polygons, sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata,
+                                      layout=cfg.layout, on_progress=on_progress)
+    done("box statistics", t0, c0)
     report["polygons_crs"] = {"crs": polygons.crs.to_string() if polygons.crs is not None else None,
                               "from": polygons.attrs.get("crs_source")}
     outlines = unclaimed = None
     if cfg.canopy.enabled:
         if on_progress is not None:
             on_progress(1.0, "plant outlines and canopy statistics")
-        per_date, outlines, unclaimed, report["canopy"] = canopy_traits(polygons, sets, cfg.canopy, cfg.stats,
-                                                                        cfg.percentiles, cfg.nodata)
-        table = merge_columns(table, per_date, cfg.layout, len(sets))
+        t0, c0 = time.perf_counter(), time.process_time()
+        with memory_stage("the plant outlines and canopy statistics", budget):
+            per_date, outlines, unclaimed, report["canopy"] = canopy_traits(
+                polygons, sets, cfg.canopy, cfg.stats, cfg.percentiles, cfg.nodata, max_memory=budget,
+                workers=cfg.workers)
+            table = merge_columns(table, per_date, cfg.layout, len(sets))
+        done("outlines and canopy statistics", t0, c0)
     if on_progress is not None:
         on_progress(1.0, "writing files")
-    written = write_outputs(polygons, table, report, out, vector_formats=cfg.vector_formats)
-    if outlines is not None:
-        written["outlines_gpkg"] = write_vector(outlines, out / "outlines.gpkg", layer="outlines")
-        written["outlines_csv"] = write_csv(pd.DataFrame(outlines.drop(columns="geometry")), out / "outlines.csv")
-        written["unclaimed_csv"] = write_csv(unclaimed, out / "unclaimed_canopies.csv")
+    report["memory"] = {**memory_report(budget), "stages": stages}
+    t0, c0 = time.perf_counter(), time.process_time()
+    with memory_stage("writing the files", budget):
+        written = write_outputs(polygons, table, report, out, vector_formats=cfg.vector_formats)
+        if outlines is not None:
+            written["outlines_gpkg"] = write_vector(outlines, out / "outlines.gpkg", layer="outlines")
+            written["outlines_csv"] = write_csv(pd.DataFrame(outlines.drop(columns="geometry")), out / "outlines.csv")
+            written["unclaimed_csv"] = write_csv(unclaimed, out / "unclaimed_canopies.csv")
+    done("writing files", t0, c0)
     if plots_wanted(cfg.plots):
-        written.update(run_plots(cfg.plots, table, unclaimed, polygons, out, sets, cfg.mode, cfg.nodata))
+        t0, c0 = time.perf_counter(), time.process_time()
+        with memory_stage("the plots", budget):
+            written.update(run_plots(cfg.plots, table, unclaimed, polygons, out, sets, cfg.mode, cfg.nodata))
+        done("plots", t0, c0)
     if cfg.compare.polygons is not None:
-        written.update(run_comparison(cfg, polygons, table, sets, out))
+        with memory_stage("the comparison", budget):
+            written.update(run_comparison(cfg, polygons, table, sets, out))
+    report["memory"] = {**memory_report(budget), "stages": stages}
+    log.info("peak memory %s MB (largest worker process %s MB; max_memory %s)", report["memory"]["peak_mb"],
+             report["memory"]["peak_worker_mb"], cfg.max_memory)
     return polygons, table, report, written
 
 

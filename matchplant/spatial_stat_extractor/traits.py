@@ -32,13 +32,14 @@ import shapely
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.canopy import canopy_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
 from matchplant.spatial_stat_extractor.dates import measure_offset, templates
 from matchplant.spatial_stat_extractor.extract import polygons_in
 from matchplant.spatial_stat_extractor.ground import GroundNoise, Thresholds, check_chm, measure_ground, thresholds
-from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings, segment
+from matchplant.spatial_stat_extractor.memory import DEFAULT_MEMORY
+from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings
 from matchplant.spatial_stat_extractor.rasters import open_layer
+from matchplant.spatial_stat_extractor.strips import Measure, outline_field
 
 log = get_logger("spatial_stat_extractor")
 
@@ -136,7 +137,8 @@ def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[
 
 
 def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, stats: Sequence[str],
-                  percentiles: Sequence[float], nodata: float | None = None):
+                  percentiles: Sequence[float], nodata: float | None = None, *, max_memory: int = DEFAULT_MEMORY,
+                  workers: int = 0):
     """Returns ``(per-date columns {date: DataFrame}, outlines GeoDataFrame (all dates), the first date's
     canopies that no box claims (DataFrame x, y, height, pixels: plants the detector missed), report)``."""
     ids = polygons["plant_id"].to_numpy()
@@ -158,14 +160,14 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
             chm = open_layer(chm_layer, stack, nodata)
             entry: dict = {"date": rs.date}
             geoms = polygons_in(polygons, chm.crs, f"CHM {Path(chm_layer.paths[0]).name}", entry)
-            mask = None
+            mask = mask_layer = None
             if cfg.ndvi_threshold is not None:
-                ndvi = next((la for la in layers if la.kind == "ndvi"), None)
-                mask = open_layer(ndvi, stack, nodata) if ndvi is not None else None
+                mask_layer = next((la for la in layers if la.kind == "ndvi"), None)
+                mask = open_layer(mask_layer, stack, nodata) if mask_layer is not None else None
                 if mask is None or (mask.width, mask.height) != (chm.width, chm.height):
                     log.warning("canopy.ndvi_threshold ignored on date '%s': no multispectral raster on the "
                                 "CHM's grid", rs.date)
-                    mask = None
+                    mask = mask_layer = None
             step = np.zeros(2)
             if earlier is not None:
                 step = date_offset(earlier, chm, cfg, rs, entry)
@@ -179,19 +181,16 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                 centre = shapely.centroid(np.asarray(geoms, dtype=object)[lost])
                 seeds[lost] = np.stack([shapely.get_x(centre), shapely.get_y(centre)], axis=1)
             th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry)
-            o = segment(geoms, chm, settings_from(cfg, th), mask_source=mask, seeds=seeds)
+            # strip by strip within max_memory, only per-plant results kept (strips.py)
+            measures = [Measure(f"{chm_layer.name}_canopy", chm_layer, ("max", "mean"), tuple(cfg.height_percentiles))]
+            measures += [Measure(f"{la.name}_canopy", la, tuple(stats), tuple(percentiles)) for la in layers
+                         if not la.elevation and la.name in wanted]
+            o, measured = outline_field(geoms, chm_layer, mask_layer, measures, settings_from(cfg, th), nodata=nodata,
+                                        seeds=seeds, max_memory=max_memory, workers=workers)
             if i < len(date_sets) - 1:  # windows of this CHM, to measure the next date's offset against
                 earlier = (rs.date, chm.crs, templates(chm, geoms, cfg.max_shift))
             cols = outline_columns(o, previous if seeds is not None else None, geoms)
-            hp = list(cfg.height_percentiles)
-            for k, v in canopy_stats(o, chm, ["max", "mean"], hp).items():
-                cols[f"{chm_layer.name}_canopy_{k}"] = v
-            for la in layers:
-                if la.elevation or la.name not in wanted:
-                    continue
-                src = open_layer(la, stack, nodata)
-                for k, v in canopy_stats(o, src, stats, percentiles).items():
-                    cols[f"{la.name}_canopy_{k}"] = v
+            cols.update(measured)
         flags = pd.Series(o.flag[o.flag != ""]).value_counts().to_dict()
         entry.update(outlined=int((o.flag == "").sum()), kept_box={str(k): int(v) for k, v in flags.items()},
                      unclaimed_canopies=int(len(o.unclaimed)), unclaimed_below_noise=o.noise_bumps,

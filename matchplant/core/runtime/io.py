@@ -2,14 +2,12 @@
 
 A crash or Ctrl-C therefore never leaves a half-written output, and an existing file is replaced only
 by a complete new one (``os.replace`` is atomic on Linux, macOS and Windows for the same volume).
-:class:`BatchedWrites` does the same for many files with one disk sync per batch instead of one per file.
+:class:`BatchedWrites` does the same for many files with one folder sync per batch instead of one per file.
 """
 
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import ctypes.util
 import json
 import os
 import tempfile
@@ -84,36 +82,27 @@ def read_json(path: str | Path) -> Any:
                          fix="point the config at the JSON file, not a binary file") from exc
 
 
-def _syncfs(folder: Path) -> bool:
-    """Flush the whole file system holding ``folder`` in one call (Linux ``syncfs``); False elsewhere."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        fn = libc.syncfs
-    except (OSError, AttributeError):
-        return False
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        return fn(fd) == 0
-    finally:
-        os.close(fd)
-
-
 def _fsync_path(path: Path, directory: bool = False) -> None:
     if directory and os.name == "nt":
         return  # Windows cannot open a folder for fsync; its renames are journalled
     fd = os.open(path, os.O_RDONLY if directory else os.O_RDWR)
     try:
-        os.fsync(fd)
+        # the data (and the size) only: fdatasync skips the timestamps' metadata where it exists (Linux)
+        (os.fsync if directory else _datasync)(fd)
     finally:
         os.close(fd)
 
 
+_datasync = getattr(os, "fdatasync", os.fsync)
+
+
 class BatchedWrites:
-    """Whole files into one folder, durable with one sync per batch instead of one fsync per file.
+    """Whole files into one folder, durable with one folder sync per batch instead of one per file.
 
     ``write(name, data)`` writes to a hidden temporary name beside the target; every ``batch`` files
-    (and on :meth:`close`) the batch is synced to disk in one call (``syncfs`` on Linux, else an fsync
-    per file), renamed into place, and the folder is synced. A crash therefore leaves at the final
+    (and on :meth:`close`) each file of the batch is synced (its own data only: never a sync of the
+    whole file system, which would also wait for every other program's writes), the batch is renamed
+    into place, and the folder is synced once. A crash therefore leaves at the final
     names only complete files (and perhaps hidden ``.*.partial`` temporaries); an error inside the
     ``with`` block removes the pending temporaries. Use as a context manager.
     """
@@ -142,9 +131,8 @@ class BatchedWrites:
     def flush(self) -> None:
         if not self.pending:
             return
-        if not _syncfs(self.folder):
-            for tmp, _ in self.pending:
-                _fsync_path(tmp)
+        for tmp, _ in self.pending:
+            _fsync_path(tmp)
         for tmp, dst in self.pending:
             os.replace(tmp, dst)
         self.pending = []

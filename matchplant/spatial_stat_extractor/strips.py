@@ -1,0 +1,229 @@
+"""Outlines and canopy statistics of a whole field in bounded memory: strip by strip, in parallel.
+
+:func:`~matchplant.spatial_stat_extractor.outlines.segment` reads the CHM in strips of rows across the
+whole field; each strip's window costs about :data:`BYTES_PER_PIXEL` bytes per pixel while it is
+outlined (the CHM as float64, its filtered copies, label images) and each canopy pixel then costs as much
+again while its statistics are gathered. Here the strip height comes from the memory budget (``max_memory``
+divided among the worker processes), and each strip runs as one band: outlined, every trait measured over
+its plants' canopy pixels, and only the per-plant results kept (a few numbers and an outline per plant).
+The pixels of a strip are freed before the next, so memory depends on the setting and the field's width,
+never on its length or its number of plants.
+
+Strips are independent (each reads its own window with the boxes that cross its edges, and every plant near
+it competes for the canopy as in one pass over the field), so they run in a process pool when more cores
+are available, with the same results as one process. A process pool rather than threads: the labelling,
+watershed and polygon tracing hold the GIL for much of their time; rather than Dask: each strip is one
+whole job with its own raster reads, there is no array graph to schedule, and a pool needs no new
+dependency. A plant whose box is a second box of a plant in another strip (``duplicate``) takes that
+plant's outline and canopy values afterwards, as in one pass.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import rasterio
+import shapely
+
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import progress
+from matchplant.spatial_stat_extractor.canopy import gather, grouped_stats
+from matchplant.spatial_stat_extractor.config import Layer
+from matchplant.spatial_stat_extractor.memory import format_memory, gdal_cache_bytes
+from matchplant.spatial_stat_extractor.outlines import (
+    STRIP_ROWS,
+    Outlines,
+    SegmentSettings,
+    segment,
+)
+from matchplant.spatial_stat_extractor.rasters import open_layer
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
+
+log = get_logger("spatial_stat_extractor.strips")
+
+# peak bytes per pixel of a strip's window, outlining and measuring together: an estimate from the arrays a
+# strip holds at once (the CHM and two filtered float64 copies, four int32 label images, masks, the canopy
+# pixels' indices); bench/bench_spatial_stat_extractor_survey.py's peaks (1.1-1.3 GB at 9000-15000 px wide,
+# max_memory 3GB) stay within the budget, but it has not been fitted to a measurement per pixel
+BYTES_PER_PIXEL = 110
+STRIP_SHARE = 0.5  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
+MIN_STRIP_ROWS = 64
+
+
+@dataclass
+class Measure:
+    """One trait measured over every plant's canopy: columns ``<prefix>_<stat>``."""
+
+    prefix: str
+    layer: Layer
+    stats: tuple
+    percentiles: tuple
+
+
+@dataclass
+class _Job:
+    geoms: np.ndarray
+    chm: Layer
+    mask: Layer | None
+    nodata: float | None
+    settings: SegmentSettings
+    seeds: np.ndarray | None
+    measures: list
+    strip_rows: int
+    gdal_cache_bytes: int
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int,
+                workers: int) -> tuple[int, int]:
+    """Rows per strip and the number of strips for a per-process share of ``budget`` bytes."""
+    res = float(np.sqrt(abs(transform.a * transform.e - transform.b * transform.d)))
+    b = shapely.bounds(np.asarray(geoms, dtype=object))
+    tall = np.nan_to_num((b[:, 3] - b[:, 1]) / res, nan=0.0)
+    pad = int(np.ceil(tall.max() + 2 * margin / res)) + 2 if len(tall) else 0
+    per_process = budget * STRIP_SHARE / max(workers, 1)
+    # a strip reads its rows plus a box's height above and below (the boxes crossing its edges)
+    rows = int(per_process / (BYTES_PER_PIXEL * max(width, 1))) - 2 * pad
+    rows = int(np.clip(rows, MIN_STRIP_ROWS, STRIP_ROWS))
+    return rows, max(1, -(-height // rows))
+
+
+def _measure(o: Outlines, rows: np.ndarray, src, m: Measure) -> dict[str, np.ndarray]:
+    """Statistics of ``src`` over the canopies of plants ``rows`` (pixels on the CHM's grid, else the outline
+    polygons: pixel centres inside)."""
+    if o.same_grid(src):
+        got = grouped_stats(gather(o, src), o.start, list(m.stats), list(m.percentiles))
+        return {f"{m.prefix}_{k}": v[rows] for k, v in got.items()}
+    res = zonal_stats(o.geometry[rows], src, list(m.stats), list(m.percentiles), mode="center")
+    return {f"{m.prefix}_{c}": res.stats[c] for c in res.columns}
+
+
+def _open_all(job: _Job, stack: contextlib.ExitStack) -> tuple:
+    """The CHM, the mask and each measure's source (one per measure, in order)."""
+    chm = open_layer(job.chm, stack, job.nodata)
+    mask = open_layer(job.mask, stack, job.nodata) if job.mask is not None else None
+    return chm, mask, [chm if m.layer == job.chm else open_layer(m.layer, stack, job.nodata) for m in job.measures]
+
+
+def _run_band(job: _Job, band: tuple[int, int] | None, sources: tuple) -> dict:
+    """Outline one band of strips and measure its plants; only per-plant results come back."""
+    chm, mask, measured = sources
+    o = segment(job.geoms, chm, job.settings, mask_source=mask, seeds=job.seeds, strip_rows=job.strip_rows,
+                band=band)
+    rows = np.flatnonzero(o.flag != "skipped")
+    cols: dict[str, np.ndarray] = {}
+    if len(rows):
+        for m, src in zip(job.measures, measured):
+            cols.update(_measure(o, rows, src, m))
+    return {"rows": rows, "geometry": o.geometry[rows], "tight_box": o.tight_box[rows], "top": o.top[rows],
+            "pixels": o.pixels[rows], "area": o.area[rows], "volume": o.volume[rows], "flag": o.flag[rows],
+            "unclaimed": o.unclaimed, "noise_bumps": o.noise_bumps, "cols": cols, "transform": o.transform,
+            "width": o.width,
+            "height": o.height, "crs": o.crs}
+
+
+_worker: dict = {}
+
+
+def _init_worker(job: _Job) -> None:
+    # once per worker process: the job, and the rasters opened for the life of the process
+    stack = contextlib.ExitStack()
+    stack.enter_context(rasterio.Env(GDAL_CACHEMAX=job.gdal_cache_bytes))
+    _worker.update(job=job, stack=stack, sources=_open_all(job, stack))
+
+
+def _worker_band(band: tuple[int, int]) -> dict:
+    return _run_band(_worker["job"], band, _worker["sources"])
+
+
+def outline_field(geoms, chm_layer: Layer, mask_layer: Layer | None, measures: list[Measure], s: SegmentSettings,
+                  *, nodata: float | None, seeds: np.ndarray | None, max_memory: int,
+                  workers: int = 0) -> tuple[Outlines, dict[str, np.ndarray]]:
+    """Outlines of every plant and its canopy statistics (``measures``), strip by strip within ``max_memory``
+    bytes, with ``workers`` processes (0: one per core). Returns a compact :class:`Outlines` (no canopy
+    pixels kept) and the columns ``<measure prefix>_<stat>``."""
+    geoms = np.asarray(geoms, dtype=object)
+    with contextlib.ExitStack() as stack:
+        local = _open_all(_Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, 0, 0), stack)
+        return _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, seeds, max_memory, workers)
+
+
+def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, seeds, max_memory, workers):
+    n = len(geoms)
+    chm = local[0]
+    cores = available_cores()
+    want = cores if workers == 0 else workers
+    rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
+    want = max(1, min(want, count))
+    if want > 1:  # fewer processes when each would get too thin a strip
+        rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
+    job = _Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, rows, gdal_cache_bytes(max_memory // want))
+    log.info("outlines: %d strip(s) of %d rows across %d columns (max_memory %s: ~%s per strip), %d worker "
+             "process(es) of %d core(s)", count, rows, chm.width, format_memory(max_memory),
+             format_memory(BYTES_PER_PIXEL * chm.width * rows), want, cores)
+    bands = [(k, k + 1) for k in range(count)]
+    bar = progress(None, desc="outlines + canopy statistics", total=count, unit="strip")
+    try:
+        if want == 1:
+            parts = []
+            for band in bands:
+                parts.append(_run_band(job, band if count > 1 else None, local))
+                bar.update(1)
+        else:
+            # spawn: a clean interpreter per worker (forking a process holding GDAL and numba threads is unsafe)
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=want, mp_context=ctx, initializer=_init_worker,
+                                     initargs=(job,)) as pool:
+                parts = []
+                for part in pool.map(_worker_band, bands):
+                    parts.append(part)
+                    bar.update(1)
+    finally:
+        bar.close()
+    return _merge(parts, n, geoms)
+
+
+def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict[str, np.ndarray]]:
+    """One :class:`Outlines` and one set of columns from the strips' results (a plant's values come from the
+    strip it belongs to; a plant off the raster is in every strip, with the same values)."""
+    first = parts[0]
+    geometry = geoms.copy()
+    tight, top = np.full((n, 4), np.nan), np.full((n, 3), np.nan)
+    pixels, area, volume = np.zeros(n, np.int64), np.zeros(n), np.full(n, np.nan)
+    flag = np.full(n, "outside", dtype=object)
+    cols = {k: np.full(n, np.nan) for p in parts for k in p["cols"]}
+    for p in parts:
+        r = p["rows"]
+        geometry[r], tight[r], top[r], pixels[r], area[r], volume[r], flag[r] = (
+            p["geometry"], p["tight_box"], p["top"], p["pixels"], p["area"], p["volume"], p["flag"])
+        for k, v in p["cols"].items():
+            cols[k][r] = v
+    # a second box of a plant homed in another strip: that plant's outline and canopy (as in one pass)
+    dup = np.flatnonzero(flag == "duplicate")
+    if len(dup):
+        owners = np.flatnonzero(flag == "")
+        key = pd.MultiIndex.from_arrays([top[owners, 0], top[owners, 1]])
+        owners, key = owners[~key.duplicated()], key[~key.duplicated()]
+        hit = key.get_indexer(pd.MultiIndex.from_arrays([top[dup, 0], top[dup, 1]]))
+        d, o = dup[hit >= 0], owners[hit[hit >= 0]]
+        geometry[d], tight[d], pixels[d], area[d], volume[d] = geometry[o], tight[o], pixels[o], area[o], volume[o]
+        for v in cols.values():
+            v[d] = v[o]
+    unclaimed = np.concatenate([p["unclaimed"] for p in parts]) if parts else np.zeros((0, 4))
+    out = Outlines(geometry=geometry, tight_box=tight, top=top, pixels=pixels, area=area, volume=volume, flag=flag,
+                   pix=np.zeros(0, np.int64), start=np.zeros(n + 1, np.int64), transform=first["transform"],
+                   width=first["width"], height=first["height"], crs=first["crs"], unclaimed=unclaimed,
+                   noise_bumps=sum(p["noise_bumps"] for p in parts))
+    return out, cols
