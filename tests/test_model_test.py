@@ -447,10 +447,62 @@ def test_nested_duplicates_from_another_tile_are_merged():
     boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
                                overlap=100, merge_containment=1.0)   # 'part' is wholly inside: still merged
     assert boxes.tolist() == [plant]
+    # a box far inside a larger one of its class on the same photo is merged too (issue 26: one pass over the
+    # photo's final boxes), even when one tile saw both
     answers = [tile(plant), (np.array([np.array(plant) - shift, np.array(small) - shift], float),
                              np.array([0.8, 0.95]), np.ones(2, int))]
-    boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100)
-    assert sorted(boxes.tolist()) == sorted([plant, small])
+    counts: dict = {}
+    boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100, counts=counts)
+    assert boxes.tolist() == [plant] and counts["nested_merged"] == 1 and counts["tiles"] == 2
+
+
+def _nested_pairs(boxes: np.ndarray, labels: np.ndarray, share: float = 0.8) -> int:
+    """Pairs (inner, outer) of same-class boxes with the inner one >= share inside the larger: shapely, box by box."""
+    from shapely.geometry import box as sbox
+    polys = [sbox(*b) for b in boxes]
+    return sum(1 for i, a in enumerate(polys) for j, b in enumerate(polys)
+               if i != j and labels[i] == labels[j] and a.area <= b.area and a.area > 0
+               and (a.area < b.area or i > j) and a.intersection(b).area >= share * a.area)
+
+
+def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
+    """Synthetic predictions: 30 plants, 12 of them with a nested duplicate (a part, wholly inside) from the
+    same tile and 3 of another class inside a plant (kept: another class); one tile covers the photo."""
+    rng = np.random.default_rng(5)
+    xy = np.stack(np.meshgrid(np.arange(6) * 60 + 10, np.arange(5) * 60 + 10), -1).reshape(-1, 2).astype(float)
+    plants = np.hstack([xy, xy + rng.uniform(30, 45, (30, 2))])
+    w = plants[:12, 2:] - plants[:12, :2]
+    parts = plants[:12] + np.hstack([w * 0.2, -w * 0.15])         # inside, IoU about 0.4: NMS keeps them
+    other = plants[12:15] + np.hstack([w[:3] * 0.1, -w[:3] * 0.1])  # class 2 inside class 1
+    boxes = np.vstack([plants, parts, other])
+    labels = np.r_[np.ones(42, int), np.full(3, 2)]
+    assert _nested_pairs(boxes, labels) == 12
+    scores = rng.uniform(0.5, 1.0, len(boxes))
+
+    def predict(tiles):
+        return [(boxes, scores, labels)]
+    counts: dict = {}
+    out_b, _, out_l = detect_image(np.zeros((340, 400, 3), np.uint8), predict, tile_size=512, overlap=64,
+                                       counts=counts)
+    assert len(out_b) == 33 and counts["nested_merged"] == 12 and _nested_pairs(out_b, out_l) == 0
+    assert sorted(map(tuple, out_b[out_l == 1])) == sorted(map(tuple, plants))  # the larger boxes stay
+
+
+def test_detection_output_holds_no_nested_box(checkpoint, tmp_path, caplog):
+    """A real run (untrained model, every box kept): predictions.json holds no box >= 80 % inside another of its
+    class on the same photo, and the log says how many were merged."""
+    make_photo(tmp_path / "imgs" / "a.png", 300, 220, n_plants=12, seed=7)
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"])
+    with caplog.at_level("INFO"):
+        run(cfg)
+    preds = read_predictions(tmp_path / "out" / "predictions.json")["predictions"]
+    b = np.array([p["bbox"] for p in preds], float)
+    b[:, 2:] += b[:, :2]
+    assert len(b) > 10 and _nested_pairs(b, np.array([p["category_id"] for p in preds])) == 0
+    merged = [r.message for r in caplog.records if "nested box(es) merged" in r.message]
+    assert merged and int(merged[0].split()[0]) > 0
 
 
 # -- input checks (issue 15): checkpoints that are not MatchPlant's, runs that find nothing ----------------------

@@ -210,6 +210,19 @@ def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.n
     return dropped
 
 
+def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8) -> np.ndarray:
+    """Indices of a photo's final boxes kept after one pass over them: a box lying at least ``containment``
+    inside a larger box of its class on the same photo is a nested duplicate (a part of the plant, found by
+    the model in one tile, or left by the merge across tiles) and is merged into the larger one. The same
+    containment rule as across tiles (:func:`_nested`, largest first: a dropped box drops nothing), without
+    its exception for boxes of one tile: the photo's output holds no box that far inside another."""
+    n = len(boxes)
+    if n < 2:
+        return np.arange(n)
+    own = np.arange(n)  # every box its own "tile": no box shelters another
+    return np.flatnonzero(~_nested(boxes, labels, own, own, containment, iou=1.0 + 1e-9))
+
+
 Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
 
 
@@ -228,8 +241,10 @@ def model_predictor(model, device, amp: bool = False) -> Predictor:
 
 def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, overlap: int, batch_size: int = 4,
                  score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0,
-                 merge_containment: float = 0.8):
-    """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles."""
+                 merge_containment: float = 0.8, counts: dict | None = None):
+    """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles, then
+    nested duplicates on the photo merged (:func:`merge_nested`). ``counts`` (a dict) adds up the tiles run, the
+    boxes found in them and the nested boxes merged."""
     h, w = image.shape[:2]
     origins = [(x0, y0) for y0 in tile_starts(h, tile_size, overlap) for x0 in tile_starts(w, tile_size, overlap)]
     all_b, all_s, all_l, all_cut, all_t = [], [], [], [], []
@@ -251,6 +266,11 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
     boxes, scores = np.concatenate(all_b).reshape(-1, 4), np.concatenate(all_s)
     labels, cut = np.concatenate(all_l).astype(int), np.concatenate(all_cut).astype(bool)
     keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou, np.concatenate(all_t), merge_containment)
+    boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+    keep = merge_nested(boxes, labels, merge_containment)
+    if counts is not None:
+        for key, n in (("tiles", len(origins)), ("tile_boxes", len(cut)), ("nested_merged", len(boxes) - len(keep))):
+            counts[key] = counts.get(key, 0) + n
     return boxes[keep], scores[keep], labels[keep]
 
 
@@ -278,10 +298,12 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     tiling = dict(tile_size=dcfg.tile_size, overlap=dcfg.overlap, batch_size=cfg.batch_size,
                   merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
+    counts: dict = {}
     for i in progress(shard.take(files), desc="detecting", unit="image"):
         path = files[i]
         img = read_rgb8(path)
-        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, **tiling)
+        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, counts=counts,
+                                             **tiling)
         name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
         if (root / SUBMODELS_DIR).is_dir():
             name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
@@ -293,9 +315,12 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
     gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
+    merged = sum(c.get("nested_merged", 0) for c in shard.gather([counts]))
     if not shard.main:
         shard.barrier()
         return final / "predictions.json"
+    log.info("%d nested box(es) merged: each lay >= %.0f %% inside a larger box of its class on the same photo "
+             "(detect.merge_containment)", merged, 100 * dcfg.merge_containment)
     check_found_scale(ck, [(np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
                             entry["width"], entry["height"]) for _, entry, found in gathered], dcfg.tile_size)
     images, predictions = [], []
