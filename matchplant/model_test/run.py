@@ -41,7 +41,8 @@ from matchplant.detection.evaluate import (
     summarise_stats,
     write_image,
 )
-from matchplant.detection.model import load_detector, read_checkpoint, set_score_threshold
+from matchplant.detection.foreign import read_any_checkpoint
+from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
@@ -70,7 +71,7 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
     out = Path(out) if out is not None else final
     device = device or select_device(cfg.device)
     amp = cfg.amp and device.type == "cuda"
-    ck = ck or read_checkpoint(cfg.checkpoint)
+    ck = ck or read_model(cfg)
     ds = ds or test_tiles(cfg, ck)
     # no score threshold before COCOeval, and as many boxes as maxDets
     model, ck = load_detector(ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}},
@@ -104,6 +105,12 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
     log.info("test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)", summarise_stats(stats),
              op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], final / "metrics.json")
     return metrics
+
+
+def read_model(cfg: ModelTestConfig) -> dict:
+    """The checkpoint: module 6's, the paper's layout or bare torchvision weights (their classes from
+    ``class_names``)."""
+    return read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
 
 
 def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
@@ -281,7 +288,7 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already."""
     final = Path(cfg.output_dir)
     out = Path(out) if out is not None else final
-    ck = ck or read_checkpoint(cfg.checkpoint)
+    ck = ck or read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     dcfg = cfg.detect
     check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
@@ -357,7 +364,7 @@ def run(cfg: ModelTestConfig) -> dict:
     """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
     shard, device = join(select_device(cfg.device))
     # every input read and checked before the first (slow) model pass
-    ck = read_checkpoint(cfg.checkpoint)
+    ck = read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
     files = detect_images(cfg) if cfg.detect.images is not None else None
