@@ -207,7 +207,7 @@ def source_view(ds: dict) -> tuple[dict, list[tuple[int, int]], str]:
                               for k, b in enumerate(union.values())]}
     how = ("recorded in the tiles (source_width/height)" if recorded
            else "the extent of each photo's tiles (at least the photo; exact when its edge tiles are kept)")
-    return photos, sorted({(int(round(w)), int(round(h))) for w, h in extent.values()}), how
+    return photos, sorted({(round(w), round(h)) for w, h in extent.values()}), how
 
 
 def tiles_per_photo(size: tuple[int, int], tile: int, overlap: int) -> int:
