@@ -558,3 +558,27 @@ def test_detection_on_an_image_smaller_than_the_tile_warns_and_uses_the_image(ch
     assert any("larger than 1 of the 1 image" in r.message and "90x70" in r.message for r in caplog.records)
     preds = read_predictions(tmp_path / "out" / "predictions.json")
     assert [(im["file_name"], im["width"], im["height"]) for im in preds["images"]] == [("one.png", 90, 70)]
+
+
+def test_rerun_into_the_same_folder_leaves_nothing_stale(checkpoint, tmp_path):
+    """Issue 29: two runs with different images and settings into one folder; afterwards the folder holds what
+    the second run's manifest lists (and a file of the user's), none of the first run's drawn images."""
+    for name in ("a.png", "b.png", "c.png"):
+        make_photo(tmp_path / "first" / name, 150, 120, n_plants=4, seed=len(name) + ord(name[0]))
+    make_photo(tmp_path / "second" / "z.png", 150, 120, n_plants=4, seed=9)
+    common = [f"checkpoint={checkpoint}", f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"]
+    run(load_config(ModelTestConfig, None, [*common, f"detect.images={tmp_path / 'first'}", "detect.drawn_images=3"]))
+
+    def files():
+        return {p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*")
+                if p.is_file() and "logs" not in p.parts}
+    assert {"detections/a.png", "detections/b.png", "detections/c.png"} <= files()
+    assert files() == set(json.loads((tmp_path / "out" / "manifest.json").read_text())["files"])
+    (tmp_path / "out" / "my_notes.txt").write_text("kept")
+    run(load_config(ModelTestConfig, None, [*common, f"detect.images={tmp_path / 'second'}", "detect.drawn_images=1"]))
+    listed = set(json.loads((tmp_path / "out" / "manifest.json").read_text())["files"])
+    assert files() == listed | {"my_notes.txt"}
+    assert listed == {"manifest.json", "predictions.json", "detections/z.png"}
+    names = [im["file_name"] for im in read_predictions(tmp_path / "out" / "predictions.json")["images"]]
+    assert names == ["z.png"]

@@ -45,6 +45,7 @@ from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
+from matchplant.model_test.manifest import previous_files, remove_stale, write_manifest
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
@@ -282,10 +283,11 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
 
 
 def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
-           files: list[Path] | None = None) -> Path:
+           files: list[Path] | None = None, listed: list[str] | None = None) -> Path:
     """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
     ``out`` (by default ``output_dir``). A run that finds no plant at all is an error that says why.
-    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already."""
+    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already;
+    ``listed`` gets the drawn images of every process (relative paths, on the main process)."""
     final = Path(cfg.output_dir)
     out = Path(out) if out is not None else final
     ck = ck or read_model(cfg)
@@ -306,6 +308,7 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
                   merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
     counts: dict = {}
+    drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
     for i in progress(shard.take(files), desc="detecting", unit="image"):
         path = files[i]
         img = read_rgb8(path)
@@ -321,8 +324,10 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
                        round(float(s), 5)) for b, s, lab in zip(boxes, scores, labels)]))
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
+            drawn.append(f"detections/{path.stem}.png")
     gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
     merged = sum(c.get("nested_merged", 0) for c in shard.gather([counts]))
+    drawn_by_all = shard.gather(drawn)
     if not shard.main:
         shard.barrier()
         return final / "predictions.json"
@@ -347,6 +352,8 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
                             "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
                             "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
     path = final / "predictions.json"
+    if listed is not None:
+        listed += drawn_by_all
     log.info("%d plants found on %d image(s)%s: %s", len(predictions), len(files),
              f" by {shard.world} processes" if shard.world > 1 else "", path)
     shard.barrier()
@@ -371,9 +378,16 @@ def run(cfg: ModelTestConfig) -> dict:
     if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
         Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     result: dict = {}
+    before = previous_files(cfg.output_dir)
     with staged_outputs(cfg.output_dir) as out:
         if cfg.evaluate.dataset_json is not None and shard.main:  # under torchrun: evaluated once
             result["metrics"] = evaluate(cfg, device, out, ck=ck, ds=ds)
+        drawn: list[str] = []  # every process's drawn images
         if files is not None:
-            result["predictions"] = detect(cfg, device, out, ck=ck, files=files)
+            result["predictions"] = detect(cfg, device, out, ck=ck, files=files, listed=drawn)
+        now = write_manifest(out, drawn) if shard.main else []
+    shard.barrier()  # every process's files have moved in
+    if shard.main:  # only once the new outputs are in place
+        remove_stale(Path(cfg.output_dir), before, now)
     return result
+
