@@ -582,3 +582,33 @@ def test_rerun_into_the_same_folder_leaves_nothing_stale(checkpoint, tmp_path):
     assert listed == {"manifest.json", "predictions.json", "detections/z.png"}
     names = [im["file_name"] for im in read_predictions(tmp_path / "out" / "predictions.json")["images"]]
     assert names == ["z.png"]
+
+
+def test_detection_estimate_counts_tiles_and_network_input():
+    """Issue 29: 0.75 MP photos in 128 px tiles enlarged to 800 px cost >10x the same photos in 1024 px tiles."""
+    from matchplant.model_test.estimate import plan
+
+    mc = {"min_size": 800, "max_size": 1333}
+    small = plan([(1000, 750)] * 40, 128, 32, mc)
+    whole = plan([(1000, 750)] * 40, 1024, 256, mc)
+    xs, ys = tile_starts(1000, 128, 32), tile_starts(750, 128, 32)
+    assert small["tiles"] == 40 * len(xs) * len(ys) and whole["tiles"] == 40
+    assert small["input_megapixels"] == pytest.approx(small["tiles"] * 800 * 800 / 1e6)
+    assert whole["input_megapixels"] == pytest.approx(40 * 800 * 1088 / 1e6)  # 750 -> 800, 1000 -> 1067 (pad 32)
+    assert small["input_megapixels"] / whole["input_megapixels"] > 10
+
+
+def test_detection_estimate_holds_against_the_measured_run(checkpoint, tmp_path, caplog):
+    """The estimate logged before detection is within 50 % of the detection's measured time."""
+    for k in range(3):
+        make_photo(tmp_path / "imgs" / f"p{k}.png", 420, 300, n_plants=10, seed=30 + k)
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu",
+                                              "detect.drawn_images=0", "batch_size=1"])
+    with caplog.at_level("INFO"):
+        run(cfg)
+    timing = read_predictions(tmp_path / "out" / "predictions.json")["info"]["timing"]
+    assert timing["tiles"] == 3 * len(tile_starts(420, 128, 32)) * len(tile_starts(300, 128, 32))
+    assert any("detection estimate" in r.message for r in caplog.records)
+    assert 0.5 <= timing["estimated_s"] / timing["detection_s"] <= 1.5, timing

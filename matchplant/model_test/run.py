@@ -13,6 +13,7 @@ image's name.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -28,7 +29,7 @@ from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
-from matchplant.detection.device import select_device, warn_if_slow
+from matchplant.detection.device import select_device
 from matchplant.detection.distributed import join
 from matchplant.detection.evaluate import (
     coco_evaluate,
@@ -45,6 +46,7 @@ from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
+from matchplant.model_test.estimate import estimate
 from matchplant.model_test.manifest import previous_files, remove_stale, write_manifest
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
@@ -299,7 +301,10 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
     predictor = model_predictor(model, device, cfg.amp)
-    warn_if_slow(device, ck["model_config"]["architecture"], len(files), *image_size(files[0]))  # before hours of CPU
+    # before hours of work: the actual tiles and network input of every photo, timed on this device
+    plan = estimate(predictor, read_rgb8(files[0]), [image_size(f) for f in files], dcfg.tile_size, dcfg.overlap,
+                    ck["model_config"], device, processes=shard.world)
+    started = time.perf_counter()
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
     cat_ids = [int(c) for c in ck["category_ids"]]
     categories = [{"id": cid, "name": name, "supercategory": "plant"} for cid, name in zip(cat_ids, ck["class_names"])]
@@ -325,6 +330,7 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
             drawn.append(f"detections/{path.stem}.png")
+    seconds = time.perf_counter() - started
     gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
     merged = sum(c.get("nested_merged", 0) for c in shard.gather([counts]))
     drawn_by_all = shard.gather(drawn)
@@ -350,7 +356,10 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     write_predictions(out / "predictions.json", images, categories, predictions,
                       info={"description": "MatchPlant module 7 detections (source-image pixels)",
                             "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
-                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
+                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold,
+                            "timing": {"estimated_s": round(plan["seconds"], 3), "detection_s": round(seconds, 3),
+                                       "tiles": plan["tiles"], "input_megapixels": round(plan["input_megapixels"], 3),
+                                       "device": plan["device"]}})
     path = final / "predictions.json"
     if listed is not None:
         listed += drawn_by_all
