@@ -229,8 +229,24 @@ def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8
     n = len(boxes)
     if n < 2:
         return np.arange(n)
-    own = np.arange(n)  # every box its own "tile": no box shelters another
-    return np.flatnonzero(~_nested(boxes, labels, own, own, containment, iou=1.0 + 1e-9))
+    area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
+    inner, outer = [], []
+    for start in range(0, n, 512):  # (inner, larger outer) pairs of one class, chunk by chunk
+        rows = np.arange(start, min(start + 512, n))
+        inter = _box_intersections(boxes[rows], boxes)
+        larger = (area[rows][:, None] < area[None, :]) | (
+            (area[rows][:, None] == area[None, :]) & (rows[:, None] > np.arange(n)[None, :]))
+        r, c = np.nonzero((inter >= containment * np.maximum(area[rows], 1e-9)[:, None]) & larger
+                          & (labels[rows][:, None] == labels[None, :]))
+        inner.append(rows[r])
+        outer.append(c)
+    inner, outer = np.concatenate(inner), np.concatenate(outer)
+    dropped = np.zeros(n, bool)
+    for k in np.argsort(-area[outer], kind="stable"):  # largest outer first, as _nested
+        i, j = inner[k], outer[k]
+        if not (dropped[i] or dropped[j]):
+            dropped[i] = True
+    return np.flatnonzero(~dropped)
 
 
 Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
