@@ -113,7 +113,11 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
 def read_model(cfg: ModelTestConfig) -> dict:
     """The checkpoint: module 6's, the paper's layout or bare torchvision weights (their classes from
     ``class_names``)."""
-    return read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
+    ck = read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
+    if cfg.class_names and "foreign" not in ck and list(cfg.class_names) != ck["class_names"]:
+        log.warning("class_names %s ignored: the module 6 checkpoint %s holds its own classes %s",
+                    list(cfg.class_names), cfg.checkpoint, ck["class_names"])
+    return ck
 
 
 def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
