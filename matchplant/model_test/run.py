@@ -415,8 +415,7 @@ def run(cfg: ModelTestConfig) -> dict:
         if files is not None:
             result["predictions"] = detect(cfg, device, out, ck=ck, files=files, listed=drawn)
         now = write_manifest(out, drawn) if shard.main else []
-    shard.barrier()  # every process's files have moved in
-    if shard.main:  # only once the new outputs are in place
+    if shard.main:  # only once the new outputs are in place; the other processes' drawn images are in `now`
         remove_stale(Path(cfg.output_dir), before, now)
     return result
 
