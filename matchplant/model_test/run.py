@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import shapely
 
 from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.formats.images import image_size, read_rgb8
@@ -163,6 +164,20 @@ def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return wh[..., 0] * wh[..., 1]
 
 
+def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, found through an R-tree
+    (shapely's STRtree): a photo's thousands of boxes meet only their neighbours, so the pairs are few where
+    a dense matrix would be n x m."""
+    if not len(a) or not len(b):
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
+    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
+    wh = np.clip(np.minimum(a[i, 2:], b[j, 2:]) - np.maximum(a[i, :2], b[j, :2]), 0, None)
+    inter = wh[:, 0] * wh[:, 1]
+    ok = inter > 0
+    return i[ok], j[ok], inter[ok]
+
+
 def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray,
                      iou: float = 0.5, tiles: np.ndarray | None = None, containment: float = 0.8) -> np.ndarray:
     """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
@@ -181,10 +196,11 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
     keep_whole = whole[nms(boxes[whole], scores[whole], iou, labels[whole])]
     parts = np.flatnonzero(cut)
     if len(parts) and len(keep_whole):
-        inter = _box_intersections(boxes[parts], boxes[keep_whole])
+        i, j, inter = _touching(boxes[parts], boxes[keep_whole])
         area = np.prod(boxes[parts, 2:] - boxes[parts, :2], axis=1)
-        covered = ((inter / np.maximum(area, 1e-9)[:, None] >= 0.5)
-                   & (labels[parts][:, None] == labels[keep_whole][None, :])).any(axis=1)
+        hit = (inter / np.maximum(area[i], 1e-9) >= 0.5) & (labels[parts][i] == labels[keep_whole][j])
+        covered = np.zeros(len(parts), bool)
+        covered[i[hit]] = True
         parts = parts[~covered]
     if len(parts):
         parts = parts[nms(boxes[parts], scores[parts], iou, labels[parts])]
@@ -195,7 +211,7 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
 
 
 def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float,
-            iou: float, chunk: int = 512) -> np.ndarray:
+            iou: float) -> np.ndarray:
     """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
     of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
     >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
@@ -203,25 +219,33 @@ def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.n
     b, lab, til = boxes[kept], labels[kept], tiles[kept]
     area = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
     all_area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
-    pairs = []  # (inner, outer) positions in kept
-    for start in range(0, len(b), chunk):
-        inner = np.arange(start, min(start + chunk, len(b)))
-        inter = _box_intersections(b[inner], b)
-        larger = (area[inner][:, None] < area[None, :]) | (
-            (area[inner][:, None] == area[None, :]) & (inner[:, None] > np.arange(len(b))[None, :]))
-        inside = ((inter >= containment * np.maximum(area[inner], 1e-9)[:, None]) & larger
-                  & (lab[inner][:, None] == lab[None, :]) & (til[inner][:, None] != til[None, :]))
-        pairs += [(int(inner[r]), int(c)) for r, c in np.argwhere(inside)]
+    inner, outer = _inside_pairs(b, lab, area, containment)
+    other_tile = til[inner] != til[outer]
+    inner, outer = inner[other_tile], outer[other_tile]
+    groups: dict[tuple, np.ndarray] = {}  # the boxes of each (tile, class)
     dropped = np.zeros(len(b), bool)
-    for i, j in sorted(pairs, key=lambda p: -area[p[1]]):
+    for k in np.argsort(-area[outer], kind="stable"):
+        i, j = int(inner[k]), int(outer[k])
         if dropped[j] or dropped[i]:
             continue
-        own = np.flatnonzero((tiles == til[i]) & (labels == lab[i]))
+        key = (int(til[i]), int(lab[i]))
+        if key not in groups:
+            groups[key] = np.flatnonzero((tiles == key[0]) & (labels == key[1]))
+        own = groups[key]
         own = own[own != kept[i]]
         inter = _box_intersections(b[j][None], boxes[own])[0]
         seen = inter / np.maximum(area[j] + all_area[own] - inter, 1e-9) >= iou
         dropped[i] = not seen.any()
     return dropped
+
+
+def _inside_pairs(b: np.ndarray, lab: np.ndarray, area: np.ndarray, containment: float):
+    """``(inner, outer)``: box ``inner`` lies at least ``containment`` inside the larger box ``outer`` of its
+    class (equal areas: the later one is the inner)."""
+    i, j, inter = _touching(b, b)
+    larger = (area[i] < area[j]) | ((area[i] == area[j]) & (i > j))
+    ok = (i != j) & larger & (inter >= containment * np.maximum(area[i], 1e-9)) & (lab[i] == lab[j])
+    return i[ok], j[ok]
 
 
 def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8) -> np.ndarray:
@@ -234,17 +258,7 @@ def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8
     if n < 2:
         return np.arange(n)
     area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
-    inner, outer = [], []
-    for start in range(0, n, 512):  # (inner, larger outer) pairs of one class, chunk by chunk
-        rows = np.arange(start, min(start + 512, n))
-        inter = _box_intersections(boxes[rows], boxes)
-        larger = (area[rows][:, None] < area[None, :]) | (
-            (area[rows][:, None] == area[None, :]) & (rows[:, None] > np.arange(n)[None, :]))
-        r, c = np.nonzero((inter >= containment * np.maximum(area[rows], 1e-9)[:, None]) & larger
-                          & (labels[rows][:, None] == labels[None, :]))
-        inner.append(rows[r])
-        outer.append(c)
-    inner, outer = np.concatenate(inner), np.concatenate(outer)
+    inner, outer = _inside_pairs(boxes, labels, area, containment)
     dropped = np.zeros(n, bool)
     for k in np.argsort(-area[outer], kind="stable"):  # largest outer first, as _nested
         i, j = inner[k], outer[k]
