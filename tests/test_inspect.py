@@ -52,3 +52,75 @@ def test_inspect_without_boxes_is_a_clear_error(tmp_path, capsys):
     coco = _dataset(tmp_path / "empty.json", [])
     assert cli_main(["inspect", str(coco)]) == 2
     assert "no boxes" in capsys.readouterr().err
+
+
+def _photos_and_tiles(tmp_path, size=(512, 384), n=40, tile=128, overlap=48):
+    """Two synthetic photos with known plants, and module 5's tiles of them."""
+    from matchplant.core.runtime.config import load_config
+    from matchplant.detection.synth import make_photo
+    from matchplant.img_splitter.config import ImgSplitterConfig
+    from matchplant.img_splitter.run import run as run_tiling
+
+    ds = new_dataset(["plant"])
+    for k, name in enumerate(("p0.png", "p1.png")):
+        boxes = make_photo(tmp_path / "photos" / name, *size, n_plants=n, radius=(8, 14), seed=20 + k)
+        ds["images"].append({"id": k + 1, "file_name": name, "width": size[0], "height": size[1]})
+        for b in boxes:
+            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, k + 1,
+                                                     [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
+    write_dataset(tmp_path / "ann.json", ds)
+    run_tiling(load_config(ImgSplitterConfig, None, [f"images={tmp_path / 'photos'}",
+                                                     f"annotations={tmp_path / 'ann.json'}",
+                                                     f"output_dir={tmp_path / 'tiles'}", f"tile_size={tile}",
+                                                     f"overlap={overlap}", "split=[1.0, 0.0, 0.0]",
+                                                     "negative_share=1", "workers=1"]))
+    return tmp_path / "ann.json", tmp_path / "tiles" / "train.json"
+
+
+def test_tiles_give_the_advice_of_their_photos(tmp_path, capsys):
+    """Issue 28: the same advice from the photos and from module 5's tiles of them (a plant in several tiles is
+    one plant, the photo size comes from the tiles)."""
+    photos, tiles = _photos_and_tiles(tmp_path)
+    reports = {}
+    for name, coco in (("photos", photos), ("tiles", tiles)):
+        assert cli_main(["inspect", str(coco), "--report", str(tmp_path / f"{name}.json")]) == 0
+        reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    printed = capsys.readouterr().out
+    assert "distinct plants on 2 photo(s)" in printed
+    a, b = reports["photos"], reports["tiles"]
+    assert json.loads((tiles).read_text())["annotations"].__len__() > a["objects_px"]["boxes"]  # copies in tiles
+    assert b["objects_px"]["boxes"] == a["objects_px"]["boxes"] == 80
+    assert b["image_sizes"] == a["image_sizes"] == [[512, 384]]
+    for key in ("tile_size", "overlap", "min_size", "anchor_sizes", "aspect_ratios", "tiling"):
+        assert b["recommended"][key] == a["recommended"][key], key
+    assert b["objects_px"]["sqrt_area"] == pytest.approx(a["objects_px"]["sqrt_area"], abs=0.05)
+
+
+def test_a_tile_equal_to_the_photo_is_called_no_tiling(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    w, h = rng.normal(110, 10, 200), rng.normal(110, 10, 200)   # large plants: tile capped at the photo side
+    coco = _dataset(tmp_path / "a.json", zip(w, h), image=(1024, 1024))
+    assert cli_main(["inspect", str(coco)]) == 0
+    out = capsys.readouterr().out
+    assert "tile_size: 1024" in out and "no tiling, each photo is one whole tile" in out
+    # smaller plants on the same photos: several tiles per photo, and said so
+    coco = _dataset(tmp_path / "b.json", zip(w / 4, h / 4), image=(1024, 1024))
+    assert cli_main(["inspect", str(coco)]) == 0
+    out = capsys.readouterr().out
+    assert "no tiling" not in out and "tiles per photo (1024x1024)" in out
+
+
+@pytest.mark.parametrize("breakage, said", [
+    (lambda ds: ds["annotations"][1].pop("bbox"), "annotation 2: no 'bbox'"),
+    (lambda ds: ds["annotations"][0].update(bbox="10, 10, 40, 40"), "'bbox' = '10, 10, 40, 40' (str)"),
+    (lambda ds: ds["images"][0].pop("width"), "no valid 'width'/'height'"),
+    (lambda ds: ds["images"][0].update(height="3648"), "no valid 'width'/'height'"),
+])
+def test_broken_coco_structure_is_a_clear_error(tmp_path, capsys, breakage, said):
+    coco = _dataset(tmp_path / "a.json", [(40, 40)] * 3)
+    ds = json.loads(coco.read_text())
+    breakage(ds)
+    coco.write_text(json.dumps(ds))
+    assert cli_main(["inspect", str(coco)]) == 2
+    err = capsys.readouterr().err
+    assert said in err and "a.json" in err and "fix:" in err and "Traceback" not in err

@@ -340,7 +340,8 @@ def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
         run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'default'}"]))
     info = read_predictions(tmp_path / "default" / "predictions.json")["info"]
     assert info["tile_size"] == 128 and 0 < info["overlap"] <= 64
-    assert not any("training size" in w for w in rec.warnings() if "detect.tile_size" in w)
+    # no tile-size warning before detection (the 1-epoch model's boxes may still warn about "the plants found")
+    assert not any("training size" in w for w in rec.warnings() if w.startswith("detect.tile_size")), rec.warnings()
     with _Records() as rec:
         run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'big'}", "detect.tile_size=1024",
                                                          "detect.overlap=64"]))
@@ -447,10 +448,62 @@ def test_nested_duplicates_from_another_tile_are_merged():
     boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
                                overlap=100, merge_containment=1.0)   # 'part' is wholly inside: still merged
     assert boxes.tolist() == [plant]
+    # a box far inside a larger one of its class on the same photo is merged too (issue 26: one pass over the
+    # photo's final boxes), even when one tile saw both
     answers = [tile(plant), (np.array([np.array(plant) - shift, np.array(small) - shift], float),
                              np.array([0.8, 0.95]), np.ones(2, int))]
-    boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100)
-    assert sorted(boxes.tolist()) == sorted([plant, small])
+    counts: dict = {}
+    boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100, counts=counts)
+    assert boxes.tolist() == [plant] and counts["nested_merged"] == 1 and counts["tiles"] == 2
+
+
+def _nested_pairs(boxes: np.ndarray, labels: np.ndarray, share: float = 0.8) -> int:
+    """Pairs (inner, outer) of same-class boxes with the inner one >= share inside the larger: shapely, box by box."""
+    from shapely.geometry import box as sbox
+    polys = [sbox(*b) for b in boxes]
+    return sum(1 for i, a in enumerate(polys) for j, b in enumerate(polys)
+               if i != j and labels[i] == labels[j] and a.area <= b.area and a.area > 0
+               and (a.area < b.area or i > j) and a.intersection(b).area >= share * a.area)
+
+
+def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
+    """Synthetic predictions: 30 plants, 12 of them with a nested duplicate (a part, wholly inside) from the
+    same tile and 3 of another class inside a plant (kept: another class); one tile covers the photo."""
+    rng = np.random.default_rng(5)
+    xy = np.stack(np.meshgrid(np.arange(6) * 60 + 10, np.arange(5) * 60 + 10), -1).reshape(-1, 2).astype(float)
+    plants = np.hstack([xy, xy + rng.uniform(30, 45, (30, 2))])
+    w = plants[:12, 2:] - plants[:12, :2]
+    parts = plants[:12] + np.hstack([w * 0.2, -w * 0.15])         # inside, IoU about 0.4: NMS keeps them
+    other = plants[12:15] + np.hstack([w[:3] * 0.1, -w[:3] * 0.1])  # class 2 inside class 1
+    boxes = np.vstack([plants, parts, other])
+    labels = np.r_[np.ones(42, int), np.full(3, 2)]
+    assert _nested_pairs(boxes, labels) == 12
+    scores = rng.uniform(0.5, 1.0, len(boxes))
+
+    def predict(tiles):
+        return [(boxes, scores, labels)]
+    counts: dict = {}
+    out_b, _, out_l = detect_image(np.zeros((340, 400, 3), np.uint8), predict, tile_size=512, overlap=64,
+                                       counts=counts)
+    assert len(out_b) == 33 and counts["nested_merged"] == 12 and _nested_pairs(out_b, out_l) == 0
+    assert sorted(map(tuple, out_b[out_l == 1])) == sorted(map(tuple, plants))  # the larger boxes stay
+
+
+def test_detection_output_holds_no_nested_box(checkpoint, tmp_path, caplog):
+    """A real run (untrained model, every box kept): predictions.json holds no box >= 80 % inside another of its
+    class on the same photo, and the log says how many were merged."""
+    make_photo(tmp_path / "imgs" / "a.png", 300, 220, n_plants=12, seed=7)
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"])
+    with caplog.at_level("INFO"):
+        run(cfg)
+    preds = read_predictions(tmp_path / "out" / "predictions.json")["predictions"]
+    b = np.array([p["bbox"] for p in preds], float)
+    b[:, 2:] += b[:, :2]
+    assert len(b) > 10 and _nested_pairs(b, np.array([p["category_id"] for p in preds])) == 0
+    merged = [r.message for r in caplog.records if "nested box(es) merged" in r.message]
+    assert merged and int(merged[0].split()[0]) > 0
 
 
 # -- input checks (issue 15): checkpoints that are not MatchPlant's, runs that find nothing ----------------------
@@ -505,3 +558,57 @@ def test_detection_on_an_image_smaller_than_the_tile_warns_and_uses_the_image(ch
     assert any("larger than 1 of the 1 image" in r.message and "90x70" in r.message for r in caplog.records)
     preds = read_predictions(tmp_path / "out" / "predictions.json")
     assert [(im["file_name"], im["width"], im["height"]) for im in preds["images"]] == [("one.png", 90, 70)]
+
+
+def test_rerun_into_the_same_folder_leaves_nothing_stale(checkpoint, tmp_path):
+    """Issue 29: two runs with different images and settings into one folder; afterwards the folder holds what
+    the second run's manifest lists (and a file of the user's), none of the first run's drawn images."""
+    for name in ("a.png", "b.png", "c.png"):
+        make_photo(tmp_path / "first" / name, 150, 120, n_plants=4, seed=len(name) + ord(name[0]))
+    make_photo(tmp_path / "second" / "z.png", 150, 120, n_plants=4, seed=9)
+    common = [f"checkpoint={checkpoint}", f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"]
+    run(load_config(ModelTestConfig, None, [*common, f"detect.images={tmp_path / 'first'}", "detect.drawn_images=3"]))
+
+    def files():
+        return {p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*")
+                if p.is_file() and "logs" not in p.parts}
+    assert {"detections/a.png", "detections/b.png", "detections/c.png"} <= files()
+    assert files() == set(json.loads((tmp_path / "out" / "manifest.json").read_text())["files"])
+    (tmp_path / "out" / "my_notes.txt").write_text("kept")
+    run(load_config(ModelTestConfig, None, [*common, f"detect.images={tmp_path / 'second'}", "detect.drawn_images=1"]))
+    listed = set(json.loads((tmp_path / "out" / "manifest.json").read_text())["files"])
+    assert files() == listed | {"my_notes.txt"}
+    assert listed == {"manifest.json", "predictions.json", "detections/z.png"}
+    names = [im["file_name"] for im in read_predictions(tmp_path / "out" / "predictions.json")["images"]]
+    assert names == ["z.png"]
+
+
+def test_detection_estimate_counts_tiles_and_network_input():
+    """Issue 29: 0.75 MP photos in 128 px tiles enlarged to 800 px cost >10x the same photos in 1024 px tiles."""
+    from matchplant.model_test.estimate import plan
+
+    mc = {"min_size": 800, "max_size": 1333}
+    small = plan([(1000, 750)] * 40, 128, 32, mc)
+    whole = plan([(1000, 750)] * 40, 1024, 256, mc)
+    xs, ys = tile_starts(1000, 128, 32), tile_starts(750, 128, 32)
+    assert small["tiles"] == 40 * len(xs) * len(ys) and whole["tiles"] == 40
+    assert small["input_megapixels"] == pytest.approx(small["tiles"] * 800 * 800 / 1e6)
+    assert whole["input_megapixels"] == pytest.approx(40 * 800 * 1088 / 1e6)  # 750 -> 800, 1000 -> 1067 (pad 32)
+    assert small["input_megapixels"] / whole["input_megapixels"] > 10
+
+
+def test_detection_estimate_holds_against_the_measured_run(checkpoint, tmp_path, caplog):
+    """The estimate logged before detection is within 50 % of the detection's measured time."""
+    for k in range(3):
+        make_photo(tmp_path / "imgs" / f"p{k}.png", 420, 300, n_plants=10, seed=30 + k)
+    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
+                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
+                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu",
+                                              "detect.drawn_images=0", "batch_size=1"])
+    with caplog.at_level("INFO"):
+        run(cfg)
+    timing = read_predictions(tmp_path / "out" / "predictions.json")["info"]["timing"]
+    assert timing["tiles"] == 3 * len(tile_starts(420, 128, 32)) * len(tile_starts(300, 128, 32))
+    assert any("detection estimate" in r.message for r in caplog.records)
+    assert 0.5 <= timing["estimated_s"] / timing["detection_s"] <= 1.5, timing

@@ -421,13 +421,31 @@ def save_checkpoint(path: str | Path, model, model_cfg: ModelConfig, class_names
     return Path(path)
 
 
+CHECKPOINT_FIX = "give a checkpoint written by module 6 (its output_dir/checkpoints/best.pt, last.pt or epoch_NNN.pt)"
+
+
 def read_checkpoint(path: str | Path) -> dict:
     """Load a checkpoint's contents (on the CPU), with a clear error for anything else: a missing, empty or
-    truncated file, another program's model (YOLO, a bare state_dict, a pickled model), damaged contents."""
+    truncated file, another program's model (YOLO, a bare state_dict, a pickled model), damaged contents.
+    Checkpoints from outside MatchPlant (the paper's layout, bare torchvision weights):
+    :func:`matchplant.detection.foreign.read_any_checkpoint`."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     path = Path(path)
-    fix = "give a checkpoint written by module 6 (its output_dir/checkpoints/best.pt, last.pt or epoch_NNN.pt)"
+    data = load_checkpoint_file(path)
+    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(f"not a MatchPlant detector checkpoint: it holds {_describe_foreign(data, torch)}",
+                         path=path, fix=f"{CHECKPOINT_FIX}; to train from other weights, use model.pretrained")
+    return check_checkpoint(data, path)
+
+
+def load_checkpoint_file(path: str | Path) -> Any:
+    """What a ``.pt`` file holds (on the CPU), with a clear error for a missing, empty, text, truncated or
+    unreadable file and for a whole pickled model; nothing is checked of the contents."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    path = Path(path)
+    fix = CHECKPOINT_FIX
     if not path.is_file():
         raise InputError("checkpoint not found", path=path, fix="point 'checkpoint' at a .pt file written by module 6")
     size = path.stat().st_size
@@ -454,10 +472,15 @@ def read_checkpoint(path: str | Path) -> dict:
                          path=path, fix=fix) from exc
     if isinstance(data, torch.nn.Module):
         raise InputError(f"not a MatchPlant checkpoint: a whole pickled model ({type(data).__name__}, from "
-                         "torch.save(model)), without MatchPlant's settings and class names", path=path, fix=fix)
-    if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(f"not a MatchPlant detector checkpoint: it holds {_describe_foreign(data, torch)}",
-                         path=path, fix=f"{fix}; to train from other weights, use model.pretrained")
+                         "torch.save(model)), without MatchPlant's settings and class names", path=path,
+                         fix=f"{fix}; or save its weights with torch.save(model.state_dict(), path) and set "
+                             "class_names")
+    return data
+
+
+def check_checkpoint(data: dict, path: Path) -> dict:
+    """A MatchPlant checkpoint's version and contents checked (a clear error naming the file)."""
+    fix = CHECKPOINT_FIX
     if not isinstance(data.get("version"), int):
         raise InputError("the checkpoint has no version number (damaged or edited)", path=path, fix=fix)
     if data["version"] > CHECKPOINT_VERSION:

@@ -22,18 +22,19 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
-from matchplant.core.formats.coco import read_dataset
+from matchplant.core.formats.coco import bbox_values, read_dataset
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.architectures import ARCHITECTURES, AnchorRule
+from matchplant.detection.tile_objects import distinct_objects
 
 log = get_logger("inspect")
 
@@ -67,7 +68,7 @@ def size_stats(widths: Iterable[float], heights: Iterable[float]) -> dict:
     w, h = w[ok], h[ok]
     if not len(w):
         return {"boxes": 0}
-    out = {"boxes": int(len(w))}
+    out = {"boxes": len(w)}
     for name, v in (("width", w), ("height", h), ("sqrt_area", np.sqrt(w * h)), ("long_side", np.maximum(w, h)),
                     ("aspect_h_over_w", h / w)):
         out[name] = {f"p{p}": round(float(np.percentile(v, p)), 2) for p in PERCENTILES}
@@ -150,19 +151,112 @@ class InspectConfig:
     report: Path | None = param(None, "optional JSON file for the statistics and recommendations", path="out")
 
 
+def check_structure(ds: dict, path: Path) -> None:
+    """The parts of a COCO file that measuring needs: every image a positive width and height, every
+    annotation a ``[x, y, w, h]`` bbox of numbers (an error naming the first ones and the count)."""
+    bad_images = [im for im in ds["images"] if not all(isinstance(im.get(k), (int, float)) and not
+                                                         isinstance(im.get(k), bool) and im[k] > 0
+                                                         for k in ("width", "height"))]
+    if bad_images:
+        shown = ", ".join(f"{im.get('id')} ({im.get('file_name')})" for im in bad_images[:3])
+        raise InputError(f"{len(bad_images)} of the {len(ds['images'])} image(s) have no valid 'width'/'height' "
+                         f"(e.g. image {shown}): box sizes cannot be put in proportion to the photos",
+                         path=path, fix="add each image's width and height in pixels (module 4's import writes "
+                                        "them), or give module 4's annotations.json")
+    bad = [a for a in ds["annotations"] if bbox_values(a.get("bbox")) is None]
+    if bad:
+        a = bad[0]
+        got = "no 'bbox'" if "bbox" not in a else f"'bbox' = {a['bbox']!r} ({type(a['bbox']).__name__})"
+        raise InputError(f"{len(bad)} of the {len(ds['annotations'])} annotation(s) have no [x, y, w, h] 'bbox' "
+                         f"of numbers (e.g. annotation {a.get('id')}: {got})", path=path,
+                         fix="give each annotation 'bbox': [x, y, width, height] as a list of numbers, or import "
+                             "the file with module 4 (import_coco), which lists what it cannot use")
+
+
+def source_view(ds: dict) -> tuple[dict, list[tuple[int, int]], str]:
+    """Tiles seen as the photos they were cut from: ``(dataset of the photos' distinct plants, photo sizes,
+    how the sizes are known)``. A plant in the overlap of several tiles is one plant (module 5 clips it to each
+    tile; :func:`~matchplant.detection.tile_objects.distinct_objects` joins the copies), its box the union of its
+    pieces in photo pixels; a photo's size is ``source_width``/``source_height`` where the tiles record it, else
+    the extent of its tiles (module 5's last tile is flush with the photo's edge)."""
+    images = {im["id"]: im for im in ds["images"]}
+    object_of, _ = distinct_objects(ds)
+    union: dict[tuple, list[float]] = {}
+    for a in ds["annotations"]:
+        im = images.get(a.get("image_id"))
+        if im is None or a.get("id") not in object_of:
+            continue
+        x, y, w, h = bbox_values(a["bbox"])
+        x0, y0 = float(im.get("x0", 0)), float(im.get("y0", 0))
+        key = (im.get("source_image", f"\0{im['id']}"), object_of[a["id"]])
+        b = union.setdefault(key, [x0 + x, y0 + y, x0 + x + w, y0 + y + h])
+        b[:] = [min(b[0], x0 + x), min(b[1], y0 + y), max(b[2], x0 + x + w), max(b[3], y0 + y + h)]
+    extent: dict[str, list[float]] = {}
+    recorded = True
+    for im in ds["images"]:
+        src = im.get("source_image", f"\0{im['id']}")
+        if isinstance(im.get("source_width"), (int, float)) and isinstance(im.get("source_height"), (int, float)):
+            size = [float(im["source_width"]), float(im["source_height"])]
+        else:
+            recorded = False
+            size = [float(im.get("x0", 0)) + im["width"], float(im.get("y0", 0)) + im["height"]]
+        e = extent.setdefault(src, size)
+        e[:] = [max(e[0], size[0]), max(e[1], size[1])]
+    photos = {"images": [{"id": i + 1, "width": w, "height": h} for i, (w, h) in enumerate(extent.values())],
+              "annotations": [{"id": k + 1, "image_id": 1, "bbox": [b[0], b[1], b[2] - b[0], b[3] - b[1]]}
+                              for k, b in enumerate(union.values())]}
+    how = ("recorded in the tiles (source_width/height)" if recorded
+           else "the extent of each photo's tiles (at least the photo; exact when its edge tiles are kept)")
+    return photos, sorted({(round(w), round(h)) for w, h in extent.values()}), how
+
+
+def tiles_per_photo(size: tuple[int, int], tile: int, overlap: int) -> int:
+    """How many tiles of ``tile`` px overlapping by ``overlap`` cover a photo (module 5's and module 7's grid:
+    a step of tile - overlap, the last tile flush with the edge)."""
+    def along(length: int) -> int:
+        return 1 if length <= tile else math.ceil((length - tile) / (tile - overlap)) + 1
+    return along(size[0]) * along(size[1])
+
+
+def tiling_note(advice: dict, sizes: list[tuple[int, int]]) -> str | None:
+    """What the advised tile means for these photos: no tiling (one tile = the whole photo), or how many."""
+    if "tile_size" not in advice or not sizes:
+        return None
+    tile, overlap = advice["tile_size"], advice["overlap"]
+    counts = sorted({tiles_per_photo(s, tile, overlap) for s in sizes})
+    if counts == [1]:
+        same = all(max(s) == tile for s in sizes)
+        return (f"tile_size {tile} {'equals' if same else 'covers'} the photos ({sizes[0][0]}x{sizes[0][1]}"
+                f"{' ...' if len(sizes) > 1 else ''}): no tiling, each photo is one whole tile (module 5 then "
+                f"keeps the photos whole; module 7 detects each photo in one pass)")
+    shown = "-".join(str(c) for c in (counts[0], counts[-1])) if len(counts) > 1 else str(counts[0])
+    return f"{shown} tiles per photo ({sizes[0][0]}x{sizes[0][1]}{' ...' if len(sizes) > 1 else ''})"
+
+
 def inspect_dataset(cfg: InspectConfig) -> dict:
-    """Measure the boxes of ``cfg.annotations``, print and return the statistics and the advice."""
+    """Measure the boxes of ``cfg.annotations``, print and return the statistics and the advice. Tiles (module
+    5's splits) are measured as the photos they came from, so both give the same advice."""
     ds = read_dataset(cfg.annotations, validate=False)
-    w, h = box_sizes(ds)
+    check_structure(ds, Path(cfg.annotations))
+    tiles = any("source_image" in im for im in ds["images"])
+    photos, sizes, how = source_view(ds) if tiles else (ds, sorted({(int(im["width"]), int(im["height"]))
+                                                                    for im in ds["images"]}), "")
+    w, h = box_sizes(photos)
     stats = size_stats(w, h)
     if not stats["boxes"]:
         raise InputError("the dataset has no boxes to measure", path=cfg.annotations,
                          fix="give a COCO file with annotations (module 4's annotations.json)")
-    sizes = sorted({(int(im["width"]), int(im["height"])) for im in ds["images"]})
-    tiles = any("source_image" in im for im in ds["images"])
+    if tiles:
+        log.info("measured on tiles: %d tile boxes are %d distinct plants on %d photo(s); photo sizes from %s",
+                 len(ds["annotations"]), stats["boxes"], len(photos["images"]), how)
     advice = recommend(stats, sizes)
+    note = tiling_note(advice, sizes)
+    if note:
+        advice["tiling"] = note
     out = {"annotations": str(cfg.annotations), "images": len(ds["images"]), "image_sizes": sizes[:10],
            "tiles": tiles, "objects_px": stats, "recommended": advice}
+    if tiles:
+        out.update(photos=len(photos["images"]), tile_boxes=len(ds["annotations"]), photo_sizes_from=how)
     print(format_report(out))
     if cfg.report is not None:
         write_json(cfg.report, out)
@@ -173,8 +267,9 @@ def inspect_dataset(cfg: InspectConfig) -> dict:
 def format_report(r: dict) -> str:
     """The report as text for the terminal."""
     s, a = r["objects_px"], r["recommended"]
-    rows = [f"{r['boxes'] if 'boxes' in r else s['boxes']} boxes on {r['images']} "
-            f"{'tiles' if r['tiles'] else 'images'} ({', '.join(f'{w}x{h}' for w, h in r['image_sizes'][:3])})",
+    where = (f"{r['tile_boxes']} tile boxes on {r['images']} tiles = {s['boxes']} distinct plants on {r['photos']} "
+             f"photo(s)" if r["tiles"] else f"{s['boxes']} boxes on {r['images']} images")
+    rows = [f"{where} ({', '.join(f'{w}x{h}' for w, h in r['image_sizes'][:3])})",
             "object size in pixels       p5     p25    p50    p75    p95    p99"]
     for key in ("width", "height", "sqrt_area", "long_side"):
         rows.append(f"  {key:<24}" + "".join(f"{s[key][p]:7.1f}" for p in ("p5", "p25", "p50", "p75", "p95", "p99")))
@@ -186,11 +281,24 @@ def format_report(r: dict) -> str:
              f"(CPU: not below {a['min_size_floor']})",
              f"  model.anchor_sizes: auto  (or, for these objects: {json.dumps(a['anchor_sizes'])})",
              f"  model.aspect_ratios: {a['aspect_ratios']}"]
+    if a.get("tiling"):
+        rows.append(f"  tiling: {a['tiling']}")
     rows += [f"  why {k}: {v}" for k, v in a["why"].items()]
     if r["tiles"]:
-        rows.append("  (measured on tiles: tile_size and overlap advice is for the photos the tiles came from)")
+        rows.append("  (measured on tiles, as the photos they were cut from: the advice is the photos' own; photo "
+                    f"sizes from {r['photo_sizes_from']})")
     return "\n".join(rows)
 
 
-__all__ = ["InspectConfig", "inspect_dataset", "format_report", "box_sizes", "input_scale", "size_stats", "recommend", "auto_anchor_sizes",
-           "smallest_anchor", "MIN_OBJECT_PX"]
+__all__ = [
+    "MIN_OBJECT_PX",
+    "InspectConfig",
+    "auto_anchor_sizes",
+    "box_sizes",
+    "format_report",
+    "input_scale",
+    "inspect_dataset",
+    "recommend",
+    "size_stats",
+    "smallest_anchor",
+]

@@ -52,6 +52,9 @@ class ModelTestConfig:
 
     checkpoint: Path = param(None, "model checkpoint from module 6 (e.g. runs/train/checkpoints/best.pt)",
                              path="file", required=True)
+    class_names: list[str] = param([], "for a checkpoint from outside MatchPlant (the paper's layout or a bare "
+                                       "torchvision state_dict): its class names, in the order it was trained "
+                                       "with (e.g. [maize]); [] = a module 6 checkpoint, which holds them")
     output_dir: Path = param(Path("runs/test"), "where metrics, figures and predictions go", path="out")
     evaluate: EvalConfig = section(EvalConfig)
     detect: DetectConfig = section(DetectConfig)

@@ -13,10 +13,12 @@ image's name.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import shapely
 
 from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.formats.images import image_size, read_rgb8
@@ -28,7 +30,7 @@ from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
-from matchplant.detection.device import select_device, warn_if_slow
+from matchplant.detection.device import select_device
 from matchplant.detection.distributed import join
 from matchplant.detection.evaluate import (
     coco_evaluate,
@@ -41,9 +43,12 @@ from matchplant.detection.evaluate import (
     summarise_stats,
     write_image,
 )
-from matchplant.detection.model import load_detector, read_checkpoint, set_score_threshold
+from matchplant.detection.foreign import read_any_checkpoint
+from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
+from matchplant.model_test.estimate import estimate
+from matchplant.model_test.manifest import previous_files, remove_stale, write_manifest
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
@@ -70,7 +75,7 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
     out = Path(out) if out is not None else final
     device = device or select_device(cfg.device)
     amp = cfg.amp and device.type == "cuda"
-    ck = ck or read_checkpoint(cfg.checkpoint)
+    ck = ck or read_model(cfg)
     ds = ds or test_tiles(cfg, ck)
     # no score threshold before COCOeval, and as many boxes as maxDets
     model, ck = load_detector(ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}},
@@ -104,6 +109,16 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
     log.info("test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)", summarise_stats(stats),
              op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], final / "metrics.json")
     return metrics
+
+
+def read_model(cfg: ModelTestConfig) -> dict:
+    """The checkpoint: module 6's, the paper's layout or bare torchvision weights (their classes from
+    ``class_names``)."""
+    ck = read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
+    if cfg.class_names and "foreign" not in ck and list(cfg.class_names) != ck["class_names"]:
+        log.warning("class_names %s ignored: the module 6 checkpoint %s holds its own classes %s",
+                    list(cfg.class_names), cfg.checkpoint, ck["class_names"])
+    return ck
 
 
 def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
@@ -149,6 +164,20 @@ def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return wh[..., 0] * wh[..., 1]
 
 
+def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, found through an R-tree
+    (shapely's STRtree): a photo's thousands of boxes meet only their neighbours, so the pairs are few where
+    a dense matrix would be n x m."""
+    if not len(a) or not len(b):
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
+    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
+    wh = np.clip(np.minimum(a[i, 2:], b[j, 2:]) - np.maximum(a[i, :2], b[j, :2]), 0, None)
+    inter = wh[:, 0] * wh[:, 1]
+    ok = inter > 0
+    return i[ok], j[ok], inter[ok]
+
+
 def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray,
                      iou: float = 0.5, tiles: np.ndarray | None = None, containment: float = 0.8) -> np.ndarray:
     """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
@@ -167,10 +196,11 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
     keep_whole = whole[nms(boxes[whole], scores[whole], iou, labels[whole])]
     parts = np.flatnonzero(cut)
     if len(parts) and len(keep_whole):
-        inter = _box_intersections(boxes[parts], boxes[keep_whole])
+        i, j, inter = _touching(boxes[parts], boxes[keep_whole])
         area = np.prod(boxes[parts, 2:] - boxes[parts, :2], axis=1)
-        covered = ((inter / np.maximum(area, 1e-9)[:, None] >= 0.5)
-                   & (labels[parts][:, None] == labels[keep_whole][None, :])).any(axis=1)
+        hit = (inter / np.maximum(area[i], 1e-9) >= 0.5) & (labels[parts][i] == labels[keep_whole][j])
+        covered = np.zeros(len(parts), bool)
+        covered[i[hit]] = True
         parts = parts[~covered]
     if len(parts):
         parts = parts[nms(boxes[parts], scores[parts], iou, labels[parts])]
@@ -181,7 +211,7 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
 
 
 def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float,
-            iou: float, chunk: int = 512) -> np.ndarray:
+            iou: float) -> np.ndarray:
     """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
     of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
     >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
@@ -189,25 +219,52 @@ def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.n
     b, lab, til = boxes[kept], labels[kept], tiles[kept]
     area = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
     all_area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
-    pairs = []  # (inner, outer) positions in kept
-    for start in range(0, len(b), chunk):
-        inner = np.arange(start, min(start + chunk, len(b)))
-        inter = _box_intersections(b[inner], b)
-        larger = (area[inner][:, None] < area[None, :]) | (
-            (area[inner][:, None] == area[None, :]) & (inner[:, None] > np.arange(len(b))[None, :]))
-        inside = ((inter >= containment * np.maximum(area[inner], 1e-9)[:, None]) & larger
-                  & (lab[inner][:, None] == lab[None, :]) & (til[inner][:, None] != til[None, :]))
-        pairs += [(int(inner[r]), int(c)) for r, c in np.argwhere(inside)]
+    inner, outer = _inside_pairs(b, lab, area, containment)
+    other_tile = til[inner] != til[outer]
+    inner, outer = inner[other_tile], outer[other_tile]
+    groups: dict[tuple, np.ndarray] = {}  # the boxes of each (tile, class)
     dropped = np.zeros(len(b), bool)
-    for i, j in sorted(pairs, key=lambda p: -area[p[1]]):
+    for k in np.argsort(-area[outer], kind="stable"):
+        i, j = int(inner[k]), int(outer[k])
         if dropped[j] or dropped[i]:
             continue
-        own = np.flatnonzero((tiles == til[i]) & (labels == lab[i]))
+        key = (int(til[i]), int(lab[i]))
+        if key not in groups:
+            groups[key] = np.flatnonzero((tiles == key[0]) & (labels == key[1]))
+        own = groups[key]
         own = own[own != kept[i]]
         inter = _box_intersections(b[j][None], boxes[own])[0]
         seen = inter / np.maximum(area[j] + all_area[own] - inter, 1e-9) >= iou
         dropped[i] = not seen.any()
     return dropped
+
+
+def _inside_pairs(b: np.ndarray, lab: np.ndarray, area: np.ndarray, containment: float):
+    """``(inner, outer)``: box ``inner`` lies at least ``containment`` inside the larger box ``outer`` of its
+    class (equal areas: the later one is the inner)."""
+    i, j, inter = _touching(b, b)
+    larger = (area[i] < area[j]) | ((area[i] == area[j]) & (i > j))
+    ok = (i != j) & larger & (inter >= containment * np.maximum(area[i], 1e-9)) & (lab[i] == lab[j])
+    return i[ok], j[ok]
+
+
+def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8) -> np.ndarray:
+    """Indices of a photo's final boxes kept after one pass over them: a box lying at least ``containment``
+    inside a larger box of its class on the same photo is a nested duplicate (a part of the plant, found by
+    the model in one tile, or left by the merge across tiles) and is merged into the larger one. The same
+    containment rule as across tiles (:func:`_nested`, largest first: a dropped box drops nothing), without
+    its exception for boxes of one tile: the photo's output holds no box that far inside another."""
+    n = len(boxes)
+    if n < 2:
+        return np.arange(n)
+    area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
+    inner, outer = _inside_pairs(boxes, labels, area, containment)
+    dropped = np.zeros(n, bool)
+    for k in np.argsort(-area[outer], kind="stable"):  # largest outer first, as _nested
+        i, j = inner[k], outer[k]
+        if not (dropped[i] or dropped[j]):
+            dropped[i] = True
+    return np.flatnonzero(~dropped)
 
 
 Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
@@ -228,8 +285,10 @@ def model_predictor(model, device, amp: bool = False) -> Predictor:
 
 def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, overlap: int, batch_size: int = 4,
                  score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0,
-                 merge_containment: float = 0.8):
-    """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles."""
+                 merge_containment: float = 0.8, counts: dict | None = None):
+    """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles, then
+    nested duplicates on the photo merged (:func:`merge_nested`). ``counts`` (a dict) adds up the tiles run, the
+    boxes found in them and the nested boxes merged."""
     h, w = image.shape[:2]
     origins = [(x0, y0) for y0 in tile_starts(h, tile_size, overlap) for x0 in tile_starts(w, tile_size, overlap)]
     all_b, all_s, all_l, all_cut, all_t = [], [], [], [], []
@@ -251,17 +310,23 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
     boxes, scores = np.concatenate(all_b).reshape(-1, 4), np.concatenate(all_s)
     labels, cut = np.concatenate(all_l).astype(int), np.concatenate(all_cut).astype(bool)
     keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou, np.concatenate(all_t), merge_containment)
+    boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
+    keep = merge_nested(boxes, labels, merge_containment)
+    if counts is not None:
+        for key, n in (("tiles", len(origins)), ("tile_boxes", len(cut)), ("nested_merged", len(boxes) - len(keep))):
+            counts[key] = counts.get(key, 0) + n
     return boxes[keep], scores[keep], labels[keep]
 
 
 def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
-           files: list[Path] | None = None) -> Path:
+           files: list[Path] | None = None, listed: list[str] | None = None) -> Path:
     """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
     ``out`` (by default ``output_dir``). A run that finds no plant at all is an error that says why.
-    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already."""
+    ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already;
+    ``listed`` gets the drawn images of every process (relative paths, on the main process)."""
     final = Path(cfg.output_dir)
     out = Path(out) if out is not None else final
-    ck = ck or read_checkpoint(cfg.checkpoint)
+    ck = ck or read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     dcfg = cfg.detect
     check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
@@ -270,7 +335,10 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
     predictor = model_predictor(model, device, cfg.amp)
-    warn_if_slow(device, ck["model_config"]["architecture"], len(files), *image_size(files[0]))  # before hours of CPU
+    # before hours of work: the actual tiles and network input of every photo, timed on this device
+    plan = estimate(predictor, read_rgb8(files[0]), [image_size(f) for f in files], dcfg.tile_size, dcfg.overlap,
+                    ck["model_config"], device, processes=shard.world)
+    started = time.perf_counter()
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
     cat_ids = [int(c) for c in ck["category_ids"]]
     categories = [{"id": cid, "name": name, "supercategory": "plant"} for cid, name in zip(cat_ids, ck["class_names"])]
@@ -278,10 +346,13 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     tiling = dict(tile_size=dcfg.tile_size, overlap=dcfg.overlap, batch_size=cfg.batch_size,
                   merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
+    counts: dict = {}
+    drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
     for i in progress(shard.take(files), desc="detecting", unit="image"):
         path = files[i]
         img = read_rgb8(path)
-        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, **tiling)
+        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, counts=counts,
+                                             **tiling)
         name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
         if (root / SUBMODELS_DIR).is_dir():
             name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
@@ -292,10 +363,16 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
                        round(float(s), 5)) for b, s, lab in zip(boxes, scores, labels)]))
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
+            drawn.append(f"detections/{path.stem}.png")
+    seconds = time.perf_counter() - started
     gathered = sorted(shard.gather(mine), key=lambda r: r[0])  # a single process's order
+    merged = sum(c.get("nested_merged", 0) for c in shard.gather([counts]))
+    drawn_by_all = shard.gather(drawn)
     if not shard.main:
         shard.barrier()
         return final / "predictions.json"
+    log.info("%d nested box(es) merged: each lay >= %.0f %% inside a larger box of its class on the same photo "
+             "(detect.merge_containment)", merged, 100 * dcfg.merge_containment)
     check_found_scale(ck, [(np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
                             entry["width"], entry["height"]) for _, entry, found in gathered], dcfg.tile_size)
     images, predictions = [], []
@@ -313,8 +390,13 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     write_predictions(out / "predictions.json", images, categories, predictions,
                       info={"description": "MatchPlant module 7 detections (source-image pixels)",
                             "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
-                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold})
+                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold,
+                            "timing": {"estimated_s": round(plan["seconds"], 3), "detection_s": round(seconds, 3),
+                                       "tiles": plan["tiles"], "input_megapixels": round(plan["input_megapixels"], 3),
+                                       "device": plan["device"]}})
     path = final / "predictions.json"
+    if listed is not None:
+        listed += drawn_by_all
     log.info("%d plants found on %d image(s)%s: %s", len(predictions), len(files),
              f" by {shard.world} processes" if shard.world > 1 else "", path)
     shard.barrier()
@@ -332,16 +414,22 @@ def run(cfg: ModelTestConfig) -> dict:
     """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
     shard, device = join(select_device(cfg.device))
     # every input read and checked before the first (slow) model pass
-    ck = read_checkpoint(cfg.checkpoint)
+    ck = read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
     files = detect_images(cfg) if cfg.detect.images is not None else None
     if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
         Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     result: dict = {}
+    before = previous_files(cfg.output_dir)
     with staged_outputs(cfg.output_dir) as out:
         if cfg.evaluate.dataset_json is not None and shard.main:  # under torchrun: evaluated once
             result["metrics"] = evaluate(cfg, device, out, ck=ck, ds=ds)
+        drawn: list[str] = []  # every process's drawn images
         if files is not None:
-            result["predictions"] = detect(cfg, device, out, ck=ck, files=files)
+            result["predictions"] = detect(cfg, device, out, ck=ck, files=files, listed=drawn)
+        now = write_manifest(out, drawn) if shard.main else []
+    if shard.main:  # only once the new outputs are in place; the other processes' drawn images are in `now`
+        remove_stale(Path(cfg.output_dir), before, now)
     return result
+

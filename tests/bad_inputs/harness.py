@@ -14,7 +14,9 @@ A case module lists :class:`Case` objects; ``test_cases.py`` runs them all.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,6 +69,7 @@ class Case:
     check: Callable[[Work], None] | None = None
     outputs_allowed: tuple[str, ...] = ()
     marks: tuple = field(default_factory=tuple)
+    env: dict = field(default_factory=dict)  # environment variables set for the run only (None: unset)
 
 
 def write_text_file(path: Path, text: str, *, bom: bool = False, crlf: bool = False) -> Path:
@@ -90,6 +93,19 @@ def write_rows(w: "Work", rows: list[list[str]], name: str, sep: str) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def environment(values: dict):
+    """``os.environ`` with ``values`` set (None: unset) inside the block, as it was after it."""
+    old = {k: os.environ.get(k) for k in values}
+    try:
+        for k, v in values.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, str(v))
+        yield
+    finally:
+        for k, v in old.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
+
+
 def tree_hashes(folder: Path) -> dict[str, str]:
     if not folder.exists():
         return {}
@@ -109,7 +125,8 @@ def run_case(case: Case, work: Work, capsys) -> None:
     argv = case.prepare(work)
     before_inputs = tree_hashes(work.inputs)
     before_out = set(tree_hashes(work.out))
-    code = run_module(case.step, [*argv, "--quiet"])
+    with environment(case.env):
+        code = run_module(case.step, [*argv, "--quiet"])
     err = capsys.readouterr().err
     assert tree_hashes(work.inputs) == before_inputs, f"{case.name}: an input file changed"
     if case.expect == "ok":

@@ -1,0 +1,93 @@
+"""How long detection will take, before it starts (issue 29): from the actual tiles of every photo and the
+network input size of each tile, timed on this device.
+
+A tile of ``t`` px is resized by the detector to its ``min_size`` (short side; long side at most ``max_size``)
+before the network sees it, so its cost grows with the *input* pixels, not the photo's: 128 px tiles enlarged
+to 800 px cost ~39x their own pixels, and a 1000 x 750 photo cut into 128 px tiles costs about 12x the same photo
+in 1024 px tiles. :func:`plan` counts each photo's tiles (module 7's own grid) and their input pixels; one
+timed pass of the model on a real tile of the first photo gives this device's seconds per input megapixel
+(:func:`probe`), the same on a CPU under load or a GPU; the estimate is their product. A warning comes before
+any work that will take longer than :data:`WARN_AFTER_S`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from matchplant.core.runtime.log import get_logger
+from matchplant.detection.objects import input_scale
+
+log = get_logger("model_test")
+
+WARN_AFTER_S = 180.0  # "more than a few minutes"
+PAD = 32  # torchvision batches images padded to a multiple of 32 px
+
+
+def _starts(length: int, tile: int, overlap: int) -> int:
+    """How many tile origins module 7's grid has along one axis (``run.tile_starts``)."""
+    return 1 if length <= tile else math.ceil((length - tile) / (tile - overlap)) + 1
+
+
+def input_pixels(tw: int, th: int, min_size: int, max_size: int) -> float:
+    """Pixels the network sees for a ``tw`` x ``th`` tile (resized, then padded to a multiple of 32)."""
+    s = input_scale(tw, th, min_size, max_size)
+    return math.ceil(tw * s / PAD) * PAD * math.ceil(th * s / PAD) * PAD
+
+
+def plan(sizes: list[tuple[int, int]], tile: int, overlap: int, model_config: dict) -> dict:
+    """Tiles and network input megapixels per photo and in all (``sizes``: width, height per photo)."""
+    lo, hi = int(model_config.get("min_size", 800)), int(model_config.get("max_size", 1333))
+    tiles, mpx = [], []
+    for w, h in sizes:
+        n = _starts(w, tile, overlap) * _starts(h, tile, overlap)
+        tiles.append(n)
+        mpx.append(n * input_pixels(min(tile, w), min(tile, h), lo, hi) / 1e6)
+    photo_mpx = sum(w * h for w, h in sizes) / 1e6
+    return {"photos": len(sizes), "tiles": int(sum(tiles)), "input_megapixels": float(sum(mpx)),
+            "photo_megapixels": photo_mpx, "tiles_per_photo": [int(min(tiles)), int(max(tiles))],
+            "input_per_photo_pixel": float(sum(mpx) / photo_mpx) if photo_mpx else 0.0}
+
+
+def probe(predictor, image: np.ndarray, tile: int, model_config: dict) -> float:
+    """Seconds per network input megapixel on this device: one timed pass on the first tile of ``image``."""
+    th, tw = min(tile, image.shape[0]), min(tile, image.shape[1])
+    t0 = time.perf_counter()
+    predictor([np.ascontiguousarray(image[:th, :tw])])
+    seconds = time.perf_counter() - t0
+    return seconds / (input_pixels(tw, th, int(model_config.get("min_size", 800)),
+                                   int(model_config.get("max_size", 1333))) / 1e6)
+
+
+def duration(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds >= 120:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds:.0f} s"
+
+
+def estimate(predictor, first_image: np.ndarray, sizes: list[tuple[int, int]], tile: int, overlap: int,
+             model_config: dict, device, processes: int = 1, warn_after_s: float = WARN_AFTER_S) -> dict:
+    """The plan, the probe and the estimated seconds (``processes``: a torchrun job shares the photos); logged,
+    and a warning before a run longer than ``warn_after_s``."""
+    p = plan(sizes, tile, overlap, model_config)
+    rate = probe(predictor, first_image, tile, model_config)
+    seconds = rate * p["input_megapixels"] / max(processes, 1)
+    p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(device))
+    lo = int(model_config.get("min_size", 800))
+    what = (f"{p['photos']} photo(s), {p['tiles']} tiles of {tile} px ({p['tiles_per_photo'][0]}"
+            f"{'-' + str(p['tiles_per_photo'][1]) if p['tiles_per_photo'][1] != p['tiles_per_photo'][0] else ''} "
+            f"per photo), each resized to the network's {lo} px input: {p['input_megapixels']:.1f} MP for the network, "
+            f"{p['input_per_photo_pixel']:.1f}x the photos' own pixels; {rate:.2f} s per MP measured on {device}")
+    if seconds >= warn_after_s:
+        hint = (" Larger tiles cost less: the enlargement of small tiles is paid quadratically (module 7 detects at "
+                "the training scale; train on larger tiles, or a lower model.min_size, to detect faster)."
+                if p["input_per_photo_pixel"] > 4 else "")
+        gpu = " A CUDA GPU (device: auto picks it) is much faster." if getattr(device, "type", "") == "cpu" else ""
+        log.warning("detection will take about %s: %s.%s%s", duration(seconds), what, hint, gpu)
+    else:
+        log.info("detection estimate: about %s (%s)", duration(seconds), what)
+    return p
