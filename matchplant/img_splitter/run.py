@@ -359,7 +359,8 @@ def _write(cfg: ImgSplitterConfig, sources: list[Source], categories: list[dict]
             file_name = f"{Path(s.name).stem}_{x0}_{y0}{tile_suffix(cfg, s.path)}"
             image_id = len(ds["images"]) + 1
             ds["images"].append({"id": image_id, "file_name": file_name, "width": x1 - x0, "height": y1 - y0,
-                                 "source_image": s.name, "x0": x0, "y0": y0,
+                                 "source_image": s.name, "x0": x0, "y0": y0, "source_width": s.width,
+                                 "source_height": s.height,
                                  **({} if s.region is None else {"masked_outside_region": True})})
             for n in np.flatnonzero(s.plan.keep[t]):
                 cx1, cy1, cx2, cy2 = s.plan.clipped[t, n]

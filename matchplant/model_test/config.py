@@ -61,6 +61,8 @@ class ModelTestConfig:
     batch_size: int = param(4, "tiles per batch", min=1)
     num_workers: int = param(0, "processes loading test tiles (0 = in the main process)", min=0)
     device: str = param("auto", "auto picks CUDA, then Apple MPS, then CPU; or cpu, cuda, cuda:N, mps")
+    threads: int = param(0, "CPU threads for torch (0 = auto: the cores this process may use less those busy "
+                         "with other work, logged)", min=0)
     amp: bool = param(True, "mixed precision on CUDA GPUs")
 
     def check(self) -> None:

@@ -30,7 +30,7 @@ from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
-from matchplant.detection.device import select_device
+from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import join
 from matchplant.detection.evaluate import (
     coco_evaluate,
@@ -413,6 +413,8 @@ def detect_images(cfg: ModelTestConfig) -> list[Path]:
 def run(cfg: ModelTestConfig) -> dict:
     """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
     shard, device = join(select_device(cfg.device))
+    if device.type == "cpu":
+        configure_threads(cfg.threads or None)  # the cores free for this process, not every core (issue 29)
     # every input read and checked before the first (slow) model pass
     ck = read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'

@@ -47,6 +47,7 @@ from matchplant.detection.data import (
     collate,
 )
 from matchplant.detection.device import configure_threads, select_device
+from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.distributed import Shard, join, world_size
 from matchplant.detection.evaluate import (
     coco_evaluate,
@@ -64,7 +65,6 @@ from matchplant.detection.model import (
     load_matching_weights,
     model_config_from_dict,
     parameter_groups,
-    read_checkpoint,
     resolve_auto_anchors,
     save_checkpoint,
 )
@@ -155,7 +155,8 @@ def _initial_model(cfg: ModelTrainConfig, class_names: list[str], resume: dict |
         model.load_state_dict(resume["model_state"])
         return model, mcfg
     if cfg.model.checkpoint is not None:
-        src = read_checkpoint(cfg.model.checkpoint)
+        # a MatchPlant checkpoint, the paper's layout or a bare torchvision state_dict (detection/foreign.py)
+        src = read_any_checkpoint(cfg.model.checkpoint, architecture=cfg.model.architecture, fit_classes=False)
         src_cfg = src["model_config"]
         if cfg.model.architecture == AUTO:
             log.info("model.architecture: auto -> %s, the architecture of model.checkpoint", src_cfg["architecture"])
