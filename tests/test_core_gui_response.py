@@ -15,7 +15,8 @@ import numpy as np
 from matplotlib.backend_bases import KeyEvent, MouseEvent
 from matplotlib.patches import Rectangle
 from matplotlib.widgets import TextBox
-from matchplant.core.runtime.gui import QuietTextBox, SetupField, SetupScreen, close, figure
+from matchplant.core.runtime.gui import close, figure
+from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScreen
 from matchplant.core.runtime.config import param
 from dataclasses import dataclass
 

@@ -34,7 +34,8 @@ from matchplant.core.formats.images import display_rgb, match_name, read_image
 from matchplant.core.formats.owned_areas import read_owned_areas
 from matchplant.core.runtime.config import validate
 from matchplant.core.runtime.guard import check_outputs
-from matchplant.core.runtime.gui import SetupField, SetupScreen, close, figure, require_display, reveal, show
+from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
+from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.core.runtime.log import get_logger
 
 log = get_logger("bbox_drawer")

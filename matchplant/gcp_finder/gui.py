@@ -14,17 +14,9 @@ import matplotlib
 import numpy as np
 from PIL import Image
 
-from matchplant.core.runtime.gui import (
-    SetupField,
-    SetupScreen,
-    figure,
-    is_headless,
-    require_display,
-    reveal,
-    show,
-    status_text,
-)
+from matchplant.core.runtime.gui import figure, is_headless, require_display, reveal, show, status_text
 from matchplant.core.runtime.gui import close as close_figure
+from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.gcp_finder.candidates import Finder
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
 from matchplant.gcp_finder.marks import MarkStore, store_for

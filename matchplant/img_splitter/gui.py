@@ -16,8 +16,8 @@ from matplotlib.widgets import Button
 from matchplant.core.formats.images import display_rgb, read_image
 from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import (QuietTextBox, SetupField, SetupScreen, close, figure, require_display,
-                                         reveal, show)
+from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
+from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScreen
 from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.run import load_sources, plan_all, run
 

@@ -21,16 +21,8 @@ from matplotlib.widgets import Button, RadioButtons, TextBox
 
 from matchplant.core.runtime.config import save_config, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import (
-    SetupField,
-    SetupScreen,
-    close,
-    figure,
-    require_display,
-    reveal,
-    show,
-    status_text,
-)
+from matchplant.core.runtime.gui import close, figure, require_display, reveal, show, status_text
+from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.core.runtime.log import get_logger
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.output import draw_coverage, save_selection

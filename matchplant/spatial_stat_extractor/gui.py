@@ -12,11 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import shapely
+from matplotlib.collections import LineCollection
+from matplotlib.widgets import Button, CheckButtons, RadioButtons
 
 from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
-from matchplant.core.runtime import gui as shared_gui
-from matchplant.core.runtime.gui import ask_path, figure, is_headless, require_display, show
+from matchplant.core.runtime.gui import figure, is_headless, require_display, show
+from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.plots_figure import unit_of
@@ -88,10 +90,6 @@ class SpatialStatExtractorGUI:
         self.config_path = Path(config_path) if config_path else None
         self.headless = is_headless(headless)
         self.fig = fig = figure(self.headless, figsize=(13, 8), title="9 Spatial statistics")
-        # Matplotlib's widgets on demand: the step's command imports this module, a plain run never draws
-        from matplotlib.widgets import Button, CheckButtons, RadioButtons
-
-        QuietTextBox = shared_gui.QuietTextBox
         if self.headless:  # Agg draws at once on every widget event; nobody looks until savefig (which still draws)
             self.fig.canvas.draw_idle = self.fig.canvas.draw = lambda *args, **kwargs: None
         self.ax = fig.add_axes([0.08, 0.13, 0.50, 0.80])
@@ -245,8 +243,6 @@ class SpatialStatExtractorGUI:
         coords, idx = shapely.get_coordinates(rings, return_index=True)
         segments = np.split(coords, np.flatnonzero(np.diff(idx)) + 1) if len(coords) else []
         self.segments = segments
-        from matplotlib.collections import LineCollection  # on demand (see __init__)
-
         self.poly_artist = LineCollection(segments, colors="#ff3df2", linewidths=0.8)
         self.ax.add_collection(self.poly_artist)
         self.ax.ticklabel_format(useOffset=False, style="plain")
@@ -323,8 +319,6 @@ class SpatialStatExtractorGUI:
         values = table[col].to_numpy(float)
         _, owner = shapely.get_parts(self.preview_polygons.geometry.values, return_index=True)
         self.poly_artist.remove()
-        from matplotlib.collections import LineCollection  # on demand (see __init__)
-
         self.poly_artist = LineCollection(self.segments, array=values[owner], cmap="autumn", linewidths=1.6)
         self.ax.add_collection(self.poly_artist)
         if self.colorbar is not None:

@@ -8,8 +8,7 @@ No function here changes Matplotlib's global state (the backend, rcParams, pyplo
 
 GUIs are tested headless (events synthesised by ``tests/gui_events.py``) and in a real window under
 Xvfb. Keep logic out of GUI classes: they call library functions and draw results. The widgets (text fields,
-setup screens, file dialogs) are in :mod:`matchplant.core.runtime.widgets`, reached through this module on first
-use.
+setup screens, file dialogs) are in :mod:`matchplant.core.runtime.widgets`, which only the GUIs import.
 """
 
 from __future__ import annotations
@@ -31,18 +30,6 @@ def _pyplot():
     import matplotlib.pyplot as plt  # on demand (see above)
 
     return plt
-
-
-WIDGETS = ("QuietTextBox", "busy", "ask_path", "SetupField", "SetupScreen")
-
-
-def __getattr__(name: str):
-    # the widgets live in widgets.py, imported when a GUI first asks for one (see above)
-    if name in WIDGETS:
-        from matchplant.core.runtime import widgets
-
-        return getattr(widgets, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def interactive_backend_available() -> bool:
