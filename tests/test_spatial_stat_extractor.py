@@ -551,3 +551,26 @@ def test_synthetic_field_heights_and_ndvi(tiny_field, tmp_path):
         counts = np.bincount(label[label > 0])[t2["plant_id"]]
         np.testing.assert_allclose(t2["chm_count"], counts, atol=1e-6)
         assert np.all(np.abs(t2["chm_max"] - truth.loc[t2["plant_id"], "height"].to_numpy()) < res)
+
+
+def test_rerun_into_one_folder_leaves_nothing_stale(field):
+    """A run with canopy outlines, then one without into the same folder: the outlines of the first are gone,
+    a file the user put there stays, and manifest.json lists exactly what the folder holds of the step."""
+    import json
+
+    from matchplant.core.runtime.config import load_config
+    from matchplant.spatial_stat_extractor import run
+    from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+
+    d, out = field["dir"], field["dir"] / "stats_out"
+    base = [f"polygons={d / 'plants.gpkg'}", f"rasters.dsm={d / 'dsm.tif'}", f"rasters.dtm={d / 'dtm.tif'}",
+            f"output_dir={out}"]
+    run(load_config(SpatialStatExtractorConfig, None, base + ["vector_formats=[gpkg, shp]"]))
+    assert (out / "outlines.gpkg").is_file() and (out / "polygons.shp").is_file()
+    (out / "my_notes.txt").write_text("mine")
+    run(load_config(SpatialStatExtractorConfig, None, base + ["canopy.enabled=false", "vector_formats=[gpkg]"]))
+    listed = set(json.loads((out / "manifest.json").read_text())["files"])
+    held = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.relative_to(out).parts[0] != "logs"}
+    assert held == listed | {"my_notes.txt"}
+    assert not (out / "outlines.gpkg").exists() and not (out / "polygons.shp").exists()
+    assert (out / "stats.csv").is_file()

@@ -28,6 +28,7 @@ from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.device import configure_threads, select_device
@@ -48,7 +49,6 @@ from matchplant.detection.model import load_detector, set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.estimate import estimate
-from matchplant.model_test.manifest import previous_files, remove_stale, write_manifest
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 

@@ -16,6 +16,7 @@ import rasterio
 
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.core.formats.vectors import write_vector
@@ -99,8 +100,11 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
 
 def run(cfg: SpatialStatExtractorConfig) -> dict:
     # all files or none: written in a temporary folder, moved into output_dir at the end
+    before = previous_files(cfg.output_dir)
     with staged_outputs(cfg.output_dir) as stage:
         polygons, _, report, written = extract_and_write(replace(cfg, output_dir=stage))
+        now = write_manifest(stage)
+    remove_stale(Path(cfg.output_dir), before, now)  # only once the new outputs are in place
     written = {k: Path(cfg.output_dir) / Path(v).relative_to(stage) for k, v in written.items()}
     for key, path in written.items():
         log.info("%-14s %s", key, path)

@@ -1,7 +1,7 @@
-"""Re-runs leave nothing stale (issue 29): module 7 lists every file a run wrote in ``manifest.json``; the next
-run into the same folder removes what the previous manifest listed and this run did not write again (drawn
-images of other photos, a ``metrics.json`` of an evaluation not repeated), and nothing else: files the user put
-in the folder stay. The removal happens only after the new outputs are in place (a failed run changes
+"""Re-runs leave nothing stale (issue 29): a step (modules 7 and 9) lists every file a run wrote in
+``manifest.json``; the next run into the same folder removes what the previous manifest listed and this run did
+not write again (module 7's drawn images of other photos or a ``metrics.json`` of an evaluation not repeated,
+module 9's outlines of a run with canopy outlines), and nothing else: files the user put in the folder stay. The removal happens only after the new outputs are in place (a failed run changes
 nothing)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 
-log = get_logger("model_test")
+log = get_logger()
 
 MANIFEST = "manifest.json"
 NOT_LISTED = ("logs",)  # the run log is kept across runs (the guard writes it directly)
@@ -34,7 +34,7 @@ def write_manifest(stage: Path, extra: list[str] = ()) -> list[str]:
     stage = Path(stage)
     files = sorted({p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()
                     and p.relative_to(stage).parts[0] not in NOT_LISTED} | set(extra) | {MANIFEST})
-    write_json(stage / MANIFEST, {"description": "the files of module 7's last run in this folder; the next run "
+    write_json(stage / MANIFEST, {"description": "the files of this step's last run in this folder; the next run "
                                                  "removes those it does not write again", "files": files})
     return files
 
