@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import duration
 from matchplant.detection.objects import input_scale
 
 log = get_logger("model_test")
@@ -59,14 +60,6 @@ def probe(predictor, image: np.ndarray, tile: int, model_config: dict) -> float:
     seconds = time.perf_counter() - t0
     return seconds / (input_pixels(tw, th, int(model_config.get("min_size", 800)),
                                    int(model_config.get("max_size", 1333))) / 1e6)
-
-
-def duration(seconds: float) -> str:
-    if seconds >= 3600:
-        return f"{seconds / 3600:.1f} h"
-    if seconds >= 120:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds:.0f} s"
 
 
 def estimate(predictor, first_image: np.ndarray, sizes: list[tuple[int, int]], tile: int, overlap: int,

@@ -109,15 +109,6 @@ def stop_status(done_iters: int, total: int, iters_per_epoch: int, max_minutes: 
             f"the planned {planned} iterations" if planned else f"stopped by max_minutes {where}")
 
 
-def duration(seconds: float) -> str:
-    """A duration in words a user reads at a glance."""
-    if seconds >= 3600:
-        return f"{seconds / 3600:.1f} h"
-    if seconds >= 120:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds:.0f} s"
-
-
 def validation_report(val_data: dict | None) -> dict:
     """Tiles, boxes and distinct plants of the validation set, with a warning when it is too small to pick
     best.pt (also logged)."""

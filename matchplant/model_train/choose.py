@@ -20,7 +20,8 @@ from matchplant.detection.model import (
     build_detector,
     resolve_auto_anchors,
 )
-from matchplant.model_train.budget import LONG_RUN_S, duration
+from matchplant.core.runtime.progress import duration
+from matchplant.model_train.budget import LONG_RUN_S
 from matchplant.model_train.probe import Probe, heartbeat, probe_speed
 
 log = get_logger("model_train")

@@ -21,7 +21,8 @@ from dataclasses import asdict, dataclass
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.data import collate
 from matchplant.detection.model import keep_frozen_norms_fixed
-from matchplant.model_train.budget import LONG_RUN_S, Costs, duration
+from matchplant.core.runtime.progress import duration
+from matchplant.model_train.budget import LONG_RUN_S, Costs
 
 log = get_logger("model_train")
 

@@ -39,7 +39,7 @@ import numpy as np
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.progress import progress
+from matchplant.core.runtime.progress import duration, progress
 from matchplant.detection.data import (
     CocoDetection,
     EpochSampler,
@@ -71,7 +71,6 @@ from matchplant.detection.model import (
 from matchplant.model_train.budget import (
     Costs,
     Plan,
-    duration,
     fit_plan,
     run_seconds,
     stop_status,

@@ -23,6 +23,15 @@ DEFAULT_INTERVAL_S = 10.0
 log = get_logger("progress")
 
 
+def duration(seconds: float) -> str:
+    """A duration in words a user reads at a glance."""
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds >= 120:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds:.0f} s"
+
+
 def log_interval() -> float:
     """Seconds between two progress lines in a log (``MATCHPLANT_PROGRESS_INTERVAL``, default 10)."""
     try:
