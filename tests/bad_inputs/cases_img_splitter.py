@@ -155,6 +155,15 @@ def tile_larger_than_photos(w: Work) -> list[str]:
     return args(w, w.copy(IMAGES, "images"), w.copy(TRUTH), grid=("tile_size=1024", "overlap=100", "workers=1"))
 
 
+def whole_photos(w: Work) -> None:
+    """Every tile is a whole 400 x 300 photo, and every photo with boxes is one."""
+    tiles = [im for split in ("train", "val", "test") if (w.out / f"{split}.json").is_file()
+             for im in json.loads((w.out / f"{split}.json").read_text())["images"]]
+    assert tiles and all((t["x0"], t["y0"], t["width"], t["height"]) == (0, 0, 400, 300) for t in tiles), tiles[:3]
+    assert len({t["source_image"] for t in tiles}) == len(tiles)
+    assert len(tiles) == len({im["file_name"] for im in truth(w)["images"]})
+
+
 def overlap_equals_tile(w: Work) -> list[str]:
     return args(w, w.copy(IMAGES, "images"), w.copy(TRUTH), grid=("tile_size=128", "overlap=128", "workers=1"))
 
@@ -240,7 +249,8 @@ CASES = [
          mentions=("predictions.json", "predictions")),
     Case("m5-split-not-one", "img_splitter", split_not_one, mentions=("split", "1.1")),
     Case("m5-split-percentages", "img_splitter", split_percentages, mentions=("split", "percentages")),
-    Case("m5-tile-larger-than-photos", "img_splitter", tile_larger_than_photos, mentions=("tile_size", "400x300")),
+    # a tile at least the photo's size: no tiling, each photo one whole tile (inspect's advice for large plants)
+    Case("m5-tile-larger-than-photos", "img_splitter", tile_larger_than_photos, expect="ok", check=whole_photos),
     Case("m5-overlap-equals-tile", "img_splitter", overlap_equals_tile, mentions=("overlap", "tile_size")),
     Case("m5-sizes-disagree", "img_splitter", sizes_disagree, mentions=("SIM_0004.JPG.tif", "800x600")),
     Case("m5-truncated-tif", "img_splitter", truncated_photo, mentions=("SIM_0005.JPG.tif",)),
