@@ -16,6 +16,7 @@ import os
 import shutil
 import warnings
 
+from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
@@ -107,29 +108,6 @@ def select_device(preference: str = "auto"):
     dev, why = explain_device(preference)
     log.info("device: %s (%s)", dev, why)
     return dev
-
-
-def usable_cores() -> tuple[int, str]:
-    """``(cores, where from)``: the cores this process may run on (its CPU affinity, e.g. ``taskset`` or a
-    container's cpuset; a cgroup CPU quota lowers it), not the machine's count."""
-    if hasattr(os, "sched_getaffinity"):
-        cores, source = len(os.sched_getaffinity(0)), "CPU affinity"
-    else:
-        cores, source = os.cpu_count() or 1, "os.cpu_count()"
-    quota = _cgroup_quota()
-    if quota is not None and quota < cores:
-        cores, source = max(1, int(quota + 0.5)), f"cgroup CPU quota {quota:g}"
-    return max(1, cores), source
-
-
-def _cgroup_quota() -> float | None:
-    """CPUs allowed by a cgroup v2 quota (``cpu.max``: "quota period"), None when unlimited or unknown."""
-    try:
-        with open("/sys/fs/cgroup/cpu.max") as fh:
-            quota, period = fh.read().split()[:2]
-        return None if quota == "max" else float(quota) / float(period)
-    except (OSError, ValueError):
-        return None
 
 
 def choose_threads(requested: int | None = None, *, load: float | None = None,

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
-import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
@@ -31,6 +30,7 @@ import pandas as pd
 import rasterio
 import shapely
 
+from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.canopy import gather, grouped_stats
@@ -77,13 +77,6 @@ class _Job:
     measures: list
     strip_rows: int
     gdal_cache_bytes: int
-
-
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
 
 
 def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int,
@@ -163,7 +156,7 @@ def outline_field(geoms, chm_layer: Layer, mask_layer: Layer | None, measures: l
 def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, seeds, max_memory, workers):
     n = len(geoms)
     chm = local[0]
-    cores = available_cores()
+    cores = usable_cores()[0]
     want = cores if workers == 0 else workers
     rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
     want = max(1, min(want, count))
