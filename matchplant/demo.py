@@ -390,6 +390,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.update_docs:
             update_docs(Path(args.out).resolve())
     except KeyboardInterrupt:
+        # a second Ctrl-C (or the same one reaching us again) must not interrupt the exit itself: progress bars and
+        # worker pools still close while Python shuts down, and an interrupt there prints a traceback
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         print("interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there",
               file=sys.stderr)
         return 130
