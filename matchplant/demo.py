@@ -90,9 +90,11 @@ def _step(name: str, module: str, **config) -> dict:
     return {"name": name, "module": module, "config": config}
 
 
-def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int) -> dict:
+def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int,
+                  threads: int = 0) -> dict:
     """The demo's pipeline: every module, each reading the files the one before wrote."""
     net = int(round(tile * 2.5))
+    cpu = {"threads": threads} if threads else {}  # absent when automatic, so earlier runs' steps stay finished
     # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse feature maps; anchors
     # are in the enlarged pixels. A 128 px tile holds at most ~40 plants: far fewer proposals than
     # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
@@ -115,12 +117,12 @@ def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrai
               negative_share=0.2, split=[0.55, 0.15, 0.3]),
         _step("6_train", "model_train", train_json="${5_tiles.output_dir}/train.json",
               val_json="${5_tiles.output_dir}/val.json", model=model, epochs=epochs, max_minutes=minutes, batch_size=4,
-              num_workers=0, warmup_iters=20, step_size=20, save_every=0,
+              num_workers=0, warmup_iters=20, step_size=20, save_every=0, **cpu,
               lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
         # detection on the photos the detector never saw (module 5's test split and module 3's unselected
         # photos): only they are projected and scored
         _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
-              evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
+              evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"}, **cpu,
               detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4}),
         *map_steps(field, "${7_detect.output_dir}/predictions.json"),
     ]
@@ -245,7 +247,8 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
 
 
 def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = EPOCHS, minutes: float = 0.0,
-             pretrained: str = "none", tile: int = 128, from_step: str = "", noise: str = "exact") -> Path:
+             pretrained: str = "none", tile: int = 128, from_step: str = "", noise: str = "exact",
+             threads: int = 0) -> Path:
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
@@ -255,7 +258,8 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = E
     crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
     pipe = out / "pipeline.yaml"
     write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
-               + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile),
+               + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile,
+                                              threads=threads),
                                 sort_keys=False))
     (out / HELD_OUT).mkdir(exist_ok=True)
     names = [st.name for st in read_pipeline(pipe)[1]]
@@ -377,6 +381,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="optional time budget for training (0 = none); the results then depend on the machine")
     p.add_argument("--pretrained", default="none", choices=("none", "imagenet", "coco"),
                    help="starting weights (coco needs internet once; none trains from scratch)")
+    p.add_argument("--threads", type=int, default=0,
+                   help="CPU threads for training and detection (default 0: the cores free now, logged); another "
+                        "thread count trains a slightly different detector (README: the demo's tolerance)")
     p.add_argument("--from", dest="from_step", default="", help="re-run from this step on (e.g. 6_train)")
     p.add_argument("--update-docs", action="store_true",
                    help="then copy the figures into docs/ and rewrite the README's demo table from this run")
@@ -386,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         setup_console()
         run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, minutes=args.minutes,
-                 pretrained=args.pretrained, from_step=args.from_step, noise=args.noise)
+                 pretrained=args.pretrained, from_step=args.from_step, noise=args.noise, threads=args.threads)
         if args.update_docs:
             update_docs(Path(args.out).resolve())
     except KeyboardInterrupt:

@@ -41,8 +41,15 @@ def make_project(tmp_path: Path, name: str = "field 1", n_images: int = 3, gcp: 
     return project
 
 
+def out_of(project: Path) -> Path:
+    """Where these tests keep module 2's own files unless a test names the folder (the default, runs/odm_runner,
+    is relative to the working folder)."""
+    return project.parent / "odm_runner_out"
+
+
 def cfg_for(project: Path, *overrides: str) -> OdmRunnerConfig:
-    return load_config(OdmRunnerConfig, None, [f"project_dir={project}", *overrides])
+    out = [] if any(o.startswith("output_dir=") for o in overrides) else [f"output_dir={out_of(project)}"]
+    return load_config(OdmRunnerConfig, None, [f"project_dir={project}", *out, *overrides])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -161,11 +168,11 @@ def test_run_docker_streams_log_and_checks_exit_code(tmp_path):
 def test_run_docker_success_then_reports_missing_outputs(tmp_path):
     project = make_project(tmp_path)
     exe, _ = fake_docker(tmp_path, run_code=0)
-    cfg = cfg_for(project, f"docker.command={exe}")
+    cfg = cfg_for(project, f"docker.command={exe}", f"output_dir={tmp_path / 'out'}")
     with pytest.raises(InputError) as err:  # the fake ODM wrote nothing: every output is missing
         run(cfg)
     assert "odm_dem/dtm.tif" in str(err.value) and "--dtm" in str(err.value)
-    manifest = json.loads((project / "odm_manifest.json").read_text())
+    manifest = json.loads((tmp_path / "out" / "odm_manifest.json").read_text())
     assert manifest["run"]["exit_code"] == 0 and manifest["ok"] is False
     assert manifest["outputs"]["dsm"] == {"path": "odm_dem/dsm.tif", "exists": False, "produced_by": "--dsm"}
 
@@ -192,6 +199,19 @@ def test_check_outputs_synthetic_field(tiny_field, tmp_path):
     manifest = json.loads((tmp_path / "odm_manifest.json").read_text())
     assert manifest["ok"] and manifest["run"] is None
     assert all(manifest["outputs"][k]["exists"] for k in ("dsm", "dtm", "orthophoto", "undistorted_images"))
+
+
+def test_default_run_writes_nothing_into_the_odm_project(tiny_field, tmp_path, monkeypatch):
+    """Issue 29: module 2's manifest and logs go to runs/odm_runner like every module's outputs, and the ODM
+    project keeps exactly ODM's files."""
+    project = tmp_path / "project"
+    copy_outputs(tiny_field.root, project)
+    before = sorted(p.relative_to(project) for p in project.rglob("*"))
+    monkeypatch.chdir(tmp_path)
+    run(load_config(OdmRunnerConfig, None, [f"project_dir={project}", "check_only=true"]))
+    assert sorted(p.relative_to(project) for p in project.rglob("*")) == before
+    manifest = json.loads((tmp_path / "runs" / "odm_runner" / "odm_manifest.json").read_text())
+    assert manifest["ok"]
 
 
 def copy_outputs(src: Path, dst: Path) -> None:
@@ -371,9 +391,9 @@ def test_nodeodm_upload_process_download(tiny_field, tmp_path):
     # the downloaded outputs are byte-identical to the server's
     for rel in ("odm_dem/dsm.tif", "opensfm/undistorted/reconstruction.json", "odm_georeferencing/coords.txt"):
         assert (project / rel).read_bytes() == (tiny_field.root / rel).read_bytes()
-    state = json.loads((project / "nodeodm_task.json").read_text())
+    state = json.loads((out_of(project) / "nodeodm_task.json").read_text())
     assert state["uuid"] in node.tasks
-    manifest = json.loads((project / "odm_manifest.json").read_text())
+    manifest = json.loads((out_of(project) / "odm_manifest.json").read_text())
     assert manifest["ok"] and manifest["run"]["task"] == state["uuid"]
     assert not (project / ".nodeodm_download").exists()
 
@@ -384,7 +404,8 @@ def test_nodeodm_resumes_saved_task_without_uploading(tiny_field, tmp_path):
         uid = "0f0e0d0c-0000-4000-8000-000000000001"
         node.tasks[uid] = {"name": "earlier", "options": [], "outputs": NODEODM_OUTPUTS, "files": ["a.JPG"],
                            "status": 20, "progress": 40}
-        (project / "nodeodm_task.json").write_text(json.dumps({"uuid": uid}))
+        out_of(project).mkdir()
+        (out_of(project) / "nodeodm_task.json").write_text(json.dumps({"uuid": uid}))
         run(nodeodm_cfg(project, node.port))
         assert not any("/task/new" in c for c in node.calls)
         assert f"GET /task/{uid}/download/all.zip" in node.calls

@@ -68,7 +68,7 @@ class NodeODMSettings:
 class OdmRunnerConfig:
     """Run OpenDroneMap (Docker or NodeODM) on a project folder and check its outputs."""
 
-    writes_into_inputs = ("output_dir",)  # ODM writes into its project folder (the default output_dir)
+    writes_into_inputs = ("output_dir",)  # a user may still keep the manifest in the project folder, as before
 
     project_dir: Path = param(None, "ODM project folder; the images go in its images/ subfolder",
                               path="dir", required=True)
@@ -83,12 +83,12 @@ class OdmRunnerConfig:
     odm: ODMOptions = section(ODMOptions)
     docker: DockerSettings = section(DockerSettings)
     nodeodm: NodeODMSettings = section(NodeODMSettings)
-    output_dir: Path | None = param(None, "where the manifest, logs and NodeODM state go; empty: project_dir",
-                                    path="out")
+    # ODM's own outputs always land in project_dir (that is what ODM does); MatchPlant's files go here, like
+    # every other step's, so that the ODM project holds only ODM's files
+    output_dir: Path = param(Path("runs/odm_runner"), "where the manifest, logs and NodeODM task state go "
+                                                      "(ODM's own outputs are written into project_dir)", path="out")
 
     def check(self) -> None:
-        if self.output_dir is None and self.project_dir is not None:
-            self.output_dir = self.project_dir
         for name in self.odm.extra:
             key = str(name).lstrip("-")
             if key in FORBIDDEN_OPTIONS:

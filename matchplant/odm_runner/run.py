@@ -33,8 +33,6 @@ log = get_logger("odm_runner")
 
 def run(cfg: OdmRunnerConfig) -> OutputReport:
     """Run ODM with the chosen backend (unless ``check_only``), check its outputs, write the manifest."""
-    if cfg.output_dir is None:
-        cfg.output_dir = cfg.project_dir
     Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     run_info = None
     if not cfg.check_only:
