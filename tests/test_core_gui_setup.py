@@ -22,6 +22,10 @@ import pytest
 import shapely
 from conftest import run_in_xvfb, xvfb_available
 from gui_events import click
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from matchplant.core.runtime.widgets import QuietTextBox
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -452,3 +456,20 @@ def test_bbox_setup_screen_prefills_module_3s_owned_areas(tmp_path):
     setup = BboxDrawerSetup(cfg, headless=True, chooser=Picker(("folder", sel / "images")), dpi=50)
     browse(setup.screen, "images")
     assert setup.screen.boxes["owned_areas"].text == str(mine)
+
+
+def test_a_long_path_given_at_start_shows_its_end_inside_its_field():
+    """Issue 29: a long path filled in from the config (not typed) shows its file name from the first draw and
+    stays inside its field; a short one stays left-aligned."""
+    fig = Figure(figsize=(8, 3))
+    FigureCanvasAgg(fig)
+    long = "/home/breeder/field_trials/2026/sorghum_north/flight_07/odm_project/odm_dem/dsm_final.tif"
+    boxes = {text: QuietTextBox(fig.add_axes((0.3, y, 0.4, 0.2)), "DSM ", initial=text)
+             for text, y in ((long, 0.6), ("dsm.tif", 0.2))}
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    ext = {text: box.text_disp.get_window_extent(renderer) for text, box in boxes.items()}
+    field = {text: box.ax.bbox for text, box in boxes.items()}
+    assert field[long].x0 > ext[long].x0 and ext[long].x1 <= field[long].x1 + 1  # its end inside, its start cut
+    assert boxes[long].text_disp.get_clip_on()
+    assert field["dsm.tif"].x0 <= ext["dsm.tif"].x0 and ext["dsm.tif"].x1 < field["dsm.tif"].x1

@@ -43,6 +43,7 @@ class QuietTextBox(TextBox):
         self._left_ha = self.text_disp.get_horizontalalignment()
         self.text_disp.set_clip_path(ax.patch)
         self.text_disp.set_clip_on(True)
+        self.fit_text()  # a long initial path shows its end from the first draw, not only once typed into
 
     def stop_typing(self):
         if self.capturekeystrokes:
@@ -50,11 +51,14 @@ class QuietTextBox(TextBox):
 
     def fit_text(self) -> None:
         """Align the text as asked while it fits, else to the right so that its end shows."""
-        if self.ax.get_figure(root=True)._get_renderer() is None:
+        fig = self.ax.get_figure(root=True)
+        # before the first draw the Agg canvases (Tk, Qt, macOS, headless) can still measure text
+        renderer = fig._get_renderer() or getattr(fig.canvas, "get_renderer", lambda: None)()
+        if renderer is None:
             return
         self.text_disp.set_horizontalalignment(self._left_ha)
         self.text_disp.set_x(self._left_x)
-        if self.text_disp.get_window_extent().width > 0.92 * self.ax.bbox.width:
+        if self.text_disp.get_window_extent(renderer).width > 0.92 * self.ax.bbox.width:
             self.text_disp.set_horizontalalignment("right")
             self.text_disp.set_x(0.98)
 
