@@ -19,6 +19,7 @@ import warnings
 from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import duration
 from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
 from matchplant.detection.model import ModelConfig, build_detector
 
@@ -166,15 +167,9 @@ def warn_if_slow(device, architecture: str, n_images: int, width: int, height: i
         log.warning("detection on the CPU: about %s for %d image(s) of %d x %d px with %s (%.1f s per megapixel "
                     "measured on a 2-core machine). Use a CUDA GPU (device: auto picks it) if you have one, "
                     "or detect only on the images module 3 selected.",
-                    _duration(seconds), n_images, width, height, architecture,
+                    duration(seconds), n_images, width, height, architecture,
                     get_architecture(architecture).cpu_seconds_per_megapixel or 0.0)
     return seconds
-
-
-def _duration(seconds: float) -> str:
-    if seconds >= 3600:
-        return f"{seconds / 3600:.1f} h"
-    return f"{seconds / 60:.0f} min"
 
 
 def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) -> dict[str, float]:
