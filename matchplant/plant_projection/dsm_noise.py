@@ -46,7 +46,7 @@ class GroundNoise(NamedTuple):
     spread: float
 
 
-def soil_surface(surface: Surface, max_side: float) -> tuple["SoilSurface", int]:
+def soil_surface(surface: Surface, max_side: float) -> tuple[SoilSurface, int]:
     """``surface`` as a :class:`SoilSurface`, its nodata holes no wider than ``max_side`` metres (both sides of
     the hole's bounding box) filled from their rims; larger holes stay holes. Returns the surface and the number of
     cells filled."""
@@ -95,7 +95,7 @@ def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
     above = above[np.isfinite(above)]
     if above.size == 0:
         return GroundNoise(0.0, 0.0)
-    hist, edges = np.histogram(above, bins=int(round(MAX_LIFT / BIN)), range=(0.0, MAX_LIFT))
+    hist, edges = np.histogram(above, bins=round(MAX_LIFT / BIN), range=(0.0, MAX_LIFT))
     hist = cv2.GaussianBlur(hist.astype(np.float64)[None, :], (0, 0), SMOOTH_BINS).ravel()
     peak = int(np.argmax(hist))
     below = np.flatnonzero(hist[:peak] < hist[peak] / 2)
