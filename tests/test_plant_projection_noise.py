@@ -86,3 +86,25 @@ def test_noisy_dsm_gives_one_record_per_plant(noisy_field):
     m = evaluate_boxes(truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
                        plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     assert m["share_iou_above_0.5"] >= 0.97 and m["iou_median"] >= 0.85, m
+
+
+def test_soil_level_under_a_canopy_that_covers_most_of_the_field():
+    """Rows of a closing canopy (flat tops 0.2 m high, as noisy as the soil) cover 70 % of the field, so the
+    canopy's height is the commonest: the soil, the lowest well-filled height, is still the level measured,
+    within a centimetre of the soil cells' own median."""
+    rng = np.random.default_rng(1)
+    res, n = 0.01, 600
+    noise = cv2.GaussianBlur(rng.standard_normal((n, n)).astype(np.float32), (0, 0), 4)
+    noise *= 0.03 / noise.std()  # 3 cm of correlated noise, on soil and canopy alike
+    across = (np.arange(n) * res % 0.5) - 0.25  # rows every 0.5 m, 0.35 m wide
+    canopy = np.clip((0.175 - np.abs(across)) / 0.02, 0, 1) * 0.2
+    z = 350 + noise + canopy[None, :].astype(np.float32)
+    surface, _ = soil_surface(Surface(z, Affine(res, 0, 0, 0, -res, n * res)), 0.1)
+    opened = Surface.ground(surface, 1.5)
+    level = soil_level(surface, opened)
+    bare = np.broadcast_to(canopy[None, :] == 0, z.shape)
+    rows, cols = np.nonzero(bare)
+    x, y = surface.transform @ (cols + 0.5, rows + 0.5)
+    assert (canopy > 0).mean() > 0.6
+    assert level.lift == pytest.approx(np.median(z[bare] - opened.sample(x, y)), abs=0.01)
+    assert np.median(z[bare] - surface.ground(1.5).sample(x, y)) == pytest.approx(0.0, abs=0.01)

@@ -34,6 +34,7 @@ SAMPLES = 2_000_000  # DSM cells (a regular subsample) the soil's level is measu
 BIN = 0.002  # metres: histogram bin of the heights above the opening
 SMOOTH_BINS = 2.0  # Gaussian smoothing of that histogram, bins (sigma)
 MAX_LIFT = 0.3  # metres: the soil is looked for at most this far above the opening
+PEAK_SHARE = 0.25  # the soil's peak: the lowest histogram peak at least this share of the highest
 MAX_LIFT_SIGMAS = 5.0  # a peak standing more than this many spreads above the opening is no soil (a closed canopy)
 HIDDEN_SIGMAS = 2.0  # a hit is behind a plant when it stands hidden_height + this many soil spreads above the ground
 HWHM_TO_SIGMA = 1.0 / 1.1774  # half width at half maximum of a Gaussian, in sigmas
@@ -83,8 +84,9 @@ def _fill_from_rim(data: np.ndarray, fill: np.ndarray) -> np.ndarray:
 
 def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
     """The bare soil's level above the opening ``ground`` of ``surface`` and its spread, from a subsample of the
-    DSM's cells: the mode of their heights above the opening, and the half width of the mode's peak on its lower
-    side (its upper side mixes in the plants). A peak more than :data:`MAX_LIFT_SIGMAS` spreads above the opening
+    DSM's cells: the lowest peak of their heights above the opening holding at least :data:`PEAK_SHARE` of the
+    highest (the soil, where plants cover more of the field than it does), and the half width of that peak on its
+    lower side (its upper side mixes in the plants). A peak more than :data:`MAX_LIFT_SIGMAS` spreads above the opening
     is a closed canopy, not soil: no lift then."""
     rows, cols = surface.data.shape
     step = max(1, int(np.ceil(np.sqrt(rows * cols / SAMPLES))))
@@ -97,7 +99,9 @@ def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
         return GroundNoise(0.0, 0.0)
     hist, edges = np.histogram(above, bins=round(MAX_LIFT / BIN), range=(0.0, MAX_LIFT))
     hist = cv2.GaussianBlur(hist.astype(np.float64)[None, :], (0, 0), SMOOTH_BINS).ravel()
-    peak = int(np.argmax(hist))
+    # the lowest peak of some weight: the soil, even where plants cover more of the field than it does
+    rising = np.r_[True, hist[1:] > hist[:-1]] & np.r_[hist[:-1] >= hist[1:], True]
+    peak = int(np.flatnonzero(rising & (hist >= PEAK_SHARE * hist.max()))[0])
     below = np.flatnonzero(hist[:peak] < hist[peak] / 2)
     lift = float((edges[peak] + edges[peak + 1]) / 2) if peak else 0.0
     half = edges[peak] - edges[below[-1] + 1] if below.size else lift
