@@ -4,6 +4,7 @@
     python bench/bench_plant_projection.py --quick    # the small field
     python bench/bench_plant_projection.py --field DIR  # an existing synthetic field
     python bench/bench_plant_projection.py --preset tiny --seed 1 --tilt 20 --slope 10   # another generated field
+    python bench/bench_plant_projection.py --quick --noise realistic   # the small field with a photogrammetric DSM
     NUMBA_NUM_THREADS=1 taskset -c 0 python bench/bench_plant_projection.py   # really one core
 
 Projects the ground-truth boxes of every undistorted image (score 1) and prints boxes/s for the ray/DSM
@@ -36,11 +37,15 @@ from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 
-def field(preset: str, given: str | None, seed: int = 0, tilt: float = 0.0, slope: float = 0.0) -> FieldPaths:
+def field(preset: str, given: str | None, seed: int = 0, tilt: float = 0.0, slope: float = 0.0,
+          noise: str = "exact") -> FieldPaths:
     if given:
         return FieldPaths(Path(given))
     extra = {"tilt_deg": tilt, "slope_pct": slope} if tilt or slope else {}
     name = f"{preset}_seed{seed}" + "".join(f"_{k}{v:g}" for k, v in extra.items())
+    if noise != "exact":
+        extra["noise"] = noise
+        name += f"_{noise}"
     root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / name
     if not (root / "truth" / "map_boxes.csv").is_file():
         from matchplant.simfield import generate_field
@@ -83,10 +88,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="with --preset: the field's seed")
     ap.add_argument("--tilt", type=float, default=0.0, help="with --preset: forward camera tilt, degrees")
     ap.add_argument("--slope", type=float, default=0.0, help="with --preset: terrain slope, percent")
+    ap.add_argument("--noise", default="exact", choices=("exact", "realistic"),
+                    help="with --preset/--quick: the field's DSM exact or photogrammetric (simfield's noise)")
     ap.add_argument("--edge-points", type=int, default=4)
     ap.add_argument("--repeat", type=int, default=3, help="runs; the fastest is reported")
     args = ap.parse_args()
-    f = field(args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope)
+    f = field(args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope,
+              args.noise)
     ds = read_dataset(f.boxes_undistorted, validate=False)
     preds = {"images": ds["images"], "categories": ds["categories"],
              "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
@@ -126,6 +134,8 @@ def main() -> None:
         print(f"peak memory (max RSS): {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:,.0f} MB")
     except ImportError:
         pass
+    if len(rejected):
+        print("not projected, by reason:", rejected["reason"].value_counts().to_dict())
     print(f"plants: {len(plants)} (truth {len(truth)}), median views {np.median(plants['views']):.0f}; "
           f"matched {m['share_matched']:.1%}, IoU>0.5 {m['share_iou_above_0.5']:.1%}, "
           f"median IoU {m['iou_median']:.3f}")

@@ -67,6 +67,10 @@ class PlantProjectionConfig:
     ground_window: float = param(
         1.5, "metres: the ground under the plants is estimated from the DSM by removing every bump narrower than "
              "this; set it above the widest plant (or row, once the canopy closes)", min=0.05)
+    fill_holes: float = param(
+        0.1, "metres: DSM nodata holes no wider than this are filled from their rims before rays are cast (a ray "
+             "meeting a hole loses its box); larger holes stay holes and their boxes are listed (0 = fill none)",
+        min=0.0)
     map_box: Literal["inscribed", "outline"] = param(
         "inscribed", "the plant's map box: inscribed = box of the ellipse inscribed in the projected outline "
                      "(right for roundish plants whatever the flight direction); outline = box around the outline",

@@ -16,7 +16,11 @@ from matchplant.core.geometry.raycast import ODM_NODATA
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import Surface
 from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.log import get_logger
+from matchplant.plant_projection.dsm_noise import SoilSurface, ground_noise, soil_surface
 from matchplant.plant_projection.geometry import box_outline
+
+log = get_logger("plant_projection")
 
 MAX_SURFACE_CELLS = 64_000_000  # 256 MB of float32 (a 1 cm DSM of 0.64 ha): above this, read per image
 DECIMATED = 512  # cells along the longer side of the decimated read that bounds the heights of a large DSM
@@ -65,15 +69,17 @@ def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: f
 
 
 class DsmSurfaces:
-    """The DSM read once over every image's rays when that fits in memory, else per image."""
+    """The DSM read once over every image's rays when that fits in memory, else per image; small holes filled
+    and the ground lifted to the soil (:mod:`~matchplant.plant_projection.dsm_noise`)."""
 
-    def __init__(self, path: Path, crs, ground_window: float):
-        self.path, self.crs, self.ground_window = path, crs, ground_window
-        self._whole: Surface | None = None
+    def __init__(self, path: Path, crs, ground_window: float, fill_holes: float = 0.0):
+        self.path, self.crs, self.ground_window, self.fill_holes = path, crs, ground_window, fill_holes
+        self._whole: SoilSurface | None = None
+        self._read: list[tuple[SoilSurface, int]] = []  # every surface read, with its cells filled
         with rasterio.open(path) as src:
             small = src.width * src.height <= MAX_SURFACE_CELLS
         if small:  # the whole DSM fits: read it once, its heights bound the rays
-            self._whole = Surface.open(path)
+            self._whole = self._surface()
             self.z_lo, self.z_hi = _padded(self._whole.zmin, self._whole.zmax)
         else:
             self.z_lo, self.z_hi = approx_heights(path)
@@ -90,7 +96,7 @@ class DsmSurfaces:
         if self._whole is not None:
             return
         if any(b is None for b in all_bounds):
-            self._whole = Surface.open(self.path)
+            self._whole = self._surface()
             return
         b = np.array(all_bounds)
         union = (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
@@ -98,11 +104,32 @@ class DsmSurfaces:
         if cells <= MAX_SURFACE_CELLS:
             self._whole = self._open(union, res)
 
-    def _open(self, bounds, res) -> Surface:
-        pad = EDGE_CELLS * res + self.ground_window  # the ground estimate needs terrain around the rays
-        return Surface.open(self.path, bounds=(bounds[0] - pad, bounds[1] - pad, bounds[2] + pad, bounds[3] + pad))
+    def _surface(self, bounds: tuple | None = None) -> SoilSurface:
+        surface, filled = soil_surface(Surface.open(self.path, bounds=bounds), self.fill_holes)
+        self._read.append((surface, filled))
+        return surface
 
-    def get(self, bounds: np.ndarray) -> Surface:
+    def _open(self, bounds, res) -> SoilSurface:
+        pad = EDGE_CELLS * res + self.ground_window  # the ground estimate needs terrain around the rays
+        return self._surface((bounds[0] - pad, bounds[1] - pad, bounds[2] + pad, bounds[3] + pad))
+
+    def report(self) -> float:
+        """Say in the log what was filled and measured on the surfaces read; returns the largest soil spread."""
+        if not self._read:
+            return 0.0
+        noise = [ground_noise(s, self.ground_window) for s, _ in self._read]
+        filled = sum(f for _, f in self._read)
+        lift, spread = max(n.lift for n in noise), max(n.spread for n in noise)
+        if filled:
+            log.info("%s: %d DSM cells in holes up to fill_holes=%g m filled from their rims", self.path, filled,
+                     self.fill_holes)
+        if lift:
+            log.info("%s: bare soil lies %.1f cm above the DSM's lowest envelope (noise, spread %.1f cm): the ground "
+                     "estimate is lifted to it%s", self.path, 100 * lift, 100 * spread,
+                     "" if len(noise) == 1 else f" (largest of {len(noise)} windows)")
+        return spread
+
+    def get(self, bounds: np.ndarray) -> SoilSurface:
         """The surface under one image's rays (``bounds`` from :func:`ray_bounds`)."""
         if self._whole is not None:
             return self._whole

@@ -17,6 +17,7 @@ from matchplant.core.geometry.ground import rays_to_ground
 from matchplant.core.geometry.raycast import LEVEL
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import HIT, NO_HIT, NODATA, NOT_DOWNWARD, OUTSIDE, Surface
+from matchplant.plant_projection.dsm_noise import ground_noise
 from matchplant.plant_projection.relief import Scene
 from matchplant.plant_projection.settings import ProjectionSettings
 from matchplant.plant_projection.silhouette import silhouette_boxes
@@ -158,8 +159,10 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
         # exact hit (soil at a leaf tip, a plant's side) and settles there; one that would fall further grazed
         # a plant's top and stays
+        # (the DSM's soil dips below the ground, lifted to the soil's level, down to the DSM's lowest envelope)
+        bottom = gz - ground_noise(surface, ground_window).lift - TOP_MARGIN
         pts, st = rays_to_ground(shot, d_far, frame, surface, clearance=clearance, settle=SETTLE * clearance,
-                                 heights=(top, gz - TOP_MARGIN))
+                                 heights=(top, bottom))
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)

@@ -15,6 +15,7 @@ import numpy as np
 
 from matchplant.core.geometry.raycast import Raster, above_block_max, bilinear, bilinear_batch
 from matchplant.core.geometry.surface import Surface
+from matchplant.plant_projection.dsm_noise import HIDDEN_SIGMAS, ground_noise
 from matchplant.plant_projection.settings import ProjectionSettings
 
 SKIM = 0.1  # metres: a ray that passed this close over a plant before landing on the soil missed the plant's top
@@ -31,15 +32,17 @@ class Scene(NamedTuple):
     dsm: Raster
     ground: Raster  # the ground under the plants (Surface.ground)
     cam: np.ndarray  # the camera centre on the map (3,)
-    hidden_height: float  # metres above the ground at which a hit lay behind a plant's top
+    hidden_height: float  # metres above the ground at which a hit lay behind a plant's top (plus the soil's noise)
     skim: float  # metres: how close over a plant a ray that skimmed it passed
     canopy: float  # metres: the tallest plant above the ground
 
     @classmethod
     def of(cls, surface: Surface, cam: np.ndarray, settings: ProjectionSettings) -> "Scene":
         window = settings.ground_window
+        # soil hits scatter about the ground by the DSM's noise: only a hit standing out of it lay behind a plant
+        hidden = settings.hidden_height + HIDDEN_SIGMAS * ground_noise(surface, window).spread
         return cls(surface.raster, surface.ground(window).raster, np.ascontiguousarray(cam, dtype=np.float64),
-                   float(settings.hidden_height), SKIM, float(surface.canopy_height(window)))
+                   float(hidden), SKIM, float(surface.canopy_height(window)))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -25,6 +25,7 @@ class ProjectionSettings:
     clearance: float
     hidden_height: float
     ground_window: float
+    fill_holes: float
 
     @classmethod
     def from_config(cls, cfg: PlantProjectionConfig | None = None) -> "ProjectionSettings":
@@ -33,4 +34,5 @@ class ProjectionSettings:
         return cls(image_type=cfg.image_type, dsm=Path(cfg.dsm) if cfg.dsm is not None else None,
                    min_score=float(cfg.min_score), edge_points=int(cfg.edge_points), map_box=cfg.map_box,
                    border_pixels=float(cfg.border_pixels), clearance=float(cfg.silhouette_clearance),
-                   hidden_height=float(cfg.hidden_height), ground_window=float(cfg.ground_window))
+                   hidden_height=float(cfg.hidden_height), ground_window=float(cfg.ground_window),
+                   fill_holes=float(cfg.fill_holes))

@@ -55,6 +55,7 @@ class ProjectedViews:
     origins: np.ndarray
     rows: np.ndarray  # view i's row in points and origins
     crs: object
+    soil_spread: float = 0.0  # metres: the DSM's noise on bare soil (dsm_noise.soil_level), 0 on an exact DSM
 
     def outlines(self, views: np.ndarray | None = None) -> np.ndarray:
         """Outline points (N, P, 3) of the views ``views`` (indices into the table; None: all)."""
@@ -346,6 +347,7 @@ class _Projection:
         order, self.groups = _by_position(boxes.xyxy, shots.group, np.flatnonzero(reason == ""))
         self.cut_edges = _cut(boxes.xyxy, shots.size, boxes.tile, settings.border_pixels)
         self.res = _Results(len(boxes.xyxy), settings.edge_points, order)
+        self.soil_spread = 0.0  # metres: the largest spread of the bare soil measured on the DSMs (dsm_noise)
 
     def on_own_dsms(self, project: ODMProject) -> list[Path]:
         """Every group onto its DSM, one DSM at a time (a split project: one per submodel, read by window);
@@ -378,7 +380,7 @@ class _Projection:
         """The boxes ``groups`` ({group: box indices}) onto the DSM at ``path`` (read by window,
         :class:`DsmSurfaces`)."""
         shots, frames = self.shots.shots, self.shots.frames
-        surfaces = DsmSurfaces(path, self.crs, self.settings.ground_window)
+        surfaces = DsmSurfaces(path, self.crs, self.settings.ground_window, self.settings.fill_holes)
         bounds = {k: ray_bounds(shots[k], frames[k], self.xyxy[idx], surfaces.z_lo, surfaces.z_hi)
                   for k, idx in groups.items()}
         surfaces.prepare(list(bounds.values()))
@@ -387,6 +389,7 @@ class _Projection:
             r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), self.xyxy[idx], self.settings,
                               cut_edges=self.cut_edges[idx])
             self.res.store(idx, r, self.reason)
+        self.soil_spread = max(self.soil_spread, surfaces.report())
 
     def assemble(self, cols: dict[str, np.ndarray]) -> tuple[ProjectedViews, pd.DataFrame]:
         """The projected views and the rejected boxes, from the box table's columns and the results."""
@@ -396,7 +399,7 @@ class _Projection:
         rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
         views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
         res = self.res
-        return ProjectedViews(views, res.points, res.origins, res.row[done], self.crs), rejected
+        return ProjectedViews(views, res.points, res.origins, res.row[done], self.crs, self.soil_spread), rejected
 
 
 REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
