@@ -142,3 +142,21 @@ def test_gui_real_window(small_field, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     assert "DONE done" in r.stdout, r.stdout + r.stderr[-2000:]
     assert (d / "xout" / "stats.csv").is_file() and (tmp_path / "window.png").stat().st_size > 20_000
+
+
+def test_window_opened_before_the_previous_modules_ran_shows_no_error(small_field, tmp_path):
+    """Issue 29 (seen under Xvfb): the folder's config names module 8's plants.gpkg and the ODM rasters, which do
+    not exist before those modules ran; the window then asks for the files instead of opening on a red error. With
+    the files present it opens on their preview."""
+    from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+    from matchplant.spatial_stat_extractor.gui import launch
+
+    d = small_field["dir"]
+    missing = SpatialStatExtractorConfig()
+    missing.polygons, missing.rasters.chm = tmp_path / "runs" / "plants.gpkg", d / "chm.tif"
+    gui = launch(missing, headless=True)
+    assert gui.status.get_text().startswith("choose the plant polygons") and not hasattr(gui, "preview_polygons")
+    present = SpatialStatExtractorConfig()
+    present.polygons, present.rasters.chm, present.output_dir = d / "plants.gpkg", d / "chm.tif", d / "out"
+    gui = launch(present, headless=True)
+    assert len(gui.preview_polygons) == 40 and "40 plants" in gui.status.get_text()

@@ -350,11 +350,15 @@ def launch(cfg: SpatialStatExtractorConfig, config_path: Path | None = None, hea
         require_display("python 9_spatial_stat_extractor/spatial_stat_extractor.py --polygons FILE --dsm FILE --dtm FILE")
     gui = SpatialStatExtractorGUI(cfg, config_path, headless=headless, chooser=chooser)
     try:
-        ready = cfg.polygons is not None and bool(cfg.date_sets())
+        named = [cfg.polygons] + [p for layer in cfg.date_sets()[0].layers() for p in layer.paths] \
+            if cfg.polygons is not None and cfg.date_sets() else []
     except MatchPlantError as exc:
         gui.set_status(f"error: {exc}", error=True)
-        ready = False
-    if ready:
+        named = []
+    # the folder's config names where the previous modules write; before they ran, that is no error yet
+    if named and all(Path(p).exists() for p in named):
         gui.preview()
+    elif named:
+        gui.set_status("choose the plant polygons (module 8's plants.gpkg) and the rasters, then Preview")
     show(gui.fig)
     return gui
