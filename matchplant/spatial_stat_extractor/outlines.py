@@ -56,6 +56,8 @@ class SegmentSettings:
     min_pixels: int = 4           # smaller canopies keep their box (flagged)
     max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
+    mask_soil: float | None = None  # the mask's value on soil: a plant's pixels also reach halfway from it to
+    # the value at the plant's top (more leaf than soil: a pale plant keeps its leaves, a green one its edges)
     unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
     # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
 
@@ -302,9 +304,10 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         Rr0, Rr1, Cc0, Cc1 = max(0, R0 - pad), min(H_, R1 + pad), max(0, C0 - pad), min(W_, C1 + pad)
         W = chm.read(Rr0, Rr1, Cc0, Cc1)
         mask = np.nan_to_num(W, nan=-np.inf) >= s.min_height
+        mv = None
         if mask_source is not None and s.mask_threshold is not None:
-            mv = mask_source.read(Rr0, Rr1, Cc0, Cc1)
-            mask &= np.nan_to_num(mv, nan=-np.inf) >= s.mask_threshold
+            mv = np.nan_to_num(mask_source.read(Rr0, Rr1, Cc0, Cc1), nan=-np.inf)
+            mask &= mv >= s.mask_threshold
         # every plant whose window meets this one competes for the canopy (seeds), only home plants are kept
         near = live[(win_i[live, 2] > Cc0) & (win_i[live, 0] < Cc1) & (win_i[live, 3] > Rr0) &
                     (win_i[live, 1] < Rr1)]
@@ -334,6 +337,8 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         p = near[k]
         keep = (rr + Rr0 >= win_i[p, 1]) & (rr + Rr0 < win_i[p, 3]) & (cc + Cc0 >= win_i[p, 0]) & \
                (cc + Cc0 < win_i[p, 2]) & (W[rr, cc] >= s.relative * tp[k, 2])
+        if mv is not None and s.mask_soil is not None:
+            keep &= mv[rr, cc] >= (s.mask_soil + mv[tp[k, 0].astype(int), tp[k, 1].astype(int)]) / 2
         keep &= is_home[p]
         rr, cc, p = rr[keep], cc[keep], p[keep]
         hit = is_home[near]
