@@ -285,6 +285,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     parts_pix, parts_plant, parts_h, free_parts = [], [], [], []
     geo_parts = _Pieces()
     no_peak = np.zeros(n, bool)
+    soil_top = np.zeros(n, bool)
     centre_row = (win_i[:, 1] + win_i[:, 3]) // 2
     live = np.flatnonzero(~outside)
     strips = np.unique(np.clip(centre_row[live], 0, H_ - 1) // strip_rows) if len(live) else []
@@ -317,6 +318,9 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         else:
             tp = _tops_near(W, seed_px[near] - np.array([Rr0, Cc0]), s.max_shift / res, s.min_top)
         ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
+        if mv is not None:  # a top on soil by the mask (NDVI) is a ground bump under the box: flagged low
+            bare = ok & (mv[np.nan_to_num(tp[:, 0]).astype(int), np.nan_to_num(tp[:, 1]).astype(int)] < s.mask_threshold)
+            soil_top[near[bare & np.isin(near, home)]] = True
         # two boxes of one plant find the same top: the first keeps it, the others are duplicates
         flat_top = np.where(ok, np.nan_to_num(tp[:, 0]) * (Cc1 - Cc0) + np.nan_to_num(tp[:, 1]), -1)
         _, first_i, group = np.unique(flat_top, return_index=True, return_inverse=True)
@@ -358,6 +362,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
                    geo_parts, chm, dup, no_peak)
     out.flag[skipped] = "skipped"
+    out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
     plant_like = free[:, 2] >= max(s.min_top, s.unclaimed_min_top)
     out.noise_bumps = int((~plant_like).sum())
