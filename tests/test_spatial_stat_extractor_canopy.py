@@ -120,6 +120,16 @@ def test_ndvi_tells_leaf_edges_from_ground_bumps(field):
     chm_only = segment(f.boxes, src, s_chm)
     assert np.median(pixel_iou(chm_only.geometry, f)) < np.median(iou) - 0.2
     assert np.corrcoef(outline_means(chm_only.geometry, f, f.ndvi), f.leaf_ndvi)[0, 1] < 0.9
+    # a false box on a 12 cm ground bump between the rows: its top is soil by NDVI, flagged low (not a plant)
+    t = f.transform
+    cx, cy = t.c + 3.0, t.f - 0.775
+    rows, cols = np.mgrid[0:f.chm.shape[0], 0:f.chm.shape[1]]
+    xs, ys = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
+    assert not f.truth[np.hypot(xs - cx, ys - cy) < 0.1].any()
+    bumpy = f.chm + 0.12 * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 0.02 ** 2))
+    boxes = np.append(f.boxes, shapely.box(cx - 0.04, cy - 0.04, cx + 0.04, cy + 0.04))
+    o2 = segment(boxes, ArraySource(bumpy, t), s, mask_source=ndvi)
+    assert o2.flag[-1] == "low" and (o2.flag[:-1] == "").all()
     # NDVI that does not tell leaves from soil (a closed canopy): not used
     closed = ArraySource(np.full(f.chm.shape, 0.8), f.transform)
     assert thresholds("auto", "auto", measure_ground(src, f.boxes, 0.1, ndvi=closed), "auto").ndvi_threshold is None
