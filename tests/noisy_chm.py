@@ -1,8 +1,10 @@
 """A photogrammetric-looking canopy height model built with numpy, for module 9's canopy tests: star-shaped
 plants under 1 m (a core and a few leaves, height ``H (1 - rho^2)``) in rows with gaps, smoothed as ODM's DSM
 gridding smooths tops and edges, on bare ground with spatially correlated noise (median ~1.5 cm, SD ~3 cm,
-p95 ~6.5 cm: the magnitude of a real ODM CHM) and small holes (nodata). The truth: each plant's footprint
-(its leaf pixels before smoothing), height and centre; the ground noise's own percentiles."""
+p95 ~6.5 cm: the magnitude of a real ODM CHM) and small holes (nodata); and an NDVI raster on the same grid
+(each plant's leaves their own NDVI, soil ~0.15, blurred by a pixel, with sensor noise; drawn from a stream
+of its own, so the CHM is the same with or without it). The truth: each plant's footprint (its leaf pixels
+before smoothing), height, leaf NDVI and centre; the ground noise's own percentiles."""
 
 from __future__ import annotations
 
@@ -25,6 +27,8 @@ class NoisyChm:
     ground_sd: float          # the noise's SD on bare ground
     ground_p50: float
     ground_p95: float
+    ndvi: np.ndarray          # NDVI raster on the CHM's grid
+    leaf_ndvi: np.ndarray     # true leaf NDVI per plant
 
 
 def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: float = 3.2,
@@ -78,7 +82,12 @@ def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: 
     # small holes where the matching failed
     holes = ndi.binary_dilation(rng.random((ny, nx)) < 0.002, iterations=1)
     chm[holes] = np.nan
+    nrng = np.random.default_rng([seed, 1])
+    leaf_ndvi = nrng.uniform(0.35, 0.85, n)  # pale plants (0.35) to green ones
+    ndvi = np.where(truth > 0, leaf_ndvi[truth - 1], 0.15)
+    ndvi = ndi.gaussian_filter(ndvi, 0.7) + nrng.normal(0, 0.015, (ny, nx))
     ground = noise[ndi.binary_dilation(truth > 0, iterations=int(0.1 / res)) == 0]
     return NoisyChm(chm=chm, transform=t, boxes=np.array(boxes, dtype=object), truth=truth, height=H,
                     centre=np.column_stack([t.c + plants[:, 0], t.f - plants[:, 1]]), ground_sd=float(ground.std()),
-                    ground_p50=float(np.median(ground)), ground_p95=float(np.percentile(ground, 95)))
+                    ground_p50=float(np.median(ground)), ground_p95=float(np.percentile(ground, 95)),
+                    ndvi=ndvi, leaf_ndvi=leaf_ndvi)

@@ -90,6 +90,51 @@ def test_ground_noise_measured_and_outlines_inside_low_plants(field):
     assert np.median(pixel_iou(old.geometry, f)) < np.median(iou[out]) - 0.15
 
 
+def outline_means(geoms, f, layer) -> np.ndarray:
+    """Each outline's mean of ``layer`` over its pixels (rasterised, pixel centres): numpy, not module 9."""
+    pred = rasterize(((g, k + 1) for k, g in enumerate(geoms)), out_shape=layer.shape, transform=f.transform,
+                     dtype="int32").ravel()
+    n = len(geoms)
+    return np.bincount(pred, weights=layer.ravel(), minlength=n + 1)[1:] / np.bincount(pred, minlength=n + 1)[1:]
+
+
+def test_ndvi_tells_leaf_edges_from_ground_bumps(field):
+    """With an NDVI raster on the CHM's grid the soil's NDVI and the tops' are measured, leaves are told from
+    the ground's bumps by NDVI and the CHM thresholds drop: outlines reach the plants' low edges (IoU with the
+    true footprint), every plant is outlined (the pale ones too), and the canopy NDVI follows each plant's
+    leaf NDVI; without NDVI the soft edges are cut and the low plants keep their boxes."""
+    f = field
+    src, ndvi = ArraySource(f.chm, f.transform), ArraySource(f.ndvi, f.transform)
+    noise = measure_ground(src, f.boxes, guard_m=0.1, ndvi=ndvi)
+    th = thresholds("auto", "auto", noise, "auto")
+    assert th.ndvi_soil == pytest.approx(0.15, abs=0.01) and 0.16 < th.ndvi_threshold < 0.3
+    assert th.min_height < 0.06 and th.source["ndvi_threshold"].startswith("auto")
+    s = SegmentSettings(min_height=th.min_height, min_top=th.min_top, unclaimed_min_top=th.unclaimed_min_top,
+                        mask_threshold=th.ndvi_threshold, mask_soil=th.ndvi_soil)
+    o = segment(f.boxes, src, s, mask_source=ndvi)
+    assert not o.from_box.any() and len(o.unclaimed) == 0  # the pale plants (NDVI 0.35-0.45) too
+    assert (o.area / shapely.area(f.boxes)).max() <= 0.7
+    iou, mean = pixel_iou(o.geometry, f), outline_means(o.geometry, f, f.ndvi)
+    assert np.median(iou) >= 0.8 and np.corrcoef(mean, f.leaf_ndvi)[0, 1] >= 0.95
+    _, _, s_chm = auto_settings(src, f)
+    chm_only = segment(f.boxes, src, s_chm)
+    assert np.median(pixel_iou(chm_only.geometry, f)) < np.median(iou) - 0.2
+    assert np.corrcoef(outline_means(chm_only.geometry, f, f.ndvi), f.leaf_ndvi)[0, 1] < 0.9
+    # a false box on a 12 cm ground bump between the rows: its top is soil by NDVI, flagged low (not a plant)
+    t = f.transform
+    cx, cy = t.c + 3.0, t.f - 0.775
+    rows, cols = np.mgrid[0:f.chm.shape[0], 0:f.chm.shape[1]]
+    xs, ys = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
+    assert not f.truth[np.hypot(xs - cx, ys - cy) < 0.1].any()
+    bumpy = f.chm + 0.12 * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 0.02 ** 2))
+    boxes = np.append(f.boxes, shapely.box(cx - 0.04, cy - 0.04, cx + 0.04, cy + 0.04))
+    o2 = segment(boxes, ArraySource(bumpy, t), s, mask_source=ndvi)
+    assert o2.flag[-1] == "low" and (o2.flag[:-1] == "").all()
+    # NDVI that does not tell leaves from soil (a closed canopy): not used
+    closed = ArraySource(np.full(f.chm.shape, 0.8), f.transform)
+    assert thresholds("auto", "auto", measure_ground(src, f.boxes, 0.1, ndvi=closed), "auto").ndvi_threshold is None
+
+
 def test_an_exact_chm_keeps_the_fixed_floor():
     """A CHM without noise (bare ground exactly 0) falls back to 2 cm and 5 cm."""
     f = noisy_chm(seed=2, noise_sd=1e-9, bias=0.0)

@@ -160,14 +160,19 @@ class CanopyConfig:
                             min=0, max=1)
     min_height: float | Literal["auto"] = param(
         "auto", "m above the ground: lower pixels are soil; auto = from the CHM's own ground noise (median + 3 SD "
-                "of the CHM between the plants, at least 0.02), logged", min=0)
+                "of the CHM between the plants, or + 1 SD where NDVI tells leaves from soil; at least 0.02), logged",
+        min=0)
     min_top: float | Literal["auto"] = param(
         "auto", "m: a plant's top must reach this height to be outlined; lower ones (weeds, soil, plants too "
                 "small for the CHM) keep their box, flagged 'low', and are left out of stand counts; auto = median "
-                "+ 4 SD of the ground noise, at least 0.05 (canopies no box claims need median + 6 SD)", min=0)
+                "+ 4 SD of the ground noise (or + 2 SD with NDVI), at least 0.05 (canopies no box claims need median "
+                "+ 6 SD)", min=0)
     min_pixels: int = param(4, "canopies smaller than this many pixels keep their box (flagged 'small')", min=1)
-    ndvi_threshold: float | None = param(None, "canopy pixels also need NDVI at least this (the multispectral "
-                                               "raster on the CHM's grid); null = height only", min=-1, max=1)
+    ndvi_threshold: float | Literal["auto"] | None = param(
+        "auto", "canopy pixels also need NDVI at least this (a multispectral raster on the CHM's grid); auto = "
+                "from the NDVI of the soil between the plants and of their tops: above the soil's median + 3 SD, "
+                "and each plant's pixels at least halfway from the soil's to its top's; used when it separates "
+                "the two, logged; null = height only", min=-1, max=1)
     traits: list[str] = param([], "traits measured over the canopy too, as <trait>_canopy_<stat>; empty = the "
                                   "indices (ndvi, RGB indices, formulas); the CHM's canopy percentiles are "
                                   "always given")

@@ -15,6 +15,15 @@ Its spread is robust to the weeds and missed plants in it: the larger of 1.4826 
 * a canopy no box claims is a plant only with a top of at least max(min_top, p50 + 6 SD) (always, numbers
   given or not): the highest ground bumps of a whole field reach ~5 SD, and the detector did not see these.
 
+With an NDVI layer on the CHM's grid (``canopy.ndvi_threshold: auto``), the same windows give the soil's
+NDVI (the ground sample's pixels) and the NDVI at each sampled plant's top. A pixel is soil below the soil's
+p50 + 3 SD (the same robust spread; at least p50 + 0.05, at most halfway to the tops' median, so that a weak,
+pale plant keeps its leaves), used when that separates the two populations (at least 90 % of the soil below
+it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM). A photogrammetric CHM cannot tell a leaf's low edge from a ground
+bump of the same height (both a few SD of the noise), but NDVI can: with leaves told from soil by NDVI the
+CHM thresholds drop to ``min_height`` = p50 + 1 SD and ``min_top`` = p50 + 2 SD (a box's top must then also
+be a leaf, so a bump under a false box still does not make a plant).
+
 The same windows give each sampled box's highest and lowest CHM value, from which :func:`check_chm` tells
 a CHM that cannot be right: negative under the plants (DSM and DTM swapped), bare ground far from zero (a
 DSM given as the CHM, DSM and DTM in different units or datums), plants taller than ``canopy.max_height``
@@ -32,6 +41,9 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 
 FLOOR_HEIGHT, FLOOR_TOP = 0.02, 0.05  # m: the thresholds of an exact CHM (no noise measured)
 K_HEIGHT, K_TOP, K_UNCLAIMED = 3.0, 4.0, 6.0  # SDs of the ground noise (see the module doc)
+K_HEIGHT_NDVI, K_TOP_NDVI = 1.0, 2.0  # the same where NDVI tells leaves from soil
+SOIL_BELOW, TOPS_ABOVE = 0.9, 0.75  # shares of the soil / tops an automatic NDVI threshold must separate
+K_NDVI, MIN_NDVI_GAP = 3.0, 0.05  # soil NDVI: SDs above its median, and the least margin (mixed pixels)
 MIN_GROUND = 500  # ground pixels needed to measure the noise
 MAX_WINDOWS = 32
 MIN_WINDOWS = 4
@@ -51,6 +63,8 @@ class GroundNoise:
     sd: float = np.nan
     box_max: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per sampled box (plant tops)
     box_min: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ndvi_soil: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI of the ground sample
+    ndvi_tops: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI at each sampled box's top
 
     @property
     def measured(self) -> bool:
@@ -69,6 +83,8 @@ class Thresholds:
     min_top: float
     unclaimed_min_top: float
     source: dict  # key -> "auto (...)" or "set"
+    ndvi_threshold: float | None = None
+    ndvi_soil: float | None = None  # the soil's NDVI (median), with an automatic ndvi_threshold
 
 
 def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
@@ -87,9 +103,10 @@ def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
     return d.cumsum(0).cumsum(1)[:h, :w] > 0
 
 
-def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -> GroundNoise:
+def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, ndvi=None) -> GroundNoise:
     """The ground sample (see the module doc) from up to ``max_windows`` windows around plants spread
-    over the field, and the highest / lowest CHM value in each box wholly inside a window."""
+    over the field, and the highest / lowest CHM value in each box wholly inside a window; ``ndvi``: a
+    layer on the CHM's grid, sampled on the same pixels and at each box's top."""
     t = chm.transform
     res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
     geoms = np.asarray(geoms, dtype=object)
@@ -117,6 +134,7 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -
     k_max = int(np.clip(np.ceil(chm.height * chm.width / (2 * half) ** 2), MIN_WINDOWS, max_windows))
     picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
     ground, tops, lows, seen = [], [], [], np.zeros(len(box), bool)
+    soil_ndvi, top_ndvi = [], []
     for k in picks:
         R0 = int(max(0, centre[k, 0] - half))
         R1 = int(min(chm.height, centre[k, 0] + half))
@@ -127,7 +145,11 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -
         off = np.array([C0, R0, C0, R0])
         free = ~_covered(W.shape, guarded[near] - off) & np.isfinite(W)
         v = W[free]
-        ground.append(v[:: max(1, v.size // GROUND_PER_WINDOW)])
+        step = max(1, v.size // GROUND_PER_WINDOW)
+        ground.append(v[::step])
+        N = None if ndvi is None else np.asarray(ndvi.read(R0, R1, C0, C1), dtype=float)
+        if N is not None:
+            soil_ndvi.append(N[free][::step])
         whole = near & ~seen & (inner[:, 0] >= C0) & (inner[:, 2] <= C1) & (inner[:, 1] >= R0) & \
             (inner[:, 3] <= R1) & (inner[:, 2] > inner[:, 0]) & (inner[:, 3] > inner[:, 1])
         for j in np.flatnonzero(whole):  # a few dozen boxes per window
@@ -135,35 +157,75 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS) -
             if np.isfinite(a).any():
                 tops.append(np.nanmax(a))
                 lows.append(np.nanmin(a))
+                if N is not None:
+                    top_ndvi.append(N[inner[j, 1] - R0:inner[j, 3] - R0, inner[j, 0] - C0:inner[j, 2] - C0]
+                                    .ravel()[np.nanargmax(a)])
         seen |= whole
     v = np.concatenate(ground) if ground else np.zeros(0)
-    out = GroundNoise(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows))
+    out = GroundNoise(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows),
+                      ndvi_soil=_finite(soil_ndvi), ndvi_tops=_finite([np.array(top_ndvi)]))
     if v.size >= MIN_GROUND:
-        p50, p90, p95, p99 = np.percentile(v, [50, 90, 95, 99])
-        mad = 1.4826 * np.median(np.abs(v - p50))
+        p50, p95, p99 = np.percentile(v, [50, 95, 99])
         out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
-        out.sd = float(max(mad, (p90 - p50) / 1.2816))
+        out.sd = robust_sd(v, p50)
     return out
 
 
-def thresholds(min_height, min_top, noise: GroundNoise) -> Thresholds:
-    """The canopy thresholds (m): numbers as given, ``"auto"`` from the ground noise (module doc)."""
+def robust_sd(v: np.ndarray, p50: float) -> float:
+    """The larger of 1.4826 x MAD and (p90 - p50) / 1.2816 (module doc)."""
+    return float(max(1.4826 * np.median(np.abs(v - p50)), (np.percentile(v, 90) - p50) / 1.2816))
+
+
+def _finite(parts: list) -> np.ndarray:
+    v = np.concatenate(parts) if parts else np.zeros(0)
+    return v[np.isfinite(v)]
+
+
+def soil_ndvi_threshold(noise: GroundNoise) -> tuple[float | None, str]:
+    """The NDVI below which a pixel is soil (module doc), when it separates the soil from the plants' tops;
+    else None, and why."""
+    soil, tops = noise.ndvi_soil, noise.ndvi_tops
+    if soil.size < MIN_GROUND or tops.size < 3:
+        return None, f"too few pixels to tell soil from leaves ({soil.size} soil, {tops.size} tops)"
+    s50, t50 = float(np.median(soil)), float(np.median(tops))
+    sd = robust_sd(soil, s50)
+    cut = min(s50 + max(K_NDVI * sd, MIN_NDVI_GAP), (s50 + t50) / 2)
+    below, above = float(np.mean(soil < cut)), float(np.mean(tops >= cut))
+    why = (f"soil median {s50:.2f} + {K_NDVI:g} x SD {sd:.3f}, tops median {t50:.2f}: {below:.0%} of the soil "
+           f"below {cut:.2f}, {above:.0%} of the tops above")
+    if below < SOIL_BELOW or above < TOPS_ABOVE:
+        return None, f"NDVI does not tell leaves from soil ({why})"
+    return cut, why
+
+
+def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> Thresholds:
+    """The canopy thresholds (m; NDVI): numbers as given, ``"auto"`` from the ground noise and, for NDVI,
+    from the soil's and the tops' NDVI (module doc)."""
     src = {}
+    auto_ndvi = ndvi_threshold == "auto"
+    if auto_ndvi:
+        ndvi_threshold, why_ndvi = soil_ndvi_threshold(noise)
+        src["ndvi_threshold"] = f"auto ({why_ndvi})"
+    else:
+        src["ndvi_threshold"] = "set" if ndvi_threshold is not None else "none"
+    k_height, k_top = (K_HEIGHT_NDVI, K_TOP_NDVI) if ndvi_threshold is not None else (K_HEIGHT, K_TOP)
     base = noise.p50 if noise.measured else 0.0
     sd = noise.sd if noise.measured else 0.0
     why = f"ground p50 {base:.3f} m + {{k:g}} x SD {sd:.3f} m" if noise.measured else "no ground noise measured"
     if min_height == "auto":
-        min_height = max(FLOOR_HEIGHT, base + K_HEIGHT * sd)
-        src["min_height"] = f"auto ({why.format(k=K_HEIGHT)}, at least {FLOOR_HEIGHT} m)"
+        min_height = max(FLOOR_HEIGHT, base + k_height * sd)
+        src["min_height"] = f"auto ({why.format(k=k_height)}, at least {FLOOR_HEIGHT} m)"
     else:
         src["min_height"] = "set"
     if min_top == "auto":
-        min_top = max(FLOOR_TOP, base + K_TOP * sd, float(min_height))
-        src["min_top"] = f"auto ({why.format(k=K_TOP)}, at least {FLOOR_TOP} m and min_height)"
+        min_top = max(FLOOR_TOP, base + k_top * sd, float(min_height))
+        src["min_top"] = f"auto ({why.format(k=k_top)}, at least {FLOOR_TOP} m and min_height)"
     else:
         src["min_top"] = "set"
     unclaimed = max(float(min_top), base + K_UNCLAIMED * sd)
-    return Thresholds(float(min_height), float(min_top), float(unclaimed), src)
+    soil = float(np.median(noise.ndvi_soil)) if auto_ndvi and ndvi_threshold is not None else None
+    return Thresholds(float(min_height), float(min_top), float(unclaimed), src,
+                      None if ndvi_threshold is None else float(ndvi_threshold), soil)
 
 
 def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:

@@ -56,6 +56,8 @@ class SegmentSettings:
     min_pixels: int = 4           # smaller canopies keep their box (flagged)
     max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
+    mask_soil: float | None = None  # the mask's value on soil: a plant's pixels also reach halfway from it to
+    # the value at the plant's top (more leaf than soil: a pale plant keeps its leaves, a green one its edges)
     unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
     # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
 
@@ -283,6 +285,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     parts_pix, parts_plant, parts_h, free_parts = [], [], [], []
     geo_parts = _Pieces()
     no_peak = np.zeros(n, bool)
+    soil_top = np.zeros(n, bool)
     centre_row = (win_i[:, 1] + win_i[:, 3]) // 2
     live = np.flatnonzero(~outside)
     strips = np.unique(np.clip(centre_row[live], 0, H_ - 1) // strip_rows) if len(live) else []
@@ -302,9 +305,10 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         Rr0, Rr1, Cc0, Cc1 = max(0, R0 - pad), min(H_, R1 + pad), max(0, C0 - pad), min(W_, C1 + pad)
         W = chm.read(Rr0, Rr1, Cc0, Cc1)
         mask = np.nan_to_num(W, nan=-np.inf) >= s.min_height
+        mv = None
         if mask_source is not None and s.mask_threshold is not None:
-            mv = mask_source.read(Rr0, Rr1, Cc0, Cc1)
-            mask &= np.nan_to_num(mv, nan=-np.inf) >= s.mask_threshold
+            mv = np.nan_to_num(mask_source.read(Rr0, Rr1, Cc0, Cc1), nan=-np.inf)
+            mask &= mv >= s.mask_threshold
         # every plant whose window meets this one competes for the canopy (seeds), only home plants are kept
         near = live[(win_i[live, 2] > Cc0) & (win_i[live, 0] < Cc1) & (win_i[live, 3] > Rr0) &
                     (win_i[live, 1] < Rr1)]
@@ -314,6 +318,9 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         else:
             tp = _tops_near(W, seed_px[near] - np.array([Rr0, Cc0]), s.max_shift / res, s.min_top)
         ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
+        if mv is not None:  # a top on soil by the mask (NDVI) is a ground bump under the box: flagged low
+            bare = ok & (mv[np.nan_to_num(tp[:, 0]).astype(int), np.nan_to_num(tp[:, 1]).astype(int)] < s.mask_threshold)
+            soil_top[near[bare & np.isin(near, home)]] = True
         # two boxes of one plant find the same top: the first keeps it, the others are duplicates
         flat_top = np.where(ok, np.nan_to_num(tp[:, 0]) * (Cc1 - Cc0) + np.nan_to_num(tp[:, 1]), -1)
         _, first_i, group = np.unique(flat_top, return_index=True, return_inverse=True)
@@ -334,6 +341,8 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         p = near[k]
         keep = (rr + Rr0 >= win_i[p, 1]) & (rr + Rr0 < win_i[p, 3]) & (cc + Cc0 >= win_i[p, 0]) & \
                (cc + Cc0 < win_i[p, 2]) & (W[rr, cc] >= s.relative * tp[k, 2])
+        if mv is not None and s.mask_soil is not None:
+            keep &= mv[rr, cc] >= (s.mask_soil + mv[tp[k, 0].astype(int), tp[k, 1].astype(int)]) / 2
         keep &= is_home[p]
         rr, cc, p = rr[keep], cc[keep], p[keep]
         hit = is_home[near]
@@ -353,6 +362,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
                    geo_parts, chm, dup, no_peak)
     out.flag[skipped] = "skipped"
+    out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
     plant_like = free[:, 2] >= max(s.min_top, s.unclaimed_min_top)
     out.noise_bumps = int((~plant_like).sum())

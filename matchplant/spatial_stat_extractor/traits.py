@@ -52,9 +52,11 @@ FILLS_BOX = 0.9  # an outline covering this share of its box or more is most lik
 def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSettings:
     """The segmentation settings; ``th``: the thresholds resolved for one CHM (``auto`` ones from its noise)."""
     if th is None:
-        th = thresholds(cfg.min_height, cfg.min_top, GroundNoise())
+        th = thresholds(cfg.min_height, cfg.min_top, GroundNoise(),
+                        None if cfg.ndvi_threshold == "auto" else cfg.ndvi_threshold)
     return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
-                           min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=cfg.ndvi_threshold,
+                           min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=th.ndvi_threshold,
+                           mask_soil=th.ndvi_soil,
                            unclaimed_min_top=th.unclaimed_min_top)
 
 
@@ -64,11 +66,12 @@ def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:
     return (f"{where}.chm",) if rs.chm is not None else (f"{where}.dsm", f"{where}.dtm")
 
 
-def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool, entry: dict) -> Thresholds:
-    """The CHM's ground noise measured, the canopy thresholds resolved from it, the CHM checked; logged
-    and reported in ``entry``."""
-    noise = measure_ground(chm, geoms, guard_m=cfg.margin + GUARD)
-    th = thresholds(cfg.min_height, cfg.min_top, noise)
+def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool, entry: dict,
+                       ndvi=None) -> Thresholds:
+    """The CHM's ground noise measured (and ``ndvi``'s, a layer on the CHM's grid), the canopy thresholds
+    resolved from it, the CHM checked; logged and reported in ``entry``."""
+    noise = measure_ground(chm, geoms, guard_m=cfg.margin + GUARD, ndvi=ndvi)
+    th = thresholds(cfg.min_height, cfg.min_top, noise, cfg.ndvi_threshold if ndvi is not None else None)
     files = ", ".join(Path(p).name for p in ((rs.chm,) if rs.chm is not None else (rs.dsm, rs.dtm)))
     check_chm(noise, th, cfg.max_height, files, chm_keys(rs, first))
     if noise.measured:
@@ -77,11 +80,15 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
     else:
         log.warning("date '%s': too little bare ground between the plants (%d pixels) to measure the CHM's noise",
                     rs.date, noise.pixels)
+    if ndvi is not None:
+        log.info("date '%s': canopy.ndvi_threshold %s: %s", rs.date,
+                 "none" if th.ndvi_threshold is None else f"{th.ndvi_threshold:.3f}", th.source["ndvi_threshold"])
     log.info("date '%s': canopy.min_height %.3f m: %s; canopy.min_top %.3f m: %s; canopies no box claims need a top "
              "of %.3f m", rs.date, th.min_height, th.source["min_height"], th.min_top, th.source["min_top"],
              th.unclaimed_min_top)
     entry.update(ground_noise=noise.report(), min_height=round(th.min_height, 4), min_top=round(th.min_top, 4),
-                 unclaimed_min_top=round(th.unclaimed_min_top, 4), thresholds_from=th.source)
+                 unclaimed_min_top=round(th.unclaimed_min_top, 4), thresholds_from=th.source,
+                 ndvi_threshold=None if th.ndvi_threshold is None else round(th.ndvi_threshold, 4))
     return th
 
 
@@ -165,8 +172,9 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                 mask_layer = next((la for la in layers if la.kind == "ndvi"), None)
                 mask = open_layer(mask_layer, stack, nodata) if mask_layer is not None else None
                 if mask is None or (mask.width, mask.height) != (chm.width, chm.height):
-                    log.warning("canopy.ndvi_threshold ignored on date '%s': no multispectral raster on the "
-                                "CHM's grid", rs.date)
+                    (log.info if cfg.ndvi_threshold == "auto" else log.warning)(
+                        "canopy.ndvi_threshold not used on date '%s': no multispectral raster on the CHM's grid "
+                        "(outlines from the CHM alone)", rs.date)
                     mask = mask_layer = None
             step = np.zeros(2)
             if earlier is not None:
@@ -180,7 +188,9 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                 lost = ~np.isfinite(seeds).all(axis=1)  # no top earlier: start from the box centre
                 centre = shapely.centroid(np.asarray(geoms, dtype=object)[lost])
                 seeds[lost] = np.stack([shapely.get_x(centre), shapely.get_y(centre)], axis=1)
-            th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry)
+            th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry, mask)
+            if th.ndvi_threshold is None:
+                mask_layer = None
             # strip by strip within max_memory, only per-plant results kept (strips.py)
             measures = [Measure(f"{chm_layer.name}_canopy", chm_layer, ("max", "mean"), tuple(cfg.height_percentiles))]
             measures += [Measure(f"{la.name}_canopy", la, tuple(stats), tuple(percentiles)) for la in layers
