@@ -40,6 +40,8 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
+from matchplant.spatial_stat_extractor.grouping import group_by
+from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -114,7 +116,7 @@ def _pixel_boxes(geoms, transform) -> np.ndarray:
 def _peaks(W: np.ndarray, size: int, min_height: float) -> tuple[np.ndarray, np.ndarray]:
     """The CHM with -inf holes, and its local maxima (highest in a ``size`` x ``size`` neighbourhood)."""
     filled = np.nan_to_num(W, nan=-np.inf)
-    return filled, (filled == ndi.maximum_filter(filled, size=size)) & (filled >= min_height)
+    return filled, local_maxima(filled, size, min_height)
 
 
 def _tops(W: np.ndarray, boxes: np.ndarray, windows: np.ndarray, min_height: float) -> np.ndarray:
@@ -343,11 +345,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         parts_pix.append((rr + Rr0).astype(np.int64) * W_ + (cc + Cc0))
         parts_plant.append(p.astype(np.int32))
         parts_h.append(W[rr, cc].astype(np.float32))
-        lab = np.zeros(W.shape, np.int32)
-        lab[rr, cc] = p + 1
-        wt = Affine(t.a, t.b, t.c + t.a * Cc0 + t.b * Rr0, t.d, t.e, t.f + t.d * Cc0 + t.e * Rr0)
-        for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
-            geo_parts.add(int(v) - 1, g["coordinates"])
+        _trace(rr, cc, p, t, Rr0, Cc0, geo_parts)
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
@@ -360,6 +358,21 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
     out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
     return out
+
+
+def _trace(rr: np.ndarray, cc: np.ndarray, p: np.ndarray, t, R0: int, C0: int, pieces: "_Pieces") -> None:
+    """The outlines of plants ``p`` from their pixels (``rr, cc`` in the window read at ``R0, C0``), traced
+    over the pixels' extent only: the window's padding rows hold no home plant's pixel, and tracing costs
+    per pixel, empty or not."""
+    if not len(rr):
+        return
+    r0, c0 = int(rr.min()), int(cc.min())
+    lab = np.zeros((int(rr.max()) + 1 - r0, int(cc.max()) + 1 - c0), np.int32)
+    lab[rr - r0, cc - c0] = p + 1
+    R0, C0 = R0 + r0, C0 + c0
+    wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
+    for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
+        pieces.add(int(v) - 1, g["coordinates"])
 
 
 def valid_polygons(geoms: np.ndarray) -> np.ndarray:
@@ -440,9 +453,7 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
         extra_plant.append(np.full(rr.size, k))
         extra_h.append(np.full(rr.size, np.nan))
     pix, plant, hv = np.concatenate(extra_pix), np.concatenate(extra_plant), np.concatenate(extra_h)
-    order = np.argsort(plant, kind="stable")
-    pix, plant, hv = pix[order], plant[order], hv[order]
-    start = np.searchsorted(plant, np.arange(n + 1))
+    plant, pix, hv, start = group_by(plant, n, pix, hv)
     count = np.diff(start)
     px_area = res * res
     ok = flag == ""
