@@ -41,6 +41,20 @@ def group_by(group: np.ndarray, n: int, pix: np.ndarray, values: np.ndarray):
                           np.ascontiguousarray(values))
 
 
+@numba.njit(cache=True, nogil=True)
+def _label_sizes(labels, n):
+    out = np.zeros(n + 1, np.int64)
+    for v in labels.ravel():
+        out[v] += 1
+    return out
+
+
+def label_sizes(labels: np.ndarray, n: int) -> np.ndarray:
+    """Pixels per label ``0..n`` of a label image (``np.bincount(labels.ravel(), minlength=n + 1)`` without
+    its copy of the image as 64-bit integers: four to five times faster)."""
+    return _label_sizes(np.ascontiguousarray(labels), int(n))
+
+
 def sort_within_groups(values: np.ndarray, first: np.ndarray) -> np.ndarray:
     """A copy of ``values`` with each run ``values[first[k]:first[k + 1]]`` sorted ascending (no NaN). A loop
     over the groups (plants, not pixels): numpy's own sort of each run in place is several times faster than

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.grouping import group_by
+from matchplant.spatial_stat_extractor.grouping import group_by, label_sizes
 from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
@@ -231,7 +231,7 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
         mine = cid == k
         L[sl] = np.where(comp[sl] == k, _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start,
                                                 tc[mine] - sl[1].start, idx[mine] + 1), L[sl])
-    size = np.bincount(comp.ravel(), minlength=n + 1)
+    size = label_sizes(comp, n)
     free = np.flatnonzero((nseed == 0) & (size >= s.min_pixels))
     free = free[free > 0]
     if not len(free):
@@ -367,8 +367,9 @@ def _trace(rr: np.ndarray, cc: np.ndarray, p: np.ndarray, t, R0: int, C0: int, p
     if not len(rr):
         return
     r0, c0 = int(rr.min()), int(cc.min())
-    lab = np.zeros((int(rr.max()) + 1 - r0, int(cc.max()) + 1 - c0), np.int32)
-    lab[rr - r0, cc - c0] = p + 1
+    w = int(cc.max()) + 1 - c0
+    lab = np.zeros((int(rr.max()) + 1 - r0, w), np.int32)
+    lab.ravel()[(rr - r0) * w + (cc - c0)] = p + 1  # flat indices: faster than a 2-D scatter
     R0, C0 = R0 + r0, C0 + c0
     wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
     for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
