@@ -32,7 +32,6 @@ from PIL import Image
 from pyproj import Transformer
 
 from bench.process import matchplant_command, run_process
-
 from matchplant.core.formats.exif import exif_gps, load_exif, splice_exif
 from matchplant.gps_embeder import GpsEmbederConfig
 from matchplant.gps_embeder import run as embed_gps
@@ -86,6 +85,12 @@ def write_gpx(path: Path, log: Path, offset_s: float) -> Path:
     return path
 
 
+def exiftool_command(exiftool: str, gpx: Path, images: Path, out: Path) -> list[str]:
+    """exiftool writing the GPS of the track into copies of the images in ``out``."""
+    return [exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00", "-o", f"{out}/",
+            str(images)]
+
+
 def comparison(name: str, work: Path, quick: bool, device: str, width: int = 2000):
     """For ``python -m bench``: module 0 on 300 JPEGs of 2000 x 1500 (quick: 60) against
     ``exiftool -geotag`` writing copies of the same images into another folder (in-process: module 0's
@@ -113,8 +118,7 @@ def comparison(name: str, work: Path, quick: bool, device: str, width: int = 200
 
     def peer():
         peer_out.mkdir()
-        subprocess.run([exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00",
-                        "-o", f"{peer_out}/", str(images)], check=True)
+        return run_process(exiftool_command(exiftool, gpx, images, peer_out))
 
     def check() -> dict:
         """Both wrote every image with a position; largest distance between them (m, rough)."""

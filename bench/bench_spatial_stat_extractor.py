@@ -33,7 +33,6 @@ import yaml
 from affine import Affine
 
 from bench.process import matchplant_command, run_process
-
 from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]

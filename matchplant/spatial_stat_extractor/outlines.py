@@ -360,7 +360,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     return out
 
 
-def _trace(rr: np.ndarray, cc: np.ndarray, p: np.ndarray, t, R0: int, C0: int, pieces: "_Pieces") -> None:
+def _trace(rr: np.ndarray, cc: np.ndarray, p: np.ndarray, t, R0: int, C0: int, pieces: _Pieces) -> None:
     """The outlines of plants ``p`` from their pixels (``rr, cc`` in the window read at ``R0, C0``), traced
     over the pixels' extent only: the window's padding rows hold no home plant's pixel, and tracing costs
     per pixel, empty or not."""
