@@ -55,6 +55,39 @@ def label_sizes(labels: np.ndarray, n: int) -> np.ndarray:
     return _label_sizes(np.ascontiguousarray(labels), int(n))
 
 
+@numba.njit(cache=True, nogil=True)
+def _labelled_pixels(labels, values, windows, reach, home):
+    rows, cols = labels.shape
+    n = 0
+    for r in range(rows):
+        for c in range(cols):
+            if labels[r, c] > 0:
+                n += 1
+    rr, cc, kk = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    hv = np.empty(n, values.dtype)
+    m = 0
+    for r in range(rows):
+        for c in range(cols):
+            k = labels[r, c] - 1
+            if k < 0 or not home[k]:
+                continue
+            if windows[k, 0] <= c < windows[k, 2] and windows[k, 1] <= r < windows[k, 3] and values[r, c] >= reach[k]:
+                rr[m], cc[m], kk[m], hv[m] = r, c, k, values[r, c]
+                m += 1
+    return rr[:m], cc[:m], kk[:m], hv[:m]
+
+
+def labelled_pixels(labels: np.ndarray, values: np.ndarray, windows: np.ndarray, reach: np.ndarray,
+                    home: np.ndarray):
+    """The pixels of a label image (1 + an index ``k`` into the other arguments, 0: none) that lie in their
+    label's window (``windows[k]``: col0, row0, col1, row1 in the image's pixels, end excluded), whose value
+    reaches ``reach[k]`` (NaN never does) and whose ``home[k]`` is set: rows, columns, ``k`` and values, in
+    raster order (as ``np.nonzero``). One pass instead of a dozen over millions of pixels."""
+    return _labelled_pixels(np.ascontiguousarray(labels), np.ascontiguousarray(values),
+                            np.ascontiguousarray(windows, dtype=np.int64), np.ascontiguousarray(reach, dtype=float),
+                            np.ascontiguousarray(home, dtype=np.bool_))
+
+
 def sort_within_groups(values: np.ndarray, first: np.ndarray) -> np.ndarray:
     """A copy of ``values`` with each run ``values[first[k]:first[k + 1]]`` sorted ascending (no NaN). A loop
     over the groups (plants, not pixels): numpy's own sort of each run in place is several times faster than

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.grouping import group_by, label_sizes
+from matchplant.spatial_stat_extractor.grouping import group_by, label_sizes, labelled_pixels
 from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
@@ -331,20 +331,17 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         # canopies no box claims, with their top in this strip's own rows (each is found once)
         in_strip = (free[:, 0] + Rr0) // strip_rows == strip
         free_parts.append(np.column_stack([free[in_strip, 0] + Rr0, free[in_strip, 1] + Cc0, free[in_strip, 2:]]))
-        rr, cc = np.nonzero(L)
-        k = L[rr, cc] - 1
+        # a home plant keeps its canopy pixels inside its box + margin that reach `relative` x its top height
+        rr, cc, k, hv = labelled_pixels(L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2],
+                                        is_home[near])
         p = near[k]
-        keep = (rr + Rr0 >= win_i[p, 1]) & (rr + Rr0 < win_i[p, 3]) & (cc + Cc0 >= win_i[p, 0]) & \
-               (cc + Cc0 < win_i[p, 2]) & (W[rr, cc] >= s.relative * tp[k, 2])
-        keep &= is_home[p]
-        rr, cc, p = rr[keep], cc[keep], p[keep]
         hit = is_home[near]
         tops[near[hit], :2] = tp[hit, :2] + [Rr0, Cc0]
         tops[near[hit], 2] = tp[hit, 2]
         no_peak[near[hit]] = tp[hit, 3] == 0
         parts_pix.append((rr + Rr0).astype(np.int64) * W_ + (cc + Cc0))
         parts_plant.append(p.astype(np.int32))
-        parts_h.append(W[rr, cc].astype(np.float32))
+        parts_h.append(hv.astype(np.float32))
         _trace(rr, cc, p, t, Rr0, Cc0, geo_parts)
         bar.update(1)
     bar.close()
