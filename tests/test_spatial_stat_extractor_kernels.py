@@ -55,7 +55,8 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     windows = np.array([[0, 0, 40, 30], [5, 3, 20, 25], [10, 10, 11, 30], [0, 0, 40, 30], [-5, -5, 50, 50]])
     reach = np.array([0.5, 0.0, 0.2, np.nan, 0.9])
     home = np.array([True, True, True, True, False])
-    rr, cc, k, hv = labelled_pixels(L, W, windows, reach, home)
+    ids = np.array([11, 12, 13, 14, 15])
+    rr, cc, k, hv, image = labelled_pixels(L, W, windows, reach, home, ids)
     r, c = np.nonzero(L)
     kk = L[r, c] - 1
     keep = (c >= windows[kk, 0]) & (c < windows[kk, 2]) & (r >= windows[kk, 1]) & (r < windows[kk, 3]) & \
@@ -63,3 +64,6 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     assert keep.sum() > 50
     assert np.array_equal(rr, r[keep]) and np.array_equal(cc, c[keep]) and np.array_equal(k, kk[keep])
     assert np.array_equal(hv, W[r[keep], c[keep]])
+    want = np.zeros(L.shape, np.int32)
+    want[r[keep], c[keep]] = ids[kk[keep]]
+    assert np.array_equal(image, want)

@@ -332,8 +332,8 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         in_strip = (free[:, 0] + Rr0) // strip_rows == strip
         free_parts.append(np.column_stack([free[in_strip, 0] + Rr0, free[in_strip, 1] + Cc0, free[in_strip, 2:]]))
         # a home plant keeps its canopy pixels inside its box + margin that reach `relative` x its top height
-        rr, cc, k, hv = labelled_pixels(L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2],
-                                        is_home[near])
+        rr, cc, k, hv, lab = labelled_pixels(L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2],
+                                             is_home[near], near + 1)
         p = near[k]
         hit = is_home[near]
         tops[near[hit], :2] = tp[hit, :2] + [Rr0, Cc0]
@@ -342,7 +342,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         parts_pix.append((rr + Rr0).astype(np.int64) * W_ + (cc + Cc0))
         parts_plant.append(p.astype(np.int32))
         parts_h.append(hv.astype(np.float32))
-        _trace(rr, cc, p, t, Rr0, Cc0, geo_parts)
+        _trace(lab, rr, cc, t, Rr0, Cc0, geo_parts)
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
@@ -357,16 +357,14 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     return out
 
 
-def _trace(rr: np.ndarray, cc: np.ndarray, p: np.ndarray, t, R0: int, C0: int, pieces: _Pieces) -> None:
-    """The outlines of plants ``p`` from their pixels (``rr, cc`` in the window read at ``R0, C0``), traced
-    over the pixels' extent only: the window's padding rows hold no home plant's pixel, and tracing costs
-    per pixel, empty or not."""
+def _trace(lab: np.ndarray, rr: np.ndarray, cc: np.ndarray, t, R0: int, C0: int, pieces: _Pieces) -> None:
+    """The outlines in the label image ``lab`` (1 + the plant, 0: none; the window read at ``R0, C0``), traced
+    over its pixels' extent (``rr, cc``) only: the window's padding rows hold no home plant's pixel, and tracing
+    costs per pixel, empty or not."""
     if not len(rr):
         return
     r0, c0 = int(rr.min()), int(cc.min())
-    w = int(cc.max()) + 1 - c0
-    lab = np.zeros((int(rr.max()) + 1 - r0, w), np.int32)
-    lab.ravel()[(rr - r0) * w + (cc - c0)] = p + 1  # flat indices: faster than a 2-D scatter
+    lab = np.ascontiguousarray(lab[r0:int(rr.max()) + 1, c0:int(cc.max()) + 1])
     R0, C0 = R0 + r0, C0 + c0
     wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
     for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
