@@ -1,6 +1,8 @@
 """Module 9's compiled kernels (outlines and canopy statistics) against the plain numpy/scipy computations
 they replace, on random data with holes, ties and edges."""
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
@@ -43,7 +45,7 @@ def test_label_sizes_and_sorted_runs():
     v = rng.random(300)
     first = np.array([0, 0, 1, 40, 41, 300])
     got = sort_within_groups(v, first)
-    want = np.concatenate([np.sort(v[a:b]) for a, b in zip(first[:-1], first[1:])])
+    want = np.concatenate([np.sort(v[a:b]) for a, b in itertools.pairwise(first)])
     assert np.array_equal(got, want) and not np.array_equal(v, got)
 
 

@@ -40,7 +40,11 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.grouping import group_by, label_sizes, labelled_pixels
+from matchplant.spatial_stat_extractor.grouping import (
+    group_by,
+    label_sizes,
+    labelled_pixels,
+)
 from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
