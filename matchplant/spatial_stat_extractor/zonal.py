@@ -77,8 +77,7 @@ class RasterFileSource:
         self.crs = pyproj_crs(dataset.crs)
         self.width, self.height = dataset.width, dataset.height
         file_nodata = dataset.nodatavals[band - 1] if dataset.nodatavals else None
-        # each value once: an elevation raster's own nodata is often ODM's -9999 too, and every value costs a
-        # pass over each window read
+        # each value once (an elevation raster's nodata is often ODM's -9999 too): a pass per value per read
         self.nodata = list(dict.fromkeys(v for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
                                          if v is not None and not np.isnan(v)))
 
