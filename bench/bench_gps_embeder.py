@@ -7,7 +7,8 @@ Prints images per second for the whole run (read EXIF, estimate the clock offset
 copies, report) and the time of the clock-offset estimate alone.
 
 ``python -m bench --only gps-embed`` times it against ``exiftool -geotag`` on the same 300 images
-(:func:`comparison`; exiftool from the system: ``apt-get install libimage-exiftool-perl``).
+(:func:`comparison`; exiftool from the system: ``apt-get install libimage-exiftool-perl``);
+``--only gps-embed-process`` as whole processes on 1.1 MB JPEGs (:func:`process_comparison`).
 """
 
 from __future__ import annotations
@@ -26,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 import piexif
+import yaml
 from PIL import Image
 from pyproj import Transformer
 
+from bench.process import matchplant_command, run_process
 from matchplant.core.formats.exif import exif_gps, load_exif, splice_exif
 from matchplant.gps_embeder import GpsEmbederConfig
 from matchplant.gps_embeder import run as embed_gps
@@ -82,13 +85,22 @@ def write_gpx(path: Path, log: Path, offset_s: float) -> Path:
     return path
 
 
-def comparison(name: str, work: Path, quick: bool, device: str):
+def exiftool_command(exiftool: str, gpx: Path, images: Path, out: Path) -> list[str]:
+    """exiftool writing the GPS of the track into copies of the images in ``out``."""
+    return [exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00", "-o", f"{out}/",
+            str(images)]
+
+
+def comparison(name: str, work: Path, quick: bool, device: str, width: int = 2000):
     """For ``python -m bench``: module 0 on 300 JPEGs of 2000 x 1500 (quick: 60) against
-    ``exiftool -geotag`` writing copies of the same images into another folder."""
+    ``exiftool -geotag`` writing copies of the same images into another folder (in-process: module 0's
+    ``run``; ``gps-embed-process``: :func:`process_comparison`)."""
     from bench.harness import Comparison
 
+    if name == "gps-embed-process":
+        return process_comparison(work, quick)
     n = 60 if quick else 300
-    images, log = make_flight(work, n, 2000)
+    images, log = make_flight(work, n, width)
     gpx = write_gpx(work / "track.gpx", log, 3600.4 + 18)
     ours_out, peer_out = work / "ours", work / "exiftool"
     cfg = GpsEmbederConfig(images=images, gnss_log=log, output_dir=ours_out, log_crs="EPSG:32614")
@@ -106,8 +118,7 @@ def comparison(name: str, work: Path, quick: bool, device: str):
 
     def peer():
         peer_out.mkdir()
-        subprocess.run([exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00",
-                        "-o", f"{peer_out}/", str(images)], check=True)
+        return run_process(exiftool_command(exiftool, gpx, images, peer_out))
 
     def check() -> dict:
         """Both wrote every image with a position; largest distance between them (m, rough)."""
@@ -119,11 +130,27 @@ def comparison(name: str, work: Path, quick: bool, device: str):
         return {"images_written_by_both": n, "largest_position_difference_m": worst}
 
     size = sum(p.stat().st_size for p in images.iterdir()) / n / 1e6
-    return Comparison(name, f"{n} JPEGs of 2000 x 1500 ({size:.2f} MB each): GPS into EXIF copies",
+    return Comparison(name, f"{n} JPEGs of {width} x {width * 3 // 4} ({size:.2f} MB each): GPS into EXIF copies",
                       "matchplant gps_embed", "exiftool -geotag", ours, peer if exiftool else None,
                       reset=reset, check=check if exiftool else None, items=n, unit="images",
                       skip=None if exiftool else "exiftool is not installed (apt-get install libimage-exiftool-perl)",
                       notes={"exiftool": version})
+
+
+def process_comparison(work: Path, quick: bool):
+    """``gps-embed-process``: module 0's command (``python -m matchplant.cli gps_embeder --config``) against
+    ``exiftool -geotag``, both writing GPS into copies of 300 JPEGs of 2600 x 1950 (1.1 MB each; quick: 60),
+    whole processes: imports, reading and writing the files as a user meets them."""
+    from bench.harness import Comparison
+
+    cmp = comparison("gps-embed", work, quick, "cpu", width=2600)
+    cfg = work / "module0.yaml"
+    cfg.write_text(yaml.safe_dump({"images": str(work / "images"), "gnss_log": str(work / "events.txt"),
+                                   "output_dir": str(work / "ours"), "log_crs": "EPSG:32614"}))
+    return Comparison("gps-embed-process", cmp.what + ", whole processes", "matchplant gps_embeder (command)",
+                      cmp.peer_label, lambda: run_process(matchplant_command("gps_embeder", cfg)), cmp.peer,
+                      reset=cmp.reset, check=cmp.check, items=cmp.items, unit=cmp.unit, skip=cmp.skip,
+                      notes=cmp.notes)
 
 
 def main(argv=None) -> int:

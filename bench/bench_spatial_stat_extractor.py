@@ -8,7 +8,8 @@ Checks that the numbers agree, then prints the times and both ratios.
     python bench/bench_spatial_stat_extractor.py --quick    # 2,000 x 2,000 raster, 1,250 boxes
 
 The alternating, pinned comparison (the README's rows) is ``python -m bench --only zonal-coverage``
-(and ``zonal-center``): see :func:`comparison`.
+(and ``zonal-center``): see :func:`comparison`; ``--only zonal-coverage-process`` times the same work as whole
+processes, module 9's command against a script calling exactextract (:func:`process_comparison`).
 """
 
 from __future__ import annotations
@@ -24,11 +25,14 @@ from typing import Callable
 import exactextract
 import geopandas as gpd
 import numpy as np
+import pandas as pd
 import rasterio
 import rasterstats
 import shapely
+import yaml
 from affine import Affine
 
+from bench.process import matchplant_command, run_process
 from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]
@@ -125,11 +129,59 @@ def run_rasterstats(path: Path, boxes) -> dict:
     return ref
 
 
+PEER_SCRIPT = """import sys
+
+import geopandas as gpd
+from exactextract import exact_extract
+
+raster, plants, out = sys.argv[1:]
+ops = {ops!r}
+exact_extract(raster, gpd.read_file(plants), ops, include_cols=["plant_id"], output="pandas").to_csv(out, index=False)
+"""
+
+
+def process_comparison(work: Path, quick: bool):
+    """``zonal-coverage-process``: module 9's command (box statistics only, coverage-weighted, the statistics
+    table written) against a user's script calling exactextract's Python ``exact_extract`` with the GeoTIFF's
+    path (read through rasterio where GDAL's own Python bindings are not installed, as here) and the plants
+    read by geopandas (exactextract opens a vector path only through osgeo or fiona), writing the same table as
+    CSV; whole processes, imports included."""
+    from bench.harness import Comparison
+
+    size, n = (2000, 1250) if quick else (8000, 20000)
+    path, boxes = make_field(work, size, n)
+    plants = work / "plants.gpkg"
+    gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615").to_file(plants)
+    ours_out, peer_out = work / "ours", work / "exactextract.csv"
+    cfg = work / "module9.yaml"
+    cfg.write_text(yaml.safe_dump({"polygons": str(plants), "rasters": {"chm": str(path)}, "mode": "coverage",
+                                   "stats": STATS, "percentiles": PERCENTILES, "canopy": {"enabled": False},
+                                   "vector_formats": [], "workers": 1, "output_dir": str(ours_out)}))
+    script = work / "exactextract_stats.py"
+    script.write_text(PEER_SCRIPT.format(ops=EE_OPS))
+
+    def check() -> dict:
+        ours = pd.read_csv(ours_out / "stats.csv").sort_values("plant_id")
+        ee = pd.read_csv(peer_out).sort_values("plant_id")
+        ref = exactextract_numbers(ee)
+        worst = worst_difference({k: ours[f"chm_{k}"].to_numpy(float) for k in ref}, ref)
+        return {"largest_relative_difference": worst, "equal_within_1e-6": worst <= 1e-6}
+
+    return Comparison("zonal-coverage-process", f"{n} boxes (GeoPackage) over a {size} x {size} float32 GeoTIFF; "
+                      f"{', '.join(STATS)}, p95 to CSV, whole processes",
+                      "matchplant spatial_stat_extractor (coverage)", "python + exactextract.exact_extract",
+                      lambda: run_process(matchplant_command("spatial_stat_extractor", cfg)),
+                      lambda: run_process([sys.executable, str(script), str(path), str(plants), str(peer_out)]),
+                      check=check, items=n, unit="boxes", notes={"peer_input": "raster path (rasterio), plants by geopandas.read_file"})
+
+
 def comparison(name: str, work: Path, quick: bool, device: str):
     """For ``python -m bench``: ``zonal-center`` (vs rasterstats) or ``zonal-coverage`` (vs exactextract)
     on 20,000 boxes over an 8000 x 8000 raster (quick: 1,250 over 2000 x 2000)."""
     from bench.harness import Comparison
 
+    if name == "zonal-coverage-process":
+        return process_comparison(work, quick)
     size, n = (2000, 1250) if quick else (8000, 20000)
     path, boxes = make_field(work, size, n)
     gdf = gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615")

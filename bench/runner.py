@@ -36,7 +36,10 @@ RESULTS = HERE / "results"
 REGISTRY = {
     "zonal-center": ("bench.bench_spatial_stat_extractor", "module 9, pixel-centre rule vs rasterstats"),
     "zonal-coverage": ("bench.bench_spatial_stat_extractor", "module 9, coverage-weighted vs exactextract"),
+    "zonal-coverage-process": ("bench.bench_spatial_stat_extractor",
+                               "module 9's command, coverage-weighted vs a script calling exactextract"),
     "gps-embed": ("bench.bench_gps_embeder", "module 0, GPS into EXIF copies vs exiftool -geotag"),
+    "gps-embed-process": ("bench.bench_gps_embeder", "module 0's command vs exiftool -geotag, 1.1 MB JPEGs"),
     "train": ("bench.bench_model_train", "module 6, training loop vs a bare torchvision loop"),
     "detect": ("bench.bench_model_train", "module 7, tiled detection vs the bare model on the same tiles"),
     "tiling": ("bench.bench_img_splitter", "module 5, tiling vs SAHI slice_coco"),

@@ -124,7 +124,7 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
         # no window possible: exit 2 with the headless command, instead of a GUI that silently does nothing
         require_display(f"matchplant {spec.name} --config FILE --set KEY=VALUE")
         cfg = load_config(spec.config, config_path, overrides, check_paths=False, strict=False)
-        spec.gui(cfg, config_path)
+        spec.load_gui()(cfg, config_path)
         return 0
     cfg = load_config(spec.config, config_path, overrides)
     check_outputs(cfg)  # outputs apart from the inputs and writable, before logs/ is made in the output folder

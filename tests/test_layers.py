@@ -188,8 +188,9 @@ def class_prefix(word: str) -> str:
 
 @pytest.mark.parametrize("word", sorted(STEP_PACKAGES))
 def test_every_step_has_the_same_face(word):
-    """config.py with <Word>Config, run.py with run(cfg), gui.py with launch(cfg, config_path) where the step
-    has a GUI, all exported from the package; the command layer names exactly these."""
+    """config.py with <Word>Config and run.py with run(cfg), exported from the package, and gui.py with
+    launch(cfg, config_path) where the step has a GUI (named by its path, imported only for --gui); the command
+    layer names exactly these."""
     folder = PACKAGE / word
     assert (folder / "config.py").is_file() and (folder / "run.py").is_file(), f"{word}: config.py and run.py"
     package = importlib.import_module(f"matchplant.{word}")
@@ -202,8 +203,8 @@ def test_every_step_has_the_same_face(word):
     has_gui = (folder / "gui.py").is_file()
     assert (spec.gui is not None) == has_gui, f"{word}: gui.py and the command's --gui must go together"
     if has_gui:
-        assert package.launch.__module__ == f"matchplant.{word}.gui" and spec.gui is package.launch
-        assert list(inspect.signature(package.launch).parameters)[:2] == ["cfg", "config_path"]
+        assert spec.gui == f"matchplant.{word}.gui:launch"
+        assert list(inspect.signature(spec.load_gui()).parameters)[:2] == ["cfg", "config_path"]
 
 
 @pytest.mark.parametrize("word", sorted(STEP_PACKAGES))

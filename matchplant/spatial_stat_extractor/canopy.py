@@ -3,9 +3,9 @@ instead of its whole box.
 
 A layer on the CHM's grid is read in strips of rows and its values gathered at the canopy pixels; the
 statistics are then reductions over each plant's run of values (``bincount``, ``reduceat``; percentiles
-by one ``lexsort`` and linear interpolation between order statistics, as ``numpy.percentile``). A layer on
-another grid (a multispectral camera at its own resolution) is measured over the outline polygons with
-:func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` (pixel centres inside).
+by sorting each plant's run (:mod:`.grouping`) and linear interpolation between order statistics, as
+``numpy.percentile``). A layer on another grid (a multispectral camera at its own resolution) is measured over
+the outline polygons with :func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` (pixel centres inside).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
+from matchplant.spatial_stat_extractor.grouping import sort_within_groups
 from matchplant.spatial_stat_extractor.outlines import STRIP_ROWS, Outlines
 from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
 
@@ -34,14 +35,6 @@ def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarr
         win = source.read(r0, r1, c0, c1)
         out[part] = win[r - r0, c - c0]
     return out
-
-
-def _order_within_groups(v: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """The permutation sorting ``v`` within each group of the sorted group labels ``g``: one float sort of
-    ``g + rank-preserving fraction of v`` (a lexsort of two keys is several times slower)."""
-    lo, hi = float(v.min()), float(v.max())
-    frac = (v - lo) / (hi - lo) * 0.5 if hi > lo else np.zeros_like(v)
-    return np.argsort(g + frac, kind="quicksort")
 
 
 def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
@@ -71,7 +64,7 @@ def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
     def pct(q: float) -> np.ndarray:
         nonlocal sorted_v
         if sorted_v is None:
-            sorted_v = v[_order_within_groups(v, g)] if v.size else v
+            sorted_v = sort_within_groups(v, first)
         pos = first[:-1] + q / 100.0 * np.maximum(cnt - 1, 0)
         lo = np.clip(np.floor(pos).astype(np.int64), 0, max(v.size - 1, 0))
         hi = np.clip(np.minimum(lo + 1, first[1:] - 1), 0, max(v.size - 1, 0))

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 from scipy import ndimage as ndi
-from scipy.signal import fftconvolve
 
 MAX_WINDOWS = 12
 SEARCH_M = 3.0  # m: offsets searched (GNSS-only georeferencing is off by 1-3 m); at least 3 x max_shift
@@ -126,6 +125,10 @@ def _parabola(c_minus: float, c0: float, c_plus: float) -> float:
 
 def measure_offset(t: Templates, chm, max_shift: float) -> Offset:
     """The later CHM's offset against the templates of the earlier one (module doc)."""
+    # on demand: scipy.signal pulls scipy.stats, ~2.5 s of CPU at every start of module 9; only later dates
+    # need it
+    from scipy.signal import fftconvolve
+
     r, half = t.resolution, t.half
     s = int(np.ceil(t.search / r))
     n = t.data.shape[1]

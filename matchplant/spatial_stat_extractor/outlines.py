@@ -40,6 +40,12 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
+from matchplant.spatial_stat_extractor.grouping import (
+    group_by,
+    label_sizes,
+    labelled_pixels,
+)
+from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -116,7 +122,7 @@ def _pixel_boxes(geoms, transform) -> np.ndarray:
 def _peaks(W: np.ndarray, size: int, min_height: float) -> tuple[np.ndarray, np.ndarray]:
     """The CHM with -inf holes, and its local maxima (highest in a ``size`` x ``size`` neighbourhood)."""
     filled = np.nan_to_num(W, nan=-np.inf)
-    return filled, (filled == ndi.maximum_filter(filled, size=size)) & (filled >= min_height)
+    return filled, local_maxima(filled, size, min_height)
 
 
 def _tops(W: np.ndarray, boxes: np.ndarray, windows: np.ndarray, min_height: float) -> np.ndarray:
@@ -231,7 +237,7 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
         mine = cid == k
         L[sl] = np.where(comp[sl] == k, _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start,
                                                 tc[mine] - sl[1].start, idx[mine] + 1), L[sl])
-    size = np.bincount(comp.ravel(), minlength=n + 1)
+    size = label_sizes(comp, n)
     free = np.flatnonzero((nseed == 0) & (size >= s.min_pixels))
     free = free[free > 0]
     if not len(free):
@@ -336,27 +342,20 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         # canopies no box claims, with their top in this strip's own rows (each is found once)
         in_strip = (free[:, 0] + Rr0) // strip_rows == strip
         free_parts.append(np.column_stack([free[in_strip, 0] + Rr0, free[in_strip, 1] + Cc0, free[in_strip, 2:]]))
-        rr, cc = np.nonzero(L)
-        k = L[rr, cc] - 1
+        if mv is not None and s.mask_soil is not None:  # a pixel more leaf than soil, by its own plant's top NDVI
+            L = _leafy(L, mv, tp, s.mask_soil)
+        # a home plant keeps its canopy pixels inside its box + margin that reach `relative` x its top height
+        rr, cc, k, hv, lab = labelled_pixels(L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2],
+                                             is_home[near], near + 1)
         p = near[k]
-        keep = (rr + Rr0 >= win_i[p, 1]) & (rr + Rr0 < win_i[p, 3]) & (cc + Cc0 >= win_i[p, 0]) & \
-               (cc + Cc0 < win_i[p, 2]) & (W[rr, cc] >= s.relative * tp[k, 2])
-        if mv is not None and s.mask_soil is not None:
-            keep &= mv[rr, cc] >= (s.mask_soil + mv[tp[k, 0].astype(int), tp[k, 1].astype(int)]) / 2
-        keep &= is_home[p]
-        rr, cc, p = rr[keep], cc[keep], p[keep]
         hit = is_home[near]
         tops[near[hit], :2] = tp[hit, :2] + [Rr0, Cc0]
         tops[near[hit], 2] = tp[hit, 2]
         no_peak[near[hit]] = tp[hit, 3] == 0
         parts_pix.append((rr + Rr0).astype(np.int64) * W_ + (cc + Cc0))
         parts_plant.append(p.astype(np.int32))
-        parts_h.append(W[rr, cc].astype(np.float32))
-        lab = np.zeros(W.shape, np.int32)
-        lab[rr, cc] = p + 1
-        wt = Affine(t.a, t.b, t.c + t.a * Cc0 + t.b * Rr0, t.d, t.e, t.f + t.d * Cc0 + t.e * Rr0)
-        for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
-            geo_parts.add(int(v) - 1, g["coordinates"])
+        parts_h.append(hv.astype(np.float32))
+        _trace(lab, rr, cc, t, Rr0, Cc0, geo_parts)
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
@@ -370,6 +369,29 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
     out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
     return out
+
+
+def _leafy(L: np.ndarray, mv: np.ndarray, tops: np.ndarray, soil: float) -> np.ndarray:
+    """The label image ``L`` (1 + the index into ``tops``) without the pixels whose mask value (NDVI) lies below
+    halfway from the soil's to the value at their plant's top: a pale plant keeps its leaves, a green one drops
+    the mixed pixels at its edges."""
+    at_top = mv[np.nan_to_num(tops[:, 0]).astype(int), np.nan_to_num(tops[:, 1]).astype(int)]
+    half = np.concatenate([[np.inf], (soil + at_top) / 2])  # label 0 (no plant) stays 0 anyway
+    return np.where(mv >= half[L], L, 0)
+
+
+def _trace(lab: np.ndarray, rr: np.ndarray, cc: np.ndarray, t, R0: int, C0: int, pieces: _Pieces) -> None:
+    """The outlines in the label image ``lab`` (1 + the plant, 0: none; the window read at ``R0, C0``), traced
+    over its pixels' extent (``rr, cc``) only: the window's padding rows hold no home plant's pixel, and tracing
+    costs per pixel, empty or not."""
+    if not len(rr):
+        return
+    r0, c0 = int(rr.min()), int(cc.min())
+    lab = np.ascontiguousarray(lab[r0:int(rr.max()) + 1, c0:int(cc.max()) + 1])
+    R0, C0 = R0 + r0, C0 + c0
+    wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
+    for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
+        pieces.add(int(v) - 1, g["coordinates"])
 
 
 def valid_polygons(geoms: np.ndarray) -> np.ndarray:
@@ -450,9 +472,7 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
         extra_plant.append(np.full(rr.size, k))
         extra_h.append(np.full(rr.size, np.nan))
     pix, plant, hv = np.concatenate(extra_pix), np.concatenate(extra_plant), np.concatenate(extra_h)
-    order = np.argsort(plant, kind="stable")
-    pix, plant, hv = pix[order], plant[order], hv[order]
-    start = np.searchsorted(plant, np.arange(n + 1))
+    plant, pix, hv, start = group_by(plant, n, pix, hv)
     count = np.diff(start)
     px_area = res * res
     ok = flag == ""

@@ -85,6 +85,20 @@ def _in_metres(ds, stack: contextlib.ExitStack, metric_crs=None):
 _warned: set = set()
 
 
+_checked: set = set()
+
+
+def _check_once(path: str, band: int, name: str) -> None:
+    """:func:`check_raster` once per file version and band in a process: box statistics, outlines and plots
+    each open the layer, and each check decompresses every tile of the raster."""
+    st = Path(path).stat() if Path(path).is_file() else None
+    key = (str(Path(path).resolve()), band, st.st_mtime_ns, st.st_size) if st is not None else None
+    if key is None or key not in _checked:
+        check_raster(path, bands=[band], require_crs=False, what=f"{name} raster")
+        if key is not None:
+            _checked.add(key)
+
+
 def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band",
           check: bool = True) -> RasterFileSource:
     """Band ``band`` (config key ``key``) of ``ds``; with ``check``, a band of only nodata/NaN is an error."""
@@ -94,7 +108,7 @@ def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band",
                          path=ds.name, fix=f"set {key} to a band number from 1 to {ds.count} (1 = first band)")
     # a raster that is all nodata/NaN in this band is named here, not found out as "0 plants with values"
     if check:
-        check_raster(file_name(ds), bands=[band], require_crs=False, what=f"{layer.name} raster")
+        _check_once(file_name(ds), band, layer.name)
     extra = [ODM_NODATA] if layer.elevation else []
     if nodata is not None:
         extra.append(nodata)

@@ -77,8 +77,9 @@ class RasterFileSource:
         self.crs = pyproj_crs(dataset.crs)
         self.width, self.height = dataset.width, dataset.height
         file_nodata = dataset.nodatavals[band - 1] if dataset.nodatavals else None
-        self.nodata = [v for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
-                       if v is not None and not np.isnan(v)]
+        # each value once (an elevation raster's nodata is often ODM's -9999 too): a pass per value per read
+        self.nodata = list(dict.fromkeys(v for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
+                                         if v is not None and not np.isnan(v)))
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
         arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0)).astype(float)

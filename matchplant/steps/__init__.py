@@ -3,7 +3,8 @@
 ``matchplant.cli`` and ``matchplant.pipeline`` find a step here by its one name, the word of its numbered
 folder (``8_plant_projection`` -> ``plant_projection``: the command, this layer's file and the step's
 subpackage). Each file exposes ``SPEC``, a :class:`StepSpec`. Step files are imported by name on demand
-(:func:`resolve_step`) so that ``matchplant --help`` and the pipeline's checks do not load PyTorch.
+(:func:`resolve_step`) so that ``matchplant --help`` and the pipeline's checks do not load PyTorch, and a step's
+window only for ``--gui`` (:meth:`StepSpec.load_gui`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,9 @@ class StepSpec:
     name: str
     config: type
     run: Callable[[Any], Any]
-    gui: Callable[[Any, Path | None], Any] | None = None
+    # the window as "module:function" (``launch(cfg, config_path)``), imported only for --gui (load_gui): a
+    # plain run then loads none of matplotlib's widgets and GUI code (seconds of CPU at every start)
+    gui: str | None = None
     # extra flags as shortcuts for --set: "--preset" -> ("preset", "help text"); a third item makes it a
     # switch without a value: "--resume" -> ("resume", "help", "true") means --set resume=true
     flags: dict[str, tuple[str, ...]] = field(default_factory=dict)
@@ -59,6 +62,12 @@ class StepSpec:
     # when set, the positional argument fills this key instead of naming a config file
     # (``matchplant run pipeline.yaml``)
     positional_key: str | None = None
+
+
+    def load_gui(self) -> Callable[[Any, Path | None], Any]:
+        """The step's window function, imported now."""
+        module, _, function = self.gui.partition(":")
+        return getattr(importlib.import_module(module), function)
 
 
 def canonical_name(name: str) -> str:

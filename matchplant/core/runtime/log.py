@@ -29,7 +29,10 @@ def get_logger(name: str | None = None) -> logging.Logger:
 
 
 def package_versions() -> dict[str, str]:
-    out = {"python": platform.python_version(), "platform": platform.platform()}
+    # not platform.platform(): it runs 'uname -p' in a child process, a fork of this one, whose resident memory
+    # (the parent's at the fork) module 9 would report as its worker processes' peak
+    out = {"python": platform.python_version(),
+           "platform": f"{platform.system()}-{platform.release()}-{platform.machine()}"}
     for pkg in VERSIONED:
         try:
             out[pkg] = metadata.version(pkg)

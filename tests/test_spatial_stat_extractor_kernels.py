@@ -1,0 +1,71 @@
+"""Module 9's compiled kernels (outlines and canopy statistics) against the plain numpy/scipy computations
+they replace, on random data with holes, ties and edges."""
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from matchplant.spatial_stat_extractor.grouping import (
+    group_by,
+    label_sizes,
+    labelled_pixels,
+    sort_within_groups,
+)
+from matchplant.spatial_stat_extractor.maxima import local_maxima
+
+
+@pytest.mark.parametrize("size", [3, 5])
+def test_local_maxima_are_the_maximum_filters_peaks(size):
+    rng = np.random.default_rng(size)
+    a = np.round(rng.random((60, 83)), 1)  # rounded: many ties (plateaus count as maxima, as with the filter)
+    a[rng.random(a.shape) < 0.05] = -np.inf  # holes
+    want = (a == ndi.maximum_filter(a, size=size)) & (a >= 0.3)
+    got = local_maxima(a, size, 0.3)
+    assert got.dtype == bool and np.array_equal(got, want) and want.sum() > 20
+    assert np.array_equal(local_maxima(a[:1, :2], size, 0.3), (a[:1, :2] == a[:1, :2].max()) & (a[:1, :2] >= 0.3))
+
+
+def test_group_by_is_a_stable_sort_by_group():
+    rng = np.random.default_rng(1)
+    g = rng.integers(0, 50, 5000)
+    pix, val = rng.integers(0, 10**9, 5000), rng.random(5000).astype(np.float32)
+    order = np.argsort(g, kind="stable")
+    got_g, got_pix, got_val, start = group_by(g, 52, pix, val)
+    assert np.array_equal(got_g, g[order]) and np.array_equal(got_pix, pix[order]) and np.array_equal(got_val, val[order])
+    assert got_val.dtype == np.float32
+    assert np.array_equal(start, np.searchsorted(g[order], np.arange(53)))  # groups 50, 51: empty
+
+
+def test_label_sizes_and_sorted_runs():
+    rng = np.random.default_rng(2)
+    labels, n = ndi.label(rng.random((40, 70)) < 0.4)
+    assert np.array_equal(label_sizes(labels, n), np.bincount(labels.ravel(), minlength=n + 1))
+    v = rng.random(300)
+    first = np.array([0, 0, 1, 40, 41, 300])
+    got = sort_within_groups(v, first)
+    want = np.concatenate([np.sort(v[a:b]) for a, b in itertools.pairwise(first)])
+    assert np.array_equal(got, want) and not np.array_equal(v, got)
+
+
+def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
+    rng = np.random.default_rng(3)
+    L = rng.integers(0, 6, (30, 40)).astype(np.int32)  # labels 1..5 = 1 + k
+    W = rng.random((30, 40))
+    W[rng.random(W.shape) < 0.05] = np.nan
+    windows = np.array([[0, 0, 40, 30], [5, 3, 20, 25], [10, 10, 11, 30], [0, 0, 40, 30], [-5, -5, 50, 50]])
+    reach = np.array([0.5, 0.0, 0.2, np.nan, 0.9])
+    home = np.array([True, True, True, True, False])
+    ids = np.array([11, 12, 13, 14, 15])
+    rr, cc, k, hv, image = labelled_pixels(L, W, windows, reach, home, ids)
+    r, c = np.nonzero(L)
+    kk = L[r, c] - 1
+    keep = (c >= windows[kk, 0]) & (c < windows[kk, 2]) & (r >= windows[kk, 1]) & (r < windows[kk, 3]) & \
+        (W[r, c] >= reach[kk]) & home[kk]
+    assert keep.sum() > 50
+    assert np.array_equal(rr, r[keep]) and np.array_equal(cc, c[keep]) and np.array_equal(k, kk[keep])
+    assert np.array_equal(hv, W[r[keep], c[keep]])
+    want = np.zeros(L.shape, np.int32)
+    want[r[keep], c[keep]] = ids[kk[keep]]
+    assert np.array_equal(image, want)
