@@ -779,6 +779,28 @@ def test_auto_on_a_cpu_sizes_the_proposals_to_the_plants_and_keeps_set_values():
     assert kept.roi.batch_size_per_image == 256 and kept.rpn.post_nms_top_n_train == 500
 
 
+def test_auto_from_random_weights_on_a_cpu_sets_the_optimisation_and_resume_keeps_it(tiles):
+    """Issue 28: from random weights, auto on a CPU trains with AdamW, one rate and a cosine decay when the
+    optimizer, rates and schedule are all at their defaults; a value set by hand keeps the user's three; a resumed
+    run takes the optimisation its checkpoint recorded (its optimizer state and schedule continue)."""
+    from matchplant.core.runtime.config import to_dict
+    from matchplant.model_train.choose import SCRATCH, resumed_recipe, scratch_recipe
+
+    base = [f"train_json={tiles[0]}", "model.pretrained=none"]
+    cfg = load_config(ModelTrainConfig, None, base)
+    chosen, why = scratch_recipe(cfg)
+    assert (chosen.optimizer, chosen.schedule) == ("adamw", "cosine") and "random weights" in why
+    assert {chosen.lr.backbone, chosen.lr.fpn, chosen.lr.rpn, chosen.lr.roi_heads} == {SCRATCH["lr"]}
+    for kept in (["lr.rpn=0.02"], ["schedule=multistep"], ["optimizer=adamw"], ["model.pretrained=coco"]):
+        mine = load_config(ModelTrainConfig, None, [*base, *kept])
+        assert scratch_recipe(mine) == (mine, None), kept
+    saved = to_dict(chosen)  # what every checkpoint stores as train_config
+    resumed = resumed_recipe(cfg, saved)
+    assert (resumed.optimizer, resumed.schedule, resumed.lr) == (chosen.optimizer, chosen.schedule, chosen.lr)
+    mine = load_config(ModelTrainConfig, None, [*base, "lr.rpn=0.02"])
+    assert resumed_recipe(mine, saved) is mine
+
+
 # -- input checks (issue 15): the dataset against its files, splits, unreadable tiles in loader workers ----------
 
 

@@ -76,7 +76,7 @@ from matchplant.model_train.budget import (
     stop_status,
     validation_report,
 )
-from matchplant.model_train.choose import choose_architecture, cpu_proposals
+from matchplant.model_train.choose import choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import (
     HEARTBEAT_S,
@@ -277,6 +277,8 @@ def _choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int):
     model_cfg, sized = cfg.model, None
     if device.type == "cpu":
         model_cfg, sized = cpu_proposals(cfg.model, [len(train_ds.anns.get(im["id"], [])) for im in train_ds.images])
+        cfg, recipe = scratch_recipe(cfg)
+        sized = "; ".join(filter(None, (sized, recipe))) or None
         if sized:
             log.info("model.architecture: auto on the CPU -> %s", sized)
     arch, why, probe = choose_architecture(cfg, model_cfg, device, train_ds, len(train_ds.class_names), total,
@@ -324,7 +326,9 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
                  f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
                  if resume.get("epoch_progress") else " done")
     choice_probe, choice_reason = None, None
-    if resume is None:
+    if resume is not None:
+        cfg = resumed_recipe(cfg, resume.get("train_config") or {})
+    else:
         cfg, choice_probe, choice_reason = _choose_model_config(cfg, device, train_ds, total)
 
     model, model_cfg = _initial_model(cfg, class_names, resume)
