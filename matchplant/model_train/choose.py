@@ -45,17 +45,18 @@ PAPER = "fasterrcnn_resnet50_fpn"
 # shared 2-core machine (batch 2, 512 px input, random weights, every stage trained, SGD step included):
 # 44 s against 4.9 s, 9x (3.8x for one inference pass). Measured under load: indicative.
 RESNET_TRAIN_COST = 9.0
-# Box-head samples and proposals on a CPU. MobileNetV3 FPN, batch 4 of 400 px photos with ~20 plants, one core of
-# the shared machine under load: 9-15 s per training step with torchvision's counts, 2.0-2.2 s with these (and
-# 0.8 against 0.36 s per image for inference); measured with /tmp scripts, see bench/bench_model_train_real.py
+# Box-head samples and proposals on a CPU. MobileNetV3 FPN at 448 px, batch 4 of 400 px photos with ~20 plants:
+# 7.0 s of CPU per training step with torchvision's counts, 3.6 s with these (192 samples for those photos), and
+# 0.82 against 0.35 s per photo to detect (python -m bench.bench_model_train_step)
 CPU_ROI_SAMPLES = 128       # per image; 32 positives at positive_fraction 0.25
 CPU_PROPOSALS_TRAIN = 500   # after NMS (1000 before)
 CPU_PROPOSALS_TEST = 300    # after NMS (500 before), = detections_per_img's default
 
 
-# From random weights on a CPU: AdamW at 1e-3 for every part, cosine decay over the planned iterations. Measured on
-# the real-photo bench (bench/bench_model_train_real.py, 90 iterations, MobileNetV3 at 448 px): after 3 epochs the
-# RPN objectness loss was 0.46 against 0.56 (SGD 0.02, cosine) and 0.62 (the paper's SGD rates, decays at 1/3, 2/3)
+# From random weights on a CPU: AdamW at 1e-3 for every part, cosine decay over the planned iterations. On the
+# real-photo bench (python -m bench.bench_model_train_real --minutes 0 --set epochs=10 --set ..., MobileNetV3 at
+# 448 px, 27 iterations) the RPN objectness loss was 0.46 against 0.56 (SGD 0.02, cosine) and 0.62 (the paper's
+# SGD rates, decays at 1/3 and 2/3); every one of them was still below 2 % validation AP50 at 90 iterations
 SCRATCH = {"optimizer": "adamw", "lr": 0.001, "schedule": "cosine"}
 
 
