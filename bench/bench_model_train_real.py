@@ -2,7 +2,7 @@
 ``matchplant inspect`` and otherwise default settings for N minutes of one core; report the estimate printed
 before training against the actual time, where the run stopped against its budget, and the test AP50.
 
-Data (:mod:`bench.deepforest_photos`): 47 photos of about 400 px with 951 tree crowns of 15-75 px, cut from the
+Data (:mod:`bench.deepforest_photos`): 47 photos of about 400 px with 947 tree-crown boxes of 15-75 px, cut from the
 annotated NEON orthophotos that DeepForest's PyPI package ships (MIT). Get the wheel once with the ordinary
 client (nothing is downloaded at run time)::
 
@@ -10,8 +10,9 @@ client (nothing is downloaded at run time)::
 
 Settings: ``model.min_size``/``max_size`` and ``model.aspect_ratios`` as ``matchplant inspect`` advises for the
 training boxes, ``model.anchor_sizes: auto``, ``model.architecture: auto``, ``model.pretrained: none`` (no
-download), ``max_minutes`` as given, ``device: cpu``, ``num_workers: 0`` (one core); everything else the
-default. ``--set KEY=VALUE`` adds settings (to explore; the issue's run uses none).
+download), ``max_minutes`` as given, ``device: cpu`` (``--device``), ``num_workers: 0`` (one core); everything
+else the default. ``--set KEY=VALUE`` adds settings (to explore; the issue's run uses none). ``python -m bench`` runs it as
+the row ``train-real`` (15 minutes; ``--quick``: 2).
 
     taskset -c 1 nice -n -5 python -m bench.bench_model_train_real --data ~/deepforest-wheel --minutes 15
     python -m bench.bench_model_train_real --data ~/deepforest-wheel --minutes 2      # a short check
