@@ -44,8 +44,12 @@ REGISTRY = {
     "detect": ("bench.bench_model_train", "module 7, tiled detection vs the bare model on the same tiles"),
     "tiling": ("bench.bench_img_splitter", "module 5, tiling vs SAHI slice_coco"),
     "box-pairs": ("bench.bench_core_boxes", "module 8, overlapping box pairs vs shapely STRtree"),
+    # a whole run with its result, not a comparison (the module has run_row(name, work, quick, device))
+    "train-real": ("bench.bench_model_train_real", ("module 6 from random weights on real aerial photos, inspect's "
+                                                    "advice, max_minutes 15 (--quick: 2) on one core: estimate vs "
+                                                    "actual time, test AP50")),
 }
-GPU_NAMES = ("train", "detect")  # what --device cuda measures
+GPU_NAMES = ("train", "detect", "train-real")  # what --device cuda measures
 PACKAGES = ["matchplant", "numpy", "numba", "shapely", "rasterio", "exactextract", "rasterstats", "piexif",
             "pillow", "torch", "torchvision", "opencv-python-headless", "opencv-python", "sahi"]
 
@@ -54,6 +58,11 @@ def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int
     """In the child: pin, set up, alternate, write the result JSON to ``out``."""
     core = pin_one_core()
     module = importlib.import_module(REGISTRY[name][0])
+    if hasattr(module, "run_row"):
+        with tempfile.TemporaryDirectory(prefix=f"bench_{name}_") as tmp:
+            result = module.run_row(name, Path(tmp), quick, device)
+        out.write_text(json.dumps({**result, "pinned_core": core}, indent=1, default=str))
+        return 0
     with tempfile.TemporaryDirectory(prefix=f"bench_{name}_") as tmp:
         t0 = time.perf_counter()
         cmp: Comparison = module.comparison(name, Path(tmp), quick, device)
@@ -79,6 +88,8 @@ def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int
 
 
 def describe(r: dict) -> str:
+    if "row" in r:
+        return f"{r['name']:<15} {r['row']}"
     if "summary" not in r:
         return f"{r['name']:<15} SKIPPED: {r.get('skipped') or r.get('error')}"
     s = r["summary"]

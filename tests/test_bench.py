@@ -106,9 +106,10 @@ def test_cuda_request_without_a_gpu_says_so():
 
 
 def test_every_benchmark_parses_and_each_registered_one_has_its_comparison():
-    """The benchmarks run only by hand or in ``python -m bench``: a broken one would otherwise go unseen."""
+    """The benchmarks run only by hand or in ``python -m bench``: a broken one would otherwise go unseen. A
+    registered module has comparison() (ours against a peer) or run_row() (a whole run and its result)."""
     files = sorted((ROOT / "bench").glob("*.py"))
     trees = {f"bench.{f.stem}": ast.parse(f.read_text(), str(f)) for f in files}
     for name, (module, _) in REGISTRY.items():
         defined = {node.name for node in trees[module].body if isinstance(node, ast.FunctionDef)}
-        assert "comparison" in defined, f"{name}: {module} has no comparison()"
+        assert {"comparison", "run_row"} & defined, f"{name}: {module} has neither comparison() nor run_row()"

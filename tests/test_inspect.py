@@ -9,7 +9,7 @@ import pytest
 
 from matchplant.cli import main as cli_main
 from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
-from matchplant.detection.objects import recommend, size_stats
+from matchplant.detection.objects import recommend, size_stats, tiling_note
 
 
 def _dataset(path, sizes_wh, image=(5472, 3648)):
@@ -46,6 +46,17 @@ def test_small_objects_are_enlarged_and_tiles_fit_the_photos():
     a = recommend(stats, [(400, 300)])
     assert a["min_size"] >= 2 * a["tile_size"] and a["median_object_px_in_detector"] >= 24
     assert a["tile_size"] <= 300
+
+
+def test_photos_smaller_than_the_tile_are_not_tiled():
+    """Issue 28: 40 px objects call for ~768 px tiles; photos of about 400 px are then kept whole (one tile each),
+    not cut into four overlapping 320 px tiles that repeat their pixels."""
+    stats = size_stats(np.full(100, 40.0), np.full(100, 40.0))
+    sizes = [(383, 412), (416, 345), (400, 400)]
+    a = recommend(stats, sizes)
+    assert 8 * 40 * 1.1 > 345 and a["tile_size"] == 416     # the preferred tile exceeds every photo
+    assert a["min_size"] == a["max_size"] == 416 and a["median_object_px_in_detector"] == 40
+    assert "no tiling" in tiling_note(a, sizes)
 
 
 def test_inspect_without_boxes_is_a_clear_error(tmp_path, capsys):

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import os
 import subprocess
 import sys
+import time
 import urllib.error
 from pathlib import Path
 
@@ -399,6 +401,24 @@ def test_torchrun_two_processes(tiles, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.slow
+def test_the_estimate_before_training_holds_for_the_measured_run(tmp_path):
+    """Issue 28: the time estimated before training (set-up and probe so far, then the probe's seconds per
+    iteration, validation and checkpoints for the whole run) is within 50 % of the run's wall time measured here.
+    Larger tiles than FAST's, so that the training steps, not the fixed costs, are most of the run."""
+    d = tmp_path / "tiles"
+    big = (make_tiles(d, n_images=8, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=3, name="t.json"),
+           make_tiles(d, n_images=2, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=4, name="v.json"))
+    t0 = time.perf_counter()
+    summary = train(fast_config(big, tmp_path / "run", "model.min_size=128", "model.max_size=128", "epochs=3",
+                                "save_every=0"))
+    wall = time.perf_counter() - t0
+    estimate = summary["estimate"]["planned_s"]
+    print(f"estimate {estimate:.1f} s, measured {wall:.1f} s")
+    assert summary["status"] == "finished" and summary["iterations_done"] == 6
+    assert 0.5 * wall <= estimate <= 1.5 * wall, (estimate, wall)
+
+
 def test_max_minutes_shorter_than_an_iteration_still_trains_one_and_saves(tiles, tmp_path):
     """A budget shorter than one iteration: one iteration, validated and saved (best and last), and the summary
     says the budget stopped it inside the first epoch."""
@@ -738,6 +758,48 @@ def test_architecture_auto_fits_the_device_and_the_budget(tiles):
     # 100 iterations of ResNet-50 at the measured ratio: a budget of 100 x that fits it
     budget_min = 100 * probe.iteration_s * RESNET_TRAIN_COST * 100 / 60
     assert choose("model.anchor_sizes=null", f"max_minutes={budget_min:.3f}")[0] == PAPER
+
+def test_auto_on_a_cpu_sizes_the_proposals_to_the_plants_and_keeps_set_values():
+    """Issue 28: on a CPU, auto lowers the box head's samples and the proposal counts left at torchvision's
+    GPU-sized defaults, to what the densest training tiles need; values the user set stay."""
+    from matchplant.model_train.choose import cpu_proposals
+
+    model = ModelConfig()
+    sized, why = cpu_proposals(model, [20] * 9 + [35, 61])
+    # 90th percentile 35 plants / positive share 0.25 = 140 -> 192 samples; 61 plants at most: the floors hold
+    assert sized.roi.batch_size_per_image == 192 and np.percentile([20] * 9 + [35, 61], 90) / 0.25 > 128
+    assert (sized.rpn.post_nms_top_n_train, sized.rpn.pre_nms_top_n_train) == (500, 1000)
+    assert (sized.rpn.post_nms_top_n_test, sized.rpn.pre_nms_top_n_test) == (300, 600)
+    assert "at most 61 plants" in why and "model.roi.batch_size_per_image: 192" in why
+    dense, _ = cpu_proposals(model, [400] * 10)            # 400 plants a tile: 1600 proposals, 512 samples
+    assert dense.rpn.post_nms_top_n_train == 1600 and dense.roi.batch_size_per_image == 512
+    assert dense.rpn.pre_nms_top_n_train == 2000          # never above the default
+    mine = dataclasses.replace(model, roi=dataclasses.replace(model.roi, batch_size_per_image=256))  # set by hand
+    kept, _ = cpu_proposals(mine, [5] * 10)
+    assert kept.roi.batch_size_per_image == 256 and kept.rpn.post_nms_top_n_train == 500
+
+
+def test_auto_from_random_weights_on_a_cpu_sets_the_optimisation_and_resume_keeps_it(tiles):
+    """Issue 28: from random weights, auto on a CPU trains with AdamW, one rate and a cosine decay when the
+    optimizer, rates and schedule are all at their defaults; a value set by hand keeps the user's three; a resumed
+    run takes the optimisation its checkpoint recorded (its optimizer state and schedule continue)."""
+    from matchplant.core.runtime.config import to_dict
+    from matchplant.model_train.choose import SCRATCH, resumed_recipe, scratch_recipe
+
+    base = [f"train_json={tiles[0]}", "model.pretrained=none"]
+    cfg = load_config(ModelTrainConfig, None, base)
+    chosen, why = scratch_recipe(cfg)
+    assert (chosen.optimizer, chosen.schedule) == ("adamw", "cosine") and "random weights" in why
+    assert {chosen.lr.backbone, chosen.lr.fpn, chosen.lr.rpn, chosen.lr.roi_heads} == {SCRATCH["lr"]}
+    for kept in (["lr.rpn=0.02"], ["schedule=multistep"], ["optimizer=adamw"], ["model.pretrained=coco"]):
+        mine = load_config(ModelTrainConfig, None, [*base, *kept])
+        assert scratch_recipe(mine) == (mine, None), kept
+    saved = to_dict(chosen)  # what every checkpoint stores as train_config
+    resumed = resumed_recipe(cfg, saved)
+    assert (resumed.optimizer, resumed.schedule, resumed.lr) == (chosen.optimizer, chosen.schedule, chosen.lr)
+    mine = load_config(ModelTrainConfig, None, [*base, "lr.rpn=0.02"])
+    assert resumed_recipe(mine, saved) is mine
+
 
 # -- input checks (issue 15): the dataset against its files, splits, unreadable tiles in loader workers ----------
 

@@ -96,7 +96,12 @@ def recommend(stats: dict, image_sizes: Iterable[tuple[int, int]] = ()) -> dict:
     overlap = _round_to(max(largest * 1.1, 16), 8)
     tile = min(max(_round_to(8 * overlap, TILE_STEP), TILE_MIN), TILE_MAX)
     sides = [min(w, h) for w, h in image_sizes]
-    if sides and tile > min(sides):
+    longest = max((max(w, h) for w, h in image_sizes), default=0)
+    if sides and tile > min(sides) and longest <= TILE_MAX:
+        # photos smaller than the tile the objects call for: no tiling (cutting a 400 px photo into four
+        # overlapping 320 px tiles would only repeat its pixels); the tile is the whole photo
+        tile = int(longest)
+    elif sides and tile > min(sides):
         tile = max(_round_to(min(sides), TILE_STEP) - TILE_STEP, TILE_STEP) if min(sides) >= TILE_STEP else min(sides)
     overlap = min(overlap, tile // 2)
     upscale = max(1.0, MIN_OBJECT_PX / median) if median > 0 else 1.0

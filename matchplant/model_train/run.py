@@ -76,7 +76,7 @@ from matchplant.model_train.budget import (
     stop_status,
     validation_report,
 )
-from matchplant.model_train.choose import choose_architecture
+from matchplant.model_train.choose import choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import (
     HEARTBEAT_S,
@@ -252,21 +252,21 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
     lines, total_s = estimate_lines(probe, costs, iters_per_epoch=plan.iters_per_epoch, epochs=cfg.epochs,
                                     architecture=model_cfg.architecture, device=device, val_every=cfg.val_every,
                                     validated=validated, max_minutes=cfg.max_minutes)
-    if budget_s and not resumed_plan:
-        spent = time.perf_counter() - started if started is not None else 0.0  # set-up and probe count too
+    spent = time.perf_counter() - started if started is not None else 0.0
+    if budget_s and not resumed_plan:  # set-up and probe count too
         fit_plan(plan, total, done, costs, budget_s - spent - 2.0, cfg.val_every, validated, "measured by the probe",
                  cfg.max_minutes)
     hint = advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters, total)
+    planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, validated) - \
+        run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, validated)
     if plan.iters < total:
-        planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, validated) - \
-            run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, validated)
         lines.append(f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
                      f"{cfg.epochs} epochs) in max_minutes = {cfg.max_minutes:g}: about {duration(planned_s)} of "
-                     "training and validation from here")
+                     f"training and validation from here, {duration(spent + planned_s)} in all")
     log_estimate(lines, hint)
     estimate = {"probe": probe.as_dict(), "seconds_per_iteration": round(costs.iteration, 4),
                 "validation_s": round(costs.validation, 2), "checkpoint_s": round(costs.checkpoint, 2),
-                "run_as_configured_s": round(total_s, 1), "advice": hint}
+                "run_as_configured_s": round(total_s, 1), "planned_s": round(spent + planned_s, 1), "advice": hint}
     return costs, estimate
 
 
@@ -274,10 +274,18 @@ def _choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int):
     """``cfg`` with ``model.architecture: auto`` resolved (logged with the reason), and the probe it made."""
     if cfg.model.architecture != AUTO or cfg.model.checkpoint is not None:
         return cfg, None, None
-    arch, why, probe = choose_architecture(cfg, cfg.model, device, train_ds, len(train_ds.class_names), total,
+    model_cfg, sized = cfg.model, None
+    if device.type == "cpu":
+        model_cfg, sized = cpu_proposals(cfg.model, [len(train_ds.anns.get(im["id"], [])) for im in train_ds.images])
+        cfg, recipe = scratch_recipe(cfg)
+        sized = "; ".join(filter(None, (sized, recipe))) or None
+        if sized:
+            log.info("model.architecture: auto on the CPU -> %s", sized)
+    arch, why, probe = choose_architecture(cfg, model_cfg, device, train_ds, len(train_ds.class_names), total,
                                            cfg.train_json)
     log.info("model.architecture: auto -> %s (%s)", arch, why)
-    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, architecture=arch)), probe, why
+    why = f"{why}; {sized}" if sized else why
+    return dataclasses.replace(cfg, model=dataclasses.replace(model_cfg, architecture=arch)), probe, why
 
 
 def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None,
@@ -318,7 +326,9 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
                  f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
                  if resume.get("epoch_progress") else " done")
     choice_probe, choice_reason = None, None
-    if resume is None:
+    if resume is not None:
+        cfg = resumed_recipe(cfg, resume.get("train_config") or {})
+    else:
         cfg, choice_probe, choice_reason = _choose_model_config(cfg, device, train_ds, total)
 
     model, model_cfg = _initial_model(cfg, class_names, resume)
