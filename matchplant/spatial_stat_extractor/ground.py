@@ -69,6 +69,7 @@ class Thresholds:
     min_top: float
     unclaimed_min_top: float
     source: dict  # key -> "auto (...)" or "set"
+    noise_sd: float = 0.0  # m: the ground noise's SD (0 when not measured), for the duplicate rule (peaks.py)
 
 
 def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
@@ -163,7 +164,7 @@ def thresholds(min_height, min_top, noise: GroundNoise) -> Thresholds:
     else:
         src["min_top"] = "set"
     unclaimed = max(float(min_top), base + K_UNCLAIMED * sd)
-    return Thresholds(float(min_height), float(min_top), float(unclaimed), src)
+    return Thresholds(float(min_height), float(min_top), float(unclaimed), src, float(sd))
 
 
 def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:

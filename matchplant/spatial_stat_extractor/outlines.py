@@ -14,7 +14,8 @@ Plants whose canopy is smaller than ``min_pixels`` (too small for the CHM's reso
 below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and are flagged
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
-plant (the same top) is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
+plant (the same top, or a top that no real valley parts from the plant's: :mod:`~matchplant.spatial_stat_extractor.peaks`)
+is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
 no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
 the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
 plants the detector missed, for stand counts; the lower ones are only counted (``noise_bumps``).
@@ -40,6 +41,7 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
+from matchplant.spatial_stat_extractor.peaks import keepers
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -58,6 +60,8 @@ class SegmentSettings:
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
     unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
     # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
+    noise_sd: float = 0.0  # m: the ground noise's SD (ground.py); two tops parted by a shallower dip are one
+    # plant's (peaks.py)
 
 
 @dataclass
@@ -314,16 +318,15 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         else:
             tp = _tops_near(W, seed_px[near] - np.array([Rr0, Cc0]), s.max_shift / res, s.min_top)
         ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
-        # two boxes of one plant find the same top: the first keeps it, the others are duplicates
-        flat_top = np.where(ok, np.nan_to_num(tp[:, 0]) * (Cc1 - Cc0) + np.nan_to_num(tp[:, 1]), -1)
-        _, first_i, group = np.unique(flat_top, return_index=True, return_inverse=True)
-        first = np.zeros(len(near), bool)
-        first[first_i] = True
+        # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
+        # with the highest keeps the plant, the others are duplicates
+        keeper = keepers(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd)
+        first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True
         lost = ok & ~first
         mine = lost & is_home[near]  # (a neighbour's status is settled in its own strip)
-        dup[near[mine]] = near[first_i[group[mine]]]
+        dup[near[mine]] = near[keeper[mine]]
         ok &= first
         L, free = _assign(W, mask, tp, ok, s)
         # canopies no box claims, with their top in this strip's own rows (each is found once)

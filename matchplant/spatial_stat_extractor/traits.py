@@ -55,7 +55,7 @@ def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSet
         th = thresholds(cfg.min_height, cfg.min_top, GroundNoise())
     return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
                            min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=cfg.ndvi_threshold,
-                           unclaimed_min_top=th.unclaimed_min_top)
+                           unclaimed_min_top=th.unclaimed_min_top, noise_sd=th.noise_sd)
 
 
 def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:

@@ -1,0 +1,77 @@
+"""Which boxes found one plant's top: the duplicate rule of module 9's outlines.
+
+Two boxes of one plant (the detector split it, or two photos' boxes were not merged) each find the highest
+local maximum of the CHM in their box. On an exact CHM both find the same pixel. On a photogrammetric CHM
+(a few cm of noise, tops smoothed by the gridding) a plant's top holds several local maxima a few cm apart,
+so the two boxes find different ones. Two tops are therefore one plant's when no real valley parts them:
+the lowest CHM on the way from one top to the other (the saddle) stays within a tolerance of the lower
+top. The tolerance is the larger of
+
+* ``K_DIP`` x the ground noise's SD (measured by :mod:`~matchplant.spatial_stat_extractor.ground`): a dip
+  this shallow is what the noise itself digs into a canopy (the same 3 SD that separates soil from leaves);
+* ``REL_DIP`` x the lower top's height: two distinct plants whose canopies touch meet in a valley far
+  below their tops (their leaves slope down to their rims), while one plant's top is one dome.
+
+The way between two tops is the straight line, on which each sample takes the highest CHM of its 3 x 3
+pixels, so the path may step round a one-pixel noise pit or hole. Only boxes whose windows (box plus
+margin) overlap are compared (pairs from a k-d tree of the tops, all pairs of one strip checked at once);
+one-plant pairs are joined transitively, and each group's highest top keeps the plant (the first box on
+ties), the other boxes are its duplicates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
+REL_DIP = 0.3  # share of the lower top: a deeper dip is the valley between two plants
+
+
+def keepers(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray, noise_sd: float) -> np.ndarray:
+    """For each box (``tops``: local row, col, height; ``ok``: the top is a plant's; ``windows``: integer
+    ``c0, r0, c1, r1`` of box plus margin), the box that keeps its plant: itself, or (a duplicate) the box
+    with the highest top of the tops joined to its own by no real valley. Boxes without a top keep
+    themselves."""
+    n = len(tops)
+    keep = np.arange(n)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 2:
+        return keep
+    rc = tops[idx, :2].astype(np.int64)
+    reach = float(np.hypot(windows[idx, 2] - windows[idx, 0], windows[idx, 3] - windows[idx, 1]).max())
+    pairs = cKDTree(rc).query_pairs(reach, output_type="ndarray")
+    if not len(pairs):
+        return keep
+    a, b = idx[pairs[:, 0]], idx[pairs[:, 1]]
+    wa, wb = windows[a], windows[b]
+    meet = (wa[:, 0] < wb[:, 2]) & (wb[:, 0] < wa[:, 2]) & (wa[:, 1] < wb[:, 3]) & (wb[:, 1] < wa[:, 3])
+    a, b = a[meet], b[meet]
+    lower = np.minimum(tops[a, 2], tops[b, 2])
+    dip = lower - _saddle(W, tops[a, :2].astype(np.int64), tops[b, :2].astype(np.int64))
+    one = dip <= np.maximum(K_DIP * noise_sd, REL_DIP * lower)
+    a, b = a[one], b[one]
+    _, group = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+    # each group's highest top (first box on ties) keeps the plant
+    order = np.lexsort((np.arange(n), -np.nan_to_num(tops[:, 2], nan=-np.inf), group))
+    head = order[np.searchsorted(group[order], group)]
+    keep[idx] = head[idx]
+    return keep
+
+
+def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The lowest CHM on the straight line from each ``p`` to its ``q`` (local row, col), each sample the
+    highest of its 3 x 3 pixels; holes (NaN) count as the lowest ground."""
+    steps = int(np.abs(q - p).max()) + 1
+    s = np.linspace(0.0, 1.0, steps + 1)
+    r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(np.int64)
+    c = np.rint(p[:, 1, None] + (q[:, 1] - p[:, 1])[:, None] * s).astype(np.int64)
+    h, w = W.shape
+    best = np.full(r.shape, -np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            v = W[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
+            best = np.fmax(best, v)
+    return best.min(axis=1)
