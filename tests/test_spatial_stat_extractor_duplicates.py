@@ -12,7 +12,7 @@ from scipy import ndimage as ndi
 
 from matchplant.spatial_stat_extractor.ground import measure_ground, thresholds
 from matchplant.spatial_stat_extractor.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.peaks import keepers
+from matchplant.spatial_stat_extractor.peaks import keepers, one_plant_boxes
 from matchplant.spatial_stat_extractor.zonal import ArraySource
 
 
@@ -109,3 +109,19 @@ def test_one_noisy_dome_is_one_plant_a_valley_parts_two():
     assert 0.1 < two[20, 20:48].min() / 0.5 < 0.5  # a real valley, though the canopies touch
     for sd in (0.0, 0.03):
         assert keepers(two, tops, both, win, noise_sd=sd).tolist() == [0, 1]
+
+
+def test_a_short_plants_box_on_a_bump_of_its_tall_neighbour_keeps_its_own_plant():
+    """A short plant beside a tall one: a noise bump on the tall plant's leaves inside the short plant's box
+    is the box's highest local maximum, and one plant with the tall top; the box then takes its own top."""
+    chm = np.maximum(dome(20, 0.6), dome(50, 0.3))  # they touch at column ~37, far below the short top
+    chm[20, 33] += 0.12  # the bump: 0.41 m, higher than the short plant's 0.3 m top
+    peak = ndi.maximum_filter(chm, 5) == chm
+    assert peak[20, 33] and peak[20, 50] and peak[20, 20]
+    boxes = np.array([[2, 2, 38, 38], [32, 2, 68, 38]])  # c0, r0, c1, r1: the short box holds the bump
+    tops = np.array([[20, 20, 0.6], [20, 33, chm[20, 33]]])
+    both = np.array([True, True])
+    assert keepers(chm, tops, both, boxes, noise_sd=0.03).tolist() == [0, 0]  # the bump alone: one plant
+    moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.03, min_top=0.05)
+    assert keep.tolist() == [0, 1]
+    assert moved[1].tolist() == [20, 50, 0.3] and moved[0].tolist() == tops[0].tolist()

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.peaks import keepers
+from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -320,7 +320,8 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
         # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
         # with the highest keeps the plant, the others are duplicates
-        keeper = keepers(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd)
+        tp, keeper = one_plant_boxes(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
+                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top)
         first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True

@@ -10,7 +10,16 @@ top. The tolerance is the larger of
 * ``K_DIP`` x the ground noise's SD (measured by :mod:`~matchplant.spatial_stat_extractor.ground`): a dip
   this shallow is what the noise itself digs into a canopy (the same 3 SD that separates soil from leaves);
 * ``REL_DIP`` x the lower top's height: two distinct plants whose canopies touch meet in a valley far
-  below their tops (their leaves slope down to their rims), while one plant's top is one dome.
+  below their tops (their leaves slope down to their rims), while one plant's top is one dome;
+
+and never more than ``MAX_DIP`` x the lower top: a short plant (tops of a few noise SDs) beside another is
+parted from it by a valley of half its height, however noisy the CHM.
+
+A box whose top is thus another box's plant may still hold its own plant: a short plant's box whose highest
+local maximum is a noise bump on a taller neighbour's leaves reaching into it. Such a box takes the highest
+local maximum in its box that a real valley parts from the other plant's top (:func:`second_tops`), and the
+rule is applied again; a box whose new top is again another box's plant keeps its first top and keeper (a
+split box reaching over a neighbour stays its own plant's duplicate). :func:`one_plant_boxes` does it all.
 
 The way between two tops is the straight line, on which each sample takes the highest CHM of its 3 x 3
 pixels, so the path may step round a one-pixel noise pit or hole. Only boxes whose windows (box plus
@@ -22,12 +31,29 @@ ties), the other boxes are its duplicates.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage as ndi
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
 REL_DIP = 0.3  # share of the lower top: a deeper dip is the valley between two plants
+MAX_DIP = 0.5  # share of the lower top: a dip deeper than this is a valley, however noisy the CHM
+
+
+def one_plant_boxes(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray, boxes: np.ndarray,
+                    noise_sd: float, min_top: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tops (a duplicate's moved to its own plant where its box holds one) and the box that keeps
+    each box's plant (see the module doc; ``windows``/``boxes``: integer ``c0, r0, c1, r1`` of each box
+    plus margin / of each box)."""
+    first = keepers(W, tops, ok, windows, noise_sd)
+    moved = second_tops(W, tops, first, boxes, noise_sd, min_top)
+    keep = keepers(W, moved, ok, windows, noise_sd)
+    own = np.arange(len(keep))
+    still = (first != own) & (keep != own)
+    moved[still] = tops[still]
+    keep[still] = keep[first[still]]
+    return moved, keep
 
 
 def keepers(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray, noise_sd: float) -> np.ndarray:
@@ -51,7 +77,7 @@ def keepers(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray
     a, b = a[meet], b[meet]
     lower = np.minimum(tops[a, 2], tops[b, 2])
     dip = lower - _saddle(W, tops[a, :2].astype(np.int64), tops[b, :2].astype(np.int64))
-    one = dip <= np.maximum(K_DIP * noise_sd, REL_DIP * lower)
+    one = dip <= _tolerance(lower, noise_sd)
     a, b = a[one], b[one]
     _, group = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
     # each group's highest top (first box on ties) keeps the plant
@@ -75,3 +101,44 @@ def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
             v = W[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
             best = np.fmax(best, v)
     return best.min(axis=1)
+
+
+def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
+    return np.minimum(np.maximum(K_DIP * noise_sd, REL_DIP * lower), MAX_DIP * lower)
+
+
+def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.ndarray, noise_sd: float,
+                min_top: float) -> np.ndarray:
+    """``tops`` with each duplicate box (``keep`` not itself) moved to the highest local maximum (5 x 5,
+    at least ``min_top``) inside its box (integer ``c0, r0, c1, r1``) that a real valley parts from its
+    keeper's top, where there is one. A loop over the duplicate boxes (a few per hundred plants) with a
+    maximum filter of each box; the valleys of all candidates are tested at once."""
+    lost = np.flatnonzero(keep != np.arange(len(keep)))
+    filled = np.nan_to_num(W, nan=-np.inf)
+    box, rc, h = [], [], []
+    for k in lost:
+        c0, r0, c1, r1 = boxes[k]
+        # the filter sees 2 pixels around the box, so a maximum is one of the whole CHM's
+        R0, C0 = max(0, r0 - 2), max(0, c0 - 2)
+        win = filled[R0:r1 + 2, C0:c1 + 2]
+        if win.size == 0:
+            continue
+        pr, pc = np.nonzero((win == ndi.maximum_filter(win, 5)) & (win >= min_top))
+        pr, pc = pr + R0, pc + C0
+        inside = (pr >= r0) & (pr < r1) & (pc >= c0) & (pc < c1)
+        box.append(np.full(int(inside.sum()), k))
+        rc.append(np.stack([pr[inside], pc[inside]], axis=1))
+        h.append(filled[pr[inside], pc[inside]])
+    out = tops.copy()
+    if not box or not sum(len(b) for b in box):
+        return out
+    box, rc, h = np.concatenate(box), np.concatenate(rc), np.concatenate(h)
+    j = keep[box]
+    lower = np.minimum(h, tops[j, 2])
+    dip = lower - _saddle(W, rc, tops[j, :2].astype(np.int64))
+    apart = dip > _tolerance(lower, noise_sd)
+    box, rc, h = box[apart], rc[apart], h[apart]
+    order = np.lexsort((-h, box))
+    first = order[np.r_[True, box[order][1:] != box[order][:-1]]] if len(order) else order
+    out[box[first], 0], out[box[first], 1], out[box[first], 2] = rc[first, 0], rc[first, 1], h[first]
+    return out
