@@ -91,10 +91,10 @@ def dome(cx: float, h: float) -> np.ndarray:
 
 def test_one_noisy_dome_is_one_plant_a_valley_parts_two():
     """The rule itself: a short dome whose top a noise pit splits into two maxima is one plant when the pit
-    is within 3 SD of the measured noise (and two on an exact CHM, where any dip deeper than 30 % of the top
+    is within 3 SD of the measured noise (and two on an exact CHM, where any dip deeper than 40 % of the top
     is a valley); two domes whose flanks meet at under half the lower top are two, whatever the noise."""
     one = dome(20, 0.15)
-    one[18:23, 18:23] -= 0.06  # a 6 cm pit (2 SD of a 3 cm noise) at the centre, 5 x 5 pixels
+    one[18:23, 18:23] -= 0.07  # a 7 cm pit (2.3 SD of a 3 cm noise) at the centre, 5 x 5 pixels
     one[20, [17, 23]] += 0.005  # the two maxima on its rim
     tops = np.array([[20, 17, one[20, 17]], [20, 23, one[20, 23]]])
     peak = ndi.maximum_filter(one, 5) == one

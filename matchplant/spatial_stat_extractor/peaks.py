@@ -37,7 +37,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
-REL_DIP = 0.3  # share of the lower top: a deeper dip is the valley between two plants
+REL_DIP = 0.4  # share of the lower top: a deeper dip is the valley between two plants (one plant's leaves
+# part its maxima by up to a third of its height on the straight line between them)
 MAX_DIP = 0.5  # share of the lower top: a dip deeper than this is a valley, however noisy the CHM
 
 
@@ -89,7 +90,8 @@ def keepers(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray
 
 def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """The lowest CHM on the straight line from each ``p`` to its ``q`` (local row, col), each sample the
-    highest of its 3 x 3 pixels; holes (NaN) count as the lowest ground."""
+    highest of its 3 x 3 pixels. Samples in a hole (NaN: the matching failed there) tell nothing and are
+    skipped; a line mostly in holes counts as parted (-inf)."""
     steps = int(np.abs(q - p).max()) + 1
     s = np.linspace(0.0, 1.0, steps + 1)
     r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(np.int64)
@@ -100,7 +102,9 @@ def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         for dc in (-1, 0, 1):
             v = W[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
             best = np.fmax(best, v)
-    return best.min(axis=1)
+    seen = best > -np.inf
+    low = np.where(seen, best, np.inf).min(axis=1)
+    return np.where(seen.mean(axis=1) >= 0.5, low, -np.inf)
 
 
 def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
