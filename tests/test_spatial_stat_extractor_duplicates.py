@@ -103,6 +103,12 @@ def test_one_noisy_dome_is_one_plant_a_valley_parts_two():
     both = np.array([True, True])
     assert keepers(one, tops, both, win, noise_sd=0.03).tolist() == [0, 0]
     assert keepers(one, tops, both, win, noise_sd=0.0).tolist() == [0, 1]
+    # a matching hole (NaN) between two maxima of one plant is no valley
+    holed = dome(20, 0.6)
+    holed[20, [14, 26]] += 0.005
+    holed[17:24, 18:23] = np.nan
+    tops = np.array([[20, 14, holed[20, 14]], [20, 26, holed[20, 26]]])
+    assert keepers(holed, tops, both, win, noise_sd=0.0).tolist() == [0, 0]  # equal tops: the first keeps
     two = np.maximum(dome(20, 0.6), dome(47, 0.5))  # flanks meet at column ~34
     tops = np.array([[20, 20, 0.6], [20, 47, 0.5]])
     win = np.array([[0, 0, 42, 40], [26, 0, 68, 40]])

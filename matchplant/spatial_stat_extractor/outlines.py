@@ -87,6 +87,8 @@ class Outlines:
     shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
     unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
     noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
+    duplicate_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the plant a duplicate's
+    # box is a second box of (its index), -1 for the others
 
     @property
     def from_box(self) -> np.ndarray:
@@ -480,4 +482,4 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     geometry = valid_polygons(geometry)
     return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
                     flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
-                    crs=getattr(chm, "crs", None))
+                    crs=getattr(chm, "crs", None), duplicate_of=np.where(flag == "duplicate", dup, -1))

@@ -24,16 +24,14 @@ split box reaching over a neighbour stays its own plant's duplicate). :func:`one
 The way between two tops is the straight line, on which each sample takes the highest CHM of its 3 x 3
 pixels, so the path may step round a one-pixel noise pit or hole. Only boxes whose windows (box plus
 margin) overlap are compared (pairs from a k-d tree of the tops, all pairs of one strip checked at once);
-one-plant pairs are joined transitively, and each group's highest top keeps the plant (the first box on
-ties), the other boxes are its duplicates.
+each box points to the highest top joined to its own (the first box on ties) and the pointers are followed
+to their end: that box keeps the plant, the others are its duplicates.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage as ndi
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
@@ -80,11 +78,19 @@ def keepers(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray
     dip = lower - _saddle(W, tops[a, :2].astype(np.int64), tops[b, :2].astype(np.int64))
     one = dip <= _tolerance(lower, noise_sd)
     a, b = a[one], b[one]
-    _, group = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
-    # each group's highest top (first box on ties) keeps the plant
-    order = np.lexsort((np.arange(n), -np.nan_to_num(tops[:, 2], nan=-np.inf), group))
-    head = order[np.searchsorted(group[order], group)]
-    keep[idx] = head[idx]
+    # each box points to the highest top joined to its own (itself when none is higher; the first box on
+    # ties), and the pointers are followed to their end: only the box's own pairs decide, so a strip of the
+    # field that sees the box and its neighbours decides as a pass over the whole field does
+    rank = np.empty(n, np.int64)
+    rank[np.lexsort((-np.arange(n), np.nan_to_num(tops[:, 2], nan=-np.inf)))] = np.arange(n)
+    hi = np.concatenate([np.where(rank[a] > rank[b], a, b), keep])
+    lo = np.concatenate([np.where(rank[a] > rank[b], b, a), keep])
+    best = np.full(n, -1)
+    np.maximum.at(best, lo, rank[hi])
+    by_rank = np.argsort(rank)
+    keep = by_rank[best]
+    while (keep[keep] != keep).any():
+        keep = keep[keep]
     return keep
 
 
