@@ -33,7 +33,7 @@ class NoisyChm:
 
 def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: float = 3.2,
               noise_sd: float = 0.03, bias: float = 0.015, smooth_m: float = 0.015,
-              heights=(0.15, 0.9)) -> NoisyChm:
+              heights=(0.15, 0.9), spacing: float = 0.3) -> NoisyChm:
     rng = np.random.default_rng(seed)
     ny, nx = round(length_m / res), round(width_m / res)
     t = Affine(res, 0, 500000.0, 0, -res, 4500000.0 + length_m)
@@ -41,7 +41,7 @@ def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: 
     ys = (np.arange(ny) + 0.5) * res  # from the top edge down
     plants = []
     for y in np.arange(0.4, length_m - 0.3, 0.75):  # rows across the field
-        for x in np.arange(0.35, width_m - 0.3, 0.3):
+        for x in np.arange(0.35, width_m - 0.3, spacing):
             if rng.random() < 0.1:  # a gap in the row
                 continue
             plants.append((x + rng.normal(0, 0.02), y + rng.normal(0, 0.02)))

@@ -85,6 +85,7 @@ class Thresholds:
     source: dict  # key -> "auto (...)" or "set"
     ndvi_threshold: float | None = None
     ndvi_soil: float | None = None  # the soil's NDVI (median), with an automatic ndvi_threshold
+    noise_sd: float = 0.0  # m: the ground noise's SD (0 when not measured), for the duplicate rule (peaks.py)
 
 
 def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
@@ -225,7 +226,7 @@ def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> 
     unclaimed = max(float(min_top), base + K_UNCLAIMED * sd)
     soil = float(np.median(noise.ndvi_soil)) if auto_ndvi and ndvi_threshold is not None else None
     return Thresholds(float(min_height), float(min_top), float(unclaimed), src,
-                      None if ndvi_threshold is None else float(ndvi_threshold), soil)
+                      None if ndvi_threshold is None else float(ndvi_threshold), soil, float(sd))
 
 
 def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:

@@ -14,7 +14,8 @@ Plants whose canopy is smaller than ``min_pixels`` (too small for the CHM's reso
 below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and are flagged
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
-plant (the same top) is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
+plant (the same top, or a top that no real valley parts from the plant's: :mod:`~matchplant.spatial_stat_extractor.peaks`)
+is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
 no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
 the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
 plants the detector missed, for stand counts; the lower ones are only counted (``noise_bumps``).
@@ -46,6 +47,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     labelled_pixels,
 )
 from matchplant.spatial_stat_extractor.maxima import local_maxima
+from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -66,6 +68,8 @@ class SegmentSettings:
     # the value at the plant's top (more leaf than soil: a pale plant keeps its leaves, a green one its edges)
     unclaimed_min_top: float = 0.0  # m: a canopy no box claims is a plant only with a top this high (the
     # ground noise's highest bumps, see ground.py; at least min_top); lower ones are counted as noise bumps
+    noise_sd: float = 0.0  # m: the ground noise's SD (ground.py); two tops parted by a shallower dip are one
+    # plant's (peaks.py)
 
 
 @dataclass
@@ -91,6 +95,8 @@ class Outlines:
     shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
     unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
     noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
+    duplicate_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the plant a duplicate's
+    # box is a second box of (its index), -1 for the others
 
     @property
     def from_box(self) -> np.ndarray:
@@ -327,16 +333,16 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         if mv is not None:  # a top on soil by the mask (NDVI) is a ground bump under the box: flagged low
             bare = ok & (mv[np.nan_to_num(tp[:, 0]).astype(int), np.nan_to_num(tp[:, 1]).astype(int)] < s.mask_threshold)
             soil_top[near[bare & np.isin(near, home)]] = True
-        # two boxes of one plant find the same top: the first keeps it, the others are duplicates
-        flat_top = np.where(ok, np.nan_to_num(tp[:, 0]) * (Cc1 - Cc0) + np.nan_to_num(tp[:, 1]), -1)
-        _, first_i, group = np.unique(flat_top, return_index=True, return_inverse=True)
-        first = np.zeros(len(near), bool)
-        first[first_i] = True
+        # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
+        # with the highest keeps the plant, the others are duplicates
+        tp, keeper = one_plant_boxes(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
+                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top)
+        first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True
         lost = ok & ~first
         mine = lost & is_home[near]  # (a neighbour's status is settled in its own strip)
-        dup[near[mine]] = near[first_i[group[mine]]]
+        dup[near[mine]] = near[keeper[mine]]
         ok &= first
         L, free = _assign(W, mask, tp, ok, s)
         # canopies no box claims, with their top in this strip's own rows (each is found once)
@@ -506,4 +512,4 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     geometry = valid_polygons(geometry)
     return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
                     flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
-                    crs=getattr(chm, "crs", None))
+                    crs=getattr(chm, "crs", None), duplicate_of=np.where(flag == "duplicate", dup, -1))

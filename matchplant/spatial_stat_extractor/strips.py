@@ -26,7 +26,6 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 import rasterio
 import shapely
 
@@ -144,6 +143,7 @@ def _run_band(job: _Job, band: tuple[int, int] | None, sources: tuple) -> dict:
             cols.update(_measure(o, rows, src, m))
     return {"rows": rows, "geometry": o.geometry[rows], "tight_box": o.tight_box[rows], "top": o.top[rows],
             "pixels": o.pixels[rows], "area": o.area[rows], "volume": o.volume[rows], "flag": o.flag[rows],
+            "duplicate_of": o.duplicate_of[rows],
             "unclaimed": o.unclaimed, "noise_bumps": o.noise_bumps, "cols": cols, "transform": o.transform,
             "width": o.width,
             "height": o.height, "crs": o.crs}
@@ -218,21 +218,20 @@ def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict
     tight, top = np.full((n, 4), np.nan), np.full((n, 3), np.nan)
     pixels, area, volume = np.zeros(n, np.int64), np.zeros(n), np.full(n, np.nan)
     flag = np.full(n, "outside", dtype=object)
+    of = np.full(n, -1, np.int64)
     cols = {k: np.full(n, np.nan) for p in parts for k in p["cols"]}
     for p in parts:
         r = p["rows"]
         geometry[r], tight[r], top[r], pixels[r], area[r], volume[r], flag[r] = (
             p["geometry"], p["tight_box"], p["top"], p["pixels"], p["area"], p["volume"], p["flag"])
+        of[r] = p["duplicate_of"]
         for k, v in p["cols"].items():
             cols[k][r] = v
     # a second box of a plant homed in another strip: that plant's outline and canopy (as in one pass)
-    dup = np.flatnonzero(flag == "duplicate")
-    if len(dup):
-        owners = np.flatnonzero(flag == "")
-        key = pd.MultiIndex.from_arrays([top[owners, 0], top[owners, 1]])
-        owners, key = owners[~key.duplicated()], key[~key.duplicated()]
-        hit = key.get_indexer(pd.MultiIndex.from_arrays([top[dup, 0], top[dup, 1]]))
-        d, o = dup[hit >= 0], owners[hit[hit >= 0]]
+    d = np.flatnonzero((flag == "duplicate") & (of >= 0))
+    o = of[d]
+    d, o = d[flag[o] == ""], o[flag[o] == ""]
+    if len(d):
         geometry[d], tight[d], pixels[d], area[d], volume[d] = geometry[o], tight[o], pixels[o], area[o], volume[o]
         for v in cols.values():
             v[d] = v[o]
@@ -240,5 +239,5 @@ def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict
     out = Outlines(geometry=geometry, tight_box=tight, top=top, pixels=pixels, area=area, volume=volume, flag=flag,
                    pix=np.zeros(0, np.int64), start=np.zeros(n + 1, np.int64), transform=first["transform"],
                    width=first["width"], height=first["height"], crs=first["crs"], unclaimed=unclaimed,
-                   noise_bumps=sum(p["noise_bumps"] for p in parts))
+                   noise_bumps=sum(p["noise_bumps"] for p in parts), duplicate_of=of)
     return out, cols

@@ -56,8 +56,7 @@ def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSet
                         None if cfg.ndvi_threshold == "auto" else cfg.ndvi_threshold)
     return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
                            min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=th.ndvi_threshold,
-                           mask_soil=th.ndvi_soil,
-                           unclaimed_min_top=th.unclaimed_min_top)
+                           mask_soil=th.ndvi_soil, unclaimed_min_top=th.unclaimed_min_top, noise_sd=th.noise_sd)
 
 
 def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:
