@@ -25,6 +25,7 @@ from matchplant.spatial_stat_extractor.config import (
     SpatialStatExtractorConfig,
 )
 from matchplant.spatial_stat_extractor.ground import (
+    GroundNoise,
     check_chm,
     measure_ground,
     thresholds,
@@ -281,3 +282,19 @@ def test_a_later_flight_georeferenced_apart_is_caught_and_registered(field, tmp_
     # the same flight, not shifted: no error, the offset reported near zero
     _, _, _, report = canopy_traits(plants, [sets[0], RasterSet(date="d2", chm=chm1)], CanopyConfig(), ["mean"], [])
     assert report["dates"][1]["offset_to_d1"]["distance"] < 0.01 and "registered" not in report["dates"][1]
+
+
+def test_unclaimed_canopies_need_six_sd_on_the_chm_alone_and_three_where_ndvi_tells_leaves_from_soil():
+    """A canopy no box claims is a missed plant. On the CHM alone it must stand above the field's highest ground
+    bumps (p50 + 6 SD); where NDVI tells leaves from soil its pixels are leaves, so p50 + 3 SD (and min_top) is
+    enough: with 6 SD every missed plant under ~20 cm stayed out of the noisy demo field's stand counts."""
+    rng = np.random.default_rng(5)
+    soil, tops = rng.normal(0.15, 0.01, 4000), rng.normal(0.7, 0.05, 200)  # NDVI of bare soil and plant tops
+    noise = GroundNoise(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
+                        ndvi_soil=soil, ndvi_tops=tops)
+    chm_only = thresholds("auto", "auto", noise, None)
+    with_ndvi = thresholds("auto", "auto", noise, "auto")
+    assert with_ndvi.ndvi_threshold is not None
+    assert chm_only.unclaimed_min_top == pytest.approx(0.017 + 6 * 0.032)
+    assert with_ndvi.unclaimed_min_top == pytest.approx(max(with_ndvi.min_top, 0.017 + 3 * 0.032))
+    assert with_ndvi.min_top <= with_ndvi.unclaimed_min_top < chm_only.unclaimed_min_top

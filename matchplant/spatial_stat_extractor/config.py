@@ -166,7 +166,7 @@ class CanopyConfig:
         "auto", "m: a plant's top must reach this height to be outlined; lower ones (weeds, soil, plants too "
                 "small for the CHM) keep their box, flagged 'low', and are left out of stand counts; auto = median "
                 "+ 4 SD of the ground noise (or + 2 SD with NDVI), at least 0.05 (canopies no box claims need median "
-                "+ 6 SD)", min=0)
+                "+ 6 SD, or + 3 SD with NDVI)", min=0)
     min_pixels: int = param(4, "canopies smaller than this many pixels keep their box (flagged 'small')", min=1)
     ndvi_threshold: float | Literal["auto"] | None = param(
         "auto", "canopy pixels also need NDVI at least this (a multispectral raster on the CHM's grid); auto = "

@@ -22,7 +22,9 @@ pale plant keeps its leaves), used when that separates the two populations (at l
 it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM). A photogrammetric CHM cannot tell a leaf's low edge from a ground
 bump of the same height (both a few SD of the noise), but NDVI can: with leaves told from soil by NDVI the
 CHM thresholds drop to ``min_height`` = p50 + 1 SD and ``min_top`` = p50 + 2 SD (a box's top must then also
-be a leaf, so a bump under a false box still does not make a plant).
+be a leaf, so a bump under a false box still does not make a plant), and so does the top of a canopy no box
+claims (max(min_top, p50 + 3 SD)): its pixels are leaves by NDVI, so it is not a ground bump, and the 6 SD
+kept every plant the detector missed under ~20 cm out of the stand counts on a noisy CHM.
 
 The same windows give each sampled box's highest and lowest CHM value, from which :func:`check_chm` tells
 a CHM that cannot be right: negative under the plants (DSM and DTM swapped), bare ground far from zero (a
@@ -41,7 +43,7 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 
 FLOOR_HEIGHT, FLOOR_TOP = 0.02, 0.05  # m: the thresholds of an exact CHM (no noise measured)
 K_HEIGHT, K_TOP, K_UNCLAIMED = 3.0, 4.0, 6.0  # SDs of the ground noise (see the module doc)
-K_HEIGHT_NDVI, K_TOP_NDVI = 1.0, 2.0  # the same where NDVI tells leaves from soil
+K_HEIGHT_NDVI, K_TOP_NDVI, K_UNCLAIMED_NDVI = 1.0, 2.0, 3.0  # the same where NDVI tells leaves from soil
 SOIL_BELOW, TOPS_ABOVE = 0.9, 0.75  # shares of the soil / tops an automatic NDVI threshold must separate
 K_NDVI, MIN_NDVI_GAP = 3.0, 0.05  # soil NDVI: SDs above its median, and the least margin (mixed pixels)
 MIN_GROUND = 500  # ground pixels needed to measure the noise
@@ -209,7 +211,8 @@ def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> 
         src["ndvi_threshold"] = f"auto ({why_ndvi})"
     else:
         src["ndvi_threshold"] = "set" if ndvi_threshold is not None else "none"
-    k_height, k_top = (K_HEIGHT_NDVI, K_TOP_NDVI) if ndvi_threshold is not None else (K_HEIGHT, K_TOP)
+    k_height, k_top, k_unclaimed = ((K_HEIGHT_NDVI, K_TOP_NDVI, K_UNCLAIMED_NDVI) if ndvi_threshold is not None
+                                    else (K_HEIGHT, K_TOP, K_UNCLAIMED))
     base = noise.p50 if noise.measured else 0.0
     sd = noise.sd if noise.measured else 0.0
     why = f"ground p50 {base:.3f} m + {{k:g}} x SD {sd:.3f} m" if noise.measured else "no ground noise measured"
@@ -223,7 +226,7 @@ def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> 
         src["min_top"] = f"auto ({why.format(k=k_top)}, at least {FLOOR_TOP} m and min_height)"
     else:
         src["min_top"] = "set"
-    unclaimed = max(float(min_top), base + K_UNCLAIMED * sd)
+    unclaimed = max(float(min_top), base + k_unclaimed * sd)
     soil = float(np.median(noise.ndvi_soil)) if auto_ndvi and ndvi_threshold is not None else None
     return Thresholds(float(min_height), float(min_top), float(unclaimed), src,
                       None if ndvi_threshold is None else float(ndvi_threshold), soil, float(sd))
