@@ -11,12 +11,12 @@ from matchplant.core.runtime.io import write_text
 
 # how far another machine's run may land from the README's figures (thread counts and CPU kernels change the
 # training arithmetic; the same machine and thread count give the same figures): issue 29's second machine, and
-# two 1-thread runs on two machines of the project's kind (canopy NDVI r 0.984 and 0.960 on the exact field: a few
-# plants matched differently move r by more than 0.01)
+# two 1-thread runs on two machines of the project's kind and a 2-thread run (canopy NDVI r 0.984, 0.960 and 1.000
+# on the exact field: a few plants matched differently move r by a few hundredths)
 TOLERANCE = ("the same machine and thread count repeat every figure exactly; another machine or thread count "
              "trains a slightly different detector: AP within about 10 points, plants matched and IoU > 0.5 "
              "within about 8 points, stand counts within about 5 points; height r within 0.01 and canopy NDVI r "
-             "within 0.03 on the exact field")
+             "within 0.05 on the exact field")
 
 
 def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: dict | None = None) -> Path:
