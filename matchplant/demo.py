@@ -276,7 +276,7 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = E
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
     timings.update(_step_times(pipe, results))
     compare = compare_with_truth(out, field)
-    extra = {"held_out": held_out_record(out, held, splits), "environment": environment()}
+    extra = {"held_out": held_out_record(out, held, splits), "environment": environment(out)}
     if noise == "realistic":
         extra["noisy"] = run_noisy(out, preset, seed, crs, from_step, timings)
     report = write_report(out, field, timings, compare, extra)
@@ -317,12 +317,16 @@ def held_out_record(out: Path, held: list[str], splits: dict) -> dict:
             "training_photos_projected": len(set(projected) & train)}
 
 
-def environment() -> dict:
-    """What the figures depend on besides the seeds: the thread count and the library versions."""
+def environment(out: Path) -> dict:
+    """What the figures depend on besides the seeds: the thread count and device training used (from its
+    summary: a re-run from a later step trains nothing, and this process's own threads say nothing) and the
+    library versions."""
     import torch
 
-    return {"torch": torch.__version__, "torch_threads": torch.get_num_threads(), "cpus": os.cpu_count(),
-            "device": "cuda" if torch.cuda.is_available() else "cpu"}
+    summary = out / "6_train" / "training_summary.json"
+    trained = json.loads(summary.read_text()) if summary.is_file() else {}
+    return {"torch": torch.__version__, "torch_threads": trained.get("threads"), "cpus": os.cpu_count(),
+            "device": trained.get("device")}
 
 
 def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timings: dict) -> dict:

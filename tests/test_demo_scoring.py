@@ -4,6 +4,8 @@ projected, checked against module 8's own views."""
 
 from __future__ import annotations
 
+import json
+
 import pandas as pd
 import pytest
 import yaml
@@ -13,6 +15,7 @@ from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.runtime.io import read_json
 from matchplant.demo import (
     compare_with_truth,
+    environment,
     held_out_photos,
     held_out_record,
     map_steps,
@@ -54,3 +57,12 @@ def test_scoring_on_a_split_that_excludes_the_training_photos(tiny_field, tmp_pa
     evaluation = read_json(tmp_path / "8_plants" / "evaluation.json")
     # every true plant seen by a held-out photo is scored; with true boxes nearly all of them are found
     assert evaluation["share_matched"] > 0.8 and scores["traits"]["matched"] > 0.8 * scores["traits"]["true_plants"]
+
+
+def test_the_report_names_the_threads_training_used_not_its_own(tmp_path):
+    """A demo re-run from module 8 trains nothing: the thread count it reports is the one the training ran with."""
+    (tmp_path / "6_train").mkdir()
+    (tmp_path / "6_train" / "training_summary.json").write_text(json.dumps({"threads": 3, "device": "cpu"}))
+    env = environment(tmp_path)
+    assert env["torch_threads"] == 3 and env["device"] == "cpu"
+    assert environment(tmp_path / "none")["torch_threads"] is None  # no training: said, not guessed
