@@ -131,3 +131,21 @@ def test_a_short_plants_box_on_a_bump_of_its_tall_neighbour_keeps_its_own_plant(
     moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.03, min_top=0.05)
     assert keep.tolist() == [0, 1]
     assert moved[1].tolist() == [20, 50, 0.3] and moved[0].tolist() == tops[0].tolist()
+
+
+def test_a_split_box_centred_on_a_plant_does_not_move_to_a_low_leaf_at_its_edge():
+    """Two boxes of one plant, both centred on it, the second's highest point a noise bump on the plant's top
+    (one plant); at the box's edge a low leaf tip stands parted from the top by a noise valley. The box's own
+    plant is the one at its centre: it stays a duplicate (on the noisy demo field such boxes were counted as
+    extra plants, flagged small, in 13 of 63 plots' counts)."""
+    chm = dome(30, 0.5)
+    chm[20, 30] += 0.02  # noise on the top: the second box's highest local maximum
+    chm[17:24, 45:48] = 0.02  # a noise valley across the leaves ...
+    chm[20, 48] = 0.12     # ... and a leaf tip beyond it, at the second box's edge
+    peak = ndi.maximum_filter(chm, 5) == chm
+    assert peak[20, 48]
+    boxes = np.array([[12, 2, 48, 38], [13, 2, 49, 38]])  # c0, r0, c1, r1: both centred on the dome
+    tops = np.array([[20, 30, chm[20, 30]], [20, 30, chm[20, 30]]])
+    both = np.array([True, True])
+    moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.01, min_top=0.05)
+    assert keep.tolist() == [0, 0] and moved[1].tolist() == tops[1].tolist()

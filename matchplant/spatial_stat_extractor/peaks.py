@@ -17,7 +17,9 @@ parted from it by a valley of half its height, however noisy the CHM.
 
 A box whose top is thus another box's plant may still hold its own plant: a short plant's box whose highest
 local maximum is a noise bump on a taller neighbour's leaves reaching into it. Such a box takes the highest
-local maximum in its box that a real valley parts from the other plant's top (:func:`second_tops`), and the
+local maximum in its box that a real valley parts from the other plant's top and that lies nearer the box's
+centre than that top (:func:`second_tops`; a split box centred on one plant does not move to a low leaf at
+its edge), and the
 rule is applied again; a box whose new top is again another box's plant keeps its first top and keeper (a
 split box reaching over a neighbour stays its own plant's duplicate). :func:`one_plant_boxes` does it all.
 
@@ -146,7 +148,11 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
     j = keep[box]
     lower = np.minimum(h, tops[j, 2])
     dip = lower - _saddle(W, rc, tops[j, :2].astype(np.int64))
-    apart = dip > _tolerance(lower, noise_sd)
+    # the box's own plant is nearer its centre than the keeper's top: a split box centred on a plant does not
+    # move to a low leaf at its edge (on a noisy CHM such leaves are parted from the top by noise valleys)
+    centre = (boxes[box][:, [1, 0]] + boxes[box][:, [3, 2]] - 1) / 2
+    nearer = np.hypot(*(rc - centre).T) < np.hypot(*(tops[j, :2] - centre).T)
+    apart = (dip > _tolerance(lower, noise_sd)) & nearer
     box, rc, h = box[apart], rc[apart], h[apart]
     order = np.lexsort((-h, box))
     first = order[np.r_[True, box[order][1:] != box[order][:-1]]] if len(order) else order
