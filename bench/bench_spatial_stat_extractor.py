@@ -33,6 +33,7 @@ import yaml
 from affine import Affine
 
 from bench.process import matchplant_command, run_process
+from matchplant.core.formats.vectors import write_vector
 from matchplant.spatial_stat_extractor.zonal import RasterFileSource, zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]
@@ -151,7 +152,7 @@ def process_comparison(work: Path, quick: bool):
     size, n = (2000, 1250) if quick else (8000, 20000)
     path, boxes = make_field(work, size, n)
     plants = work / "plants.gpkg"
-    gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615").to_file(plants)
+    write_vector(gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615"), plants)
     ours_out, peer_out = work / "ours", work / "exactextract.csv"
     cfg = work / "module9.yaml"
     cfg.write_text(yaml.safe_dump({"polygons": str(plants), "rasters": {"chm": str(path)}, "mode": "coverage",
