@@ -149,3 +149,12 @@ def test_a_split_box_centred_on_a_plant_does_not_move_to_a_low_leaf_at_its_edge(
     both = np.array([True, True])
     moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.01, min_top=0.05)
     assert keep.tolist() == [0, 0] and moved[1].tolist() == tops[1].tolist()
+
+
+def test_boxes_whose_windows_do_not_meet_are_each_their_own_plant():
+    """Two plants close enough for the k-d tree's reach but with windows that do not overlap: no pair is
+    tested, and each box keeps its plant (this crashed module 9 on a field of six plants)."""
+    chm = np.maximum(dome(20, 0.5), dome(60, 0.5))
+    tops = np.array([[20, 20, 0.5], [20, 60, 0.5]])
+    windows = np.array([[0, 0, 39, 40], [41, 0, 80, 40]])  # c0, r0, c1, r1: apart by a column
+    assert keepers(chm, tops, np.array([True, True]), windows, noise_sd=0.01).tolist() == [0, 1]

@@ -100,6 +100,8 @@ def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """The lowest CHM on the straight line from each ``p`` to its ``q`` (local row, col), each sample the
     highest of its 3 x 3 pixels. Samples in a hole (NaN: the matching failed there) tell nothing and are
     skipped; a line mostly in holes counts as parted (-inf)."""
+    if not len(p):  # no pair of boxes meets (their windows do not overlap)
+        return np.zeros(0)
     steps = int(np.abs(q - p).max()) + 1
     s = np.linspace(0.0, 1.0, steps + 1)
     r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(np.int64)
