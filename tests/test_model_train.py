@@ -404,19 +404,28 @@ def test_torchrun_two_processes(tiles, tmp_path):
 @pytest.mark.slow
 def test_the_estimate_before_training_holds_for_the_measured_run(tmp_path):
     """Issue 28: the time estimated before training (set-up and probe so far, then the probe's seconds per
-    iteration, validation and checkpoints for the whole run) is within 50 % of the run's wall time measured here.
-    Larger tiles than FAST's, so that the training steps, not the fixed costs, are most of the run."""
+    iteration, validation and checkpoints for the whole run) is within 50 % of the session's measured time.
+    Larger tiles than FAST's, so that the training steps, not the fixed costs, are most of the run. Run as a
+    user runs it, in a process of its own: inside this test process PyTorch is already warm from the other
+    tests, so the run is faster than the probe's first iteration (which includes the warm-up a real run pays)
+    predicts (a fresh clone's suite measured 5.3 s against an estimate of 12.2 s)."""
     d = tmp_path / "tiles"
-    big = (make_tiles(d, n_images=8, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=3, name="t.json"),
+    # 30 iterations: enough for the probe (at most 5 % of the run) to time a steady iteration after the first; on a
+    # 6-iteration run it times only the first, warm-up included, and the estimate came out 1.7x the run
+    big = (make_tiles(d, n_images=40, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=3, name="t.json"),
            make_tiles(d, n_images=2, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=4, name="v.json"))
-    t0 = time.perf_counter()
-    summary = train(fast_config(big, tmp_path / "run", "model.min_size=128", "model.max_size=128", "epochs=3",
-                                "save_every=0"))
-    wall = time.perf_counter() - t0
-    estimate = summary["estimate"]["planned_s"]
-    print(f"estimate {estimate:.1f} s, measured {wall:.1f} s")
-    assert summary["status"] == "finished" and summary["iterations_done"] == 6
-    assert 0.5 * wall <= estimate <= 1.5 * wall, (estimate, wall)
+    out = tmp_path / "run"
+    sets = [f"train_json={big[0]}", f"val_json={big[1]}", f"output_dir={out}", *FAST, "model.min_size=128",
+            "model.max_size=128", "epochs=3", "save_every=0"]
+    r = subprocess.run([sys.executable, "-m", "matchplant.cli", "model_train", "--quiet",
+                        *[a for kv in sets for a in ("--set", kv)]], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    summary = json.loads((out / "training_summary.json").read_text())
+    estimate, measured = summary["estimate"]["planned_s"], summary["this_session_s"]
+    print(f"estimate {estimate:.1f} s, measured {measured:.1f} s")
+    assert summary["status"] == "finished" and summary["iterations_done"] == 30
+    assert summary["estimate"]["probe"]["iterations"] >= 2
+    assert 0.5 * measured <= estimate <= 1.5 * measured, (estimate, measured)
 
 
 def test_max_minutes_shorter_than_an_iteration_still_trains_one_and_saves(tiles, tmp_path):
