@@ -160,7 +160,15 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
         return {"plants": 0, "skipped": "no plant well inside the crop (raise --scale)"}
     inside.to_csv(work / "crop_plants.csv", index=False)
     out = work / "crop_out"
-    run_module(config(meta, out, str(crop), str(work / "crop_plants.csv"), True, False, args), args)
+    cfg_path = config(meta, out, str(crop), str(work / "crop_plants.csv"), True, False, args)
+    # the whole field's canopy thresholds: the crop holds canopies of plants cut by its edge and left out of its
+    # list, which the automatic ground-noise sample takes for bare ground (SD 0.3 m: every plant 'low'); this
+    # check is about windows and strips, not about the noise estimate
+    chosen = json.loads((full_out / "stats_report.json").read_text())["canopy"]["dates"][0]
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["canopy"].update(min_height=chosen["min_height"], min_top=chosen["min_top"])
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    run_module(cfg_path, args)
     a = pd.read_csv(full_out / "stats.csv").set_index("plant_id").loc[inside.plant_id]
     b = pd.read_csv(out / "stats.csv").set_index("plant_id").loc[inside.plant_id]
     num = [c for c in b.columns if c in a.columns and pd.api.types.is_numeric_dtype(b[c])]
