@@ -5,7 +5,11 @@ A photogrammetric CHM (ODM's DSM - DTM) is not zero on bare soil: real ones have
 measured from the data: windows around plants spread over the field are read (a few dozen, never the
 whole raster), and the CHM on the pixels farther than ``guard`` from every plant box is the ground sample.
 Its spread is robust to the weeds and missed plants in it: the larger of 1.4826 x MAD and
-(p90 - p50) / 1.2816 (the upper half, which a skewed, heavy-tailed ground noise widens). With
+(p90 - p50) / 1.2816 (the upper half, which a skewed, heavy-tailed ground noise widens), the latter at most
+3 x the former: where more than a tenth of the sample is canopy (plants left out of the plant list, a crop of
+the field, a detector that missed many) the upper tail is leaves, not noise (it gave an SD of 0.30 m on a crop
+whose edge plants were not listed, and every plant came out 'low'), while a ground noise's own tail stays
+well inside 3 MAD spreads. With
 ``canopy.min_height`` / ``min_top`` left at ``auto``:
 
 * ``min_height`` = max(2 cm, p50 + 3 SD): a canopy pixel is above almost all of the ground (0.1 % of a
@@ -174,9 +178,14 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     return out
 
 
+TAIL_CAP = 3.0  # the upper-tail spread is at most this many MAD spreads: beyond, the tail is canopy, not noise
+
+
 def robust_sd(v: np.ndarray, p50: float) -> float:
-    """The larger of 1.4826 x MAD and (p90 - p50) / 1.2816 (module doc)."""
-    return float(max(1.4826 * np.median(np.abs(v - p50)), (np.percentile(v, 90) - p50) / 1.2816))
+    """The larger of 1.4826 x MAD and (p90 - p50) / 1.2816, the latter at most ``TAIL_CAP`` x the former
+    (module doc)."""
+    mad = 1.4826 * float(np.median(np.abs(v - p50)))
+    return float(max(mad, min((np.percentile(v, 90) - p50) / 1.2816, TAIL_CAP * mad)))
 
 
 def _finite(parts: list) -> np.ndarray:
