@@ -33,8 +33,9 @@ to their end: that box keeps the plant, the others are its duplicates.
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
+
+from matchplant.spatial_stat_extractor.maxima import local_maxima
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
 REL_DIP = 0.4  # share of the lower top: a deeper dip is the valley between two plants (one plant's leaves
@@ -126,7 +127,7 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
     """``tops`` with each duplicate box (``keep`` not itself) moved to the highest local maximum (5 x 5,
     at least ``min_top``) inside its box (integer ``c0, r0, c1, r1``) that a real valley parts from its
     keeper's top, where there is one. A loop over the duplicate boxes (a few per hundred plants) with a
-    maximum filter of each box; the valleys of all candidates are tested at once."""
+    local-maximum pass over each box; the valleys of all candidates are tested at once."""
     lost = np.flatnonzero(keep != np.arange(len(keep)))
     filled = np.nan_to_num(W, nan=-np.inf)
     box, rc, h = [], [], []
@@ -137,7 +138,7 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
         win = filled[R0:r1 + 2, C0:c1 + 2]
         if win.size == 0:
             continue
-        pr, pc = np.nonzero((win == ndi.maximum_filter(win, 5)) & (win >= min_top))
+        pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (outlines._tops)
         pr, pc = pr + R0, pc + C0
         inside = (pr >= r0) & (pr < r1) & (pc >= c0) & (pc < c1)
         box.append(np.full(int(inside.sum()), k))
