@@ -13,6 +13,7 @@ from affine import Affine
 from PIL import Image
 from shapely.geometry import box
 
+from matchplant.core.runtime import validate
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.validate import (
     check_coordinates,
@@ -234,6 +235,29 @@ def test_check_raster_scans_a_big_raster_in_strips(tmp_path):
     check_raster(tmp_path / "big.tif")
     write_raster(tmp_path / "big0.tif", np.zeros((2100, 2100), dtype="uint8"), nodata=0)
     fails(lambda: check_raster(tmp_path / "big0.tif"), "holds no valid data")
+
+
+def test_check_raster_looks_at_a_few_blocks_before_any_scan(tmp_path, monkeypatch):
+    """A big tiled raster is judged from at most 8 x 8 of its tiles (not a decimated read, which decompresses
+    every tile of a raster without overviews); only a band that looks empty there is scanned in full."""
+    path = tmp_path / "tiled.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=4096, height=4096, count=1, dtype="float32", nodata=-1,
+                       crs="EPSG:32615", transform=Affine(0.01, 0, 0, 0, -0.01, 0), tiled=True, blockxsize=256,
+                       blockysize=256, compress="deflate") as ds:
+        ds.write(np.full((4096, 4096), -1, "float32"), 1)
+        ds.write(np.ones((256, 256), "float32"), 1, window=rasterio.windows.Window(2304, 2304, 256, 256))
+    with rasterio.open(path) as ds:
+        windows = validate._sampled_windows(ds, 1)
+    assert len(windows) == 64 and all(w.width == w.height == 256 for w in windows)
+    # a band valid in one tile the sample does not include is still found by the scan
+    monkeypatch.setattr(validate, "SAMPLED_BLOCKS", 2)
+    check_raster(path)
+    read = []
+    real = rasterio.io.DatasetReader.read
+    monkeypatch.setattr(rasterio.io.DatasetReader, "read", lambda self, *a, **k: read.append(k) or real(self, *a, **k))
+    monkeypatch.setattr(validate, "SAMPLED_BLOCKS", 8)
+    check_raster(path)  # tile (9, 9) of 16 x 16 is among the 8 x 8 sampled: no scan
+    assert 0 < len(read) <= 64 and all(k["window"].width == 256 for k in read)
 
 
 @pytest.mark.filterwarnings("ignore:'crs' was not provided")

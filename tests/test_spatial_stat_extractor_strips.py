@@ -120,6 +120,27 @@ def test_strip_by_strip_equals_one_pass(field, thin_strips):
     np.testing.assert_allclose(np.sort(o.unclaimed, axis=0), np.sort(ref.unclaimed, axis=0))
 
 
+def test_each_strip_handles_only_its_plants_with_the_same_results(field, thin_strips):
+    """A band outlines only the plants near it (band_plants): plants off the raster, an empty box and a later
+    date's seeds (each plant's top searched near an earlier top) give the numbers of one pass all the same."""
+    root, geoms = field
+    chm_l, ms = measures(root)
+    far = shapely.box(T.c - 5, T.f + 1, T.c - 4, T.f + 2)  # off the raster, left of and above it
+    below = shapely.box(T.c + 1, T.f - 10, T.c + 1.1, T.f - 9.9)
+    geoms = np.concatenate([geoms, np.array([far, shapely.Polygon(), below], dtype=object)])
+    b = shapely.bounds(geoms)
+    seeds = np.column_stack([b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]]) / 2 + 0.01  # a centimetre off each box centre
+    s = SegmentSettings(max_shift=0.04)
+    o, cols = strips.outline_field(geoms, chm_l, None, ms, s, nodata=None, seeds=seeds,
+                                   max_memory=parse_memory("1GB"), workers=1)
+    with contextlib.ExitStack() as stack:
+        ref = segment(geoms, open_layer(chm_l, stack), s, seeds=seeds, strip_rows=64)
+    assert list(o.flag[-3:]) == ["outside"] * 3 and list(o.flag) == list(ref.flag)
+    assert shapely.equals(o.geometry[:-3], ref.geometry[:-3]).all()
+    np.testing.assert_allclose(o.top, ref.top, equal_nan=True)
+    np.testing.assert_allclose(o.volume, ref.volume, equal_nan=True)
+
+
 @pytest.mark.slow
 def test_a_process_pool_gives_the_same_results(field, thin_strips):
     """Two worker processes (spawned; each opens the rasters itself) give the numbers of one process."""

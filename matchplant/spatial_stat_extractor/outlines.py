@@ -262,6 +262,33 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
     return L, np.column_stack([pos[tall], h[tall], size[free][tall]])
 
 
+def plant_windows(geoms, t, s: SegmentSettings, seeds: np.ndarray | None = None):
+    """Each plant's box (pixel centres inside) and window (box + margin, + the reach of ``max_shift`` with
+    ``seeds``) as integer (col0, row0, col1, row1) on the grid of ``t``, and the seeds' pixel (row, col) or None.
+    An empty or missing geometry gets -1s."""
+    res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
+    m = s.margin / res
+    pb = _pixel_boxes(geoms, t)
+    box_i = np.stack([np.floor(pb[:, 0] + 0.5), np.floor(pb[:, 1] + 0.5),
+                      np.floor(pb[:, 2] + 0.5), np.floor(pb[:, 3] + 0.5)], axis=1)  # pixel centres inside
+    win_i = np.stack([np.floor(pb[:, 0] - m), np.floor(pb[:, 1] - m), np.ceil(pb[:, 2] + m),
+                      np.ceil(pb[:, 3] + m)], axis=1)
+    box_i = np.nan_to_num(box_i, nan=-1).astype(np.int64)
+    win_i = np.nan_to_num(win_i, nan=-1).astype(np.int64)
+    seed_px = None
+    if seeds is not None:
+        sc, sr = _apply(~t, seeds[:, 0], seeds[:, 1])
+        seed_px = np.stack([sr - 0.5, sc - 0.5], axis=1)  # pixel index (row, col) of the centre
+        reach = int(np.ceil(s.max_shift / res)) + 1
+        win_i = win_i + np.array([-reach, -reach, reach, reach])
+    return box_i, win_i, seed_px
+
+
+def home_strip(win_i: np.ndarray, height: int, strip_rows: int) -> np.ndarray:
+    """The strip each plant belongs to: the one holding its window's centre row (clipped to the raster)."""
+    return np.clip((win_i[:, 1] + win_i[:, 3]) // 2, 0, height - 1) // strip_rows
+
+
 def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarray | None = None,
             strip_rows: int = STRIP_ROWS, band: tuple[int, int] | None = None) -> Outlines:
     """Outlines of the plants whose boxes are ``geoms`` (in the CHM's CRS) on the CHM source ``chm``
@@ -274,21 +301,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     n = len(geoms)
     t = chm.transform
     res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
-    m = s.margin / res
-    pb = _pixel_boxes(geoms, t)
-    box_i = np.stack([np.floor(pb[:, 0] + 0.5), np.floor(pb[:, 1] + 0.5),
-                      np.floor(pb[:, 2] + 0.5), np.floor(pb[:, 3] + 0.5)], axis=1)  # pixel centres inside
-    win_i = np.stack([np.floor(pb[:, 0] - m), np.floor(pb[:, 1] - m), np.ceil(pb[:, 2] + m),
-                      np.ceil(pb[:, 3] + m)], axis=1)
-    box_i = np.nan_to_num(box_i, nan=-1).astype(np.int64)
-    win_i = np.nan_to_num(win_i, nan=-1).astype(np.int64)
-    seed_px = None
-    if seeds is not None:
-        inv = ~t
-        sc, sr = _apply(inv, seeds[:, 0], seeds[:, 1])
-        seed_px = np.stack([sr - 0.5, sc - 0.5], axis=1)  # pixel index (row, col) of the centre
-        reach = int(np.ceil(s.max_shift / res)) + 1
-        win_i = win_i + np.array([-reach, -reach, reach, reach])
+    box_i, win_i, seed_px = plant_windows(geoms, t, s, seeds)
     W_, H_ = chm.width, chm.height
     outside = (win_i[:, 2] <= 0) | (win_i[:, 0] >= W_) | (win_i[:, 3] <= 0) | (win_i[:, 1] >= H_) | \
         shapely.is_empty(geoms) | shapely.is_missing(geoms)
@@ -298,17 +311,16 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     geo_parts = _Pieces()
     no_peak = np.zeros(n, bool)
     soil_top = np.zeros(n, bool)
-    centre_row = (win_i[:, 1] + win_i[:, 3]) // 2
     live = np.flatnonzero(~outside)
-    strips = np.unique(np.clip(centre_row[live], 0, H_ - 1) // strip_rows) if len(live) else []
+    live_strip = home_strip(win_i[live], H_, strip_rows)
+    strips = np.unique(live_strip) if len(live) else []
     skipped = np.zeros(n, bool)
     if band is not None:
-        home_strip = np.clip(centre_row[live], 0, H_ - 1) // strip_rows
-        skipped[live] = (home_strip < band[0]) | (home_strip >= band[1])
+        skipped[live] = (live_strip < band[0]) | (live_strip >= band[1])
         strips = [st for st in strips if band[0] <= st < band[1]]
     bar = progress(None, desc="outlines", total=len(strips), unit="strip")
     for strip in strips:
-        home = live[np.clip(centre_row[live], 0, H_ - 1) // strip_rows == strip]
+        home = live[live_strip == strip]
         R0 = int(max(0, win_i[home, 1].min()))
         R1 = int(min(H_, win_i[home, 3].max()))
         C0 = int(max(0, win_i[home, 0].min()))
