@@ -129,13 +129,12 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
     keeper's top, where there is one. A loop over the duplicate boxes (a few per hundred plants) with a
     local-maximum pass over each box; the valleys of all candidates are tested at once."""
     lost = np.flatnonzero(keep != np.arange(len(keep)))
-    filled = np.nan_to_num(W, nan=-np.inf)
     box, rc, h = [], [], []
     for k in lost:
         c0, r0, c1, r1 = boxes[k]
         # the filter sees 2 pixels around the box, so a maximum is one of the whole CHM's
         R0, C0 = max(0, r0 - 2), max(0, c0 - 2)
-        win = filled[R0:r1 + 2, C0:c1 + 2]
+        win = np.fmax(W[R0:r1 + 2, C0:c1 + 2], -np.inf)  # holes lower than any height
         if win.size == 0:
             continue
         pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (outlines._tops)
@@ -143,7 +142,7 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
         inside = (pr >= r0) & (pr < r1) & (pc >= c0) & (pc < c1)
         box.append(np.full(int(inside.sum()), k))
         rc.append(np.stack([pr[inside], pc[inside]], axis=1))
-        h.append(filled[pr[inside], pc[inside]])
+        h.append(win[pr[inside] - R0, pc[inside] - C0])
     out = tops.copy()
     if not box or not sum(len(b) for b in box):
         return out
