@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from matchplant.spatial_stat_extractor.grouping import (
+    gather_ranges,
     group_by,
     label_sizes,
     labelled_pixels,
@@ -36,6 +37,19 @@ def test_group_by_is_a_stable_sort_by_group():
     assert np.array_equal(got_g, g[order]) and np.array_equal(got_pix, pix[order]) and np.array_equal(got_val, val[order])
     assert got_val.dtype == np.float32
     assert np.array_equal(start, np.searchsorted(g[order], np.arange(53)))  # groups 50, 51: empty
+
+
+def test_gather_ranges_concatenates_each_groups_range():
+    """Groups made of (repeated, empty, out-of-order) ranges: a Python concatenation of the slices."""
+    rng = np.random.default_rng(2)
+    pix, val = rng.integers(0, 10**9, 300), rng.random(300).astype(np.float32)
+    src, length = rng.integers(0, 250, 40), rng.integers(0, 50, 40)
+    length[::7] = 0
+    src[5] = src[6]  # two groups share one range (a duplicate box and its plant)
+    g, p, v, start = gather_ranges(src, length, pix, val)
+    assert np.array_equal(p, np.concatenate([pix[a:a + n] for a, n in zip(src, length)]))
+    assert np.array_equal(v, np.concatenate([val[a:a + n] for a, n in zip(src, length)])) and v.dtype == np.float32
+    assert np.array_equal(g, np.repeat(np.arange(40), length)) and np.array_equal(np.diff(start), length)
 
 
 def test_label_sizes_and_sorted_runs():

@@ -42,6 +42,33 @@ def group_by(group: np.ndarray, n: int, pix: np.ndarray, values: np.ndarray):
 
 
 @numba.njit(cache=True, nogil=True)
+def _gather_ranges(src, length, pix, values):
+    total = 0
+    for k in range(len(length)):
+        total += length[k]
+    out_group = np.empty(total, np.int64)
+    out_pix = np.empty(total, pix.dtype)
+    out_values = np.empty(total, values.dtype)
+    j = 0
+    for k in range(len(length)):
+        for i in range(src[k], src[k] + length[k]):
+            out_group[j] = k
+            out_pix[j] = pix[i]
+            out_values[j] = values[i]
+            j += 1
+    return out_group, out_pix, out_values
+
+
+def gather_ranges(src: np.ndarray, length: np.ndarray, pix: np.ndarray, values: np.ndarray):
+    """Group ``k`` made of ``pix[src[k]:src[k] + length[k]]`` (and ``values``, the same range), groups in
+    order: the group numbers, pixels and values, and ``start`` as :func:`group_by` gives it. Ranges may
+    repeat (two groups sharing one set of pixels). One pass, no index arrays the size of the output."""
+    src, length = np.ascontiguousarray(src, np.int64), np.ascontiguousarray(length, np.int64)
+    group, p, v = _gather_ranges(src, length, np.ascontiguousarray(pix), np.ascontiguousarray(values))
+    return group, p, v, np.concatenate([[0], np.cumsum(length)])
+
+
+@numba.njit(cache=True, nogil=True)
 def _label_sizes(labels, n):
     out = np.zeros(n + 1, np.int64)
     for v in labels.ravel():

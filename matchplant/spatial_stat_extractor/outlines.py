@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.grouping import (
+    gather_ranges,
     group_by,
     label_sizes,
     labelled_pixels,
@@ -500,9 +501,7 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
         box_pix = (np.repeat(b[:, 1], size) + row) * W_ + np.repeat(b[:, 0], size) + col
         src[boxed], length[boxed] = len(pix) + np.cumsum(size) - size, size
         pix, hv = np.concatenate([pix, box_pix]), np.concatenate([hv, np.full(len(box_pix), np.nan)])
-    start = np.concatenate([[0], np.cumsum(length)])
-    take = np.repeat(src - start[:-1], length) + np.arange(start[-1])
-    pix, hv, plant = pix[take], hv[take], np.repeat(np.arange(n), length)
+    plant, pix, hv, start = gather_ranges(src, length, pix, hv)
     count = length
     px_area = res * res
     area = count * px_area
