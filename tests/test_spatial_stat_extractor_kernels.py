@@ -14,7 +14,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     labelled_pixels,
     sort_within_groups,
 )
-from matchplant.spatial_stat_extractor.maxima import local_maxima
+from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -25,6 +25,7 @@ def test_local_maxima_are_the_maximum_filters_peaks(size):
     want = (a == ndi.maximum_filter(a, size=size)) & (a >= 0.3)
     got = local_maxima(a, size, 0.3)
     assert got.dtype == bool and np.array_equal(got, want) and want.sum() > 20
+    assert np.array_equal(local_maxima(np.where(np.isinf(a), np.nan, a), size, 0.3), want)  # NaN holes: the same
     assert np.array_equal(local_maxima(a[:1, :2], size, 0.3), (a[:1, :2] == a[:1, :2].max()) & (a[:1, :2] >= 0.3))
 
 
@@ -83,3 +84,26 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     want = np.zeros(L.shape, np.int32)
     want[r[keep], c[keep]] = ids[kk[keep]]
     assert np.array_equal(image, want)
+
+
+def test_line_saddles_are_the_lowest_3x3_maximum_along_each_line():
+    """Against nine gathers of every sample (the numpy code it replaced), with NaN and -inf holes, a large
+    hole that blinds some lines, lines at the edge and lines of one pixel."""
+    rng = np.random.default_rng(0)
+    a = np.round(rng.random((120, 150)), 2)
+    a[rng.random(a.shape) < 0.3] = np.nan
+    a[rng.random(a.shape) < 0.05] = -np.inf
+    a[40:80, 40:100] = np.nan
+    p = rng.integers(0, [120, 150], (500, 2))
+    q = np.clip(p + rng.integers(-40, 40, (500, 2)), 0, [119, 149])
+    q[:5] = p[:5]
+    s = np.linspace(0.0, 1.0, int(np.abs(q - p).max()) + 2)
+    r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(int)
+    c = np.rint(p[:, 1, None] + (q[:, 1] - p[:, 1])[:, None] * s).astype(int)
+    best = np.full(r.shape, -np.inf)
+    for dr, dc in itertools.product((-1, 0, 1), repeat=2):
+        best = np.fmax(best, a[np.clip(r + dr, 0, 119), np.clip(c + dc, 0, 149)])
+    seen = best > -np.inf
+    want = np.where(seen.mean(axis=1) >= 0.5, np.where(seen, best, np.inf).min(axis=1), -np.inf)
+    got = line_saddles(a, p, q, s)
+    assert np.array_equal(got, want) and 10 < (want == -np.inf).sum() < 400

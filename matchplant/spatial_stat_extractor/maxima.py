@@ -38,6 +38,39 @@ def _local_maxima(a, half, threshold):
 
 
 def local_maxima(a: np.ndarray, size: int, threshold: float) -> np.ndarray:
-    """Boolean image of the pixels of ``a`` (2-D, no NaN; -inf for holes) that are the highest in their
-    ``size`` x ``size`` neighbourhood (``size`` odd) and at least ``threshold``."""
+    """Boolean image of the pixels of ``a`` (2-D; holes NaN or -inf, never a maximum and never higher than a
+    neighbour) that are the highest in their ``size`` x ``size`` neighbourhood (``size`` odd) and at least
+    ``threshold``."""
     return _local_maxima(np.ascontiguousarray(a, dtype=np.float64), size // 2, float(threshold))
+
+
+@numba.njit(cache=True, nogil=True)
+def _line_saddles(a, p, q, s):
+    rows, cols = a.shape
+    out = np.empty(len(p))
+    for k in range(len(p)):
+        low, seen = np.inf, 0
+        for t in s:
+            r = np.int64(np.rint(p[k, 0] + (q[k, 0] - p[k, 0]) * t))
+            c = np.int64(np.rint(p[k, 1] + (q[k, 1] - p[k, 1]) * t))
+            best = -np.inf
+            for dr in range(-1, 2):
+                rr = min(max(r + dr, 0), rows - 1)
+                for dc in range(-1, 2):
+                    v = a[rr, min(max(c + dc, 0), cols - 1)]
+                    if v > best:  # NaN never is
+                        best = v
+            if best > -np.inf:
+                seen += 1
+                low = min(low, best)
+        out[k] = low if seen / len(s) >= 0.5 else -np.inf
+    return out
+
+
+def line_saddles(a: np.ndarray, p: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """For each line from ``p[k]`` to ``q[k]`` (row, col) sampled at the fractions ``s`` (rounded to the
+    nearest pixel): the lowest of the samples, each the highest of its 3 x 3 pixels (clipped at the edge;
+    holes, NaN or -inf, skipped), or -inf where fewer than half the samples see anything. One compiled pass
+    (nine gathers of every sample of every pair took a tenth of the outlining time)."""
+    return _line_saddles(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(p, dtype=np.int64),
+                         np.ascontiguousarray(q, dtype=np.int64), np.ascontiguousarray(s, dtype=np.float64))

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from matchplant.spatial_stat_extractor.maxima import local_maxima
+from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
 REL_DIP = 0.4  # share of the lower top: a deeper dip is the valley between two plants (one plant's leaves
@@ -104,18 +104,7 @@ def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     if not len(p):  # no pair of boxes meets (their windows do not overlap)
         return np.zeros(0)
     steps = int(np.abs(q - p).max()) + 1
-    s = np.linspace(0.0, 1.0, steps + 1)
-    r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(np.int64)
-    c = np.rint(p[:, 1, None] + (q[:, 1] - p[:, 1])[:, None] * s).astype(np.int64)
-    h, w = W.shape
-    best = np.full(r.shape, -np.inf)
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            v = W[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
-            best = np.fmax(best, v)
-    seen = best > -np.inf
-    low = np.where(seen, best, np.inf).min(axis=1)
-    return np.where(seen.mean(axis=1) >= 0.5, low, -np.inf)
+    return line_saddles(W, p, q, np.linspace(0.0, 1.0, steps + 1))
 
 
 def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
