@@ -12,6 +12,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     group_by,
     label_sizes,
     labelled_pixels,
+    relabel,
     sort_within_groups,
 )
 from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
@@ -107,3 +108,12 @@ def test_line_saddles_are_the_lowest_3x3_maximum_along_each_line():
     want = np.where(seen.mean(axis=1) >= 0.5, np.where(seen, best, np.inf).min(axis=1), -np.inf)
     got = line_saddles(a, p, q, s)
     assert np.array_equal(got, want) and 10 < (want == -np.inf).sum() < 400
+
+
+def test_relabel_is_a_lookup():
+    rng = np.random.default_rng(4)
+    labels = rng.integers(0, 30, (37, 41)).astype(np.int32)
+    lut = rng.integers(0, 1000, 30).astype(np.int32)
+    got = relabel(labels, lut)
+    assert got.dtype == np.int32 and np.array_equal(got, lut[labels])
+    assert np.array_equal(relabel(labels[:, ::2], lut), lut[labels[:, ::2]])  # a strided view

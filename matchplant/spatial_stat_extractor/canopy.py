@@ -25,7 +25,11 @@ def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarr
     out = np.full(len(pix), np.nan)
     if not len(pix):
         return out
-    rows, cols = pix // outlines.width, pix % outlines.width
+    rows, cols = np.divmod(pix, outlines.width)
+    r0, r1 = int(rows.min()), int(rows.max()) + 1
+    if r1 - r0 <= strip_rows:  # one window (a band of strips: the window its outlines read)
+        c0 = int(cols.min())
+        return source.read(r0, r1, c0, int(cols.max()) + 1)[rows - r0, cols - c0].astype(float)
     block = rows // strip_rows
     order = np.argsort(block, kind="stable")
     edges = np.flatnonzero(np.diff(block[order])) + 1

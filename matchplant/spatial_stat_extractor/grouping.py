@@ -69,6 +69,21 @@ def gather_ranges(src: np.ndarray, length: np.ndarray, pix: np.ndarray, values: 
 
 
 @numba.njit(cache=True, nogil=True)
+def _relabel(labels, lut):
+    out = np.empty(labels.size, lut.dtype)
+    flat = labels.ravel()
+    for i in range(flat.size):
+        out[i] = lut[flat[i]]
+    return out
+
+
+def relabel(labels: np.ndarray, lut: np.ndarray) -> np.ndarray:
+    """``lut[labels]`` for a label image (numpy's gather first widens the labels to 64-bit indices: a third
+    of a strip's canopy assignment)."""
+    return _relabel(np.ascontiguousarray(labels), np.ascontiguousarray(lut)).reshape(labels.shape)
+
+
+@numba.njit(cache=True, nogil=True)
 def _label_sizes(labels, n):
     out = np.zeros(n + 1, np.int64)
     for v in labels.ravel():
