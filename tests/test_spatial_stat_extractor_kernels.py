@@ -16,6 +16,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     sort_within_groups,
 )
 from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
+from matchplant.spatial_stat_extractor.zonal import LARGE_GROUP, _quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -117,3 +118,17 @@ def test_relabel_is_a_lookup():
     got = relabel(labels, lut)
     assert got.dtype == np.int32 and np.array_equal(got, lut[labels])
     assert np.array_equal(relabel(labels[:, ::2], lut), lut[labels[:, ::2]])  # a strided view
+
+
+def test_quantiles_of_small_and_large_groups_are_numpys():
+    """Plants' boxes (sorted in padded matrices) and plot polygons over LARGE_GROUP values (partitioned): the
+    same numbers as np.percentile, ties and one-value groups included."""
+    rng = np.random.default_rng(5)
+    counts = np.array([1, 2, 7, 300, LARGE_GROUP + 1, 3 * LARGE_GROUP, 0, 5])
+    v = np.round(rng.normal(0, 1, counts.sum()), 2)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    qs = [0.0, 0.1, 0.5, 0.95, 1.0]
+    got = _quantiles(v, starts, counts, qs)
+    for g, (a, n) in enumerate(zip(starts, counts)):
+        want = np.percentile(v[a:a + n], [q * 100 for q in qs]) if n else np.full(len(qs), np.nan)
+        np.testing.assert_allclose(got[g], want, rtol=0, atol=1e-12, err_msg=str(n))
