@@ -6,6 +6,7 @@ command as a user runs it: box statistics, outlines, canopy statistics and plots
     python bench/bench_spatial_stat_extractor_survey.py --scale 0.3       # 9000², 9000 plants: minutes
     python bench/bench_spatial_stat_extractor_survey.py                   # the full survey (an hour and more, ~4 GB disk)
     taskset -c 1 python bench/bench_spatial_stat_extractor_survey.py --workers 1 --max-memory 3GB
+    python bench/bench_spatial_stat_extractor_survey.py --length 2 --max-memory 4GB --no-crop   # 60,000 x 30,000 px: 2 ha
 
 Each run is a whole process (``python -m matchplant.cli spatial_stat_extractor``): its wall time, CPU time and
 peak memory (``os.wait4``: the process and its worker processes) and, from its ``stats_report.json``, the
@@ -40,19 +41,22 @@ FULL_SIDE, FULL_PLANTS = 30000, 100000
 STRIP = 512
 
 
-def make_field(root: Path, scale: float, seed: int = 0) -> dict:
-    """The CHM (written strip by strip, never whole in memory) and the plant boxes; cached in ``root``."""
+def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> dict:
+    """The CHM (written strip by strip, never whole in memory) and the plant boxes; cached in ``root``. The
+    field is ``scale`` x 30,000 px wide and ``length`` times as long (rows of the raster), plants alike."""
     side = max(256, round(FULL_SIDE * scale))
+    rows = max(256, round(side * length))
     per_row = max(2, round(np.sqrt(FULL_PLANTS) * side / FULL_SIDE))
+    per_col = max(2, round(per_row * rows / side))
     meta_path = root / "field.json"
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
-        if meta["side"] == side and meta["seed"] == seed:
+        if meta["side"] == side and meta.get("rows", side) == rows and meta["seed"] == seed:
             return meta
     root.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     spacing = side / per_row
-    gy, gx = np.mgrid[0:per_row, 0:per_row]
+    gy, gx = np.mgrid[0:per_col, 0:per_row]
     # plants in crop rows (y) with some jitter; domes whose radius follows their height
     cx = (gx.ravel() + 0.5) * spacing + rng.normal(0, 0.06 * spacing, gx.size)
     cy = (gy.ravel() + 0.5) * spacing + rng.normal(0, 0.06 * spacing, gx.size)
@@ -62,12 +66,12 @@ def make_field(root: Path, scale: float, seed: int = 0) -> dict:
     cx, cy, h, r = cx[order], cy[order], h[order], r[order]
     t = Affine(RES, 0, ORIGIN[0], 0, -RES, ORIGIN[1])
     path = root / "chm.tif"
-    profile = {"driver": "GTiff", "width": side, "height": side, "count": 1, "dtype": "float32", "crs": CRS, "transform": t,
+    profile = {"driver": "GTiff", "width": side, "height": rows, "count": 1, "dtype": "float32", "crs": CRS, "transform": t,
                    "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate", "nodata": -9999.0, "BIGTIFF": "IF_SAFER"}
     tmp = path.with_suffix(".partial.tif")
     with rasterio.open(tmp, "w", **profile) as ds:
-        for r0 in range(0, side, STRIP):
-            r1 = min(side, r0 + STRIP)
+        for r0 in range(0, rows, STRIP):
+            r1 = min(rows, r0 + STRIP)
             a = rng.normal(0.0, 0.004, (r1 - r0, side)).astype(np.float32)  # soil noise
             sel = np.flatnonzero((cy + r > r0) & (cy - r < r1))
             for k in sel:
@@ -94,7 +98,7 @@ def make_field(root: Path, scale: float, seed: int = 0) -> dict:
     extra["plant_id"] = np.arange(len(cx) + 1, len(cx) + 1 + len(dup))
     boxes = pd.concat([boxes, extra], ignore_index=True)
     boxes.to_csv(root / "plants.csv", index=False)
-    meta = {"side": side, "seed": seed, "plants": len(boxes), "spacing_px": spacing, "per_row": per_row,
+    meta = {"side": side, "rows": rows, "seed": seed, "plants": len(boxes), "spacing_px": spacing, "per_row": per_row,
             "chm": str(path), "plants_csv": str(root / "plants.csv"),
             "chm_mb": round(path.stat().st_size / 1e6, 1)}
     meta_path.write_text(json.dumps(meta, indent=1))
@@ -102,16 +106,16 @@ def make_field(root: Path, scale: float, seed: int = 0) -> dict:
 
 
 def config(meta: dict, out: Path, chm: str, plants: str, canopy: bool, plots: bool, args) -> Path:
-    side, per_row = meta["side"], meta["per_row"]
+    side, rows, per_row = meta["side"], meta.get("rows", meta["side"]), meta["per_row"]
     cfg = {"polygons": plants, "rasters": {"chm": chm}, "output_dir": str(out), "canopy": {"enabled": canopy},
            "vector_formats": ["gpkg"]}
     if not args.before:
         cfg.update(max_memory=args.max_memory, workers=args.workers)
     if plots:
-        x0, y0 = ORIGIN[0], ORIGIN[1] - side * RES
+        x0, y0 = ORIGIN[0], ORIGIN[1] - rows * RES
         x1, y1 = ORIGIN[0] + side * RES, ORIGIN[1]
         columns = max(1, round(50 * side / FULL_SIDE))
-        ranges = max(1, round(197 * side / FULL_SIDE))
+        ranges = max(1, round(197 * rows / FULL_SIDE))
         cfg["plots"] = {"corners": [[x0, y0], [x0, y1], [x1, y1], [x1, y0]], "columns": columns, "ranges": ranges,
                         "rows_per_plot": max(1, per_row // columns), "plant_spacing": meta["spacing_px"] * RES}
     path = out.parent / f"{out.name}.yaml"
@@ -143,7 +147,7 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
     """Module 9 on a crop of the field (a quarter of each side, in the middle) with the plants well inside it:
     the same statistics, plant by plant, as in the whole field's run."""
     side = meta["side"]
-    c0 = r0 = side * 3 // 8
+    c0, r0 = side * 3 // 8, meta.get("rows", side) * 3 // 8
     size = max(256, side // 4)
     crop = work / "crop_chm.tif"
     with rasterio.open(meta["chm"]) as src:
@@ -184,6 +188,8 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scale", type=float, default=1.0, help="side as a share of 30,000 px (plants: its square)")
+    ap.add_argument("--length", type=float, default=1.0,
+                    help="the field's rows as a multiple of its width (2: the 60,000 x 30,000 px, 2 ha field)")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "matchplant_bench_survey")
     ap.add_argument("--max-memory", default="3GB")
     ap.add_argument("--workers", type=int, default=1, help="module 9's workers (1: one core; 0: one per core)")
@@ -194,12 +200,12 @@ def main(argv=None) -> int:
     ap.add_argument("--only-full", action="store_true", help="skip the box-statistics-only run")
     ap.add_argument("--json", type=Path, help="write the results here")
     args = ap.parse_args(argv)
-    field_dir = args.work / f"scale_{args.scale:g}"
+    field_dir = args.work / (f"scale_{args.scale:g}" + (f"_x{args.length:g}" if args.length != 1 else ""))
     work = field_dir / ("before" if args.before else "after")
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    meta = make_field(field_dir, args.scale)
-    print(f"field: {meta['side']}² px float32 CHM ({meta['chm_mb']} MB tiled deflate), {meta['plants']} plants "
+    meta = make_field(field_dir, args.scale, length=args.length)
+    print(f"field: {meta.get('rows', meta['side'])} x {meta['side']} px float32 CHM ({meta['chm_mb']} MB tiled deflate), {meta['plants']} plants "
           f"(made in {time.perf_counter() - t0:.0f} s or cached) in {work}", flush=True)
     res = {"field": meta, "max_memory": args.max_memory, "workers": args.workers}
     if not args.only_full:
