@@ -92,6 +92,17 @@ def test_ground_noise_measured_and_outlines_inside_low_plants(field):
     assert np.median(pixel_iou(old.geometry, f)) < np.median(iou[out]) - 0.15
 
 
+def test_close_planted_field_measures_the_ground_just_outside_the_boxes(field):
+    """A guard wider than the gaps between the boxes (a close-planted field) leaves no pixel a guard from every
+    box: the ground outside the boxes is the sample, not the exact CHM's fixed thresholds."""
+    f = field
+    noise = measure_ground(ArraySource(f.chm, f.transform), f.boxes, guard_m=5.0)
+    assert not noise.guarded and noise.pixels >= 500 and noise.report()["guarded"] is False
+    assert noise.p50 == pytest.approx(f.ground_p50, abs=0.005)
+    assert noise.sd == pytest.approx(f.ground_sd, rel=0.25)
+    assert measure_ground(ArraySource(f.chm, f.transform), f.boxes, guard_m=0.1).guarded
+
+
 def outline_means(geoms, f, layer) -> np.ndarray:
     """Each outline's mean of ``layer`` over its pixels (rasterised, pixel centres): numpy, not module 9."""
     pred = rasterize(((g, k + 1) for k, g in enumerate(geoms)), out_shape=layer.shape, transform=f.transform,

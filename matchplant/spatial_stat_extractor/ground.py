@@ -71,13 +71,14 @@ class GroundNoise:
     box_min: np.ndarray = field(default_factory=lambda: np.zeros(0))
     ndvi_soil: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI of the ground sample
     ndvi_tops: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI at each sampled box's top
+    guarded: bool = True  # the sample keeps the guard from the boxes (False: the plants stand too close)
 
     @property
     def measured(self) -> bool:
         return bool(np.isfinite(self.sd))
 
     def report(self) -> dict:
-        r = {"ground_pixels": self.pixels, "windows": self.windows}
+        r = {"ground_pixels": self.pixels, "windows": self.windows, "guarded": self.guarded}
         if self.measured:
             r.update(p50=round(self.p50, 4), p95=round(self.p95, 4), p99=round(self.p99, 4), sd=round(self.sd, 4))
         return r
@@ -142,6 +143,12 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
     ground, tops, lows, seen = [], [], [], np.zeros(len(box), bool)
     soil_ndvi, top_ndvi = [], []
+    # a close-planted field (boxes a guard apart or less) has no pixel a guard from every box: there the
+    # pixels outside every box are the sample (a few leaf edges a box cut short widen its tail, which
+    # robust_sd caps), better than no measurement and the fixed thresholds of an exact CHM
+    near_ground, near_ndvi = [], []
+    outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])],
+                     axis=1).astype(np.int64)
     for k in picks:
         R0 = int(max(0, centre[k, 0] - half))
         R1 = int(min(chm.height, centre[k, 0] + half))
@@ -151,12 +158,14 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
         near = (guarded[:, 2] > C0) & (guarded[:, 0] < C1) & (guarded[:, 3] > R0) & (guarded[:, 1] < R1)
         off = np.array([C0, R0, C0, R0])
         free = ~_covered(W.shape, guarded[near] - off) & np.isfinite(W)
-        v = W[free]
-        step = max(1, v.size // GROUND_PER_WINDOW)
-        ground.append(v[::step])
+        outside = ~_covered(W.shape, outer[near] - off) & np.isfinite(W)
         N = None if ndvi is None else np.asarray(ndvi.read(R0, R1, C0, C1), dtype=float)
-        if N is not None:
-            soil_ndvi.append(N[free][::step])
+        for mask, values, ndvis in ((free, ground, soil_ndvi), (outside, near_ground, near_ndvi)):
+            v = W[mask]
+            step = max(1, v.size // GROUND_PER_WINDOW)
+            values.append(v[::step])
+            if N is not None:
+                ndvis.append(N[mask][::step])
         whole = near & ~seen & (inner[:, 0] >= C0) & (inner[:, 2] <= C1) & (inner[:, 1] >= R0) & \
             (inner[:, 3] <= R1) & (inner[:, 2] > inner[:, 0]) & (inner[:, 3] > inner[:, 1])
         for j in np.flatnonzero(whole):  # a few dozen boxes per window
@@ -169,8 +178,11 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
                                     .ravel()[np.nanargmax(a)])
         seen |= whole
     v = np.concatenate(ground) if ground else np.zeros(0)
+    guarded = v.size >= MIN_GROUND
+    if not guarded:
+        v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
     out = GroundNoise(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows),
-                      ndvi_soil=_finite(soil_ndvi), ndvi_tops=_finite([np.array(top_ndvi)]))
+                      ndvi_soil=_finite(soil_ndvi), ndvi_tops=_finite([np.array(top_ndvi)]), guarded=guarded)
     if v.size >= MIN_GROUND:
         p50, p95, p99 = np.percentile(v, [50, 95, 99])
         out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)

@@ -74,8 +74,10 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
     files = ", ".join(Path(p).name for p in ((rs.chm,) if rs.chm is not None else (rs.dsm, rs.dtm)))
     check_chm(noise, th, cfg.max_height, files, chm_keys(rs, first))
     if noise.measured:
-        log.info("date '%s': CHM ground noise p50 %.3f m, p95 %.3f m, SD %.3f m (%d pixels between the plants, "
-                 "%d windows)", rs.date, noise.p50, noise.p95, noise.sd, noise.pixels, noise.windows)
+        log.info("date '%s': CHM ground noise p50 %.3f m, p95 %.3f m, SD %.3f m (%d pixels between the plants%s, "
+                 "%d windows)", rs.date, noise.p50, noise.p95, noise.sd, noise.pixels,
+                 "" if noise.guarded else f", just outside the boxes: none lies {cfg.margin + GUARD:g} m from every box",
+                 noise.windows)
     else:
         log.warning("date '%s': too little bare ground between the plants (%d pixels) to measure the CHM's noise",
                     rs.date, noise.pixels)
