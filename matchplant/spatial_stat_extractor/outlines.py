@@ -336,7 +336,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
         # with the highest keeps the plant, the others are duplicates
         tp, keeper = one_plant_boxes(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
-                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top)
+                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top, mask)
         first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True
