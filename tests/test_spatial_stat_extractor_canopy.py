@@ -329,3 +329,26 @@ def test_the_ground_spread_survives_canopy_in_the_ground_sample():
     skewed = rng.gamma(2.0, 0.015, 100_000)  # a heavy upper tail of its own: both spreads agree within 3x
     p50 = float(np.median(skewed))
     assert robust_sd(skewed, p50) == pytest.approx((np.percentile(skewed, 90) - p50) / 1.2816)
+
+
+def test_unclaimed_canopies_beyond_the_outermost_box_are_seen_whole_and_faint_leaves_listed():
+    """A plant no box claims, beyond the outermost box of its strip (a row the detector missed at the
+    field's edge), is found whole with its own top (the window read used to stop short of it and cut it,
+    its top on the cut); a faint canopy (top between min_top and unclaimed_min_top) is listed apart when
+    NDVI says its pixels are leaves, and only counted as a bump on the CHM alone."""
+    t = rasterio.Affine(0.01, 0, 0, 0, -0.01, 0.6)
+    rr, cc = np.mgrid[0:60, 0:300]
+
+    def plant(col, h):
+        return h * np.clip(1 - ((cc - col) ** 2 + (rr - 30) ** 2) / 15 ** 2, 0, None)
+
+    chm = plant(220, 0.4) + plant(150, 0.4) + plant(60, 0.07)
+    ndvi = np.where(chm > 0, 0.8, 0.15)
+    s = SegmentSettings(min_height=0.02, min_top=0.05, unclaimed_min_top=0.1, mask_threshold=0.3)
+    box = [shapely.box(2.05, 0.15, 2.35, 0.45)]  # the plant at column 220 only
+    o = segment(box, ArraySource(chm, t), s, mask_source=ArraySource(ndvi, t))
+    assert o.flag[0] == "" and len(o.unclaimed) == 1
+    assert o.unclaimed[0, :3] == pytest.approx([1.505, 0.295, 0.4], abs=1e-6)  # column 150's top, whole
+    assert len(o.faint) == 1 and o.faint[0, :3] == pytest.approx([0.605, 0.295, 0.07], abs=1e-6)
+    alone = segment(box, ArraySource(chm, t), SegmentSettings(min_height=0.02, min_top=0.05, unclaimed_min_top=0.1))
+    assert len(alone.faint) == 0 and alone.noise_bumps == 1 and len(alone.unclaimed) == 1

@@ -12,7 +12,7 @@ from scipy import ndimage as ndi
 
 from matchplant.spatial_stat_extractor.ground import measure_ground, thresholds
 from matchplant.spatial_stat_extractor.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.peaks import keepers, one_plant_boxes
+from matchplant.spatial_stat_extractor.peaks import _saddle, keepers, one_plant_boxes
 from matchplant.spatial_stat_extractor.zonal import ArraySource
 
 
@@ -158,3 +158,39 @@ def test_boxes_whose_windows_do_not_meet_are_each_their_own_plant():
     tops = np.array([[20, 20, 0.5], [20, 60, 0.5]])
     windows = np.array([[0, 0, 39, 40], [41, 0, 80, 40]])  # c0, r0, c1, r1: apart by a column
     assert keepers(chm, tops, np.array([True, True]), windows, noise_sd=0.01).tolist() == [0, 1]
+
+
+def test_a_second_top_on_soil_by_ndvi_is_no_plant_and_the_box_stays_a_duplicate():
+    """A second box of a plant reaching over a ground bump parted from the plant by bare soil: without a
+    leaf mask the bump (a local maximum above min_top, parted by a valley, nearer the box's centre) becomes
+    the box's own plant; with the mask (NDVI: the bump is soil) it is no plant's top and the box stays the
+    plant's duplicate (on the noisy demo field such boxes were counted, flagged small, in 4 plots)."""
+    chm = dome(20, 0.5)
+    yy, xx = np.mgrid[0:40, 0:80]
+    chm = chm + 0.12 * np.exp(-((xx - 52) ** 2 + (yy - 20) ** 2) / 8.0)  # the bump, soil between
+    boxes = np.array([[2, 2, 38, 38], [18, 10, 62, 30]])  # c0, r0, c1, r1: the second holds the top and bump
+    tops = np.array([[20, 20, chm[20, 20]], [20, 20, chm[20, 20]]])
+    both = np.array([True, True])
+    moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.01, min_top=0.05)
+    assert keep.tolist() == [0, 1] and moved[1, :2].tolist() == [20, 52]  # the bump taken for a plant
+    leaf = dome(20, 0.5) > 0.02  # the plant's pixels; the bump is soil
+    moved, keep = one_plant_boxes(chm, tops, both, boxes, boxes, noise_sd=0.01, min_top=0.05, leaf=leaf)
+    assert keep.tolist() == [0, 0] and moved[1].tolist() == tops[1].tolist()
+
+
+def test_a_saddle_is_the_same_whatever_other_pairs_are_tested_with_it():
+    """The lowest CHM between two tops samples the line once per pixel step, as a loop over the steps
+    computes it, however long the other lines tested at the same time are (a denser grid met other
+    pixels, so a pair was one plant or two depending on its neighbours)."""
+    rng = np.random.default_rng(3)
+    W = ndi.gaussian_filter(rng.normal(size=(120, 120)), 1.2)
+    p = rng.integers(20, 100, (40, 2))
+    q = p + rng.integers(-12, 13, (40, 2))
+    batched = _saddle(W, np.vstack([p, [[2, 3]]]), np.vstack([q, [[117, 110]]]))[:40]
+    for (pr, pc), (qr, qc), got in zip(p, q, batched):
+        n = max(abs(qr - pr), abs(qc - pc)) + 1
+        line = []
+        for k in range(n + 1):
+            r, c = round(pr + (qr - pr) * k / n), round(pc + (qc - pc) * k / n)
+            line.append(W[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max())
+        assert got == min(line)

@@ -89,7 +89,8 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
 
 
 def test_line_saddles_are_the_lowest_3x3_maximum_along_each_line():
-    """Against nine gathers of every sample (the numpy code it replaced), with NaN and -inf holes, a large
+    """Against nine gathers of every sample (the numpy code it replaced), each line at its own pixel steps,
+    with NaN and -inf holes, a large
     hole that blinds some lines, lines at the edge and lines of one pixel."""
     rng = np.random.default_rng(0)
     a = np.round(rng.random((120, 150)), 2)
@@ -99,15 +100,17 @@ def test_line_saddles_are_the_lowest_3x3_maximum_along_each_line():
     p = rng.integers(0, [120, 150], (500, 2))
     q = np.clip(p + rng.integers(-40, 40, (500, 2)), 0, [119, 149])
     q[:5] = p[:5]
-    s = np.linspace(0.0, 1.0, int(np.abs(q - p).max()) + 2)
-    r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * s).astype(int)
-    c = np.rint(p[:, 1, None] + (q[:, 1] - p[:, 1])[:, None] * s).astype(int)
+    own = np.abs(q - p).max(axis=1) + 1
+    s = np.linspace(0.0, 1.0, int(own.max()) + 1)
+    t = np.rint(s[None, :] * own[:, None]) / own[:, None]  # each line's own steps
+    r = np.rint(p[:, 0, None] + (q[:, 0] - p[:, 0])[:, None] * t).astype(int)
+    c = np.rint(p[:, 1, None] + (q[:, 1] - p[:, 1])[:, None] * t).astype(int)
     best = np.full(r.shape, -np.inf)
     for dr, dc in itertools.product((-1, 0, 1), repeat=2):
         best = np.fmax(best, a[np.clip(r + dr, 0, 119), np.clip(c + dc, 0, 149)])
     seen = best > -np.inf
     want = np.where(seen.mean(axis=1) >= 0.5, np.where(seen, best, np.inf).min(axis=1), -np.inf)
-    got = line_saddles(a, p, q, s)
+    got = line_saddles(a, p, q, s, own)
     assert np.array_equal(got, want) and 10 < (want == -np.inf).sum() < 400
 
 

@@ -431,3 +431,28 @@ def test_field_figure_readable_on_one_small_plot(tmp_path):
     assert crosses and crosses[0].get_markersize() <= 0.25 * points_per_m
     assert unit_of("plot_ndvi_mean") == "index, no unit" and unit_of("canopy_area_m2_mean") == "m²"
     assert unit_of("stand_count") == "plants"
+
+
+def test_unclaimed_canopies_count_only_at_empty_seed_positions():
+    """Canopies no box claims (plots.count_unclaimed) count where a plant is expected and none was counted:
+    the plants the detector missed count (once each, though one is in two pieces), while weeds between the
+    rows and a counted plant's leaf cut off beside it do not; the stand counts are the field's truth."""
+    rng = np.random.default_rng(5)
+    cfg, table, truth, true_gaps = sown_field(27.0, rng)
+    a = np.radians(27.0)
+    u, v = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])  # across, along the rows
+    missed = table.sample(15, random_state=1)
+    boxes = table.drop(missed.index).reset_index(drop=True)
+    miss = missed[["x", "y"]].to_numpy()
+    piece = miss[:3] + 0.03 * v  # a second piece of three missed plants, at the same seed
+    leaves = boxes[["x", "y"]].to_numpy()[::10] + 0.06 * u  # a leaf beside a counted plant
+    # weeds anywhere between the rows (beyond 0.2 m of a row line; rows 0.75 m apart)
+    across = rng.integers(0, 6, 40) * 0.75 + rng.uniform(-0.17, 0.17, 40)
+    weeds = np.array([500000.0, 4000000.0]) + across[:, None] * u + rng.uniform(0, 12.0, 40)[:, None] * v
+    xy = np.concatenate([miss, piece, leaves, weeds])
+    unclaimed = pd.DataFrame({"x": xy[:, 0], "y": xy[:, 1], "height": 0.2, "pixels": 100, "faint": False})
+    per_plot, gaps, _ = plot_table(plot_grid(cfg), boxes, cfg, unclaimed)
+    assert dict(zip(per_plot["plot_id"], per_plot["stand_count"])) == truth
+    assert per_plot["unclaimed"].sum() == len(missed) and len(gaps) == len(true_gaps)
+    per_plot, _, _ = plot_table(plot_grid(cfg), boxes, replace(cfg, count_unclaimed=False), unclaimed)
+    assert per_plot["stand_count"].sum() == len(boxes)

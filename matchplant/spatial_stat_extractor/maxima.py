@@ -45,12 +45,13 @@ def local_maxima(a: np.ndarray, size: int, threshold: float) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _line_saddles(a, p, q, s):
+def _line_saddles(a, p, q, s, own):
     rows, cols = a.shape
     out = np.empty(len(p))
     for k in range(len(p)):
         low, seen = np.inf, 0
         for t in s:
+            t = np.rint(t * own[k]) / own[k]
             r = np.int64(np.rint(p[k, 0] + (q[k, 0] - p[k, 0]) * t))
             c = np.int64(np.rint(p[k, 1] + (q[k, 1] - p[k, 1]) * t))
             best = -np.inf
@@ -67,10 +68,12 @@ def _line_saddles(a, p, q, s):
     return out
 
 
-def line_saddles(a: np.ndarray, p: np.ndarray, q: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """For each line from ``p[k]`` to ``q[k]`` (row, col) sampled at the fractions ``s`` (rounded to the
-    nearest pixel): the lowest of the samples, each the highest of its 3 x 3 pixels (clipped at the edge;
-    holes, NaN or -inf, skipped), or -inf where fewer than half the samples see anything. One compiled pass
-    (nine gathers of every sample of every pair took a tenth of the outlining time)."""
+def line_saddles(a: np.ndarray, p: np.ndarray, q: np.ndarray, s: np.ndarray, own: np.ndarray) -> np.ndarray:
+    """For each line from ``p[k]`` to ``q[k]`` (row, col) sampled at the fractions ``s``, each rounded to the
+    line's own ``own[k]`` steps (``rint(s * own) / own``), then to the nearest pixel: the lowest of the samples,
+    each the highest of its 3 x 3 pixels (clipped at the edge; holes, NaN or -inf, skipped), or -inf where
+    fewer than half the samples see anything. One compiled pass (nine gathers of every sample of every pair
+    took a tenth of the outlining time)."""
     return _line_saddles(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(p, dtype=np.int64),
-                         np.ascontiguousarray(q, dtype=np.int64), np.ascontiguousarray(s, dtype=np.float64))
+                         np.ascontiguousarray(q, dtype=np.int64), np.ascontiguousarray(s, dtype=np.float64),
+                         np.ascontiguousarray(own, dtype=np.int64))

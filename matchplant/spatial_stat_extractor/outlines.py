@@ -18,7 +18,8 @@ plant (the same top, or a top that no real valley parts from the plant's: :mod:`
 is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
 no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
 the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
-plants the detector missed, for stand counts; the lower ones are only counted (``noise_bumps``).
+plants the detector missed, for stand counts; the lower ones are counted (``noise_bumps``), and listed apart
+(``Outlines.faint``) where NDVI says their pixels are leaves (weeds, or seedlings within the CHM's noise).
 
 The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, from
 ``rasterio.features.shapes`` with 4-connectivity: pixels that touch only at a corner become separate parts
@@ -97,6 +98,9 @@ class Outlines:
     shift: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (n, 2) m, later dates
     unclaimed: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # x, y, height, pixels
     noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
+    faint: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # those canopies (as ``unclaimed``)
+    # where NDVI tells their pixels are leaves: mostly weeds, but also the smallest plants the detector missed
+    # (plots count them only at an empty seed position, plots.py)
     duplicate_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the plant a duplicate's
     # box is a second box of (its index), -1 for the others
 
@@ -324,10 +328,11 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         home = live[live_strip == strip]
         R0 = int(max(0, win_i[home, 1].min()))
         R1 = int(min(H_, win_i[home, 3].max()))
-        C0 = int(max(0, win_i[home, 0].min()))
-        C1 = int(min(W_, win_i[home, 2].max()))
         pad = int((win_i[home, 3] - win_i[home, 1]).max())
-        Rr0, Rr1, Cc0, Cc1 = max(0, R0 - pad), min(H_, R1 + pad), max(0, C0 - pad), min(W_, C1 + pad)
+        # the strip's full width (its memory was planned for it, strips.py): a canopy no box claims beyond the
+        # outermost boxes (a crop row the detector missed at the field's edge) is seen whole, not cut by the
+        # window into pieces whose tops lie on the cut
+        Rr0, Rr1, Cc0, Cc1 = max(0, R0 - pad), min(H_, R1 + pad), 0, W_
         W = chm.read(Rr0, Rr1, Cc0, Cc1)
         mask = W >= s.min_height  # False in holes (NaN)
         mv = None
@@ -349,7 +354,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
         # with the highest keeps the plant, the others are duplicates
         tp, keeper = one_plant_boxes(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
-                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top)
+                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top, mask)
         first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True
@@ -384,10 +389,19 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
     plant_like = free[:, 2] >= max(s.min_top, s.unclaimed_min_top)
     out.noise_bumps = int((~plant_like).sum())
-    free = free[plant_like]
-    fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
-    out.unclaimed = np.column_stack([fx, fy, free[:, 2], free[:, 3]])
+    out.unclaimed = _on_map(t, free[plant_like])
+    if mask_source is not None and s.mask_threshold is not None:
+        # their pixels are leaves by NDVI, so not ground bumps: weeds, or the smallest plants the detector
+        # missed (a seedling whose smoothed top stays within the CHM's noise); the CHM alone cannot tell these
+        # from bumps, and they stay only counted
+        out.faint = _on_map(t, free[~plant_like])
     return out
+
+
+def _on_map(t, free: np.ndarray) -> np.ndarray:
+    """Unclaimed canopies (row, col, height, pixels) as map x, y (pixel centres), height, pixels."""
+    fx, fy = _apply(t, free[:, 1] + 0.5, free[:, 0] + 0.5)
+    return np.column_stack([fx, fy, free[:, 2], free[:, 3]])
 
 
 def _leafy(L: np.ndarray, mv: np.ndarray, tops: np.ndarray, soil: float) -> np.ndarray:

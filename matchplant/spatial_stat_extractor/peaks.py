@@ -19,12 +19,12 @@ A box whose top is thus another box's plant may still hold its own plant: a shor
 local maximum is a noise bump on a taller neighbour's leaves reaching into it. Such a box takes the highest
 local maximum in its box that a real valley parts from the other plant's top and that lies nearer the box's
 centre than that top (:func:`second_tops`; a split box centred on one plant does not move to a low leaf at
-its edge), and the
+its edge) and that is canopy (with NDVI, a leaf: a ground bump beside the plant is no plant's top), and the
 rule is applied again; a box whose new top is again another box's plant keeps its first top and keeper (a
 split box reaching over a neighbour stays its own plant's duplicate). :func:`one_plant_boxes` does it all.
 
-The way between two tops is the straight line, on which each sample takes the highest CHM of its 3 x 3
-pixels, so the path may step round a one-pixel noise pit or hole. Only boxes whose windows (box plus
+The way between two tops is the straight line, sampled once per pixel step, each sample the highest CHM
+of its 3 x 3 pixels, so the path may step round a one-pixel noise pit or hole. Only boxes whose windows (box plus
 margin) overlap are compared (pairs from a k-d tree of the tops, all pairs of one strip checked at once);
 each box points to the highest top joined to its own (the first box on ties) and the pointers are followed
 to their end: that box keeps the plant, the others are its duplicates.
@@ -44,12 +44,12 @@ MAX_DIP = 0.5  # share of the lower top: a dip deeper than this is a valley, how
 
 
 def one_plant_boxes(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray, boxes: np.ndarray,
-                    noise_sd: float, min_top: float) -> tuple[np.ndarray, np.ndarray]:
+                    noise_sd: float, min_top: float, leaf: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The tops (a duplicate's moved to its own plant where its box holds one) and the box that keeps
     each box's plant (see the module doc; ``windows``/``boxes``: integer ``c0, r0, c1, r1`` of each box
-    plus margin / of each box)."""
+    plus margin / of each box; ``leaf``: the canopy pixels, where a second top must lie)."""
     first = keepers(W, tops, ok, windows, noise_sd)
-    moved = second_tops(W, tops, first, boxes, noise_sd, min_top)
+    moved = second_tops(W, tops, first, boxes, noise_sd, min_top, leaf)
     keep = keepers(W, moved, ok, windows, noise_sd)
     own = np.arange(len(keep))
     still = (first != own) & (keep != own)
@@ -103,8 +103,10 @@ def _saddle(W: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
     skipped; a line mostly in holes counts as parted (-inf)."""
     if not len(p):  # no pair of boxes meets (their windows do not overlap)
         return np.zeros(0)
-    steps = int(np.abs(q - p).max()) + 1
-    return line_saddles(W, p, q, np.linspace(0.0, 1.0, steps + 1))
+    own = np.abs(q - p).max(axis=1) + 1  # each line's own samples: one per pixel step
+    # every line sampled at its own steps only (the longest line's grid rounded to them): a line's saddle
+    # does not depend on which other pairs are tested with it (a denser grid meets more pixels)
+    return line_saddles(W, p, q, np.linspace(0.0, 1.0, int(own.max()) + 1), own)
 
 
 def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
@@ -112,11 +114,12 @@ def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
 
 
 def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.ndarray, noise_sd: float,
-                min_top: float) -> np.ndarray:
+                min_top: float, leaf: np.ndarray | None = None) -> np.ndarray:
     """``tops`` with each duplicate box (``keep`` not itself) moved to the highest local maximum (5 x 5,
-    at least ``min_top``) inside its box (integer ``c0, r0, c1, r1``) that a real valley parts from its
-    keeper's top, where there is one. A loop over the duplicate boxes (a few per hundred plants) with a
-    local-maximum pass over each box; the valleys of all candidates are tested at once."""
+    at least ``min_top``, on a ``leaf`` pixel) inside its box (integer ``c0, r0, c1, r1``) that a real
+    valley parts from its keeper's top, where there is one. A loop over the duplicate boxes (a few per
+    hundred plants) with a local-maximum pass over each box; the valleys of all candidates are tested at
+    once."""
     lost = np.flatnonzero(keep != np.arange(len(keep)))
     box, rc, h = [], [], []
     for k in lost:
@@ -129,6 +132,8 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
         pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (outlines._tops)
         pr, pc = pr + R0, pc + C0
         inside = (pr >= r0) & (pr < r1) & (pc >= c0) & (pc < c1)
+        if leaf is not None:  # a second top must be canopy: with NDVI, a ground bump beside the plant is soil
+            inside &= leaf[pr, pc]
         box.append(np.full(int(inside.sum()), k))
         rc.append(np.stack([pr[inside], pc[inside]], axis=1))
         h.append(win[pr[inside] - R0, pc[inside] - C0])

@@ -121,13 +121,12 @@ def _phase(offsets: np.ndarray, sp: float) -> tuple[float, float]:
     return float((np.arctan2(s, c) / (2 * np.pi) * sp) % sp), float(np.hypot(c, s))
 
 
-def seed_layout(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.ndarray, sp: float) -> dict:
-    """Seed positions and gaps of one plot. Seeds lie every ``sp`` along each row; the sowing phase is
-    taken from the plants, either from each row's own start (a planter starting at a slanted edge) or
-    from one line across the plot (seeds side by side), whichever the plants follow more closely.
-
-    Returns expected count, the gaps (row, position along), the spacings between neighbours in a row."""
-    nrow = len(start)
+def seed_grid(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.ndarray, sp: float) -> dict:
+    """Seed positions of one plot. Seeds lie every ``sp`` along each row; the sowing phase is taken from the
+    plants (positions ``along`` the rows, row index ``row``), either from each row's own start (a planter
+    starting at a slanted edge) or from one line across the plot (seeds side by side), whichever the plants
+    follow more closely. Returns per row the position of seed 0 (``base``), the first seed's number
+    (``kmin``) and the number of seeds (``n_slots``)."""
     ok = np.isfinite(start)
     s0 = np.where(ok, start, 0.0)
     common = np.nanmin(start) if ok.any() else 0.0
@@ -141,16 +140,34 @@ def seed_layout(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.n
     base = np.where(edge, s0, common) + phase
     kmin = np.floor((s0 - base) / sp + 1e-9).astype(int) + 1
     kmax = np.floor((np.where(ok, end, 0.0) - base) / sp + 1e-6).astype(int)
-    n_slots = np.where(ok, np.maximum(kmax - kmin + 1, 0), 0)
+    return {"base": base, "kmin": kmin, "n_slots": np.where(ok, np.maximum(kmax - kmin + 1, 0), 0)}
+
+
+def seed_slot(along: np.ndarray, row: np.ndarray, grid: dict, sp: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each plant's nearest seed in its row (its number from the row's first seed; clipped to the row's
+    seeds) and its offset along the row from that seed's position."""
+    k = np.round((along - grid["base"][row]) / sp).astype(int)
+    slot = np.clip(k - grid["kmin"][row], 0, np.maximum(grid["n_slots"][row] - 1, 0))
+    return slot, along - (grid["base"][row] + (grid["kmin"][row] + slot) * sp)
+
+
+def seed_layout(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.ndarray, sp: float,
+                grid: dict | None = None) -> dict:
+    """Seed positions (``grid``, else :func:`seed_grid` from these plants) and gaps of one plot: each plant
+    takes its nearest seed, and every seed left without a plant is a gap.
+
+    Returns expected count, the gaps (row, position along), the spacings between neighbours in a row."""
+    nrow = len(start)
+    g = grid or seed_grid(along, row, start, end, sp)
+    n_slots = g["n_slots"]
     width = max(int(n_slots.max()) if nrow else 0, 1)
     filled = np.zeros((nrow, width), bool)
     if len(along):
-        k = np.round((along - base[row]) / sp).astype(int)
-        slot = np.clip(k - kmin[row], 0, np.maximum(n_slots[row] - 1, 0))
+        slot, _ = seed_slot(along, row, g, sp)
         has = n_slots[row] > 0
         filled[row[has], slot[has]] = True
     valid = np.arange(width)[None, :] < n_slots[:, None]
     gr, gs = np.nonzero(valid & ~filled)
     spacing = np.concatenate([np.diff(np.sort(along[row == r])) for r in range(nrow)]) if len(along) else []
-    return {"expected": int(n_slots.sum()), "gap_row": gr, "gap_along": base[gr] + (kmin[gr] + gs) * sp,
+    return {"expected": int(n_slots.sum()), "gap_row": gr, "gap_along": g["base"][gr] + (g["kmin"][gr] + gs) * sp,
             "spacing": np.asarray(spacing, float)}

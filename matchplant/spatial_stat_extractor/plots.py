@@ -10,8 +10,8 @@ where it was outlined, else its polygon's centre) joins the one plot it stands i
   ``duplicate``), boxes with no CHM under them (``no_top``), and boxes whose top stays below
   ``canopy.min_top`` (``low``: a weed, soil, or a plant too small for the CHM) or is no local maximum
   (``no_peak``: a box on leaves or between plants), which ``low_boxes`` counts; with
-  ``plots.count_unclaimed``, plus the canopies on the CHM that no box claims but that look like plants
-  (``unclaimed``: plants the detector missed);
+  ``plots.count_unclaimed``, plus the canopies on the CHM that no box claims and that stand at a seed
+  position no counted plant took (``unclaimed``: plants the detector missed; :func:`at_free_seeds`);
 * expected plants and gaps: seeds lie every ``plant_spacing`` along each of the plot's
   ``rows_per_plot`` rows, each row clipped by the plot polygon (:mod:`~matchplant.spatial_stat_extractor.plot_rows`:
   the row direction from the grid, ``plots.row_direction`` or the plants' own alignment); the sowing
@@ -55,7 +55,9 @@ from matchplant.spatial_stat_extractor.plot_rows import (
     direction_from_plants,
     long_side,
     row_segments,
+    seed_grid,
     seed_layout,
+    seed_slot,
 )
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
 from matchplant.spatial_stat_extractor.plots_figure import field_figure
@@ -63,7 +65,11 @@ from matchplant.spatial_stat_extractor.plots_figure import field_figure
 log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")
 PLANT_MEAN = re.compile(r"^(?P<t>\w+?)_mean(?P<d>_\w+)?$")
-NOT_PLANTS = ("duplicate", "no_top", "outside", "low", "no_peak")
+NOT_PLANTS = ("duplicate", "no_top", "outside", "low", "no_peak", "leaf")
+MIN_LINE = 3  # plants in a row that place its line (their median across it); with fewer, the row's centre
+REACH_SIGMAS = 4.0  # an unclaimed canopy stands at a seed within this many sigmas of the counted plants' scatter
+MIN_REACH_PLANTS = 20  # counted plants needed to measure that scatter; with fewer, a quarter of the spacing
+RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))  # median distance of a 2-D normal scatter, in sigmas
 
 __all__ = ["default_traits", "plot_grid", "plot_table", "plots_wanted", "read_plots", "run_plots"]
 
@@ -130,6 +136,58 @@ def row_directions(plots: gpd.GeoDataFrame, pts: np.ndarray, plant_i: np.ndarray
     return v
 
 
+def _plot_rows(geom, v: np.ndarray, p: np.ndarray, nrow: int):
+    """The plot's rows along ``v`` (:func:`row_segments`) and, for the points ``p``, each one's row and its
+    position along and across the rows."""
+    u = np.array([v[1], -v[0]])
+    n0, rw, start, end = row_segments(geom, v, nrow)
+    across = p @ u
+    row = np.clip(np.floor((across - n0) / rw), 0, nrow - 1).astype(int) if rw > 0 else np.zeros(len(p), int)
+    return n0, rw, start, end, row, p @ v, across
+
+
+def at_free_seeds(plots: gpd.GeoDataFrame, dirs: np.ndarray, pts: np.ndarray, plant_i: np.ndarray,
+                  plot_i: np.ndarray, n_table: int, cfg: PlotsConfig) -> np.ndarray:
+    """Which canopies no box claims (``pts`` from ``n_table`` on) count as plants: those standing at a seed
+    position that no counted plant took, as near to it as the counted plants stand to theirs: they scatter
+    round their seeds like a 2-D normal (sowing precision, the tops' position error) whose sigma follows
+    from their median distance, and ``REACH_SIGMAS`` sigmas leave out one plant in 3,000 (the row's line is
+    where its plants stand). A crop is sown in rows at a fixed spacing: the plant
+    the detector missed stands at an empty seed, while the other canopies no box claims stand where no
+    plant is expected: weeds between the rows, and a counted plant's leaf cut off by the thresholds, next
+    to the seed that plant already took. One canopy per empty seed (the nearest)."""
+    sp, nrow = cfg.plant_spacing, cfg.rows_per_plot
+    seen, near = [], []
+    for k, geom in enumerate(plots.geometry.values):
+        mine = plant_i[plot_i == k]
+        box = mine < n_table
+        if box.all():
+            continue
+        n0, rw, start, end, row, along, across = _plot_rows(geom, dirs[k], pts[mine], nrow)
+        grid = seed_grid(along[box], row[box], start, end, sp)
+        slot, off = seed_slot(along, row, grid, sp)
+        line = n0 + (np.arange(nrow) + 0.5) * rw
+        for r in range(nrow):
+            if (box & (row == r)).sum() >= MIN_LINE:
+                line[r] = np.median(across[box & (row == r)])
+        dist = np.hypot(off, across - line[row])
+        dist[grid["n_slots"][row] == 0] = np.inf
+        seen.append(dist[box])
+        near.append((mine, box, row * (int(grid["n_slots"].max()) + 1) + slot, dist))
+    seen = np.concatenate(seen) if seen else np.zeros(0)
+    seen = seen[np.isfinite(seen)]
+    sigma = float(np.median(seen)) / RAYLEIGH_MEDIAN if len(seen) >= MIN_REACH_PLANTS else sp / 4 / REACH_SIGMAS
+    reach = min(REACH_SIGMAS * sigma, sp / 2)
+    take = np.zeros(len(pts), bool)
+    for mine, box, seed, dist in near:
+        cand = np.flatnonzero(~box & ~np.isin(seed, seed[box]) & (dist <= reach))
+        cand = cand[np.argsort(dist[cand], kind="stable")]
+        take[mine[cand[np.unique(seed[cand], return_index=True)[1]]]] = True
+    log.info("plots: %d of %d canopies no box claims stand at an empty seed position (within %.3f m) and are "
+             "counted as plants the detector missed", int(take.sum()), len(pts) - n_table, reach)
+    return take
+
+
 def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, unclaimed: pd.DataFrame | None = None):
     """One row per plot (see the module doc) and the gaps (plot_id, row, x, y). ``unclaimed``: canopies no
     plant box claims (x, y), counted as plants with ``plots.count_unclaimed``."""
@@ -154,17 +212,18 @@ def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, u
         raise ConfigError(f"plots.traits {missing} are not columns of the plant table",
                           fix=f"choose from {[c for c in table.columns if c not in ('plant_id', 'x', 'y')]}")
     area_col = next((c for c in table.columns if c == "canopy_area_m2" or c.startswith("canopy_area_m2_")), None)
-    dirs = row_directions(plots, pts, plant_i, plot_i, cfg)
+    boxed = plant_i < n_table
+    dirs = row_directions(plots, pts, plant_i[boxed], plot_i[boxed], cfg)
+    if not boxed.all():
+        keep = boxed | at_free_seeds(plots, dirs, pts, plant_i, plot_i, n_table, cfg)[plant_i]
+        plant_i, plot_i = plant_i[keep], plot_i[keep]
     rows, gap_rows = [], []
     for k, (pid, geom) in enumerate(zip(plots["plot_id"], plots.geometry.values)):
         v = dirs[k]
         u = np.array([v[1], -v[0]])
-        n0, rw, start, end = row_segments(geom, v, cfg.rows_per_plot)
         mine = plant_i[plot_i == k]
-        p = pts[mine]
-        row = np.clip(np.floor((p @ u - n0) / rw), 0, cfg.rows_per_plot - 1).astype(int) if rw > 0 \
-            else np.zeros(len(p), int)
-        r = seed_layout(p @ v, row, start, end, cfg.plant_spacing)
+        n0, rw, start, end, row, along, _ = _plot_rows(geom, v, pts[mine], cfg.rows_per_plot)
+        r = seed_layout(along, row, start, end, cfg.plant_spacing)
         sp = r["spacing"]
         in_table = mine[mine < n_table]
         rec = {"plot_id": pid, "stand_count": len(mine), "expected": r["expected"], "gaps": len(r["gap_row"]),

@@ -34,8 +34,8 @@ class PlotsConfig:
     rows_per_plot: int = param(2, "crop rows in one plot", min=1)
     plant_spacing: float = param(0.2, "m between seeds along a row (expected spacing: gaps are counted from it)",
                                  min=0.001)
-    count_unclaimed: bool = param(True, "count the canopies that no plant box claims but that look like plants "
-                                        "(canopy.min_top, canopy.min_pixels; unclaimed_canopies.csv): plants the "
+    count_unclaimed: bool = param(True, "count the canopies that no plant box claims (unclaimed_canopies.csv) "
+                                        "that stand at a seed position no counted plant took: plants the "
                                         "detector missed")
     field_book: Path | None = param(None, "CSV or .xlsx with one row per plot (plot id -> genotype, rep, ...), "
                                           "joined to the plot table", path="file")

@@ -162,9 +162,8 @@ def _run_band(job: _Job, band: tuple[int, int] | None, sources: tuple) -> dict:
     return {"rows": sub[rows], "geometry": o.geometry[rows], "tight_box": o.tight_box[rows], "top": o.top[rows],
             "pixels": o.pixels[rows], "area": o.area[rows], "volume": o.volume[rows], "flag": o.flag[rows],
             "duplicate_of": np.where(of >= 0, sub[np.maximum(of, 0)], -1),
-            "unclaimed": o.unclaimed, "noise_bumps": o.noise_bumps, "cols": cols, "transform": o.transform,
-            "width": o.width,
-            "height": o.height, "crs": o.crs}
+            "unclaimed": o.unclaimed, "faint": o.faint, "noise_bumps": o.noise_bumps, "cols": cols,
+            "transform": o.transform, "width": o.width, "height": o.height, "crs": o.crs}
 
 
 _worker: dict = {}
@@ -254,8 +253,9 @@ def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict
         for v in cols.values():
             v[d] = v[o]
     unclaimed = np.concatenate([p["unclaimed"] for p in parts]) if parts else np.zeros((0, 4))
+    faint = np.concatenate([p["faint"] for p in parts]) if parts else np.zeros((0, 4))
     out = Outlines(geometry=geometry, tight_box=tight, top=top, pixels=pixels, area=area, volume=volume, flag=flag,
                    pix=np.zeros(0, np.int64), start=np.zeros(n + 1, np.int64), transform=first["transform"],
-                   width=first["width"], height=first["height"], crs=first["crs"], unclaimed=unclaimed,
+                   width=first["width"], height=first["height"], crs=first["crs"], unclaimed=unclaimed, faint=faint,
                    noise_bumps=sum(p["noise_bumps"] for p in parts), duplicate_of=of)
     return out, cols

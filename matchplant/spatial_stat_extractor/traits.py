@@ -47,6 +47,7 @@ GUARD = 0.05  # m beyond each box plus margin before the ground sample starts (s
 
 
 FILLS_BOX = 0.9  # an outline covering this share of its box or more is most likely the box's soil
+UNCLAIMED = ["x", "y", "height", "pixels"]  # columns of unclaimed_canopies.csv (plus faint)
 
 
 def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSettings:
@@ -156,7 +157,7 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
     previous: Outlines | None = None
     earlier = None  # (date, crs, Templates) of the last date with a CHM
     moved = np.zeros(2)  # m: the registration of the current date against the first
-    unclaimed = pd.DataFrame(columns=["x", "y", "height", "pixels"])
+    unclaimed = pd.DataFrame(columns=[*UNCLAIMED, "faint"])
     for i, rs in enumerate(date_sets):
         layers = rs.layers()
         chm_layer = next((la for la in layers if la.elevation), None)
@@ -215,7 +216,10 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
             log.info("date '%s': %d canopies no box claims are ground-noise bumps (top below %.3f m), not plants; "
                      "%d look like plants", rs.date, o.noise_bumps, entry["unclaimed_min_top"], len(o.unclaimed))
         if previous is None:
-            unclaimed = pd.DataFrame(o.unclaimed, columns=["x", "y", "height", "pixels"])
+            # the faint ones too (below the ground noise's highest bumps): plots count them only at an empty
+            # seed position, where the detector missed a plant too small to rise above the noise (plots.py)
+            unclaimed = pd.concat([pd.DataFrame(o.unclaimed, columns=UNCLAIMED).assign(faint=False),
+                                   pd.DataFrame(o.faint, columns=UNCLAIMED).assign(faint=True)], ignore_index=True)
         if seeds is not None:
             entry["median_shift_m"] = float(np.nanmedian(cols["shift_m"]))
         log.info("date '%s': %d plants outlined from the CHM, %d kept their box %s", rs.date, entry["outlined"],
