@@ -48,13 +48,15 @@ from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 log = get_logger("spatial_stat_extractor.strips")
 
-# peak bytes per pixel of a strip's window, outlining and measuring together: an estimate from the arrays a
-# strip holds at once (the CHM and two filtered float64 copies, four int32 label images, masks, the canopy
-# pixels' indices); bench/bench_spatial_stat_extractor_survey.py's peaks (1.1-1.3 GB at 9000-15000 px wide,
-# max_memory 3GB) stay within the budget, but it has not been fitted to a measurement per pixel
-BYTES_PER_PIXEL = 110
+# peak bytes per pixel of a strip's window (its rows and the halo of a box's height above and below), outlining
+# and measuring together: the survey bench's CHM-only strips peak at 50-55 B per window pixel (1.1 GB over 22 Mpx
+# at 30,000 px wide, the 2 ha field's run: 2.3 GB in all with max_memory 4GB); 80 leaves room for an NDVI mask
+# layer and more layers measured. Every strip repeats its halo's work, so strips as tall as the budget allows
+# (at most MAX_STRIP_ROWS) cost least: 408-row strips across 30,000 px outlined 1.8x the pixels they own.
+BYTES_PER_PIXEL = 80
 STRIP_SHARE = 0.5  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
 MIN_STRIP_ROWS = 64
+MAX_STRIP_ROWS = 4 * STRIP_ROWS
 
 
 @dataclass
@@ -90,15 +92,15 @@ def plan_strips(geoms, transform, width: int, height: int, margin: float, budget
     per_process = budget * STRIP_SHARE / max(workers, 1)
     # a strip reads its rows plus a box's height above and below (the boxes crossing its edges)
     rows = int(per_process / (BYTES_PER_PIXEL * max(width, 1))) - 2 * pad
-    rows = int(np.clip(rows, MIN_STRIP_ROWS, STRIP_ROWS))
+    rows = int(np.clip(rows, MIN_STRIP_ROWS, MAX_STRIP_ROWS))
     return rows, max(1, -(-height // rows))
 
 
 def _measure(o: Outlines, rows: np.ndarray, src, m: Measure) -> dict[str, np.ndarray]:
     """Statistics of ``src`` over the canopies of plants ``rows`` (pixels on the CHM's grid, else the outline
     polygons: pixel centres inside)."""
-    if o.same_grid(src):
-        got = grouped_stats(gather(o, src), o.start, list(m.stats), list(m.percentiles))
+    if o.same_grid(src):  # one window: the band's own (the CHM's is kept: _LastWindow)
+        got = grouped_stats(gather(o, src, strip_rows=o.height), o.start, list(m.stats), list(m.percentiles))
         return {f"{m.prefix}_{k}": v[rows] for k, v in got.items()}
     res = zonal_stats(o.geometry[rows], src, list(m.stats), list(m.percentiles), mode="center")
     return {f"{m.prefix}_{c}": res.stats[c] for c in res.columns}
