@@ -69,12 +69,15 @@ def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
         nonlocal sorted_v
         if sorted_v is None:
             sorted_v = sort_within_groups(v, first)
-        pos = first[:-1] + q / 100.0 * np.maximum(cnt - 1, 0)
-        lo = np.clip(np.floor(pos).astype(np.int64), 0, max(v.size - 1, 0))
+        # the position within each group, so the interpolation does not depend on where the group lies in the
+        # array (a strip's or a field's: an offset of millions costs the fraction its last digits)
+        rel = q / 100.0 * np.maximum(cnt - 1, 0)
+        whole = np.floor(rel)
+        lo = np.clip(first[:-1] + whole.astype(np.int64), 0, max(v.size - 1, 0))
         hi = np.clip(np.minimum(lo + 1, first[1:] - 1), 0, max(v.size - 1, 0))
         res = np.full(n, np.nan)
         if v.size:
-            res[has] = (sorted_v[lo] + (sorted_v[hi] - sorted_v[lo]) * (pos - lo))[has]
+            res[has] = (sorted_v[lo] + (sorted_v[hi] - sorted_v[lo]) * (rel - whole))[has]
         return res
 
     for name in stats:
