@@ -83,9 +83,9 @@ def run(wheel: Path, minutes: float, work: Path, device: str = "cpu", extra: lis
                 "num_workers=0", f"device={device}", *extra]
     cfg = load_config(ModelTrainConfig, None, settings)
     load = os.getloadavg()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     summary = train(cfg)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     stats = test_ap(work / "run" / "checkpoints" / "best.pt", test_json)
     counts = {p.stem: [len(d["images"]), len(d["annotations"])]
               for p, d in ((p, json.loads(p.read_text())) for p in (train_json, val_json, test_json))}
@@ -99,6 +99,7 @@ def run(wheel: Path, minutes: float, work: Path, device: str = "cpu", extra: lis
         "estimate_s": estimate, "wall_s": round(wall, 1), "estimate_error": round(estimate / wall - 1, 3),
         "over_budget_s": round(wall - 60 * minutes, 1) if minutes else None,
         "planned_iterations": summary["iterations_planned"], "iterations_done": summary["iterations_done"],
+        "cpu_s": round(cpu, 1), "cpu_s_per_iteration": round(cpu / max(summary["iterations_done"], 1), 3),
         "best_val": summary["best"], "test_AP50": round(stats["AP50"], 4), "test_AP": round(stats["AP"], 4),
     }
 

@@ -755,8 +755,8 @@ def test_architecture_auto_fits_the_device_and_the_budget(tiles):
     ds = CocoDetection(tiles[0])
     cpu = torch.device("cpu")
 
-    def choose(*extra, device=cpu):
-        cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", *extra)
+    def choose(*extra, device=cpu):  # pretrained weights (from random ones on a CPU: test_model_train_cpu.py)
+        cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", "model.pretrained=coco", *extra)
         return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0])
 
     arch, why, _ = choose("model.anchor_sizes=null", device=torch.device("meta"))  # any non-CPU device
