@@ -675,6 +675,30 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
 
 
 @pytest.mark.slow
+def test_training_on_crops_resumed_mid_epoch_repeats_the_uninterrupted_run(tiles, tmp_path, monkeypatch):
+    """augment.crop (issue 28): each tile's window is drawn from its own (seed, index) stream, so a run stopped by
+    the budget inside epoch 1 and resumed ends with the weights and losses of the run never stopped."""
+    crop = "augment.crop=32"
+    train(fast_config(tiles, tmp_path / "whole", crop))
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
+    monkeypatch.setattr(run_mod, "time", _Clock)
+    real_after = run_mod._Session.after_step
+
+    def slow(self, done, step_s):
+        _Clock.now += 100.0
+        return real_after(self, done, 100.0)
+
+    monkeypatch.setattr(run_mod._Session, "after_step", slow)
+    out = tmp_path / "budget"
+    assert train(fast_config(tiles, out, crop, "max_minutes=1"))["iterations_done"] == 1
+    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    summary = train(fast_config(tiles, out, crop, "resume=true"))
+    assert summary["status"] == "finished" and summary["iterations_done"] == 4
+    _compare_runs(tmp_path / "whole", out)
+
+
+@pytest.mark.slow
 def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tiles, trained, tmp_path, monkeypatch,
                                                                            capsys):
     """Ctrl-C (a real SIGINT) during epoch 2: the command writes the checkpoint, prints one line and exits 130;
