@@ -96,7 +96,8 @@ def test_auto_picks_the_light_detector_from_random_weights_on_a_cpu_only(tiles):
 def test_training_crops_are_chosen_on_a_cpu_from_random_weights_logged_and_overridable(tiles, caplog):
     chosen, why = cpu_crop(config(tiles), CPU)           # min_size 800 by default
     assert chosen.augment.crop == CPU_CROP and f"augment.crop: {CPU_CROP}" in why
-    for extra, device in (([], GPU), (["model.pretrained=coco"], CPU), (["model.min_size=224", "model.max_size=224"], CPU)):
+    for extra, device in (([], GPU), (["model.pretrained=coco"], CPU), (["model.min_size=224", "model.max_size=224"], CPU),
+                          ([f"model.architecture={MOBILE}"], CPU)):  # a named architecture trains as set
         kept, why = cpu_crop(config(tiles, *extra), device)
         assert kept.augment.crop == 0 and why is None, extra
     for value in (0, 320):                                # set by hand: kept
@@ -108,7 +109,8 @@ def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
     cfg, size, why = scratch_budget(config(tiles, "max_minutes=15"), CPU)
     assert cfg.epochs == SCRATCH_EPOCHS and size and "max_minutes = 15" in why
     for extra, device in ((["max_minutes=15", "epochs=40"], CPU), (["max_minutes=15", "val_every=3"], CPU),
-                          ([], CPU), (["max_minutes=15"], GPU), (["max_minutes=15", "model.pretrained=coco"], CPU)):
+                          ([], CPU), (["max_minutes=15"], GPU), (["max_minutes=15", "model.pretrained=coco"], CPU),
+                          (["max_minutes=15", f"model.architecture={LITE}"], CPU)):
         kept, size, why = scratch_budget(config(tiles, *extra), device)
         assert kept == config(tiles, *extra) and not size and why is None, extra
     # validation at most ~10 % of training: 3.8 s against 22.2 s epochs -> every 2nd epoch; cheap -> every epoch

@@ -49,7 +49,8 @@ class AugmentConfig:
                             "small", min=0, max=0.5)
     crop: int | None = param(None, "train on random crop x crop windows of each tile at the detector's scale "
                              "(detector input pixels): a step then costs the crop, not the tile; 0 = whole tiles; "
-                             "null = auto (module 6: on a CPU from random weights, see its README)", min=0)
+                             "null = auto (module 6: 256 with model.architecture auto from random weights on a CPU, see "
+                             "its README)", min=0)
     crop_on_plant: float = param(1.0, "probability that a training crop holds a random plant of the tile (else it "
                                  "lies anywhere): sparse plants still give every crop something to learn", min=0, max=1)
 

@@ -27,6 +27,7 @@ from matchplant.core.runtime.progress import duration
 from matchplant.detection.architectures import get_architecture
 from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.model import (
+    AUTO,
     ROIConfig,
     RPNConfig,
     apply_freezing,
@@ -68,8 +69,10 @@ LITE_WHY = ("random weights on a CPU: the light ResNet-18 FPN (matchplant/detect
 
 
 def from_scratch_on_cpu(cfg, device) -> bool:
-    """Random weights (no checkpoint) on a CPU: the case the recipe of this module's CPU defaults is for."""
-    return device.type == "cpu" and cfg.model.pretrained == "none" and cfg.model.checkpoint is None
+    """``model.architecture: auto`` from random weights (no checkpoint) on a CPU: the case the CPU recipe is for (a
+    config naming its architecture, as the demo's, keeps its own training as set)."""
+    return (device.type == "cpu" and cfg.model.architecture == AUTO and cfg.model.pretrained == "none" and
+            cfg.model.checkpoint is None)
 
 
 def cpu_crop(cfg, device) -> tuple[object, str | None]:
