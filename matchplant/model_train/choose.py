@@ -153,7 +153,8 @@ def resumed_recipe(cfg, saved: dict) -> object:
     if cfg.augment.crop is None and isinstance(saved.get("augment", {}).get("crop"), int):
         cfg = dataclasses.replace(cfg, augment=dataclasses.replace(cfg.augment, crop=saved["augment"]["crop"]))
     if (cfg.epochs, cfg.val_every) == (defaults.epochs, defaults.val_every) and \
-            isinstance(saved.get("epochs"), int) and isinstance(saved.get("val_every"), int):
+            isinstance(saved.get("epochs"), int) and isinstance(saved.get("val_every"), int) and \
+            (saved["epochs"], saved["val_every"]) != (cfg.epochs, cfg.val_every):
         cfg = dataclasses.replace(cfg, epochs=saved["epochs"], val_every=saved["val_every"])
     if (cfg.optimizer, cfg.lr, cfg.schedule) != (defaults.optimizer, defaults.lr, defaults.schedule) or \
             not isinstance(saved.get("lr"), dict):
