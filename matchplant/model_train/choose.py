@@ -1,6 +1,10 @@
 """``model.architecture: auto``: the detector that fits the device and the time budget, with the reason logged.
 
-On a CUDA or Apple GPU: the paper's Faster R-CNN ResNet-50 FPN. On a CPU: a probe of the fast MobileNetV3-Large
+On a CUDA or Apple GPU: the paper's Faster R-CNN ResNet-50 FPN. On a CPU from random weights (``model.pretrained:
+none``): the light ResNet-18 FPN (:mod:`matchplant.detection.lite`), trained on ``CPU_CROP`` px crops at the
+detector's scale (:func:`cpu_crop`) for as long as ``max_minutes`` allows (:func:`scratch_budget`); measured on real
+photos in the module's README ("15 minutes of one CPU core"). On a CPU from pretrained weights: a probe of the fast
+MobileNetV3-Large
 FPN at the config's input size and batch (:func:`matchplant.model_train.probe.probe_speed`) gives its seconds per
 iteration; ResNet-50 FPN costs ``RESNET_TRAIN_COST`` times as much per training iteration (measured, see below).
 ResNet-50 is chosen when the whole run as configured fits in ``max_minutes`` (or in a few hours when there is
