@@ -134,7 +134,7 @@ def test_a_resumed_run_keeps_the_crop_epochs_and_validation_auto_chose(tiles):
 def test_crops_keep_the_detectors_scale_hold_a_plant_and_repeat_with_the_seed(tmp_path):
     tiles = make_tiles(tmp_path, n_images=6, size=128, plants=(1, 2), radius=(6, 10), negatives=0, seed=3)
     ds, plain = CocoDetection(tiles), CocoDetection(tiles)
-    ds.crop_windows(48, 256, 256)                         # 128 px tiles at the detector's 256 px: x2, then 48 px
+    ds.crop_windows(48, 256, 256, on_plant=1.0)           # 128 px tiles at the detector's 256 px: x2, then 48 px
     ds.set_seed(7)
     for i in range(len(ds)):
         image, target = ds[i]

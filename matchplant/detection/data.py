@@ -51,8 +51,9 @@ class AugmentConfig:
                              "(detector input pixels): a step then costs the crop, not the tile; 0 = whole tiles; "
                              "null = auto (module 6: 256 with model.architecture auto from random weights on a CPU, see "
                              "its README)", min=0)
-    crop_on_plant: float = param(1.0, "probability that a training crop holds a random plant of the tile (else it "
-                                 "lies anywhere): sparse plants still give every crop something to learn", min=0, max=1)
+    crop_on_plant: float = param(0.0, "probability that a training crop holds a random plant of the tile (else it "
+                                 "lies anywhere; anywhere did as well or better on dense and on sparse plants, see "
+                                 "module 6's README)", min=0, max=1)
 
 
 def build_augmentation(cfg: AugmentConfig | None):
@@ -411,7 +412,7 @@ class CocoDetection:
         the process's): a run resumed mid-epoch augments the remaining tiles exactly as the first run would."""
         self.seed = seed
 
-    def crop_windows(self, crop: int, min_size: int, max_size: int, on_plant: float = 1.0) -> None:
+    def crop_windows(self, crop: int, min_size: int, max_size: int, on_plant: float = 0.0) -> None:
         """Serve random ``crop`` x ``crop`` windows of the tiles resized as the detector does
         (:mod:`matchplant.detection.crops`; the model must skip its own training resize)."""
         from torchvision.transforms import v2 as T  # lazy: PyTorch is heavy; configs load without it
