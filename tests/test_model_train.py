@@ -632,6 +632,35 @@ class _Clock:
         return cls.now
 
 
+def test_the_plan_is_refitted_half_way_at_the_real_pace(tiles, monkeypatch):
+    """A 600 s budget planned at 2 s per iteration (~300 iterations) on a machine that then runs 1 s per
+    iteration, validations and checkpoints included: half way the plan grows to what the budget holds at that pace
+    (issue 28: a fixed plan ended 137 s early when the planned per-epoch costs were above the real ones)."""
+    from types import SimpleNamespace
+
+    from matchplant.detection.distributed import Shard
+    from matchplant.model_train.budget import Costs, Plan
+
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    monkeypatch.setattr(run_mod, "time", _Clock)
+    cfg = fast_config(tiles, Path("unused"), "max_minutes=10")
+    plan = Plan(10_000, 10)
+    costs = Costs(iteration=2.0)
+    run_mod.fit_plan(plan, 10_000, 0, costs, 600.0, 1, False, "probe", 10)
+    assert plan.iters == 300
+    session = run_mod._Session(cfg, plan, 10_000, costs, Shard(), torch.device("cpu"),
+                               SimpleNamespace(requested=False), False)
+    done = 0
+    while done < plan.iters:
+        _Clock.now += 2.0 if not plan.fitted else 1.0   # 2 s per iteration at first, then 1 s
+        done += 1
+        if session.after_step(done, 2.0 if not plan.fitted else 1.0):
+            break
+    # after the first refit at 10 iterations (20 s) the budget holds 580 more at 1 s: 590, minus the last one's slack
+    assert 585 <= done <= 590 and plan.iters == done
+    assert session.elapsed() == pytest.approx(20 + (done - 10) * 1.0)
+
+
 def _compare_runs(a_dir: Path, b_dir: Path) -> None:
     a = read_checkpoint(a_dir / "checkpoints" / "last.pt")
     b = read_checkpoint(b_dir / "checkpoints" / "last.pt")

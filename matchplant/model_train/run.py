@@ -62,32 +62,12 @@ from matchplant.detection.model import (
 )
 from matchplant.model_train.budget import Costs, Plan, fit_plan, run_seconds, stop_status, validation_report
 from matchplant.model_train.choose import (
-    choose_architecture,
-    cpu_proposals,
-    resumed_recipe,
-    scratch_recipe,
-    scratch_settings,
-    sized_validation,
-)
+    choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe, scratch_settings, sized_validation)
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import (
-    HEARTBEAT_S,
-    PROBE_CAP_S,
-    advice,
-    costs_from_probe,
-    estimate_lines,
-    heartbeat,
-    log_estimate,
-    probe_speed,
-)
+    HEARTBEAT_S, PROBE_CAP_S, advice, costs_from_probe, estimate_lines, heartbeat, log_estimate, probe_speed)
 from matchplant.model_train.report import plot_curves, write_summary
-from matchplant.model_train.resume import (
-    StopOnInterrupt,
-    ignore_sigint,
-    open_resume,
-    random_state,
-    set_random_state,
-)
+from matchplant.model_train.resume import StopOnInterrupt, ignore_sigint, open_resume, random_state, set_random_state
 from matchplant.model_train.schedule import lr_factor, schedule_warning, warmup_length
 
 log = get_logger("model_train")
@@ -187,6 +167,7 @@ class _Session:
         self.dist_info, self.device, self.stop_flag, self.validated = dist_info, device, stop_flag, validated
         self.start = time.perf_counter()
         self.step_times: list[float] = []
+        self.fitted_at: tuple[float, int] | None = None  # (elapsed s, iterations) at this session's first refit
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
@@ -210,6 +191,10 @@ class _Session:
             fit_plan(plan, self.total, done, measured, cfg.max_minutes * 60.0 - self.elapsed(), cfg.val_every,
                      self.validated, "measured on the first iterations", cfg.max_minutes)
             plan.iters = int(_rank0_value(plan.iters, self.dist_info, self.device))
+            self.fitted_at = (self.elapsed(), done)
+        elif cfg.max_minutes and self.fitted_at is not None and \
+                done - self.fitted_at[1] >= max(3, (plan.iters - self.fitted_at[1]) // 2):
+            self.refit_from_pace(done)
         reason = 0.0
         if self.stop_flag.requested:
             reason = 2.0
@@ -218,6 +203,21 @@ class _Session:
             reason = 1.0
         reason = _rank0_value(reason, self.dist_info, self.device)
         return {0.0: None, 1.0: "budget", 2.0: "interrupt"}[reason]
+
+    def refit_from_pace(self, done: int) -> None:
+        """Once, half way: the iterations that fit at the pace measured since the first refit, validations and
+        checkpoints included (the planned per-epoch costs of many short epochs, or a machine that sped up or slowed
+        down, otherwise end the plan well before the budget or cut it)."""
+        t0, n0 = self.fitted_at
+        self.fitted_at = None
+        pace = (self.elapsed() - t0) / max(done - n0, 1)
+        left = self.cfg.max_minutes * 60.0 - self.elapsed() - self.reserve()
+        iters = int(_rank0_value(min(self.total, done + max(int(left / pace), 0)), self.dist_info, self.device))
+        if iters != self.plan.iters:
+            log.info("max_minutes = %g: at the pace of the last %d iterations (%.2f s each, validations and "
+                     "checkpoints included) %d iterations fit, not %d; the schedule is laid over them",
+                     self.cfg.max_minutes, done - n0, pace, iters, self.plan.iters)
+            self.plan.iters = max(iters, done)
 
     def out_of_time_for(self, seconds: float) -> bool:
         """Whether ``seconds`` more work (an epoch's validation) leaves too little for the rest."""
