@@ -76,16 +76,23 @@ def test_ap(checkpoint: Path, test_json: Path) -> dict:
 def run(wheel: Path, minutes: float, work: Path, device: str = "cpu", extra: list[str] = ()) -> dict:
     """Build the photos, train as the issue says, score the test photos; the result as a dict."""
     shutil.rmtree(work / "run", ignore_errors=True)
-    train_json, val_json, test_json = deepforest_photos.build(wheel, work)
+    return {**run_on(*deepforest_photos.build(wheel, work), minutes, work, device, extra),
+            "data": deepforest_photos.LICENCE}
+
+
+def run_on(train_json: Path, val_json: Path, test_json: Path, minutes: float, work: Path, device: str = "cpu",
+           extra: list[str] = ()) -> dict:
+    """Train on these splits as the issue says (``inspect``'s advice, defaults, ``minutes`` of budget), score the
+    test split; the result as a dict."""
     advice, advised = inspect_settings(train_json)
     settings = [f"train_json={train_json}", f"val_json={val_json}", f"output_dir={work / 'run'}",
                 "model.architecture=auto", "model.pretrained=none", *advised, f"max_minutes={minutes:g}",
                 "num_workers=0", f"device={device}", *extra]
     cfg = load_config(ModelTrainConfig, None, settings)
     load = os.getloadavg()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     summary = train(cfg)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     stats = test_ap(work / "run" / "checkpoints" / "best.pt", test_json)
     counts = {p.stem: [len(d["images"]), len(d["annotations"])]
               for p, d in ((p, json.loads(p.read_text())) for p in (train_json, val_json, test_json))}
@@ -93,12 +100,13 @@ def run(wheel: Path, minutes: float, work: Path, device: str = "cpu", extra: lis
     return {
         "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "load_before": [round(v, 2) for v in load], "load_after": [round(v, 2) for v in os.getloadavg()],
-        "data": deepforest_photos.LICENCE, "photos_boxes": counts, "settings": settings,
+        "photos_boxes": counts, "settings": settings,
         "inspect_advice": {k: advice[k] for k in ("min_size", "max_size", "aspect_ratios")},
         "architecture": summary.get("architecture"), "status": summary["status"], "message": summary["message"],
         "estimate_s": estimate, "wall_s": round(wall, 1), "estimate_error": round(estimate / wall - 1, 3),
         "over_budget_s": round(wall - 60 * minutes, 1) if minutes else None,
         "planned_iterations": summary["iterations_planned"], "iterations_done": summary["iterations_done"],
+        "cpu_s": round(cpu, 1), "cpu_s_per_iteration": round(cpu / max(summary["iterations_done"], 1), 3),
         "best_val": summary["best"], "test_AP50": round(stats["AP50"], 4), "test_AP": round(stats["AP"], 4),
     }
 

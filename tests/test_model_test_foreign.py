@@ -20,6 +20,7 @@ from matchplant.core.formats.images import read_rgb8
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import InputError
+from matchplant.detection import lite
 from matchplant.detection.architectures import ARCHITECTURES
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import (
@@ -115,7 +116,7 @@ def test_foreign_weights_start_a_module_6_fine_tune(paper_files):
                                   for a in ARCHITECTURES])
 def test_every_architecture_is_recognised_from_its_weights(arch, tmp_path):
     """Bare weights of each architecture, as torchvision builds it for 4 classes (shapes only: meta tensors)."""
-    builder = getattr(tvd, ARCHITECTURES[arch].builder)
+    builder = getattr(lite, ARCHITECTURES[arch].builder, None) or getattr(tvd, ARCHITECTURES[arch].builder)
     with torch.device("meta"):
         model = builder(weights=None, weights_backbone=None, num_classes=4)
     torch.save({f"module.{k}": v for k, v in model.state_dict().items()}, tmp_path / "w.pt")  # DataParallel's

@@ -632,6 +632,35 @@ class _Clock:
         return cls.now
 
 
+def test_the_plan_is_refitted_half_way_at_the_real_pace(tiles, monkeypatch):
+    """A 600 s budget planned at 2 s per iteration (~300 iterations) on a machine that then runs 1 s per
+    iteration, validations and checkpoints included: half way the plan grows to what the budget holds at that pace
+    (issue 28: a fixed plan ended 137 s early when the planned per-epoch costs were above the real ones)."""
+    from types import SimpleNamespace
+
+    from matchplant.detection.distributed import Shard
+    from matchplant.model_train.budget import Costs, Plan
+
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    monkeypatch.setattr(run_mod, "time", _Clock)
+    cfg = fast_config(tiles, Path("unused"), "max_minutes=10")
+    plan = Plan(10_000, 10)
+    costs = Costs(iteration=2.0)
+    run_mod.fit_plan(plan, 10_000, 0, costs, 600.0, 1, False, "probe", 10)
+    assert plan.iters == 300
+    session = run_mod._Session(cfg, plan, 10_000, costs, Shard(), torch.device("cpu"),
+                               SimpleNamespace(requested=False), False)
+    done = 0
+    while done < plan.iters:
+        _Clock.now += 2.0 if not plan.fitted else 1.0   # 2 s per iteration at first, then 1 s
+        done += 1
+        if session.after_step(done, 2.0 if not plan.fitted else 1.0):
+            break
+    # after the first refit at 10 iterations (20 s) the budget holds 580 more at 1 s: 590, minus the last one's slack
+    assert 585 <= done <= 590 and plan.iters == done
+    assert session.elapsed() == pytest.approx(20 + (done - 10) * 1.0)
+
+
 def _compare_runs(a_dir: Path, b_dir: Path) -> None:
     a = read_checkpoint(a_dir / "checkpoints" / "last.pt")
     b = read_checkpoint(b_dir / "checkpoints" / "last.pt")
@@ -672,6 +701,30 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
     summary = train(fast_config(tiles, out, "resume=true"))
     assert summary["status"] == "finished" and summary["iterations_done"] == 4
     _compare_runs(trained[0], out)
+
+
+@pytest.mark.slow
+def test_training_on_crops_resumed_mid_epoch_repeats_the_uninterrupted_run(tiles, tmp_path, monkeypatch):
+    """augment.crop (issue 28): each tile's window is drawn from its own (seed, index) stream, so a run stopped by
+    the budget inside epoch 1 and resumed ends with the weights and losses of the run never stopped."""
+    crop = "augment.crop=32"
+    train(fast_config(tiles, tmp_path / "whole", crop))
+    run_mod = importlib.import_module("matchplant.model_train.run")
+    monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
+    monkeypatch.setattr(run_mod, "time", _Clock)
+    real_after = run_mod._Session.after_step
+
+    def slow(self, done, step_s):
+        _Clock.now += 100.0
+        return real_after(self, done, 100.0)
+
+    monkeypatch.setattr(run_mod._Session, "after_step", slow)
+    out = tmp_path / "budget"
+    assert train(fast_config(tiles, out, crop, "max_minutes=1"))["iterations_done"] == 1
+    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    summary = train(fast_config(tiles, out, crop, "resume=true"))
+    assert summary["status"] == "finished" and summary["iterations_done"] == 4
+    _compare_runs(tmp_path / "whole", out)
 
 
 @pytest.mark.slow
@@ -755,8 +808,8 @@ def test_architecture_auto_fits_the_device_and_the_budget(tiles):
     ds = CocoDetection(tiles[0])
     cpu = torch.device("cpu")
 
-    def choose(*extra, device=cpu):
-        cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", *extra)
+    def choose(*extra, device=cpu):  # pretrained weights (from random ones on a CPU: test_model_train_cpu.py)
+        cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", "model.pretrained=coco", *extra)
         return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0])
 
     arch, why, _ = choose("model.anchor_sizes=null", device=torch.device("meta"))  # any non-CPU device

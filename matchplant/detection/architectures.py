@@ -19,6 +19,7 @@ from typing import Any, Callable
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.validate import did_you_mean
+from matchplant.detection.lite import DEFAULT_ANCHORS as LITE_ANCHORS
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,8 @@ class AnchorRule:
 
 
 def _resnet_stages(body) -> list[list[Any]]:
-    return [[body.conv1, body.bn1], [body.layer1], [body.layer2], [body.layer3], [body.layer4]]
+    # a backbone cut before layer4 (the lite detector) has fewer stages
+    return [[body.conv1, body.bn1]] + [[getattr(body, f"layer{i}")] for i in range(1, 5) if hasattr(body, f"layer{i}")]
 
 
 def _mobilenet_stages(body) -> list[list[Any]]:
@@ -67,6 +69,7 @@ class Backbone:
 
 
 RESNET50 = Backbone("resnet50", "ResNet50_Weights.IMAGENET1K_V1", 5, _resnet_stages)
+RESNET18_TO_LAYER3 = Backbone("resnet18", "ResNet18_Weights.IMAGENET1K_V1", 4, _resnet_stages)
 MOBILENET_V3_LARGE = Backbone("mobilenet_v3_large", "MobileNet_V3_Large_Weights.IMAGENET1K_V1", 6, _mobilenet_stages)
 
 
@@ -75,8 +78,8 @@ class Architecture:
     """One torchvision detector and everything MatchPlant needs to build, train and time it."""
 
     name: str                           # model.architecture
-    builder: str                        # the torchvision.models.detection function that builds it
-    coco_weights: str                   # its torchvision COCO weights (``pretrained: coco``)
+    builder: str                        # the torchvision.models.detection function that builds it (or lite.py's)
+    coco_weights: str | None            # its torchvision COCO weights (``pretrained: coco``); None: there are none
     backbone: Backbone
     two_stage: bool                     # Faster R-CNN (rpn + roi_heads) or one-stage (head)
     anchors: AnchorRule                 # anchor_sizes: auto
@@ -112,6 +115,9 @@ ARCHITECTURES: dict[str, Architecture] = {a.name: a for a in (
                  "FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1", MOBILENET_V3_LARGE, two_stage=True,
                  anchors=AnchorRule(3, 3, same_sizes_everywhere=True),
                  default_anchors=((32, 64, 128, 256, 512),) * 3, cpu_seconds_per_megapixel=9.2),
+    # from random weights on a CPU (matchplant.detection.lite): ResNet-18 to stride 16, a 64-channel FPN
+    Architecture("fasterrcnn_resnet18_fpn_lite", "fasterrcnn_resnet18_fpn_lite", None, RESNET18_TO_LAYER3,
+                 two_stage=True, anchors=AnchorRule(3, 3), default_anchors=LITE_ANCHORS),
     Architecture("retinanet_resnet50_fpn", "retinanet_resnet50_fpn", "RetinaNet_ResNet50_FPN_Weights.COCO_V1",
                  RESNET50, two_stage=False, anchors=_OCTAVES, default_anchors=_RETINANET_ANCHORS),
     Architecture("retinanet_resnet50_fpn_v2", "retinanet_resnet50_fpn_v2",

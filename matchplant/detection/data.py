@@ -31,6 +31,7 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.core.runtime.validate import did_you_mean, name_key
+from matchplant.detection.crops import crop_steps
 
 log = get_logger("data")
 
@@ -46,6 +47,13 @@ class AugmentConfig:
     saturation: float = param(0.2, "random saturation change, as a fraction", min=0, max=1)
     hue: float = param(0.0, "random hue shift (0..0.5 of the colour circle); plant green matters, keep it "
                             "small", min=0, max=0.5)
+    crop: int | None = param(None, "train on random crop x crop windows of each tile at the detector's scale "
+                             "(detector input pixels): a step then costs the crop, not the tile; 0 = whole tiles; "
+                             "null = auto (module 6: 256 with model.architecture auto from random weights on a CPU, see "
+                             "its README)", min=0)
+    crop_on_plant: float = param(0.0, "probability that a training crop holds a random plant of the tile (else it "
+                                 "lies anywhere; anywhere did as well or better on dense and on sparse plants, see "
+                                 "module 6's README)", min=0, max=1)
 
 
 def build_augmentation(cfg: AugmentConfig | None):
@@ -396,6 +404,7 @@ class CocoDetection:
         self.images = list(self.data["images"])
         self.anns = annotations_by_image(self.data)
         self.transform = build_augmentation(augment)
+        self.crop: int | None = None  # set by crop_windows
         self.seed: int | None = None  # set per epoch by training: augmentation then depends on (seed, index) only
 
     def set_seed(self, seed: int | None) -> None:
@@ -403,8 +412,22 @@ class CocoDetection:
         the process's): a run resumed mid-epoch augments the remaining tiles exactly as the first run would."""
         self.seed = seed
 
+    def crop_windows(self, crop: int, min_size: int, max_size: int, on_plant: float = 0.0) -> None:
+        """Serve random ``crop`` x ``crop`` windows of the tiles resized as the detector does
+        (:mod:`matchplant.detection.crops`; the model must skip its own training resize)."""
+        from torchvision.transforms import v2 as T  # lazy: PyTorch is heavy; configs load without it
+
+        steps = ([self.transform] if self.transform is not None else []) + crop_steps(crop, min_size, max_size, on_plant)
+        self.transform, self.crop = T.Compose(steps), crop
+
     def __len__(self) -> int:
         return len(self.images)
+
+    def plain_image(self, index: int):
+        """Tile ``index`` as the detector's float tensor, without augmentation or crop."""
+        import torch  # lazy: PyTorch is heavy; configs load without it
+
+        return torch.from_numpy(read_rgb8(self.paths[index])).permute(2, 0, 1).float().div_(255.0)
 
     def target(self, index: int) -> dict:
         import torch  # lazy: PyTorch is heavy; configs load without it

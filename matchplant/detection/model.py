@@ -37,6 +37,7 @@ from matchplant.core.runtime.config import from_dict, param, section, to_dict
 from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection import lite
 from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
 from matchplant.detection.objects import auto_anchor_sizes, box_sizes
 
@@ -94,9 +95,10 @@ class ModelConfig:
     """The detector: architecture, starting weights, input size, anchors, RPN and ROI settings."""
 
     architecture: str = param(AUTO, "torchvision detector: auto (module 6: the paper's ResNet-50 FPN on a GPU; "
-                              "on a CPU what a measured probe shows can train in the time budget, logged with the "
-                              "reason), Faster R-CNN (the paper used ResNet-50 FPN; MobileNetV3 is much faster on "
-                              "a CPU), or the one-stage RetinaNet and FCOS", choices=(AUTO, *ARCHITECTURES))
+                              "on a CPU from random weights the light ResNet-18 FPN, from pretrained ones what a "
+                              "measured probe shows can train in the time budget; logged with the reason), Faster "
+                              "R-CNN (the paper used ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the "
+                              "one-stage RetinaNet and FCOS", choices=(AUTO, *ARCHITECTURES))
     pretrained: str = param("coco", "starting weights: coco (whole detector, downloaded once), imagenet "
                             "(backbone only), none (random)", choices=PRETRAINED)
     checkpoint: Path | None = param(None, "start from this MatchPlant checkpoint instead (transfer learning; "
@@ -148,6 +150,9 @@ def _weights(arch: Architecture, pretrained: str):
     from torchvision.models import get_weight  # lazy: PyTorch is heavy; configs load without it
 
     if pretrained == "coco":
+        if arch.coco_weights is None:
+            raise ConfigError(f"{arch.name} has no COCO weights (model.pretrained: coco)",
+                              fix="set model.pretrained: imagenet (its backbone's weights) or none")
         return get_weight(arch.coco_weights), None
     if pretrained == "imagenet":
         return None, get_weight(arch.backbone.imagenet_weights)
@@ -192,7 +197,7 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
         box_detections_per_img=cfg.roi.detections_per_img, box_fg_iou_thresh=cfg.roi.fg_iou_thresh,
         box_bg_iou_thresh=cfg.roi.bg_iou_thresh, box_batch_size_per_image=cfg.roi.batch_size_per_image,
         box_positive_fraction=cfg.roi.positive_fraction)
-    builder = getattr(d, arch.builder)
+    builder = getattr(lite, arch.builder, None) or getattr(d, arch.builder)
     # all stages trainable here; train.apply_freezing decides (the same on every rebuild)
     trainable = arch.backbone.stage_count
     try:

@@ -5,8 +5,9 @@ validation's cost before training; :func:`plan_iterations` then gives how many i
 ``epochs`` x iterations fit in the budget, counting each validation and checkpoint on the way (binary search
 over :func:`run_seconds`). The learning-rate schedule is laid over that many iterations
 (:mod:`matchplant.model_train.schedule`), so a budget-limited run still ends at the small learning rates
-instead of being cut while they are high. The plan is refitted once from the measured speed of the real
-iterations (after the first epoch or a tenth of the plan, whichever comes first), and the clock is read after
+instead of being cut while they are high. The plan is refitted from the measured speed of the real
+iterations (after the first epoch or a tenth of the plan, whichever comes first), and once more half way from
+the pace since then, validations and checkpoints included (``run._Session.refit_from_pace``); the clock is read after
 every iteration: when the next one would leave too little time to validate and save, training stops inside
 the epoch, validates, and writes a checkpoint ``--resume`` continues from. The summary then says "stopped by
 max_minutes after 412 of 1500 iterations", not "finished".

@@ -1,6 +1,10 @@
 """``model.architecture: auto``: the detector that fits the device and the time budget, with the reason logged.
 
-On a CUDA or Apple GPU: the paper's Faster R-CNN ResNet-50 FPN. On a CPU: a probe of the fast MobileNetV3-Large
+On a CUDA or Apple GPU: the paper's Faster R-CNN ResNet-50 FPN. On a CPU from random weights (``model.pretrained:
+none``): the light ResNet-18 FPN (:mod:`matchplant.detection.lite`), trained on ``CPU_CROP`` px crops at the
+detector's scale (:func:`cpu_crop`) for as long as ``max_minutes`` allows (:func:`scratch_budget`); measured on real
+photos in the module's README ("15 minutes of one CPU core"). On a CPU from pretrained weights: a probe of the fast
+MobileNetV3-Large
 FPN at the config's input size and batch (:func:`matchplant.model_train.probe.probe_speed`) gives its seconds per
 iteration; ResNet-50 FPN costs ``RESNET_TRAIN_COST`` times as much per training iteration (measured, see below).
 ResNet-50 is chosen when the whole run as configured fits in ``max_minutes`` (or in a few hours when there is
@@ -25,7 +29,9 @@ import numpy as np
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import duration
 from matchplant.detection.architectures import get_architecture
+from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.model import (
+    AUTO,
     ROIConfig,
     RPNConfig,
     apply_freezing,
@@ -41,6 +47,7 @@ log = get_logger("model_train")
 
 MOBILE = "fasterrcnn_mobilenet_v3_large_fpn"
 PAPER = "fasterrcnn_resnet50_fpn"
+LITE = "fasterrcnn_resnet18_fpn_lite"
 # ResNet-50 FPN / MobileNetV3-Large FPN seconds per training iteration on one CPU core of this project's
 # shared 2-core machine (batch 2, 512 px input, random weights, every stage trained, SGD step included):
 # 44 s against 4.9 s, 9x (3.8x for one inference pass). Measured under load: indicative.
@@ -58,6 +65,72 @@ CPU_PROPOSALS_TEST = 300    # after NMS (500 before), = detections_per_img's def
 # 448 px, 27 iterations) the RPN objectness loss was 0.46 against 0.56 (SGD 0.02, cosine) and 0.62 (the paper's
 # SGD rates, decays at 1/3 and 2/3); validation AP50 stayed below 2 % in all three (SGD 0.02: 1.3 % at 90)
 SCRATCH = {"optimizer": "adamw", "lr": 0.001, "schedule": "cosine"}
+CPU_CROP = 256          # augment.crop from random weights on a CPU (detector input pixels)
+SCRATCH_EPOCHS = 1000   # with max_minutes, from random weights on a CPU: the budget ends the run
+VAL_SHARE = 0.1         # ... and validation takes about this share of the training time
+LITE_WHY = ("random weights on a CPU: the light ResNet-18 FPN (matchplant/detection/lite.py) learns from scratch "
+            "in the iterations a CPU budget allows, where MobileNetV3-Large FPN does not")
+
+
+def from_scratch_on_cpu(cfg, device) -> bool:
+    """``model.architecture: auto`` from random weights (no checkpoint) on a CPU: the case the CPU recipe is for (a
+    config naming its architecture, as the demo's, keeps its own training as set)."""
+    return (device.type == "cpu" and cfg.model.architecture == AUTO and cfg.model.pretrained == "none" and
+            cfg.model.checkpoint is None)
+
+
+def cpu_crop(cfg, device) -> tuple[object, str | None]:
+    """``augment.crop: null`` (auto) resolved: ``CPU_CROP`` from random weights on a CPU when the detector's input
+    is larger, whole tiles otherwise; the reason, or None when whole tiles are kept."""
+    if cfg.augment.crop is not None:
+        return cfg, None
+    crop = CPU_CROP if from_scratch_on_cpu(cfg, device) and cfg.model.min_size > CPU_CROP else 0
+    cfg = dataclasses.replace(cfg, augment=dataclasses.replace(cfg.augment, crop=crop))
+    if not crop:
+        return cfg, None
+    return cfg, (f"augment.crop: {crop} (random weights on a CPU: training steps on {crop} px windows of the "
+                 f"{cfg.model.min_size} px detector input cost a fraction of whole tiles, so many more fit the "
+                 "budget; detection still sees whole tiles)")
+
+
+def scratch_budget(cfg, device) -> tuple[object, bool, str | None]:
+    """From random weights on a CPU with ``max_minutes`` and ``epochs``/``val_every`` at their defaults: the budget,
+    not the 30 epochs, ends the run (``SCRATCH_EPOCHS``), and the validation interval is sized after the probe
+    (:func:`validation_interval`). Returns ``(cfg, whether to size val_every, the reason or None)``."""
+    defaults = type(cfg)(train_json=cfg.train_json)
+    if not (from_scratch_on_cpu(cfg, device) and cfg.max_minutes and cfg.epochs == defaults.epochs and
+            cfg.val_every == defaults.val_every):
+        return cfg, False, None
+    cfg = dataclasses.replace(cfg, epochs=SCRATCH_EPOCHS)
+    return cfg, True, (f"epochs: {SCRATCH_EPOCHS} (random weights on a CPU: a detector learning from scratch "
+                       f"gains from every iteration max_minutes = {cfg.max_minutes:g} allows, and 30 epochs of a "
+                       "small dataset end long before it); val_every: sized so that validation takes about "
+                       f"{100 * VAL_SHARE:.0f} % of the time")
+
+
+def validation_interval(validation_s: float, epoch_s: float) -> int:
+    """Epochs between validations so that validating costs about ``VAL_SHARE`` of the training time."""
+    return max(1, math.ceil(validation_s / max(VAL_SHARE * epoch_s, 1e-9)))
+
+
+def sized_validation(cfg, validation_s: float, epoch_s: float):
+    """``cfg`` with ``val_every`` from :func:`validation_interval` (logged when it changes)."""
+    every = validation_interval(validation_s, epoch_s)
+    if every == cfg.val_every:
+        return cfg
+    log.info("val_every: %d (validation %.1f s, an epoch %.1f s of training: validating takes about %.0f %% of the "
+             "time)", every, validation_s, epoch_s, 100 * VAL_SHARE)
+    return dataclasses.replace(cfg, val_every=every)
+
+
+def scratch_settings(cfg, device) -> tuple[object, bool, list[str]]:
+    """:func:`cpu_crop` and :func:`scratch_budget` together, logged: ``(cfg, size val_every, reasons)``."""
+    cfg, crop_why = cpu_crop(cfg, device)
+    cfg, size_validation, budget_why = scratch_budget(cfg, device)
+    reasons = [w for w in (crop_why, budget_why) if w]
+    for why in reasons:
+        log.info("on a CPU from random weights -> %s", why)
+    return cfg, size_validation, reasons
 
 
 def scratch_recipe(cfg) -> tuple[object, str | None]:
@@ -78,8 +151,15 @@ def scratch_recipe(cfg) -> tuple[object, str | None]:
 
 def resumed_recipe(cfg, saved: dict) -> object:
     """On resume: the optimizer, learning rates and schedule the run had (a recipe auto chose) when the config
-    leaves them at their defaults, so the saved optimizer state and schedule continue as they were."""
+    leaves them at their defaults, so the saved optimizer state and schedule continue as they were; so too the
+    crop, the epochs and the validation interval auto chose."""
     defaults = type(cfg)(train_json=cfg.train_json)
+    if cfg.augment.crop is None and isinstance(saved.get("augment", {}).get("crop"), int):
+        cfg = dataclasses.replace(cfg, augment=dataclasses.replace(cfg.augment, crop=saved["augment"]["crop"]))
+    if (cfg.epochs, cfg.val_every) == (defaults.epochs, defaults.val_every) and \
+            isinstance(saved.get("epochs"), int) and isinstance(saved.get("val_every"), int) and \
+            (saved["epochs"], saved["val_every"]) != (cfg.epochs, cfg.val_every):
+        cfg = dataclasses.replace(cfg, epochs=saved["epochs"], val_every=saved["val_every"])
     if (cfg.optimizer, cfg.lr, cfg.schedule) != (defaults.optimizer, defaults.lr, defaults.schedule) or \
             not isinstance(saved.get("lr"), dict):
         return cfg
@@ -118,18 +198,24 @@ def choose_architecture(cfg, model_cfg, device, train_ds, n_classes: int, total_
                         train_json) -> tuple[str, str, Probe | None]:
     """``(architecture, reason, probe of MobileNetV3 or None)`` for ``model.architecture: auto``."""
     levels = len(model_cfg.anchor_sizes) if isinstance(model_cfg.anchor_sizes, list) else None
-    candidates = [a for a in (PAPER, MOBILE) if levels is None or get_architecture(a).anchors.levels == levels]
+    candidates = [a for a in (PAPER, MOBILE, LITE) if levels is None or get_architecture(a).anchors.levels == levels]
     if not candidates:
         candidates = [PAPER]  # the anchors' check then names the mismatch
+    if model_cfg.pretrained != "none" or device.type != "cpu":  # the light model is for random weights on a CPU
+        candidates = [a for a in candidates if a != LITE] or [PAPER]
     if len(candidates) == 1:
         return candidates[0], f"model.anchor_sizes lists {levels} FPN levels, which only {candidates[0]} has", None
     if device.type != "cpu":
         return PAPER, f"the paper's detector, on a GPU ({device})", None
+    if model_cfg.pretrained == "none" and LITE in candidates:
+        return LITE, LITE_WHY, None
     mcfg = resolve_auto_anchors(dataclasses.replace(model_cfg, architecture=MOBILE, checkpoint=None), train_json)
     model = build_detector(mcfg, n_classes + 1, load_weights=False)
     stages = len(backbone_stages(model, MOBILE))
     trainable = stages if mcfg.pretrained == "none" else min(cfg.trainable_backbone_layers, stages)
     apply_freezing(model, MOBILE, trainable, cfg.freeze)
+    if getattr(train_ds, "crop", None):  # the training crops come at the detector's scale
+        skip_training_resize(model)
     log.info("model.architecture: auto on the CPU: timing %s at the config's input size and batch", MOBILE)
     with heartbeat("timing MobileNetV3 for model.architecture: auto"):
         probe = probe_speed(model, train_ds, cfg.batch_size, device, amp=False, num_workers=cfg.num_workers,

@@ -111,6 +111,8 @@ def probe_speed(model, dataset, batch_size: int, device, amp: bool, *, cap_s: fl
                 torch.cuda.synchronize(device)
             times.append(time.perf_counter() - t)
         twin.eval()
+        if getattr(dataset, "crop", None):  # training on crops: detection (validation) sees whole tiles
+            images = [dataset.plain_image(i % len(dataset)).to(device) for i in range(batch_size)]
         t = time.perf_counter()
         with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp):
             twin(images)
@@ -160,7 +162,7 @@ def advice(total_s: float, max_minutes: float, device, architecture: str, fits_i
     ways = []
     if device.type == "cpu":
         ways.append("use a CUDA GPU (device: auto picks it; often 20-50x faster)")
-        if architecture != "fasterrcnn_mobilenet_v3_large_fpn":
+        if architecture not in ("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_resnet18_fpn_lite"):
             ways.append("model.architecture: fasterrcnn_mobilenet_v3_large_fpn (or auto), several times faster on a CPU")
         ways.append("a smaller model.min_size/max_size (time grows with the input's area; keep plants >= 24 px, "
                     "see 'matchplant inspect')")

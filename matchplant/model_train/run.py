@@ -40,20 +40,12 @@ from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import duration, progress
-from matchplant.detection.data import (
-    CocoDetection,
-    EpochSampler,
-    check_disjoint,
-    collate,
-)
+from matchplant.detection.data import CocoDetection, EpochSampler, check_disjoint, collate
+from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.distributed import Shard, join, world_size
-from matchplant.detection.evaluate import (
-    coco_evaluate,
-    predict_dataset,
-    summarise_stats,
-)
+from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
 from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (
     AUTO,
@@ -68,34 +60,14 @@ from matchplant.detection.model import (
     resolve_auto_anchors,
     save_checkpoint,
 )
-from matchplant.model_train.budget import (
-    Costs,
-    Plan,
-    fit_plan,
-    run_seconds,
-    stop_status,
-    validation_report,
-)
-from matchplant.model_train.choose import choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe
+from matchplant.model_train.budget import Costs, Plan, fit_plan, run_seconds, stop_status, validation_report
+from matchplant.model_train.choose import (
+    choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe, scratch_settings, sized_validation)
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import (
-    HEARTBEAT_S,
-    PROBE_CAP_S,
-    advice,
-    costs_from_probe,
-    estimate_lines,
-    heartbeat,
-    log_estimate,
-    probe_speed,
-)
+    HEARTBEAT_S, PROBE_CAP_S, advice, costs_from_probe, estimate_lines, heartbeat, log_estimate, probe_speed)
 from matchplant.model_train.report import plot_curves, write_summary
-from matchplant.model_train.resume import (
-    StopOnInterrupt,
-    ignore_sigint,
-    open_resume,
-    random_state,
-    set_random_state,
-)
+from matchplant.model_train.resume import StopOnInterrupt, ignore_sigint, open_resume, random_state, set_random_state
 from matchplant.model_train.schedule import lr_factor, schedule_warning, warmup_length
 
 log = get_logger("model_train")
@@ -195,6 +167,7 @@ class _Session:
         self.dist_info, self.device, self.stop_flag, self.validated = dist_info, device, stop_flag, validated
         self.start = time.perf_counter()
         self.step_times: list[float] = []
+        self.fitted_at: tuple[float, int] | None = None  # (elapsed s, iterations) at this session's first refit
 
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
@@ -218,6 +191,10 @@ class _Session:
             fit_plan(plan, self.total, done, measured, cfg.max_minutes * 60.0 - self.elapsed(), cfg.val_every,
                      self.validated, "measured on the first iterations", cfg.max_minutes)
             plan.iters = int(_rank0_value(plan.iters, self.dist_info, self.device))
+            self.fitted_at = (self.elapsed(), done)
+        elif cfg.max_minutes and self.fitted_at is not None and \
+                done - self.fitted_at[1] >= max(3, (plan.iters - self.fitted_at[1]) // 2):
+            self.refit_from_pace(done)
         reason = 0.0
         if self.stop_flag.requested:
             reason = 2.0
@@ -226,6 +203,21 @@ class _Session:
             reason = 1.0
         reason = _rank0_value(reason, self.dist_info, self.device)
         return {0.0: None, 1.0: "budget", 2.0: "interrupt"}[reason]
+
+    def refit_from_pace(self, done: int) -> None:
+        """Once, half way: the iterations that fit at the pace measured since the first refit, validations and
+        checkpoints included (the planned per-epoch costs of many short epochs, or a machine that sped up or slowed
+        down, otherwise end the plan well before the budget or cut it)."""
+        t0, n0 = self.fitted_at
+        self.fitted_at = None
+        pace = (self.elapsed() - t0) / max(done - n0, 1)
+        left = self.cfg.max_minutes * 60.0 - self.elapsed() - self.reserve()
+        iters = int(_rank0_value(min(self.total, done + max(int(left / pace), 0)), self.dist_info, self.device))
+        if iters != self.plan.iters:
+            log.info("max_minutes = %g: at the pace of the last %d iterations (%.2f s each, validations and "
+                     "checkpoints included) %d iterations fit, not %d; the schedule is laid over them",
+                     self.cfg.max_minutes, done - n0, pace, iters, self.plan.iters)
+            self.plan.iters = max(iters, done)
 
     def out_of_time_for(self, seconds: float) -> bool:
         """Whether ``seconds`` more work (an epoch's validation) leaves too little for the rest."""
@@ -236,8 +228,10 @@ class _Session:
 
 
 def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: Plan, total: int, done: int,
-                    resumed_plan: bool, probe=None, started: float | None = None) -> tuple[Costs, dict]:
-    """The measured estimate before training, logged with advice; the plan fitted to the budget."""
+                    resumed_plan: bool, probe=None, started: float | None = None,
+                    size_validation: bool = False) -> tuple[ModelTrainConfig, Costs, dict]:
+    """The measured estimate before training, logged with advice; the plan fitted to the budget; ``cfg`` with
+    ``val_every`` sized to the measured costs when ``size_validation`` (choose.scratch_budget)."""
     budget_s = cfg.max_minutes * 60.0
     cap = min(PROBE_CAP_S, 0.05 * budget_s) if budget_s else PROBE_CAP_S
     if probe is None:
@@ -249,6 +243,8 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
     n_params = sum(p.numel() for p in core.parameters())
     costs = costs_from_probe(probe, len(val_ds) if val_ds is not None else 0, n_params)
     validated = val_ds is not None
+    if size_validation and validated:
+        cfg = sized_validation(cfg, costs.validation, plan.iters_per_epoch * costs.iteration)
     lines, total_s = estimate_lines(probe, costs, iters_per_epoch=plan.iters_per_epoch, epochs=cfg.epochs,
                                     architecture=model_cfg.architecture, device=device, val_every=cfg.val_every,
                                     validated=validated, max_minutes=cfg.max_minutes)
@@ -256,7 +252,9 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
     if budget_s and not resumed_plan:  # set-up and probe count too
         fit_plan(plan, total, done, costs, budget_s - spent - 2.0, cfg.val_every, validated, "measured by the probe",
                  cfg.max_minutes)
-    hint = advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters, total)
+    # a from-scratch CPU run's epochs are set for the budget to end it (choose.scratch_budget): no advice then
+    hint = None if size_validation else advice(total_s, cfg.max_minutes, device, model_cfg.architecture, plan.iters,
+                                               total)
     planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, validated) - \
         run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, validated)
     if plan.iters < total:
@@ -267,7 +265,7 @@ def _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan: P
     estimate = {"probe": probe.as_dict(), "seconds_per_iteration": round(costs.iteration, 4),
                 "validation_s": round(costs.validation, 2), "checkpoint_s": round(costs.checkpoint, 2),
                 "run_as_configured_s": round(total_s, 1), "planned_s": round(spent + planned_s, 1), "advice": hint}
-    return costs, estimate
+    return cfg, costs, estimate
 
 
 def _choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int):
@@ -318,20 +316,27 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
 
     sampler = EpochSampler(len(train_ds), cfg.seed, dist_info.rank, dist_info.world)
     iters = math.ceil(len(sampler) / cfg.batch_size)
-    total = cfg.epochs * iters
     resume = open_resume(cfg, ck_dir, class_names)
     if resume is not None:
         log.info("resuming %s after %d iteration(s) (epoch %d%s)", ck_dir / "last.pt",
                  resume.get("iteration", resume["epoch"] * iters), resume["epoch"],
                  f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
                  if resume.get("epoch_progress") else " done")
-    choice_probe, choice_reason = None, None
+    choice_probe, choice_reason, size_validation, scratch = None, None, False, []
     if resume is not None:
         cfg = resumed_recipe(cfg, resume.get("train_config") or {})
-    else:
+    else:  # random weights on a CPU: training crops and a run as long as the budget
+        cfg, size_validation, scratch = scratch_settings(cfg, device)
+    if cfg.augment.crop:
+        train_ds.crop_windows(cfg.augment.crop, cfg.model.min_size, cfg.model.max_size, cfg.augment.crop_on_plant)
+    total = cfg.epochs * iters
+    if resume is None:
         cfg, choice_probe, choice_reason = _choose_model_config(cfg, device, train_ds, total)
+        choice_reason = "; ".join(filter(None, (choice_reason, *scratch))) or None
 
     model, model_cfg = _initial_model(cfg, class_names, resume)
+    if cfg.augment.crop:  # the crops come at the detector's scale
+        skip_training_resize(model)
     # what module 7 needs to detect as trained: tile size, input scale, classes, plant sizes
     geometry = training_geometry(train_ds.data, model_cfg.min_size, model_cfg.max_size, class_names)
     log.info("training geometry: %s px tiles, detector input x%s, median plant %s px in the detector's input",
@@ -389,8 +394,9 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
                      total - done, total, f" with max_minutes = {cfg.max_minutes:g}" if cfg.max_minutes else "")
             plan.iters, plan.fitted, plan.source = total, False, "configured"
 
-    costs, estimate = _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan, total, done,
-                                      resume is not None and plan.fitted, probe=choice_probe, started=session_start)
+    cfg, costs, estimate = _probe_and_plan(cfg, core, train_ds, val_ds, model_cfg, device, amp, plan, total, done,
+                                           resume is not None and plan.fitted, probe=choice_probe,
+                                           started=session_start, size_validation=size_validation)
     warning = schedule_warning(cfg, iters, plan.iters)
     if warning:
         log.warning(warning)
