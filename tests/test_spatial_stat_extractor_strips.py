@@ -160,7 +160,7 @@ def test_strip_height_follows_max_memory(field):
         r, n = strips.plan_strips(geoms, T, width, 30000, 0.05, parse_memory("3GB"), 1)
         rows[width] = r
         # the strip's window (its rows and a box height above and below) within the budget's share
-        assert strips.BYTES_PER_PIXEL * width * r <= 0.5 * parse_memory("3GB") and n == -(-30000 // r)
+        assert strips.BYTES_PER_PIXEL * width * r <= strips.STRIP_SHARE * parse_memory("3GB") and n == -(-30000 // r)
     assert rows[3000] == strips.MAX_STRIP_ROWS and rows[30000] > rows[60000] >= strips.MIN_STRIP_ROWS
     r1, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, parse_memory("3GB"), 1)
     r2, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, parse_memory("3GB"), 2)

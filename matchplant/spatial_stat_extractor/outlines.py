@@ -486,7 +486,8 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     pix = np.concatenate(parts_pix) if parts_pix else np.zeros(0, np.int64)
     plant = np.concatenate(parts_plant) if parts_plant else np.zeros(0, np.int64)
     hv = np.concatenate(parts_h) if parts_h else np.zeros(0)
-    count = np.bincount(plant, minlength=n)
+    plant, pix, hv, own = group_by(plant, n, pix, hv)  # every pixel, by plant (in strip order within one)
+    count = np.diff(own)
     flag = np.full(n, "", dtype=object)
     flag[count < s.min_pixels] = "small"
     flag[np.isnan(tops[:, 2])] = "no_top"
@@ -495,7 +496,6 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     flag[outside] = "outside"
     flag[dup >= 0] = "duplicate"
     ok = flag == ""
-    plant, pix, hv, own = group_by(plant, n, pix, hv)  # every pixel, by plant (in strip order within one)
     # each plant's pixels as a range of (pix, hv) to gather: its own; a duplicate's, the canopy of the plant
     # whose top it shares (when that one has a canopy); another flagged plant's, the pixels whose centre is
     # inside its box (appended after the canopy pixels, row by row)

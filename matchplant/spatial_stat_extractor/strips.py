@@ -54,7 +54,8 @@ log = get_logger("spatial_stat_extractor.strips")
 # layer and more layers measured. Every strip repeats its halo's work, so strips as tall as the budget allows
 # (at most MAX_STRIP_ROWS) cost least: 408-row strips across 30,000 px outlined 1.8x the pixels they own.
 BYTES_PER_PIXEL = 80
-STRIP_SHARE = 0.5  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
+STRIP_SHARE = 0.75  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
+# (the survey bench's whole module peaked at 1.8 GB of max_memory 3GB with half of it for the strips)
 MIN_STRIP_ROWS = 64
 MAX_STRIP_ROWS = 4 * STRIP_ROWS
 

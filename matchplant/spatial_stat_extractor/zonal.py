@@ -82,9 +82,10 @@ class RasterFileSource:
                                          if v is not None and not np.isnan(v)))
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0)).astype(float)
+        # GDAL converts to float64 as it reads (no second pass over the window)
+        arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0), out_dtype="float64")
         for v in self.nodata:
-            arr[arr == v] = np.nan
+            np.copyto(arr, np.nan, where=arr == v)
         return arr
 
 
