@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from matchplant.detection.synth import make_tiles
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 
@@ -31,6 +33,16 @@ def tiny_field(tmp_path_factory):
     root = tmp_path_factory.mktemp("tiny_field")
     generate_field(preset="tiny", seed=0, out=root)
     return FieldPaths(root)
+
+
+@pytest.fixture(scope="module")
+def train_tiles(tmp_path_factory):
+    """Module 6's small training set: 8 training and 4 validation tiles of 64 px with 1-3 plants each."""
+    d = tmp_path_factory.mktemp("tiles")
+    train_json = make_tiles(d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0,
+                            name="train.json")
+    val_json = make_tiles(d, n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=1, name="val.json")
+    return train_json, val_json
 
 
 @pytest.fixture(scope="module")

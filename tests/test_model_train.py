@@ -41,12 +41,8 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")
-def tiles(tmp_path_factory):
-    d = tmp_path_factory.mktemp("tiles")
-    train_json = make_tiles(d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0,
-                            name="train.json")
-    val_json = make_tiles(d, n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=1, name="val.json")
-    return train_json, val_json
+def tiles(train_tiles):
+    return train_tiles  # conftest.py: the training set both module-6 test files use
 
 
 def fast_config(tiles, out: Path, *extra: str) -> ModelTrainConfig:
@@ -674,10 +670,9 @@ def _compare_runs(a_dir: Path, b_dir: Path) -> None:
     assert la == pytest.approx(lb, rel=1e-4)
 
 
-def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, trained, tmp_path, monkeypatch):
-    """The probe says 1 s per iteration, so the plan is the whole run; the first real iteration 'takes' 100 s of a
-    1-minute budget: training stops inside epoch 1, validates, writes a mid-epoch checkpoint, and --resume
-    finishes the run with the same weights, schedule and losses as the uninterrupted run."""
+def _each_step_takes_100_s(monkeypatch):
+    """A probe that says 1 s per iteration, then every real step 'taking' 100 s of a fake clock; returns module
+    6's run module and its real step hook (to put back)."""
     run_mod = importlib.import_module("matchplant.model_train.run")
     monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
     monkeypatch.setattr(run_mod, "time", _Clock)
@@ -688,6 +683,14 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
         return real_after(self, done, 100.0)
 
     monkeypatch.setattr(run_mod._Session, "after_step", slow)
+    return run_mod, real_after
+
+
+def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, trained, tmp_path, monkeypatch):
+    """The probe says 1 s per iteration, so the plan is the whole run; the first real iteration 'takes' 100 s of a
+    1-minute budget: training stops inside epoch 1, validates, writes a mid-epoch checkpoint, and --resume
+    finishes the run with the same weights, schedule and losses as the uninterrupted run."""
+    run_mod, real_after = _each_step_takes_100_s(monkeypatch)
     out = tmp_path / "budget"
     summary = train(fast_config(tiles, out, "max_minutes=1"))
     assert summary["status"] == "stopped_by_max_minutes" and summary["iterations_done"] == 1
@@ -709,16 +712,7 @@ def test_training_on_crops_resumed_mid_epoch_repeats_the_uninterrupted_run(tiles
     the budget inside epoch 1 and resumed ends with the weights and losses of the run never stopped."""
     crop = "augment.crop=32"
     train(fast_config(tiles, tmp_path / "whole", crop))
-    run_mod = importlib.import_module("matchplant.model_train.run")
-    monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
-    monkeypatch.setattr(run_mod, "time", _Clock)
-    real_after = run_mod._Session.after_step
-
-    def slow(self, done, step_s):
-        _Clock.now += 100.0
-        return real_after(self, done, 100.0)
-
-    monkeypatch.setattr(run_mod._Session, "after_step", slow)
+    run_mod, real_after = _each_step_takes_100_s(monkeypatch)
     out = tmp_path / "budget"
     assert train(fast_config(tiles, out, crop, "max_minutes=1"))["iterations_done"] == 1
     monkeypatch.setattr(run_mod._Session, "after_step", real_after)

@@ -42,12 +42,8 @@ LITE_ANCHORS = "model.anchor_sizes=[[8,10,13],[16,20,25],[32,40,50]]"
 
 
 @pytest.fixture(scope="module")
-def tiles(tmp_path_factory):
-    d = tmp_path_factory.mktemp("tiles")
-    train_json = make_tiles(d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0,
-                            name="train.json")
-    val_json = make_tiles(d, n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=1, name="val.json")
-    return train_json, val_json
+def tiles(train_tiles):
+    return train_tiles  # conftest.py: the training set both module-6 test files use
 
 
 def config(tiles, *extra: str) -> ModelTrainConfig:
