@@ -258,6 +258,9 @@ def test_check_raster_looks_at_a_few_blocks_before_any_scan(tmp_path, monkeypatc
     monkeypatch.setattr(validate, "SAMPLED_BLOCKS", 8)
     check_raster(path)  # tile (9, 9) of 16 x 16 is among the 8 x 8 sampled: no scan
     assert 0 < len(read) <= 64 and all(k["window"].width == 256 for k in read)
+    # a truncated copy fails: the sample holds the last tile, at the end of the file
+    (tmp_path / "cut.tif").write_bytes(path.read_bytes()[:path.stat().st_size * 2 // 3])
+    fails(lambda: check_raster(tmp_path / "cut.tif"), "cannot be read", "cut.tif")
 
 
 @pytest.mark.filterwarnings("ignore:'crs' was not provided")

@@ -16,7 +16,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     sort_within_groups,
 )
 from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
-from matchplant.spatial_stat_extractor.zonal import LARGE_GROUP, _quantiles
+from matchplant.spatial_stat_extractor.runs import LARGE_GROUP, quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -131,7 +131,7 @@ def test_quantiles_of_small_and_large_groups_are_numpys():
     v = np.round(rng.normal(0, 1, counts.sum()), 2)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     qs = [0.0, 0.1, 0.5, 0.95, 1.0]
-    got = _quantiles(v, starts, counts, qs)
+    got = quantiles(v, starts, counts, qs)
     for g, (a, n) in enumerate(zip(starts, counts)):
         want = np.percentile(v[a:a + n], [q * 100 for q in qs]) if n else np.full(len(qs), np.nan)
         np.testing.assert_allclose(got[g], want, rtol=0, atol=1e-12, err_msg=str(n))

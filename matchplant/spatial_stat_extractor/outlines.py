@@ -51,6 +51,7 @@ from matchplant.spatial_stat_extractor.grouping import (
 )
 from matchplant.spatial_stat_extractor.maxima import local_maxima
 from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
+from matchplant.spatial_stat_extractor.runs import ranges
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -474,13 +475,6 @@ class _Pieces:
         return np.asarray(self.owner, np.int64), polys
 
 
-def _ragged_arange(lengths: np.ndarray) -> np.ndarray:
-    """``0, 1, ..., lengths[0] - 1, 0, 1, ..., lengths[1] - 1, ...`` in one array (no loop over the runs)."""
-    lengths = np.asarray(lengths, np.int64)
-    ends = np.cumsum(lengths)
-    return np.arange(ends[-1] if len(ends) else 0) - np.repeat(ends - lengths, lengths)
-
-
 def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h, geo_parts,
              chm, dup, no_peak) -> Outlines:
     pix = np.concatenate(parts_pix) if parts_pix else np.zeros(0, np.int64)
@@ -508,7 +502,7 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
         b[:, [0, 2]] = np.clip(b[:, [0, 2]], 0, W_)
         b[:, [1, 3]] = np.clip(b[:, [1, 3]], 0, H_)
         w, size = np.maximum(b[:, 2] - b[:, 0], 0), np.maximum(b[:, 2] - b[:, 0], 0) * np.maximum(b[:, 3] - b[:, 1], 0)
-        row, col = np.divmod(_ragged_arange(size), np.maximum(np.repeat(w, size), 1))
+        row, col = np.divmod(ranges(np.zeros(len(size), np.int64), size), np.maximum(np.repeat(w, size), 1))
         box_pix = (np.repeat(b[:, 1], size) + row) * W_ + np.repeat(b[:, 0], size) + col
         src[boxed], length[boxed] = len(pix) + np.cumsum(size) - size, size
         pix, hv = np.concatenate([pix, box_pix]), np.concatenate([hv, np.full(len(box_pix), np.nan)])

@@ -25,6 +25,7 @@ import shapely
 from rasterio.windows import Window
 
 from matchplant.core.geometry.frames import parse_crs
+from matchplant.spatial_stat_extractor.runs import quantiles, ranges
 
 BASIC_STATS = ("count", "min", "max", "mean", "median", "std", "sum", "nodata")
 DEFAULT_STATS = ("count", "min", "max", "mean", "median", "std", "sum")
@@ -176,16 +177,6 @@ class PixelPolygons:
         return win, outside, partial
 
 
-def _ranges(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
-    """Concatenation of ``arange(s, s + l)`` for every pair, without a Python loop."""
-    lengths = np.asarray(lengths, dtype=np.int64)
-    total = int(lengths.sum())
-    if total == 0:
-        return np.zeros(0, dtype=np.int64)
-    shift = np.repeat(np.asarray(starts, dtype=np.int64) - (np.cumsum(lengths) - lengths), lengths)
-    return shift + np.arange(total, dtype=np.int64)
-
-
 # --------------------------------------------------------------------------------------------------
 # per-batch pixel weights
 
@@ -215,7 +206,7 @@ def _batch_edges(pp: PixelPolygons, b: _Batch):
     """The batch's edges in window-local coordinates, with the batch-local polygon of each edge."""
     starts = pp.edge_start[b.polys]
     counts = pp.edge_start[b.polys + 1] - starts
-    idx = _ranges(starts, counts)
+    idx = ranges(starts, counts)
     j = np.repeat(np.arange(len(b.polys)), counts)
     # subtracting whole numbers is exact, so the local coordinates keep every bit of the global ones
     cx, cy = b.col0[j].astype(float), b.row0[j].astype(float)
@@ -234,7 +225,7 @@ def _center_weights(pp: PixelPolygons, b: _Batch) -> np.ndarray:
     r_hi = np.clip(np.ceil(yb - 0.5), 0, b.h[j]).astype(np.int64)
     n = np.maximum(r_hi - r_lo, 0)
     e = np.repeat(np.arange(len(j)), n)
-    r = _ranges(r_lo, n) if n.size else np.zeros(0, np.int64)
+    r = ranges(r_lo, n) if n.size else np.zeros(0, np.int64)
     dy = r + 0.5
     x = (dy - ya[e]) * (xb[e] - xa[e]) / (yb[e] - ya[e]) + xa[e]
     je = j[e]
@@ -403,57 +394,6 @@ def _coverage_batch(x0, y0, x1, y1, edge_start, polys, col0, row0, w, h, window,
 # statistics over grouped values
 
 
-def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """numpy's interpolation for percentiles (same rounding as np.percentile)."""
-    diff = b - a
-    return np.where(t >= 0.5, b - diff * (1 - t), a + diff * t)
-
-
-LARGE_GROUP = 50_000  # values: a larger group's quantiles come from a partition around them (plot polygons)
-
-
-def _quantiles(v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequence[float],
-               budget: int = 4_000_000) -> np.ndarray:
-    """Quantiles ``qs`` (0..1) of each group ``v[starts[i]:starts[i] + counts[i]]``, numpy's 'linear'
-    method (rasterstats). Groups are sorted in padded matrices of groups of similar size, to bound the
-    padding; groups of over ``LARGE_GROUP`` values (a plot's hundred thousand pixels) are partitioned
-    around the order statistics wanted instead (linear time, not a sort: the same values)."""
-    out = np.full((len(counts), len(qs)), np.nan)
-    order = np.argsort(counts, kind="stable")
-    order = order[counts[order] > 0]
-    big = counts[order] > LARGE_GROUP
-    for g in order[big]:  # a plot polygon: the order statistics wanted, not a sort of its every value
-        n = int(counts[g])
-        pos = np.asarray(qs, float) * (n - 1)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, n - 1)
-        vals = np.partition(v[starts[g]:starts[g] + n], np.unique(np.concatenate([lo, hi])))
-        out[g] = _lerp(vals[lo], vals[hi], pos - lo)
-    order = order[~big]
-    i = 0
-    while i < len(order):
-        # as many groups as fit the budget padded to the widest of them (they come in increasing size)
-        padded = np.arange(1, len(order) - i + 1) * counts[order[i:]]
-        k = max(int(np.searchsorted(padded, budget, side="right")), 1)
-        groups = order[i:i + k]
-        i += k
-        n = counts[groups]
-        width = int(n.max())
-        idx = _ranges(starts[groups], n)
-        row = np.repeat(np.arange(len(groups)), n)
-        col = idx - np.repeat(starts[groups], n)
-        vals = np.full((len(groups), width), np.inf)
-        vals[row, col] = v[idx]
-        r = np.arange(len(groups))
-        vals.sort(axis=1)
-        for qi, q in enumerate(qs):
-            pos = q * (n - 1)
-            lo = np.floor(pos).astype(np.int64)
-            hi = np.minimum(lo + 1, n - 1)
-            out[groups, qi] = _lerp(vals[r, lo], vals[r, hi], pos - lo)
-    return out
-
-
 def _segment_stats(v: np.ndarray, bounds: np.ndarray, stats: Sequence[str],
                    percentiles: Sequence[float]) -> dict[str, np.ndarray]:
     """Statistics of the runs ``v[bounds[i]:bounds[i + 1]]`` (the pixel-centre rule: every weight 1)."""
@@ -483,7 +423,7 @@ def _segment_stats(v: np.ndarray, bounds: np.ndarray, stats: Sequence[str],
         out["max"] = per_group(v, np.maximum)
     qs = [q / 100.0 for q in percentiles] + ([0.5] if "median" in stats else [])
     if qs:
-        qv = _quantiles(v, bounds[:-1], counts, qs)
+        qv = quantiles(v, bounds[:-1], counts, qs)
         for i, q in enumerate(percentiles):
             out[percentile_name(q)] = qv[:, i]
         if "median" in stats:
@@ -499,7 +439,7 @@ def _center_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0:
     # each buffer row is a run of consecutive cells of the raster window: one repeat maps them all
     row_poly = np.repeat(np.arange(k), b.h)
     row_len = b.w[row_poly] + 1
-    row_in_poly = _ranges(np.zeros(k, np.int64), b.h)
+    row_in_poly = ranges(np.zeros(k, np.int64), b.h)
     row_at = (b.row0[row_poly] + row_in_poly - R0) * (C1 - C0) + (b.col0[row_poly] - C0)
     shift = np.repeat(row_at - (np.cumsum(row_len) - row_len), row_len)
     nz = np.flatnonzero(wbuf)

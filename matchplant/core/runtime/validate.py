@@ -499,7 +499,9 @@ def _has_valid(ds, band: int) -> bool:
     overviews decompresses all of it, 14 s for a 30,000² CHM); a band that looks empty there is scanned in full
     strips before saying so."""
     try:
-        if any(_valid(ds, ds.read(band, window=w)) for w in _sampled_windows(ds, band)):
+        # every sampled block is read (no stop at the first valid one): the last block, at the end of the file,
+        # is among them, so a truncated copy fails here
+        if any([_valid(ds, ds.read(band, window=w)) for w in _sampled_windows(ds, band)]):
             return True
         rows = max(1, 2 ** 24 // max(ds.width, 1))
         for r0 in range(0, ds.height, rows):
