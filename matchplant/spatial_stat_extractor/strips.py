@@ -81,6 +81,7 @@ class _Job:
     measures: list
     strip_rows: int
     gdal_cache_bytes: int
+    windows: np.ndarray | None = None  # each plant's window (outlines.plant_windows), found once for every band
 
 
 def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int,
@@ -134,16 +135,15 @@ class _LastWindow:
         return self._data
 
 
-def band_plants(geoms, chm, s: SegmentSettings, seeds, band: tuple[int, int], strip_rows: int) -> np.ndarray:
+def band_plants(win_i: np.ndarray, height: int, band: tuple[int, int], strip_rows: int) -> np.ndarray:
     """The plants a band of strips needs, in their order: those at home in it (off the raster too), and every
     plant whose window comes within two windows' height of it, a superset of the neighbours that compete
     for its canopy (a strip reads its home plants' windows plus the tallest one's height around them). A band
     that handled the whole field's plants cost time with the field's plant count in every band: 74 bands of
     100,000 plants on the survey bench."""
-    _, win_i, _ = plant_windows(geoms, chm.transform, s, seeds)
     tall = int(max(0, (win_i[:, 3] - win_i[:, 1]).max(initial=0)))
     r0, r1 = band[0] * strip_rows - 2 * tall, band[1] * strip_rows + 2 * tall
-    home = home_strip(win_i, chm.height, strip_rows)
+    home = home_strip(win_i, height, strip_rows)
     return np.flatnonzero(((home >= band[0]) & (home < band[1])) | ((win_i[:, 3] > r0) & (win_i[:, 1] < r1)))
 
 
@@ -153,7 +153,7 @@ def _run_band(job: _Job, band: tuple[int, int] | None, sources: tuple) -> dict:
     kept = _LastWindow(chm)  # for this band only: its window is freed with it
     chm, measured = kept, [kept if src is chm else src for src in measured]
     sub = np.arange(len(job.geoms)) if band is None else \
-        band_plants(job.geoms, chm, job.settings, job.seeds, band, job.strip_rows)
+        band_plants(job.windows, chm.height, band, job.strip_rows)
     o = segment(job.geoms[sub], chm, job.settings, mask_source=mask,
                 seeds=None if job.seeds is None else job.seeds[sub], strip_rows=job.strip_rows, band=band)
     rows = np.flatnonzero(o.flag != "skipped")
@@ -204,7 +204,8 @@ def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, see
     want = max(1, min(want, count))
     if want > 1:  # fewer processes when each would get too thin a strip
         rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
-    job = _Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, rows, gdal_cache_bytes(max_memory // want))
+    job = _Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, rows, gdal_cache_bytes(max_memory // want),
+               plant_windows(geoms, chm.transform, s, seeds)[1])
     log.info("outlines: %d strip(s) of %d rows across %d columns (max_memory %s: ~%s per strip), %d worker "
              "process(es) of %d core(s)", count, rows, chm.width, format_memory(max_memory),
              format_memory(BYTES_PER_PIXEL * chm.width * rows), want, cores)
