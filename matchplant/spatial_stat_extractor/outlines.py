@@ -21,10 +21,10 @@ the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``
 plants the detector missed, for stand counts; the lower ones are counted (``noise_bumps``), and listed apart
 (``Outlines.faint``) where NDVI says their pixels are leaves (weeds, or seedlings within the CHM's noise).
 
-The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, from
-``rasterio.features.shapes`` with 4-connectivity: pixels that touch only at a corner become separate parts
-of a multipolygon, so no ring touches itself and every polygon is valid; anything still invalid is repaired
-by :func:`valid_polygons`), the tightened boxes, the tops, canopy area and volume, and the canopy
+The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, traced by
+:mod:`~matchplant.spatial_stat_extractor.trace` with 4-connectivity, as ``rasterio.features.shapes`` would:
+pixels that touch only at a corner become separate parts of a multipolygon; a ring that still touches itself
+is repaired by :func:`valid_polygons`), the tightened boxes, the tops, canopy area and volume, and the canopy
 pixels themselves (flat raster indices grouped by plant) for canopy-only statistics
 (:mod:`~matchplant.spatial_stat_extractor.canopy`). See docs/DESIGN.md §2 (module 9).
 """
@@ -36,7 +36,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 from affine import Affine
-from rasterio.features import shapes
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
@@ -52,6 +51,7 @@ from matchplant.spatial_stat_extractor.grouping import (
 from matchplant.spatial_stat_extractor.maxima import local_maxima
 from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
 from matchplant.spatial_stat_extractor.runs import ranges
+from matchplant.spatial_stat_extractor.trace import outline_pieces
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -314,7 +314,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     tops = np.full((n, 3), np.nan)
     dup = np.full(n, -1)  # a duplicate box: the plant whose top it shares
     parts_pix, parts_plant, parts_h, free_parts = [], [], [], []
-    geo_parts = _Pieces()
+    geo_owner, geo_polys = [], []
     no_peak = np.zeros(n, bool)
     soil_top = np.zeros(n, bool)
     live = np.flatnonzero(~outside)
@@ -380,11 +380,13 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         parts_pix.append((rr + Rr0) * W_ + (cc + Cc0))  # int64 already
         parts_plant.append(p.astype(np.int32))
         parts_h.append(hv.astype(np.float32))
-        _trace(lab, near, rr, cc, t, Rr0, Cc0, geo_parts)
+        owner, polys = _trace(lab, near, rr, cc, t, Rr0, Cc0)
+        geo_owner.append(owner)
+        geo_polys.append(polys)
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
-                   geo_parts, chm, dup, no_peak)
+                   (geo_owner, geo_polys), chm, dup, no_peak)
     out.flag[skipped] = "skipped"
     out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
@@ -414,21 +416,19 @@ def _leafy(L: np.ndarray, mv: np.ndarray, tops: np.ndarray, soil: float) -> np.n
     return np.where(mv >= half[L], L, 0)
 
 
-def _trace(lab: np.ndarray, owners: np.ndarray, rr: np.ndarray, cc: np.ndarray, t, R0: int, C0: int,
-           pieces: _Pieces) -> None:
-    """The outlines in the label image ``lab`` (1 + an index into ``owners``, the plants; 0: none; the window
-    read at ``R0, C0``), traced over its pixels' extent (``rr, cc``) only: the window's padding rows hold no
-    home plant's pixel, and tracing costs per pixel, empty or not. Labels as 16-bit integers where they fit
-    (a strip's few thousand plants): GDAL traces them a third faster than 32-bit ones."""
+def _trace(lab: np.ndarray, owners: np.ndarray, rr: np.ndarray, cc: np.ndarray, t, R0: int,
+           C0: int) -> tuple[np.ndarray, np.ndarray]:
+    """The outline of each plant in the label image ``lab`` (1 + an index into ``owners``, the plants; 0:
+    none; the window read at ``R0, C0``), traced over its pixels' extent (``rr, cc``) only: the window's
+    padding rows hold no home plant's pixel. The plants and one (multi)polygon each."""
     if not len(rr):
-        return
+        return np.zeros(0, np.int64), np.zeros(0, dtype=object)
     r0, c0 = int(rr.min()), int(cc.min())
-    lab = lab[r0:int(rr.max()) + 1, c0:int(cc.max()) + 1]
-    lab = np.ascontiguousarray(lab, dtype=np.uint16 if len(owners) < 2 ** 16 else np.int32)
+    lab = lab[r0:int(rr.max()) + 1, c0:int(cc.max()) + 1]  # a view: the tracer reads it in place
     R0, C0 = R0 + r0, C0 + c0
     wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
-    for g, v in shapes(lab, mask=lab > 0, connectivity=4, transform=wt):
-        pieces.add(int(owners[int(v) - 1]), g["coordinates"])
+    labels, polys = outline_pieces(lab, wt)
+    return owners[labels - 1], polys
 
 
 def valid_polygons(geoms: np.ndarray) -> np.ndarray:
@@ -449,30 +449,6 @@ def _local(b: np.ndarray, R0: int, R1: int, C0: int, C1: int) -> np.ndarray:
     out[:, [0, 2]] = np.clip(out[:, [0, 2]], 0, C1 - C0)
     out[:, [1, 3]] = np.clip(out[:, [1, 3]], 0, R1 - R0)
     return out
-
-
-class _Pieces:
-    """Polygons from ``rasterio.features.shapes``, gathered as coordinate arrays and built in one call
-    (``shapely.from_ragged_array``): building them one by one costs more than finding them."""
-
-    def __init__(self):
-        self.rings: list[np.ndarray] = []
-        self.ring_count: list[int] = []
-        self.owner: list[int] = []
-
-    def add(self, owner: int, rings: list) -> None:
-        self.rings.extend(np.asarray(r, dtype=float) for r in rings)
-        self.ring_count.append(len(rings))
-        self.owner.append(owner)
-
-    def polygons(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self.owner:
-            return np.zeros(0, np.int64), np.zeros(0, dtype=object)
-        coords = np.concatenate(self.rings)
-        ring_off = np.concatenate([[0], np.cumsum([len(r) for r in self.rings])])
-        poly_off = np.concatenate([[0], np.cumsum(self.ring_count)])
-        polys = shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, poly_off))
-        return np.asarray(self.owner, np.int64), polys
 
 
 def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h, geo_parts,
@@ -528,13 +504,10 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
     tx, ty = _apply(t, tops[:, 1] + 0.5, tops[:, 0] + 0.5)
     top[:, 0], top[:, 1], top[:, 2] = tx, ty, tops[:, 2]
     geometry = np.asarray(geoms, dtype=object).copy()
-    owner, polys = geo_parts.polygons()
+    owner = np.concatenate(geo_parts[0]) if geo_parts[0] else np.zeros(0, np.int64)
+    polys = np.concatenate(geo_parts[1]) if geo_parts[1] else np.zeros(0, dtype=object)
     mine = ok[owner]
-    owner, polys = owner[mine], polys[mine]
-    single = np.bincount(owner, minlength=n) == 1
-    geometry[owner[single[owner]]] = polys[single[owner]]
-    for k in np.unique(owner[~single[owner]]):  # a canopy in several pieces (leaves cut by the threshold)
-        geometry[k] = shapely.union_all(polys[owner == k])
+    geometry[owner[mine]] = polys[mine]  # a plant is traced in its home strip only: one (multi)polygon
     geometry[shared] = geometry[dup[shared]]
     geometry = valid_polygons(geometry)
     return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
