@@ -9,7 +9,6 @@ from scipy import ndimage as ndi
 
 from matchplant.spatial_stat_extractor.grouping import (
     gather_ranges,
-    group_by,
     label_sizes,
     labelled_pixels,
     relabel,
@@ -31,28 +30,16 @@ def test_local_maxima_are_the_maximum_filters_peaks(size):
     assert np.array_equal(local_maxima(a[:1, :2], size, 0.3), (a[:1, :2] == a[:1, :2].max()) & (a[:1, :2] >= 0.3))
 
 
-def test_group_by_is_a_stable_sort_by_group():
-    rng = np.random.default_rng(1)
-    g = rng.integers(0, 50, 5000)
-    pix, val = rng.integers(0, 10**9, 5000), rng.random(5000).astype(np.float32)
-    order = np.argsort(g, kind="stable")
-    got_g, got_pix, got_val, start = group_by(g, 52, pix, val)
-    assert np.array_equal(got_g, g[order]) and np.array_equal(got_pix, pix[order]) and np.array_equal(got_val, val[order])
-    assert got_val.dtype == np.float32
-    assert np.array_equal(start, np.searchsorted(g[order], np.arange(53)))  # groups 50, 51: empty
-
-
 def test_gather_ranges_concatenates_each_groups_range():
     """Groups made of (repeated, empty, out-of-order) ranges: a Python concatenation of the slices."""
     rng = np.random.default_rng(2)
-    pix, val = rng.integers(0, 10**9, 300), rng.random(300).astype(np.float32)
+    pix = rng.integers(0, 10**9, 300)
     src, length = rng.integers(0, 250, 40), rng.integers(0, 50, 40)
     length[::7] = 0
     src[5] = src[6]  # two groups share one range (a duplicate box and its plant)
-    g, p, v, start = gather_ranges(src, length, pix, val)
+    p, start = gather_ranges(src, length, pix)
     assert np.array_equal(p, np.concatenate([pix[a:a + n] for a, n in zip(src, length)]))
-    assert np.array_equal(v, np.concatenate([val[a:a + n] for a, n in zip(src, length)])) and v.dtype == np.float32
-    assert np.array_equal(g, np.repeat(np.arange(40), length)) and np.array_equal(np.diff(start), length)
+    assert np.array_equal(np.diff(start), length) and start[0] == 0
 
 
 def test_label_sizes_and_sorted_runs():
@@ -67,6 +54,8 @@ def test_label_sizes_and_sorted_runs():
 
 
 def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
+    """Against numpy: the pixels kept, grouped by label in raster order (a stable sort), as flat indices on the
+    raster the image was cut from, with each label's float32 sum and extent, and the image of the kept pixels."""
     rng = np.random.default_rng(3)
     L = rng.integers(0, 6, (30, 40)).astype(np.int32)  # labels 1..5 = 1 + k
     W = rng.random((30, 40))
@@ -75,16 +64,24 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     reach = np.array([0.5, 0.0, 0.2, np.nan, 0.9])
     home = np.array([True, True, True, True, False])
     ids = np.array([11, 12, 13, 14, 15])
-    rr, cc, k, hv, image = labelled_pixels(L, W, windows, reach, home, ids)
+    width, row0, col0 = 1000, 7, 300
+    pix, start, total, extent, image = labelled_pixels(L, W, windows, reach, home, ids, width, row0, col0)
     r, c = np.nonzero(L)
     kk = L[r, c] - 1
     keep = (c >= windows[kk, 0]) & (c < windows[kk, 2]) & (r >= windows[kk, 1]) & (r < windows[kk, 3]) & \
         (W[r, c] >= reach[kk]) & home[kk]
     assert keep.sum() > 50
-    assert np.array_equal(rr, r[keep]) and np.array_equal(cc, c[keep]) and np.array_equal(k, kk[keep])
-    assert np.array_equal(hv, W[r[keep], c[keep]])
+    r, c, kk = r[keep], c[keep], kk[keep]
+    order = np.argsort(kk, kind="stable")
+    assert np.array_equal(pix, ((r + row0) * width + c + col0)[order])
+    assert np.array_equal(start, np.searchsorted(kk[order], np.arange(6)))
+    h = W[r, c].astype(np.float32)
+    assert np.array_equal(total, np.bincount(kk, weights=h, minlength=5))
+    for k in np.unique(kk):
+        assert extent[k].tolist() == [r[kk == k].min(), r[kk == k].max(), c[kk == k].min(), c[kk == k].max()]
+    assert extent[3, 0] > extent[3, 1] and extent[4, 0] > extent[4, 1]  # none kept: reach NaN, not home
     want = np.zeros(L.shape, np.int32)
-    want[r[keep], c[keep]] = ids[kk[keep]]
+    want[r, c] = ids[kk]
     assert np.array_equal(image, want)
 
 

@@ -43,7 +43,6 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.grouping import (
     gather_ranges,
-    group_by,
     label_sizes,
     labelled_pixels,
     relabel,
@@ -313,7 +312,11 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         shapely.is_empty(geoms) | shapely.is_missing(geoms)
     tops = np.full((n, 3), np.nan)
     dup = np.full(n, -1)  # a duplicate box: the plant whose top it shares
-    parts_pix, parts_plant, parts_h, free_parts = [], [], [], []
+    parts_pix, free_parts = [], []
+    # each home plant's canopy pixels: its range in the concatenated parts, their height sum and extent
+    own_src, own_len = np.zeros(n, np.int64), np.zeros(n, np.int64)
+    own_sum, own_ext = np.zeros(n), np.zeros((n, 4), np.int64)
+    taken = 0
     geo_owner, geo_polys = [], []
     no_peak = np.zeros(n, bool)
     soil_top = np.zeros(n, bool)
@@ -370,23 +373,25 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         if mv is not None and s.mask_soil is not None:  # a pixel more leaf than soil, by its own plant's top NDVI
             L = _leafy(L, mv, tp, s.mask_soil)
         # a home plant keeps its canopy pixels inside its box + margin that reach `relative` x its top height
-        rr, cc, k, hv, lab = labelled_pixels(L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2],
-                                             is_home[near], np.arange(1, len(near) + 1))
-        p = near[k]
+        pix, first, total, extent, lab = labelled_pixels(
+            L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2], is_home[near],
+            np.arange(1, len(near) + 1), W_, Rr0, Cc0)
         hit = is_home[near]
-        tops[near[hit], :2] = tp[hit, :2] + [Rr0, Cc0]
-        tops[near[hit], 2] = tp[hit, 2]
-        no_peak[near[hit]] = tp[hit, 3] == 0
-        parts_pix.append((rr + Rr0) * W_ + (cc + Cc0))  # int64 already
-        parts_plant.append(p.astype(np.int32))
-        parts_h.append(hv.astype(np.float32))
-        owner, polys = _trace(lab, near, rr, cc, t, Rr0, Cc0)
+        mine = near[hit]
+        tops[mine, :2] = tp[hit, :2] + [Rr0, Cc0]
+        tops[mine, 2] = tp[hit, 2]
+        no_peak[mine] = tp[hit, 3] == 0
+        own_src[mine], own_len[mine] = taken + first[:-1][hit], np.diff(first)[hit]
+        own_sum[mine], own_ext[mine] = total[hit], extent[hit] + [Rr0, Rr0, Cc0, Cc0]
+        parts_pix.append(pix)
+        taken += len(pix)
+        owner, polys = _trace(lab, near, extent[hit], t, Rr0, Cc0)
         geo_owner.append(owner)
         geo_polys.append(polys)
         bar.update(1)
     bar.close()
-    out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix, parts_plant, parts_h,
-                   (geo_owner, geo_polys), chm, dup, no_peak)
+    out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix,
+                   (own_src, own_len, own_sum, own_ext), (geo_owner, geo_polys), chm, dup, no_peak)
     out.flag[skipped] = "skipped"
     out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
@@ -416,15 +421,17 @@ def _leafy(L: np.ndarray, mv: np.ndarray, tops: np.ndarray, soil: float) -> np.n
     return np.where(mv >= half[L], L, 0)
 
 
-def _trace(lab: np.ndarray, owners: np.ndarray, rr: np.ndarray, cc: np.ndarray, t, R0: int,
-           C0: int) -> tuple[np.ndarray, np.ndarray]:
+def _trace(lab: np.ndarray, owners: np.ndarray, extent: np.ndarray, t, R0: int, C0: int) -> tuple[np.ndarray, np.ndarray]:
     """The outline of each plant in the label image ``lab`` (1 + an index into ``owners``, the plants; 0:
-    none; the window read at ``R0, C0``), traced over its pixels' extent (``rr, cc``) only: the window's
-    padding rows hold no home plant's pixel. The plants and one (multi)polygon each."""
-    if not len(rr):
+    none; the window read at ``R0, C0``), traced over its pixels' extent only (``extent``: row min, row max,
+    col min, col max of each plant's pixels; the window's padding rows hold no home plant's pixel). The
+    plants and one (multi)polygon each."""
+    some = extent[:, 0] <= extent[:, 1]
+    if not some.any():
         return np.zeros(0, np.int64), np.zeros(0, dtype=object)
-    r0, c0 = int(rr.min()), int(cc.min())
-    lab = lab[r0:int(rr.max()) + 1, c0:int(cc.max()) + 1]  # a view: the tracer reads it in place
+    r0, r1 = int(extent[some, 0].min()), int(extent[some, 1].max()) + 1
+    c0, c1 = int(extent[some, 2].min()), int(extent[some, 3].max()) + 1
+    lab = lab[r0:r1, c0:c1]  # a view: the tracer reads it in place
     R0, C0 = R0 + r0, C0 + c0
     wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
     labels, polys = outline_pieces(lab, wt)
@@ -451,27 +458,30 @@ def _local(b: np.ndarray, R0: int, R1: int, C0: int, C1: int) -> np.ndarray:
     return out
 
 
-def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts_plant, parts_h, geo_parts,
-             chm, dup, no_peak) -> Outlines:
+def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, geo_parts, chm, dup,
+             no_peak) -> Outlines:
+    """One :class:`Outlines` from the strips' parts: ``parts_pix``, each plant's canopy pixels (grouped by
+    plant within a part), ``own`` (each plant's range in their concatenation, its heights' sum and extent)
+    and ``geo_parts`` (the plants traced and their polygons)."""
+    own_src, own_len, own_sum, own_ext = own
     pix = np.concatenate(parts_pix) if parts_pix else np.zeros(0, np.int64)
-    plant = np.concatenate(parts_plant) if parts_plant else np.zeros(0, np.int64)
-    hv = np.concatenate(parts_h) if parts_h else np.zeros(0)
-    plant, pix, hv, own = group_by(plant, n, pix, hv)  # every pixel, by plant (in strip order within one)
-    count = np.diff(own)
     flag = np.full(n, "", dtype=object)
-    flag[count < s.min_pixels] = "small"
+    flag[own_len < s.min_pixels] = "small"
     flag[np.isnan(tops[:, 2])] = "no_top"
     flag[no_peak & np.isfinite(tops[:, 2])] = "no_peak"
     flag[np.isfinite(tops[:, 2]) & (tops[:, 2] < s.min_top)] = "low"
     flag[outside] = "outside"
     flag[dup >= 0] = "duplicate"
     ok = flag == ""
-    # each plant's pixels as a range of (pix, hv) to gather: its own; a duplicate's, the canopy of the plant
-    # whose top it shares (when that one has a canopy); another flagged plant's, the pixels whose centre is
-    # inside its box (appended after the canopy pixels, row by row)
-    src, length = own[:-1].copy(), np.where(ok, np.diff(own), 0)
+    # each plant's pixels as a range of pix to gather: its own; a duplicate's, the canopy of the plant whose
+    # top it shares (when that one has a canopy); another flagged plant's, the pixels whose centre is inside
+    # its box (appended after the canopy pixels, row by row)
+    src, length = own_src.copy(), np.where(ok, own_len, 0)
+    ext = own_ext.copy()  # row min, row max, col min, col max of the pixels gathered
+    vol = np.where(ok, own_sum, np.nan)
     shared = np.flatnonzero((dup >= 0) & ok[np.maximum(dup, 0)])
-    src[shared], length[shared] = own[dup[shared]], length[dup[shared]]
+    src[shared], length[shared], ext[shared], vol[shared] = src[dup[shared]], length[dup[shared]], \
+        ext[dup[shared]], vol[dup[shared]]
     boxed = np.setdiff1d(np.flatnonzero(~ok & ~outside), shared)
     if len(boxed):
         b = box_i[boxed]
@@ -481,22 +491,18 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, parts
         row, col = np.divmod(ranges(np.zeros(len(size), np.int64), size), np.maximum(np.repeat(w, size), 1))
         box_pix = (np.repeat(b[:, 1], size) + row) * W_ + np.repeat(b[:, 0], size) + col
         src[boxed], length[boxed] = len(pix) + np.cumsum(size) - size, size
-        pix, hv = np.concatenate([pix, box_pix]), np.concatenate([hv, np.full(len(box_pix), np.nan)])
-    plant, pix, hv, start = gather_ranges(src, length, pix, hv)
+        ext[boxed] = np.stack([b[:, 1], b[:, 3] - 1, b[:, 0], b[:, 2] - 1], axis=1)
+        pix = np.concatenate([pix, box_pix])
+    pix, start = gather_ranges(src, length, pix)
     count = length
     px_area = res * res
     area = count * px_area
-    with_canopy = ok.copy()
-    with_canopy[shared] = True
-    volume = np.where(with_canopy, np.bincount(plant, weights=np.nan_to_num(hv), minlength=n) * px_area, np.nan)
+    volume = vol * px_area
     # tightened box: the canopy pixels' extent (pixel edges)
-    r, c = pix // W_, pix % W_
     tight = np.full((n, 4), np.nan)
     has = count > 0
     if has.any():
-        st = start[:-1][has]
-        rmin, rmax = np.minimum.reduceat(r, st), np.maximum.reduceat(r, st)
-        cmin, cmax = np.minimum.reduceat(c, st), np.maximum.reduceat(c, st)
+        rmin, rmax, cmin, cmax = ext[has].T
         x0, y0 = _apply(t, cmin, rmax + 1)
         x1, y1 = _apply(t, cmax + 1, rmin)
         tight[has] = np.stack([x0, y0, x1, y1], axis=1)
