@@ -9,10 +9,12 @@ from scipy import ndimage as ndi
 
 from matchplant.spatial_stat_extractor.grouping import (
     gather_ranges,
-    label_sizes,
+    label_boxes,
     labelled_pixels,
     relabel,
+    pixel_window,
     sort_within_groups,
+    values_at,
 )
 from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
 from matchplant.spatial_stat_extractor.runs import LARGE_GROUP, quantiles
@@ -42,10 +44,13 @@ def test_gather_ranges_concatenates_each_groups_range():
     assert np.array_equal(np.diff(start), length) and start[0] == 0
 
 
-def test_label_sizes_and_sorted_runs():
+def test_label_boxes_and_sorted_runs():
     rng = np.random.default_rng(2)
     labels, n = ndi.label(rng.random((40, 70)) < 0.4)
-    assert np.array_equal(label_sizes(labels, n), np.bincount(labels.ravel(), minlength=n + 1))
+    size, box = label_boxes(labels, n)
+    assert np.array_equal(size, np.bincount(labels.ravel(), minlength=n + 1))
+    want = [(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndi.find_objects(labels)]
+    assert [tuple(b) for b in box[1:]] == want
     v = rng.random(300)
     first = np.array([0, 0, 1, 40, 41, 300])
     got = sort_within_groups(v, first)
@@ -193,3 +198,15 @@ def test_traced_outlines_are_gdals_polygonize():
     assert checked > 40
     empty_owners, empty = outline_pieces(np.zeros((4, 4), np.int32), t)
     assert len(empty_owners) == 0 and len(empty) == 0
+
+
+def test_values_at_flat_pixels_and_their_window():
+    rng = np.random.default_rng(6)
+    width = 57
+    pix = rng.choice(40 * width, 300, replace=False)
+    rows, cols = np.divmod(pix, width)
+    assert pixel_window(pix, width) == (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+    raster = rng.random((40, width)).astype(np.float32)
+    r0, r1, c0, c1 = pixel_window(pix, width)
+    got = values_at(raster[r0:r1, c0:c1], pix, width, r0, c0)
+    assert got.dtype == float and np.array_equal(got, raster[rows, cols].astype(float))

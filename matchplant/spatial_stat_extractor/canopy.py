@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from matchplant.spatial_stat_extractor.grouping import sort_within_groups
+from matchplant.spatial_stat_extractor.grouping import pixel_window, sort_within_groups, values_at
 from matchplant.spatial_stat_extractor.outlines import STRIP_ROWS, Outlines
 from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
 
@@ -25,11 +25,10 @@ def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarr
     out = np.full(len(pix), np.nan)
     if not len(pix):
         return out
-    rows, cols = np.divmod(pix, outlines.width)
-    r0, r1 = int(rows.min()), int(rows.max()) + 1
+    r0, r1, c0, c1 = pixel_window(pix, outlines.width)
     if r1 - r0 <= strip_rows:  # one window (a band of strips: the window its outlines read)
-        c0 = int(cols.min())
-        return source.read(r0, r1, c0, int(cols.max()) + 1)[rows - r0, cols - c0].astype(float)
+        return values_at(source.read(r0, r1, c0, c1), pix, outlines.width, r0, c0)
+    rows, cols = np.divmod(pix, outlines.width)
     block = rows // strip_rows
     order = np.argsort(block, kind="stable")
     edges = np.flatnonzero(np.diff(block[order])) + 1

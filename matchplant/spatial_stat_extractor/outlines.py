@@ -43,7 +43,7 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
 from matchplant.spatial_stat_extractor.grouping import (
     gather_ranges,
-    label_sizes,
+    label_boxes,
     labelled_pixels,
     relabel,
 )
@@ -242,13 +242,12 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
     lut[cid[single]] = idx[single] + 1
     L = relabel(comp, lut)
     # touching neighbours: a seeded watershed, only over each shared component
-    objects = ndi.find_objects(comp)
+    size, box = label_boxes(comp, n)
     for k in np.flatnonzero(nseed >= 2):
-        sl = objects[k - 1]
+        sl = np.s_[box[k, 0]:box[k, 1], box[k, 2]:box[k, 3]]
         mine = cid == k
         L[sl] = np.where(comp[sl] == k, _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start,
                                                 tc[mine] - sl[1].start, idx[mine] + 1), L[sl])
-    size = label_sizes(comp, n)
     free = np.flatnonzero((nseed == 0) & (size >= s.min_pixels))
     free = free[free > 0]
     if not len(free):
