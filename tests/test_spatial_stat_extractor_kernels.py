@@ -210,3 +210,43 @@ def test_values_at_flat_pixels_and_their_window():
     r0, r1, c0, c1 = pixel_window(pix, width)
     got = values_at(raster[r0:r1, c0:c1], pix, width, r0, c0)
     assert got.dtype == float and np.array_equal(got, raster[rows, cols].astype(float))
+
+
+def test_box_tops_are_the_per_plant_argmax():
+    """Against the loop it replaced: per box, the first highest local maximum (a slice and an argmax), else in
+    the window, else the box's highest pixel; boxes cut by the edge, empty, inverted, on holes only."""
+    from matchplant.spatial_stat_extractor.maxima import box_tops
+
+    rng = np.random.default_rng(7)
+    a = np.round(rng.random((50, 70)), 1)  # ties
+    a[rng.random(a.shape) < 0.1] = np.nan
+    a[30:40, 0:10] = np.nan
+    c0, r0 = rng.integers(-5, 65, 200), rng.integers(-5, 45, 200)
+    boxes = np.stack([c0, r0, c0 + rng.integers(0, 8, 200), r0 + rng.integers(0, 8, 200)], axis=1)
+    boxes[:3] = [[2, 31, 8, 38], [10, 10, 5, 20], [3, 3, 3, 9]]  # holes only, inverted, empty
+    windows = boxes + [-4, -4, 4, 4]
+    windows[:3] = boxes[:3]
+    clip = np.array([a.shape[1], a.shape[0]] * 2)
+    kinds = np.zeros(2, int)  # tops that are local maxima, and boxes' highest pixels, over both
+    sparse = rng.random(a.shape) < 0.03  # the second set of tops: most boxes and windows hold none
+    for peak in (local_maxima(a, 5, 0.3), local_maxima(a, 5, 0.3) & sparse):
+        want = np.full((len(boxes), 4), np.nan)
+        for k in range(len(boxes)):
+            for w in (boxes[k], windows[k]):
+                x0, y0, x1, y1 = np.clip(w, 0, clip)
+                pk = peak[y0:y1, x0:x1]
+                if pk.any():
+                    win = a[y0:y1, x0:x1]
+                    r, c = divmod(int(np.argmax(np.where(pk, win, -np.inf))), win.shape[1])
+                    want[k] = (y0 + r, x0 + c, win[r, c], 1)
+                    break
+            else:
+                x0, y0, x1, y1 = np.clip(boxes[k], 0, clip)
+                win = np.fmax(a[y0:y1, x0:x1], -np.inf)
+                if win.size and np.isfinite(win).any():
+                    r, c = divmod(int(np.argmax(win)), win.shape[1])
+                    want[k] = (y0 + r, x0 + c, win[r, c], 0)
+        got = box_tops(a, peak, boxes, windows)
+        assert np.array_equal(got, want, equal_nan=True)
+        kinds += [(want[:, 3] == 1).sum(), (want[:, 3] == 0).sum()]
+    assert (kinds > 30).all() and np.isnan(want[:3, 2]).all()

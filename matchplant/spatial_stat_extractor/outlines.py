@@ -47,7 +47,7 @@ from matchplant.spatial_stat_extractor.grouping import (
     labelled_pixels,
     relabel,
 )
-from matchplant.spatial_stat_extractor.maxima import local_maxima
+from matchplant.spatial_stat_extractor.maxima import box_tops, local_maxima
 from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
 from matchplant.spatial_stat_extractor.runs import ranges
 from matchplant.spatial_stat_extractor.trace import outline_pieces
@@ -140,32 +140,12 @@ def holes_low(W: np.ndarray) -> np.ndarray:
 
 
 def _tops(W: np.ndarray, boxes: np.ndarray, windows: np.ndarray, min_height: float) -> np.ndarray:
-    """(k, 3) local row, col and height of each plant's top: the highest local maximum inside its box
+    """(k, 4) local row, col and height of each plant's top: the highest local maximum inside its box
     (integer ``c0, r0, c1, r1``; a taller neighbour's leaves reaching into the box rise towards its own
     top, outside, so they hold no local maximum), else inside its box plus margin (``windows``: a box
     cut short of the plant's centre), else the highest pixel of the box; height NaN where the box is
-    empty. Column 3 is 1 where the top is a local maximum. A plain loop: slices and an argmax per plant
-    (~10 µs each)."""
-    peak = local_maxima(W, 5, min_height)  # never in a hole
-    out = np.full((len(boxes), 4), np.nan)
-    for k in range(len(boxes)):
-        for c0, r0, c1, r1 in (boxes[k], windows[k]):
-            pk = peak[r0:r1, c0:c1]
-            if pk.any():
-                win = W[r0:r1, c0:c1]
-                j = int(np.argmax(np.where(pk, win, -np.inf)))
-                r, c = divmod(j, win.shape[1])
-                out[k] = (r0 + r, c0 + c, win[r, c], 1)
-                break
-        else:
-            c0, r0, c1, r1 = boxes[k]
-            win = holes_low(W[r0:r1, c0:c1])
-            if win.size == 0 or not np.isfinite(win).any():
-                continue
-            j = int(np.argmax(win))
-            r, c = divmod(j, win.shape[1])
-            out[k] = (r0 + r, c0 + c, win[r, c], 0)
-    return out
+    empty. Column 3 is 1 where the top is a local maximum."""
+    return box_tops(W, local_maxima(W, 5, min_height), boxes, windows)  # a local maximum is never in a hole
 
 
 def _tops_near(W: np.ndarray, seeds: np.ndarray, radius_px: float, min_top: float) -> np.ndarray:
