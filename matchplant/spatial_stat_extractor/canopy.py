@@ -47,7 +47,7 @@ def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
     n = len(start) - 1
     group = np.repeat(np.arange(n), np.diff(start))
     ok = np.isfinite(values)
-    v, g = values[ok], group[ok]
+    v, g = (values, group) if ok.all() else (values[ok], group[ok])  # canopy heights: all finite, no copies
     cnt = np.bincount(g, minlength=n).astype(float)
     has = cnt > 0
     first = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)

@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
-from affine import Affine
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
@@ -296,7 +295,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     own_src, own_len = np.zeros(n, np.int64), np.zeros(n, np.int64)
     own_sum, own_ext = np.zeros(n), np.zeros((n, 4), np.int64)
     taken = 0
-    geo_owner, geo_polys = [], []
+    geo_owner, geo_polys, geo_suspect = [], [], []
     no_peak = np.zeros(n, bool)
     soil_top = np.zeros(n, bool)
     live = np.flatnonzero(~outside)
@@ -364,13 +363,14 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         own_sum[mine], own_ext[mine] = total[hit], extent[hit] + [Rr0, Rr0, Cc0, Cc0]
         parts_pix.append(pix)
         taken += len(pix)
-        owner, polys = _trace(lab, near, extent[hit], t, Rr0, Cc0)
+        owner, polys, suspect = _trace(lab, near, extent[hit], t, Rr0, Cc0)
         geo_owner.append(owner)
         geo_polys.append(polys)
+        geo_suspect.append(suspect)
         bar.update(1)
     bar.close()
     out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix,
-                   (own_src, own_len, own_sum, own_ext), (geo_owner, geo_polys), chm, dup, no_peak)
+                   (own_src, own_len, own_sum, own_ext), (geo_owner, geo_polys, geo_suspect), chm, dup, no_peak)
     out.flag[skipped] = "skipped"
     out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
@@ -404,26 +404,27 @@ def _trace(lab: np.ndarray, owners: np.ndarray, extent: np.ndarray, t, R0: int, 
     """The outline of each plant in the label image ``lab`` (1 + an index into ``owners``, the plants; 0:
     none; the window read at ``R0, C0``), traced over its pixels' extent only (``extent``: row min, row max,
     col min, col max of each plant's pixels; the window's padding rows hold no home plant's pixel). The
-    plants and one (multi)polygon each."""
+    plants, one (multi)polygon each, and whether it may be invalid (:func:`~.trace.outline_pieces`)."""
     some = extent[:, 0] <= extent[:, 1]
     if not some.any():
-        return np.zeros(0, np.int64), np.zeros(0, dtype=object)
+        return np.zeros(0, np.int64), np.zeros(0, dtype=object), np.zeros(0, bool)
     r0, r1 = int(extent[some, 0].min()), int(extent[some, 1].max()) + 1
     c0, c1 = int(extent[some, 2].min()), int(extent[some, 3].max()) + 1
-    lab = lab[r0:r1, c0:c1]  # a view: the tracer reads it in place
-    R0, C0 = R0 + r0, C0 + c0
-    wt = Affine(t.a, t.b, t.c + t.a * C0 + t.b * R0, t.d, t.e, t.f + t.d * C0 + t.e * R0)
-    labels, polys = outline_pieces(lab, wt)
-    return owners[labels - 1], polys
+    labels, polys, suspect = outline_pieces(lab[r0:r1, c0:c1], t, R0 + r0, C0 + c0)  # a view, read in place
+    return owners[labels - 1], polys, suspect
 
 
-def valid_polygons(geoms: np.ndarray) -> np.ndarray:
+def valid_polygons(geoms: np.ndarray, check: np.ndarray | None = None) -> np.ndarray:
     """The polygons made valid where they are not (a ring touching itself at a pixel corner, a box drawn
     with its corners crossed), by GEOS's structure method, which keeps every pixel's area (``buffer(0)``
-    may drop one lobe of a bow-tie); collapsed parts (lines, points) are dropped."""
+    may drop one lobe of a bow-tie); collapsed parts (lines, points) are dropped. ``check``: only these may
+    be invalid (GEOS's validity test of every outline took half of gathering a strip's outlines)."""
     geoms = np.asarray(geoms, dtype=object).copy()
     present = ~(shapely.is_missing(geoms) | shapely.is_empty(geoms))
-    bad = np.flatnonzero(present & ~shapely.is_valid(geoms))
+    if check is not None:
+        present &= check
+    bad = np.flatnonzero(present)
+    bad = bad[~shapely.is_valid(geoms[bad])]
     if len(bad):
         geoms[bad] = shapely.make_valid(geoms[bad], method="structure", keep_collapsed=False)
     return geoms
@@ -491,10 +492,14 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, 
     geometry = np.asarray(geoms, dtype=object).copy()
     owner = np.concatenate(geo_parts[0]) if geo_parts[0] else np.zeros(0, np.int64)
     polys = np.concatenate(geo_parts[1]) if geo_parts[1] else np.zeros(0, dtype=object)
+    suspect = np.concatenate(geo_parts[2]) if geo_parts[2] else np.zeros(0, bool)
     mine = ok[owner]
     geometry[owner[mine]] = polys[mine]  # a plant is traced in its home strip only: one (multi)polygon
+    check = np.ones(n, bool)  # the boxes given (drawn with crossed corners?) and the outlines that may be invalid
+    check[owner[mine]] = suspect[mine]
     geometry[shared] = geometry[dup[shared]]
-    geometry = valid_polygons(geometry)
+    check[shared] = check[dup[shared]]
+    geometry = valid_polygons(geometry, check)
     return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
                     flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
                     crs=getattr(chm, "crs", None), duplicate_of=np.where(flag == "duplicate", dup, -1))

@@ -49,11 +49,12 @@ from matchplant.spatial_stat_extractor.zonal import zonal_stats
 log = get_logger("spatial_stat_extractor.strips")
 
 # peak bytes per pixel of a strip's window (its rows and the halo of a box's height above and below), outlining
-# and measuring together: the survey bench's CHM-only strips peak at 50-55 B per window pixel (1.1 GB over 22 Mpx
-# at 30,000 px wide, the 2 ha field's run: 2.3 GB in all with max_memory 4GB); 80 leaves room for an NDVI mask
-# layer and more layers measured. Every strip repeats its halo's work, so strips as tall as the budget allows
-# (at most MAX_STRIP_ROWS) cost least: 408-row strips across 30,000 px outlined 1.8x the pixels they own.
-BYTES_PER_PIXEL = 80
+# and measuring together: the survey bench's CHM-only strips peak at 24 B per window pixel (713 MB over 30 Mpx at
+# 30,000 px wide, /proc's high-water mark over one band); an NDVI mask layer adds about 9 (float64 and a boolean)
+# and each other layer measured on the CHM's grid 8 while it is gathered: 48 leaves room for both. Every strip
+# repeats its halo's work, so strips as tall as the budget allows (at most MAX_STRIP_ROWS) cost least: 764-row
+# strips across 30,000 px outlined 1.26x the pixels they own.
+BYTES_PER_PIXEL = 48
 STRIP_SHARE = 0.75  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
 # (the survey bench's whole module peaked at 1.8 GB of max_memory 3GB with half of it for the strips)
 MIN_STRIP_ROWS = 64

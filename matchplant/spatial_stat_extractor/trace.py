@@ -11,7 +11,7 @@ A ring is followed with its label on the right (clockwise on the raster, rows do
 label holds two diagonal pixels only, the ring keeps to the pixel it follows (4-connectivity). Rings with a
 positive area are shells, the others holes, each in the shell of the piece that holds the pixel next to it.
 A shell that meets its own hole at a corner comes out touching itself (invalid); :func:`valid_polygons` in
-outlines repairs it, as it did GDAL's.
+outlines repairs it, as it did GDAL's, checking only the outlines whose rings pass such a corner.
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ def _grown(xy):
 
 @numba.njit(cache=True, nogil=True)
 def _rings(lab):
-    """Every ring of ``lab``: corner (col, row) vertices, ring offsets, label, twice the signed area, and the
-    pixel (row * cols + col) whose top edge starts it (the first in raster order)."""
+    """Every ring of ``lab``: corner (col, row) vertices, ring offsets, label, twice the signed area, the pixel
+    (row * cols + col) whose top edge starts it (the first in raster order), and whether it passes a diagonal
+    corner."""
     rows, cols = lab.shape
     seen = np.zeros((rows, (cols + 7) // 8), np.uint8)  # top edges already on a ring (one bit each)
     xy = np.empty((1024, 2), np.int64)
@@ -39,6 +40,7 @@ def _rings(lab):
     labels = []
     area2 = []
     first_pixel = []
+    corner = []  # the ring passes a corner where its label holds two diagonal pixels only (see outline_pieces)
     for r in range(rows):
         for c in range(cols):
             v = lab[r, c]
@@ -49,6 +51,7 @@ def _rings(lab):
             vr, vc, d = r, c, 0
             a2 = 0
             begin = nxy
+            diagonal = False
             while True:
                 # one step, then the pixels ahead of the corner on the left (lr, lc) and on the right (qr, qc)
                 if d == 0:
@@ -72,6 +75,7 @@ def _rings(lab):
                         nd = (d + 3) & 3  # turn left
                 else:
                     nd = (d + 1) & 3  # turn right; also where only the left one is (a diagonal: another piece)
+                    diagonal = diagonal or on_left
                 if nd != d:
                     if nxy == xy.shape[0]:
                         xy = _grown(xy)
@@ -91,16 +95,20 @@ def _rings(lab):
             labels.append(v)
             area2.append(a2)
             first_pixel.append(r * cols + c)
+            corner.append(diagonal)
     return (xy[:nxy], np.array(starts, np.int64), np.array(labels, np.int64), np.array(area2, np.int64),
-            np.array(first_pixel, np.int64))
+            np.array(first_pixel, np.int64), np.array(corner, np.bool_))
 
 
-def outline_pieces(labels: np.ndarray, transform) -> tuple[np.ndarray, np.ndarray]:
-    """The outline of every label of ``labels`` (integers, 0: none) on the map of ``transform`` (an affine of
-    the image's pixel corners): the labels, ascending, and one (multi)polygon each."""
-    xy, starts, lab, area2, first = _rings(labels)
+def outline_pieces(labels: np.ndarray, transform, row0: int = 0, col0: int = 0) -> tuple[np.ndarray, np.ndarray,
+                                                                                          np.ndarray]:
+    """The outline of every label of ``labels`` (integers, 0: none; cut at ``row0, col0`` from a raster whose
+    pixel corners ``transform`` puts on the map): the labels, ascending, one (multi)polygon each, and whether it may be invalid.
+    Only a ring through a corner where its label holds two diagonal pixels can touch itself (a shell meeting
+    its hole, two holes meeting) or touch another piece; the others need no validity check."""
+    xy, starts, lab, area2, first, corner = _rings(labels)
     if not len(lab):
-        return np.zeros(0, np.int64), np.zeros(0, dtype=object)
+        return np.zeros(0, np.int64), np.zeros(0, dtype=object), np.zeros(0, bool)
     shell = area2 > 0
     piece = np.full(len(lab), -1, np.int64)
     piece[shell] = np.arange(int(shell.sum()))
@@ -111,7 +119,8 @@ def outline_pieces(labels: np.ndarray, transform) -> tuple[np.ndarray, np.ndarra
     take = np.repeat(starts[:-1][order] - np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes) + np.arange(sizes.sum())
     ring_off = np.concatenate([[0], np.cumsum(sizes)])
     poly_off = np.r_[np.flatnonzero(shell[order]), len(order)]
-    c, r = xy[take, 0].astype(float), xy[take, 1].astype(float)
+    # from the raster's own corner numbers: a vertex's coordinates do not depend on where the image was cut
+    c, r = (xy[take, 0] + col0).astype(float), (xy[take, 1] + row0).astype(float)
     t = transform
     coords = np.column_stack([t.a * c + t.b * r + t.c, t.d * c + t.e * r + t.f])
     polys = shapely.from_ragged_array(shapely.GeometryType.POLYGON, coords, (ring_off, poly_off))
@@ -121,14 +130,15 @@ def outline_pieces(labels: np.ndarray, transform) -> tuple[np.ndarray, np.ndarra
     owner, polys = owner[by], polys[by]
     first_of = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
     count = np.diff(np.r_[first_of, len(owner)])
+    suspect = np.isin(owner[first_of], lab[corner])
     if (count == 1).all():
-        return owner, polys
+        return owner, polys, suspect
     out = polys[first_of].copy()
     multi = np.flatnonzero(count > 1)
     members = np.isin(np.repeat(np.arange(len(first_of)), count), multi)
     group = np.repeat(np.arange(len(first_of)), count)[members]
     out[multi] = shapely.multipolygons(polys[members], indices=np.searchsorted(multi, group))
-    return owner[first_of], out
+    return owner[first_of], out, suspect
 
 
 def _holes_shell(xy, starts, lab, area2, first, cols) -> np.ndarray:
