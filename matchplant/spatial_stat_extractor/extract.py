@@ -38,6 +38,7 @@ import pandas as pd
 import rasterio
 import shapely
 
+from matchplant.core.formats.csv_table import write_table
 from matchplant.core.formats.vectors import write_formats, write_vector
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import atomic_open, write_json
@@ -176,7 +177,7 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
 
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
     with atomic_open(path) as fh:
-        df.to_csv(fh, index=False, float_format="%.12g")
+        write_table(df, fh)
     return Path(path)
 
 
