@@ -60,6 +60,7 @@ from matchplant.spatial_stat_extractor.plot_rows import (
     seed_slot,
 )
 from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
+from matchplant.spatial_stat_extractor.plots_figure import field_figure
 
 log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")
@@ -280,9 +281,6 @@ def run_plots(cfg: PlotsConfig, table: pd.DataFrame, unclaimed: pd.DataFrame | N
     col = f"{trait}_mean" if f"{trait}_mean" in gdf.columns else (trait if trait in gdf.columns else "stand_count")
     log.info("%d plots: %d plants in plots, %d gaps", len(per_plot), int(per_plot["stand_count"].fillna(0).sum()),
              len(gaps))
-    # matplotlib only where a figure is drawn: a run without plots does not pay for its import (issue 30)
-    from matchplant.spatial_stat_extractor.plots_figure import field_figure
-
     return {"plots_gpkg": write_vector(gdf, out / "plots.gpkg", layer="plots"),
             "plots_csv": write_csv(per_plot, out / "plots.csv"),
             "plot_gaps_csv": write_csv(gaps, out / "plot_gaps.csv"),

@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import geopandas as gpd
 import numpy as np
 import pandas as pd
-from matplotlib.colors import Normalize
-from matplotlib.ticker import MaxNLocator
 
 from matchplant.core.runtime.gui import close, figure
 from matchplant.core.runtime.io import atomic_path
+
+if TYPE_CHECKING:
+    from matplotlib.colors import Normalize
 
 UNITS = ((r"^(stand_count|expected|gaps|unclaimed|low_boxes)$", "plants"),
          (r"^canopy_cover$", "share of the plot area"),
@@ -36,6 +38,9 @@ def unit_of(column: str) -> str:
 
 def colour_norm(values: pd.Series) -> Normalize:
     """The colour scale of the plot values; a single value sits in the middle of a small range."""
+    from matplotlib.colors import Normalize  # matplotlib on first use, as core.runtime.gui (a run without
+    # plots, or a box-statistics run, does not pay for its import: issue 30)
+
     v = values.to_numpy(float)
     lo, hi = np.nanmin(v), np.nanmax(v)
     if not hi > lo:
@@ -69,6 +74,8 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
         ax.plot(pts[:, 0], pts[:, 1], ".", ms=1.5, color="black", label="plants", zorder=2)
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
+    from matplotlib.ticker import MaxNLocator  # on first use (see colour_norm)
+
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(nbins=4, min_n_ticks=2))
     ax.tick_params(axis="x", labelrotation=30)

@@ -25,6 +25,7 @@ from matchplant.spatial_stat_extractor.memory import gdal_cache_bytes, memory_re
 from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.rasters import raster_crs
+from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 
 log = get_logger("spatial_stat_extractor")
 
@@ -63,10 +64,6 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
                               "from": polygons.attrs.get("crs_source")}
     outlines = unclaimed = None
     if cfg.canopy.enabled:
-        # the outlines' libraries (scipy's image and spatial modules, their compiled kernels) only for a run that
-        # outlines: box statistics alone start half a second sooner, a fifth of a 20,000-plant run (issue 30)
-        from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
-
         if on_progress is not None:
             on_progress(1.0, "plant outlines and canopy statistics")
         t0, c0 = time.perf_counter(), time.process_time()
