@@ -49,12 +49,13 @@ from matchplant.spatial_stat_extractor.zonal import zonal_stats
 log = get_logger("spatial_stat_extractor.strips")
 
 # peak bytes per pixel of a strip's window (its rows and the halo of a box's height above and below), outlining
-# and measuring together: the survey bench's CHM-only strips peak at 24 B per window pixel (713 MB over 30 Mpx at
-# 30,000 px wide, /proc's high-water mark over one band); an NDVI mask layer adds about 9 (float64 and a boolean)
-# and each other layer measured on the CHM's grid 8 while it is gathered: 48 leaves room for both. Every strip
-# repeats its halo's work, so strips as tall as the budget allows (at most MAX_STRIP_ROWS) cost least: 764-row
-# strips across 30,000 px outlined 1.26x the pixels they own.
-BYTES_PER_PIXEL = 48
+# and measuring together, from /proc's high-water mark over one band: 24 B for the CHM alone (the survey bench,
+# 713 MB over 30 Mpx at 30,000 px wide); 46 B with an NDVI mask and the demo's multispectral and RGB layers
+# measured on the canopy (its noisy field, 505 MB over 10.9 Mpx). The rest of max_memory (the plants, tables,
+# GDAL's cache: about 1 GB for 100,000 plants) must fit beside the strips, so 64 keeps a masked survey within
+# its budget. Every strip repeats its halo's work, so strips as tall as the budget allows (at most
+# MAX_STRIP_ROWS) cost least: 764-row strips across 30,000 px outlined 1.26x the pixels they own.
+BYTES_PER_PIXEL = 64
 STRIP_SHARE = 0.75  # of max_memory for the strips in flight; the rest: polygons, tables, outlines, GDAL cache
 # (the survey bench's whole module peaked at 1.8 GB of max_memory 3GB with half of it for the strips)
 MIN_STRIP_ROWS = 64
