@@ -103,9 +103,9 @@ def _rings(lab):
 def outline_pieces(labels: np.ndarray, transform, row0: int = 0, col0: int = 0) -> tuple[np.ndarray, np.ndarray,
                                                                                           np.ndarray]:
     """The outline of every label of ``labels`` (integers, 0: none; cut at ``row0, col0`` from a raster whose
-    pixel corners ``transform`` puts on the map): the labels, ascending, one (multi)polygon each, and whether it may be invalid.
-    Only a ring through a corner where its label holds two diagonal pixels can touch itself (a shell meeting
-    its hole, two holes meeting) or touch another piece; the others need no validity check."""
+    pixel corners ``transform`` puts on the map): the labels, ascending, one (multi)polygon each, and whether
+    it may be invalid. Only a ring through a corner where its label holds two diagonal pixels can touch itself
+    (a shell meeting its hole, two holes meeting) or touch another piece; the others need no validity check."""
     xy, starts, lab, area2, first, corner = _rings(labels)
     if not len(lab):
         return np.zeros(0, np.int64), np.zeros(0, dtype=object), np.zeros(0, bool)
