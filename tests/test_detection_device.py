@@ -1,5 +1,5 @@
-"""Device selection (matchplant.detection.device): chosen out loud, CUDA's failures named, slow CPU work
-announced (issue 17)."""
+"""Device selection (matchplant.detection.device): chosen out loud, CUDA's failures named (issue 17). Module 7
+announces slow detection from a probe of the real model (tests/test_model_test.py)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ import torch
 from log_records import log_records, messages
 
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.detection.architectures import get_architecture
 from matchplant.detection.device import (
-    cuda_unusable_reason, explain_device, select_device, warn_if_slow,
+    cuda_unusable_reason, explain_device, select_device,
 )
 
 
@@ -52,12 +51,3 @@ def test_cuda_reasons_name_the_cause():
     assert "driver on your system is too old" in cuda_unusable_reason(cuda_build)
 
 
-def test_slow_cpu_work_is_announced():
-    with log_records("matchplant.device", logging.INFO) as records:
-        arch = "fasterrcnn_resnet50_fpn"
-        est = warn_if_slow(torch.device("cpu"), arch, 1000, 5472, 3648)
-        assert est == pytest.approx(19961.856 * get_architecture(arch).cpu_seconds_per_megapixel)  # 1000 x 19.961856 megapixels
-        assert warn_if_slow(torch.device("cpu"), arch, 2, 400, 300) < 600
-        assert warn_if_slow(torch.device("cuda"), arch, 1000, 5472, 3648) is None
-    warned = messages(records, logging.WARNING)
-    assert len(warned) == 1 and f"{est / 3600:.1f} h" in warned[0] and "1000 image(s) of 5472 x 3648" in warned[0]

@@ -5,9 +5,9 @@ a CPU-only PyTorch build, no NVIDIA driver, a driver too old for this build, a G
 compiled for; MPS; CPU). :func:`choose_threads` picks torch's CPU thread count from the cores this
 process may use (its affinity and cgroup quota) less those other work keeps busy (the load average), and
 :func:`configure_threads` applies and logs it (modules 6 and 7 and the demo; a ``threads`` key overrules it).
-:func:`warn_if_slow` estimates how long detection will take on the CPU from
-the number and size of the images and warns before a long run (the rates are measured, see the README's
-"How long will it take?"; each architecture's ``cpu_seconds_per_megapixel``).
+:func:`measure_cpu_rates` measures each architecture's ``cpu_seconds_per_megapixel`` (the README's "How long
+will it take?"). Module 7 estimates a detection run from a probe of the real model on the user's machine
+(:mod:`matchplant.model_test.estimate`), not from these rates.
 """
 
 from __future__ import annotations
@@ -19,13 +19,11 @@ import warnings
 from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.progress import duration
-from matchplant.detection.architectures import ARCHITECTURES, Architecture, get_architecture
+from matchplant.detection.architectures import ARCHITECTURES, Architecture
 from matchplant.detection.model import ModelConfig, build_detector
 
 DEVICE_CHOICES = ("auto", "cuda", "mps", "cpu")
 log = get_logger("device")
-WARN_AFTER_S = 600.0
 
 
 def cuda_unusable_reason(torch) -> str:
@@ -146,30 +144,6 @@ def configure_threads(requested: int | None = None) -> int:
 
 def _measured() -> list[Architecture]:
     return [a for a in ARCHITECTURES.values() if a.cpu_seconds_per_megapixel is not None]
-
-
-def estimate_seconds(architecture: str, n_images: int, width: int, height: int) -> float:
-    """CPU seconds to detect on ``n_images`` of ``width`` x ``height`` pixels (measured rates; an architecture
-    not measured is taken as slow as the slowest measured one)."""
-    rate = get_architecture(architecture).cpu_seconds_per_megapixel
-    if rate is None:
-        rate = max(a.cpu_seconds_per_megapixel for a in _measured())
-    return rate * n_images * width * height / 1e6
-
-
-def warn_if_slow(device, architecture: str, n_images: int, width: int, height: int,
-                 threshold_s: float = WARN_AFTER_S) -> float | None:
-    """Warn before CPU detection longer than ``threshold_s``; returns the estimate in seconds (None on a GPU)."""
-    if getattr(device, "type", str(device)) != "cpu":
-        return None
-    seconds = estimate_seconds(architecture, n_images, width, height)
-    if seconds >= threshold_s:
-        log.warning("detection on the CPU: about %s for %d image(s) of %d x %d px with %s (%.1f s per megapixel "
-                    "measured on a 2-core machine). Use a CUDA GPU (device: auto picks it) if you have one, "
-                    "or detect only on the images module 3 selected.",
-                    duration(seconds), n_images, width, height, architecture,
-                    get_architecture(architecture).cpu_seconds_per_megapixel or 0.0)
-    return seconds
 
 
 def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) -> dict[str, float]:
