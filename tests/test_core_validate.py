@@ -13,24 +13,10 @@ from affine import Affine
 from PIL import Image
 from shapely.geometry import box
 
-from matchplant.core.runtime import validate
+from matchplant.core.runtime import validate_gis
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.validate import (
-    check_coordinates,
-    check_jpeg,
-    check_path,
-    check_range,
-    check_raster,
-    check_vector,
-    did_you_mean,
-    match_name,
-    match_names,
-    name_key,
-    read_csv,
-    read_json,
-    read_text,
-    read_yaml,
-)
+from matchplant.core.runtime.validate import check_coordinates, check_jpeg, check_path, check_range, did_you_mean, match_name, match_names, name_key, read_csv, read_json, read_text, read_yaml
+from matchplant.core.runtime.validate_gis import check_raster, check_vector
 
 
 def fails(call, *texts, exc=InputError) -> str:
@@ -247,15 +233,15 @@ def test_check_raster_looks_at_a_few_blocks_before_any_scan(tmp_path, monkeypatc
         ds.write(np.full((4096, 4096), -1, "float32"), 1)
         ds.write(np.ones((256, 256), "float32"), 1, window=rasterio.windows.Window(2304, 2304, 256, 256))
     with rasterio.open(path) as ds:
-        windows = validate._sampled_windows(ds, 1)
+        windows = validate_gis._sampled_windows(ds, 1)
     assert len(windows) == 64 and all(w.width == w.height == 256 for w in windows)
     # a band valid in one tile the sample does not include is still found by the scan
-    monkeypatch.setattr(validate, "SAMPLED_BLOCKS", 2)
+    monkeypatch.setattr(validate_gis, "SAMPLED_BLOCKS", 2)
     check_raster(path)
     read = []
     real = rasterio.io.DatasetReader.read
     monkeypatch.setattr(rasterio.io.DatasetReader, "read", lambda self, *a, **k: read.append(k) or real(self, *a, **k))
-    monkeypatch.setattr(validate, "SAMPLED_BLOCKS", 8)
+    monkeypatch.setattr(validate_gis, "SAMPLED_BLOCKS", 8)
     check_raster(path)  # tile (9, 9) of 16 x 16 is among the 8 x 8 sampled: no scan
     assert 0 < len(read) <= 64 and all(k["window"].width == 256 for k in read)
     # a truncated copy fails: the sample holds the last tile, at the end of the file

@@ -54,7 +54,7 @@ from matchplant.core.formats.split_check import check_split
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.validate import check_raster
+from matchplant.core.runtime.validate_gis import check_raster
 from matchplant.min_img_finder.aoi import aoi_from_mask, build_grid, orthophoto_preview, read_aoi_file
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.output import save_selection

@@ -20,7 +20,7 @@ from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import package_versions
-from matchplant.core.runtime.validate import check_raster
+from matchplant.core.runtime.validate_gis import check_raster
 from matchplant.odm_runner.config import OdmRunnerConfig
 from matchplant.odm_runner.inputs import odm_option_dict
 

@@ -19,7 +19,8 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.validate import check_vector, read_csv
+from matchplant.core.runtime.validate import read_csv
+from matchplant.core.runtime.validate_gis import check_vector
 
 log = get_logger("plant_projection")
 

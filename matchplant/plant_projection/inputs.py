@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.validate import check_raster
+from matchplant.core.runtime.validate_gis import check_raster
 
 
 def check_dsm(path: Path, key: str | None) -> None:

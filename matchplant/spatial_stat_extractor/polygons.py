@@ -22,7 +22,8 @@ import shapely
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.validate import check_vector, did_you_mean
+from matchplant.core.runtime.validate import did_you_mean
+from matchplant.core.runtime.validate_gis import check_vector
 from matchplant.spatial_stat_extractor.pixel_boxes import (
     IMAGE_COLUMN,
     boxes_from_csv,

@@ -24,7 +24,7 @@ from rasterio.warp import transform_bounds
 from matchplant.core.geometry.frames import utm_crs_for
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.validate import check_raster
+from matchplant.core.runtime.validate_gis import check_raster
 from matchplant.spatial_stat_extractor.bands import (
     band_names,
     check_bands,
