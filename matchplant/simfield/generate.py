@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import datetime as dt
 import io
 import multiprocessing as mp
@@ -16,23 +15,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import piexif
-import rasterio
-from affine import Affine
 from PIL import Image
 from pyproj import CRS, Transformer
-from rasterio.enums import ColorInterp
-from rasterio.windows import Window
 
 from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
 from matchplant.core.formats.reconstruction import Reconstruction, write_reconstruction
 from matchplant.core.geometry.frames import OffsetFrame, TopocentricFrame, utm_crs_for, write_coords_txt
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.core.runtime.io import atomic_open, atomic_path, write_json, write_text
+from matchplant.core.runtime.io import write_json, write_text
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.simfield.config import SITE_LAT, SITE_LON, Settings, SimFieldConfig, resolve
+from matchplant.simfield.field_files import write_csv, write_plants, write_plot_truth, write_rasters
 from matchplant.simfield.flight import (
     SENSOR_WIDTH_MM,
     SHOT_INTERVAL_S,
@@ -49,18 +44,22 @@ from matchplant.simfield.noise import (
     BAND_ORDER,
     REALISTIC,
     antialiased_mask,
-    five_bands,
     mask_objects,
-    noise_summary,
-    photogrammetric_dem,
+)
+from matchplant.simfield.photo_files import (
+    CAMERA_MAKE,
+    camera_model,
+    encode,
+    with_exif,
+    write_bytes,
+    write_image,
+    write_mask,
 )
 from matchplant.simfield.scene import GCP_SIZE, Grid, Plants, Rasters, Terrain, make_gcps, make_plants, rasterize
-from matchplant.simfield.traits import grow, plot_truth, traits_rows, vigour
+from matchplant.simfield.traits import grow, vigour
 from matchplant.simfield.truth import candidates_near, image_boxes
 
 log = get_logger("simfield")
-NODATA = -9999.0
-CAMERA_MAKE, CAMERA_MODEL = "MatchPlant", "SimCam"
 
 
 def generate(cfg: SimFieldConfig) -> FieldPaths:
@@ -183,7 +182,7 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
                           reference_lla={"latitude": ref_lat, "longitude": ref_lon, "altitude": terrain.z0})
     write_reconstruction(paths.topocentric_reconstruction, trec)
     # the noise has streams of its own: an exact and a realistic field of one seed share everything else
-    noise = _write_rasters(paths, grid, rasters, terrain, offset, crs,
+    noise = write_rasters(paths, grid, rasters, terrain, offset, crs,
                            np.random.default_rng([cfg.seed, 1904]) if realistic else None)
 
     # -- inputs of modules 0 and 1 -------------------------------------------------------------------
@@ -191,24 +190,24 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
                                       f"{i['center'][2]:.4f}" for i in image_info]
     write_text(paths.gnss_log, "\n".join(lines) + "\n")
     gmap = gcps + offset
-    _write_csv(paths.gcp_survey, ["id", "x", "y", "z"],
+    write_csv(paths.gcp_survey, ["id", "x", "y", "z"],
                [[f"GCP{g + 1:02d}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}"] for g, (x, y, z) in enumerate(gmap)])
 
     # -- truth ---------------------------------------------------------------------------------------
-    _write_plants(paths, plants, rasters, s.raster_res, offset)
-    _write_plot_truth(paths, s, plants, offset, f"EPSG:{crs.to_epsg()}")
+    write_plants(paths, plants, rasters, s.raster_res, offset)
+    write_plot_truth(paths, s, plants, offset, f"EPSG:{crs.to_epsg()}")
     if cfg.second_date:
         later = grow(plants, terrain, np.random.default_rng([cfg.seed, 1902]))
         rasters2 = rasterize(s, grid, later, gcps, np.random.default_rng([cfg.seed, 1903]))
-        noise2 = _write_rasters(paths.later, grid, rasters2, terrain, offset, crs,
+        noise2 = write_rasters(paths.later, grid, rasters2, terrain, offset, crs,
                                 np.random.default_rng([cfg.seed, 1905]) if realistic else None)
         if noise2:
             write_json(paths.later.noise_json, noise2)
-        _write_plants(paths.later, later, rasters2, s.raster_res, offset)
+        write_plants(paths.later, later, rasters2, s.raster_res, offset)
     ext = plants.extents() + np.r_[offset[:2], offset[:2]]
-    _write_csv(paths.map_boxes, ["id", "xmin", "ymin", "xmax", "ymax"],
+    write_csv(paths.map_boxes, ["id", "xmin", "ymin", "xmax", "ymax"],
                [[int(i)] + [f"{v:.4f}" for v in b] for i, b in zip(plants.ids, ext)])
-    _write_csv(paths.gcp_pixels, ["gcp_id", "image", "u", "v"], gcp_rows)
+    write_csv(paths.gcp_pixels, ["gcp_id", "image", "u", "v"], gcp_rows)
     write_dataset(paths.boxes_raw, raw_ds)
     write_dataset(paths.boxes_undistorted, und_ds)
     week = image_info[0]["gps_week"] if image_info else 0
@@ -227,7 +226,7 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
         "preset": cfg.preset,
         "seed": cfg.seed,
         "settings": {k: getattr(s, k) for k in s.__dataclass_fields__},
-        "camera": {"id": camera.id, "opensfm": camera.to_opensfm(), "make": CAMERA_MAKE, "model": _model(s),
+        "camera": {"id": camera.id, "opensfm": camera.to_opensfm(), "make": CAMERA_MAKE, "model": camera_model(s),
                    "sensor_width_mm": SENSOR_WIDTH_MM, "focal_mm": s.focal * SENSOR_WIDTH_MM},
         "flight": {"altitude": s.altitude, "overlap_front": s.overlap_front, "overlap_side": s.overlap_side,
                    "tilt_deg": s.tilt_deg, "attitude_noise_deg": s.attitude_noise_deg,
@@ -257,7 +256,7 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
                                                             "truth/masks_antialiased_jpg (JPEG)",
                                                             "truth/masks_antialiased_gif (GIF)"],
                                                 "of": "undistorted images", "truth": "truth/mask_objects.csv"}})
-        _write_csv(paths.mask_objects, ["image", "plants", "parts", "pixels"], objects)
+        write_csv(paths.mask_objects, ["image", "plants", "parts", "pixels"], objects)
     write_json(paths.field_json, field)
     _remove_stale(paths, {e.name for e in exposures}, realistic)
     log.info("synthetic field written to %s in %.1f s", paths.root, time.perf_counter() - t0)
@@ -313,16 +312,16 @@ def _render_job(job: ImageJob) -> tuple[list, list, tuple | None]:
         rgb = np.clip(rgb + noise, 0, 255).astype(np.uint8)
         name = job.exposure.name
         if undist:
-            _write_image(sc.paths.undistorted_images / f"{name}.tif", rgb, ".tif")
-            _write_mask(sc.paths.masks_undistorted / f"{name}.png", ids)
+            write_image(sc.paths.undistorted_images / f"{name}.tif", rgb, ".tif")
+            write_mask(sc.paths.masks_undistorted / f"{name}.png", ids)
             if sc.realistic:
                 objects = mask_objects(ids)
                 _write_antialiased(sc.paths, name, antialiased_mask(ids))
         else:
-            jpeg = _encode(rgb, ".jpg", sc.s.jpeg_quality)
-            _write_bytes(sc.paths.images / name, _with_exif(jpeg, sc.s, job.cam_time, job.gps))
-            _write_bytes(sc.paths.images_nogps / name, _with_exif(jpeg, sc.s, job.cam_time, None))
-            _write_mask(sc.paths.masks_raw / f"{name}.png", ids)
+            jpeg = encode(rgb, ".jpg", sc.s.jpeg_quality)
+            write_bytes(sc.paths.images / name, with_exif(jpeg, sc.s, job.cam_time, job.gps))
+            write_bytes(sc.paths.images_nogps / name, with_exif(jpeg, sc.s, job.cam_time, None))
+            write_mask(sc.paths.masks_raw / f"{name}.png", ids)
         foot = footprint(shot, sc.terrain)
         boxes, which, cut = image_boxes(shot, sc.plants, sc.terrain, candidates_near(sc.plants, foot, sc.reach),
                                         sc.offsets)
@@ -333,12 +332,12 @@ def _render_job(job: ImageJob) -> tuple[list, list, tuple | None]:
 
 def _write_antialiased(paths: FieldPaths, name: str, mask: np.ndarray) -> None:
     """One binary mask with smooth edges as PNG, JPEG (its artefacts too) and GIF."""
-    _write_bytes(paths.masks_antialiased / f"{name}.png", cv2.imencode(".png", mask)[1].tobytes())
-    _write_bytes(paths.masks_antialiased_jpg / f"{name}.jpg",
+    write_bytes(paths.masks_antialiased / f"{name}.png", cv2.imencode(".png", mask)[1].tobytes())
+    write_bytes(paths.masks_antialiased_jpg / f"{name}.jpg",
                  cv2.imencode(".jpg", mask, [cv2.IMWRITE_JPEG_QUALITY, REALISTIC.mask_jpeg_quality])[1].tobytes())
     buf = io.BytesIO()
     Image.fromarray(mask, "L").save(buf, format="GIF")
-    _write_bytes(paths.masks_antialiased_gif / f"{name}.gif", buf.getvalue())
+    write_bytes(paths.masks_antialiased_gif / f"{name}.gif", buf.getvalue())
 
 
 def _workers(cfg: SimFieldConfig) -> int:
@@ -398,159 +397,3 @@ def _sparse_points(grid: Grid, rasters: Rasters, terrain: Terrain, rng: np.rando
     x = grid.x0 + (c + 0.5) * grid.res
     y = grid.y1 - (r + 0.5) * grid.res
     return np.column_stack([x, y, terrain.height(x, y) + rasters.canopy[r, c]])
-
-
-def _model(s: Settings) -> str:
-    return f"{CAMERA_MODEL} {s.image_width}"
-
-
-def _encode(rgb: np.ndarray, ext: str, quality: int = 95) -> bytes:
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if ext == ".jpg" else []
-    ok, buf = cv2.imencode(ext, np.ascontiguousarray(rgb[..., ::-1]), params)
-    if not ok:  # pragma: no cover - OpenCV always encodes these
-        raise RuntimeError(f"could not encode {ext}")
-    return buf.tobytes()
-
-
-def _write_bytes(path: Path, data: bytes) -> None:
-    with atomic_open(path, "wb") as fh:
-        fh.write(data)
-
-
-def _write_image(path: Path, rgb: np.ndarray, ext: str) -> None:
-    _write_bytes(path, _encode(rgb, ext))
-
-
-def _write_mask(path: Path, ids: np.ndarray) -> None:
-    if ids.max(initial=0) > 65535:  # pragma: no cover - presets stay below
-        raise ValueError("more than 65535 plants: the masks cannot be written as 16-bit PNG")
-    ok, buf = cv2.imencode(".png", ids.astype(np.uint16))
-    _write_bytes(path, buf.tobytes())
-
-
-def _rational_dms(value: float) -> tuple:
-    micro = int(round(abs(value) * 3600e6))  # micro-arcseconds: exact to ~3e-11 degree
-    deg, rest = divmod(micro, 3600 * 10**6)
-    minutes, sec = divmod(rest, 60 * 10**6)
-    return ((deg, 1), (minutes, 1), (sec, 10**6))
-
-
-def _with_exif(jpeg: bytes, s: Settings, cam_time: dt.datetime, gps: tuple | None) -> bytes:
-    stamp = cam_time.strftime("%Y:%m:%d %H:%M:%S")
-    sub = f"{cam_time.microsecond // 1000:03d}"
-    focal_mm = s.focal * SENSOR_WIDTH_MM
-    exif = {
-        "0th": {piexif.ImageIFD.Make: CAMERA_MAKE, piexif.ImageIFD.Model: _model(s),
-                piexif.ImageIFD.Software: "matchplant simfield", piexif.ImageIFD.Orientation: 1,
-                piexif.ImageIFD.DateTime: stamp},
-        "Exif": {piexif.ExifIFD.DateTimeOriginal: stamp, piexif.ExifIFD.DateTimeDigitized: stamp,
-                 piexif.ExifIFD.SubSecTimeOriginal: sub, piexif.ExifIFD.SubSecTimeDigitized: sub,
-                 piexif.ExifIFD.FocalLength: (int(round(focal_mm * 1000)), 1000),
-                 piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(s.focal * 36)),
-                 piexif.ExifIFD.PixelXDimension: s.image_width, piexif.ExifIFD.PixelYDimension: s.image_height,
-                 piexif.ExifIFD.FocalPlaneXResolution: (int(round(s.image_width / SENSOR_WIDTH_MM * 1000)), 1000),
-                 piexif.ExifIFD.FocalPlaneResolutionUnit: 4},
-        "GPS": {}, "1st": {}, "thumbnail": None,
-    }
-    if gps is not None:
-        lat, lon, alt = gps
-        exif["GPS"] = {piexif.GPSIFD.GPSVersionID: (2, 3, 0, 0),
-                       piexif.GPSIFD.GPSLatitudeRef: "N" if lat >= 0 else "S",
-                       piexif.GPSIFD.GPSLatitude: _rational_dms(lat),
-                       piexif.GPSIFD.GPSLongitudeRef: "E" if lon >= 0 else "W",
-                       piexif.GPSIFD.GPSLongitude: _rational_dms(lon),
-                       piexif.GPSIFD.GPSAltitudeRef: 0 if alt >= 0 else 1,
-                       piexif.GPSIFD.GPSAltitude: (int(round(abs(alt) * 1000)), 1000),
-                       piexif.GPSIFD.GPSMapDatum: "WGS-84"}
-    out = io.BytesIO()
-    piexif.insert(piexif.dump(exif), jpeg, out)
-    return out.getvalue()
-
-
-def _write_csv(path: Path, header: list[str], rows: list) -> None:
-    with atomic_open(path, "w") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(header)
-        w.writerows(rows)
-
-
-def _write_plants(paths: FieldPaths, plants: Plants, rasters: Rasters, res: float, offset: np.ndarray) -> None:
-    radius = plants.radius()
-    _write_csv(paths.plants_csv, ["id", "x", "y", "z", "height", "radius", "row"],
-               [[int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{z:.4f}", f"{h:.4f}", f"{r:.4f}", int(row)]
-                for i, x, y, z, h, r, row in zip(plants.ids, plants.x, plants.y, plants.z, plants.height, radius,
-                                                 plants.row)])
-    _write_csv(paths.traits_csv, ["id", "x", "y", "height", "ndvi", "canopy_pixels", "canopy_area_m2"],
-               traits_rows(plants, rasters.label, res, offset))
-
-
-def _write_plot_truth(paths: FieldPaths, s, plants: Plants, offset: np.ndarray, crs: str) -> None:
-    t = plot_truth(s, plants, offset, crs)
-    write_json(paths.plots_json, t["grid"])
-    _write_csv(paths.plots_csv, ["plot_id", "range", "column", "expected", "stand_count", "gaps", "geometry"],
-               t["plots"])
-    _write_csv(paths.gaps_csv, ["plot_id", "row", "x", "y"], t["gaps"])
-    _write_csv(paths.field_book, ["plot_id", "genotype", "rep"], t["field_book"])
-
-
-def _write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terrain, offset: np.ndarray,
-                   crs: CRS, noise_rng: np.random.Generator | None = None) -> dict | None:
-    """DTM, DSM, orthophoto, multispectral and plant ids. With ``noise_rng`` (noise: realistic) the DSM and
-    DTM are photogrammetric and the multispectral raster has 5 bands (simfield/noise.py); returns what was
-    measured on them."""
-    transform = Affine(grid.res, 0.0, grid.x0 + offset[0], 0.0, -grid.res, grid.y1 + offset[1])
-    block = 512
-    dem = photogrammetric_dem(rasters, noise_rng) if noise_rng is not None else None
-
-    def ground(rows: slice) -> np.ndarray:
-        x, y = grid.centres(rows)
-        return terrain.height(x, y)
-
-    def dsm(rows: slice) -> np.ndarray:
-        if dem is None:
-            return (ground(rows) + rasters.canopy[rows])[None]
-        return np.where(dem.holes[rows], NODATA, ground(rows) + dem.dsm[rows])[None]
-
-    def dtm(rows: slice) -> np.ndarray:
-        return (ground(rows) + (0.0 if dem is None else dem.dtm[rows]))[None]
-
-    outputs = [
-        (paths.dtm, 1, "float32", NODATA, dtm),
-        (paths.dsm, 1, "float32", NODATA, dsm),
-        (paths.orthophoto, 4, "uint8", 0, lambda r: np.concatenate(
-            [np.moveaxis(rasters.albedo[r], 2, 0), np.full((1,) + rasters.label[r].shape, 255, np.uint8)])),
-        (paths.plant_ids, 1, "int32", -9999, lambda r: rasters.label[r][None]),
-    ]
-    if dem is None:
-        outputs.insert(3, (paths.multispectral, 2, "float32", NODATA,
-                           lambda r: np.stack([rasters.red[r], rasters.nir[r]])))
-    for path, count, dtype, nodata, fn in outputs:
-        profile = _profile(grid, count, dtype, crs, transform, nodata)
-        if count == 4:
-            profile["photometric"] = "RGB"
-            profile["alpha"] = "YES"
-        with atomic_path(path) as tmp:
-            with rasterio.open(tmp, "w", **profile) as dst:
-                for r0 in range(0, grid.height, block):
-                    rows = slice(r0, min(r0 + block, grid.height))
-                    dst.write(fn(rows).astype(dtype), window=Window(0, r0, grid.width, rows.stop - r0))
-                if count == 4:
-                    dst.colorinterp = [ColorInterp.red, ColorInterp.green, ColorInterp.blue, ColorInterp.alpha]
-                elif count == 2:
-                    dst.set_band_description(1, "red reflectance")
-                    dst.set_band_description(2, "near-infrared reflectance")
-    if dem is None:
-        return None
-    # 5 bands as a generic writer leaves them: photometric RGB + 2 extra samples, no descriptions, no nodata
-    profile = _profile(grid, len(BAND_ORDER), "float32", crs, transform, None)
-    profile["photometric"] = "RGB"
-    with atomic_path(paths.multispectral) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-        for b, band in enumerate(five_bands(rasters, noise_rng), start=1):
-            dst.write(band, b)
-    return noise_summary(REALISTIC, dem, rasters)
-
-
-def _profile(grid: Grid, count: int, dtype: str, crs: CRS, transform: Affine, nodata) -> dict:
-    return dict(driver="GTiff", width=grid.width, height=grid.height, count=count, dtype=dtype, crs=crs,
-                transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
-                compress="deflate", zlevel=1, BIGTIFF="IF_SAFER")
