@@ -29,7 +29,8 @@ from matchplant.core.runtime.config import load_config
 from matchplant.detection.architectures import get_architecture
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset
-from matchplant.detection.model import load_detector, set_score_threshold
+from matchplant.detection.model import set_score_threshold
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.objects import auto_anchor_sizes
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.config import ModelTrainConfig

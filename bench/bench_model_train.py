@@ -34,7 +34,8 @@ from matchplant.core.runtime.config import load_config
 from matchplant.detection.architectures import get_architecture
 from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
-from matchplant.detection.model import build_detector, load_detector
+from matchplant.detection.model import build_detector
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.run import detect_image, model_predictor, tile_starts
 from matchplant.model_train.config import ModelTrainConfig

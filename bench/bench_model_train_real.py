@@ -37,7 +37,7 @@ from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.log import setup_console
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset
-from matchplant.detection.model import load_detector
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.objects import recommend, size_stats
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import train

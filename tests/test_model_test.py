@@ -19,7 +19,8 @@ from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
-from matchplant.detection.model import build_detector, save_checkpoint
+from matchplant.detection.model import build_detector
+from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import detect_image, merge_tile_boxes, run, tile_starts
@@ -348,7 +349,7 @@ def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
     assert read_predictions(tmp_path / "big" / "predictions.json")["info"]["tile_size"] == 1024
     assert any("detect.tile_size 1024" in w and "0.12x" in w for w in rec.warnings()), rec.warnings()
     # after detection: plants found at 3x their training size (photos of another ground resolution)
-    from matchplant.detection.model import read_checkpoint
+    from matchplant.detection.checkpoint import read_checkpoint
     ck = read_checkpoint(ck_path)
     med = ck["training_geometry"]["objects_input_px"] * 128 / 64  # training plants in tile pixels
     big = np.array([[0, 0, 3 * med, 3 * med]] * 5)
@@ -510,7 +511,7 @@ def test_detection_output_holds_no_nested_box(checkpoint, tmp_path, caplog):
 
 
 def test_checkpoint_errors_say_what_the_file_is(checkpoint, tmp_path):
-    from matchplant.detection.model import load_detector, read_checkpoint
+    from matchplant.detection.checkpoint import load_detector, read_checkpoint
 
     data = torch.load(checkpoint, map_location="cpu", weights_only=False)
     cases = {"weights.pth": (lambda p: torch.save(data["model_state"], p), "bare weights"),

@@ -23,12 +23,8 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.detection import lite
 from matchplant.detection.architectures import ARCHITECTURES
 from matchplant.detection.foreign import read_any_checkpoint
-from matchplant.detection.model import (
-    ModelConfig,
-    build_detector,
-    load_detector,
-    load_matching_weights,
-)
+from matchplant.detection.model import ModelConfig, build_detector
+from matchplant.detection.checkpoint import load_detector, load_matching_weights
 from matchplant.detection.synth import make_photo
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import run

@@ -21,7 +21,8 @@ from matchplant.core.runtime.config import field_help, load_config
 from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
 from matchplant.detection.architectures import ARCHITECTURES, get_architecture
 from matchplant.detection.data import AugmentConfig, CocoDetection
-from matchplant.detection.model import ModelConfig, apply_freezing, build_detector, load_detector, read_checkpoint
+from matchplant.detection.model import ModelConfig, apply_freezing, build_detector
+from matchplant.detection.checkpoint import load_detector, read_checkpoint
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import build_optimizer, build_scheduler, lr_factor, train
@@ -177,7 +178,7 @@ def test_coco_weights_load_and_rebuild_without_download(monkeypatch, tmp_path):
     import torchvision.models._api as api
     from torchvision.ops.misc import FrozenBatchNorm2d
 
-    from matchplant.detection.model import save_checkpoint
+    from matchplant.detection.checkpoint import save_checkpoint
 
     cfg = load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=coco"])
     torch.manual_seed(3)
@@ -443,13 +444,8 @@ def test_max_minutes_shorter_than_an_iteration_still_trains_one_and_saves(tiles,
 def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_path):
     """RetinaNet and FCOS beside Faster R-CNN: same targets, checkpoint, transfer learning and evaluation."""
     from matchplant.detection.evaluate import coco_evaluate, predict_dataset
-    from matchplant.detection.model import (
-        load_matching_weights,
-        model_parts,
-        parameter_groups,
-        save_checkpoint,
-        set_score_threshold,
-    )
+    from matchplant.detection.model import model_parts, parameter_groups, set_score_threshold
+    from matchplant.detection.checkpoint import load_matching_weights, save_checkpoint
 
     cfg = load_config(ModelConfig, None, [f"architecture={arch}", "pretrained=none", "min_size=64", "max_size=64"])
     torch.manual_seed(0)
@@ -498,7 +494,7 @@ def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
     the checkpoint rebuilds the same structure (frozen batch norms) without a download."""
     import torchvision.models._api as api
 
-    from matchplant.detection.model import save_checkpoint
+    from matchplant.detection.checkpoint import save_checkpoint
 
     cfg = load_config(ModelConfig, None, ["architecture=retinanet_resnet50_fpn", "pretrained=coco",
                                           "min_size=64", "max_size=64"])

@@ -13,13 +13,8 @@ import torch
 from matchplant.core.runtime.config import load_config, to_dict
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.detection.data import CocoDetection
-from matchplant.detection.model import (
-    ModelConfig,
-    backbone_stages,
-    build_detector,
-    load_detector,
-    save_checkpoint,
-)
+from matchplant.detection.model import ModelConfig, backbone_stages, build_detector
+from matchplant.detection.checkpoint import load_detector, save_checkpoint
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.choose import (
     CPU_CROP,

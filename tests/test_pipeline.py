@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-import matchplant.pipeline as pipeline
+import matchplant.pipeline.plan as pipeline_plan
 from matchplant.cli import run_module
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
@@ -52,8 +52,8 @@ SPECS = {"upper": StepSpec("upper", UpperConfig, upper), "count": StepSpec("coun
 
 @pytest.fixture
 def setup(tmp_path, monkeypatch):
-    real = pipeline.resolve_step
-    monkeypatch.setattr(pipeline, "resolve_step", lambda name: SPECS[name] if name in SPECS else real(name))
+    real = pipeline_plan.resolve_step
+    monkeypatch.setattr(pipeline_plan, "resolve_step", lambda name: SPECS[name] if name in SPECS else real(name))
     CALLS.clear()
     (tmp_path / "words.txt").write_text("one two three")
     pipe = tmp_path / "pipeline.yaml"

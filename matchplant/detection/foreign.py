@@ -29,16 +29,15 @@ from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.architectures import ARCHITECTURES
-from matchplant.detection.model import (
+from matchplant.detection.checkpoint import (
     CHECKPOINT_FIX,
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
-    ModelConfig,
     _describe_foreign,
-    build_detector,
     check_checkpoint,
     load_checkpoint_file,
 )
+from matchplant.detection.model import ModelConfig, build_detector
 
 log = get_logger("detector")
 

@@ -45,7 +45,8 @@ from matchplant.detection.evaluate import (
     write_image,
 )
 from matchplant.detection.foreign import read_any_checkpoint
-from matchplant.detection.model import load_detector, set_score_threshold
+from matchplant.detection.model import set_score_threshold
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.estimate import estimate

@@ -23,7 +23,8 @@ import numpy as np
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.detection.model import AUTO, read_checkpoint
+from matchplant.detection.model import AUTO
+from matchplant.detection.checkpoint import read_checkpoint
 
 log = get_logger("model_train")
 

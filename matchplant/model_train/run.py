@@ -47,19 +47,8 @@ from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.distributed import Shard, join, world_size
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
 from matchplant.detection.geometry import training_geometry
-from matchplant.detection.model import (
-    AUTO,
-    ModelConfig,
-    apply_freezing,
-    backbone_stages,
-    build_detector,
-    keep_frozen_norms_fixed,
-    load_matching_weights,
-    model_config_from_dict,
-    parameter_groups,
-    resolve_auto_anchors,
-    save_checkpoint,
-)
+from matchplant.detection.model import AUTO, ModelConfig, apply_freezing, backbone_stages, build_detector, keep_frozen_norms_fixed, model_config_from_dict, parameter_groups, resolve_auto_anchors
+from matchplant.detection.checkpoint import load_matching_weights, save_checkpoint
 from matchplant.model_train.budget import Costs, Plan, fit_plan, run_seconds, stop_status, validation_report
 from matchplant.model_train.choose import (
     choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe, scratch_settings, sized_validation)

@@ -15,7 +15,8 @@ from matchplant.cli import run_module
 from matchplant.core.formats.coco import read_dataset
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.io import write_json
-from matchplant.detection.model import build_detector, save_checkpoint
+from matchplant.detection.model import build_detector
+from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.model_train.config import ModelTrainConfig
 
 

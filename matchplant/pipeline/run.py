@@ -1,0 +1,128 @@
+"""Running the checked steps in order: a step finished with the same settings and unchanged inputs is skipped
+(its fingerprint), a failure names the step and stops."""
+
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+from matchplant.core.runtime.config import param, to_dict, validate
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
+from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.validate import did_you_mean
+from matchplant.pipeline.plan import plan_pipeline
+from matchplant.pipeline.read import Step, read_pipeline
+
+log = get_logger("pipeline")
+
+
+@dataclass
+class PipelineConfig:
+    """Run several MatchPlant modules in order from one file (see matchplant/pipeline/)."""
+
+    pipeline: Path | None = param(None, "the pipeline YAML file (steps and their settings)", path="file",
+                                  required=True)
+    output_dir: Path | None = param(None, "where the run log goes (default: the pipeline's output_dir)")
+    from_step: str = param("", "re-run from this step on, even if earlier results are up to date")
+    only: list[str] = param([], "run only these steps (names); empty = all")
+    force: bool = param(False, "re-run every step, even when up to date")
+
+    def check(self) -> None:
+        if self.output_dir is None and self.pipeline is not None and Path(self.pipeline).is_file():
+            self.output_dir = Path(read_pipeline(Path(self.pipeline))[0]["output_dir"])
+
+
+
+# --------------------------------------------------------------------------------------------------
+# running
+
+
+def _fingerprint(cfg: Any) -> str:
+    """The settings plus size and modification time of every existing input path they name."""
+    h = hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True, default=str).encode())
+
+    def paths(obj: Any):
+        if is_dataclass(obj):
+            for f in fields(obj):
+                if f.metadata.get("path") == "out":
+                    continue
+                yield from paths(getattr(obj, f.name))
+        elif isinstance(obj, Path):
+            yield obj
+        elif isinstance(obj, (list, tuple)):
+            for v in obj:
+                yield from paths(v)
+
+    for p in paths(cfg):
+        if p.is_file():
+            st = p.stat()
+            h.update(f"{p}:{st.st_size}:{st.st_mtime_ns}".encode())
+        elif p.is_dir():
+            for q in sorted(p.rglob("*")):
+                if q.is_file():
+                    st = q.stat()
+                    h.update(f"{q}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def _check_names(cfg: PipelineConfig, steps: list[Step], path: Path) -> None:
+    names = [s.name for s in steps]
+    for key, label in ((cfg.from_step, "from_step"), *((n, "only") for n in cfg.only)):
+        if key and key not in names:
+            hint = did_you_mean(key, names)
+            raise ConfigError(f"{label}: no step named '{key}'{'; ' + hint if hint else ''}", path=path,
+                              fix=f"steps are: {', '.join(names)}")
+
+
+def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
+    """Check every step, then run them; returns ``{step: "ran" | "up to date" | "skipped"}``."""
+    path = Path(cfg.pipeline)
+    top, steps = read_pipeline(path)
+    _check_names(cfg, steps, path)
+    planned = plan_pipeline(path, top, steps)
+    state_dir = Path(top["output_dir"]) / ".pipeline"
+    forced = False
+    results: dict[str, str] = {}
+    for p in planned:
+        step, spec, step_cfg = p.step, p.spec, p.cfg
+        forced = forced or (cfg.from_step == step.name) or cfg.force
+        if cfg.only and step.name not in cfg.only:
+            results[step.name] = "skipped"
+            continue
+        try:  # now the inputs from earlier steps exist: check them too
+            validate(step_cfg, source=f"step '{step.name}' of {path.name}")
+        except MatchPlantError as exc:
+            raise type(exc)(f"step '{step.name}' ({step.module}): {exc.problem}", path=exc.path, fix=exc.fix) from exc
+        stamp = state_dir / f"{step.name}.json"
+        fp = _fingerprint(step_cfg)
+        if not forced and stamp.is_file() and json.loads(stamp.read_text()).get("fingerprint") == fp:
+            log.info("[%s] up to date, skipped", step.name)
+            results[step.name] = "up to date"
+            continue
+        log.info("[%s] running %s ...", step.name, step.module)
+        t0 = time.time()
+        out = getattr(step_cfg, spec.output_key, None) if spec.output_key else None
+        if out is not None:
+            Path(out).mkdir(parents=True, exist_ok=True)
+        try:
+            spec.run(step_cfg)
+        except MatchPlantError as exc:
+            raise type(exc)(f"step '{step.name}' ({step.module}) failed: {exc.problem}", path=exc.path,
+                            fix=(exc.fix or "") + f"; then re-run: matchplant run {path} (finished steps are skipped)"
+                            ) from exc
+        except Exception as exc:
+            raise MatchPlantError(f"step '{step.name}' ({step.module}) failed: {type(exc).__name__}: {exc}",
+                                  fix=f"see the log; earlier steps' outputs are kept; re-run with --debug "
+                                      f"for the traceback, or with --set from_step={step.name}") from exc
+        # a step that finished after a later input changed must not count as up to date: fingerprint again
+        write_json(stamp, {"fingerprint": _fingerprint(step_cfg), "module": step.module,
+                           "seconds": round(time.time() - t0, 2), "finished": time.strftime("%Y-%m-%d %H:%M:%S")})
+        log.info("[%s] done in %.1f s", step.name, time.time() - t0)
+        results[step.name] = "ran"  # later steps see its new files: their fingerprints change by mtime
+    return results
