@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import os
 import subprocess
@@ -615,7 +614,7 @@ def _fake_probe(iteration_s: float):
 
 
 class _Clock:
-    """A clock for run.py that only moves when told (a training iteration 'takes' what the test says)."""
+    """A clock for the budget and the engine that only moves when told (a training iteration 'takes' what the test says)."""
 
     now = 1000.0
 
@@ -631,17 +630,17 @@ def test_the_plan_is_refitted_half_way_at_the_real_pace(tiles, monkeypatch):
     from types import SimpleNamespace
 
     from matchplant.detection.distributed import Shard
-    from matchplant.model_train.budget import Costs, Plan
+    from matchplant.model_train import budget as budget_mod
 
-    run_mod = importlib.import_module("matchplant.model_train.run")
-    monkeypatch.setattr(run_mod, "time", _Clock)
-    cfg = fast_config(tiles, Path("unused"), "max_minutes=10")
-    plan = Plan(10_000, 10)
-    costs = Costs(iteration=2.0)
-    run_mod.fit_plan(plan, 10_000, 0, costs, 600.0, 1, False, "probe", 10)
+    monkeypatch.setattr(budget_mod, "time", _Clock)
+    session = budget_mod.Budget.from_config(fast_config(tiles, Path("unused"), "max_minutes=10"))
+    assert session.minutes == 10 and session.seconds == 600.0 and session.elapsed() == 0.0
+    plan = session.plan_for(10_000, 10)
+    costs = budget_mod.Costs(iteration=2.0)
+    session.fit(0, costs, 600.0, "probe")
     assert plan.iters == 300
-    session = run_mod._Session(cfg, plan, 10_000, costs, Shard(), torch.device("cpu"),
-                               SimpleNamespace(requested=False), False)
+    session.costs, session.stop_flag = costs, SimpleNamespace(requested=False)
+    session.dist_info, session.device = Shard(), torch.device("cpu")
     done = 0
     while done < plan.iters:
         _Clock.now += 2.0 if not plan.fitted else 1.0   # 2 s per iteration at first, then 1 s
@@ -668,25 +667,27 @@ def _compare_runs(a_dir: Path, b_dir: Path) -> None:
 
 def _each_step_takes_100_s(monkeypatch):
     """A probe that says 1 s per iteration, then every real step 'taking' 100 s of a fake clock; returns module
-    6's run module and its real step hook (to put back)."""
-    run_mod = importlib.import_module("matchplant.model_train.run")
-    monkeypatch.setattr(run_mod, "probe_speed", _fake_probe(1.0))
-    monkeypatch.setattr(run_mod, "time", _Clock)
-    real_after = run_mod._Session.after_step
+    6's budget record (its class) and its real step hook (to put back)."""
+    from matchplant.model_train import budget, engine, plan
+
+    monkeypatch.setattr(plan, "probe_speed", _fake_probe(1.0))
+    monkeypatch.setattr(budget, "time", _Clock)
+    monkeypatch.setattr(engine, "time", _Clock)
+    real_after = budget.Budget.after_step
 
     def slow(self, done, step_s):
         _Clock.now += 100.0
         return real_after(self, done, 100.0)
 
-    monkeypatch.setattr(run_mod._Session, "after_step", slow)
-    return run_mod, real_after
+    monkeypatch.setattr(budget.Budget, "after_step", slow)
+    return budget.Budget, real_after
 
 
 def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, trained, tmp_path, monkeypatch):
     """The probe says 1 s per iteration, so the plan is the whole run; the first real iteration 'takes' 100 s of a
     1-minute budget: training stops inside epoch 1, validates, writes a mid-epoch checkpoint, and --resume
     finishes the run with the same weights, schedule and losses as the uninterrupted run."""
-    run_mod, real_after = _each_step_takes_100_s(monkeypatch)
+    budget_cls, real_after = _each_step_takes_100_s(monkeypatch)
     out = tmp_path / "budget"
     summary = train(fast_config(tiles, out, "max_minutes=1"))
     assert summary["status"] == "stopped_by_max_minutes" and summary["iterations_done"] == 1
@@ -696,7 +697,7 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
     ck = read_checkpoint(out / "checkpoints" / "last.pt")
     assert ck["epoch"] == 0 and ck["iteration"] == 1 and ck["epoch_progress"]["batches"] == 1
     assert ck["planned_iters"] == 4 and ck["random_state"] is not None
-    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    monkeypatch.setattr(budget_cls, "after_step", real_after)
     summary = train(fast_config(tiles, out, "resume=true"))
     assert summary["status"] == "finished" and summary["iterations_done"] == 4
     _compare_runs(trained[0], out)
@@ -708,10 +709,10 @@ def test_training_on_crops_resumed_mid_epoch_repeats_the_uninterrupted_run(tiles
     the budget inside epoch 1 and resumed ends with the weights and losses of the run never stopped."""
     crop = "augment.crop=32"
     train(fast_config(tiles, tmp_path / "whole", crop))
-    run_mod, real_after = _each_step_takes_100_s(monkeypatch)
+    budget_cls, real_after = _each_step_takes_100_s(monkeypatch)
     out = tmp_path / "budget"
     assert train(fast_config(tiles, out, crop, "max_minutes=1"))["iterations_done"] == 1
-    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    monkeypatch.setattr(budget_cls, "after_step", real_after)
     summary = train(fast_config(tiles, out, crop, "resume=true"))
     assert summary["status"] == "finished" and summary["iterations_done"] == 4
     _compare_runs(tmp_path / "whole", out)
@@ -727,15 +728,16 @@ def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tile
 
     from matchplant.cli import run_module
 
-    run_mod = importlib.import_module("matchplant.model_train.run")
-    real_after = run_mod._Session.after_step
+    from matchplant.model_train.budget import Budget
+
+    real_after = Budget.after_step
 
     def interrupt(self, done, step_s):
         if done == 3:
             os.kill(os.getpid(), signal.SIGINT)
         return real_after(self, done, step_s)
 
-    monkeypatch.setattr(run_mod._Session, "after_step", interrupt)
+    monkeypatch.setattr(Budget, "after_step", interrupt)
     out = tmp_path / "ctrl_c"
     argv = [x for s in (f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}", *FAST)
             for x in ("--set", s)]
@@ -747,7 +749,7 @@ def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tile
     assert ck["iteration"] == 3 and ck["epoch"] == 1 and ck["epoch_progress"]["batches"] == 1
     summary = json.loads((out / "training_summary.json").read_text())
     assert summary["status"] == "interrupted"
-    monkeypatch.setattr(run_mod._Session, "after_step", real_after)
+    monkeypatch.setattr(Budget, "after_step", real_after)
     assert run_module("model_train", [*argv, "--resume", "--quiet"]) == 0
     _compare_runs(trained[0], out)
 
@@ -793,6 +795,7 @@ def test_threads_chosen_from_the_usable_cores_and_the_load(monkeypatch):
 def test_architecture_auto_fits_the_device_and_the_budget(tiles):
     """auto: the paper's ResNet-50 FPN on a GPU; on a CPU, MobileNetV3 when the probe shows ResNet-50 would not
     fit the budget, ResNet-50 when it would; an anchor list of 3 FPN levels allows only MobileNetV3."""
+    from matchplant.model_train.budget import Budget
     from matchplant.model_train.choose import MOBILE, PAPER, RESNET_TRAIN_COST, choose_architecture
 
     ds = CocoDetection(tiles[0])
@@ -800,7 +803,7 @@ def test_architecture_auto_fits_the_device_and_the_budget(tiles):
 
     def choose(*extra, device=cpu):  # pretrained weights (from random ones on a CPU: test_model_train_cpu.py)
         cfg = fast_config(tiles, Path("unused"), "model.architecture=auto", "model.pretrained=coco", *extra)
-        return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0])
+        return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0], Budget.from_config(cfg))
 
     arch, why, _ = choose("model.anchor_sizes=null", device=torch.device("meta"))  # any non-CPU device
     assert arch == PAPER and "GPU" in why

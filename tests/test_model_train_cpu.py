@@ -16,6 +16,7 @@ from matchplant.detection.data import CocoDetection
 from matchplant.detection.model import ModelConfig, backbone_stages, build_detector
 from matchplant.detection.checkpoint import load_detector, save_checkpoint
 from matchplant.detection.synth import make_tiles
+from matchplant.model_train.budget import Budget
 from matchplant.model_train.choose import (
     CPU_CROP,
     LITE,
@@ -74,7 +75,7 @@ def test_auto_picks_the_light_detector_from_random_weights_on_a_cpu_only(tiles):
 
     def choose(*extra, device=CPU):
         cfg = config(tiles, "model.min_size=64", "model.max_size=64", *extra)
-        return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0])
+        return choose_architecture(cfg, cfg.model, device, ds, 1, 100, tiles[0], Budget.from_config(cfg))
 
     arch, why, probe = choose()
     assert arch == LITE and probe is None and "random weights on a CPU" in why
@@ -97,12 +98,13 @@ def test_training_crops_are_chosen_on_a_cpu_from_random_weights_logged_and_overr
 
 
 def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
-    cfg, size, why = scratch_budget(config(tiles, "max_minutes=15"), CPU)
+    cfg = config(tiles, "max_minutes=15")
+    cfg, size, why = scratch_budget(cfg, CPU, Budget.from_config(cfg))
     assert cfg.epochs == SCRATCH_EPOCHS and size and "max_minutes = 15" in why
     for extra, device in ((["max_minutes=15", "epochs=40"], CPU), (["max_minutes=15", "val_every=3"], CPU),
                           ([], CPU), (["max_minutes=15"], GPU), (["max_minutes=15", "model.pretrained=coco"], CPU),
                           (["max_minutes=15", f"model.architecture={LITE}"], CPU)):
-        kept, size, why = scratch_budget(config(tiles, *extra), device)
+        kept, size, why = scratch_budget(config(tiles, *extra), device, Budget.from_config(config(tiles, *extra)))
         assert kept == config(tiles, *extra) and not size and why is None, extra
     # validation at most ~10 % of training: 3.8 s against 22.2 s epochs -> every 2nd epoch; cheap -> every epoch
     assert validation_interval(3.8, 22.2) == 2 and validation_interval(1.0, 100.0) == 1
@@ -112,7 +114,7 @@ def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
 def test_a_resumed_run_keeps_the_crop_epochs_and_validation_auto_chose(tiles):
     cfg = config(tiles, "max_minutes=15")
     chosen, _ = cpu_crop(cfg, CPU)
-    chosen, _, _ = scratch_budget(chosen, CPU)
+    chosen, _, _ = scratch_budget(chosen, CPU, Budget.from_config(cfg))
     saved = to_dict(load_config(ModelTrainConfig, None, [f"train_json={tiles[0]}", "model.pretrained=none",
                                                          "max_minutes=15", f"augment.crop={chosen.augment.crop}",
                                                          f"epochs={chosen.epochs}", "val_every=3"]))

@@ -7,10 +7,14 @@ over :func:`run_seconds`). The learning-rate schedule is laid over that many ite
 (:mod:`matchplant.model_train.schedule`), so a budget-limited run still ends at the small learning rates
 instead of being cut while they are high. The plan is refitted from the measured speed of the real
 iterations (after the first epoch or a tenth of the plan, whichever comes first), and once more half way from
-the pace since then, validations and checkpoints included (``run._Session.refit_from_pace``); the clock is read after
+the pace since then, validations and checkpoints included (:meth:`Budget.refit_from_pace`); the clock is read after
 every iteration: when the next one would leave too little time to validate and save, training stops inside
 the epoch, validates, and writes a checkpoint ``--resume`` continues from. The summary then says "stopped by
 max_minutes after 412 of 1500 iterations", not "finished".
+
+:class:`Budget` is ``max_minutes`` as one record, built once from the config (:meth:`Budget.from_config`, the one place
+the key is read) and passed down: the limit (in seconds here and nowhere else), the session's clock, the plan, its
+refits from the measured speed and the decision to stop.
 
 Validation: best.pt is the epoch with the best validation metric; on a handful of plants that choice is
 noise (one plant moves AP50 by 1/N), so fewer than ``MIN_VAL_OBJECTS`` distinct plants give a warning
@@ -19,10 +23,16 @@ in the log and in the summary.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
 
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import duration
 from matchplant.detection.tile_objects import distinct_objects
 
 log = get_logger("model_train")
@@ -79,37 +89,6 @@ def plan_iterations(total: int, done: int, iters_per_epoch: int, costs: Costs, b
     return lo
 
 
-def fit_plan(plan: Plan, total: int, done: int, costs: Costs, budget_s: float, val_every: int, validated: bool,
-             source: str, max_minutes: float) -> None:
-    """Set ``plan.iters`` to what fits in ``budget_s`` (seconds left), with a log line when it is shorter than
-    configured."""
-    before = plan.iters
-    plan.iters = max(plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, val_every, validated),
-                     done, 1)
-    plan.source = source
-    if plan.iters < total and plan.iters != before:
-        log.warning("max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
-                    "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
-                    "epochs, to train as set)", max_minutes, costs.iteration, source, plan.iters, total,
-                    plan.iters / plan.iters_per_epoch, math.ceil(total / plan.iters_per_epoch), plan.iters)
-
-
-def stop_status(done_iters: int, total: int, iters_per_epoch: int, max_minutes: float, interrupted: bool = False,
-                planned: int | None = None) -> tuple[str, str]:
-    """``(status, message)`` for the summary of a run that ended after ``done_iters`` iterations."""
-    epochs = f"{done_iters / iters_per_epoch:.2f}".rstrip("0").rstrip(".")
-    where = f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
-    if interrupted:
-        return "interrupted", f"interrupted (Ctrl-C) {where}; --resume continues exactly there"
-    if done_iters >= total:
-        return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
-    if planned is not None and done_iters >= planned:
-        return ("stopped_by_max_minutes", (f"stopped by max_minutes ({max_minutes:g}) {where}, the end of the plan "
-                                           "fitted to the budget (the learning-rate schedule ran its course)"))
-    return ("stopped_by_max_minutes", f"stopped by max_minutes ({max_minutes:g}) {where}; --resume continues "
-            f"the planned {planned} iterations" if planned else f"stopped by max_minutes {where}")
-
-
 def validation_report(val_data: dict | None) -> dict:
     """Tiles, boxes and distinct plants of the validation set, with a warning when it is too small to pick
     best.pt (also logged)."""
@@ -126,3 +105,160 @@ def validation_report(val_data: dict | None) -> dict:
                              f"{1 / max(plants, 1):.2f}); give module 5 a larger val share or more annotated images")
         log.warning(report["warning"])
     return report
+
+
+def rank0_value(value: float, dist_info, device) -> float:
+    """Rank 0's value on every process under torchrun (one broadcast; a clock-based decision must agree)."""
+    if dist_info is None or dist_info.world <= 1:
+        return value
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    t = torch.tensor([float(value)], device=device)
+    torch.distributed.broadcast(t, src=0)
+    return float(t.item())
+
+
+@dataclass
+class Budget:
+    """``max_minutes`` of one training session: the limit, the clock (from the session's start: set-up and probe
+    count), the plan, its refits from the real speed and the stop decision. 0 minutes: no budget (the plan is the
+    configured run, the clock still times the session). The costs, the validation interval and the processes
+    (``dist_info``, ``device``: clock decisions agree across them) are attached when known."""
+
+    minutes: float = 0.0
+    start: float = field(default_factory=lambda: time.perf_counter())
+    plan: Plan | None = None
+    total: int = 0
+    costs: Costs | None = None
+    val_every: int = 1
+    validated: bool = False
+    stop_flag: Any = None          # resume.StopOnInterrupt: Ctrl-C asks to stop
+    dist_info: Any = None
+    device: Any = None
+    step_times: list[float] = field(default_factory=list)
+    fitted_at: tuple[float, int] | None = None  # (elapsed s, iterations) at this session's first refit
+
+    @classmethod
+    def from_config(cls, cfg) -> Budget:
+        """The one place the config's ``max_minutes`` is read; the clock starts now."""
+        return cls(minutes=cfg.max_minutes)
+
+    # -- the limit -------------------------------------------------------------------------------------------------
+    @property
+    def limited(self) -> bool:
+        return bool(self.minutes)
+
+    @property
+    def seconds(self) -> float:
+        """The limit in seconds (0: none)."""
+        return self.minutes * 60.0
+
+    @property
+    def horizon_s(self) -> float:
+        """The limit, or without one ``LONG_RUN_S`` ("a few hours"): what the advice and the choice of detector
+        measure a run against."""
+        return self.seconds if self.limited else LONG_RUN_S
+
+    def horizon_words(self) -> str:
+        return f"max_minutes = {self.minutes:g}" if self.limited else f"{duration(LONG_RUN_S)} (no max_minutes)"
+
+    # -- the clock -------------------------------------------------------------------------------------------------
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def left(self) -> float:
+        """Seconds of the limit not yet spent."""
+        return self.seconds - self.elapsed()
+
+    def reserve(self) -> float:
+        """Seconds kept for the last validation and checkpoints."""
+        return (self.costs.validation if self.validated else 0.0) + self.costs.checkpoint
+
+    def iteration_s(self) -> float:
+        recent = self.step_times[1:][-20:] or self.step_times or [self.costs.iteration]
+        return float(np.mean(recent))
+
+    def _agree(self, value: float) -> float:
+        return rank0_value(value, self.dist_info, self.device)
+
+    # -- the plan --------------------------------------------------------------------------------------------------
+    def plan_for(self, total: int, iters_per_epoch: int) -> Plan:
+        """The plan of the configured run (``total`` iterations), to be fitted to the limit."""
+        self.plan, self.total = Plan(total, iters_per_epoch), total
+        return self.plan
+
+    def fit(self, done: int, costs: Costs, budget_s: float, source: str) -> None:
+        """Set ``plan.iters`` to what fits in ``budget_s`` (seconds left), with a log line when it is shorter than
+        configured."""
+        plan, total = self.plan, self.total
+        before = plan.iters
+        plan.iters = max(plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, self.val_every,
+                                         self.validated), done, 1)
+        plan.source = source
+        if plan.iters < total and plan.iters != before:
+            log.warning("max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
+                        "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
+                        "epochs, to train as set)", self.minutes, costs.iteration, source, plan.iters, total,
+                        plan.iters / plan.iters_per_epoch, math.ceil(total / plan.iters_per_epoch), plan.iters)
+
+    # -- the stop decision -----------------------------------------------------------------------------------------
+    def after_step(self, done: int, step_s: float) -> str | None:
+        """After an iteration: refit the plan once from the real speed; then why to stop (None: go on)."""
+        self.step_times.append(step_s)
+        plan = self.plan
+        if self.limited and not plan.fitted and len(self.step_times) >= max(3, min(plan.iters_per_epoch,
+                                                                                   plan.iters // 10)):
+            plan.fitted = True
+            measured = dataclasses.replace(self.costs, iteration=self.iteration_s())
+            self.fit(done, measured, self.left(), "measured on the first iterations")
+            plan.iters = int(self._agree(plan.iters))
+            self.fitted_at = (self.elapsed(), done)
+        elif self.limited and self.fitted_at is not None and \
+                done - self.fitted_at[1] >= max(3, (plan.iters - self.fitted_at[1]) // 2):
+            self.refit_from_pace(done)
+        reason = 0.0
+        if self.stop_flag.requested:
+            reason = 2.0
+        elif self.limited and done < plan.iters and \
+                self.elapsed() + self.iteration_s() + self.reserve() > self.seconds:
+            reason = 1.0
+        reason = self._agree(reason)
+        return {0.0: None, 1.0: "budget", 2.0: "interrupt"}[reason]
+
+    def refit_from_pace(self, done: int) -> None:
+        """Once, half way: the iterations that fit at the pace measured since the first refit, validations and
+        checkpoints included (the planned per-epoch costs of many short epochs, or a machine that sped up or slowed
+        down, otherwise end the plan well before the budget or cut it)."""
+        t0, n0 = self.fitted_at
+        self.fitted_at = None
+        pace = (self.elapsed() - t0) / max(done - n0, 1)
+        left = self.left() - self.reserve()
+        iters = int(self._agree(min(self.total, done + max(int(left / pace), 0))))
+        if iters != self.plan.iters:
+            log.info("max_minutes = %g: at the pace of the last %d iterations (%.2f s each, validations and "
+                     "checkpoints included) %d iterations fit, not %d; the schedule is laid over them",
+                     self.minutes, done - n0, pace, iters, self.plan.iters)
+            self.plan.iters = max(iters, done)
+
+    def out_of_time_for(self, seconds: float) -> bool:
+        """Whether ``seconds`` more work (an epoch's validation) leaves too little for the rest."""
+        if not self.limited:
+            return False
+        over = self.elapsed() + seconds + self.iteration_s() + self.reserve() > self.seconds
+        return bool(self._agree(1.0 if over else 0.0))
+
+    def status(self, done_iters: int, interrupted: bool = False) -> tuple[str, str]:
+        """``(status, message)`` for the summary of a run that ended after ``done_iters`` iterations."""
+        total, iters_per_epoch = self.total, self.plan.iters_per_epoch
+        planned = None if interrupted else self.plan.iters
+        epochs = f"{done_iters / iters_per_epoch:.2f}".rstrip("0").rstrip(".")
+        where = f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
+        if interrupted:
+            return "interrupted", f"interrupted (Ctrl-C) {where}; --resume continues exactly there"
+        if done_iters >= total:
+            return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
+        if done_iters >= planned:
+            return ("stopped_by_max_minutes", (f"stopped by max_minutes ({self.minutes:g}) {where}, the end of the "
+                                               "plan fitted to the budget (the learning-rate schedule ran its course)"))
+        return ("stopped_by_max_minutes", f"stopped by max_minutes ({self.minutes:g}) {where}; --resume continues "
+                f"the planned {planned} iterations" if planned else f"stopped by max_minutes {where}")

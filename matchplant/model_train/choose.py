@@ -39,7 +39,7 @@ from matchplant.detection.model import (
     build_detector,
     resolve_auto_anchors,
 )
-from matchplant.model_train.budget import LONG_RUN_S
+from matchplant.model_train.budget import Budget
 from matchplant.model_train.config import LearningRates
 from matchplant.model_train.probe import Probe, heartbeat, probe_speed
 
@@ -93,17 +93,17 @@ def cpu_crop(cfg, device) -> tuple[object, str | None]:
                  "budget; detection still sees whole tiles)")
 
 
-def scratch_budget(cfg, device) -> tuple[object, bool, str | None]:
+def scratch_budget(cfg, device, budget: Budget) -> tuple[object, bool, str | None]:
     """From random weights on a CPU with ``max_minutes`` and ``epochs``/``val_every`` at their defaults: the budget,
     not the 30 epochs, ends the run (``SCRATCH_EPOCHS``), and the validation interval is sized after the probe
     (:func:`validation_interval`). Returns ``(cfg, whether to size val_every, the reason or None)``."""
     defaults = type(cfg)(train_json=cfg.train_json)
-    if not (from_scratch_on_cpu(cfg, device) and cfg.max_minutes and cfg.epochs == defaults.epochs and
+    if not (from_scratch_on_cpu(cfg, device) and budget.limited and cfg.epochs == defaults.epochs and
             cfg.val_every == defaults.val_every):
         return cfg, False, None
     cfg = dataclasses.replace(cfg, epochs=SCRATCH_EPOCHS)
     return cfg, True, (f"epochs: {SCRATCH_EPOCHS} (random weights on a CPU: a detector learning from scratch "
-                       f"gains from every iteration max_minutes = {cfg.max_minutes:g} allows, and 30 epochs of a "
+                       f"gains from every iteration max_minutes = {budget.minutes:g} allows, and 30 epochs of a "
                        "small dataset end long before it); val_every: sized so that validation takes about "
                        f"{100 * VAL_SHARE:.0f} % of the time")
 
@@ -123,10 +123,10 @@ def sized_validation(cfg, validation_s: float, epoch_s: float):
     return dataclasses.replace(cfg, val_every=every)
 
 
-def scratch_settings(cfg, device) -> tuple[object, bool, list[str]]:
+def scratch_settings(cfg, device, budget: Budget) -> tuple[object, bool, list[str]]:
     """:func:`cpu_crop` and :func:`scratch_budget` together, logged: ``(cfg, size val_every, reasons)``."""
     cfg, crop_why = cpu_crop(cfg, device)
-    cfg, size_validation, budget_why = scratch_budget(cfg, device)
+    cfg, size_validation, budget_why = scratch_budget(cfg, device, budget)
     reasons = [w for w in (crop_why, budget_why) if w]
     for why in reasons:
         log.info("on a CPU from random weights -> %s", why)
@@ -195,7 +195,7 @@ def cpu_proposals(model_cfg, objects_per_image: list[int]) -> tuple[object, str 
 
 
 def choose_architecture(cfg, model_cfg, device, train_ds, n_classes: int, total_iters: int,
-                        train_json) -> tuple[str, str, Probe | None]:
+                        train_json, budget: Budget) -> tuple[str, str, Probe | None]:
     """``(architecture, reason, probe of MobileNetV3 or None)`` for ``model.architecture: auto``."""
     levels = len(model_cfg.anchor_sizes) if isinstance(model_cfg.anchor_sizes, list) else None
     candidates = [a for a in (PAPER, MOBILE, LITE) if levels is None or get_architecture(a).anchors.levels == levels]
@@ -222,8 +222,7 @@ def choose_architecture(cfg, model_cfg, device, train_ds, n_classes: int, total_
                             run_iters=total_iters)
     mobile_s = total_iters * probe.iteration_s
     resnet_s = mobile_s * RESNET_TRAIN_COST
-    limit = cfg.max_minutes * 60.0 if cfg.max_minutes else LONG_RUN_S
-    what = f"max_minutes = {cfg.max_minutes:g}" if cfg.max_minutes else f"{duration(LONG_RUN_S)} (no max_minutes)"
+    limit, what = budget.horizon_s, budget.horizon_words()
     measured = (f"{total_iters} iterations at {probe.iteration_s:.2f} s ({MOBILE}, measured) or about "
                 f"{probe.iteration_s * RESNET_TRAIN_COST:.2f} s ({PAPER}, {RESNET_TRAIN_COST:g}x)")
     if resnet_s <= limit:

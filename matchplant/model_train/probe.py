@@ -22,7 +22,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.detection.data import collate
 from matchplant.detection.model import keep_frozen_norms_fixed
 from matchplant.core.runtime.progress import duration
-from matchplant.model_train.budget import LONG_RUN_S, Costs
+from matchplant.model_train.budget import Budget, Costs
 
 log = get_logger("model_train")
 
@@ -140,7 +140,7 @@ def costs_from_probe(probe: Probe, n_val_images: int, n_params: int) -> Costs:
 
 
 def estimate_lines(probe: Probe, costs: Costs, *, iters_per_epoch: int, epochs: int, architecture: str, device,
-                   val_every: int, validated: bool, max_minutes: float) -> tuple[list[str], float]:
+                   val_every: int, validated: bool) -> tuple[list[str], float]:
     """The estimate logged before training, and the whole run's seconds as configured."""
     epoch_s = iters_per_epoch * costs.iteration + costs.checkpoint
     val_s = costs.validation if validated else 0.0
@@ -154,10 +154,9 @@ def estimate_lines(probe: Probe, costs: Costs, *, iters_per_epoch: int, epochs: 
     return lines, total
 
 
-def advice(total_s: float, max_minutes: float, device, architecture: str, fits_iters: int, total_iters: int) -> str | None:
+def advice(total_s: float, budget: Budget, device, architecture: str, fits_iters: int, total_iters: int) -> str | None:
     """What to change when the run as set would not fit the budget (or would take more than a few hours)."""
-    limit = max_minutes * 60.0 if max_minutes else LONG_RUN_S
-    if total_s <= limit:
+    if total_s <= budget.horizon_s:
         return None
     ways = []
     if device.type == "cpu":
@@ -167,8 +166,8 @@ def advice(total_s: float, max_minutes: float, device, architecture: str, fits_i
         ways.append("a smaller model.min_size/max_size (time grows with the input's area; keep plants >= 24 px, "
                     "see 'matchplant inspect')")
     ways.append("fewer epochs")
-    over = (f"the run as set takes about {duration(total_s)}, more than max_minutes = {max_minutes:g}: only "
-            f"{fits_iters} of {total_iters} iterations fit (the schedule is fitted to them)" if max_minutes else
+    over = (f"the run as set takes about {duration(total_s)}, more than max_minutes = {budget.minutes:g}: only "
+            f"{fits_iters} of {total_iters} iterations fit (the schedule is fitted to them)" if budget.limited else
             f"the run as set takes about {duration(total_s)} (no max_minutes set)")
     return f"{over}; to train more in less time: {'; '.join(ways)}"
 

@@ -9,22 +9,23 @@ import numpy as np
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path, write_json
-from matchplant.model_train.budget import Plan
+from matchplant.model_train.budget import Budget
 from matchplant.model_train.config import ModelTrainConfig
 
 
 def write_summary(out: Path, cfg: ModelTrainConfig, history: list[dict], best: dict, class_names: list[str],
-                  device, status: str, seconds: float, *, validation: dict | None = None, plan: Plan | None = None,
-                  message: str | None = None, extras: dict | None = None) -> dict:
+                  device, status: str, budget: Budget, *, validation: dict | None = None, message: str | None = None,
+                  extras: dict | None = None) -> dict:
     """training_summary.json. ``status``: running, finished, interrupted or stopped_by_max_minutes (``message``
     says after how many of how many iterations); ``validation``: tiles, boxes and distinct plants, with a warning
     when too few; ``extras``: threads, the probe's estimate, the architecture chosen and why; metrics are
-    fractions 0..1."""
+    fractions 0..1. ``budget``: its plan and minutes, and the session's seconds so far."""
+    plan, seconds = budget.plan, budget.elapsed()
     times = [h["train_time_s"] for h in history]
     warnings = [validation["warning"]] if validation and validation.get("warning") else []
     total = cfg.epochs * plan.iters_per_epoch if plan is not None else None
     if plan is not None and plan.iters < total:
-        warnings.append(f"max_minutes ({cfg.max_minutes:g}) fits {plan.iters} of {total} iterations ({plan.source}): "
+        warnings.append(f"max_minutes ({budget.minutes:g}) fits {plan.iters} of {total} iterations ({plan.source}): "
                         f"the learning-rate schedule was laid over {plan.iters} iterations")
     if extras and extras.get("schedule_warning"):
         warnings.append(extras["schedule_warning"])
@@ -36,7 +37,7 @@ def write_summary(out: Path, cfg: ModelTrainConfig, history: list[dict], best: d
         "epochs_done": sum(1 for h in history if not h.get("partial")), "epochs": cfg.epochs,
         "epochs_planned": plan.epochs if plan is not None else cfg.epochs,
         "iterations_done": done, "iterations_planned": plan.iters if plan is not None else None,
-        "iterations_per_epoch": plan.iters_per_epoch if plan is not None else None, "max_minutes": cfg.max_minutes,
+        "iterations_per_epoch": plan.iters_per_epoch if plan is not None else None, "max_minutes": budget.minutes,
         "warnings": warnings, "validation": validation, "units": "AP, AP50 and the other metrics are fractions 0..1",
         "class_names": class_names, "best": best, "device": str(device), **(extras or {}),
         "checkpoints": {"best": str(out / "checkpoints" / "best.pt"), "last": str(out / "checkpoints" / "last.pt")},
