@@ -24,22 +24,22 @@ from matchplant.spatial_stat_extractor.config import (
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.ground import (
+from matchplant.spatial_stat_extractor.canopy.ground import (
     GroundNoise,
     check_chm,
     measure_ground,
     robust_sd,
     thresholds,
 )
-from matchplant.spatial_stat_extractor.outlines import (
+from matchplant.spatial_stat_extractor.canopy.outlines import (
     SegmentSettings,
     segment,
     valid_polygons,
 )
-from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.traits import canopy_traits
-from matchplant.spatial_stat_extractor.zonal import ArraySource
+from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
 
 CRS = "EPSG:32614"
 

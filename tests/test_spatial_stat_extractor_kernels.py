@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from matchplant.spatial_stat_extractor.grouping import (
+from matchplant.spatial_stat_extractor.canopy.grouping import (
     gather_ranges,
     label_boxes,
     labelled_pixels,
@@ -16,8 +16,8 @@ from matchplant.spatial_stat_extractor.grouping import (
     sort_within_groups,
     values_at,
 )
-from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
-from matchplant.spatial_stat_extractor.runs import LARGE_GROUP, quantiles
+from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
+from matchplant.spatial_stat_extractor.zonal.runs import LARGE_GROUP, quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -172,8 +172,8 @@ def test_traced_outlines_are_gdals_polygonize():
     from affine import Affine
     from rasterio.features import shapes
 
-    from matchplant.spatial_stat_extractor.outlines import valid_polygons
-    from matchplant.spatial_stat_extractor.trace import outline_pieces
+    from matchplant.spatial_stat_extractor.canopy.outlines import valid_polygons
+    from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
 
     rng = np.random.default_rng(5)
     t = Affine(0.25, 0, 500.0, 0, -0.25, 80.0)
@@ -217,7 +217,7 @@ def test_values_at_flat_pixels_and_their_window():
 def test_box_tops_are_the_per_plant_argmax():
     """Against the loop it replaced: per box, the first highest local maximum (a slice and an argmax), else in
     the window, else the box's highest pixel; boxes cut by the edge, empty, inverted, on holes only."""
-    from matchplant.spatial_stat_extractor.maxima import box_tops
+    from matchplant.spatial_stat_extractor.canopy.maxima import box_tops
 
     rng = np.random.default_rng(7)
     a = np.round(rng.random((50, 70)), 1)  # ties

@@ -1,4 +1,4 @@
-"""Module 9's memory: the ``max_memory`` setting, the peak memory of a run, and a clear error when short.
+"""The memory budget of the canopy strips: the ``max_memory`` setting, a run's peak memory, a clear error when short.
 
 The peak is the operating system's own count of the process's largest resident set (``getrusage``: the
 pixels, tables and GDAL's block cache alike, not only Python objects), and of the largest worker process
@@ -37,6 +37,7 @@ def parse_memory(text, key: str = "max_memory") -> int:
         raise ConfigError(f"{key}: {text} is too little for module 9 (at least 256MB)",
                           fix=f"set {key} to at least 256MB; 2GB-3GB suit an 8 GB laptop")
     return size
+
 
 
 def gdal_cache_bytes(max_memory: int) -> int:
