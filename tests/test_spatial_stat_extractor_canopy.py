@@ -25,7 +25,7 @@ from matchplant.spatial_stat_extractor.config import (
     SpatialStatExtractorConfig,
 )
 from matchplant.spatial_stat_extractor.canopy.ground import (
-    GroundNoise,
+    GroundSample,
     check_chm,
     measure_ground,
     robust_sd,
@@ -302,7 +302,7 @@ def test_unclaimed_canopies_need_six_sd_on_the_chm_alone_and_three_where_ndvi_te
     enough: with 6 SD every missed plant under ~20 cm stayed out of the noisy demo field's stand counts."""
     rng = np.random.default_rng(5)
     soil, tops = rng.normal(0.15, 0.01, 4000), rng.normal(0.7, 0.05, 200)  # NDVI of bare soil and plant tops
-    noise = GroundNoise(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
+    noise = GroundSample(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
                         ndvi_soil=soil, ndvi_tops=tops)
     chm_only = thresholds("auto", "auto", noise, None)
     with_ndvi = thresholds("auto", "auto", noise, "auto")

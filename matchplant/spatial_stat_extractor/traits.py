@@ -36,7 +36,7 @@ from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
 from matchplant.spatial_stat_extractor.canopy.dates import measure_offset, templates
 from matchplant.spatial_stat_extractor.zonal.table import polygons_in
 from matchplant.spatial_stat_extractor.canopy.ground import (
-    GroundNoise,
+    GroundSample,
     Thresholds,
     check_chm,
     measure_ground,
@@ -59,7 +59,7 @@ UNCLAIMED = ["x", "y", "height", "pixels"]  # columns of unclaimed_canopies.csv 
 def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSettings:
     """The segmentation settings; ``th``: the thresholds resolved for one CHM (``auto`` ones from its noise)."""
     if th is None:
-        th = thresholds(cfg.min_height, cfg.min_top, GroundNoise(),
+        th = thresholds(cfg.min_height, cfg.min_top, GroundSample(),
                         None if cfg.ndvi_threshold == "auto" else cfg.ndvi_threshold)
     return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
                            min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=th.ndvi_threshold,
