@@ -16,7 +16,7 @@ from matchplant.core.runtime.errors import ConfigError
 from matchplant.spatial_stat_extractor.inputs.bands import check_order
 from matchplant.spatial_stat_extractor.inputs.indices import RGB_INDICES
 from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.canopy.memory import parse_memory
+from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MAX_MEMORY, parse_memory
 from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES
 
@@ -229,7 +229,7 @@ class SpatialStatExtractorConfig:
     compare: CompareConfig = section(CompareConfig)
     canopy: CanopyConfig = section(CanopyConfig)
     plots: PlotsConfig = section(PlotsConfig)
-    max_memory: str = param("3GB", "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "
+    max_memory: str = param(DEFAULT_MAX_MEMORY, "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "
                                    "sized to fit, so any field size runs; lower it if the computer runs short")
     workers: int = param(0, "processes outlining strips in parallel (0 = one per core; 1 = this process only)",
                          min=0)

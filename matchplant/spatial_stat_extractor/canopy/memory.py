@@ -22,7 +22,7 @@ except ImportError:  # pragma: no cover - Windows
 
 _UNITS = {"": 1, "b": 1, "k": 1024, "kb": 1024, "m": 1024 ** 2, "mb": 1024 ** 2, "g": 1024 ** 3, "gb": 1024 ** 3,
           "t": 1024 ** 4, "tb": 1024 ** 4}
-DEFAULT_MEMORY = 3 * 1024 ** 3  # max_memory's default: room for the system and a browser on an 8 GB laptop
+DEFAULT_MAX_MEMORY = "3GB"  # max_memory's default, the settings' too: room for the system and a browser on 8 GB
 MIN_MEMORY = 256 * 1024 ** 2  # below this the strips would be a few rows: not a useful setting
 
 
@@ -38,6 +38,8 @@ def parse_memory(text, key: str = "max_memory") -> int:
                           fix=f"set {key} to at least 256MB; 2GB-3GB suit an 8 GB laptop")
     return size
 
+
+DEFAULT_MEMORY = parse_memory(DEFAULT_MAX_MEMORY)  # the same default in bytes, for library calls
 
 
 def gdal_cache_bytes(max_memory: int) -> int:
