@@ -1,12 +1,15 @@
 """Module 9's compiled kernels (outlines and canopy statistics) against the plain numpy/scipy computations
 they replace, on random data with holes, ties and edges."""
 
+import ast
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
+import matchplant.spatial_stat_extractor as m9
 from matchplant.spatial_stat_extractor.canopy.grouping import (
     gather_ranges,
     label_boxes,
@@ -252,3 +255,16 @@ def test_box_tops_are_the_per_plant_argmax():
         assert np.array_equal(got, want, equal_nan=True)
         kinds += [(want[:, 3] == 1).sum(), (want[:, 3] == 0).sum()]
     assert (kinds > 30).all() and np.isnan(want[:3, 2]).all()
+
+
+def test_every_kernel_takes_a_few_named_bundles():
+    """Issue 37: a compiled kernel takes at most 6 arguments (bundles of arrays as NamedTuples, as module 8's
+    Raster and Scene), so that a dozen positional arrays cannot be given in the wrong order."""
+    kernels = {}
+    for path in Path(m9.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.FunctionDef) and any("njit" in ast.unparse(d) for d in node.decorator_list):
+                kernels[f"{path.stem}.{node.name}"] = len(node.args.args)
+    assert len(kernels) >= 15, sorted(kernels)  # the reader still finds them
+    wide = {k: n for k, n in kernels.items() if n > 6}
+    assert not wide, f"kernels with more than 6 arguments: {wide}"
