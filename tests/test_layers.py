@@ -2,6 +2,7 @@
 
 core  <-  detection, simfield  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
 inside core:  runtime  <-  geometry  <-  formats
+inside spatial_stat_extractor:  inputs  <-  zonal  <-  canopy, plots  <-  the face (config, run, gui, stages)
 
 Read with ``ast`` from the files themselves, imports inside functions included, so nothing here depends on
 what happens to be imported at test time. Independent of the camera code.
@@ -120,6 +121,80 @@ def test_core_roles_only_look_down():
                 bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'core'})")
     assert not loose, f"core files outside core/formats, core/geometry and core/runtime: {loose}"
     assert not bad, "imports across the core's roles:\n" + "\n".join(bad)
+
+
+# inside a step past about 15 files, its roles as folders under the step's face (docs/DESIGN.md §1): what each
+# role may import of its own step (besides itself, core and detection). The face (the files directly in the step's
+# folder: config, run, gui, the stages) may import every role; no role imports the face.
+STEP_ROLES = {
+    "spatial_stat_extractor": {
+        "inputs": set(),  # polygons, pixel boxes, rasters, bands, indices, the Layer record
+        "zonal": {"inputs"},  # the statistics engine, its kernels, runs, the statistics' names, the table
+        "canopy": {"inputs", "zonal"},  # outlines, ground, dates, canopy statistics, strips
+        "plots": {"inputs", "zonal"},  # plot table, layout, rows, figure, field book, their settings
+    },
+}
+MAX_FLAT_STEP = 15  # files directly in a step's folder beyond which it must show its roles as folders
+MAX_FACE = 8  # files of a step's face once it has roles (__init__ included)
+# the settings of a step with roles, and what they must not load (they read names, not the engine)
+SETTINGS_AVOID = {"spatial_stat_extractor": (["config", "plots.config"], "zonal.engine")}
+
+
+def step_role(module: str) -> str:
+    """The role folder of a module inside its step ("" for the step's face)."""
+    parts = module.split(".")
+    return parts[2] if len(parts) > 3 or (len(parts) == 3 and (PACKAGE / parts[1] / parts[2]).is_dir()) else ""
+
+
+@pytest.mark.parametrize("word", sorted(STEP_PACKAGES))
+def test_a_large_step_shows_its_roles(word):
+    flat = sorted(p.name for p in (PACKAGE / word).glob("*.py"))
+    if word not in STEP_ROLES:
+        assert len(flat) <= MAX_FLAT_STEP, (f"matchplant/{word} has {len(flat)} files in one folder: show its roles "
+                                            f"as folders and name them in STEP_ROLES (docs/DESIGN.md §1)")
+        return
+    assert len(flat) <= MAX_FACE, f"matchplant/{word}'s face has {len(flat)} files (at most {MAX_FACE}): {flat}"
+    folders = sorted(p.name for p in (PACKAGE / word).iterdir() if (p / "__init__.py").is_file())
+    assert folders == sorted(STEP_ROLES[word]), f"matchplant/{word}: role folders {folders}, STEP_ROLES names " \
+                                                f"{sorted(STEP_ROLES[word])}"
+
+
+@pytest.mark.parametrize("word", sorted(STEP_ROLES))
+def test_step_roles_only_look_down(word):
+    allowed = STEP_ROLES[word]
+    bad = []
+    for path in sorted((PACKAGE / word).rglob("*.py")):
+        module = module_name(path)
+        own = step_role(module)
+        if not own:  # the face may use every role
+            continue
+        for name, line, _ in internal_imports(path):
+            if layer(name) != word:
+                continue
+            other = step_role(name)
+            if other != own and other not in allowed[own]:
+                what = other or f"the face: {name.split('.')[-1] if name.count('.') > 1 else 'the package'}"
+                bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({what})")
+    assert not bad, f"imports across matchplant/{word}'s roles:\n" + "\n".join(bad)
+
+
+def reachable(start: str) -> set[str]:
+    """Every module that ``start`` imports, directly or through others (the import statements only)."""
+    seen, todo = set(), [start]
+    while todo:
+        for t in GRAPH.get(todo.pop(), ()):
+            if t not in seen:
+                seen.add(t)
+                todo.append(t)
+    return seen
+
+
+@pytest.mark.parametrize("word", sorted(SETTINGS_AVOID))
+def test_a_steps_settings_do_not_load_its_engine(word):
+    settings, engine = SETTINGS_AVOID[word]
+    for s in settings:
+        found = reachable(f"matchplant.{word}.{s}")
+        assert f"matchplant.{word}.{engine}" not in found, f"matchplant/{word}/{s.replace('.', '/')}.py loads {engine}"
 
 
 def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:

@@ -24,22 +24,22 @@ from matchplant.spatial_stat_extractor.config import (
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.ground import (
-    GroundNoise,
+from matchplant.spatial_stat_extractor.canopy.ground import (
+    GroundSample,
     check_chm,
     measure_ground,
     robust_sd,
     thresholds,
 )
-from matchplant.spatial_stat_extractor.outlines import (
+from matchplant.spatial_stat_extractor.canopy.outlines import (
     SegmentSettings,
     segment,
     valid_polygons,
 )
-from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.traits import canopy_traits
-from matchplant.spatial_stat_extractor.zonal import ArraySource
+from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
 
 CRS = "EPSG:32614"
 
@@ -302,7 +302,7 @@ def test_unclaimed_canopies_need_six_sd_on_the_chm_alone_and_three_where_ndvi_te
     enough: with 6 SD every missed plant under ~20 cm stayed out of the noisy demo field's stand counts."""
     rng = np.random.default_rng(5)
     soil, tops = rng.normal(0.15, 0.01, 4000), rng.normal(0.7, 0.05, 200)  # NDVI of bare soil and plant tops
-    noise = GroundNoise(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
+    noise = GroundSample(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
                         ndvi_soil=soil, ndvi_tops=tops)
     chm_only = thresholds("auto", "auto", noise, None)
     with_ndvi = thresholds("auto", "auto", noise, "auto")

@@ -1,13 +1,16 @@
 """Module 9's compiled kernels (outlines and canopy statistics) against the plain numpy/scipy computations
 they replace, on random data with holes, ties and edges."""
 
+import ast
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from matchplant.spatial_stat_extractor.grouping import (
+import matchplant.spatial_stat_extractor as m9
+from matchplant.spatial_stat_extractor.canopy.grouping import (
     gather_ranges,
     label_boxes,
     labelled_pixels,
@@ -16,8 +19,8 @@ from matchplant.spatial_stat_extractor.grouping import (
     sort_within_groups,
     values_at,
 )
-from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
-from matchplant.spatial_stat_extractor.runs import LARGE_GROUP, quantiles
+from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
+from matchplant.spatial_stat_extractor.zonal.runs import LARGE_GROUP, quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -172,8 +175,8 @@ def test_traced_outlines_are_gdals_polygonize():
     from affine import Affine
     from rasterio.features import shapes
 
-    from matchplant.spatial_stat_extractor.outlines import valid_polygons
-    from matchplant.spatial_stat_extractor.trace import outline_pieces
+    from matchplant.spatial_stat_extractor.canopy.outlines import valid_polygons
+    from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
 
     rng = np.random.default_rng(5)
     t = Affine(0.25, 0, 500.0, 0, -0.25, 80.0)
@@ -217,7 +220,7 @@ def test_values_at_flat_pixels_and_their_window():
 def test_box_tops_are_the_per_plant_argmax():
     """Against the loop it replaced: per box, the first highest local maximum (a slice and an argmax), else in
     the window, else the box's highest pixel; boxes cut by the edge, empty, inverted, on holes only."""
-    from matchplant.spatial_stat_extractor.maxima import box_tops
+    from matchplant.spatial_stat_extractor.canopy.maxima import box_tops
 
     rng = np.random.default_rng(7)
     a = np.round(rng.random((50, 70)), 1)  # ties
@@ -252,3 +255,16 @@ def test_box_tops_are_the_per_plant_argmax():
         assert np.array_equal(got, want, equal_nan=True)
         kinds += [(want[:, 3] == 1).sum(), (want[:, 3] == 0).sum()]
     assert (kinds > 30).all() and np.isnan(want[:3, 2]).all()
+
+
+def test_every_kernel_takes_a_few_named_bundles():
+    """Issue 37: a compiled kernel takes at most 6 arguments (bundles of arrays as NamedTuples, as module 8's
+    Raster and Scene), so that a dozen positional arrays cannot be given in the wrong order."""
+    kernels = {}
+    for path in Path(m9.__file__).parent.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.FunctionDef) and any("njit" in ast.unparse(d) for d in node.decorator_list):
+                kernels[f"{path.stem}.{node.name}"] = len(node.args.args)
+    assert len(kernels) >= 15, sorted(kernels)  # the reader still finds them
+    wide = {k: n for k, n in kernels.items() if n > 6}
+    assert not wide, f"kernels with more than 6 arguments: {wide}"

@@ -26,14 +26,14 @@ from matchplant.spatial_stat_extractor.config import (
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.fieldbook import join_field_book
-from matchplant.spatial_stat_extractor.plots import (
+from matchplant.spatial_stat_extractor.plots.fieldbook import join_field_book
+from matchplant.spatial_stat_extractor.plots.table import (
     plot_grid,
     plot_table,
     read_plots,
     run_plots,
 )
-from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.run import extract_and_write
 
 
@@ -243,8 +243,8 @@ def test_row_direction_from_the_plants_is_accurate():
     plots = plot_grid(cfg).drop(columns=["row_dir_x", "row_dir_y"])
     pts = table[["x", "y"]].to_numpy()
 
-    from matchplant.spatial_stat_extractor.plot_layout import join_plants
-    from matchplant.spatial_stat_extractor.plots import row_directions
+    from matchplant.spatial_stat_extractor.plots.layout import join_plants
+    from matchplant.spatial_stat_extractor.plots.table import row_directions
     plant_i, plot_i = join_plants(plots, pts)
     v = row_directions(plots, pts, plant_i, plot_i, cfg)
     truth = np.array([-np.sin(np.radians(-33.0)), np.cos(np.radians(-33.0))])
@@ -365,7 +365,7 @@ def numpy_plot_means(plots, path):
 
 
 def test_plot_statistics_over_plot_polygons_on_real_lai_in_another_crs(tmp_path):
-    from matchplant.spatial_stat_extractor.plots import plot_raster_stats
+    from matchplant.spatial_stat_extractor.plots.table import plot_raster_stats
     cfg = lai_plots()
     plots = plot_grid(cfg, "EPSG:32632")
     sets = [RasterSet(date=d, bands=[BandFile(name="lai", path=LAI / f"lai_{d}.tif")]) for d in ("2022_06_14", "2022_06_28")]
@@ -404,7 +404,7 @@ def test_field_figure_readable_on_one_small_plot(tmp_path):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from matchplant.spatial_stat_extractor.plots_figure import (
+    from matchplant.spatial_stat_extractor.plots.figure import (
         colour_norm,
         draw_field,
         unit_of,

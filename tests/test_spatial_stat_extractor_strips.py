@@ -1,4 +1,4 @@
-"""Module 9 in bounded memory (issue 30): outlines and canopy statistics strip by strip (strips.py), in one
+"""Module 9 in bounded memory (issue 30): outlines and canopy statistics strip by strip (canopy/strips.py), in one
 process or a pool, equal plant by plant to one pass over the field (segment + canopy_stats); the strip height
 from max_memory; the peak memory in the report; a memory shortage as a clear error."""
 
@@ -15,16 +15,16 @@ import shapely
 from affine import Affine
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError
-from matchplant.spatial_stat_extractor import strips
-from matchplant.spatial_stat_extractor.canopy import canopy_stats
+from matchplant.spatial_stat_extractor.canopy import strips
+from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats
 from matchplant.spatial_stat_extractor.config import (
     Layer,
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.memory import memory_stage, parse_memory
-from matchplant.spatial_stat_extractor.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.rasters import open_layer
+from matchplant.spatial_stat_extractor.canopy.memory import memory_stage, parse_memory
+from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
+from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.run import run
 
 RES = 0.01

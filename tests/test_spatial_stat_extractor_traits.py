@@ -17,15 +17,16 @@ from rasterio.features import geometry_mask, rasterize
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.simfield import generate_field
 from matchplant.simfield.scoring import growth_scores, outline_ious, trait_scores
-from matchplant.spatial_stat_extractor.canopy import canopy_stats, grouped_stats
-from matchplant.spatial_stat_extractor.config import CanopyConfig, Formula, Layer, RasterSet
-from matchplant.spatial_stat_extractor.extract import extract_stats
-from matchplant.spatial_stat_extractor.indices import parse_formula
-from matchplant.spatial_stat_extractor.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.polygons import read_polygons
-from matchplant.spatial_stat_extractor.rasters import open_layer
+from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats, grouped_stats
+from matchplant.spatial_stat_extractor.config import CanopyConfig, Formula, RasterSet
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+from matchplant.spatial_stat_extractor.inputs.indices import parse_formula
+from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
-from matchplant.spatial_stat_extractor.zonal import ArraySource
+from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
 
 
 @pytest.fixture(scope="module")

@@ -40,8 +40,12 @@ HIDDEN_SIGMAS = 2.0  # a hit is behind a plant when it stands hidden_height + th
 HWHM_TO_SIGMA = 1.0 / 1.1774  # half width at half maximum of a Gaussian, in sigmas
 
 
-class GroundNoise(NamedTuple):
-    """The bare soil's level above the DSM's opening and its spread (metres)."""
+class SoilLevel(NamedTuple):
+    """The bare soil's level above the DSM's opening and its spread (metres).
+
+    Not module 9's :class:`~matchplant.spatial_stat_extractor.canopy.ground.GroundSample`: this is a correction
+    to a ground surface (the mode of the DSM over its opening, for the rays); that one is the distribution of a
+    CHM on bare soil (robust quantiles away from the plant boxes, for canopy thresholds and checks)."""
 
     lift: float
     spread: float
@@ -82,7 +86,7 @@ def _fill_from_rim(data: np.ndarray, fill: np.ndarray) -> np.ndarray:
     return np.where(fill & ~todo, values, data)
 
 
-def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
+def soil_level(surface: Surface, ground: Surface) -> SoilLevel:
     """The bare soil's level above the opening ``ground`` of ``surface`` and its spread, from a subsample of the
     DSM's cells: the lowest peak of their heights above the opening holding at least :data:`PEAK_SHARE` of the
     highest (the soil, where plants cover more of the field than it does), and the half width of that peak on its
@@ -96,7 +100,7 @@ def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
     above = surface.data[r, c] - ground.sample(x, y)
     above = above[np.isfinite(above)]
     if above.size == 0:
-        return GroundNoise(0.0, 0.0)
+        return SoilLevel(0.0, 0.0)
     hist, edges = np.histogram(above, bins=round(MAX_LIFT / BIN), range=(0.0, MAX_LIFT))
     hist = cv2.GaussianBlur(hist.astype(np.float64)[None, :], (0, 0), SMOOTH_BINS).ravel()
     # the lowest peak of some weight: the soil, even where plants cover more of the field than it does
@@ -107,8 +111,8 @@ def soil_level(surface: Surface, ground: Surface) -> GroundNoise:
     half = edges[peak] - edges[below[-1] + 1] if below.size else lift
     spread = float(max(half, 0.0) * HWHM_TO_SIGMA)
     if lift > MAX_LIFT_SIGMAS * max(spread, BIN):
-        return GroundNoise(0.0, 0.0)
-    return GroundNoise(lift, spread)
+        return SoilLevel(0.0, 0.0)
+    return SoilLevel(lift, spread)
 
 
 class SoilSurface(Surface):
@@ -117,7 +121,7 @@ class SoilSurface(Surface):
 
     def __post_init__(self):
         super().__post_init__()
-        self._lifted: dict[float, tuple[Surface, GroundNoise]] = {}
+        self._lifted: dict[float, tuple[Surface, SoilLevel]] = {}
 
     def ground(self, window: float) -> Surface:
         if window not in self._lifted:
@@ -128,11 +132,11 @@ class SoilSurface(Surface):
             self._lifted[window] = (lifted, noise)
         return self._lifted[window][0]
 
-    def noise(self, window: float) -> GroundNoise:
+    def noise(self, window: float) -> SoilLevel:
         self.ground(window)
         return self._lifted[window][1]
 
 
-def ground_noise(surface: Surface, window: float) -> GroundNoise:
+def ground_noise(surface: Surface, window: float) -> SoilLevel:
     """What :class:`SoilSurface` measured (zero for a plain :class:`Surface`: its ground is the opening)."""
-    return surface.noise(window) if isinstance(surface, SoilSurface) else GroundNoise(0.0, 0.0)
+    return surface.noise(window) if isinstance(surface, SoilSurface) else SoilLevel(0.0, 0.0)

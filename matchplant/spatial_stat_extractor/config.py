@@ -1,7 +1,7 @@
 """Module 9's settings: the plant polygons, the rasters of each date, the statistics, the comparison.
 
 A :class:`RasterSet` turns into :class:`Layer` s, one per trait to measure (a band, a CHM as DSM - DTM,
-NDVI), so that reading rasters (:mod:`~matchplant.spatial_stat_extractor.rasters`) works from layers only.
+NDVI), so that reading rasters (:mod:`~matchplant.spatial_stat_extractor.inputs.rasters`) works from layers only.
 """
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ from typing import Literal
 from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.bands import check_order
-from matchplant.spatial_stat_extractor.indices import RGB_INDICES
-from matchplant.spatial_stat_extractor.memory import parse_memory
-from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
-from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
+from matchplant.spatial_stat_extractor.inputs.bands import check_order
+from matchplant.spatial_stat_extractor.inputs.indices import RGB_INDICES
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
+from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MAX_MEMORY, parse_memory
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
+from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES
 
 
 @dataclass
@@ -228,7 +229,7 @@ class SpatialStatExtractorConfig:
     compare: CompareConfig = section(CompareConfig)
     canopy: CanopyConfig = section(CanopyConfig)
     plots: PlotsConfig = section(PlotsConfig)
-    max_memory: str = param("3GB", "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "
+    max_memory: str = param(DEFAULT_MAX_MEMORY, "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "
                                    "sized to fit, so any field size runs; lower it if the computer runs short")
     workers: int = param(0, "processes outlining strips in parallel (0 = one per core; 1 = this process only)",
                          min=0)
@@ -267,18 +268,3 @@ class SpatialStatExtractorConfig:
                 if p is not None and not Path(p).is_file():
                     raise ConfigError(f"more_dates '{s.date}': {key} not found", path=p,
                                       fix=f"correct '{key}' of that date")
-
-
-@dataclass
-class Layer:
-    """One trait to measure: a band, a difference of two rasters (CHM) or NDVI."""
-
-    name: str
-    kind: str  # "band" | "difference" | "ndvi" | "formula"
-    paths: tuple
-    bands: tuple = (1,)  # numbers, names of band_order, or None (ndvi: red and NIR named by the raster)
-    elevation: bool = False
-    expression: str = ""  # formula: RGB (R, G, B, r, g, b from bands = red, green, blue) or b1, b2, ...
-    index: bool = False  # a vegetation index (measured over the canopy by default)
-    band_order: tuple = ()  # the names of the raster's bands in file order (config band_order), () = the file's
-

@@ -21,11 +21,11 @@ from matchplant.core.runtime.gui import figure, is_headless, require_display, sh
 from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.plots_figure import unit_of
-from matchplant.spatial_stat_extractor.polygons import read_polygons
-from matchplant.spatial_stat_extractor.rasters import preview_layer
+from matchplant.spatial_stat_extractor.plots.figure import unit_of
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs.rasters import preview_layer
 from matchplant.spatial_stat_extractor.run import extract_and_write
-from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
+from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
 
 log = get_logger("spatial_stat_extractor")
 

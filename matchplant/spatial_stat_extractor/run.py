@@ -1,5 +1,9 @@
 """Module 9 as one step: read the polygons, extract the statistics, write the files, compare two sets.
 
+Outputs in ``output_dir``: the polygons in each of ``vector_formats`` (``polygons.gpkg``, ``polygons.shp``),
+``stats.csv`` and ``stats.gpkg`` keyed by ``plant_id``, ``stats_report.json``, and the plots', canopy's and
+comparison's files where those are set.
+
 The command line and the window (:mod:`~matchplant.spatial_stat_extractor.gui`) both go through
 :func:`extract_and_write`, so a run from either writes the same files.
 """
@@ -9,22 +13,24 @@ from __future__ import annotations
 from dataclasses import replace
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
+import geopandas as gpd
 import pandas as pd
 import rasterio
 
+from matchplant.core.formats.vectors import write_formats, write_vector
 from matchplant.core.runtime.guard import staged_outputs
+from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
-from matchplant.core.formats.vectors import write_vector
-from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv, write_outputs
-from matchplant.spatial_stat_extractor.memory import gdal_cache_bytes, memory_report, memory_stage
-from matchplant.spatial_stat_extractor.plots import plots_wanted, run_plots
-from matchplant.spatial_stat_extractor.polygons import read_polygons, with_crs
-from matchplant.spatial_stat_extractor.rasters import raster_crs
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.canopy.memory import gdal_cache_bytes, memory_report, memory_stage
+from matchplant.spatial_stat_extractor.plots.table import plots_wanted, run_plots
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons, with_crs
+from matchplant.spatial_stat_extractor.inputs.rasters import raster_crs
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 
 log = get_logger("spatial_stat_extractor")
@@ -109,3 +115,18 @@ def run(cfg: SpatialStatExtractorConfig) -> dict:
     for key, path in written.items():
         log.info("%-14s %s", key, path)
     return {"plants": len(polygons), "outputs": {k: str(v) for k, v in written.items()}, "report": report}
+
+
+def write_outputs(polygons, table: pd.DataFrame, report: dict, out_dir: Path, *,
+                  vector_formats: Sequence[str] = ("gpkg", "shp")) -> dict[str, Path]:
+    """The polygons in each of ``vector_formats`` (``polygons.gpkg``, ``.shp`` with only ``plant_id``,
+    ``.geojson``), stats.csv, stats.gpkg (polygons + statistics) and stats_report.json."""
+    out_dir = Path(out_dir)
+    formats = write_formats({"plants": polygons}, out_dir / "polygons", vector_formats, shapefile_columns=["plant_id"])
+    written: dict[str, Path] = {f"polygons_{fmt}": path for fmt, path in formats.items()}
+    written["stats_csv"] = write_csv(table, out_dir / "stats.csv")
+    geom = polygons.set_index("plant_id").geometry
+    stats_gdf = gpd.GeoDataFrame(table.copy(), geometry=geom.reindex(table["plant_id"]).values, crs=polygons.crs)
+    written["stats_gpkg"] = write_vector(stats_gdf, out_dir / "stats.gpkg", layer="stats")
+    written["report"] = write_json(out_dir / "stats_report.json", report)
+    return written

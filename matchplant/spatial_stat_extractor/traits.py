@@ -1,15 +1,15 @@
-"""Module 9's canopy part: outlines on every date, canopy-only statistics, growth between dates.
+"""The canopy stage of module 9: outlines on every date, canopy-only statistics, growth between dates.
 
 For each date with a CHM, the CHM's ground noise is measured and checked, and ``canopy.min_height`` /
-``min_top`` left at ``auto`` follow from it (:mod:`~matchplant.spatial_stat_extractor.ground`); a later date's
-offset against the date before is measured (:mod:`~matchplant.spatial_stat_extractor.dates`): beyond
+``min_top`` left at ``auto`` follow from it (:mod:`~matchplant.spatial_stat_extractor.canopy.ground`); a later date's
+offset against the date before is measured (:mod:`~matchplant.spatial_stat_extractor.canopy.dates`): beyond
 ``canopy.max_shift`` an error, or with ``canopy.register`` the boxes are moved by it. Every plant is then
-outlined (:mod:`~matchplant.spatial_stat_extractor.outlines`);
+outlined (:mod:`~matchplant.spatial_stat_extractor.canopy.outlines`);
 on later dates, with ``canopy.recentre``, each plant is first re-centred on the local maximum nearest to
 its earlier top moved by the median shift of the plants around (within ``canopy.max_shift``), and the
 shift is reported. Then the CHM's canopy
 percentiles, canopy pixels, area and volume, and every index (or the traits listed in
-``canopy.traits``) over the canopy pixels (:mod:`~matchplant.spatial_stat_extractor.canopy`).
+``canopy.traits``) over the canopy pixels (:mod:`~matchplant.spatial_stat_extractor.canopy.stats`).
 
 Columns (``_<date>`` appended when there are several dates): ``canopy_pixels``, ``canopy_area_m2``,
 ``canopy_volume_m3``, ``top_x``, ``top_y``, ``top_height``, the tightened box ``tight_xmin`` ...
@@ -33,13 +33,19 @@ import shapely
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
-from matchplant.spatial_stat_extractor.dates import measure_offset, templates
-from matchplant.spatial_stat_extractor.extract import polygons_in
-from matchplant.spatial_stat_extractor.ground import GroundNoise, Thresholds, check_chm, measure_ground, thresholds
-from matchplant.spatial_stat_extractor.memory import DEFAULT_MEMORY
-from matchplant.spatial_stat_extractor.outlines import Outlines, SegmentSettings
-from matchplant.spatial_stat_extractor.rasters import open_layer
-from matchplant.spatial_stat_extractor.strips import Measure, outline_field
+from matchplant.spatial_stat_extractor.canopy.dates import measure_offset, templates
+from matchplant.spatial_stat_extractor.zonal.table import polygons_in
+from matchplant.spatial_stat_extractor.canopy.ground import (
+    GroundSample,
+    Thresholds,
+    check_chm,
+    measure_ground,
+    thresholds,
+)
+from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MEMORY
+from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
+from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 
 log = get_logger("spatial_stat_extractor")
 
@@ -53,7 +59,7 @@ UNCLAIMED = ["x", "y", "height", "pixels"]  # columns of unclaimed_canopies.csv 
 def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSettings:
     """The segmentation settings; ``th``: the thresholds resolved for one CHM (``auto`` ones from its noise)."""
     if th is None:
-        th = thresholds(cfg.min_height, cfg.min_top, GroundNoise(),
+        th = thresholds(cfg.min_height, cfg.min_top, GroundSample(),
                         None if cfg.ndvi_threshold == "auto" else cfg.ndvi_threshold)
     return SegmentSettings(margin=cfg.margin, relative=cfg.relative, min_height=th.min_height, min_top=th.min_top,
                            min_pixels=cfg.min_pixels, max_shift=cfg.max_shift, mask_threshold=th.ndvi_threshold,
@@ -96,7 +102,7 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
 
 def date_offset(earlier, chm, cfg: CanopyConfig, rs: RasterSet, entry: dict) -> np.ndarray:
     """The offset (m) to move this date's boxes by: zero within ``canopy.max_shift``; beyond it an error,
-    or with ``canopy.register`` the measured offset (:mod:`~matchplant.spatial_stat_extractor.dates`)."""
+    or with ``canopy.register`` the measured offset (:mod:`~matchplant.spatial_stat_extractor.canopy.dates`)."""
     date, crs, tmpl = earlier
     if tmpl is None:
         return np.zeros(2)
@@ -193,7 +199,7 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
             th = resolve_thresholds(chm, geoms, cfg, rs, i == 0, entry, mask)
             if th.ndvi_threshold is None:
                 mask_layer = None
-            # strip by strip within max_memory, only per-plant results kept (strips.py)
+            # strip by strip within max_memory, only per-plant results kept (canopy/strips.py)
             measures = [Measure(f"{chm_layer.name}_canopy", chm_layer, ("max", "mean"), tuple(cfg.height_percentiles))]
             measures += [Measure(f"{la.name}_canopy", la, tuple(stats), tuple(percentiles)) for la in layers
                          if not la.elevation and la.name in wanted]
@@ -217,7 +223,7 @@ def canopy_traits(polygons, date_sets: Sequence[RasterSet], cfg: CanopyConfig, s
                      "%d look like plants", rs.date, o.noise_bumps, entry["unclaimed_min_top"], len(o.unclaimed))
         if previous is None:
             # the faint ones too (below the ground noise's highest bumps): plots count them only at an empty
-            # seed position, where the detector missed a plant too small to rise above the noise (plots.py)
+            # seed position, where the detector missed a plant too small to rise above the noise (plots/table.py)
             unclaimed = pd.concat([pd.DataFrame(o.unclaimed, columns=UNCLAIMED).assign(faint=False),
                                    pd.DataFrame(o.faint, columns=UNCLAIMED).assign(faint=True)], ignore_index=True)
         if seeds is not None:

@@ -7,7 +7,7 @@ so the two boxes find different ones. Two tops are therefore one plant's when no
 the lowest CHM on the way from one top to the other (the saddle) stays within a tolerance of the lower
 top. The tolerance is the larger of
 
-* ``K_DIP`` x the ground noise's SD (measured by :mod:`~matchplant.spatial_stat_extractor.ground`): a dip
+* ``K_DIP`` x the ground noise's SD (measured by :mod:`~matchplant.spatial_stat_extractor.canopy.ground`): a dip
   this shallow is what the noise itself digs into a canopy (the same 3 SD that separates soil from leaves);
 * ``REL_DIP`` x the lower top's height: two distinct plants whose canopies touch meet in a valley far
   below their tops (their leaves slope down to their rims), while one plant's top is one dome;
@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from matchplant.spatial_stat_extractor.maxima import line_saddles, local_maxima
+from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
 
 K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
 REL_DIP = 0.4  # share of the lower top: a deeper dip is the valley between two plants (one plant's leaves

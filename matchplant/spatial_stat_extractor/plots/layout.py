@@ -16,9 +16,9 @@ from pyproj import CRS, Transformer
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.plot_rows import bearing_to_vector, canonical
-from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
-from matchplant.spatial_stat_extractor.polygons import read_polygons
+from matchplant.spatial_stat_extractor.plots.rows import bearing_to_vector, canonical
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
+from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 
 log = get_logger("spatial_stat_extractor")
 SAME_PLOT = 0.5  # plots overlapping by this share of the smaller one are one plot given twice

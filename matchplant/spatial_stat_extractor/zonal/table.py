@@ -1,28 +1,16 @@
-"""Module 9: plant polygons to GIS files, and one row of statistics per plant from rasters.
+"""The statistics table: one row per plant of every trait of every date, from the polygons and the rasters.
 
-Inputs: the plants of module 8 (``plants.gpkg`` or ``plants.csv``) or any polygon file (GeoPackage,
-shapefile, GeoJSON, or a CSV with a WKT ``geometry`` column or ``xmin,ymin,xmax,ymax`` box columns),
-and the rasters of one or more dates: a canopy height model (CHM), or a DSM and DTM pair (CHM = DSM - DTM,
-computed window by window), a multispectral raster with its red and near-infrared band numbers (NDVI
-computed), and any single bands.
-
-Outputs in ``output_dir``: the polygons as ``polygons.gpkg`` and ``polygons.shp`` (with their CRS; the
-formats of ``vector_formats``), ``stats.csv`` and
-``stats.gpkg`` keyed by ``plant_id`` (wide: one row per plant, columns ``<trait>_<stat>[_<date>]``;
-long: one row per plant and date), ``stats_report.json`` (reprojections, plants outside a raster,
-plants with only nodata), and with ``compare.polygons`` set, a comparison of two plant sets
-(``compare_summary.csv``, ``compare_matches.csv``, ``compare.png``).
-
-The parts: settings in :mod:`~matchplant.spatial_stat_extractor.config`, polygons in
-:mod:`~matchplant.spatial_stat_extractor.polygons`, rasters in :mod:`~matchplant.spatial_stat_extractor.rasters`,
-the statistics and the files out here, the whole step in :mod:`~matchplant.spatial_stat_extractor.run`.
-
-Statistics are exact (see :mod:`matchplant.spatial_stat_extractor.zonal`): ``mode: center`` equals rasterstats
-(pixel centres inside), ``mode: coverage`` equals exactextract (pixels weighted by covered fraction).
+Each date's rasters come as layers (``date_sets``: anything with ``date`` and ``layers()``, as the settings'
+:class:`~matchplant.spatial_stat_extractor.config.RasterSet`), each layer is read window by window
+(:mod:`~matchplant.spatial_stat_extractor.inputs.rasters`) under the polygons, reprojected to the raster's CRS
+where they differ, and measured exactly (:mod:`~matchplant.spatial_stat_extractor.zonal.engine`): ``mode: center``
+equals rasterstats (pixel centres inside), ``mode: coverage`` equals exactextract (pixels weighted by covered
+fraction). Wide layout: columns ``<trait>_<stat>[_<date>]``; long: one row per plant and date. What went wrong
+where (plants outside a raster, plants with only nodata) goes into the report.
 
 Library use::
 
-    plants = read_polygons("plants.gpkg")
+    plants = read_polygons("plants.gpkg")  # inputs.polygons
     table, report = extract_stats(plants, [RasterSet(date="w3", dsm="dsm.tif", dtm="dtm.tif")])
 """
 
@@ -32,25 +20,19 @@ import contextlib
 from pathlib import Path
 from typing import Callable, Sequence
 
-import geopandas as gpd
 import numpy as np
 import pandas as pd
 import rasterio
 import shapely
 
 from matchplant.core.formats.csv_table import write_table
-from matchplant.core.formats.vectors import write_formats, write_vector
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.io import atomic_open, write_json
+from matchplant.core.runtime.io import atomic_open
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.config import RasterSet
-from matchplant.spatial_stat_extractor.polygons import read_polygons
-from matchplant.spatial_stat_extractor.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal import DEFAULT_STATS, zonal_stats
-
-# the library's face (see the module doc): polygons in, statistics out
-__all__ = ["RasterSet", "read_polygons", "extract_stats", "write_outputs", "write_csv"]
+from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.zonal.names import DEFAULT_STATS
 
 log = get_logger("spatial_stat_extractor")
 
@@ -77,7 +59,7 @@ def polygons_in(gdf, crs, layer_label: str, report: dict):
     return gdf.to_crs(crs).geometry.values
 
 
-def extract_stats(polygons, date_sets: Sequence[RasterSet], stats: Sequence[str] = DEFAULT_STATS,
+def extract_stats(polygons, date_sets: Sequence, stats: Sequence[str] = DEFAULT_STATS,
                   percentiles: Sequence[float] = (95,), mode: str = "center", *, nodata: float | None = None,
                   layout: str = "wide",
                   on_progress: Callable[[float, str], None] | None = None) -> tuple[pd.DataFrame, dict]:
@@ -171,26 +153,7 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
                     entry["only_nodata_ids"][:5])
 
 
-# --------------------------------------------------------------------------------------------------
-# outputs
-
-
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
     with atomic_open(path) as fh:
         write_table(df, fh)
     return Path(path)
-
-
-def write_outputs(polygons, table: pd.DataFrame, report: dict, out_dir: Path, *,
-                  vector_formats: Sequence[str] = ("gpkg", "shp")) -> dict[str, Path]:
-    """The polygons in each of ``vector_formats`` (``polygons.gpkg``, ``.shp`` with only ``plant_id``,
-    ``.geojson``), stats.csv, stats.gpkg (polygons + statistics) and stats_report.json."""
-    out_dir = Path(out_dir)
-    formats = write_formats({"plants": polygons}, out_dir / "polygons", vector_formats, shapefile_columns=["plant_id"])
-    written: dict[str, Path] = {f"polygons_{fmt}": path for fmt, path in formats.items()}
-    written["stats_csv"] = write_csv(table, out_dir / "stats.csv")
-    geom = polygons.set_index("plant_id").geometry
-    stats_gdf = gpd.GeoDataFrame(table.copy(), geometry=geom.reindex(table["plant_id"]).values, crs=polygons.crs)
-    written["stats_gpkg"] = write_vector(stats_gdf, out_dir / "stats.gpkg", layer="stats")
-    written["report"] = write_json(out_dir / "stats_report.json", report)
-    return written

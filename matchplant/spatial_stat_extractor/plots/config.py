@@ -1,4 +1,4 @@
-"""Module 9's ``plots`` section: where the plots are, how they were sown, what to report per plot
+"""The plots' settings (the ``plots`` section): where the plots are, how they were sown, what to report per plot
 (docs/DESIGN.md §7)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.zonal import BASIC_STATS
+from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS
 
 
 @dataclass

@@ -1,5 +1,5 @@
-"""Module 9's rasters in: each :class:`~matchplant.spatial_stat_extractor.config.Layer` as a source
-that :func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` reads window by window, and a
+"""Rasters in: each :class:`~matchplant.spatial_stat_extractor.inputs.layer.Layer` as a source
+that :func:`~matchplant.spatial_stat_extractor.zonal.engine.zonal_stats` reads window by window, and a
 reduced-resolution preview for the window.
 
 A raster in degrees (EPSG:4326, as many LAI/NDVI products and GIS exports are): box statistics reproject the
@@ -25,15 +25,15 @@ from matchplant.core.geometry.frames import utm_crs_for
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate_gis import check_raster
-from matchplant.spatial_stat_extractor.bands import (
+from matchplant.spatial_stat_extractor.inputs.bands import (
     band_names,
     check_bands,
     file_name,
     pick_band,
 )
-from matchplant.spatial_stat_extractor.config import Layer
-from matchplant.spatial_stat_extractor.indices import FormulaSource, parse_formula
-from matchplant.spatial_stat_extractor.zonal import (
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
+from matchplant.spatial_stat_extractor.inputs.indices import FormulaSource, parse_formula
+from matchplant.spatial_stat_extractor.inputs.sources import (
     ArraySource,
     DifferenceSource,
     NDVISource,

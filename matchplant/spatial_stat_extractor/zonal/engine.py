@@ -1,4 +1,4 @@
-"""Exact zonal statistics of polygons over a raster (the engine of module 9).
+"""The statistics engine of module 9: exact zonal statistics of polygons over a raster.
 
 Two pixel rules, each equal to a reference tool:
 
@@ -9,113 +9,22 @@ Two pixel rules, each equal to a reference tool:
 * ``"coverage"``: every pixel is weighted by the exact fraction of its area inside the polygon - the
   coverage-weighted statistics of exactextract (quantiles over its histogram of distinct values); one
   compiled (numba) pass per polygon: edges cut at the pixel grid accumulate signed areas along each
-  window row (as font rasterisers do), then the covered pixels are gathered and reduced in place.
+  window row (as font rasterisers do), then the covered pixels are gathered and reduced in place
+  (:mod:`~matchplant.spatial_stat_extractor.zonal.coverage`).
 
 Overlapping polygons are independent. Batches of polygons (sorted by row) read only their raster window."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Callable, Iterable, Sequence
 
-import numba
 import numpy as np
 import shapely
-from rasterio.windows import Window
 
-from matchplant.core.geometry.frames import parse_crs
-from matchplant.spatial_stat_extractor.runs import quantiles, ranges
-
-BASIC_STATS = ("count", "min", "max", "mean", "median", "std", "sum", "nodata")
-DEFAULT_STATS = ("count", "min", "max", "mean", "median", "std", "sum")
-MODES = ("center", "coverage")
-_EPS_COVER = 1e-6  # coverage below this is rounding noise (e.g. an edge on a grid line), not a touched pixel
-
-
-def percentile_name(q: float) -> str:
-    """Column suffix of a percentile: 95 -> 'p95', 2.5 -> 'p2.5'."""
-    return f"p{float(q):g}"
-
-
-# --------------------------------------------------------------------------------------------------
-# raster access: anything with transform, width, height and read(row0, row1, col0, col1) -> float64 NaN-masked
-
-
-@dataclass
-class ArraySource:
-    """An in-memory raster (tests, previews). NaN and ``nodata`` are masked."""
-
-    data: np.ndarray
-    transform: object
-    nodata: float | None = None
-    crs: object = None
-
-    def __post_init__(self):
-        self.data = np.asarray(self.data, dtype=float)
-        if self.nodata is not None:
-            self.data = np.where(self.data == self.nodata, np.nan, self.data)
-        self.height, self.width = self.data.shape
-
-    def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        return self.data[row0:row1, col0:col1]
-
-
-def pyproj_crs(crs):
-    """A rasterio CRS as a pyproj CRS (what GeoPandas uses), None stays None."""
-    return None if crs is None else parse_crs(crs)
-
-
-class RasterFileSource:
-    """One band of an open rasterio dataset, read window by window. The file's nodata, any
-    ``extra_nodata`` values (ODM's -9999 on elevation rasters) and NaN are masked."""
-
-    def __init__(self, dataset, band: int = 1, nodata: float | None = None,
-                 extra_nodata: Sequence[float] = ()):
-        self.ds = dataset
-        self.band = band
-        self.transform = dataset.transform
-        self.crs = pyproj_crs(dataset.crs)
-        self.width, self.height = dataset.width, dataset.height
-        file_nodata = dataset.nodatavals[band - 1] if dataset.nodatavals else None
-        # each value once (an elevation raster's nodata is often ODM's -9999 too): a pass per value per read
-        self.nodata = list(dict.fromkeys(v for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
-                                         if v is not None and not np.isnan(v)))
-
-    def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        # GDAL converts to float64 as it reads (no second pass over the window)
-        arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0), out_dtype="float64")
-        for v in self.nodata:
-            np.copyto(arr, np.nan, where=arr == v)
-        return arr
-
-
-class DifferenceSource:
-    """``a - b`` window by window (a CHM from a DSM and a DTM on the same grid)."""
-
-    def __init__(self, a, b):
-        if (a.width, a.height) != (b.width, b.height) or not a.transform.almost_equals(b.transform):
-            raise ValueError("the two rasters are not on the same grid")
-        self.a, self.b = a, b
-        self.transform, self.crs, self.width, self.height = a.transform, a.crs, a.width, a.height
-
-    def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        return self.a.read(row0, row1, col0, col1) - self.b.read(row0, row1, col0, col1)
-
-
-class NDVISource:
-    """(NIR - red) / (NIR + red) window by window; NaN where the sum is 0 or a band is masked."""
-
-    def __init__(self, red, nir):
-        self.red, self.nir = red, nir
-        self.transform, self.crs, self.width, self.height = red.transform, red.crs, red.width, red.height
-
-    def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
-        r = self.red.read(row0, row1, col0, col1)
-        n = self.nir.read(row0, row1, col0, col1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            s = n + r
-            return np.where(s != 0, (n - r) / s, np.nan)
+from matchplant.spatial_stat_extractor.zonal.coverage import Edges, Pixels, PolygonWindows, coverage_batch
+from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES, percentile_name
+from matchplant.spatial_stat_extractor.zonal.runs import quantiles, ranges
 
 
 # --------------------------------------------------------------------------------------------------
@@ -236,159 +145,6 @@ def _center_weights(pp: PixelPolygons, b: _Batch) -> np.ndarray:
     return (np.cumsum(crossings) & 1).astype(float)
 
 
-# --------------------------------------------------------------------------------------------------
-# coverage-weighted statistics: one compiled pass per polygon (cut edges, accumulate, gather, reduce)
-
-
-@numba.njit(cache=True, nogil=True)
-def _edge_cuts(a: float, b: float, buf: np.ndarray) -> int:
-    """Parameters t in (0, 1) where the segment a -> b crosses a whole number, in increasing t."""
-    lo, hi = min(a, b), max(a, b)
-    first = math.floor(lo) + 1.0
-    n = max(int(math.ceil(hi) - first), 0)
-    for i in range(n):
-        k = first + i if b >= a else first + (n - 1 - i)
-        buf[i] = (k - a) / (b - a)
-    return n
-
-
-@numba.njit(cache=True, nogil=True)
-def _polygon_coverage(x0, y0, x1, y1, e0, e1, cx, cy, w, h, acc, tx, ty):
-    """Exact covered fraction of each pixel of a ``h`` x ``w`` window (into ``acc``, rows of w + 1).
-
-    Each edge is cut at the pixel grid; a piece in one cell adds its signed height to the cells right
-    of it (the part of its own cell right of its midpoint): the running sum along a row is then the
-    covered area, as font rasterisers accumulate it."""
-    stride = w + 1
-    acc[:h * stride] = 0.0
-    for e in range(e0, e1):
-        ax, ay, bx, by = x0[e] - cx, y0[e] - cy, x1[e] - cx, y1[e] - cy
-        if ay == by:
-            continue  # a horizontal edge covers nothing
-        nx = _edge_cuts(ax, bx, tx)
-        ny = _edge_cuts(ay, by, ty)
-        dx, dy = bx - ax, by - ay
-        i = j = 0
-        ta = 0.0
-        while True:
-            if i < nx and (j >= ny or tx[i] <= ty[j]):
-                tb = tx[i]
-                i += 1
-            elif j < ny:
-                tb = ty[j]
-                j += 1
-            else:
-                tb = 1.0
-            d = (tb - ta) * dy
-            if d != 0.0:
-                ym = ay + 0.5 * (ta + tb) * dy
-                r = int(math.floor(ym))
-                if 0 <= r < h:
-                    xm = ax + 0.5 * (ta + tb) * dx
-                    c = math.floor(xm)
-                    base = r * stride
-                    if c < 0:
-                        acc[base] += d
-                    elif c >= w:
-                        acc[base + w] += d
-                    else:
-                        frac = xm - c
-                        acc[base + int(c)] += d * (1.0 - frac)
-                        acc[base + int(c) + 1] += d * frac
-            if tb == 1.0 and i >= nx and j >= ny:
-                break
-            ta = tb
-    for r in range(h):
-        run = 0.0
-        base = r * stride
-        for c in range(w):
-            run += acc[base + c]
-            v = abs(run)
-            acc[base + c] = 0.0 if v < _EPS_COVER else min(v, 1.0)
-
-
-@numba.njit(cache=True, nogil=True)
-def _weighted_quantile(vals: np.ndarray, wts: np.ndarray, n: int, total: float, q: float) -> float:
-    """exactextract's weighted quantile of sorted distinct ``vals[:n]``: s_k = k w_k + (n - 1) sum_{i<k} w_i,
-    interpolated at q (n - 1) sum w."""
-    target = q * total * (n - 1)
-    cum = 0.0
-    s_prev = 0.0
-    for k in range(n):
-        s = k * wts[k] + (n - 1) * cum
-        if s > target:
-            return vals[k - 1] + (target - s_prev) * (vals[k] - vals[k - 1]) / (s - s_prev)
-        s_prev = s
-        cum += wts[k]
-    return vals[n - 1]
-
-
-@numba.njit(cache=True, nogil=True)
-def _coverage_batch(x0, y0, x1, y1, edge_start, polys, col0, row0, w, h, window, R0, C0, qs, out, quant):
-    """Coverage-weighted statistics of each polygon of a batch over ``window`` (NaN = masked).
-
-    ``out[k]``: count, sum, mean, min, max, std, nodata (sums of covered fractions for count and
-    nodata); ``quant[k]``: the quantiles ``qs``."""
-    big = 0
-    for k in range(len(polys)):
-        big = max(big, h[k] * (w[k] + 1))
-    acc = np.empty(big)
-    vals = np.empty(big)
-    wts = np.empty(big)
-    tx, ty = np.empty(1024), np.empty(1024)
-    for k in range(len(polys)):
-        p = polys[k]
-        e0, e1 = edge_start[p], edge_start[p + 1]
-        span = 2
-        for e in range(e0, e1):
-            span = max(span, int(abs(x1[e] - x0[e])) + 2, int(abs(y1[e] - y0[e])) + 2)
-        if span > tx.size:
-            tx, ty = np.empty(2 * span), np.empty(2 * span)
-        wk, hk = w[k], h[k]
-        _polygon_coverage(x0, y0, x1, y1, e0, e1, float(col0[k]), float(row0[k]), wk, hk, acc, tx, ty)
-        n = 0
-        count = total = nodata = 0.0
-        lo, hi = np.inf, -np.inf
-        for r in range(hk):
-            wr = row0[k] - R0 + r
-            for c in range(wk):
-                f = acc[r * (wk + 1) + c]
-                if f == 0.0:
-                    continue
-                v = window[wr, col0[k] - C0 + c]
-                if math.isnan(v):
-                    nodata += f
-                    continue
-                vals[n] = v
-                wts[n] = f
-                n += 1
-                count += f
-                total += f * v
-                lo = min(lo, v)
-                hi = max(hi, v)
-        out[k, 0], out[k, 1], out[k, 6] = count, total, nodata
-        if n == 0:
-            out[k, 2:6] = np.nan
-            quant[k, :] = np.nan
-            continue
-        mean = total / count
-        dev = 0.0
-        for i in range(n):
-            dev += wts[i] * (vals[i] - mean) ** 2
-        out[k, 2], out[k, 3], out[k, 4], out[k, 5] = mean, lo, hi, math.sqrt(dev / count)
-        if qs.size:
-            order = np.argsort(vals[:n])
-            sv, sw = vals[:n][order], wts[:n][order]
-            m = 1  # equal values are one entry with their summed weight, as exactextract's histogram
-            for i in range(1, n):
-                if sv[i] == sv[m - 1]:
-                    sw[m - 1] += sw[i]
-                else:
-                    sv[m], sw[m] = sv[i], sw[i]
-                    m += 1
-            for qi in range(qs.size):
-                quant[k, qi] = _weighted_quantile(sv, sw, m, count, qs[qi])
-
 
 # --------------------------------------------------------------------------------------------------
 # statistics over grouped values
@@ -460,8 +216,8 @@ def _coverage_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C
     k = len(b.polys)
     qs = np.array([q / 100.0 for q in percentiles] + [0.5])
     out, quant = np.empty((k, 7)), np.empty((k, len(qs)))
-    _coverage_batch(pp.x0, pp.y0, pp.x1, pp.y1, pp.edge_start, b.polys, b.col0, b.row0, b.w, b.h,
-                    window, R0, C0, qs, out, quant)
+    coverage_batch(Edges(pp.x0, pp.y0, pp.x1, pp.y1, pp.edge_start), PolygonWindows(b.polys, b.col0, b.row0, b.w, b.h),
+                   Pixels(window, R0, C0), qs, out, quant)
     got = dict(zip(("count", "sum", "mean", "min", "max", "std", "nodata"), out.T))
     got.update({percentile_name(q): quant[:, i] for i, q in enumerate(percentiles)}, median=quant[:, -1])
     return got
@@ -509,8 +265,8 @@ def zonal_stats(geoms: Sequence, source, stats: Iterable[str] = DEFAULT_STATS,
                 percentiles: Iterable[float] = (), mode: str = "center", *,
                 max_cells: int = 4_000_000, max_window: int = 16_000_000,
                 on_progress: Callable[[int, int], None] | None = None) -> ZonalResult:
-    """Statistics of ``source`` (see :class:`ArraySource`) inside each polygon of ``geoms`` (shapely
-    polygons in the raster's CRS).
+    """Statistics of ``source`` (see :class:`~matchplant.spatial_stat_extractor.inputs.sources.ArraySource`)
+    inside each polygon of ``geoms`` (shapely polygons in the raster's CRS).
 
     ``stats``: any of :data:`BASIC_STATS`; ``percentiles``: 0..100; ``mode``: ``"center"`` (pixel
     centre inside, like rasterstats) or ``"coverage"`` (weighted by covered fraction, like

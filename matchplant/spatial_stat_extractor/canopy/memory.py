@@ -1,4 +1,4 @@
-"""Module 9's memory: the ``max_memory`` setting, the peak memory of a run, and a clear error when short.
+"""The memory budget of the canopy strips: the ``max_memory`` setting, a run's peak memory, a clear error when short.
 
 The peak is the operating system's own count of the process's largest resident set (``getrusage``: the
 pixels, tables and GDAL's block cache alike, not only Python objects), and of the largest worker process
@@ -22,7 +22,7 @@ except ImportError:  # pragma: no cover - Windows
 
 _UNITS = {"": 1, "b": 1, "k": 1024, "kb": 1024, "m": 1024 ** 2, "mb": 1024 ** 2, "g": 1024 ** 3, "gb": 1024 ** 3,
           "t": 1024 ** 4, "tb": 1024 ** 4}
-DEFAULT_MEMORY = 3 * 1024 ** 3  # max_memory's default: room for the system and a browser on an 8 GB laptop
+DEFAULT_MAX_MEMORY = "3GB"  # max_memory's default, the settings' too: room for the system and a browser on 8 GB
 MIN_MEMORY = 256 * 1024 ** 2  # below this the strips would be a few rows: not a useful setting
 
 
@@ -37,6 +37,9 @@ def parse_memory(text, key: str = "max_memory") -> int:
         raise ConfigError(f"{key}: {text} is too little for module 9 (at least 256MB)",
                           fix=f"set {key} to at least 256MB; 2GB-3GB suit an 8 GB laptop")
     return size
+
+
+DEFAULT_MEMORY = parse_memory(DEFAULT_MAX_MEMORY)  # the same default in bytes, for library calls
 
 
 def gdal_cache_bytes(max_memory: int) -> int:

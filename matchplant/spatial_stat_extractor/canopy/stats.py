@@ -5,7 +5,7 @@ A layer on the CHM's grid is read in strips of rows and its values gathered at t
 statistics are then reductions over each plant's run of values (``bincount``, ``reduceat``; percentiles
 by sorting each plant's run (:mod:`.grouping`) and linear interpolation between order statistics, as
 ``numpy.percentile``). A layer on another grid (a multispectral camera at its own resolution) is measured over
-the outline polygons with :func:`~matchplant.spatial_stat_extractor.zonal.zonal_stats` (pixel centres inside).
+the outline polygons with :func:`~matchplant.spatial_stat_extractor.zonal.engine.zonal_stats` (pixel centres inside).
 """
 
 from __future__ import annotations
@@ -14,9 +14,10 @@ from typing import Sequence
 
 import numpy as np
 
-from matchplant.spatial_stat_extractor.grouping import pixel_window, sort_within_groups, values_at
-from matchplant.spatial_stat_extractor.outlines import STRIP_ROWS, Outlines
-from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
+from matchplant.spatial_stat_extractor.canopy.grouping import pixel_window, sort_within_groups, values_at
+from matchplant.spatial_stat_extractor.canopy.outlines import STRIP_ROWS, Outlines
+from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.zonal.names import percentile_name
 
 
 def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarray:

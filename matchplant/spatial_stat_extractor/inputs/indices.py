@@ -10,7 +10,7 @@ raster's bands (and the names band_order gives them). An orthophoto's alpha band
 masks the pixels where it is 0.
 
 Which band is which (band_order, band descriptions, colour labels where they mean something) is
-:mod:`~matchplant.spatial_stat_extractor.bands`.
+:mod:`~matchplant.spatial_stat_extractor.inputs.bands`.
 """
 
 from __future__ import annotations

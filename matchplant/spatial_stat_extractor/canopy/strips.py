@@ -1,6 +1,6 @@
 """Outlines and canopy statistics of a whole field in bounded memory: strip by strip, in parallel.
 
-:func:`~matchplant.spatial_stat_extractor.outlines.segment` reads the CHM in strips of rows across the
+:func:`~matchplant.spatial_stat_extractor.canopy.outlines.segment` reads the CHM in strips of rows across the
 whole field; each strip's window costs about :data:`BYTES_PER_PIXEL` bytes per pixel while it is
 outlined (the CHM as float64, its filtered copies, label images) and each canopy pixel then costs as much
 again while its statistics are gathered. Here the strip height comes from the memory budget (``max_memory``
@@ -32,10 +32,10 @@ import shapely
 from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.canopy import gather, grouped_stats
-from matchplant.spatial_stat_extractor.config import Layer
-from matchplant.spatial_stat_extractor.memory import format_memory, gdal_cache_bytes
-from matchplant.spatial_stat_extractor.outlines import (
+from matchplant.spatial_stat_extractor.canopy.stats import gather, grouped_stats
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
+from matchplant.spatial_stat_extractor.canopy.memory import format_memory, gdal_cache_bytes
+from matchplant.spatial_stat_extractor.canopy.outlines import (
     STRIP_ROWS,
     Outlines,
     SegmentSettings,
@@ -43,8 +43,8 @@ from matchplant.spatial_stat_extractor.outlines import (
     plant_windows,
     segment,
 )
-from matchplant.spatial_stat_extractor.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal import zonal_stats
+from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
 
 log = get_logger("spatial_stat_extractor.strips")
 

@@ -10,6 +10,8 @@ than one sort across the strip.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
@@ -105,8 +107,27 @@ def pixel_window(pix: np.ndarray, width: int) -> tuple[int, int, int, int]:
     return tuple(int(v) for v in _pixel_window(np.ascontiguousarray(pix, np.int64), int(width)))
 
 
+class LabelRules(NamedTuple):
+    """What :func:`labelled_pixels` keeps of each label ``k`` (arrays indexed by ``k``)."""
+
+    windows: np.ndarray  # (n, 4) int64: col0, row0, col1, row1 in the image's pixels, end excluded
+    reach: np.ndarray  # (n,) float: the least value kept
+    home: np.ndarray  # (n,) bool: the label is gathered here (its home strip)
+    ids: np.ndarray  # (n,) int32: its value in the image of kept pixels
+
+
+class Placement(NamedTuple):
+    """Where an image was cut from its raster: the raster's width, the image's first row and column on it."""
+
+    width: int
+    row0: int
+    col0: int
+
+
 @numba.njit(cache=True, nogil=True)
-def _labelled_pixels(labels, values, windows, reach, home, ids, width, row0, col0):
+def _labelled_pixels(labels, values, rules, at):
+    windows, reach, home, ids = rules
+    width, row0, col0 = at
     rows, cols = labels.shape
     n = len(home)
     count = np.zeros(n + 1, np.int64)
@@ -150,10 +171,10 @@ def labelled_pixels(labels: np.ndarray, values: np.ndarray, windows: np.ndarray,
     values (each rounded to float32, as the canopy's volume always was), and their extent (row min, row max, col min, col max in the image;
     min > max where none); and the image of these pixels holding ``ids[k]`` (0 elsewhere). Two passes over the
     image instead of a dozen over millions of pixels and a sort by plant."""
-    return _labelled_pixels(np.ascontiguousarray(labels), np.ascontiguousarray(values),
-                            np.ascontiguousarray(windows, dtype=np.int64), np.ascontiguousarray(reach, dtype=float),
-                            np.ascontiguousarray(home, dtype=np.bool_), np.ascontiguousarray(ids, dtype=np.int32),
-                            int(width), int(row0), int(col0))
+    rules = LabelRules(np.ascontiguousarray(windows, dtype=np.int64), np.ascontiguousarray(reach, dtype=float),
+                       np.ascontiguousarray(home, dtype=np.bool_), np.ascontiguousarray(ids, dtype=np.int32))
+    return _labelled_pixels(np.ascontiguousarray(labels), np.ascontiguousarray(values), rules,
+                            Placement(int(width), int(row0), int(col0)))
 
 
 def sort_within_groups(values: np.ndarray, first: np.ndarray) -> np.ndarray:

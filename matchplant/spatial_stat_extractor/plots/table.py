@@ -1,8 +1,8 @@
-"""Plots: plant rows to plot rows (docs/DESIGN.md §7).
+"""The plot table: plant rows to plot rows (docs/DESIGN.md §7).
 
 Plot outlines come from a GIS file (any polygon file module 9 reads, plot id in ``plots.id_column``) or a
 grid built from the field's corners, the numbers of plot columns (across the crop rows) and ranges
-(along them) and the plot size (:mod:`~matchplant.spatial_stat_extractor.plot_layout`, with its checks:
+(along them) and the plot size (:mod:`~matchplant.spatial_stat_extractor.plots.layout`, with its checks:
 degrees for corners, plots given twice or overlapping, plots holding no plant). Each plant (its top
 where it was outlined, else its polygon's centre) joins the one plot it stands in. Per plot:
 
@@ -13,7 +13,7 @@ where it was outlined, else its polygon's centre) joins the one plot it stands i
   ``plots.count_unclaimed``, plus the canopies on the CHM that no box claims and that stand at a seed
   position no counted plant took (``unclaimed``: plants the detector missed; :func:`at_free_seeds`);
 * expected plants and gaps: seeds lie every ``plant_spacing`` along each of the plot's
-  ``rows_per_plot`` rows, each row clipped by the plot polygon (:mod:`~matchplant.spatial_stat_extractor.plot_rows`:
+  ``rows_per_plot`` rows, each row clipped by the plot polygon (:mod:`~matchplant.spatial_stat_extractor.plots.rows`:
   the row direction from the grid, ``plots.row_direction`` or the plants' own alignment); the sowing
   phase is estimated from the plants themselves (circular mean of their positions modulo the spacing),
   each plant takes its nearest seed position, and every position of the plot left without a plant is a
@@ -22,7 +22,7 @@ where it was outlined, else its polygon's centre) joins the one plot it stands i
 * canopy cover: the plants' canopy area over the plot's area;
 * mean, SD and CV of each plant trait; statistics of every raster over the whole plot polygon
   (``plot_<trait>_<stat>``: plot mean NDVI, LAI, height); and the field book's columns
-  (:mod:`~matchplant.spatial_stat_extractor.fieldbook`).
+  (:mod:`~matchplant.spatial_stat_extractor.plots.fieldbook`).
 
 Outputs: ``plots.gpkg`` (with each plot's row direction ``row_dir_x``/``row_dir_y``, so that the file
 read back gives the same rows) and ``plots.csv`` (one row per plot), ``plot_gaps.csv``, ``plots.png``.
@@ -40,9 +40,9 @@ import pandas as pd
 from matchplant.core.formats.vectors import write_vector
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.extract import extract_stats, write_csv
-from matchplant.spatial_stat_extractor.fieldbook import join_field_book
-from matchplant.spatial_stat_extractor.plot_layout import (
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.plots.fieldbook import join_field_book
+from matchplant.spatial_stat_extractor.plots.layout import (
     check_overlaps,
     check_plants_in_plots,
     join_plants,
@@ -50,7 +50,7 @@ from matchplant.spatial_stat_extractor.plot_layout import (
     plot_grid,
     read_plots,
 )
-from matchplant.spatial_stat_extractor.plot_rows import (
+from matchplant.spatial_stat_extractor.plots.rows import (
     canonical,
     direction_from_plants,
     long_side,
@@ -59,8 +59,8 @@ from matchplant.spatial_stat_extractor.plot_rows import (
     seed_layout,
     seed_slot,
 )
-from matchplant.spatial_stat_extractor.plots_config import PlotsConfig
-from matchplant.spatial_stat_extractor.plots_figure import field_figure
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
+from matchplant.spatial_stat_extractor.plots.figure import field_figure
 
 log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")

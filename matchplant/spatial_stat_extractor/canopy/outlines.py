@@ -14,7 +14,7 @@ Plants whose canopy is smaller than ``min_pixels`` (too small for the CHM's reso
 below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and are flagged
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
-plant (the same top, or a top that no real valley parts from the plant's: :mod:`~matchplant.spatial_stat_extractor.peaks`)
+plant (the same top, or a top that no real valley parts from the plant's: :mod:`~matchplant.spatial_stat_extractor.canopy.peaks`)
 is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
 no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
 the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):
@@ -22,11 +22,11 @@ plants the detector missed, for stand counts; the lower ones are counted (``nois
 (``Outlines.faint``) where NDVI says their pixels are leaves (weeds, or seedlings within the CHM's noise).
 
 The result, :class:`Outlines`, holds the outline polygons (raster pixel edges, traced by
-:mod:`~matchplant.spatial_stat_extractor.trace` with 4-connectivity, as ``rasterio.features.shapes`` would:
+:mod:`~matchplant.spatial_stat_extractor.canopy.trace` with 4-connectivity, as ``rasterio.features.shapes`` would:
 pixels that touch only at a corner become separate parts of a multipolygon; a ring that still touches itself
 is repaired by :func:`valid_polygons`), the tightened boxes, the tops, canopy area and volume, and the canopy
 pixels themselves (flat raster indices grouped by plant) for canopy-only statistics
-(:mod:`~matchplant.spatial_stat_extractor.canopy`). See docs/DESIGN.md §2 (module 9).
+(:mod:`~matchplant.spatial_stat_extractor.canopy.stats`). See docs/DESIGN.md §2 (module 9).
 """
 
 from __future__ import annotations
@@ -40,16 +40,16 @@ from scipy.spatial import cKDTree
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.grouping import (
+from matchplant.spatial_stat_extractor.canopy.grouping import (
     gather_ranges,
     label_boxes,
     labelled_pixels,
     relabel,
 )
-from matchplant.spatial_stat_extractor.maxima import box_tops, local_maxima
-from matchplant.spatial_stat_extractor.peaks import one_plant_boxes
-from matchplant.spatial_stat_extractor.runs import ranges
-from matchplant.spatial_stat_extractor.trace import outline_pieces
+from matchplant.spatial_stat_extractor.canopy.maxima import box_tops, local_maxima
+from matchplant.spatial_stat_extractor.canopy.peaks import one_plant_boxes
+from matchplant.spatial_stat_extractor.zonal.runs import ranges
+from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -99,7 +99,7 @@ class Outlines:
     noise_bumps: int = 0  # unclaimed canopies left out: tops of at least min_top, below unclaimed_min_top
     faint: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # those canopies (as ``unclaimed``)
     # where NDVI tells their pixels are leaves: mostly weeds, but also the smallest plants the detector missed
-    # (plots count them only at an empty seed position, plots.py)
+    # (plots count them only at an empty seed position, plots/table.py)
     duplicate_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # the plant a duplicate's
     # box is a second box of (its index), -1 for the others
 
@@ -278,7 +278,7 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     (``transform, width, height, read(row0, row1, col0, col1)``). ``seeds``: (n, 2) map x, y of earlier
     tops, to re-centre each plant within ``s.max_shift`` (later dates). ``mask_source``: a layer on the
     same grid (NDVI) whose value must reach ``s.mask_threshold`` on canopy pixels. ``band``: only the
-    strips ``band[0] <= strip < band[1]`` (:mod:`~matchplant.spatial_stat_extractor.strips` runs a field
+    strips ``band[0] <= strip < band[1]`` (:mod:`~matchplant.spatial_stat_extractor.canopy.strips` runs a field
     band by band); the plants of other strips are flagged ``skipped`` (their neighbours still compete)."""
     geoms = np.asarray(geoms, dtype=object)
     n = len(geoms)

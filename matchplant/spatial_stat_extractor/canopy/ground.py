@@ -58,8 +58,10 @@ GROUND_PER_WINDOW = 20000  # ground values kept per window (evenly strided)
 
 
 @dataclass
-class GroundNoise:
-    """The CHM on bare ground (m); ``sd`` NaN when too little ground was seen to measure it."""
+class GroundSample:
+    """The CHM on bare ground (m) and what the same windows saw of the plants (box tops, NDVI); ``sd`` NaN when
+    too little ground was seen to measure it. Not module 8's ``SoilLevel`` (the soil's level above a DSM's
+    opening, a correction for the rays): a CHM's bare-ground distribution, for thresholds and checks."""
 
     pixels: int = 0
     windows: int = 0
@@ -111,7 +113,7 @@ def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
     return d.cumsum(0).cumsum(1)[:h, :w] > 0
 
 
-def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, ndvi=None) -> GroundNoise:
+def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, ndvi=None) -> GroundSample:
     """The ground sample (see the module doc) from up to ``max_windows`` windows around plants spread
     over the field, and the highest / lowest CHM value in each box wholly inside a window; ``ndvi``: a
     layer on the CHM's grid, sampled on the same pixels and at each box's top."""
@@ -121,7 +123,7 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     b = shapely.bounds(geoms)
     ok = np.isfinite(b).all(axis=1)
     if not ok.any():
-        return GroundNoise()
+        return GroundSample()
     inv = ~t
     c0, r0 = inv @ (b[ok, 0], b[ok, 3])
     c1, r1 = inv @ (b[ok, 2], b[ok, 1])
@@ -137,7 +139,7 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     inside = (centre[:, 0] >= 0) & (centre[:, 0] < chm.height) & (centre[:, 1] >= 0) & (centre[:, 1] < chm.width)
     order = np.flatnonzero(inside)[np.lexsort((centre[inside, 1], centre[inside, 0]))]  # by row, then column
     if not len(order):
-        return GroundNoise()
+        return GroundSample()
     # no more windows than it takes to cover the raster once (a small field is read about once)
     k_max = int(np.clip(np.ceil(chm.height * chm.width / (2 * half) ** 2), MIN_WINDOWS, max_windows))
     picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
@@ -181,7 +183,7 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     guarded = v.size >= MIN_GROUND
     if not guarded:
         v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
-    out = GroundNoise(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows),
+    out = GroundSample(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows),
                       ndvi_soil=_finite(soil_ndvi), ndvi_tops=_finite([np.array(top_ndvi)]), guarded=guarded)
     if v.size >= MIN_GROUND:
         p50, p95, p99 = np.percentile(v, [50, 95, 99])
@@ -205,7 +207,7 @@ def _finite(parts: list) -> np.ndarray:
     return v[np.isfinite(v)]
 
 
-def soil_ndvi_threshold(noise: GroundNoise) -> tuple[float | None, str]:
+def soil_ndvi_threshold(noise: GroundSample) -> tuple[float | None, str]:
     """The NDVI below which a pixel is soil (module doc), when it separates the soil from the plants' tops;
     else None, and why."""
     soil, tops = noise.ndvi_soil, noise.ndvi_tops
@@ -222,7 +224,7 @@ def soil_ndvi_threshold(noise: GroundNoise) -> tuple[float | None, str]:
     return cut, why
 
 
-def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> Thresholds:
+def thresholds(min_height, min_top, noise: GroundSample, ndvi_threshold=None) -> Thresholds:
     """The canopy thresholds (m; NDVI): numbers as given, ``"auto"`` from the ground noise and, for NDVI,
     from the soil's and the tops' NDVI (module doc)."""
     src = {}
@@ -253,7 +255,7 @@ def thresholds(min_height, min_top, noise: GroundNoise, ndvi_threshold=None) -> 
                       None if ndvi_threshold is None else float(ndvi_threshold), soil, float(sd))
 
 
-def check_chm(noise: GroundNoise, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:
+def check_chm(noise: GroundSample, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:
     """Clear errors for a CHM that cannot be right (module doc). ``what``: the CHM's files for the
     message; ``keys``: its config keys (``rasters.chm`` or ``rasters.dsm``, ``rasters.dtm``)."""
     tops, lows = noise.box_max, noise.box_min

@@ -1,6 +1,6 @@
-"""Module 9's plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each; or
+"""Plant polygons in: any vector file, or a CSV of WKT or boxes, with one ``plant_id`` each; or
 boxes in pixels of a georeferenced image (a DeepForest CSV, a COCO file, module 7's predictions:
-:mod:`~matchplant.spatial_stat_extractor.pixel_boxes`).
+:mod:`~matchplant.spatial_stat_extractor.inputs.pixel_boxes`).
 
 A module-8 CSV carries its CRS in a last column ``crs`` (e.g. ``EPSG:32615``, the same on every row); a CSV
 without one needs ``polygons_crs`` (else the rasters' CRS is assumed, with a warning).
@@ -24,7 +24,7 @@ from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import did_you_mean
 from matchplant.core.runtime.validate_gis import check_vector
-from matchplant.spatial_stat_extractor.pixel_boxes import (
+from matchplant.spatial_stat_extractor.inputs.pixel_boxes import (
     IMAGE_COLUMN,
     boxes_from_csv,
     boxes_from_json,
@@ -42,7 +42,7 @@ BOX_COLUMNS = ("xmin", "ymin", "xmax", "ymax")
 def read_polygons(path: str | Path, id_column: str = "auto", layer: str = "", crs: str = "",
                   images: str | Path | None = None):
     """A GeoDataFrame with a ``plant_id`` column from a vector file or a CSV (see the module doc of
-    :mod:`~matchplant.spatial_stat_extractor.extract` for the formats), or from boxes in pixels of georeferenced
+    :mod:`~matchplant.spatial_stat_extractor.zonal.table` for the formats), or from boxes in pixels of georeferenced
     images (``images``: the image, or their folder; default: beside the file)."""
     path = Path(path)
     if not path.is_file():
