@@ -5,6 +5,7 @@
 
 Uses the config.yaml beside this script when no --config is given; see README.md.
 """
+
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":

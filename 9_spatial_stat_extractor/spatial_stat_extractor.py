@@ -3,6 +3,7 @@
 
     python 9_spatial_stat_extractor/spatial_stat_extractor.py --config 9_spatial_stat_extractor/config.yaml
 """
+
 from matchplant.cli import folder_main
 
 if __name__ == "__main__":

@@ -1,9 +1,9 @@
 """``python -m bench``: MatchPlant against its peers, timed in turn on one pinned core (see bench/harness.py).
 
-    python -m bench                       # every comparison, full size (tens of minutes)
-    python -m bench --quick               # small sizes (a few minutes)
-    python -m bench --only zonal-coverage --only gps-embed
-    python -m bench --device cuda         # training and tiled detection on the GPU
+python -m bench                       # every comparison, full size (tens of minutes)
+python -m bench --quick               # small sizes (a few minutes)
+python -m bench --only zonal-coverage --only gps-embed
+python -m bench --device cuda         # training and tiled detection on the GPU
 """
 
 from __future__ import annotations
@@ -18,10 +18,19 @@ from bench.runner import GPU_NAMES, REGISTRY, run_all, run_child
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes: a short run")
-    ap.add_argument("--only", action="append", choices=sorted(REGISTRY), metavar="NAME",
-                    help=f"run only this comparison (repeatable): {', '.join(REGISTRY)}")
-    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
-                    help="cuda: GPU figures for training and tiled detection (needs a CUDA GPU)")
+    ap.add_argument(
+        "--only",
+        action="append",
+        choices=sorted(REGISTRY),
+        metavar="NAME",
+        help=f"run only this comparison (repeatable): {', '.join(REGISTRY)}",
+    )
+    ap.add_argument(
+        "--device",
+        default="cpu",
+        choices=["cpu", "cuda"],
+        help="cuda: GPU figures for training and tiled detection (needs a CUDA GPU)",
+    )
     ap.add_argument("--pairs", type=int, default=3, help="timed ours/peer pairs after the warm-up (at least 3)")
     ap.add_argument("--no-save", action="store_true", help="do not write the JSON record in bench/results/")
     ap.add_argument("--child", metavar="NAME", help=argparse.SUPPRESS)
@@ -36,9 +45,12 @@ def main(argv: list[str] | None = None) -> int:
         import torch  # only for this check
 
         if not torch.cuda.is_available():
-            print("python -m bench --device cuda: no CUDA GPU is visible to PyTorch "
-                  f"(torch {torch.__version__}, CUDA build {torch.version.cuda}); run it on a machine with an "
-                  "NVIDIA GPU and a CUDA build of PyTorch, or leave out --device cuda", file=sys.stderr)
+            print(
+                "python -m bench --device cuda: no CUDA GPU is visible to PyTorch "
+                f"(torch {torch.__version__}, CUDA build {torch.version.cuda}); run it on a machine with an "
+                "NVIDIA GPU and a CUDA build of PyTorch, or leave out --device cuda",
+                file=sys.stderr,
+            )
             return 2
         names = [n for n in names if n in GPU_NAMES]
     return run_all(names, args.quick, args.device, args.pairs, save=not args.no_save)

@@ -35,19 +35,31 @@ from matchplant.bbox_drawer.store import AnnotationStore, ImportedBox
 TARGETS = {"open_s": 2.0, "drag_redraw_ms_median": 100.0, "edit_ms_median": 200.0, "peak_rss_mb": 700.0}
 
 
-def synth_photo(folder: Path, width: int = 5472, height: int = 3648, n_boxes: int = 3000,
-                seed: int = 0) -> tuple[Path, list[list[float]]]:
+def synth_photo(
+    folder: Path, width: int = 5472, height: int = 3648, n_boxes: int = 3000, seed: int = 0
+) -> tuple[Path, list[list[float]]]:
     """A field-like JPEG (soil texture, green ellipses) and its plant boxes (x1, y1, x2, y2)."""
     rng = np.random.default_rng(seed)
     low = cv2.resize(rng.uniform(0, 1, (height // 40, width // 40)).astype(np.float32), (width, height))
-    img = (np.stack([50 + 20 * low, 70 + 30 * low, 90 + 40 * low], axis=2)
-           + rng.normal(0, 6, (height, width, 1))).clip(0, 255).astype(np.uint8)
+    img = (
+        (np.stack([50 + 20 * low, 70 + 30 * low, 90 + 40 * low], axis=2) + rng.normal(0, 6, (height, width, 1)))
+        .clip(0, 255)
+        .astype(np.uint8)
+    )
     boxes = []
     for _ in range(n_boxes):
         w, h = rng.uniform(25, 60, 2)
         x, y = rng.uniform(0, width - w), rng.uniform(0, height - h)
-        cv2.ellipse(img, (int(x + w / 2), int(y + h / 2)), (int(w / 2), int(h / 2)), 0, 0, 360,
-                    (40, int(rng.uniform(110, 170)), 40), -1)
+        cv2.ellipse(
+            img,
+            (int(x + w / 2), int(y + h / 2)),
+            (int(w / 2), int(h / 2)),
+            0,
+            0,
+            360,
+            (40, int(rng.uniform(110, 170)), 40),
+            -1,
+        )
         boxes.append([x, y, x + w, y + h])
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "photo.jpg"
@@ -71,8 +83,11 @@ def field_photo(field_dir: Path | None, work: Path) -> tuple[Path, list[list[flo
     for a in ds["annotations"]:
         counts[a["image_id"]] = counts.get(a["image_id"], 0) + 1
     best = max(ds["images"], key=lambda im: counts.get(im["id"], 0))
-    boxes = [[a["bbox"][0], a["bbox"][1], a["bbox"][0] + a["bbox"][2], a["bbox"][1] + a["bbox"][3]]
-             for a in ds["annotations"] if a["image_id"] == best["id"]]
+    boxes = [
+        [a["bbox"][0], a["bbox"][1], a["bbox"][0] + a["bbox"][2], a["bbox"][1] + a["bbox"][3]]
+        for a in ds["annotations"]
+        if a["image_id"] == best["id"]
+    ]
     folder = work / "photo"
     folder.mkdir(parents=True, exist_ok=True)
     link = folder / best["file_name"]
@@ -92,8 +107,9 @@ def _event(fig, ax, kind: str, x: float, y: float, button=None, step: float = 0)
 
 
 def _key(fig, name: str) -> float:
-    return _timed(lambda: fig.canvas.callbacks.process("key_press_event",
-                                                       KeyEvent("key_press_event", fig.canvas, name, 0, 0)))
+    return _timed(
+        lambda: fig.canvas.callbacks.process("key_press_event", KeyEvent("key_press_event", fig.canvas, name, 0, 0))
+    )
 
 
 CPU_MS: list[float] = []  # the process's CPU time of each timed handler (the wall time is returned)
@@ -110,10 +126,17 @@ def drag(g, x0, y0, x1, y1, steps: int, button=MouseButton.LEFT) -> dict[str, li
     """Press, ``steps`` moves and release; returns the wall times, and the CPU times as ``cpu_*``."""
     fig, ax = g.fig, g.ax
     out: dict[str, list[float]] = {}
-    for part, fn in (("press", lambda: [_event(fig, ax, "button_press_event", x0, y0, button)]),
-                     ("moves", lambda: [_event(fig, ax, "motion_notify_event", x0 + (x1 - x0) * i / steps,
-                                               y0 + (y1 - y0) * i / steps) for i in range(1, steps + 1)]),
-                     ("release", lambda: [_event(fig, ax, "button_release_event", x1, y1, button)])):
+    for part, fn in (
+        ("press", lambda: [_event(fig, ax, "button_press_event", x0, y0, button)]),
+        (
+            "moves",
+            lambda: [
+                _event(fig, ax, "motion_notify_event", x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps)
+                for i in range(1, steps + 1)
+            ],
+        ),
+        ("release", lambda: [_event(fig, ax, "button_release_event", x1, y1, button)]),
+    ):
         n = len(CPU_MS)
         out[part] = fn()
         out["cpu_" + part] = CPU_MS[n:]
@@ -130,8 +153,14 @@ def run_bench(photo: Path, boxes: list[list[float]], work: Path, steps: int = 20
     g = holder[0]
     w, h = store.size(photo.name)
     n = len(store.boxes(photo.name))
-    out = {"photo": photo.name, "size": [w, h], "boxes": n, "store_open_s": round(t_store, 3),
-           "open_s": round(t_open, 3), "open_cpu_s": round(CPU_MS[-1] / 1000, 3)}
+    out = {
+        "photo": photo.name,
+        "size": [w, h],
+        "boxes": n,
+        "store_open_s": round(t_store, 3),
+        "open_s": round(t_open, 3),
+        "open_cpu_s": round(CPU_MS[-1] / 1000, 3),
+    }
 
     # whole image shown: draw a new box on empty ground, then move and resize an existing box
     bx = store.boxes(photo.name)[n // 2]["xyxy"]
@@ -139,15 +168,17 @@ def run_bench(photo: Path, boxes: list[list[float]], work: Path, steps: int = 20
     timings = {"draw": drag(g, free[0], free[1], free[0] + 400, free[1] + 300, steps)}
     _key(g.fig, "z")  # undo the big box again
     cx, cy = (bx[0] + bx[2]) / 2, (bx[1] + bx[3]) / 2
-    _event(g.fig, g.ax, "button_press_event", cx, cy, MouseButton.LEFT)   # select it (a click)
+    _event(g.fig, g.ax, "button_press_event", cx, cy, MouseButton.LEFT)  # select it (a click)
     _event(g.fig, g.ax, "button_release_event", cx, cy, MouseButton.LEFT)
     timings["move"] = drag(g, cx, cy, cx + 400, cy + 250, steps)
     bx = store.box(photo.name, g.selected)["xyxy"]
     timings["resize"] = drag(g, bx[2], bx[3], bx[2] + 200, bx[3] + 150, steps)
     timings["pan"] = drag(g, w / 2, h / 2, w / 2 - 600, h / 2 - 400, steps, MouseButton.RIGHT)
     vx, vy = np.mean(g.ax.get_xlim()), np.mean(g.ax.get_ylim())  # the wheel turned over the view's centre
-    timings["zoom"] = {"moves": [_event(g.fig, g.ax, "scroll_event", vx, vy, step=1) for _ in range(8)]
-                       + [_event(g.fig, g.ax, "scroll_event", vx, vy, step=-1) for _ in range(8)]}
+    timings["zoom"] = {
+        "moves": [_event(g.fig, g.ax, "scroll_event", vx, vy, step=1) for _ in range(8)]
+        + [_event(g.fig, g.ax, "scroll_event", vx, vy, step=-1) for _ in range(8)]
+    }
     # zoomed in to about one photo pixel per screen pixel: draw a box there
     free = _free_spot(store.boxes(photo.name), w, h)
     for _ in range(6):
@@ -161,19 +192,27 @@ def run_bench(photo: Path, boxes: list[list[float]], work: Path, steps: int = 20
     def med(kind: str, names) -> float:
         return round(statistics.median([v for k in names for v in timings[k][kind]]), 1)
 
-    out.update({
-        "drag_redraw_ms_median": med("moves", drags), "drag_redraw_cpu_ms_median": med("cpu_moves", drags),
-        "drag_redraw_ms_max": round(max(v for k in drags for v in timings[k]["moves"]), 1),
-        "press_ms_median": med("press", drags), "press_cpu_ms_median": med("cpu_press", drags),
-        "edit_ms_median": med("release", drags), "edit_cpu_ms_median": med("cpu_release", drags),
-        "edit_ms_max": round(max(timings[k]["release"][0] for k in drags), 1),
-        "pan_redraw_ms_median": med("moves", ["pan"]), "pan_redraw_cpu_ms_median": med("cpu_moves", ["pan"]),
-        "zoom_redraw_ms_median": med("moves", ["zoom"]),
-        "key_ms_median": med("moves", ["keys"]), "key_cpu_ms_median": med("cpu_moves", ["keys"]),
-        "boxes_after": len(store.boxes(photo.name)),
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "load_average_1min": round(os.getloadavg()[0], 2), "cpus": os.cpu_count(),
-    })
+    out.update(
+        {
+            "drag_redraw_ms_median": med("moves", drags),
+            "drag_redraw_cpu_ms_median": med("cpu_moves", drags),
+            "drag_redraw_ms_max": round(max(v for k in drags for v in timings[k]["moves"]), 1),
+            "press_ms_median": med("press", drags),
+            "press_cpu_ms_median": med("cpu_press", drags),
+            "edit_ms_median": med("release", drags),
+            "edit_cpu_ms_median": med("cpu_release", drags),
+            "edit_ms_max": round(max(timings[k]["release"][0] for k in drags), 1),
+            "pan_redraw_ms_median": med("moves", ["pan"]),
+            "pan_redraw_cpu_ms_median": med("cpu_moves", ["pan"]),
+            "zoom_redraw_ms_median": med("moves", ["zoom"]),
+            "key_ms_median": med("moves", ["keys"]),
+            "key_cpu_ms_median": med("cpu_moves", ["keys"]),
+            "boxes_after": len(store.boxes(photo.name)),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            "load_average_1min": round(os.getloadavg()[0], 2),
+            "cpus": os.cpu_count(),
+        }
+    )
     out["meets_targets"] = all(out[k] <= v for k, v in TARGETS.items())
     return out
 
@@ -198,8 +237,11 @@ def main(argv: list[str] | None = None) -> int:
         work = Path(tmp)
         # the photo is made in another process, so that the peak memory measured is the window's alone
         with mp.get_context("spawn").Pool(1) as pool:
-            photo, boxes = (pool.apply(synth_photo, (work / "photo",)) if args.quick
-                            else pool.apply(field_photo, (args.field, work)))
+            photo, boxes = (
+                pool.apply(synth_photo, (work / "photo",))
+                if args.quick
+                else pool.apply(field_photo, (args.field, work))
+            )
         result = run_bench(photo, boxes, work, args.steps)
     print(json.dumps(result, indent=1))
     for key, target in TARGETS.items():

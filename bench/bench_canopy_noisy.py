@@ -46,9 +46,15 @@ def noisy_field(given: str | None) -> Path:
     return root
 
 
-SETTINGS = {"auto": [], "null": ["canopy.ndvi_threshold=null"],
-            "null, min_height 0.05, min_top 0.08": ["canopy.ndvi_threshold=null", "canopy.min_height=0.05",
-                                                    "canopy.min_top=0.08"]}
+SETTINGS = {
+    "auto": [],
+    "null": ["canopy.ndvi_threshold=null"],
+    "null, min_height 0.05, min_top 0.08": [
+        "canopy.ndvi_threshold=null",
+        "canopy.min_height=0.05",
+        "canopy.min_top=0.08",
+    ],
+}
 
 
 def module9(field: Path, out: Path, sets: list[str]) -> pd.DataFrame:
@@ -56,11 +62,23 @@ def module9(field: Path, out: Path, sets: list[str]) -> pd.DataFrame:
     with rasterio.open(ms) as ds:
         red, nir = (3, 5) if ds.count == 5 else (1, 2)  # the realistic field's 5 bands, else red + NIR
     crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
-    cfg = load_config(SpatialStatExtractorConfig, None, [
-        f"polygons={field / 'truth' / 'map_boxes.csv'}", f"polygons_crs={crs}", f"output_dir={out}",
-        f"rasters.dsm={field / 'odm_dem' / 'dsm.tif'}", f"rasters.dtm={field / 'odm_dem' / 'dtm.tif'}",
-        f"rasters.multispectral={ms}", f"rasters.red_band={red}", f"rasters.nir_band={nir}", "rasters.indices=[]",
-        "vector_formats=[]", *sets])
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={field / 'truth' / 'map_boxes.csv'}",
+            f"polygons_crs={crs}",
+            f"output_dir={out}",
+            f"rasters.dsm={field / 'odm_dem' / 'dsm.tif'}",
+            f"rasters.dtm={field / 'odm_dem' / 'dtm.tif'}",
+            f"rasters.multispectral={ms}",
+            f"rasters.red_band={red}",
+            f"rasters.nir_band={nir}",
+            "rasters.indices=[]",
+            "vector_formats=[]",
+            *sets,
+        ],
+    )
     run_stats(cfg)
     return pd.read_csv(out / "stats.csv")
 
@@ -76,15 +94,20 @@ def scores(field: Path, out: Path, table: pd.DataFrame) -> dict:
     ratio = table["canopy_box_ratio"].to_numpy(float)[height < 1]
     true_area = np.where(m >= 0, truth["canopy_area_m2"].to_numpy()[np.maximum(m, 0)], np.nan)
     date = json.loads((out / "stats_report.json").read_text())["canopy"]["dates"][0]
-    return {"canopy_ndvi_r": round(traits["ndvi_r"], 3), "height_r": round(traits["height_r"], 3),
-            "outline_iou_median": round(float(np.nanmedian(iou)), 3),
-            "outline_over_true_area_median": round(float(np.nanmedian(table["canopy_area_m2"] / true_area)), 3),
-            "canopy_box_under_1m_median": round(float(np.nanmedian(ratio)), 3),
-            "canopy_box_under_1m_max": round(float(np.nanmax(ratio)), 3),
-            "invalid_outlines": int((~outlines.geometry.is_valid).sum()),
-            "flags": table["outline_flag"].fillna("").value_counts().to_dict(),
-            **{k: date.get(k) for k in ("min_height", "min_top", "ndvi_threshold", "unclaimed_canopies",
-                                        "unclaimed_below_noise")}}
+    return {
+        "canopy_ndvi_r": round(traits["ndvi_r"], 3),
+        "height_r": round(traits["height_r"], 3),
+        "outline_iou_median": round(float(np.nanmedian(iou)), 3),
+        "outline_over_true_area_median": round(float(np.nanmedian(table["canopy_area_m2"] / true_area)), 3),
+        "canopy_box_under_1m_median": round(float(np.nanmedian(ratio)), 3),
+        "canopy_box_under_1m_max": round(float(np.nanmax(ratio)), 3),
+        "invalid_outlines": int((~outlines.geometry.is_valid).sum()),
+        "flags": table["outline_flag"].fillna("").value_counts().to_dict(),
+        **{
+            k: date.get(k)
+            for k in ("min_height", "min_top", "ndvi_threshold", "unclaimed_canopies", "unclaimed_below_noise")
+        },
+    }
 
 
 def main() -> None:

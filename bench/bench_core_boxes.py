@@ -73,11 +73,16 @@ def agreement(ours: tuple, peer: tuple, ordered: bool = True) -> dict:
         k = np.lexsort((ours[1], ours[0]))
         ours = tuple(x[k] for x in ours)
     o = np.lexsort((peer[1], peer[0]))
-    same = len(ours[0]) == len(peer[0]) and bool(np.array_equal(ours[0], peer[0][o])
-                                                 and np.array_equal(ours[1], peer[1][o]))
+    same = len(ours[0]) == len(peer[0]) and bool(
+        np.array_equal(ours[0], peer[0][o]) and np.array_equal(ours[1], peer[1][o])
+    )
     sorted_ij = bool(np.all(np.diff(ours[0] * (int(ours[1].max(initial=0)) + 1) + ours[1]) > 0))
-    return {"pairs": len(ours[0]), "same_pairs": same, "sorted_ij": sorted_ij,
-            "max_iou_diff": float(np.abs(ours[2] - peer[2][o]).max(initial=0)) if same else float("nan")}
+    return {
+        "pairs": len(ours[0]),
+        "same_pairs": same,
+        "sorted_ij": sorted_ij,
+        "max_iou_diff": float(np.abs(ours[2] - peer[2][o]).max(initial=0)) if same else float("nan"),
+    }
 
 
 def comparison(name: str, work: Path, quick: bool, device: str, ordered: bool = True) -> Comparison:
@@ -98,11 +103,18 @@ def comparison(name: str, work: Path, quick: bool, device: str, ordered: bool = 
         return time.process_time() - t
 
     overlapping_pairs(boxes[:1000])  # compile (or load numba's cache) before timing
-    return Comparison(name, f"{len(boxes):,} map boxes ({plants:,} plants x {VIEWS} views, {SIZE[0]}-{SIZE[1]} m, "
-                      f"{SPACING} m apart), pairs with IoU > 0 within the set",
-                      f"matchplant overlapping_pairs{'' if ordered else ' (unordered)'}",
-                      f"shapely {shapely.__version__} STRtree", ours, peer,
-                      check=lambda: agreement(out["ours"], out["peer"], ordered), items=len(boxes), unit="boxes")
+    return Comparison(
+        name,
+        f"{len(boxes):,} map boxes ({plants:,} plants x {VIEWS} views, {SIZE[0]}-{SIZE[1]} m, "
+        f"{SPACING} m apart), pairs with IoU > 0 within the set",
+        f"matchplant overlapping_pairs{'' if ordered else ' (unordered)'}",
+        f"shapely {shapely.__version__} STRtree",
+        ours,
+        peer,
+        check=lambda: agreement(out["ours"], out["peer"], ordered),
+        items=len(boxes),
+        unit="boxes",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -116,13 +128,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{cmp.what}; pinned to core {core}")
 
     def show(i, a, b):
-        print(f"  pair {i + 1}: {cmp.ours_label} {a:.3f} s, {cmp.peer_label} {b:.3f} s, ratio {b / a:.2f}",
-              flush=True)
+        print(f"  pair {i + 1}: {cmp.ours_label} {a:.3f} s, {cmp.peer_label} {b:.3f} s, ratio {b / a:.2f}", flush=True)
 
     a, b = alternate(cmp.ours, cmp.peer, pairs=args.pairs, warmup=1, on_pair=show)
     s = summarise(a, b)
-    print(f"ours {s['ours_median_s']:.3f} s ({cmp.items / s['ours_median_s']:,.0f} boxes/s), peer "
-          f"{s['peer_median_s']:.3f} s ({cmp.items / s['peer_median_s']:,.0f} boxes/s); speed ratio {ratio_text(s)}")
+    print(
+        f"ours {s['ours_median_s']:.3f} s ({cmp.items / s['ours_median_s']:,.0f} boxes/s), peer "
+        f"{s['peer_median_s']:.3f} s ({cmp.items / s['peer_median_s']:,.0f} boxes/s); speed ratio {ratio_text(s)}"
+    )
     check = cmp.check()
     print("check: " + ", ".join(f"{k} {v}" for k, v in check.items()))
     return 0 if check["same_pairs"] and check["sorted_ij"] and check["max_iou_diff"] <= 1e-12 else 1

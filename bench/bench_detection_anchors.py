@@ -27,10 +27,10 @@ import numpy as np
 
 from matchplant.core.runtime.config import load_config
 from matchplant.detection.architectures import get_architecture
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset
 from matchplant.detection.model import set_score_threshold
-from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.objects import auto_anchor_sizes
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.config import ModelTrainConfig
@@ -42,17 +42,40 @@ os.environ.setdefault("MATCHPLANT_QUIET", "1")
 def demo_settings(net: int, seed: int) -> list[str]:
     """The demo's model and optimisation settings (matchplant/demo.py) at input size ``net``."""
     return [
-        "model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "model.pretrained=none", f"model.min_size={net}",
-        f"model.max_size={net}", "model.rpn.pre_nms_top_n_train=1000", "model.rpn.post_nms_top_n_train=400",
-        "model.rpn.pre_nms_top_n_test=300", "model.rpn.post_nms_top_n_test=100", "model.roi.batch_size_per_image=64",
-        "batch_size=4", "num_workers=0", "warmup_iters=20", "save_every=0", f"seed={seed}",
-        "lr.backbone=0.02", "lr.fpn=0.02", "lr.rpn=0.02", "lr.roi_heads=0.02"]
+        "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+        "model.pretrained=none",
+        f"model.min_size={net}",
+        f"model.max_size={net}",
+        "model.rpn.pre_nms_top_n_train=1000",
+        "model.rpn.post_nms_top_n_train=400",
+        "model.rpn.pre_nms_top_n_test=300",
+        "model.rpn.post_nms_top_n_test=100",
+        "model.roi.batch_size_per_image=64",
+        "batch_size=4",
+        "num_workers=0",
+        "warmup_iters=20",
+        "save_every=0",
+        f"seed={seed}",
+        "lr.backbone=0.02",
+        "lr.fpn=0.02",
+        "lr.rpn=0.02",
+        "lr.roi_heads=0.02",
+    ]
 
 
 def run_one(name: str, anchors: str, data: Path, epochs: int, net: int, seed: int, out: Path) -> dict:
-    cfg = load_config(ModelTrainConfig, None, [f"train_json={data / 'train.json'}", f"output_dir={out / name}",
-                                          f"epochs={epochs}", f"step_size={max(1, epochs - 1)}",
-                                          f"model.anchor_sizes={anchors}", *demo_settings(net, seed)])
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            f"train_json={data / 'train.json'}",
+            f"output_dir={out / name}",
+            f"epochs={epochs}",
+            f"step_size={max(1, epochs - 1)}",
+            f"model.anchor_sizes={anchors}",
+            *demo_settings(net, seed),
+        ],
+    )
     t0 = time.perf_counter()
     train(cfg)
     seconds = time.perf_counter() - t0
@@ -62,8 +85,12 @@ def run_one(name: str, anchors: str, data: Path, epochs: int, net: int, seed: in
     set_score_threshold(model, 0.0)
     test = CocoDetection(data / "test.json")
     stats, _ = coco_evaluate(test.data, predict_dataset(model, test, torch.device("cpu")))
-    return {"anchors": ck["model_config"]["anchor_sizes"], "AP50": stats["AP50"], "AP": stats["AP"],
-            "train_s": round(seconds, 1)}
+    return {
+        "anchors": ck["model_config"]["anchor_sizes"],
+        "AP50": stats["AP50"],
+        "AP": stats["AP"],
+        "train_s": round(seconds, 1),
+    }
 
 
 def anchors_for_40px_on_512px() -> dict:
@@ -77,8 +104,11 @@ def anchors_for_40px_on_512px() -> dict:
         sizes = auto_anchor_sizes(w, h, get_architecture(arch).anchors)
         flat = np.array(sorted({s for level in sizes for s in level}), float)
         worst = min((np.minimum(s, flat) ** 2 / np.maximum(s, flat) ** 2).max() for s in np.linspace(lo, hi, 50))
-        out[arch] = {"anchor_sizes": sizes, "objects_p1_p99_px": [round(lo, 1), round(hi, 1)],
-                     "worst_best_iou": round(float(worst), 3)}
+        out[arch] = {
+            "anchor_sizes": sizes,
+            "objects_p1_p99_px": [round(lo, 1), round(hi, 1)],
+            "worst_best_iou": round(float(worst), 3),
+        }
     return out
 
 
@@ -103,21 +133,37 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "data"
         for name, n, seed in (("train", n_train, 0), ("test", args.test_tiles, 2)):
-            make_tiles(data, n_images=n, size=128, plants=(2, 6), radius=(7, 14), negatives=2, seed=seed,
-                       name=f"{name}.json")
+            make_tiles(
+                data, n_images=n, size=128, plants=(2, 6), radius=(7, 14), negatives=2, seed=seed, name=f"{name}.json"
+            )
         for seed in args.seeds:
-            runs.append({"seed": seed,
-                         "demo_hand_set": run_one(f"demo{seed}", demo_anchors, data, epochs, args.net, seed, Path(tmp)),
-                         "auto": run_one(f"auto{seed}", "auto", data, epochs, args.net, seed, Path(tmp))})
-    results = {"settings": {"train_tiles": n_train, "test_tiles": args.test_tiles, "epochs": epochs, "tile": 128,
-                            "input": args.net, "seeds": args.seeds, "threads": args.threads or "default"},
-               "runs": runs,
-               "mean_AP50": {k: float(np.mean([r[k]["AP50"] for r in runs])) for k in ("demo_hand_set", "auto")},
-               "auto_for_40px_on_512px_tiles": anchors_for_40px_on_512px()}
+            runs.append(
+                {
+                    "seed": seed,
+                    "demo_hand_set": run_one(f"demo{seed}", demo_anchors, data, epochs, args.net, seed, Path(tmp)),
+                    "auto": run_one(f"auto{seed}", "auto", data, epochs, args.net, seed, Path(tmp)),
+                }
+            )
+    results = {
+        "settings": {
+            "train_tiles": n_train,
+            "test_tiles": args.test_tiles,
+            "epochs": epochs,
+            "tile": 128,
+            "input": args.net,
+            "seeds": args.seeds,
+            "threads": args.threads or "default",
+        },
+        "runs": runs,
+        "mean_AP50": {k: float(np.mean([r[k]["AP50"] for r in runs])) for k in ("demo_hand_set", "auto")},
+        "auto_for_40px_on_512px_tiles": anchors_for_40px_on_512px(),
+    }
     print(json.dumps(results, indent=1))
     a, d = results["mean_AP50"]["auto"], results["mean_AP50"]["demo_hand_set"]
-    print(f"AP50 on held-out tiles, mean of {len(runs)} seed(s): auto {a:.3f} vs demo {d:.3f}: "
-          f"{'auto matches or beats the demo' if a >= d else 'auto is worse'}")
+    print(
+        f"AP50 on held-out tiles, mean of {len(runs)} seed(s): auto {a:.3f} vs demo {d:.3f}: "
+        f"{'auto matches or beats the demo' if a >= d else 'auto is worse'}"
+    )
     return 0
 
 

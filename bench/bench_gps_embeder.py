@@ -57,9 +57,13 @@ def make_flight(root: Path, n: int, width: int) -> tuple[Path, Path]:
     for i, t in enumerate(cam):
         whole = int(t)
         stamp = dt.datetime.fromtimestamp(whole, dt.timezone.utc).strftime("%Y:%m:%d %H:%M:%S").encode()
-        exif = {"0th": {piexif.ImageIFD.Make: b"Bench"},
-                "Exif": {piexif.ExifIFD.DateTimeOriginal: stamp,
-                         piexif.ExifIFD.SubSecTimeOriginal: f"{int((t - whole) * 1000):03d}".encode()}}
+        exif = {
+            "0th": {piexif.ImageIFD.Make: b"Bench"},
+            "Exif": {
+                piexif.ExifIFD.DateTimeOriginal: stamp,
+                piexif.ExifIFD.SubSecTimeOriginal: f"{int((t - whole) * 1000):03d}".encode(),
+            },
+        }
         (images / f"IMG_{i:05d}.JPG").write_bytes(splice_exif(data, piexif.dump(exif)))
     log = root / "events.txt"
     e = 700000 + (np.arange(n) // 50) * 10.0
@@ -80,15 +84,27 @@ def write_gpx(path: Path, log: Path, offset_s: float) -> Path:
     for t, x, y, z in zip(rows[:, 0] - offset_s, lon, lat, rows[:, 3]):
         stamp = dt.datetime.fromtimestamp(t, dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
         pts.append(f'<trkpt lat="{y:.9f}" lon="{x:.9f}"><ele>{z:.3f}</ele><time>{stamp}</time></trkpt>')
-    path.write_text('<?xml version="1.0"?>\n<gpx version="1.1" creator="bench"><trk><trkseg>\n'
-                    + "\n".join(pts) + "\n</trkseg></trk></gpx>\n")
+    path.write_text(
+        '<?xml version="1.0"?>\n<gpx version="1.1" creator="bench"><trk><trkseg>\n'
+        + "\n".join(pts)
+        + "\n</trkseg></trk></gpx>\n"
+    )
     return path
 
 
 def exiftool_command(exiftool: str, gpx: Path, images: Path, out: Path) -> list[str]:
     """exiftool writing the GPS of the track into copies of the images in ``out``."""
-    return [exiftool, "-q", "-m", "-geotag", str(gpx), "-geotime<${SubSecDateTimeOriginal}+00:00", "-o", f"{out}/",
-            str(images)]
+    return [
+        exiftool,
+        "-q",
+        "-m",
+        "-geotag",
+        str(gpx),
+        "-geotime<${SubSecDateTimeOriginal}+00:00",
+        "-o",
+        f"{out}/",
+        str(images),
+    ]
 
 
 def comparison(name: str, work: Path, quick: bool, device: str, width: int = 2000):
@@ -130,11 +146,20 @@ def comparison(name: str, work: Path, quick: bool, device: str, width: int = 200
         return {"images_written_by_both": n, "largest_position_difference_m": worst}
 
     size = sum(p.stat().st_size for p in images.iterdir()) / n / 1e6
-    return Comparison(name, f"{n} JPEGs of {width} x {width * 3 // 4} ({size:.2f} MB each): GPS into EXIF copies",
-                      "matchplant gps_embed", "exiftool -geotag", ours, peer if exiftool else None,
-                      reset=reset, check=check if exiftool else None, items=n, unit="images",
-                      skip=None if exiftool else "exiftool is not installed (apt-get install libimage-exiftool-perl)",
-                      notes={"exiftool": version})
+    return Comparison(
+        name,
+        f"{n} JPEGs of {width} x {width * 3 // 4} ({size:.2f} MB each): GPS into EXIF copies",
+        "matchplant gps_embed",
+        "exiftool -geotag",
+        ours,
+        peer if exiftool else None,
+        reset=reset,
+        check=check if exiftool else None,
+        items=n,
+        unit="images",
+        skip=None if exiftool else "exiftool is not installed (apt-get install libimage-exiftool-perl)",
+        notes={"exiftool": version},
+    )
 
 
 def process_comparison(work: Path, quick: bool):
@@ -145,12 +170,30 @@ def process_comparison(work: Path, quick: bool):
 
     cmp = comparison("gps-embed", work, quick, "cpu", width=2600)
     cfg = work / "module0.yaml"
-    cfg.write_text(yaml.safe_dump({"images": str(work / "images"), "gnss_log": str(work / "events.txt"),
-                                   "output_dir": str(work / "ours"), "log_crs": "EPSG:32614"}))
-    return Comparison("gps-embed-process", cmp.what + ", whole processes", "matchplant gps_embeder (command)",
-                      cmp.peer_label, lambda: run_process(matchplant_command("gps_embeder", cfg)), cmp.peer,
-                      reset=cmp.reset, check=cmp.check, items=cmp.items, unit=cmp.unit, skip=cmp.skip,
-                      notes=cmp.notes)
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                "images": str(work / "images"),
+                "gnss_log": str(work / "events.txt"),
+                "output_dir": str(work / "ours"),
+                "log_crs": "EPSG:32614",
+            }
+        )
+    )
+    return Comparison(
+        "gps-embed-process",
+        cmp.what + ", whole processes",
+        "matchplant gps_embeder (command)",
+        cmp.peer_label,
+        lambda: run_process(matchplant_command("gps_embeder", cfg)),
+        cmp.peer,
+        reset=cmp.reset,
+        check=cmp.check,
+        items=cmp.items,
+        unit=cmp.unit,
+        skip=cmp.skip,
+        notes=cmp.notes,
+    )
 
 
 def main(argv=None) -> int:
@@ -177,10 +220,10 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         off, support = estimate_clock_offset(cam, g.times, 0.5)
         dt_off = time.perf_counter() - t
-    print(f"gps_embed: {n} images in {dt_all:.2f} s = {n / dt_all:.0f} images/s "
-          f"({size_mb / dt_all:.0f} MB/s written)")
-    print(f"clock offset estimate alone: {dt_off * 1000:.0f} ms for {n}x{n} pairs (offset {off:.3f} s, "
-          f"support {support})")
+    print(f"gps_embed: {n} images in {dt_all:.2f} s = {n / dt_all:.0f} images/s ({size_mb / dt_all:.0f} MB/s written)")
+    print(
+        f"clock offset estimate alone: {dt_off * 1000:.0f} ms for {n}x{n} pairs (offset {off:.3f} s, support {support})"
+    )
     return 0
 
 

@@ -37,14 +37,25 @@ def make_photos(folder: Path, n: int, width: int, height: int, boxes_per_image: 
     aid = 1
     for i in range(n):
         low = cv2.resize(rng.uniform(0, 1, (height // 40, width // 40)).astype(np.float32), (width, height))
-        soil = (np.stack([90 + 40 * low, 70 + 30 * low, 50 + 20 * low], axis=2)
-                + rng.normal(0, 6, (height, width, 1))).clip(0, 255).astype(np.uint8)
+        soil = (
+            (np.stack([90 + 40 * low, 70 + 30 * low, 50 + 20 * low], axis=2) + rng.normal(0, 6, (height, width, 1)))
+            .clip(0, 255)
+            .astype(np.uint8)
+        )
         ds["images"].append({"id": i + 1, "file_name": f"photo_{i:03d}.jpg", "width": width, "height": height})
         for _ in range(boxes_per_image):
             w, h = rng.uniform(40, 160, 2)
             x, y = rng.uniform(0, width - w), rng.uniform(0, height - h)
-            cv2.ellipse(soil, (int(x + w / 2), int(y + h / 2)), (int(w / 2), int(h / 2)), 0, 0, 360,
-                        (40, int(rng.uniform(110, 170)), 40), -1)
+            cv2.ellipse(
+                soil,
+                (int(x + w / 2), int(y + h / 2)),
+                (int(w / 2), int(h / 2)),
+                0,
+                0,
+                360,
+                (40, int(rng.uniform(110, 170)), 40),
+                -1,
+            )
             ds["annotations"].append(make_annotation(aid, i + 1, [x, y, w, h]))
             aid += 1
         cv2.imwrite(str(folder / f"photo_{i:03d}.jpg"), soil, [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -52,10 +63,23 @@ def make_photos(folder: Path, n: int, width: int, height: int, boxes_per_image: 
 
 
 def time_matchplant(images: Path, ann: Path, out: Path, tile: int, overlap: int, workers: int) -> tuple[float, int]:
-    cfg = load_config(ImgSplitterConfig, None, [f"images={images}", f"annotations={ann}", f"output_dir={out}",
-                                           f"tile_size={tile}", f"overlap={overlap}", "min_visible=0.3",
-                                           "min_box_side=0", "negative_share=1", "tile_format=png",
-                                           f"workers={workers}", "split=[1, 0, 0]"])
+    cfg = load_config(
+        ImgSplitterConfig,
+        None,
+        [
+            f"images={images}",
+            f"annotations={ann}",
+            f"output_dir={out}",
+            f"tile_size={tile}",
+            f"overlap={overlap}",
+            "min_visible=0.3",
+            "min_box_side=0",
+            "negative_share=1",
+            "tile_format=png",
+            f"workers={workers}",
+            "split=[1, 0, 0]",
+        ],
+    )
     t0 = time.perf_counter()
     summary = run(cfg)
     return time.perf_counter() - t0, summary["tiles"]
@@ -67,10 +91,20 @@ def time_sahi(images: Path, ann: Path, out: Path, tile: int, overlap: int) -> tu
     except ImportError:
         return None
     t0 = time.perf_counter()
-    coco, _ = slice_coco(coco_annotation_file_path=str(ann), image_dir=str(images),
-                         output_coco_annotation_file_name="sliced", output_dir=str(out), ignore_negative_samples=False,
-                         slice_height=tile, slice_width=tile, overlap_height_ratio=overlap / tile,
-                         overlap_width_ratio=overlap / tile, min_area_ratio=0.3, out_ext=".png", verbose=False)
+    coco, _ = slice_coco(
+        coco_annotation_file_path=str(ann),
+        image_dir=str(images),
+        output_coco_annotation_file_name="sliced",
+        output_dir=str(out),
+        ignore_negative_samples=False,
+        slice_height=tile,
+        slice_width=tile,
+        overlap_height_ratio=overlap / tile,
+        overlap_width_ratio=overlap / tile,
+        min_area_ratio=0.3,
+        out_ext=".png",
+        verbose=False,
+    )
     return time.perf_counter() - t0, len(coco["images"])
 
 
@@ -95,17 +129,31 @@ def comparison(name: str, work: Path, quick: bool, device: str):
 
     def check() -> dict:
         size = {s: sum(p.stat().st_size for p in (work / s).rglob("*.png")) for s in ("ours", "peer")}
-        return {"tiles_ours": counts["ours"], "tiles_sahi": counts["peer"],
-                "png_bytes_ours_over_sahi": size["ours"] / max(size["peer"], 1)}
+        return {
+            "tiles_ours": counts["ours"],
+            "tiles_sahi": counts["peer"],
+            "png_bytes_ours_over_sahi": size["ours"] / max(size["peer"], 1),
+        }
 
     try:
         import sahi  # noqa: F401 - only to know whether the peer can run
+
         skip = None
     except ImportError:
         skip = "SAHI is not installed (pip install sahi)"
-    return Comparison(name, f"{n} JPEG photos of {w} x {h}, tile {tile}, overlap {overlap}, PNG tiles",
-                      "matchplant tiling (1 process)", "sahi slice_coco", ours, None if skip else peer,
-                      reset=reset, check=None if skip else check, items=0, unit="tiles", skip=skip)
+    return Comparison(
+        name,
+        f"{n} JPEG photos of {w} x {h}, tile {tile}, overlap {overlap}, PNG tiles",
+        "matchplant tiling (1 process)",
+        "sahi slice_coco",
+        ours,
+        None if skip else peer,
+        reset=reset,
+        check=None if skip else check,
+        items=0,
+        unit="tiles",
+        skip=skip,
+    )
 
 
 def main(argv=None) -> int:
@@ -121,8 +169,10 @@ def main(argv=None) -> int:
     try:
         t0 = time.perf_counter()
         ann = make_photos(root / "images", n, w, h)
-        print(f"data: {n} JPEG photos {w}x{h}, tile {args.tile}, overlap {args.overlap} "
-              f"(generated in {time.perf_counter() - t0:.1f} s); {os.cpu_count()} CPU cores")
+        print(
+            f"data: {n} JPEG photos {w}x{h}, tile {args.tile}, overlap {args.overlap} "
+            f"(generated in {time.perf_counter() - t0:.1f} s); {os.cpu_count()} CPU cores"
+        )
         results = {}
         for label, workers in (("matchplant, 1 process", 1), ("matchplant, all cores", 0)):
             sec, tiles = time_matchplant(root / "images", ann, root / "mp", args.tile, args.overlap, workers)

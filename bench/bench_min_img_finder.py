@@ -36,25 +36,34 @@ def main() -> None:
         t = time.perf_counter()
         project = make_project(Path(tmp) / "flight", nx=nx, ny=ny, spacing=(1.0, 0.8), size=(40, 30))
         print(f"flight: {nx * ny} images, built in {time.perf_counter() - t:.1f} s")
-        cfg = load_config(MinImgFinderConfig, None, [f"project_dir={project}", f"output_dir={Path(tmp) / 'out'}",
-                                                  "uncovered_threshold=2"])
+        cfg = load_config(
+            MinImgFinderConfig,
+            None,
+            [f"project_dir={project}", f"output_dir={Path(tmp) / 'out'}", "uncovered_threshold=2"],
+        )
         t = time.perf_counter()
         finder = MinImageFinder(cfg)
         load = time.perf_counter() - t
         n = len(finder.footprints)
-        print(f"footprints: {n} in {finder.footprint_seconds:.2f} s = {n / finder.footprint_seconds:.0f} footprints/s "
-              f"(with DSM and orthophoto reading); grid {finder.grid.A.shape[1]} cells; set-up total {load:.2f} s")
+        print(
+            f"footprints: {n} in {finder.footprint_seconds:.2f} s = {n / finder.footprint_seconds:.0f} footprints/s "
+            f"(with DSM and orthophoto reading); grid {finder.grid.A.shape[1]} cells; set-up total {load:.2f} s"
+        )
         for label, overlap in (("no overlap cap", 100.0), ("max_overlap 30 %", 30.0)):
             cfg.max_overlap = overlap
             t = time.perf_counter()
             sel = finder.select()
-            print(f"greedy ({label}): {len(sel.indices)} images, coverage {100 * finder.exact_coverage(sel.indices):.2f} %, "
-                  f"selection {sel.seconds:.3f} s (with exact polygon check {time.perf_counter() - t:.3f} s)"
-                  + (", cap relaxed" if sel.relaxed else ""))
+            print(
+                f"greedy ({label}): {len(sel.indices)} images, coverage {100 * finder.exact_coverage(sel.indices):.2f} %, "
+                f"selection {sel.seconds:.3f} s (with exact polygon check {time.perf_counter() - t:.3f} s)"
+                + (", cap relaxed" if sel.relaxed else "")
+            )
         if args.quick or args.milp:
             best = select_milp(finder.grid, 0.98, 1.0, time_limit=60)
-            print(f"milp (no cap): {len(best.indices)} images, {'optimal' if best.optimal else 'time limit'}, "
-                  f"{best.seconds:.2f} s")
+            print(
+                f"milp (no cap): {len(best.indices)} images, {'optimal' if best.optimal else 'time limit'}, "
+                f"{best.seconds:.2f} s"
+            )
         t = time.perf_counter()
         finder.evaluate(sel)
         print(f"owned areas + pixel outlines for {len(sel.indices)} images: {time.perf_counter() - t:.2f} s")

@@ -30,8 +30,11 @@ from matchplant.model_test.run import detect_image, model_predictor
 def main(threshold: float, rounds: int = 3) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    model = build_detector(ModelConfig(architecture="fasterrcnn_mobilenet_v3_large_fpn", pretrained="none",
-                                       min_size=320, max_size=320), 2, load_weights=False).eval()
+    model = build_detector(
+        ModelConfig(architecture="fasterrcnn_mobilenet_v3_large_fpn", pretrained="none", min_size=320, max_size=320),
+        2,
+        load_weights=False,
+    ).eval()
     set_score_threshold(model, threshold)
     photo = Path(tempfile.mkdtemp()) / "photo.png"
     make_photo(photo, 640, 512, n_plants=60, radius=(8, 16), seed=2)
@@ -54,10 +57,14 @@ def main(threshold: float, rounds: int = 3) -> None:
         total = time.perf_counter() - t
         if r:
             ratios.append(spent[0] / total)
-        print(f"round {r}: total {total:.2f} s, model {spent[0]:.2f} s, tile boxes {spent[1]}, final {len(boxes)}, "
-              f"model/total {spent[0] / total:.3f}", flush=True)
-    print(f"tiled detection / model passes: median {np.median(ratios):.3f} (min {min(ratios):.3f}, "
-          f"max {max(ratios):.3f})")
+        print(
+            f"round {r}: total {total:.2f} s, model {spent[0]:.2f} s, tile boxes {spent[1]}, final {len(boxes)}, "
+            f"model/total {spent[0] / total:.3f}",
+            flush=True,
+        )
+    print(
+        f"tiled detection / model passes: median {np.median(ratios):.3f} (min {min(ratios):.3f}, max {max(ratios):.3f})"
+    )
 
 
 if __name__ == "__main__":

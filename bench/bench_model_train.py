@@ -32,10 +32,10 @@ import torch
 from matchplant.core.formats.images import read_rgb8
 from matchplant.core.runtime.config import load_config
 from matchplant.detection.architectures import get_architecture
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector
-from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.run import detect_image, model_predictor, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
@@ -44,19 +44,36 @@ from matchplant.model_train.run import train
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
 
 
-def train_settings(work: Path, train_json: Path, arch: str, size: int, net: int, epochs: int, batch: int,
-                   device: str) -> list[str]:
+def train_settings(
+    work: Path, train_json: Path, arch: str, size: int, net: int, epochs: int, batch: int, device: str
+) -> list[str]:
     """The benchmark's training settings (small anchors for small synthetic plants, no checkpoints kept)."""
     anchors = [int(net / 8), int(net / 4), int(net / 2)]
     levels = get_architecture(arch).anchors.levels
-    return [f"train_json={train_json}", f"output_dir={work / 'run'}",
-            f"model.architecture={arch}", "model.pretrained=none", f"model.min_size={net}", f"model.max_size={net}",
-            f"model.anchor_sizes={json.dumps([anchors] * levels)}", "model.roi.batch_size_per_image=128",
-            "model.rpn.pre_nms_top_n_train=500", "model.rpn.post_nms_top_n_train=500",
-            "model.rpn.pre_nms_top_n_test=500", "model.rpn.post_nms_top_n_test=500",
-            f"epochs={epochs}", f"batch_size={batch}", "num_workers=0", "warmup_iters=20",
-            "lr.backbone=0.02", "lr.fpn=0.02", "lr.rpn=0.02", "lr.roi_heads=0.02", "save_every=0",
-            f"device={device}"]
+    return [
+        f"train_json={train_json}",
+        f"output_dir={work / 'run'}",
+        f"model.architecture={arch}",
+        "model.pretrained=none",
+        f"model.min_size={net}",
+        f"model.max_size={net}",
+        f"model.anchor_sizes={json.dumps([anchors] * levels)}",
+        "model.roi.batch_size_per_image=128",
+        "model.rpn.pre_nms_top_n_train=500",
+        "model.rpn.post_nms_top_n_train=500",
+        "model.rpn.pre_nms_top_n_test=500",
+        "model.rpn.post_nms_top_n_test=500",
+        f"epochs={epochs}",
+        f"batch_size={batch}",
+        "num_workers=0",
+        "warmup_iters=20",
+        "lr.backbone=0.02",
+        "lr.fpn=0.02",
+        "lr.rpn=0.02",
+        "lr.roi_heads=0.02",
+        "save_every=0",
+        f"device={device}",
+    ]
 
 
 def bare_step(model, opt, images, targets, device) -> int:
@@ -107,13 +124,28 @@ def comparison(name: str, work: Path, quick: bool, device: str):
         n_tiles = 24 if quick else 48
         photo_w, photo_h = (4 * s, 3 * s) if quick else (8 * s, 6 * s)
     radius = (s / 16, s / 8)
-    train_json = make_tiles(work / "data", n_images=n_tiles, size=s, radius=radius, negatives=max(1, n_tiles // 12),
-                            seed=0, name="train.json")
+    train_json = make_tiles(
+        work / "data",
+        n_images=n_tiles,
+        size=s,
+        radius=radius,
+        negatives=max(1, n_tiles // 12),
+        seed=0,
+        name="train.json",
+    )
     net = int(round(s * scale))
     cfg = load_config(ModelTrainConfig, None, train_settings(work, train_json, arch, s, net, 1, batch, device))
-    notes = {"architecture": arch, "tile": s, "network_input": net, "tiles": n_tiles, "batch": batch,
-             "device": str(dev), "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None}
+    notes = {
+        "architecture": arch,
+        "tile": s,
+        "network_input": net,
+        "tiles": n_tiles,
+        "batch": batch,
+        "device": str(dev),
+        "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+    }
     if name == "train":
+
         def reset(side: str):
             shutil.rmtree(work / "run", ignore_errors=True)
 
@@ -121,10 +153,18 @@ def comparison(name: str, work: Path, quick: bool, device: str):
             summary = train(cfg)
             return float(sum(h["train_time_s"] for h in summary["history"]))
 
-        return Comparison(name, f"1 epoch, {n_tiles} tiles of {s} px at {net} px, {arch}, batch {batch}",
-                          "matchplant train", "bare torchvision loop", ours,
-                          lambda: bare_loop(cfg, train_json, dev, 1), reset=reset, items=n_tiles, unit="images",
-                          notes=notes)
+        return Comparison(
+            name,
+            f"1 epoch, {n_tiles} tiles of {s} px at {net} px, {arch}, batch {batch}",
+            "matchplant train",
+            "bare torchvision loop",
+            ours,
+            lambda: bare_loop(cfg, train_json, dev, 1),
+            reset=reset,
+            items=n_tiles,
+            unit="images",
+            notes=notes,
+        )
     train(cfg)  # a model that has seen the plants, for realistic detections
     det_model, _ = load_detector(work / "run" / "checkpoints" / "last.pt", dev)
     det_model.roi_heads.score_thresh = 0.5
@@ -141,16 +181,26 @@ def comparison(name: str, work: Path, quick: bool, device: str):
     def bare():
         with torch.inference_mode():
             for i in range(0, len(starts), batch):
-                b = [torch.from_numpy(img[y:y + s, x:x + s]).to(dev).permute(2, 0, 1).float().div(255)
-                     for x, y in starts[i:i + batch]]
+                b = [
+                    torch.from_numpy(img[y : y + s, x : x + s]).to(dev).permute(2, 0, 1).float().div(255)
+                    for x, y in starts[i : i + batch]
+                ]
                 out = det_model(b)
         if dev.type == "cuda":
             torch.cuda.synchronize()
         return out
 
-    return Comparison(name, f"{photo_w} x {photo_h} photo, {len(starts)} tiles of {s} px, batch {batch}, {arch}",
-                      "matchplant detect_image", "bare model on the tiles", ours, bare, items=len(starts),
-                      unit="tiles", notes=notes)
+    return Comparison(
+        name,
+        f"{photo_w} x {photo_h} photo, {len(starts)} tiles of {s} px, batch {batch}, {arch}",
+        "matchplant detect_image",
+        "bare model on the tiles",
+        ours,
+        bare,
+        items=len(starts),
+        unit="tiles",
+        notes=notes,
+    )
 
 
 def main() -> None:
@@ -162,8 +212,13 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128, help="tile side in pixels")
     ap.add_argument("--epochs", type=int, default=15)
     ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--scale", type=float, default=2.5, help="tiles are enlarged this much for the network "
-                    "(MobileNetV3-FPN sees at stride 16 and 32: small plants need it; model.min_size = scale x size)")
+    ap.add_argument(
+        "--scale",
+        type=float,
+        default=2.5,
+        help="tiles are enlarged this much for the network "
+        "(MobileNetV3-FPN sees at stride 16 and 32: small plants need it; model.min_size = scale x size)",
+    )
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0 = torch's default)")
     ap.add_argument("--out", type=Path, default=None, help="keep the run here (default: a temporary folder)")
     args = ap.parse_args()
@@ -178,21 +233,47 @@ def main() -> None:
     work = args.out or Path(tmp.name)
     s = args.size
     radius = (s / 16, s / 8)
-    train_json = make_tiles(work / "data", n_images=args.tiles, size=s, radius=radius, negatives=max(1, args.tiles // 12),
-                            seed=0, name="train.json")
-    val_json = make_tiles(work / "data", n_images=max(4, args.tiles // 4), size=s, radius=radius, negatives=1, seed=1,
-                          name="val.json")
+    train_json = make_tiles(
+        work / "data",
+        n_images=args.tiles,
+        size=s,
+        radius=radius,
+        negatives=max(1, args.tiles // 12),
+        seed=0,
+        name="train.json",
+    )
+    val_json = make_tiles(
+        work / "data", n_images=max(4, args.tiles // 4), size=s, radius=radius, negatives=1, seed=1, name="val.json"
+    )
     net = int(round(s * args.scale))  # anchors are in the network's (resized) pixels
     anchors = [int(net / 8), int(net / 4), int(net / 2)]
     levels = get_architecture(args.arch).anchors.levels
-    settings = [f"train_json={train_json}", f"val_json={val_json}", f"output_dir={work / 'run'}",
-                f"model.architecture={args.arch}", "model.pretrained=none", f"model.min_size={net}", f"model.max_size={net}",
-                f"model.anchor_sizes={json.dumps([anchors] * levels)}", "model.roi.batch_size_per_image=128",
-                "model.rpn.pre_nms_top_n_train=500", "model.rpn.post_nms_top_n_train=500",
-                "model.rpn.pre_nms_top_n_test=500", "model.rpn.post_nms_top_n_test=500",
-                f"epochs={args.epochs}", f"batch_size={args.batch}", "num_workers=0", "warmup_iters=20",
-                f"step_size={max(args.epochs - 3, 1)}", "lr.backbone=0.02", "lr.fpn=0.02", "lr.rpn=0.02",
-                "lr.roi_heads=0.02", "save_every=0", f"device={args.device}"]
+    settings = [
+        f"train_json={train_json}",
+        f"val_json={val_json}",
+        f"output_dir={work / 'run'}",
+        f"model.architecture={args.arch}",
+        "model.pretrained=none",
+        f"model.min_size={net}",
+        f"model.max_size={net}",
+        f"model.anchor_sizes={json.dumps([anchors] * levels)}",
+        "model.roi.batch_size_per_image=128",
+        "model.rpn.pre_nms_top_n_train=500",
+        "model.rpn.post_nms_top_n_train=500",
+        "model.rpn.pre_nms_top_n_test=500",
+        "model.rpn.post_nms_top_n_test=500",
+        f"epochs={args.epochs}",
+        f"batch_size={args.batch}",
+        "num_workers=0",
+        "warmup_iters=20",
+        f"step_size={max(args.epochs - 3, 1)}",
+        "lr.backbone=0.02",
+        "lr.fpn=0.02",
+        "lr.rpn=0.02",
+        "lr.roi_heads=0.02",
+        "save_every=0",
+        f"device={args.device}",
+    ]
     cfg = load_config(ModelTrainConfig, None, settings)
     t0 = time.perf_counter()
     summary = train(cfg)
@@ -226,9 +307,13 @@ def main() -> None:
     t0 = time.perf_counter()
     boxes, _, _ = detect_image(img, predictor, tile_size=s, overlap=overlap, batch_size=args.batch)
     ours_tps = n_tiles / (time.perf_counter() - t0)
-    tiles = [img[y:y + s, x:x + s] for y in tile_starts(photo_h, s, overlap) for x in tile_starts(photo_w, s, overlap)]
-    batches = [[torch.from_numpy(t).permute(2, 0, 1).float().div(255).to(device) for t in tiles[i:i + args.batch]]
-               for i in range(0, len(tiles), args.batch)]
+    tiles = [
+        img[y : y + s, x : x + s] for y in tile_starts(photo_h, s, overlap) for x in tile_starts(photo_w, s, overlap)
+    ]
+    batches = [
+        [torch.from_numpy(t).permute(2, 0, 1).float().div(255).to(device) for t in tiles[i : i + args.batch]]
+        for i in range(0, len(tiles), args.batch)
+    ]
     t0 = time.perf_counter()
     with torch.inference_mode():
         for b in batches:
@@ -238,16 +323,28 @@ def main() -> None:
     bare_tps = n_tiles / (time.perf_counter() - t0)
 
     result = {
-        "device": str(device), "torch_threads": torch.get_num_threads(), "architecture": args.arch,
-        "tiles": {"train": args.tiles, "val": max(4, args.tiles // 4), "size": s}, "epochs": args.epochs,
-        "batch": args.batch, "train_wall_s": round(wall, 1),
+        "device": str(device),
+        "torch_threads": torch.get_num_threads(),
+        "architecture": args.arch,
+        "tiles": {"train": args.tiles, "val": max(4, args.tiles // 4), "size": s},
+        "epochs": args.epochs,
+        "batch": args.batch,
+        "train_wall_s": round(wall, 1),
         "best_val": {"epoch": best["epoch"], best.get("metric", "AP50"): best["value"]},
         "final_val": summary["history"][-1].get("val"),
-        "train_images_per_s": {"matchplant": round(ours_ips, 2), "bare_torchvision": round(bare_ips, 2),
-                               "ratio": round(ours_ips / bare_ips, 3)},
-        "detect_tiles_per_s": {"matchplant_tiled": round(ours_tps, 2), "bare_model": round(bare_tps, 2),
-                               "ratio": round(ours_tps / bare_tps, 3), "photo": [photo_w, photo_h],
-                               "tiles": n_tiles, "boxes_found": int(len(boxes))},
+        "train_images_per_s": {
+            "matchplant": round(ours_ips, 2),
+            "bare_torchvision": round(bare_ips, 2),
+            "ratio": round(ours_ips / bare_ips, 3),
+        },
+        "detect_tiles_per_s": {
+            "matchplant_tiled": round(ours_tps, 2),
+            "bare_model": round(bare_tps, 2),
+            "ratio": round(ours_tps / bare_tps, 3),
+            "photo": [photo_w, photo_h],
+            "tiles": n_tiles,
+            "boxes_found": int(len(boxes)),
+        },
         "settings": settings[3:],
     }
     print(json.dumps(result, indent=1))

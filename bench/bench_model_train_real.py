@@ -35,9 +35,9 @@ import torch
 from bench import deepforest_photos
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.log import setup_console
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset
-from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.objects import recommend, size_stats
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import train
@@ -51,8 +51,10 @@ def find_wheel(folder: Path) -> Path:
         return folder
     wheels = sorted(folder.glob("deepforest-*.whl"))
     if not wheels:
-        raise SystemExit(f"no deepforest-*.whl in {folder}: get it with "
-                         f"'pip download deepforest==2.1.0 --no-deps -d {folder}' (or give --data)")
+        raise SystemExit(
+            f"no deepforest-*.whl in {folder}: get it with "
+            f"'pip download deepforest==2.1.0 --no-deps -d {folder}' (or give --data)"
+        )
     return wheels[-1]
 
 
@@ -61,8 +63,12 @@ def inspect_settings(train_json: Path) -> tuple[dict, list[str]]:
     data = json.loads(train_json.read_text())
     wh = np.array([a["bbox"][2:] for a in data["annotations"]], float)
     advice = recommend(size_stats(wh[:, 0], wh[:, 1]), [(im["width"], im["height"]) for im in data["images"]])
-    return advice, [f"model.min_size={advice['min_size']}", f"model.max_size={advice['max_size']}",
-                    "model.anchor_sizes=auto", f"model.aspect_ratios={json.dumps(advice['aspect_ratios'])}"]
+    return advice, [
+        f"model.min_size={advice['min_size']}",
+        f"model.max_size={advice['max_size']}",
+        "model.anchor_sizes=auto",
+        f"model.aspect_ratios={json.dumps(advice['aspect_ratios'])}",
+    ]
 
 
 def test_ap(checkpoint: Path, test_json: Path) -> dict:
@@ -76,38 +82,68 @@ def test_ap(checkpoint: Path, test_json: Path) -> dict:
 def run(wheel: Path, minutes: float, work: Path, device: str = "cpu", extra: list[str] = ()) -> dict:
     """Build the photos, train as the issue says, score the test photos; the result as a dict."""
     shutil.rmtree(work / "run", ignore_errors=True)
-    return {**run_on(*deepforest_photos.build(wheel, work), minutes, work, device, extra),
-            "data": deepforest_photos.LICENCE}
+    return {
+        **run_on(*deepforest_photos.build(wheel, work), minutes, work, device, extra),
+        "data": deepforest_photos.LICENCE,
+    }
 
 
-def run_on(train_json: Path, val_json: Path, test_json: Path, minutes: float, work: Path, device: str = "cpu",
-           extra: list[str] = ()) -> dict:
+def run_on(
+    train_json: Path,
+    val_json: Path,
+    test_json: Path,
+    minutes: float,
+    work: Path,
+    device: str = "cpu",
+    extra: list[str] = (),
+) -> dict:
     """Train on these splits as the issue says (``inspect``'s advice, defaults, ``minutes`` of budget), score the
     test split; the result as a dict."""
     advice, advised = inspect_settings(train_json)
-    settings = [f"train_json={train_json}", f"val_json={val_json}", f"output_dir={work / 'run'}",
-                "model.architecture=auto", "model.pretrained=none", *advised, f"max_minutes={minutes:g}",
-                "num_workers=0", f"device={device}", *extra]
+    settings = [
+        f"train_json={train_json}",
+        f"val_json={val_json}",
+        f"output_dir={work / 'run'}",
+        "model.architecture=auto",
+        "model.pretrained=none",
+        *advised,
+        f"max_minutes={minutes:g}",
+        "num_workers=0",
+        f"device={device}",
+        *extra,
+    ]
     cfg = load_config(ModelTrainConfig, None, settings)
     load = os.getloadavg()
     t0, cpu0 = time.perf_counter(), time.process_time()
     summary = train(cfg)
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     stats = test_ap(work / "run" / "checkpoints" / "best.pt", test_json)
-    counts = {p.stem: [len(d["images"]), len(d["annotations"])]
-              for p, d in ((p, json.loads(p.read_text())) for p in (train_json, val_json, test_json))}
+    counts = {
+        p.stem: [len(d["images"]), len(d["annotations"])]
+        for p, d in ((p, json.loads(p.read_text())) for p in (train_json, val_json, test_json))
+    }
     estimate = summary["estimate"]["planned_s"]
     return {
         "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
-        "load_before": [round(v, 2) for v in load], "load_after": [round(v, 2) for v in os.getloadavg()],
-        "photos_boxes": counts, "settings": settings,
+        "load_before": [round(v, 2) for v in load],
+        "load_after": [round(v, 2) for v in os.getloadavg()],
+        "photos_boxes": counts,
+        "settings": settings,
         "inspect_advice": {k: advice[k] for k in ("min_size", "max_size", "aspect_ratios")},
-        "architecture": summary.get("architecture"), "status": summary["status"], "message": summary["message"],
-        "estimate_s": estimate, "wall_s": round(wall, 1), "estimate_error": round(estimate / wall - 1, 3),
+        "architecture": summary.get("architecture"),
+        "status": summary["status"],
+        "message": summary["message"],
+        "estimate_s": estimate,
+        "wall_s": round(wall, 1),
+        "estimate_error": round(estimate / wall - 1, 3),
         "over_budget_s": round(wall - 60 * minutes, 1) if minutes else None,
-        "planned_iterations": summary["iterations_planned"], "iterations_done": summary["iterations_done"],
-        "cpu_s": round(cpu, 1), "cpu_s_per_iteration": round(cpu / max(summary["iterations_done"], 1), 3),
-        "best_val": summary["best"], "test_AP50": round(stats["AP50"], 4), "test_AP": round(stats["AP"], 4),
+        "planned_iterations": summary["iterations_planned"],
+        "iterations_done": summary["iterations_done"],
+        "cpu_s": round(cpu, 1),
+        "cpu_s_per_iteration": round(cpu / max(summary["iterations_done"], 1), 3),
+        "best_val": summary["best"],
+        "test_AP50": round(stats["AP50"], 4),
+        "test_AP": round(stats["AP"], 4),
     }
 
 
@@ -120,28 +156,45 @@ def run_row(name: str, work: Path, quick: bool, device: str) -> dict:
     except SystemExit as exc:
         return {"name": name, "skipped": str(exc), "command": command}
     r = run(wheel, minutes, work, device)
-    row = (f"test AP50 {100 * r['test_AP50']:.1f} % after {r['iterations_done']} iterations of "
-           f"{r['architecture']['chosen']} in {r['wall_s'] / 60:.1f} min (max_minutes {minutes:g}); estimate "
-           f"{r['estimate_s']:.0f} s vs {r['wall_s']:.0f} s ({100 * r['estimate_error']:+.0f} %) | load "
-           f"{r['load_before'][0]:.1f} | {command}")
+    row = (
+        f"test AP50 {100 * r['test_AP50']:.1f} % after {r['iterations_done']} iterations of "
+        f"{r['architecture']['chosen']} in {r['wall_s'] / 60:.1f} min (max_minutes {minutes:g}); estimate "
+        f"{r['estimate_s']:.0f} s vs {r['wall_s']:.0f} s ({100 * r['estimate_error']:+.0f} %) | load "
+        f"{r['load_before'][0]:.1f} | {command}"
+    )
     return {"name": name, "row": row, "command": command, "result": r}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=15.0, help="max_minutes of the training run (0 = none)")
-    ap.add_argument("--data", type=Path, default=DEFAULT_DATA,
-                    help="folder holding deepforest-*.whl (or the wheel, or a folder of its data files)")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=DEFAULT_DATA,
+        help="folder holding deepforest-*.whl (or the wheel, or a folder of its data files)",
+    )
     ap.add_argument("--device", default="cpu", help="cpu (the issue's run) or cuda")
     ap.add_argument("--out", type=Path, default=None, help="keep the run here (default: a temporary folder)")
-    ap.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
-                    help="an extra module 6 setting (exploration; the issue's run has none)")
+    ap.add_argument(
+        "--set",
+        dest="extra",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an extra module 6 setting (exploration; the issue's run has none)",
+    )
     args = ap.parse_args()
     setup_console()
     work = args.out or Path(tempfile.mkdtemp(prefix="bench_train_real_"))
     result = run(find_wheel(args.data), args.minutes, work, args.device, args.extra)
-    print(json.dumps({"command": " ".join(["python", "-m", "bench.bench_model_train_real", *sys.argv[1:]]),
-                      **result}, indent=1, default=str))
+    print(
+        json.dumps(
+            {"command": " ".join(["python", "-m", "bench.bench_model_train_real", *sys.argv[1:]]), **result},
+            indent=1,
+            default=str,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -25,17 +25,29 @@ from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.model import build_detector, resolve_auto_anchors
 from matchplant.model_train.config import ModelTrainConfig
 
-CPU_HEADS = ("model.roi.batch_size_per_image=192,model.rpn.pre_nms_top_n_train=1000,"
-             "model.rpn.post_nms_top_n_train=500,model.rpn.pre_nms_top_n_test=600,model.rpn.post_nms_top_n_test=300")
-SETTINGS = ("model.min_size=448,model.max_size=448",                  # torchvision's counts (512 samples, 2000)
-            f"model.min_size=448,model.max_size=448,{CPU_HEADS}",     # what auto sets on a CPU for these photos
-            f"model.min_size=320,model.max_size=320,{CPU_HEADS}")     # a smaller input
+CPU_HEADS = (
+    "model.roi.batch_size_per_image=192,model.rpn.pre_nms_top_n_train=1000,"
+    "model.rpn.post_nms_top_n_train=500,model.rpn.pre_nms_top_n_test=600,model.rpn.post_nms_top_n_test=300"
+)
+SETTINGS = (
+    "model.min_size=448,model.max_size=448",  # torchvision's counts (512 samples, 2000)
+    f"model.min_size=448,model.max_size=448,{CPU_HEADS}",  # what auto sets on a CPU for these photos
+    f"model.min_size=320,model.max_size=320,{CPU_HEADS}",
+)  # a smaller input
 
 
 def step_seconds(train_json: Path, setting: str, steps: int = 4) -> tuple[list[float], float]:
-    cfg = load_config(ModelTrainConfig, None, [f"train_json={train_json}", "model.pretrained=none",
-                                               "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-                                               "model.anchor_sizes=auto", *setting.split(",")])
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            f"train_json={train_json}",
+            "model.pretrained=none",
+            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+            "model.anchor_sizes=auto",
+            *setting.split(","),
+        ],
+    )
     model = build_detector(resolve_auto_anchors(cfg.model, train_json), 2, load_weights=False).train()
     ds = CocoDetection(train_json)
     images, targets = collate([ds[i] for i in range(4)])
@@ -65,8 +77,11 @@ def main() -> None:
         train_json, _, _ = deepforest_photos.build(find_wheel(args.data), Path(tmp))
         for setting in args.settings:
             cpu, inference = step_seconds(train_json, setting)
-            print(f"{setting}: training step CPU s {[round(c, 2) for c in cpu]}, inference {inference:.2f} s per "
-                  "photo (wall)", flush=True)
+            print(
+                f"{setting}: training step CPU s {[round(c, 2) for c in cpu]}, inference {inference:.2f} s per "
+                "photo (wall)",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

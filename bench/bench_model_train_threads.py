@@ -33,6 +33,7 @@ os.environ.setdefault("MATCHPLANT_QUIET", "1")
 
 def step_seconds(model, opt, batches, iters: int) -> float:
     """Seconds per training iteration over ``iters`` iterations (after one untimed)."""
+
     def step(images, targets):
         loss = sum(model(images, targets).values())
         opt.zero_grad()
@@ -53,13 +54,17 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=96)
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp())
-    train_json = make_tiles(work, n_images=8, size=args.size, radius=(args.size / 16, args.size / 8), negatives=1,
-                            seed=0, name="train.json")
+    train_json = make_tiles(
+        work, n_images=8, size=args.size, radius=(args.size / 16, args.size / 8), negatives=1, seed=0, name="train.json"
+    )
     ds = CocoDetection(train_json)
     batches = [collate([ds[i], ds[i + 1]]) for i in range(0, 8, 2)]
     net = int(args.size * 2.5)
-    cfg = load_config(ModelConfig, None, ["architecture=fasterrcnn_mobilenet_v3_large_fpn", "pretrained=none",
-                                          f"min_size={net}", f"max_size={net}"])
+    cfg = load_config(
+        ModelConfig,
+        None,
+        ["architecture=fasterrcnn_mobilenet_v3_large_fpn", "pretrained=none", f"min_size={net}", f"max_size={net}"],
+    )
     torch.manual_seed(0)
     model = build_detector(cfg, 2, load_weights=False).train()
     opt = torch.optim.SGD(model.parameters(), lr=1e-4, momentum=0.9)
@@ -74,16 +79,25 @@ def main() -> None:
     medians = {n: statistics.median(v) for n, v in times.items()}
     best = min(medians, key=medians.get)
     ratio = medians[chosen] / medians[best] if chosen in medians else None
-    print(json.dumps({
-        "usable_cores": cores, "source": source, "load_average": os.getloadavg()[0],
-        "chosen_threads": chosen, "reason": why,
-        "seconds_per_iteration": {str(n): round(m, 3) for n, m in medians.items()},
-        "all_rounds": {str(n): [round(t, 3) for t in v] for n, v in times.items()},
-        "best_fixed": best, "chosen_over_best": round(ratio, 3) if ratio else None,
-        "within_10_percent": bool(ratio is not None and ratio <= 1.10),
-        "work": f"MobileNetV3-FPN training step, batch 2, {args.size} px tiles at {net} px, {args.iters} iterations "
+    print(
+        json.dumps(
+            {
+                "usable_cores": cores,
+                "source": source,
+                "load_average": os.getloadavg()[0],
+                "chosen_threads": chosen,
+                "reason": why,
+                "seconds_per_iteration": {str(n): round(m, 3) for n, m in medians.items()},
+                "all_rounds": {str(n): [round(t, 3) for t in v] for n, v in times.items()},
+                "best_fixed": best,
+                "chosen_over_best": round(ratio, 3) if ratio else None,
+                "within_10_percent": bool(ratio is not None and ratio <= 1.10),
+                "work": f"MobileNetV3-FPN training step, batch 2, {args.size} px tiles at {net} px, {args.iters} iterations "
                 f"x {args.rounds} rounds per setting",
-    }, indent=1))
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

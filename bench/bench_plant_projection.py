@@ -28,17 +28,18 @@ import pandas as pd  # noqa: E402
 from matchplant.core.formats.coco import read_dataset  # noqa: E402
 from matchplant.core.formats.odm import ODMProject  # noqa: E402
 from matchplant.core.geometry.surface import Surface  # noqa: E402
+from matchplant.plant_projection.config import PlantProjectionConfig  # noqa: E402
 from matchplant.plant_projection.evaluation import evaluate_boxes  # noqa: E402
 from matchplant.plant_projection.geometry import box_outline  # noqa: E402
 from matchplant.plant_projection.merge import merge_views  # noqa: E402
-from matchplant.plant_projection.config import PlantProjectionConfig  # noqa: E402
 from matchplant.plant_projection.settings import ProjectionSettings  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 
 
-def field(preset: str, given: str | None, seed: int = 0, tilt: float = 0.0, slope: float = 0.0,
-          noise: str = "exact") -> FieldPaths:
+def field(
+    preset: str, given: str | None, seed: int = 0, tilt: float = 0.0, slope: float = 0.0, noise: str = "exact"
+) -> FieldPaths:
     if given:
         return FieldPaths(Path(given))
     extra = {"tilt_deg": tilt, "slope_pct": slope} if tilt or slope else {}
@@ -83,21 +84,30 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="use the small field instead of the large one")
     ap.add_argument("--field", help="an existing synthetic field folder")
-    ap.add_argument("--preset", help="generate this preset instead (tiny, small, large, split; once, in the temp "
-                                     "folder)")
+    ap.add_argument(
+        "--preset", help="generate this preset instead (tiny, small, large, split; once, in the temp folder)"
+    )
     ap.add_argument("--seed", type=int, default=0, help="with --preset: the field's seed")
     ap.add_argument("--tilt", type=float, default=0.0, help="with --preset: forward camera tilt, degrees")
     ap.add_argument("--slope", type=float, default=0.0, help="with --preset: terrain slope, percent")
-    ap.add_argument("--noise", default="exact", choices=("exact", "realistic"),
-                    help="with --preset/--quick: the field's DSM exact or photogrammetric (simfield's noise)")
+    ap.add_argument(
+        "--noise",
+        default="exact",
+        choices=("exact", "realistic"),
+        help="with --preset/--quick: the field's DSM exact or photogrammetric (simfield's noise)",
+    )
     ap.add_argument("--edge-points", type=int, default=4)
     ap.add_argument("--repeat", type=int, default=3, help="runs; the fastest is reported")
     args = ap.parse_args()
-    f = field(args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope,
-              args.noise)
+    f = field(
+        args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope, args.noise
+    )
     ds = read_dataset(f.boxes_undistorted, validate=False)
-    preds = {"images": ds["images"], "categories": ds["categories"],
-             "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+    preds = {
+        "images": ds["images"],
+        "categories": ds["categories"],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
+    }
     n = len(preds["predictions"])
     project = ODMProject(f.root)
     settings = ProjectionSettings.from_config(PlantProjectionConfig(edge_points=args.edge_points))
@@ -122,12 +132,16 @@ def main() -> None:
     print(f"projection (read + rays/DSM): {t1 - t0:.2f} s = {n / (t1 - t0):,.0f} boxes/s")
     print(f"merge into plants:            {t2 - t1:.2f} s = {n / max(t2 - t1, 1e-9):,.0f} boxes/s")
     print(f"total:                        {t2 - t0:.2f} s = {n / (t2 - t0):,.0f} boxes/s")
-    print(f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s "
-          f"(best of {args.repeat} runs; the wall-clock figures include waiting for a shared core)")
+    print(
+        f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s "
+        f"(best of {args.repeat} runs; the wall-clock figures include waiting for a shared core)"
+    )
     if not project.is_split and project.frame().is_affine:
         k_cpu, k_n = bare_kernel(project, ds, args.edge_points)
-        print(f"bare ray kernel (Surface.intersect, CPU): {k_cpu:.2f} s = {k_n / k_cpu:,.0f} boxes/s "
-              f"(whole path: {n / cpu:,.0f} boxes/s)")
+        print(
+            f"bare ray kernel (Surface.intersect, CPU): {k_cpu:.2f} s = {k_n / k_cpu:,.0f} boxes/s "
+            f"(whole path: {n / cpu:,.0f} boxes/s)"
+        )
     try:
         import resource  # POSIX only
 
@@ -136,9 +150,11 @@ def main() -> None:
         pass
     if len(rejected):
         print("not projected, by reason:", rejected["reason"].value_counts().to_dict())
-    print(f"plants: {len(plants)} (truth {len(truth)}), median views {np.median(plants['views']):.0f}; "
-          f"matched {m['share_matched']:.1%}, IoU>0.5 {m['share_iou_above_0.5']:.1%}, "
-          f"median IoU {m['iou_median']:.3f}")
+    print(
+        f"plants: {len(plants)} (truth {len(truth)}), median views {np.median(plants['views']):.0f}; "
+        f"matched {m['share_matched']:.1%}, IoU>0.5 {m['share_iou_above_0.5']:.1%}, "
+        f"median IoU {m['iou_median']:.3f}"
+    )
 
 
 if __name__ == "__main__":

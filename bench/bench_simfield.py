@@ -47,8 +47,9 @@ print(json.dumps({"preset": sys.argv[1], "images": field["flight"]["images"], "p
 
 def run(preset: str, out: Path, workers: int, noise: str = "exact") -> dict:
     env = dict(os.environ, MATCHPLANT_QUIET="1")
-    res = subprocess.run([sys.executable, "-c", CHILD, preset, str(out), str(workers), noise], capture_output=True,
-                         text=True, env=env)
+    res = subprocess.run(
+        [sys.executable, "-c", CHILD, preset, str(out), str(workers), noise], capture_output=True, text=True, env=env
+    )
     if res.returncode != 0:
         raise SystemExit(f"{preset} failed:\n{res.stderr[-3000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -58,10 +59,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="tiny and small only")
     ap.add_argument("--presets", nargs="+", default=None, help="presets to run (default: all)")
-    ap.add_argument("--workers", type=int, default=1,
-                    help="rendering processes (0: one per core); CPU s is summed over them")
-    ap.add_argument("--noise", nargs="+", default=["exact"], choices=("exact", "realistic"),
-                    help="noise models to generate each preset with (realistic: simfield/noise.py)")
+    ap.add_argument(
+        "--workers", type=int, default=1, help="rendering processes (0: one per core); CPU s is summed over them"
+    )
+    ap.add_argument(
+        "--noise",
+        nargs="+",
+        default=["exact"],
+        choices=("exact", "realistic"),
+        help="noise models to generate each preset with (realistic: simfield/noise.py)",
+    )
     ap.add_argument("--keep", type=Path, default=None, help="write the fields under this folder and keep them")
     args = ap.parse_args()
     presets = args.presets or (["tiny", "small"] if args.quick else ["tiny", "small", "large"])
@@ -78,13 +85,17 @@ def main() -> None:
         if args.keep is None:
             shutil.rmtree(base, ignore_errors=True)
     print(f"\nmachine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; python {sys.version.split()[0]}")
-    print("| preset | noise | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers | wall s | CPU s "
-          "| peak MB |")
+    print(
+        "| preset | noise | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers | wall s | CPU s "
+        "| peak MB |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['preset']} | {r['noise']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} | {r['plants']} | "
-              f"{r['raw_boxes']} / {r['undistorted_boxes']} | {r['disk_mb']:.0f} | {r['workers']} | {r['wall_s']:.1f} | "
-              f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} |")
+        print(
+            f"| {r['preset']} | {r['noise']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} | {r['plants']} | "
+            f"{r['raw_boxes']} / {r['undistorted_boxes']} | {r['disk_mb']:.0f} | {r['workers']} | {r['wall_s']:.1f} | "
+            f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} |"
+        )
 
 
 if __name__ == "__main__":

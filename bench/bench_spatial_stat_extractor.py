@@ -19,8 +19,8 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import exactextract
 import geopandas as gpd
@@ -47,8 +47,19 @@ def make_field(folder: Path, size: int, n_plants: int, seed: int = 0):
     res = 0.01
     transform = Affine(res, 0, 500000.0, 0, -res, 4000000.0)
     path = folder / "raster.tif"
-    profile = dict(driver="GTiff", width=size, height=size, count=1, dtype="float32", crs="EPSG:32615",
-                   transform=transform, nodata=-9999.0, tiled=True, blockxsize=512, blockysize=512)
+    profile = dict(
+        driver="GTiff",
+        width=size,
+        height=size,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32615",
+        transform=transform,
+        nodata=-9999.0,
+        tiled=True,
+        blockxsize=512,
+        blockysize=512,
+    )
     with rasterio.open(path, "w", **profile) as dst:
         step = 1024
         for r in range(0, size, step):
@@ -95,11 +106,27 @@ def compare(name: str, ours: dict, ref: dict, rtol: float) -> float:
 
 
 EE_OPS = ["count", "min", "max", "mean", "median", "stdev", "sum", "quantile(q=0.95)"]
-EE_MAP = {"count": "count", "min": "min", "max": "max", "mean": "mean", "median": "median",
-          "std": "stdev", "sum": "sum", "p95": "quantile_95"}
+EE_MAP = {
+    "count": "count",
+    "min": "min",
+    "max": "max",
+    "mean": "mean",
+    "median": "median",
+    "std": "stdev",
+    "sum": "sum",
+    "p95": "quantile_95",
+}
 RS_STATS = "count min max mean median std sum percentile_95"
-RS_MAP = {"count": "count", "min": "min", "max": "max", "mean": "mean", "median": "median",
-          "std": "std", "sum": "sum", "p95": "percentile_95"}
+RS_MAP = {
+    "count": "count",
+    "min": "min",
+    "max": "max",
+    "mean": "mean",
+    "median": "median",
+    "std": "std",
+    "sum": "sum",
+    "p95": "percentile_95",
+}
 
 
 def run_ours(path: Path, boxes, mode: str) -> dict:
@@ -156,9 +183,21 @@ def process_comparison(work: Path, quick: bool):
     write_vector(gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615"), plants)
     ours_out, peer_out = work / "ours", work / "exactextract.csv"
     cfg = work / "module9.yaml"
-    cfg.write_text(yaml.safe_dump({"polygons": str(plants), "rasters": {"chm": str(path)}, "mode": "coverage",
-                                   "stats": STATS, "percentiles": PERCENTILES, "canopy": {"enabled": False},
-                                   "vector_formats": [], "workers": 1, "output_dir": str(ours_out)}))
+    cfg.write_text(
+        yaml.safe_dump(
+            {
+                "polygons": str(plants),
+                "rasters": {"chm": str(path)},
+                "mode": "coverage",
+                "stats": STATS,
+                "percentiles": PERCENTILES,
+                "canopy": {"enabled": False},
+                "vector_formats": [],
+                "workers": 1,
+                "output_dir": str(ours_out),
+            }
+        )
+    )
     script = work / "exactextract_stats.py"
     script.write_text(PEER_SCRIPT.format(ops=EE_OPS))
 
@@ -169,12 +208,19 @@ def process_comparison(work: Path, quick: bool):
         worst = worst_difference({k: ours[f"chm_{k}"].to_numpy(float) for k in ref}, ref)
         return {"largest_relative_difference": worst, "equal_within_1e-6": worst <= 1e-6}
 
-    return Comparison("zonal-coverage-process", f"{n} boxes (GeoPackage) over a {size} x {size} float32 GeoTIFF; "
-                      f"{', '.join(STATS)}, p95 to CSV, whole processes",
-                      "matchplant spatial_stat_extractor (coverage)", "python + exactextract.exact_extract",
-                      lambda: run_process(matchplant_command("spatial_stat_extractor", cfg)),
-                      lambda: run_process([sys.executable, str(script), str(path), str(plants), str(peer_out)]),
-                      check=check, items=n, unit="boxes", notes={"peer_input": "raster path (rasterio), plants by geopandas.read_file"})
+    return Comparison(
+        "zonal-coverage-process",
+        f"{n} boxes (GeoPackage) over a {size} x {size} float32 GeoTIFF; "
+        f"{', '.join(STATS)}, p95 to CSV, whole processes",
+        "matchplant spatial_stat_extractor (coverage)",
+        "python + exactextract.exact_extract",
+        lambda: run_process(matchplant_command("spatial_stat_extractor", cfg)),
+        lambda: run_process([sys.executable, str(script), str(path), str(plants), str(peer_out)]),
+        check=check,
+        items=n,
+        unit="boxes",
+        notes={"peer_input": "raster path (rasterio), plants by geopandas.read_file"},
+    )
 
 
 def comparison(name: str, work: Path, quick: bool, device: str):
@@ -202,9 +248,17 @@ def comparison(name: str, work: Path, quick: bool, device: str):
         worst = worst_difference(last["ours"], last["peer"])
         return {"largest_relative_difference": worst, "equal_within_1e-6": worst <= 1e-6}
 
-    return Comparison(name, f"{n} boxes over a {size} x {size} float32 GeoTIFF; {', '.join(STATS)}, p95",
-                      f"matchplant ({mode})", label, keep("ours", lambda: run_ours(path, boxes, mode)), peer,
-                      check=check, items=n, unit="boxes")
+    return Comparison(
+        name,
+        f"{n} boxes over a {size} x {size} float32 GeoTIFF; {', '.join(STATS)}, p95",
+        f"matchplant ({mode})",
+        label,
+        keep("ours", lambda: run_ours(path, boxes, mode)),
+        peer,
+        check=check,
+        items=n,
+        unit="boxes",
+    )
 
 
 def main(argv=None) -> int:
@@ -223,7 +277,7 @@ def main(argv=None) -> int:
         print(f"making a {size} x {size} raster and {n} boxes ...", flush=True)
         path, boxes = make_field(tmp, size, n)
         gdf = gpd.GeoDataFrame({"plant_id": np.arange(n)}, geometry=boxes, crs="EPSG:32615")
-        px = np.median(gdf.area.to_numpy()) / 0.01 ** 2
+        px = np.median(gdf.area.to_numpy()) / 0.01**2
         print(f"median box: {px:.0f} pixels", flush=True)
 
         def ours(mode):
@@ -248,8 +302,16 @@ def main(argv=None) -> int:
             rs_stats = "count min max mean median std sum percentile_95"
             rs, t_rs = timed(lambda: rasterstats.zonal_stats(boxes, str(path), stats=rs_stats))
             print(f"rasterstats (pixel centre):  {t_rs:8.2f} s", flush=True)
-            rs_map = {"count": "count", "min": "min", "max": "max", "mean": "mean", "median": "median",
-                      "std": "std", "sum": "sum", "p95": "percentile_95"}
+            rs_map = {
+                "count": "count",
+                "min": "min",
+                "max": "max",
+                "mean": "mean",
+                "median": "median",
+                "std": "std",
+                "sum": "sum",
+                "p95": "percentile_95",
+            }
             ref = {k: np.array([np.nan if r[c] is None else r[c] for r in rs], float) for k, c in rs_map.items()}
             ref["count"] = np.nan_to_num(ref["count"])
             err_rs = compare("rasterstats", ours_c, ref, 1e-4)

@@ -66,8 +66,21 @@ def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> 
     cx, cy, h, r = cx[order], cy[order], h[order], r[order]
     t = Affine(RES, 0, ORIGIN[0], 0, -RES, ORIGIN[1])
     path = root / "chm.tif"
-    profile = {"driver": "GTiff", "width": side, "height": rows, "count": 1, "dtype": "float32", "crs": CRS, "transform": t,
-                   "tiled": True, "blockxsize": 512, "blockysize": 512, "compress": "deflate", "nodata": -9999.0, "BIGTIFF": "IF_SAFER"}
+    profile = {
+        "driver": "GTiff",
+        "width": side,
+        "height": rows,
+        "count": 1,
+        "dtype": "float32",
+        "crs": CRS,
+        "transform": t,
+        "tiled": True,
+        "blockxsize": 512,
+        "blockysize": 512,
+        "compress": "deflate",
+        "nodata": -9999.0,
+        "BIGTIFF": "IF_SAFER",
+    }
     tmp = path.with_suffix(".partial.tif")
     with rasterio.open(tmp, "w", **profile) as ds:
         for r0 in range(0, rows, STRIP):
@@ -80,7 +93,7 @@ def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> 
                 yy, xx = np.mgrid[y0:y1, x0:x1]
                 d2 = ((xx + 0.5 - cx[k]) ** 2 + (yy + 0.5 - cy[k]) ** 2) / r[k] ** 2
                 dome = (h[k] * (1 - d2)).astype(np.float32)
-                win = a[y0 - r0:y1 - r0, x0:x1]
+                win = a[y0 - r0 : y1 - r0, x0:x1]
                 np.maximum(win, dome, out=win)
             ds.write(a, 1, window=Window(0, r0, side, r1 - r0))
     os.replace(tmp, path)
@@ -88,9 +101,16 @@ def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> 
     half = r[:, None] * (1 + rng.normal(0, 0.04, (len(r), 4)))
     xmin, xmax = cx - half[:, 0], cx + half[:, 1]
     ymin, ymax = cy - half[:, 2], cy + half[:, 3]  # rows
-    boxes = pd.DataFrame({"plant_id": np.arange(1, len(cx) + 1),
-                          "xmin": ORIGIN[0] + xmin * RES, "xmax": ORIGIN[0] + xmax * RES,
-                          "ymin": ORIGIN[1] - ymax * RES, "ymax": ORIGIN[1] - ymin * RES, "crs": CRS})
+    boxes = pd.DataFrame(
+        {
+            "plant_id": np.arange(1, len(cx) + 1),
+            "xmin": ORIGIN[0] + xmin * RES,
+            "xmax": ORIGIN[0] + xmax * RES,
+            "ymin": ORIGIN[1] - ymax * RES,
+            "ymax": ORIGIN[1] - ymin * RES,
+            "crs": CRS,
+        }
+    )
     # 1% second boxes of one plant (a detector's duplicates), some across strip edges
     dup = rng.choice(len(cx), max(1, len(cx) // 100), replace=False)
     extra = boxes.iloc[dup].copy()
@@ -98,17 +118,30 @@ def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> 
     extra["plant_id"] = np.arange(len(cx) + 1, len(cx) + 1 + len(dup))
     boxes = pd.concat([boxes, extra], ignore_index=True)
     boxes.to_csv(root / "plants.csv", index=False)
-    meta = {"side": side, "rows": rows, "seed": seed, "plants": len(boxes), "spacing_px": spacing, "per_row": per_row,
-            "chm": str(path), "plants_csv": str(root / "plants.csv"),
-            "chm_mb": round(path.stat().st_size / 1e6, 1)}
+    meta = {
+        "side": side,
+        "rows": rows,
+        "seed": seed,
+        "plants": len(boxes),
+        "spacing_px": spacing,
+        "per_row": per_row,
+        "chm": str(path),
+        "plants_csv": str(root / "plants.csv"),
+        "chm_mb": round(path.stat().st_size / 1e6, 1),
+    }
     meta_path.write_text(json.dumps(meta, indent=1))
     return meta
 
 
 def config(meta: dict, out: Path, chm: str, plants: str, canopy: bool, plots: bool, args) -> Path:
     side, rows, per_row = meta["side"], meta.get("rows", meta["side"]), meta["per_row"]
-    cfg = {"polygons": plants, "rasters": {"chm": chm}, "output_dir": str(out), "canopy": {"enabled": canopy},
-           "vector_formats": ["gpkg"]}
+    cfg = {
+        "polygons": plants,
+        "rasters": {"chm": chm},
+        "output_dir": str(out),
+        "canopy": {"enabled": canopy},
+        "vector_formats": ["gpkg"],
+    }
     if not args.before:
         cfg.update(max_memory=args.max_memory, workers=args.workers)
     if plots:
@@ -116,8 +149,13 @@ def config(meta: dict, out: Path, chm: str, plants: str, canopy: bool, plots: bo
         x1, y1 = ORIGIN[0] + side * RES, ORIGIN[1]
         columns = max(1, round(50 * side / FULL_SIDE))
         ranges = max(1, round(197 * rows / FULL_SIDE))
-        cfg["plots"] = {"corners": [[x0, y0], [x0, y1], [x1, y1], [x1, y0]], "columns": columns, "ranges": ranges,
-                        "rows_per_plot": max(1, per_row // columns), "plant_spacing": meta["spacing_px"] * RES}
+        cfg["plots"] = {
+            "corners": [[x0, y0], [x0, y1], [x1, y1], [x1, y0]],
+            "columns": columns,
+            "ranges": ranges,
+            "rows_per_plot": max(1, per_row // columns),
+            "plant_spacing": meta["spacing_px"] * RES,
+        }
     path = out.parent / f"{out.name}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -138,9 +176,12 @@ def run_module(cfg_path: Path, args) -> dict:
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{out.decode()[-3000:]}")
     report = json.loads((Path(yaml.safe_load(cfg_path.read_text())["output_dir"]) / "stats_report.json").read_text())
-    return {"wall_s": round(wall, 2), "cpu_s": round(ru.ru_utime + ru.ru_stime, 2),
-            "peak_mb": round(ru.ru_maxrss / (1024 ** 2 if sys.platform == "darwin" else 1024), 1),
-            "stages": report.get("memory", {}).get("stages", {})}
+    return {
+        "wall_s": round(wall, 2),
+        "cpu_s": round(ru.ru_utime + ru.ru_stime, 2),
+        "peak_mb": round(ru.ru_maxrss / (1024**2 if sys.platform == "darwin" else 1024), 1),
+        "stages": report.get("memory", {}).get("stages", {}),
+    }
 
 
 def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
@@ -179,17 +220,28 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
     diff = (a[num].astype(float) - b[num].astype(float)).abs()
     tol = 1e-6 * (1 + a[num].astype(float).abs())
     bad = ~((diff <= tol) | (a[num].isna() & b[num].isna()))
-    flags_same = float((a["outline_flag"].astype(object).fillna("") == b["outline_flag"].astype(object).fillna("")).mean())
-    return {"plants": len(inside), "columns": len(num), "plants_differing": int(bad.any(axis=1).sum()),
-            "max_abs_diff": float(np.nanmax(diff.to_numpy(dtype=float, na_value=np.nan), initial=0.0)), "flags_same": flags_same,
-            "differing_columns": sorted(c for c in num if bad[c].any())}
+    flags_same = float(
+        (a["outline_flag"].astype(object).fillna("") == b["outline_flag"].astype(object).fillna("")).mean()
+    )
+    return {
+        "plants": len(inside),
+        "columns": len(num),
+        "plants_differing": int(bad.any(axis=1).sum()),
+        "max_abs_diff": float(np.nanmax(diff.to_numpy(dtype=float, na_value=np.nan), initial=0.0)),
+        "flags_same": flags_same,
+        "differing_columns": sorted(c for c in num if bad[c].any()),
+    }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scale", type=float, default=1.0, help="side as a share of 30,000 px (plants: its square)")
-    ap.add_argument("--length", type=float, default=1.0,
-                    help="the field's rows as a multiple of its width (2: the 60,000 x 30,000 px, 2 ha field)")
+    ap.add_argument(
+        "--length",
+        type=float,
+        default=1.0,
+        help="the field's rows as a multiple of its width (2: the 60,000 x 30,000 px, 2 ha field)",
+    )
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "matchplant_bench_survey")
     ap.add_argument("--max-memory", default="3GB")
     ap.add_argument("--workers", type=int, default=1, help="module 9's workers (1: one core; 0: one per core)")
@@ -205,19 +257,24 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     meta = make_field(field_dir, args.scale, length=args.length)
-    print(f"field: {meta.get('rows', meta['side'])} x {meta['side']} px float32 CHM ({meta['chm_mb']} MB tiled deflate), {meta['plants']} plants "
-          f"(made in {time.perf_counter() - t0:.0f} s or cached) in {work}", flush=True)
+    print(
+        f"field: {meta.get('rows', meta['side'])} x {meta['side']} px float32 CHM ({meta['chm_mb']} MB tiled deflate), {meta['plants']} plants "
+        f"(made in {time.perf_counter() - t0:.0f} s or cached) in {work}",
+        flush=True,
+    )
     res = {"field": meta, "max_memory": args.max_memory, "workers": args.workers}
     if not args.only_full:
-        res["box_only"] = run_module(config(meta, work / "box_out", meta["chm"], meta["plants_csv"], False, False,
-                                            args), args)
+        res["box_only"] = run_module(
+            config(meta, work / "box_out", meta["chm"], meta["plants_csv"], False, False, args), args
+        )
         print("box statistics only:", json.dumps(res["box_only"]), flush=True)
-    res["full"] = run_module(config(meta, work / "full_out", meta["chm"], meta["plants_csv"], True, True, args),
-                             args)
+    res["full"] = run_module(config(meta, work / "full_out", meta["chm"], meta["plants_csv"], True, True, args), args)
     print("box + outlines + canopy + plots:", json.dumps(res["full"]), flush=True)
     st = res["full"]["stages"]
     if "box statistics" in st and "outlines and canopy statistics" in st:
-        res["outlines_over_box"] = round(st["outlines and canopy statistics"]["wall_s"] / st["box statistics"]["wall_s"], 2)
+        res["outlines_over_box"] = round(
+            st["outlines and canopy statistics"]["wall_s"] / st["box statistics"]["wall_s"], 2
+        )
         print(f"outlines + canopy statistics / box statistics (wall): {res['outlines_over_box']}x", flush=True)
     if not args.no_crop:
         res["crop"] = crop_check(meta, work, work / "full_out", args)

@@ -39,11 +39,11 @@ from matchplant.plant_projection.merge import merge_views  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 from matchplant.simfield.scoring import growth_scores, outline_ious, plot_scores, trait_scores  # noqa: E402
+from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment  # noqa: E402
 from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats  # noqa: E402
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig  # noqa: E402
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment  # noqa: E402
-from matchplant.spatial_stat_extractor.run import extract_and_write  # noqa: E402
 from matchplant.spatial_stat_extractor.inputs.sources import RasterFileSource  # noqa: E402
+from matchplant.spatial_stat_extractor.run import extract_and_write  # noqa: E402
 from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats  # noqa: E402
 
 
@@ -61,8 +61,11 @@ def field(preset: str, given: str | None) -> FieldPaths:
 def projected_plants(f: FieldPaths, out: Path) -> Path:
     """Module 8 on the true image boxes: plants.gpkg in ``out``."""
     ds = read_dataset(f.boxes_undistorted, validate=False)
-    preds = {"images": ds["images"], "categories": ds["categories"],
-             "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+    preds = {
+        "images": ds["images"],
+        "categories": ds["categories"],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
+    }
     views, _ = project_predictions(ODMProject(f.root), preds)
     plants = merge_views(views)
     crs = json.loads(f.field_json.read_text())["crs"]
@@ -74,12 +77,21 @@ def projected_plants(f: FieldPaths, out: Path) -> Path:
 def accuracy(f: FieldPaths, out: Path) -> dict:
     plants = projected_plants(f, out)
     grid = json.loads(f.plots_json.read_text())
-    sets = [f"polygons={plants}", f"output_dir={out / 'stats'}", "rasters.date=d1",
-            f"rasters.dsm={f.dsm}", f"rasters.dtm={f.dtm}", f"rasters.multispectral={f.multispectral}",
-            f"more_dates=[{{date: d2, dsm: {f.later.dsm}, dtm: {f.later.dtm}}}]",
-            f"plots.corners={json.dumps(grid['corners'])}", f"plots.columns={grid['columns']}",
-            f"plots.ranges={grid['ranges']}", f"plots.plant_spacing={grid['plant_spacing']}",
-            f"plots.rows_per_plot={grid['rows_per_plot']}", f"plots.field_book={f.field_book}"]
+    sets = [
+        f"polygons={plants}",
+        f"output_dir={out / 'stats'}",
+        "rasters.date=d1",
+        f"rasters.dsm={f.dsm}",
+        f"rasters.dtm={f.dtm}",
+        f"rasters.multispectral={f.multispectral}",
+        f"more_dates=[{{date: d2, dsm: {f.later.dsm}, dtm: {f.later.dtm}}}]",
+        f"plots.corners={json.dumps(grid['corners'])}",
+        f"plots.columns={grid['columns']}",
+        f"plots.ranges={grid['ranges']}",
+        f"plots.plant_spacing={grid['plant_spacing']}",
+        f"plots.rows_per_plot={grid['rows_per_plot']}",
+        f"plots.field_book={f.field_book}",
+    ]
     cfg = load_config(SpatialStatExtractorConfig, None, sets)
     t0 = time.perf_counter()
     polygons, table, report, written = extract_and_write(cfg)
@@ -89,10 +101,14 @@ def accuracy(f: FieldPaths, out: Path) -> dict:
     outl = gpd.read_file(written["outlines_gpkg"])
     first = outl[outl["date"] == "d1"].set_index("plant_id").reindex(table["plant_id"])
     iou = outline_ious(first.geometry.values, d1, f)
-    res["outlines"] = {"iou_median": float(np.nanmedian(iou)), "iou_p10": float(np.nanpercentile(iou, 10)),
-                       "kept_box": int((first["outline_from"] == "box").sum())}
-    res["plots"] = plot_scores(pd.read_csv(written["plots_csv"]), pd.read_csv(written["plot_gaps_csv"]), f,
-                               grid["plant_spacing"])
+    res["outlines"] = {
+        "iou_median": float(np.nanmedian(iou)),
+        "iou_p10": float(np.nanpercentile(iou, 10)),
+        "kept_box": int((first["outline_from"] == "box").sum()),
+    }
+    res["plots"] = plot_scores(
+        pd.read_csv(written["plots_csv"]), pd.read_csv(written["plot_gaps_csv"]), f, grid["plant_spacing"]
+    )
     res["growth"] = growth_scores(d1, f, ("top_x_d2", "top_y_d2"))
     return res
 
@@ -108,15 +124,29 @@ def speed(quick: bool, folder: Path) -> dict:
     sp = size / k  # pixels between plant centres
     h = rng.uniform(0.2, 0.6, k * k)
     path = folder / "chm.tif"
-    profile = dict(driver="GTiff", width=size, height=size, count=1, dtype="float32", crs="EPSG:32615",
-                   transform=t, nodata=-9999.0, tiled=True, blockxsize=512, blockysize=512)
+    profile = dict(
+        driver="GTiff",
+        width=size,
+        height=size,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32615",
+        transform=t,
+        nodata=-9999.0,
+        tiled=True,
+        blockxsize=512,
+        blockysize=512,
+    )
     with rasterio.open(path, "w", **profile) as dst:
         for r0 in range(0, size, 512):
-            rr, cc = np.mgrid[r0:min(r0 + 512, size), 0:size] + 0.5
+            rr, cc = np.mgrid[r0 : min(r0 + 512, size), 0:size] + 0.5
             gy, gx = np.clip((rr / sp).astype(int), 0, k - 1), np.clip((cc / sp).astype(int), 0, k - 1)
             rho = np.hypot(cc - (gx + 0.5) * sp, rr - (gy + 0.5) * sp) / (0.35 * sp)
-            dst.write(np.where(rho < 1, h[gy * k + gx] * (1 - rho ** 2), 0.0).astype("float32"), 1,
-                      window=Window(0, r0, size, rr.shape[0]))
+            dst.write(
+                np.where(rho < 1, h[gy * k + gx] * (1 - rho**2), 0.0).astype("float32"),
+                1,
+                window=Window(0, r0, size, rr.shape[0]),
+            )
     gy, gx = np.divmod(np.arange(n), k)
     x, y = t * ((gx + 0.5) * sp, (gy + 0.5) * sp)
     half = 0.4 * sp * res
@@ -132,10 +162,16 @@ def speed(quick: bool, folder: Path) -> dict:
         t0 = time.perf_counter()
         canopy_stats(o, src, ["mean", "max"], [95])
         t_can = time.perf_counter() - t0
-    return {"raster": f"{size}x{size}", "plants": n, "outlined": int((o.flag == "").sum()),
-            "box_stats_s": round(t_box, 2), "outlines_s": round(t_seg, 2), "canopy_stats_s": round(t_can, 2),
-            "canopy_over_box": round(t_can / t_box, 2),
-            "outlines_and_canopy_over_box": round((t_seg + t_can) / t_box, 2)}
+    return {
+        "raster": f"{size}x{size}",
+        "plants": n,
+        "outlined": int((o.flag == "").sum()),
+        "box_stats_s": round(t_box, 2),
+        "outlines_s": round(t_seg, 2),
+        "canopy_stats_s": round(t_can, 2),
+        "canopy_over_box": round(t_can / t_box, 2),
+        "outlines_and_canopy_over_box": round((t_seg + t_can) / t_box, 2),
+    }
 
 
 def main() -> None:

@@ -28,11 +28,13 @@ import numpy as np
 from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
 
 # (image, VOC boxes, grid columns x rows)
-SOURCES = (("2019_YELL_2_528000_4978000_image_crop2.png", "2019_YELL_2_528000_4978000_image_crop2.xml", (6, 6)),
-           ("2019_YELL_2_541000_4977000_image_crop.png", "2019_YELL_2_541000_4977000_image_crop.xml", (3, 3)),
-           ("OSBS_029.png", "OSBS_029.xml", (1, 1)),
-           ("SOAP_061.png", "SOAP_061.xml", (1, 1)))
-KEEP = 0.5        # a crown cut by a photo's edge is kept when at least this share of its box is inside
+SOURCES = (
+    ("2019_YELL_2_528000_4978000_image_crop2.png", "2019_YELL_2_528000_4978000_image_crop2.xml", (6, 6)),
+    ("2019_YELL_2_541000_4977000_image_crop.png", "2019_YELL_2_541000_4977000_image_crop.xml", (3, 3)),
+    ("OSBS_029.png", "OSBS_029.xml", (1, 1)),
+    ("SOAP_061.png", "SOAP_061.xml", (1, 1)),
+)
+KEEP = 0.5  # a crown cut by a photo's edge is kept when at least this share of its box is inside
 SPLIT = (0.7, 0.15, 0.15)
 SEED = 0
 LICENCE = "MIT (DeepForest, github weecology/DeepForest; the wheel's deepforest/data)"
@@ -65,8 +67,10 @@ class Source:
 def voc_boxes(xml: bytes) -> np.ndarray:
     """``(n, 4)`` xmin, ymin, xmax, ymax of a Pascal VOC file."""
     root = ET.parse(io.BytesIO(xml)).getroot()
-    return np.array([[float(o.find(f"bndbox/{k}").text) for k in ("xmin", "ymin", "xmax", "ymax")]
-                     for o in root.iter("object")], float).reshape(-1, 4)
+    return np.array(
+        [[float(o.find(f"bndbox/{k}").text) for k in ("xmin", "ymin", "xmax", "ymax")] for o in root.iter("object")],
+        float,
+    ).reshape(-1, 4)
 
 
 def cut(img: np.ndarray, boxes: np.ndarray, grid: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -78,8 +82,15 @@ def cut(img: np.ndarray, boxes: np.ndarray, grid: tuple[int, int]) -> list[tuple
     out = []
     for y0, y1 in itertools.pairwise(ys):
         for x0, x1 in itertools.pairwise(xs):
-            c = np.stack([np.clip(boxes[:, 0], x0, x1), np.clip(boxes[:, 1], y0, y1),
-                          np.clip(boxes[:, 2], x0, x1), np.clip(boxes[:, 3], y0, y1)], axis=1)
+            c = np.stack(
+                [
+                    np.clip(boxes[:, 0], x0, x1),
+                    np.clip(boxes[:, 1], y0, y1),
+                    np.clip(boxes[:, 2], x0, x1),
+                    np.clip(boxes[:, 3], y0, y1),
+                ],
+                axis=1,
+            )
             inside = (c[:, 2] - c[:, 0]) * (c[:, 3] - c[:, 1])
             keep = inside >= KEEP * np.maximum(area, 1e-9)
             out.append((img[y0:y1, x0:x1], c[keep] - [x0, y0, x0, y0]))
@@ -105,8 +116,9 @@ def write_split(folder: Path, name: str, items: list[tuple[str, np.ndarray, np.n
         cv2.imwrite(str(images / file_name), np.ascontiguousarray(img[:, :, ::-1]))
         data["images"].append({"id": i, "file_name": file_name, "width": img.shape[1], "height": img.shape[0]})
         for b in boxes:
-            data["annotations"].append(make_annotation(len(data["annotations"]) + 1, i,
-                                                       [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
+            data["annotations"].append(
+                make_annotation(len(data["annotations"]) + 1, i, [b[0], b[1], b[2] - b[0], b[3] - b[1]])
+            )
     return write_dataset(folder / f"{name}.json", data)
 
 
@@ -117,6 +129,7 @@ def build(source_path: Path, work: Path) -> tuple[Path, Path, Path]:
     random.Random(SEED).shuffle(order)
     n_train = round(SPLIT[0] * len(items))
     n_val = round(SPLIT[1] * len(items))
-    parts = (order[:n_train], order[n_train:n_train + n_val], order[n_train + n_val:])
-    return tuple(write_split(work, name, [items[i] for i in sorted(idx)])
-                 for name, idx in zip(("train", "val", "test"), parts))
+    parts = (order[:n_train], order[n_train : n_train + n_val], order[n_train + n_val :])
+    return tuple(
+        write_split(work, name, [items[i] for i in sorted(idx)]) for name, idx in zip(("train", "val", "test"), parts)
+    )

@@ -16,11 +16,18 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
-THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "GDAL_NUM_THREADS")
+THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMBA_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "GDAL_NUM_THREADS",
+)
 
 
 @dataclass
@@ -70,9 +77,15 @@ def _timed(fn: Callable[[], object], reset: Callable[[], None] | None) -> float:
     return out if isinstance(out, float) and 0 < out <= wall else wall
 
 
-def alternate(ours: Callable[[], object], peer: Callable[[], object], pairs: int = 3, warmup: int = 1,
-              reset: Callable[[str], None] | None = None, clock: Callable[[Callable, object], float] = _timed,
-              on_pair: Callable[[int, float, float], None] | None = None) -> tuple[list[float], list[float]]:
+def alternate(
+    ours: Callable[[], object],
+    peer: Callable[[], object],
+    pairs: int = 3,
+    warmup: int = 1,
+    reset: Callable[[str], None] | None = None,
+    clock: Callable[[Callable, object], float] = _timed,
+    on_pair: Callable[[int, float, float], None] | None = None,
+) -> tuple[list[float], list[float]]:
     """Run ``warmup`` untimed pairs, then ``pairs`` timed rounds of ours then peer (A B A B ...).
 
     ``reset(side)`` runs untimed before each call ("ours" or "peer"), e.g. to remove that side's output."""
@@ -80,11 +93,13 @@ def alternate(ours: Callable[[], object], peer: Callable[[], object], pairs: int
         raise ValueError("pairs must be at least 1")
     ra = rb = None
     if reset is not None:
+
         def ra():
             reset("ours")
 
         def rb():
             reset("peer")
+
     for _ in range(warmup):
         clock(ours, ra)
         clock(peer, rb)
@@ -107,16 +122,27 @@ def summarise(ours: list[float], peer: list[float]) -> dict:
     if min(ours) <= 0 or min(peer) <= 0:
         raise ValueError("times must be positive")
     ratios = [p / o for o, p in zip(ours, peer)]
-    return {"ours_median_s": statistics.median(ours), "peer_median_s": statistics.median(peer),
-            "ratio_median": statistics.median(ratios), "ratio_min": min(ratios), "ratio_max": max(ratios),
-            "pairs": len(ours), "ours_s": list(ours), "peer_s": list(peer), "ratios": ratios}
+    return {
+        "ours_median_s": statistics.median(ours),
+        "peer_median_s": statistics.median(peer),
+        "ratio_median": statistics.median(ratios),
+        "ratio_min": min(ratios),
+        "ratio_max": max(ratios),
+        "pairs": len(ours),
+        "ours_s": list(ours),
+        "peer_s": list(peer),
+        "ratios": ratios,
+    }
 
 
 def overhead(summary: dict) -> dict:
     """The same ratio read as our extra time over the peer's: ours / peer - 1 (median, min, max)."""
     r = summary
-    return {"overhead_median": 1 / r["ratio_median"] - 1, "overhead_min": 1 / r["ratio_max"] - 1,
-            "overhead_max": 1 / r["ratio_min"] - 1}
+    return {
+        "overhead_median": 1 / r["ratio_median"] - 1,
+        "overhead_min": 1 / r["ratio_max"] - 1,
+        "overhead_max": 1 / r["ratio_min"] - 1,
+    }
 
 
 def cpu_model() -> str:
@@ -133,9 +159,13 @@ def cpu_model() -> str:
 
 def machine_info() -> dict:
     """What the numbers were measured on."""
-    info = {"cpu": cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
-            "python": platform.python_version(),
-            "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
+    info = {
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
     if hasattr(os, "getloadavg"):
         info["load_average_1min_at_start"] = round(os.getloadavg()[0], 2)
     return info

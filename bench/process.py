@@ -24,8 +24,9 @@ def run_process(argv: list[str], cwd: Path | None = None) -> float | None:
         proc.returncode = os.waitstatus_to_exitcode(status)
         if proc.returncode != 0:
             out.seek(0)
-            raise SystemExit(f"{' '.join(map(str, argv))} failed ({proc.returncode}):\n"
-                             f"{out.read().decode(errors='replace')[-3000:]}")
+            raise SystemExit(
+                f"{' '.join(map(str, argv))} failed ({proc.returncode}):\n{out.read().decode(errors='replace')[-3000:]}"
+            )
     return usage.ru_utime + usage.ru_stime if os.environ.get("BENCH_CLOCK") == "cpu" else None
 
 

@@ -36,8 +36,10 @@ RESULTS = HERE / "results"
 REGISTRY = {
     "zonal-center": ("bench.bench_spatial_stat_extractor", "module 9, pixel-centre rule vs rasterstats"),
     "zonal-coverage": ("bench.bench_spatial_stat_extractor", "module 9, coverage-weighted vs exactextract"),
-    "zonal-coverage-process": ("bench.bench_spatial_stat_extractor",
-                               "module 9's command, coverage-weighted vs a script calling exactextract"),
+    "zonal-coverage-process": (
+        "bench.bench_spatial_stat_extractor",
+        "module 9's command, coverage-weighted vs a script calling exactextract",
+    ),
     "gps-embed": ("bench.bench_gps_embeder", "module 0, GPS into EXIF copies vs exiftool -geotag"),
     "gps-embed-process": ("bench.bench_gps_embeder", "module 0's command vs exiftool -geotag, 1.1 MB JPEGs"),
     "train": ("bench.bench_model_train", "module 6, training loop vs a bare torchvision loop"),
@@ -45,13 +47,32 @@ REGISTRY = {
     "tiling": ("bench.bench_img_splitter", "module 5, tiling vs SAHI slice_coco"),
     "box-pairs": ("bench.bench_core_boxes", "module 8, overlapping box pairs vs shapely STRtree"),
     # a whole run with its result, not a comparison (the module has run_row(name, work, quick, device))
-    "train-real": ("bench.bench_model_train_real", ("module 6 from random weights on real aerial photos, inspect's "
-                                                    "advice, max_minutes 15 (--quick: 2) on one core: estimate vs "
-                                                    "actual time, test AP50")),
+    "train-real": (
+        "bench.bench_model_train_real",
+        (
+            "module 6 from random weights on real aerial photos, inspect's "
+            "advice, max_minutes 15 (--quick: 2) on one core: estimate vs "
+            "actual time, test AP50"
+        ),
+    ),
 }
 GPU_NAMES = ("train", "detect", "train-real")  # what --device cuda measures
-PACKAGES = ["matchplant", "numpy", "numba", "shapely", "rasterio", "exactextract", "rasterstats", "piexif",
-            "pillow", "torch", "torchvision", "opencv-python-headless", "opencv-python", "sahi"]
+PACKAGES = [
+    "matchplant",
+    "numpy",
+    "numba",
+    "shapely",
+    "rasterio",
+    "exactextract",
+    "rasterstats",
+    "piexif",
+    "pillow",
+    "torch",
+    "torchvision",
+    "opencv-python-headless",
+    "opencv-python",
+    "sahi",
+]
 
 
 def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int:
@@ -67,16 +88,27 @@ def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int
         t0 = time.perf_counter()
         cmp: Comparison = module.comparison(name, Path(tmp), quick, device)
         setup_s = time.perf_counter() - t0
-        result = {"name": name, "what": cmp.what, "ours": cmp.ours_label, "peer": cmp.peer_label,
-                  "pinned_core": core, "threads": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS",
-                                                                                   "NUMBA_NUM_THREADS")},
-                  "items": cmp.items, "unit": cmp.unit, "setup_s": round(setup_s, 2), "notes": cmp.notes}
+        result = {
+            "name": name,
+            "what": cmp.what,
+            "ours": cmp.ours_label,
+            "peer": cmp.peer_label,
+            "pinned_core": core,
+            "threads": {v: os.environ.get(v) for v in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")},
+            "items": cmp.items,
+            "unit": cmp.unit,
+            "setup_s": round(setup_s, 2),
+            "notes": cmp.notes,
+        }
         if cmp.peer is None:
             result["skipped"] = cmp.skip or "peer not available"
         else:
+
             def show(i, a, b):
-                print(f"  pair {i + 1}: {cmp.ours_label} {a:.3f} s, {cmp.peer_label} {b:.3f} s, "
-                      f"ratio {b / a:.2f}", flush=True)
+                print(
+                    f"  pair {i + 1}: {cmp.ours_label} {a:.3f} s, {cmp.peer_label} {b:.3f} s, ratio {b / a:.2f}",
+                    flush=True,
+                )
 
             a, b = alternate(cmp.ours, cmp.peer, pairs=pairs, warmup=1, reset=cmp.reset, on_pair=show)
             result["summary"] = summarise(a, b)
@@ -93,13 +125,16 @@ def describe(r: dict) -> str:
     if "summary" not in r:
         return f"{r['name']:<15} SKIPPED: {r.get('skipped') or r.get('error')}"
     s = r["summary"]
-    line = (f"{r['name']:<15} {r['ours']} {s['ours_median_s']:.3f} s | {r['peer']} {s['peer_median_s']:.3f} s"
-            f" | speed ratio {ratio_text(s)}")
+    line = (
+        f"{r['name']:<15} {r['ours']} {s['ours_median_s']:.3f} s | {r['peer']} {s['peer_median_s']:.3f} s"
+        f" | speed ratio {ratio_text(s)}"
+    )
     if r["items"]:
         line += f" | {r['items'] / s['ours_median_s']:.1f} vs {r['items'] / s['peer_median_s']:.1f} {r['unit']}/s"
     if "check" in r:
-        line += " | check: " + ", ".join(f"{k} {v:.2g}" if isinstance(v, float) else f"{k} {v}"
-                                         for k, v in r["check"].items())
+        line += " | check: " + ", ".join(
+            f"{k} {v:.2g}" if isinstance(v, float) else f"{k} {v}" for k, v in r["check"].items()
+        )
     return line
 
 
@@ -108,15 +143,33 @@ def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool =
     env = single_thread_env()
     env.setdefault("MATCHPLANT_QUIET", "1")
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
-    record = {"command": " ".join(["python -m bench", *sys.argv[1:]]), "quick": quick, "device": device,
-              "pairs": pairs, "machine": machine_info(), "versions": versions(PACKAGES), "results": []}
+    record = {
+        "command": " ".join(["python -m bench", *sys.argv[1:]]),
+        "quick": quick,
+        "device": device,
+        "pairs": pairs,
+        "machine": machine_info(),
+        "versions": versions(PACKAGES),
+        "results": [],
+    }
     failed = 0
     for name in names:
         print(f"\n=== {name}: {REGISTRY[name][1]}{' (quick)' if quick else ''}", flush=True)
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(tmp) / "result.json"
-            cmd = [sys.executable, "-m", "bench", "--child", name, "--device", device, "--pairs", str(pairs),
-                   "--result", str(out)]
+            cmd = [
+                sys.executable,
+                "-m",
+                "bench",
+                "--child",
+                name,
+                "--device",
+                device,
+                "--pairs",
+                str(pairs),
+                "--result",
+                str(out),
+            ]
             rc = subprocess.call(cmd + (["--quick"] if quick else []), env=env, cwd=HERE.parent)
             if rc == 0 and out.exists():
                 r = json.loads(out.read_text())

@@ -12,8 +12,8 @@ import dataclasses
 import logging
 import sys
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from matchplant import __version__
 from matchplant.core.runtime.config import load_config, save_config
@@ -40,27 +40,45 @@ def help_example(spec: StepSpec) -> str:
 
 
 def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=f"matchplant {spec.name}",
-                                description=(spec.config.__doc__ or "").strip().split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog=f"matchplant {spec.name}", description=(spec.config.__doc__ or "").strip().split("\n")[0]
+    )
     if spec.positional_key:
-        p.add_argument("positional", nargs="?", metavar=spec.positional_key.upper(),
-                       help=f"sets '{spec.positional_key}'")
+        p.add_argument(
+            "positional", nargs="?", metavar=spec.positional_key.upper(), help=f"sets '{spec.positional_key}'"
+        )
     else:
         p.add_argument("config_file", nargs="?", type=Path, help="YAML config (same as --config)")
     p.add_argument("--config", "-c", type=Path, help="YAML config file")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help=f"override a config key (repeatable), e.g. --set {help_example(spec)}")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"override a config key (repeatable), e.g. --set {help_example(spec)}",
+    )
     if spec.gui is not None:
         p.add_argument("--gui", action="store_true", help="open the graphical interface")
-    p.add_argument("--write-config", type=Path, metavar="FILE",
-                   help="write a commented config (every key, its meaning and its default, or the value from "
-                        "--config and --set), then exit")
+    p.add_argument(
+        "--write-config",
+        type=Path,
+        metavar="FILE",
+        help="write a commented config (every key, its meaning and its default, or the value from "
+        "--config and --set), then exit",
+    )
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug messages")
     p.add_argument("--quiet", action="store_true", help="only warnings and errors on the console")
     if spec.output_key and spec.output_key in {f.name for f in dataclasses.fields(spec.config)}:
         # one name in every module; --out is the older spelling of modules 0, 1 and 8
-        p.add_argument("--output", "--out", dest=f"flag__{spec.output_key}", default=None, metavar="FOLDER",
-                       help=f"sets '{spec.output_key}': the folder for every output of this step")
+        p.add_argument(
+            "--output",
+            "--out",
+            dest=f"flag__{spec.output_key}",
+            default=None,
+            metavar="FOLDER",
+            help=f"sets '{spec.output_key}': the folder for every output of this step",
+        )
     for flag, (key, text, *const) in spec.flags.items():
         if const:
             p.add_argument(flag, dest=f"flag__{key}", default=None, action="store_const", const=const[0], help=text)
@@ -88,15 +106,20 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
         if debug:
             raise
         logging.getLogger("matchplant").debug("internal error", exc_info=True)
-        print(f"internal error: {type(exc).__name__}: {exc}\n"
-              f"  rerun with --debug for the traceback and report it with the log file", file=sys.stderr)
+        print(
+            f"internal error: {type(exc).__name__}: {exc}\n"
+            f"  rerun with --debug for the traceback and report it with the log file",
+            file=sys.stderr,
+        )
         return 1
 
 
 def config_header(spec: StepSpec) -> list[str]:
     """The lines under a written config's title: how to write it again, and how its paths are read."""
-    return [f"Written by 'matchplant {spec.name} --write-config FILE' (add --config FILE to keep a file's values).",
-            "Relative paths are relative to this file's folder."]
+    return [
+        f"Written by 'matchplant {spec.name} --write-config FILE' (add --config FILE to keep a file's values).",
+        "Relative paths are relative to this file's folder.",
+    ]
 
 
 def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) -> int:
@@ -111,11 +134,14 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
         overrides.insert(0, f"{spec.positional_key}={args.positional}")
     for key, value in vars(args).items():
         if key.startswith("flag__") and value is not None:
-            overrides.append(f"{key[len('flag__'):]}={value}")
+            overrides.append(f"{key[len('flag__') :]}={value}")
     if args.write_config:
         # with a config or --set: those values, with the comments of this version; else the defaults
-        cfg = (load_config(spec.config, config_path, overrides, strict=False)
-               if config_path or overrides else spec.config())
+        cfg = (
+            load_config(spec.config, config_path, overrides, strict=False)
+            if config_path or overrides
+            else spec.config()
+        )
         path = save_config(cfg, args.write_config, header=config_header(spec))
         print(f"wrote {path}")
         return 0
@@ -166,8 +192,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             older = [a for a, n in ALIASES.items() if n == name and not a.isdigit()]
             also = f" (also: {', '.join(older)})" if older else ""
             print(f"  {number:>2} {name:<23} {summary}{also}")
-        print("\n'matchplant <module> --help' shows a module's options; "
-              "'--write-config FILE' writes its commented config.")
+        print(
+            "\n'matchplant <module> --help' shows a module's options; "
+            "'--write-config FILE' writes its commented config."
+        )
         return 0
     if argv[0] in ("--version", "-V"):
         print(f"matchplant {__version__}")

@@ -85,45 +85,94 @@ FIRST_STEPS = 6  # steps 0-5 run first: module 5's split decides which photos ar
 NOISY = "noisy"  # modules 8 and 9 on the realistic field, under <out>/noisy
 
 
-
 def _step(name: str, module: str, **config) -> dict:
     return {"name": name, "module": module, "config": config}
 
 
-def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int,
-                  threads: int = 0) -> dict:
+def pipeline_spec(
+    field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int, threads: int = 0
+) -> dict:
     """The demo's pipeline: every module, each reading the files the one before wrote."""
     net = int(round(tile * 2.5))
     cpu = {"threads": threads} if threads else {}  # absent when automatic, so earlier runs' steps stay finished
     # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse feature maps; anchors
     # are in the enlarged pixels. A 128 px tile holds at most ~40 plants: far fewer proposals than
     # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
-    model = {"architecture": "fasterrcnn_mobilenet_v3_large_fpn", "pretrained": pretrained,
-             "min_size": net, "max_size": net, "anchor_sizes": [[net // 8, net // 4, net // 2]] * 3,
-             "rpn": {"pre_nms_top_n_train": 1000, "post_nms_top_n_train": 400,
-                     "pre_nms_top_n_test": 300, "post_nms_top_n_test": 100},
-             "roi": {"batch_size_per_image": 64}}
+    model = {
+        "architecture": "fasterrcnn_mobilenet_v3_large_fpn",
+        "pretrained": pretrained,
+        "min_size": net,
+        "max_size": net,
+        "anchor_sizes": [[net // 8, net // 4, net // 2]] * 3,
+        "rpn": {
+            "pre_nms_top_n_train": 1000,
+            "post_nms_top_n_train": 400,
+            "pre_nms_top_n_test": 300,
+            "post_nms_top_n_test": 100,
+        },
+        "roi": {"batch_size_per_image": 64},
+    }
     steps = [
-        _step("0_gps", "gps_embeder", images="${field}/images_nogps", gnss_log="${field}/gnss/events.txt",
-              log_crs="${crs}"),
-        _step("1_gcp", "gcp_finder", images="${0_gps.output_dir}/images", survey="${field}/gcp/gcp_survey.csv",
-              survey_crs="${crs}", auto=True),
+        _step(
+            "0_gps",
+            "gps_embeder",
+            images="${field}/images_nogps",
+            gnss_log="${field}/gnss/events.txt",
+            log_crs="${crs}",
+        ),
+        _step(
+            "1_gcp",
+            "gcp_finder",
+            images="${0_gps.output_dir}/images",
+            survey="${field}/gcp/gcp_survey.csv",
+            survey_crs="${crs}",
+            auto=True,
+        ),
         _step("2_odm", "odm_runner", project_dir="${field}", check_only=True),
         _step("3_select", "min_img_finder", project_dir="${field}"),
-        _step("4_annotate", "bbox_drawer", images="${3_select.output_dir}/images",
-              import_coco="${field}/truth/boxes_undistorted.json", min_score=0.0),
-        _step("5_tiles", "img_splitter", images="${3_select.output_dir}/images",
-              annotations="${4_annotate.output_dir}/annotations.json", tile_size=tile, overlap=tile // 4,
-              negative_share=0.2, split=[0.55, 0.15, 0.3]),
-        _step("6_train", "model_train", train_json="${5_tiles.output_dir}/train.json",
-              val_json="${5_tiles.output_dir}/val.json", model=model, epochs=epochs, max_minutes=minutes, batch_size=4,
-              num_workers=0, warmup_iters=20, step_size=20, save_every=0, **cpu,
-              lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02}),
+        _step(
+            "4_annotate",
+            "bbox_drawer",
+            images="${3_select.output_dir}/images",
+            import_coco="${field}/truth/boxes_undistorted.json",
+            min_score=0.0,
+        ),
+        _step(
+            "5_tiles",
+            "img_splitter",
+            images="${3_select.output_dir}/images",
+            annotations="${4_annotate.output_dir}/annotations.json",
+            tile_size=tile,
+            overlap=tile // 4,
+            negative_share=0.2,
+            split=[0.55, 0.15, 0.3],
+        ),
+        _step(
+            "6_train",
+            "model_train",
+            train_json="${5_tiles.output_dir}/train.json",
+            val_json="${5_tiles.output_dir}/val.json",
+            model=model,
+            epochs=epochs,
+            max_minutes=minutes,
+            batch_size=4,
+            num_workers=0,
+            warmup_iters=20,
+            step_size=20,
+            save_every=0,
+            **cpu,
+            lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02},
+        ),
         # detection on the photos the detector never saw (module 5's test split and module 3's unselected
         # photos): only they are projected and scored
-        _step("7_detect", "model_test", checkpoint="${6_train.output_dir}/checkpoints/best.pt",
-              evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"}, **cpu,
-              detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4}),
+        _step(
+            "7_detect",
+            "model_test",
+            checkpoint="${6_train.output_dir}/checkpoints/best.pt",
+            evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
+            **cpu,
+            detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4},
+        ),
         *map_steps(field, "${7_detect.output_dir}/predictions.json"),
     ]
     return {"output_dir": ".", "field": str(field), "crs": crs, "held_out_images": HELD_OUT, "steps": steps}
@@ -132,24 +181,43 @@ def pipeline_spec(field: Path, crs: str, *, epochs: int, minutes: float, pretrai
 def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
     """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics. ``bands``: red and
     NIR band numbers of the multispectral raster (None: the exact field's, 1 and 2)."""
-    rasters = {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-               "multispectral": "${field}/multispectral/multispectral.tif",
-               "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif"}
+    rasters = {
+        "dsm": "${field}/odm_dem/dsm.tif",
+        "dtm": "${field}/odm_dem/dtm.tif",
+        "multispectral": "${field}/multispectral/multispectral.tif",
+        "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif",
+    }
     if bands:
         rasters.update(red_band=bands[0], nir_band=bands[1])
     return [
-        _step("8_plants", "plant_projection", project="${field}", predictions=predictions, mode="both",
-              evaluate={"reference": "${field}/truth/map_boxes.csv"}),
-        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg", rasters=rasters,
-              plots=_plots_section(field)),
+        _step(
+            "8_plants",
+            "plant_projection",
+            project="${field}",
+            predictions=predictions,
+            mode="both",
+            evaluate={"reference": "${field}/truth/map_boxes.csv"},
+        ),
+        _step(
+            "9_stats",
+            "spatial_stat_extractor",
+            polygons="${8_plants.output_dir}/plants.gpkg",
+            rasters=rasters,
+            plots=_plots_section(field),
+        ),
     ]
 
 
 def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:
     """Modules 8 and 9 on the realistic field with the exact run's detections (the photos are the same);
     its 5-band raster holds red in band 3 and NIR in band 5 (simfield/noise.py)."""
-    return {"output_dir": NOISY, "field": str(field), "crs": crs, "predictions": str(predictions),
-            "steps": map_steps(field, "${predictions}", bands=(3, 5))}
+    return {
+        "output_dir": NOISY,
+        "field": str(field),
+        "crs": crs,
+        "predictions": str(predictions),
+        "steps": map_steps(field, "${predictions}", bands=(3, 5)),
+    }
 
 
 def held_out_photos(tiles_summary: dict, photos: list[str]) -> tuple[list[str], dict]:
@@ -179,12 +247,20 @@ def link_photos(src: Path, names: list[str], dst: Path) -> None:
 def _plots_section(field: Path) -> dict:
     """Module 9's plot grid: the field's corners, columns, ranges and spacing (as a breeder measures them),
     and the field book; read from the generator's plot layout."""
-    grid = json.loads((field / "truth" / "plots.json").read_text()) if (field / "truth" / "plots.json").is_file() else {}
+    grid = (
+        json.loads((field / "truth" / "plots.json").read_text()) if (field / "truth" / "plots.json").is_file() else {}
+    )
     if not grid:
         return {}
-    return {"corners": grid["corners"], "columns": grid["columns"], "ranges": grid["ranges"],
-            "rows_per_plot": grid["rows_per_plot"], "plant_spacing": grid["plant_spacing"],
-            "field_book": "${field}/truth/field_book.csv", "figure_trait": "ndvi_canopy_mean"}
+    return {
+        "corners": grid["corners"],
+        "columns": grid["columns"],
+        "ranges": grid["ranges"],
+        "rows_per_plot": grid["rows_per_plot"],
+        "plant_spacing": grid["plant_spacing"],
+        "field_book": "${field}/truth/field_book.csv",
+        "figure_trait": "ndvi_canopy_mean",
+    }
 
 
 def compare_with_truth(out: Path, field: Path) -> dict:
@@ -196,13 +272,20 @@ def compare_with_truth(out: Path, field: Path) -> dict:
     traits = trait_scores(table, paths)
     outlines = gpd.read_file(out / "9_stats" / "outlines.gpkg").set_index("plant_id").reindex(table["plant_id"])
     iou = outline_ious(outlines.geometry.values, table, paths)
-    traits.update(outline_iou_median=float(np.nanmedian(iou)), outline_iou_p10=float(np.nanpercentile(iou, 10)),
-                  plants_projected=int(len(table)))
+    traits.update(
+        outline_iou_median=float(np.nanmedian(iou)),
+        outline_iou_p10=float(np.nanpercentile(iou, 10)),
+        plants_projected=int(len(table)),
+    )
     result = {"traits": traits}
     if (out / "9_stats" / "plots.csv").is_file():
         grid = json.loads(paths.plots_json.read_text())
-        result["plots"] = plot_scores(pd.read_csv(out / "9_stats" / "plots.csv"),
-                                      pd.read_csv(out / "9_stats" / "plot_gaps.csv"), paths, grid["plant_spacing"])
+        result["plots"] = plot_scores(
+            pd.read_csv(out / "9_stats" / "plots.csv"),
+            pd.read_csv(out / "9_stats" / "plot_gaps.csv"),
+            paths,
+            grid["plant_spacing"],
+        )
     if paths.later.dsm.is_file():
         result["growth"] = growth_check(out, paths)
     _scatter(out / "report" / "traits_vs_truth.png", table, paths)
@@ -211,10 +294,19 @@ def compare_with_truth(out: Path, field: Path) -> dict:
 
 def growth_check(out: Path, paths: FieldPaths) -> dict:
     """Module 9 with the second date: the first date's boxes reused, each plant re-centred."""
-    cfg = load_config(SpatialStatExtractorConfig, None, [
-        f"polygons={out / '8_plants' / 'plants.gpkg'}", f"output_dir={out / 'report' / 'growth'}",
-        "rasters.date=d1", f"rasters.dsm={paths.dsm}", f"rasters.dtm={paths.dtm}", "vector_formats=[]",
-        f"more_dates=[{{date: d2, dsm: {paths.later.dsm}, dtm: {paths.later.dtm}}}]"])
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={out / '8_plants' / 'plants.gpkg'}",
+            f"output_dir={out / 'report' / 'growth'}",
+            "rasters.date=d1",
+            f"rasters.dsm={paths.dsm}",
+            f"rasters.dtm={paths.dtm}",
+            "vector_formats=[]",
+            f"more_dates=[{{date: d2, dsm: {paths.later.dsm}, dtm: {paths.later.dtm}}}]",
+        ],
+    )
     run_stats(cfg)
     table = pd.read_csv(out / "report" / "growth" / "stats.csv")
     d1 = table.rename(columns=lambda c: c[:-3] if c.endswith("_d1") else c)
@@ -227,10 +319,12 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     ok = m >= 0
     t, s = truth.iloc[m[ok]], table[ok]
-    panels = [("height", "chm_max", "height (m): CHM max over the box"),
-              ("height", "chm_canopy_p95", "height (m): CHM P95 over the canopy"),
-              ("ndvi", "ndvi_mean", "NDVI: mean over the box"),
-              ("ndvi", "ndvi_canopy_mean", "NDVI: mean over the canopy")]
+    panels = [
+        ("height", "chm_max", "height (m): CHM max over the box"),
+        ("height", "chm_canopy_p95", "height (m): CHM P95 over the canopy"),
+        ("ndvi", "ndvi_mean", "NDVI: mean over the box"),
+        ("ndvi", "ndvi_canopy_mean", "NDVI: mean over the canopy"),
+    ]
     fig = figure(headless=True, figsize=(10, 9))
     for ax, (tcol, col, name) in zip(fig.subplots(2, 2).ravel(), panels):
         x, y = t[tcol].to_numpy(float), s[col].to_numpy(float) if col in s else np.full(len(t), np.nan)
@@ -246,9 +340,19 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
 
-def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = EPOCHS, minutes: float = 0.0,
-             pretrained: str = "none", tile: int = 128, from_step: str = "", noise: str = "exact",
-             threads: int = 0) -> Path:
+def run_demo(
+    out: Path,
+    *,
+    preset: str = "small",
+    seed: int = 0,
+    epochs: int = EPOCHS,
+    minutes: float = 0.0,
+    pretrained: str = "none",
+    tile: int = 128,
+    from_step: str = "",
+    noise: str = "exact",
+    threads: int = 0,
+) -> Path:
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
@@ -257,10 +361,16 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = E
     t_field = time.time() - t0
     crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
     pipe = out / "pipeline.yaml"
-    write_text(pipe, "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
-               + yaml.safe_dump(pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile,
-                                              threads=threads),
-                                sort_keys=False))
+    write_text(
+        pipe,
+        "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
+        + yaml.safe_dump(
+            pipeline_spec(
+                field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile, threads=threads
+            ),
+            sort_keys=False,
+        ),
+    )
     (out / HELD_OUT).mkdir(exist_ok=True)
     names = [st.name for st in read_pipeline(pipe)[1]]
     first = names[:FIRST_STEPS]
@@ -269,8 +379,11 @@ def run_demo(out: Path, *, preset: str = "small", seed: int = 0, epochs: int = E
     photos = sorted(p.name for p in FieldPaths(field).undistorted_images.glob("*.tif"))
     held, splits = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
     link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
-    log.info("%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
-             len(held), len(photos))
+    log.info(
+        "%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
+        len(held),
+        len(photos),
+    )
     results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
     results.update({k: v for k, v in early.items() if v == "ran"})
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
@@ -311,10 +424,14 @@ def held_out_record(out: Path, held: list[str], splits: dict) -> dict:
     views = out / "8_plants" / "views.csv"
     projected = sorted(pd.read_csv(views, usecols=["image"])["image"].unique()) if views.is_file() else []
     train = set(splits.get("train", [])) | set(splits.get("val", []))
-    return {"rule": "every photo of the flight outside module 5's train and val splits: module 3's unselected "
-                    "photos and the test split", "photos": held, "splits": splits,
-            "photos_projected": len(projected),
-            "training_photos_projected": len(set(projected) & train)}
+    return {
+        "rule": "every photo of the flight outside module 5's train and val splits: module 3's unselected "
+        "photos and the test split",
+        "photos": held,
+        "splits": splits,
+        "photos_projected": len(projected),
+        "training_photos_projected": len(set(projected) & train),
+    }
 
 
 def environment(out: Path) -> dict:
@@ -325,8 +442,12 @@ def environment(out: Path) -> dict:
 
     summary = out / "6_train" / "training_summary.json"
     trained = json.loads(summary.read_text()) if summary.is_file() else {}
-    return {"torch": torch.__version__, "torch_threads": trained.get("threads"), "cpus": os.cpu_count(),
-            "device": trained.get("device")}
+    return {
+        "torch": torch.__version__,
+        "torch_threads": trained.get("threads"),
+        "cpus": os.cpu_count(),
+        "device": trained.get("device"),
+    }
 
 
 def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timings: dict) -> dict:
@@ -336,9 +457,11 @@ def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timin
     _field(field, preset, seed, "realistic")
     timings["realistic field"] = ("generated" if time.time() - t0 > 1 else "reused", time.time() - t0)
     pipe = out / "pipeline_noisy.yaml"
-    write_text(pipe, "# written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic "
-               "field\n" + yaml.safe_dump(noisy_spec(field, crs, out / "7_detect" / "predictions.json"),
-                                          sort_keys=False))
+    write_text(
+        pipe,
+        "# written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic "
+        "field\n" + yaml.safe_dump(noisy_spec(field, crs, out / "7_detect" / "predictions.json"), sort_keys=False),
+    )
     names = [st.name for st in read_pipeline(pipe)[1]]
     try:
         results = run_pipeline(PipelineConfig(pipeline=pipe, from_step=from_step if from_step in names else ""))
@@ -357,8 +480,12 @@ def update_docs(out: Path, root: Path = REPO) -> None:
     """Copy the run's figures into ``docs/`` and rewrite the README's demo table from ``report/summary.json``,
     so that what the README shows is what this run measured."""
     summary = json.loads((out / "report" / "summary.json").read_text())
-    figures = {"3_select/coverage.png": "coverage.jpg", "8_plants/evaluation.png": "evaluation.jpg",
-               "6_train/training_curves.png": "training_curves.png", "report/traits_vs_truth.png": "traits_vs_truth.png"}
+    figures = {
+        "3_select/coverage.png": "coverage.jpg",
+        "8_plants/evaluation.png": "evaluation.jpg",
+        "6_train/training_curves.png": "training_curves.png",
+        "report/traits_vs_truth.png": "traits_vs_truth.png",
+    }
     for src, dst in figures.items():
         if (out / src).is_file():
             with Image.open(out / src) as im, atomic_path(root / "docs" / dst) as tmp:
@@ -366,7 +493,7 @@ def update_docs(out: Path, root: Path = REPO) -> None:
     readme = root / "README.md"
     text = readme.read_text(encoding="utf-8")
     start, end = text.index(TABLE_START), text.index(TABLE_END)
-    write_text(readme, text[:start + len(TABLE_START)] + "\n" + demo_table(summary) + text[end:])
+    write_text(readme, text[: start + len(TABLE_START)] + "\n" + demo_table(summary) + text[end:])
     log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
 
 
@@ -375,37 +502,70 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
     p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", default="exact", choices=("exact", "realistic"),
-                   help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
-                        "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
-                        "and report both (a second field folder: about 600 MB more for the small field, and minutes)")
-    p.add_argument("--epochs", type=int, default=EPOCHS,
-                   help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model")
-    p.add_argument("--minutes", type=float, default=0.0,
-                   help="optional time budget for training (0 = none); the results then depend on the machine")
-    p.add_argument("--pretrained", default="none", choices=("none", "imagenet", "coco"),
-                   help="starting weights (coco needs internet once; none trains from scratch)")
-    p.add_argument("--threads", type=int, default=0,
-                   help="CPU threads for training and detection (default 0: the cores free now, logged); another "
-                        "thread count trains a slightly different detector (README: the demo's tolerance)")
+    p.add_argument(
+        "--noise",
+        default="exact",
+        choices=("exact", "realistic"),
+        help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
+        "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
+        "and report both (a second field folder: about 600 MB more for the small field, and minutes)",
+    )
+    p.add_argument(
+        "--epochs",
+        type=int,
+        default=EPOCHS,
+        help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model",
+    )
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=0.0,
+        help="optional time budget for training (0 = none); the results then depend on the machine",
+    )
+    p.add_argument(
+        "--pretrained",
+        default="none",
+        choices=("none", "imagenet", "coco"),
+        help="starting weights (coco needs internet once; none trains from scratch)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="CPU threads for training and detection (default 0: the cores free now, logged); another "
+        "thread count trains a slightly different detector (README: the demo's tolerance)",
+    )
     p.add_argument("--from", dest="from_step", default="", help="re-run from this step on (e.g. 6_train)")
-    p.add_argument("--update-docs", action="store_true",
-                   help="then copy the figures into docs/ and rewrite the README's demo table from this run")
+    p.add_argument(
+        "--update-docs",
+        action="store_true",
+        help="then copy the figures into docs/ and rewrite the README's demo table from this run",
+    )
     p.add_argument("--debug", action="store_true")
     args = p.parse_args(argv)
     signal.signal(signal.SIGINT, signal.default_int_handler)  # from here on Ctrl-C lets the steps clean up
     try:
         setup_console()
-        run_demo(args.out, preset=args.preset, seed=args.seed, epochs=args.epochs, minutes=args.minutes,
-                 pretrained=args.pretrained, from_step=args.from_step, noise=args.noise, threads=args.threads)
+        run_demo(
+            args.out,
+            preset=args.preset,
+            seed=args.seed,
+            epochs=args.epochs,
+            minutes=args.minutes,
+            pretrained=args.pretrained,
+            from_step=args.from_step,
+            noise=args.noise,
+            threads=args.threads,
+        )
         if args.update_docs:
             update_docs(Path(args.out).resolve())
     except KeyboardInterrupt:
         # a second Ctrl-C (or the same one reaching us again) must not interrupt the exit itself: progress bars and
         # worker pools still close while Python shuts down, and an interrupt there prints a traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        print("interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there",
-              file=sys.stderr)
+        print(
+            "interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there", file=sys.stderr
+        )
         return 130
     except MatchPlantError as exc:
         if args.debug:

@@ -13,16 +13,19 @@ from matchplant.core.runtime.io import write_text
 # training arithmetic; the same machine and thread count give the same figures): issue 29's second machine, and
 # two 1-thread runs on two machines of the project's kind and a 2-thread run (canopy NDVI r 0.984, 0.960 and 1.000
 # on the exact field: a few plants matched differently move r by a few hundredths)
-TOLERANCE = ("the same machine and thread count repeat every figure exactly; another machine or thread count "
-             "trains a slightly different detector: AP within about 10 points, plants matched and IoU > 0.5 "
-             "within about 8 points, stand counts within about 5 points; height r within 0.01 and canopy NDVI r "
-             "within 0.05 on the exact field")
+TOLERANCE = (
+    "the same machine and thread count repeat every figure exactly; another machine or thread count "
+    "trains a slightly different detector: AP within about 10 points, plants matched and IoU > 0.5 "
+    "within about 8 points, stand counts within about 5 points; height r within 0.01 and canopy NDVI r "
+    "within 0.05 on the exact field"
+)
 
 
 def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: dict | None = None) -> Path:
     """``report.md`` and ``summary.json``; ``extra``: ``held_out`` (the photos scored), ``noisy`` (the
     realistic field's figures), ``environment`` (what the figures depend on)."""
     extra = extra or {}
+
     def load(p: Path) -> dict:
         return json.loads(p.read_text()) if p.is_file() else {}
 
@@ -47,73 +50,124 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         return "n/a"
 
     lines = [
-        "# MatchPlant demo report", "",
-        f"Generated {time.strftime('%Y-%m-%d %H:%M')} on the `small` synthetic field (`{field}`).", "",
-        "## Steps", "", "| step | result | seconds |", "|---|---|---|",
+        "# MatchPlant demo report",
+        "",
+        f"Generated {time.strftime('%Y-%m-%d %H:%M')} on the `small` synthetic field (`{field}`).",
+        "",
+        "## Steps",
+        "",
+        "| step | result | seconds |",
+        "|---|---|---|",
     ]
     for name, (status, secs) in timings.items():
         lines.append(f"| {name} | {status} | {secs:.1f} |")
-    lines += ["", "## Georeferencing (module 0)", "",
-              f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
-              f"estimated clock offset {num(gps, 'clock_offset_s', fmt='{:.2f}')} s.", "",
-              "## Coverage (module 3)", "",
-              f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
-              f"covering {num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.", "",
-              fig("3_select/coverage.png", "footprints of the selected undistorted images over the field"),
-              "## Detector (modules 6 and 7)", "",
-              f"Test AP50 = {num(metrics.get('coco', {}), 'AP50', fmt='{:.1%}')}, "
-              f"AP = {num(metrics.get('coco', {}), 'AP', fmt='{:.1%}')} "
-              f"(trained {summary.get('epochs_done', 'n/a')} epochs in {summary.get('train_time_s', 0) / 60:.1f} min "
-              f"on {summary.get('device', 'the CPU')}).", "",
-              fig("6_train/training_curves.png", "training loss and validation AP"),
-              "## Plants on the map (module 8)", "",
-              f"Reference plants matched: {num(evaluation, 'share_matched', fmt='{:.1%}')}; "
-              f"with IoU > 0.5: {num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
-              f"median IoU {num(evaluation, 'iou_median')}.", "",
-              fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
-              "## Per-plant traits against the truth (module 9)", "",
-              f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
-              f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
-              f"median IoU {num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
-              "over the box (as the paper does) and over the canopy pixels.", "",
-              "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
-              "|---|---|---|---|",
-              f"| height (CHM max) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} | "
-              f"{num(tr, 'height_mae_m')} m |",
-              f"| NDVI (mean) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |", "",
-              fig("report/traits_vs_truth.png", "per-plant height and NDVI against the truth (the paper's Figure 10): "
-                                                "left, over the box (the paper's way); right, over the canopy "
-                                                "outlined on the CHM"),
-              "## Plots (module 9)", "",
-              f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
-              f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
-              f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.", "",
-              fig("9_stats/plots.png", "plots coloured by their mean canopy NDVI; black dots: plants, red crosses: "
-                                       "gaps"),
-              "## Growth (module 9, second date)", "",
-              f"Boxes of the first date reused on the second: median centre error "
-              f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
-              f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.", ""]
-    lines += _held_out_section(extra.get("held_out", {})) + _noisy_section({**compare, "projection": evaluation},
-                                                                          extra.get("noisy"))
-    lines += ["## Reproducing these figures", "", TOLERANCE[0].upper() + TOLERANCE[1:] + ". This run: "
-              + ", ".join(f"{k} {v}" for k, v in extra.get("environment", {}).items()) + ".", ""]
+    lines += [
+        "",
+        "## Georeferencing (module 0)",
+        "",
+        f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
+        f"estimated clock offset {num(gps, 'clock_offset_s', fmt='{:.2f}')} s.",
+        "",
+        "## Coverage (module 3)",
+        "",
+        f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
+        f"covering {num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.",
+        "",
+        fig("3_select/coverage.png", "footprints of the selected undistorted images over the field"),
+        "## Detector (modules 6 and 7)",
+        "",
+        f"Test AP50 = {num(metrics.get('coco', {}), 'AP50', fmt='{:.1%}')}, "
+        f"AP = {num(metrics.get('coco', {}), 'AP', fmt='{:.1%}')} "
+        f"(trained {summary.get('epochs_done', 'n/a')} epochs in {summary.get('train_time_s', 0) / 60:.1f} min "
+        f"on {summary.get('device', 'the CPU')}).",
+        "",
+        fig("6_train/training_curves.png", "training loss and validation AP"),
+        "## Plants on the map (module 8)",
+        "",
+        f"Reference plants matched: {num(evaluation, 'share_matched', fmt='{:.1%}')}; "
+        f"with IoU > 0.5: {num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
+        f"median IoU {num(evaluation, 'iou_median')}.",
+        "",
+        fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
+        "## Per-plant traits against the truth (module 9)",
+        "",
+        f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
+        f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
+        f"median IoU {num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
+        "over the box (as the paper does) and over the canopy pixels.",
+        "",
+        "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
+        "|---|---|---|---|",
+        f"| height (CHM max) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} | {num(tr, 'height_mae_m')} m |",
+        f"| NDVI (mean) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |",
+        "",
+        fig(
+            "report/traits_vs_truth.png",
+            "per-plant height and NDVI against the truth (the paper's Figure 10): "
+            "left, over the box (the paper's way); right, over the canopy "
+            "outlined on the CHM",
+        ),
+        "## Plots (module 9)",
+        "",
+        f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
+        f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
+        f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.",
+        "",
+        fig("9_stats/plots.png", "plots coloured by their mean canopy NDVI; black dots: plants, red crosses: gaps"),
+        "## Growth (module 9, second date)",
+        "",
+        f"Boxes of the first date reused on the second: median centre error "
+        f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
+        f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.",
+        "",
+    ]
+    lines += _held_out_section(extra.get("held_out", {})) + _noisy_section(
+        {**compare, "projection": evaluation}, extra.get("noisy")
+    )
+    lines += [
+        "## Reproducing these figures",
+        "",
+        TOLERANCE[0].upper()
+        + TOLERANCE[1:]
+        + ". This run: "
+        + ", ".join(f"{k} {v}" for k, v in extra.get("environment", {}).items())
+        + ".",
+        "",
+    ]
     path = out / "report" / "report.md"
     write_text(path, "\n".join(lines))
-    write_text(out / "report" / "summary.json", json.dumps({"timings": timings, **compare, "training": summary,
-                                                              "detector": metrics, "projection": evaluation, **extra},
-                                                             indent=1, default=str))
+    write_text(
+        out / "report" / "summary.json",
+        json.dumps(
+            {
+                "timings": timings,
+                **compare,
+                "training": summary,
+                "detector": metrics,
+                "projection": evaluation,
+                **extra,
+            },
+            indent=1,
+            default=str,
+        ),
+    )
     return path
 
 
 def _held_out_section(held: dict) -> list[str]:
     if not held:
         return []
-    return ["## Which photos are scored", "",
-            (f"Modules 7 and 8 detect and project on the {len(held.get('photos', []))} photos the detector never "
-             f"saw ({held.get('rule', '')}); training photos projected: "
-             f"{held.get('training_photos_projected', 'n/a')}. Train split: "
-             f"{', '.join(held.get('splits', {}).get('train', []))}."), ""]
+    return [
+        "## Which photos are scored",
+        "",
+        (
+            f"Modules 7 and 8 detect and project on the {len(held.get('photos', []))} photos the detector never "
+            f"saw ({held.get('rule', '')}); training photos projected: "
+            f"{held.get('training_photos_projected', 'n/a')}. Train split: "
+            f"{', '.join(held.get('splits', {}).get('train', []))}."
+        ),
+        "",
+    ]
 
 
 def _noisy_section(exact: dict, noisy: dict | None) -> list[str]:
@@ -121,34 +175,62 @@ def _noisy_section(exact: dict, noisy: dict | None) -> list[str]:
         return []
     if "error" in noisy:
         return ["## The realistic field (`--noise realistic`)", "", f"Not measured: {noisy['error']}", ""]
-    rows = [(name, fmt.format(v) if isinstance(v, (int, float)) else "n/a",
-             fmt.format(w) if isinstance(w, (int, float)) else "n/a")
-            for name, v, w, fmt in _trait_figures(exact, noisy)]
+    rows = [
+        (
+            name,
+            fmt.format(v) if isinstance(v, (int, float)) else "n/a",
+            fmt.format(w) if isinstance(w, (int, float)) else "n/a",
+        )
+        for name, v, w, fmt in _trait_figures(exact, noisy)
+    ]
     ground = noisy.get("noise", {}).get("bare_ground_chm_m", {})
-    return ["## The realistic field (`--noise realistic`)", "",
-            ("The same scene and photos with a photogrammetric DSM/DTM (bare-ground CHM p50 "
-             f"{100 * ground.get('p50', float('nan')):.1f} cm, p95 {100 * ground.get('p95', float('nan')):.1f} cm, "
-             "smoothed tops, holes), a 5-band multispectral raster (red band 3, NIR band 5) and the same "
-             "detections; modules 8 and 9 run again on it (`noisy/`)."), "",
-            "| figure | exact field | realistic field |", "|---|---|---|", *(f"| {a} | {b} | {c} |" for a, b, c in rows),
-            ""]
+    return [
+        "## The realistic field (`--noise realistic`)",
+        "",
+        (
+            "The same scene and photos with a photogrammetric DSM/DTM (bare-ground CHM p50 "
+            f"{100 * ground.get('p50', float('nan')):.1f} cm, p95 {100 * ground.get('p95', float('nan')):.1f} cm, "
+            "smoothed tops, holes), a 5-band multispectral raster (red band 3, NIR band 5) and the same "
+            "detections; modules 8 and 9 run again on it (`noisy/`)."
+        ),
+        "",
+        "| figure | exact field | realistic field |",
+        "|---|---|---|",
+        *(f"| {a} | {b} | {c} |" for a, b, c in rows),
+        "",
+    ]
 
 
 def _trait_figures(exact: dict, noisy: dict) -> list[tuple[str, object, object, str]]:
     """The figures issue 26 asks for on both fields: (name, exact, noisy, format)."""
+
     def get(d, *keys):
         for k in keys:
             d = d.get(k, {}) if isinstance(d, dict) else {}
         return d if isinstance(d, (int, float)) else None
 
-    return [("height r (canopy)", get(exact, "traits", "height_r"), get(noisy, "traits", "height_r"), "{:.3f}"),
-            ("canopy NDVI r", get(exact, "traits", "ndvi_r"), get(noisy, "traits", "ndvi_r"), "{:.3f}"),
-            ("outline IoU median", get(exact, "traits", "outline_iou_median"),
-             get(noisy, "traits", "outline_iou_median"), "{:.2f}"),
-            ("stand count exact", get(exact, "plots", "stand_count_exact_share"),
-             get(noisy, "plots", "stand_count_exact_share"), "{:.1%}"),
-            ("plants matched on the map", get(exact, "projection", "share_matched"),
-             get(noisy, "projection", "share_matched"), "{:.1%}")]
+    return [
+        ("height r (canopy)", get(exact, "traits", "height_r"), get(noisy, "traits", "height_r"), "{:.3f}"),
+        ("canopy NDVI r", get(exact, "traits", "ndvi_r"), get(noisy, "traits", "ndvi_r"), "{:.3f}"),
+        (
+            "outline IoU median",
+            get(exact, "traits", "outline_iou_median"),
+            get(noisy, "traits", "outline_iou_median"),
+            "{:.2f}",
+        ),
+        (
+            "stand count exact",
+            get(exact, "plots", "stand_count_exact_share"),
+            get(noisy, "plots", "stand_count_exact_share"),
+            "{:.1%}",
+        ),
+        (
+            "plants matched on the map",
+            get(exact, "projection", "share_matched"),
+            get(noisy, "projection", "share_matched"),
+            "{:.1%}",
+        ),
+    ]
 
 
 def demo_table(summary: dict) -> str:
@@ -166,45 +248,74 @@ def demo_table(summary: dict) -> str:
 
     scored = f" on the {len(held['photos'])} photos the detector never saw" if held.get("photos") else ""
     rows = [
-        ("detector, held-out test tiles", f"AP50 {f(coco.get('AP50'), '{:.1%}')}, AP {f(coco.get('AP'), '{:.1%}')} "
-                                          f"({train.get('epochs_done', 'n/a')} epochs from random weights)"),
-        ("plants on the map" + scored, f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
-                                       f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
-                                       f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
-                                       f"{tr.get('true_plants', 'n/a')} plants"),
-        ("plant height vs truth (Pearson r)", f"over the canopy {f(tr.get('height_r'), '{:.3f}')}, "
-                                              f"over the box {f(tr.get('height_box_r'), '{:.3f}')}"),
-        ("NDVI vs each plant's true NDVI (r)", f"over the canopy {f(tr.get('ndvi_r'), '{:.3f}')}, "
-                                               f"box mean {f(tr.get('ndvi_box_r'), '{:.3f}')}"),
+        (
+            "detector, held-out test tiles",
+            f"AP50 {f(coco.get('AP50'), '{:.1%}')}, AP {f(coco.get('AP'), '{:.1%}')} "
+            f"({train.get('epochs_done', 'n/a')} epochs from random weights)",
+        ),
+        (
+            "plants on the map" + scored,
+            f"{f(ev.get('share_matched'), '{:.1%}')} of the true plants matched, "
+            f"{f(ev.get('share_iou_above_0.5'), '{:.1%}')} with IoU > 0.5, median IoU "
+            f"{f(ev.get('iou_median'), '{:.2f}')}; {tr.get('plants', 'n/a')} records for "
+            f"{tr.get('true_plants', 'n/a')} plants",
+        ),
+        (
+            "plant height vs truth (Pearson r)",
+            f"over the canopy {f(tr.get('height_r'), '{:.3f}')}, over the box {f(tr.get('height_box_r'), '{:.3f}')}",
+        ),
+        (
+            "NDVI vs each plant's true NDVI (r)",
+            f"over the canopy {f(tr.get('ndvi_r'), '{:.3f}')}, box mean {f(tr.get('ndvi_box_r'), '{:.3f}')}",
+        ),
         ("canopy outline vs the true canopy", f"median IoU {f(tr.get('outline_iou_median'), '{:.2f}')}"),
-        ("plots", f"stand count exact on {f(pl.get('stand_count_exact_share'), '{:.1%}')} of "
-                  f"{pl.get('plots', 'n/a')} plots; {f(pl.get('gaps_found_share'), '{:.1%}')} of the true gaps found, "
-                  f"{f(pl.get('false_gap_share'), '{:.1%}')} false"),
-        ("second date", f"centre error {f(gr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused "
-                        f"boxes, {f(gr.get('recentred_error_median_m'), '{:.3f}')} m re-centred"),
+        (
+            "plots",
+            f"stand count exact on {f(pl.get('stand_count_exact_share'), '{:.1%}')} of "
+            f"{pl.get('plots', 'n/a')} plots; {f(pl.get('gaps_found_share'), '{:.1%}')} of the true gaps found, "
+            f"{f(pl.get('false_gap_share'), '{:.1%}')} false",
+        ),
+        (
+            "second date",
+            f"centre error {f(gr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused "
+            f"boxes, {f(gr.get('recentred_error_median_m'), '{:.3f}')} m re-centred",
+        ),
     ]
     if noisy is None:
         table = ["| | |", "|---|---|", *(f"| {a} | {b} |" for a, b in rows)]
     else:
         nev, ntr, npl, ngr = (noisy.get(k, {}) for k in ("projection", "traits", "plots", "growth"))
         err = noisy.get("error")
-        other = ["(the same detector)" if not err else "n/a",
-                 (f"{f(nev.get('share_matched'), '{:.1%}')} matched, {f(nev.get('share_iou_above_0.5'), '{:.1%}')} "
-                  f"with IoU > 0.5, median IoU {f(nev.get('iou_median'), '{:.2f}')}"),
-                 f"over the canopy {f(ntr.get('height_r'), '{:.3f}')}, over the box {f(ntr.get('height_box_r'), '{:.3f}')}",
-                 f"over the canopy {f(ntr.get('ndvi_r'), '{:.3f}')}, box mean {f(ntr.get('ndvi_box_r'), '{:.3f}')}",
-                 f"median IoU {f(ntr.get('outline_iou_median'), '{:.2f}')}",
-                 (f"stand count exact on {f(npl.get('stand_count_exact_share'), '{:.1%}')} of "
-                  f"{npl.get('plots', 'n/a')} plots; {f(npl.get('gaps_found_share'), '{:.1%}')} of the true gaps "
-                  f"found, {f(npl.get('false_gap_share'), '{:.1%}')} false"),
-                 (f"centre error {f(ngr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused boxes, "
-                  f"{f(ngr.get('recentred_error_median_m'), '{:.3f}')} m re-centred")]
-        table = ["| | exact field | realistic field (`--noise realistic`) |", "|---|---|---|",
-                 *(f"| {a} | {b} | {c} |" for (a, b), c in zip(rows, other))]
+        other = [
+            "(the same detector)" if not err else "n/a",
+            (
+                f"{f(nev.get('share_matched'), '{:.1%}')} matched, {f(nev.get('share_iou_above_0.5'), '{:.1%}')} "
+                f"with IoU > 0.5, median IoU {f(nev.get('iou_median'), '{:.2f}')}"
+            ),
+            f"over the canopy {f(ntr.get('height_r'), '{:.3f}')}, over the box {f(ntr.get('height_box_r'), '{:.3f}')}",
+            f"over the canopy {f(ntr.get('ndvi_r'), '{:.3f}')}, box mean {f(ntr.get('ndvi_box_r'), '{:.3f}')}",
+            f"median IoU {f(ntr.get('outline_iou_median'), '{:.2f}')}",
+            (
+                f"stand count exact on {f(npl.get('stand_count_exact_share'), '{:.1%}')} of "
+                f"{npl.get('plots', 'n/a')} plots; {f(npl.get('gaps_found_share'), '{:.1%}')} of the true gaps "
+                f"found, {f(npl.get('false_gap_share'), '{:.1%}')} false"
+            ),
+            (
+                f"centre error {f(ngr.get('reused_box_centre_error_median_m'), '{:.3f}')} m with reused boxes, "
+                f"{f(ngr.get('recentred_error_median_m'), '{:.3f}')} m re-centred"
+            ),
+        ]
+        table = [
+            "| | exact field | realistic field (`--noise realistic`) |",
+            "|---|---|---|",
+            *(f"| {a} | {b} | {c} |" for (a, b), c in zip(rows, other)),
+        ]
     notes = []
     if held:
-        notes.append(f"Scored only on photos outside module 5's train and val splits ({len(held.get('photos', []))} "
-                     f"photos; training photos projected: {held.get('training_photos_projected', 'n/a')}).")
+        notes.append(
+            f"Scored only on photos outside module 5's train and val splits ({len(held.get('photos', []))} "
+            f"photos; training photos projected: {held.get('training_photos_projected', 'n/a')})."
+        )
     if noisy and noisy.get("error"):
         notes.append(f"Realistic field not measured: {noisy['error']}")
     notes.append(f"Reproducibility: {TOLERANCE}.")

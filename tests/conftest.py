@@ -39,8 +39,9 @@ def tiny_field(tmp_path_factory):
 def train_tiles(tmp_path_factory):
     """Module 6's small training set: 8 training and 4 validation tiles of 64 px with 1-3 plants each."""
     d = tmp_path_factory.mktemp("tiles")
-    train_json = make_tiles(d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0,
-                            name="train.json")
+    train_json = make_tiles(
+        d, n_images=8, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=0, name="train.json"
+    )
     val_json = make_tiles(d, n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, seed=1, name="val.json")
     return train_json, val_json
 
@@ -63,5 +64,6 @@ def xvfb_available() -> bool:
 def run_in_xvfb(code: str, timeout: int = 120) -> subprocess.CompletedProcess:
     """Run Python ``code`` in a real (TkAgg) window on a virtual display; the code must close itself."""
     env = dict(os.environ, MPLBACKEND="TkAgg")
-    return subprocess.run(["xvfb-run", "-a", sys.executable, "-c", code], env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        ["xvfb-run", "-a", sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=timeout
+    )

@@ -14,6 +14,7 @@ from matchplant.steps import StepSpec
 @dataclass
 class Optim:
     """Optimiser settings."""
+
     lr: float = param(0.01, "learning rate", min=0.0, max=1.0)
     schedule: str = param("step", "learning-rate schedule", choices=["step", "cosine"])
 
@@ -21,6 +22,7 @@ class Optim:
 @dataclass
 class DemoConfig:
     """A demo module."""
+
     images: Path | None = param(None, "folder of images", path="dir", required=True)
     output_dir: Path = param("out", "output folder", path="out")
     tile_size: int = param(1024, "tile side in pixels", min=64)

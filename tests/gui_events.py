@@ -13,16 +13,24 @@ def _xy(ax, x, y):
     return ax.transData.transform((x, y))
 
 
-def mouse(fig, ax, kind: str, x: float, y: float, button=MouseButton.LEFT, key=None, step: float = 0,
-          dblclick: bool = False) -> None:
+def mouse(
+    fig, ax, kind: str, x: float, y: float, button=MouseButton.LEFT, key=None, step: float = 0, dblclick: bool = False
+) -> None:
     """``kind`` is button_press_event, button_release_event, motion_notify_event or scroll_event."""
     fig.canvas.draw_idle()
     px, py = _xy(ax, x, y)
     if kind == "scroll_event":
         ev = MouseEvent(kind, fig.canvas, px, py, button="up" if step > 0 else "down", key=key, step=step)
     else:
-        ev = MouseEvent(kind, fig.canvas, px, py, button=button if kind != "motion_notify_event" else None,
-                        key=key, dblclick=dblclick)
+        ev = MouseEvent(
+            kind,
+            fig.canvas,
+            px,
+            py,
+            button=button if kind != "motion_notify_event" else None,
+            key=key,
+            dblclick=dblclick,
+        )
     fig.canvas.callbacks.process(kind, ev)
 
 

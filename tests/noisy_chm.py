@@ -18,22 +18,30 @@ from scipy import ndimage as ndi
 
 @dataclass
 class NoisyChm:
-    chm: np.ndarray           # float, NaN holes
+    chm: np.ndarray  # float, NaN holes
     transform: Affine
-    boxes: np.ndarray         # shapely boxes, one per plant (the detector's: footprint bounds + slack)
-    truth: np.ndarray         # int32 label image: plant k + 1 on its footprint (leaf pixels), 0 ground
-    height: np.ndarray        # true top height per plant (before smoothing)
-    centre: np.ndarray        # (n, 2) x, y
-    ground_sd: float          # the noise's SD on bare ground
+    boxes: np.ndarray  # shapely boxes, one per plant (the detector's: footprint bounds + slack)
+    truth: np.ndarray  # int32 label image: plant k + 1 on its footprint (leaf pixels), 0 ground
+    height: np.ndarray  # true top height per plant (before smoothing)
+    centre: np.ndarray  # (n, 2) x, y
+    ground_sd: float  # the noise's SD on bare ground
     ground_p50: float
     ground_p95: float
-    ndvi: np.ndarray          # NDVI raster on the CHM's grid
-    leaf_ndvi: np.ndarray     # true leaf NDVI per plant
+    ndvi: np.ndarray  # NDVI raster on the CHM's grid
+    leaf_ndvi: np.ndarray  # true leaf NDVI per plant
 
 
-def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: float = 3.2,
-              noise_sd: float = 0.03, bias: float = 0.015, smooth_m: float = 0.015,
-              heights=(0.15, 0.9), spacing: float = 0.3) -> NoisyChm:
+def noisy_chm(
+    seed: int = 0,
+    res: float = 0.01,
+    width_m: float = 6.0,
+    length_m: float = 3.2,
+    noise_sd: float = 0.03,
+    bias: float = 0.015,
+    smooth_m: float = 0.015,
+    heights=(0.15, 0.9),
+    spacing: float = 0.3,
+) -> NoisyChm:
     rng = np.random.default_rng(seed)
     ny, nx = round(length_m / res), round(width_m / res)
     t = Affine(res, 0, 500000.0, 0, -res, 4500000.0 + length_m)
@@ -64,7 +72,7 @@ def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: 
         dang = np.min(np.abs(np.angle(np.exp(1j * (ang[..., None] - leaves)))), axis=-1)
         leaf = (dang * rho * r < 0.15 * r * (1.1 - rho)) | (rho < 0.3)
         inside = leaf & (rho < 1)
-        hgt = np.where(inside, h * (1 - rho ** 2), 0)
+        hgt = np.where(inside, h * (1 - rho**2), 0)
         sub = surf[r0:r1, c0:c1]
         mine = inside & (hgt > sub)
         sub[mine] = hgt[mine]
@@ -87,7 +95,16 @@ def noisy_chm(seed: int = 0, res: float = 0.01, width_m: float = 6.0, length_m: 
     ndvi = np.where(truth > 0, leaf_ndvi[truth - 1], 0.15)
     ndvi = ndi.gaussian_filter(ndvi, 0.7) + nrng.normal(0, 0.015, (ny, nx))
     ground = noise[ndi.binary_dilation(truth > 0, iterations=int(0.1 / res)) == 0]
-    return NoisyChm(chm=chm, transform=t, boxes=np.array(boxes, dtype=object), truth=truth, height=H,
-                    centre=np.column_stack([t.c + plants[:, 0], t.f - plants[:, 1]]), ground_sd=float(ground.std()),
-                    ground_p50=float(np.median(ground)), ground_p95=float(np.percentile(ground, 95)),
-                    ndvi=ndvi, leaf_ndvi=leaf_ndvi)
+    return NoisyChm(
+        chm=chm,
+        transform=t,
+        boxes=np.array(boxes, dtype=object),
+        truth=truth,
+        height=H,
+        centre=np.column_stack([t.c + plants[:, 0], t.f - plants[:, 1]]),
+        ground_sd=float(ground.std()),
+        ground_p50=float(np.median(ground)),
+        ground_p95=float(np.percentile(ground, 95)),
+        ndvi=ndvi,
+        leaf_ndvi=leaf_ndvi,
+    )

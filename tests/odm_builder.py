@@ -35,8 +35,18 @@ class Raster:
 def _write_raster(path: Path, raster: Raster, crs: CRS, nodata: float | None = None) -> None:
     data = raster.data if raster.data.ndim == 3 else raster.data[None]
     path.parent.mkdir(parents=True, exist_ok=True)
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1], count=data.shape[0],
-                       dtype=data.dtype, crs=crs, transform=raster.transform, nodata=nodata) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[2],
+        height=data.shape[1],
+        count=data.shape[0],
+        dtype=data.dtype,
+        crs=crs,
+        transform=raster.transform,
+        nodata=nodata,
+    ) as dst:
         dst.write(data)
 
 
@@ -45,10 +55,19 @@ def _reconstruction(shots: dict[str, Shot], reference_lla: dict) -> Reconstructi
     return Reconstruction(cameras=cameras, shots=shots, reference_lla=reference_lla)
 
 
-def write_odm_project(root: Path, *, crs: CRS, offset, reference_lla: dict, shots: dict[str, Shot],
-                      dsm: Raster, undistorted_shots: dict[str, Shot] | None = None,
-                      orthophoto: Raster | None = None, topocentric_copy: bool = False,
-                      image_color: tuple[int, int, int] = (90, 120, 60)) -> Path:
+def write_odm_project(
+    root: Path,
+    *,
+    crs: CRS,
+    offset,
+    reference_lla: dict,
+    shots: dict[str, Shot],
+    dsm: Raster,
+    undistorted_shots: dict[str, Shot] | None = None,
+    orthophoto: Raster | None = None,
+    topocentric_copy: bool = False,
+    image_color: tuple[int, int, int] = (90, 120, 60),
+) -> Path:
     """Write an ODM project under ``root`` and return ``root``.
 
     ``shots`` are the poses in the raw photos' cameras; ``undistorted_shots`` (default: the same) those of
@@ -62,7 +81,9 @@ def write_odm_project(root: Path, *, crs: CRS, offset, reference_lla: dict, shot
     write_reconstruction(osfm / "reconstruction.json", _reconstruction(shots, reference_lla))
     if topocentric_copy:
         write_reconstruction(osfm / "reconstruction.topocentric.json", _reconstruction(shots, reference_lla))
-    write_reconstruction(osfm / "undistorted" / "reconstruction.json", _reconstruction(undistorted_shots, reference_lla))
+    write_reconstruction(
+        osfm / "undistorted" / "reconstruction.json", _reconstruction(undistorted_shots, reference_lla)
+    )
     images = osfm / "undistorted" / "images"
     images.mkdir(parents=True, exist_ok=True)
     for name, shot in undistorted_shots.items():

@@ -34,6 +34,7 @@ TESTS = Path(__file__).resolve().parent
 
 def _write_png(path: Path, w: int, h: int, seed: int = 0) -> None:
     import cv2
+
     rng = np.random.default_rng(seed)
     cv2.imwrite(str(path), rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
 
@@ -55,6 +56,7 @@ def photos(tmp_path) -> Path:
 
 def _gui(store):
     from matchplant.bbox_drawer.gui import BboxDrawerGUI
+
     return BboxDrawerGUI(store, headless=True, dpi=60)  # small: every synthesised event redraws the figure
 
 
@@ -68,8 +70,12 @@ def _xyxy(store, name):
 def test_folder_config_loads_and_help_works():
     cfg = load_config(BboxDrawerConfig, ROOT / "4_bbox_drawer" / "config.yaml", strict=False)
     assert cfg.categories == ["plant"] and cfg.images is None
-    r = subprocess.run([sys.executable, str(ROOT / "4_bbox_drawer" / "bbox_drawer.py"), "--help"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "4_bbox_drawer" / "bbox_drawer.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--gui" in r.stdout
 
 
@@ -100,30 +106,30 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
     g = _gui(store)
     fig, ax = g.fig, g.ax
     assert store.current == "a.png"
-    ge.drag(fig, ax, 20, 30, 60, 80)                       # draw
+    ge.drag(fig, ax, 20, 30, 60, 80)  # draw
     assert _xyxy(store, "a.png") == [[20, 30, 60, 80]]
-    ge.drag(fig, ax, 150, 100, 260, 190)                   # dragged past the image edge: clipped
+    ge.drag(fig, ax, 150, 100, 260, 190)  # dragged past the image edge: clipped
     assert _xyxy(store, "a.png")[1] == [150, 100, 200, 150]
-    ge.click(fig, ax, 100, 20)                             # click without drag on empty image: no box
+    ge.click(fig, ax, 100, 20)  # click without drag on empty image: no box
     assert len(store.boxes("a.png")) == 2 and g.selected is None
-    ge.click(fig, ax, 40, 50)                              # click on a box selects it
+    ge.click(fig, ax, 40, 50)  # click on a box selects it
     assert g.selected == 1
-    ge.drag(fig, ax, 40, 50, 50, 55)                       # move it by (10, 5)
+    ge.drag(fig, ax, 40, 50, 50, 55)  # move it by (10, 5)
     assert _xyxy(store, "a.png")[0] == [30, 35, 70, 85]
-    ge.drag(fig, ax, 70, 85, 75, 100)                      # drag its bottom-right corner: resize
+    ge.drag(fig, ax, 70, 85, 75, 100)  # drag its bottom-right corner: resize
     assert _xyxy(store, "a.png")[0] == [30, 35, 75, 100]
-    ge.drag(fig, ax, 50, 35, 50, 20)                       # drag its top edge up: resize top only
+    ge.drag(fig, ax, 50, 35, 50, 20)  # drag its top edge up: resize top only
     assert _xyxy(store, "a.png")[0] == [30, 20, 75, 100]
-    ge.key(fig, "2")                                       # category of the selected box
+    ge.key(fig, "2")  # category of the selected box
     assert store.boxes("a.png")[0]["category_id"] == 2
     ge.key(fig, "ctrl+z")
     assert store.boxes("a.png")[0]["category_id"] == 1
     ge.key(fig, "ctrl+y")
     assert store.boxes("a.png")[0]["category_id"] == 2
-    ge.click(fig, ax, 180, 130)                            # select the clipped box and delete it
+    ge.click(fig, ax, 180, 130)  # select the clipped box and delete it
     ge.key(fig, "delete")
     assert _xyxy(store, "a.png") == [[30, 20, 75, 100]]
-    ge.key(fig, "z")                                       # undo the delete
+    ge.key(fig, "z")  # undo the delete
     assert _xyxy(store, "a.png")[1] == [150, 100, 200, 150]
     # new boxes take the current category (2 was chosen above)
     ge.drag(fig, ax, 100, 10, 120, 25)
@@ -135,7 +141,7 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
     assert x1 - x0 == pytest.approx(200 / 1.25) and (x0 + x1) / 2 == pytest.approx(100, abs=0.5)
     ge.key(fig, "right")
     assert ax.get_xlim()[0] > x0
-    ge.drag(fig, ax, 100, 60, 104, 64)                     # zoomed in: still exact image pixels
+    ge.drag(fig, ax, 100, 60, 104, 64)  # zoomed in: still exact image pixels
     assert _xyxy(store, "a.png")[-1] == [100, 60, 104, 64]
     ge.key(fig, "0")
     assert ax.get_xlim() == (0, 200)
@@ -147,9 +153,9 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
     assert _xyxy(store, "b.png") == [[10, 10, 30, 40]]
     ge.key(fig, "p")
     assert store.current == "a.png"
-    ge.key(fig, "h")                                       # help panel toggles
+    ge.key(fig, "h")  # help panel toggles
     assert not g.help_ax.get_visible()
-    ge.key(fig, "e")                                       # export now
+    ge.key(fig, "e")  # export now
     ds = json.loads((tmp_path / "out" / "annotations.json").read_text())
     assert len(ds["annotations"]) == 5 and not validate_dataset(ds)
 
@@ -179,37 +185,37 @@ def test_category_keys_choose_the_next_box_and_relabel_only_a_clicked_box(photos
     def cats():
         return [b["category_id"] for b in store.boxes("a.png")]
 
-    ge.drag(fig, ax, 20, 30, 60, 80, steps=1)              # box 1, drawn as plant
-    assert g.selected == 1                                 # it keeps its handles, to fix it at once
+    ge.drag(fig, ax, 20, 30, 60, 80, steps=1)  # box 1, drawn as plant
+    assert g.selected == 1  # it keeps its handles, to fix it at once
     ge.key(fig, "2")
     assert cats() == [1] and g.category == 2 and "next box: 2=weed" in g.status.get_text()
-    ge.drag(fig, ax, 60, 80, 70, 90, steps=1)              # its corner dragged: resized, still not relabelled
+    ge.drag(fig, ax, 60, 80, 70, 90, steps=1)  # its corner dragged: resized, still not relabelled
     assert _xyxy(store, "a.png") == [[20, 30, 70, 90]]
     ge.key(fig, "3")
     assert cats() == [1]
-    ge.drag(fig, ax, 100, 20, 140, 60, steps=1)            # box 2 takes the category chosen: soil
+    ge.drag(fig, ax, 100, 20, 140, 60, steps=1)  # box 2 takes the category chosen: soil
     ge.key(fig, "2")
-    ge.drag(fig, ax, 150, 100, 180, 140, steps=1)          # box 3: weed; box 2 was not relabelled
+    ge.drag(fig, ax, 150, 100, 180, 140, steps=1)  # box 3: weed; box 2 was not relabelled
     assert cats() == [1, 3, 2]
-    assert store.undo() == "a.png" and cats() == [1, 3]    # the last edit was drawing box 3: no relabel in between
+    assert store.undo() == "a.png" and cats() == [1, 3]  # the last edit was drawing box 3: no relabel in between
     assert store.redo() == "a.png" and cats() == [1, 3, 2]
-    ge.click(fig, ax, 40, 50)                              # click box 1: picked, the keys relabel it
+    ge.click(fig, ax, 40, 50)  # click box 1: picked, the keys relabel it
     ge.key(fig, "3")
     assert cats() == [3, 3, 2] and "keys relabel it" in g.status.get_text()
     ge.key(fig, "1")
     assert cats() == [1, 3, 2]
-    ge.drag(fig, ax, 120, 40, 125, 45, steps=1)            # press box 2 (not selected) and drag it: picked too
+    ge.drag(fig, ax, 120, 40, 125, 45, steps=1)  # press box 2 (not selected) and drag it: picked too
     assert _xyxy(store, "a.png")[1] == [105, 25, 145, 65]
     ge.key(fig, "2")
     assert cats() == [1, 2, 2]
-    ge.key(fig, "escape")                                  # nothing selected: the key only sets the next box
+    ge.key(fig, "escape")  # nothing selected: the key only sets the next box
     ge.key(fig, "3")
     assert cats() == [1, 2, 2] and g.category == 3
-    ge.key(fig, "n")                                       # another image: nothing picked there
+    ge.key(fig, "n")  # another image: nothing picked there
     ge.drag(fig, ax, 10, 10, 30, 40, steps=1)
     ge.key(fig, "1")
     assert [b["category_id"] for b in store.boxes("b.png")] == [3]
-    ge.key(fig, "q")                                       # headless: exported (no window to close)
+    ge.key(fig, "q")  # headless: exported (no window to close)
     ds = json.loads((tmp_path / "out" / "annotations.json").read_text())
     names = {c["id"]: c["name"] for c in ds["categories"]}
     files = {im["id"]: im["file_name"] for im in ds["images"]}
@@ -240,29 +246,31 @@ KILLED = textwrap.dedent("""
 def test_killed_session_resumes_with_every_saved_edit(photos, tmp_path):
     out = tmp_path / "out"
     code = KILLED.format(tests=str(TESTS), photos=str(photos), out=str(out))
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
-                            env=dict(os.environ, MPLBACKEND="Agg"))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=dict(os.environ, MPLBACKEND="Agg")
+    )
     done = []
     for line in proc.stdout:
         done.append(int(line))
         if len(done) >= 6:
             break
-    os.kill(proc.pid, signal.SIGKILL)                      # no clean shutdown
+    os.kill(proc.pid, signal.SIGKILL)  # no clean shutdown
     proc.wait()
-    store = AnnotationStore(photos, out)                   # resume
+    store = AnnotationStore(photos, out)  # resume
     boxes = _xyxy(store, "a.png")
-    expected = [[16 * (i % 12) + 1, 30 * (i // 12) + 1, 16 * (i % 12) + 11, 30 * (i // 12) + 21]
-                for i in range(len(boxes))]
-    assert len(boxes) >= len(done) and boxes == expected   # every reported edit, nothing half-written
+    expected = [
+        [16 * (i % 12) + 1, 30 * (i // 12) + 1, 16 * (i % 12) + 11, 30 * (i // 12) + 21] for i in range(len(boxes))
+    ]
+    assert len(boxes) >= len(done) and boxes == expected  # every reported edit, nothing half-written
     assert store.undo() == "a.png" and len(store.boxes("a.png")) == len(boxes) - 1  # history survived too
 
 
 def test_store_edits_undo_redo_and_reopen(photos, tmp_path):
     store = AnnotationStore(photos, tmp_path / "out", ["plant"])
-    a = store.add("b.png", [30, 40, 10, 5])                 # corners in any order
+    a = store.add("b.png", [30, 40, 10, 5])  # corners in any order
     assert store.box("b.png", a)["xyxy"] == [10, 5, 30, 40]
-    assert store.add("b.png", [10, 10, 11, 30]) is None     # thinner than min_box_size
-    store.move("b.png", a, 500, -3)                         # stops at the right edge
+    assert store.add("b.png", [10, 10, 11, 30]) is None  # thinner than min_box_size
+    store.move("b.png", a, 500, -3)  # stops at the right edge
     assert store.box("b.png", a)["xyxy"] == [140, 2, 160, 37]
     store.resize("b.png", a, [100, 2, 170, 37])
     assert store.box("b.png", a)["xyxy"] == [100, 2, 160, 37]
@@ -289,7 +297,7 @@ def test_coco_yolo_coco_is_lossless(photos, tmp_path):
         for _ in range(7):
             x, y = rng.uniform(0, w - 30), rng.uniform(0, h - 30)
             store.add(name, [x, y, x + rng.uniform(3, 30), y + rng.uniform(3, 30)], int(rng.integers(1, 3)))
-    store.add("a.png", [0, 0, 200, 150])                    # the whole image
+    store.add("a.png", [0, 0, 200, 150])  # the whole image
     paths = store.export(coco=True, yolo=True)
     coco = json.loads(paths["coco"].read_text())
     assert not validate_dataset(coco, tolerance=0)
@@ -307,17 +315,24 @@ def test_coco_yolo_coco_is_lossless(photos, tmp_path):
 
 def test_imports_coco_yolo_and_predictions(photos, tmp_path):
     # module 7 predictions on two overlapping tiles of a.png: one plant seen twice, one low score
-    images = [{"id": 1, "file_name": "a_0_0.png", "width": 128, "height": 128, "source_image": "a.png", "x0": 0, "y0": 0},
-              {"id": 2, "file_name": "a_72_0.png", "width": 128, "height": 128, "source_image": "a.png", "x0": 72, "y0": 0}]
-    preds = [{"image_id": 1, "category_id": 1, "bbox": [90, 20, 20, 30], "score": 0.9},
-             {"image_id": 2, "category_id": 1, "bbox": [18.5, 20, 20, 30], "score": 0.8},   # same plant
-             {"image_id": 2, "category_id": 1, "bbox": [80, 80, 20, 20], "score": 0.2}]     # below min_score
+    images = [
+        {"id": 1, "file_name": "a_0_0.png", "width": 128, "height": 128, "source_image": "a.png", "x0": 0, "y0": 0},
+        {"id": 2, "file_name": "a_72_0.png", "width": 128, "height": 128, "source_image": "a.png", "x0": 72, "y0": 0},
+    ]
+    preds = [
+        {"image_id": 1, "category_id": 1, "bbox": [90, 20, 20, 30], "score": 0.9},
+        {"image_id": 2, "category_id": 1, "bbox": [18.5, 20, 20, 30], "score": 0.8},  # same plant
+        {"image_id": 2, "category_id": 1, "bbox": [80, 80, 20, 20], "score": 0.2},
+    ]  # below min_score
     write_predictions(tmp_path / "pred.json", images, [{"id": 1, "name": "plant"}], preds)
-    cfg = load_config(BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'out'}",
-                                             f"import_predictions={tmp_path / 'pred.json'}"])
+    cfg = load_config(
+        BboxDrawerConfig,
+        None,
+        [f"images={photos}", f"output_dir={tmp_path / 'out'}", f"import_predictions={tmp_path / 'pred.json'}"],
+    )
     store = open_session(cfg)
     assert _xyxy(store, "a.png") == [[90, 20, 110, 50]] and store.boxes("a.png")[0]["score"] == 0.9
-    assert open_session(cfg).count() == 1                  # reopening does not import twice
+    assert open_session(cfg).count() == 1  # reopening does not import twice
 
     # a COCO dataset and YOLO labels, into a fresh session
     ds = new_dataset(["plant"])
@@ -328,9 +343,17 @@ def test_imports_coco_yolo_and_predictions(photos, tmp_path):
     yolo.mkdir()
     (yolo / "classes.txt").write_text("plant\nweed\n")
     (yolo / "a.txt").write_text("1 0.5 0.5 0.1 0.2\n")
-    cfg2 = load_config(BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'out2'}",
-                                              f"import_coco={tmp_path / 'in.json'}", f"import_yolo={yolo}",
-                                              "categories=[plant, weed]"])   # an import's labels must be categories
+    cfg2 = load_config(
+        BboxDrawerConfig,
+        None,
+        [
+            f"images={photos}",
+            f"output_dir={tmp_path / 'out2'}",
+            f"import_coco={tmp_path / 'in.json'}",
+            f"import_yolo={yolo}",
+            "categories=[plant, weed]",
+        ],
+    )  # an import's labels must be categories
     store2 = open_session(cfg2)
     assert _xyxy(store2, "b.png") == [[5.5, 6, 25.5, 16]]
     assert _xyxy(store2, "a.png") == [[90, 60, 110, 90]] and store2.categories == ["plant", "weed"]
@@ -345,6 +368,7 @@ def console_cleanup():
     """The CLI binds a console handler to the (captured) stderr of the test; remove it afterwards."""
     yield
     from matchplant.core.runtime.log import get_logger
+
     logger = get_logger()
     for h in list(logger.handlers):
         if getattr(h, "_matchplant_console", False):
@@ -361,13 +385,16 @@ def test_cli_run_exports_and_bad_input_is_a_clear_error(photos, tmp_path, capsys
     ds = json.loads((out / "annotations.json").read_text())
     assert [a["bbox"] for a in ds["annotations"]] == [[1, 2, 29, 38]]
     assert (out / "yolo" / "a.txt").read_text() == "0 0.07750000 0.14000000 0.14500000 0.25333333\n"
-    rc = run_module("bbox_drawer", ["--set", f"images={photos}", "--set", f"output_dir={out}",
-                                    "--set", "categories=[a,b,c,d,e,f]"])
+    rc = run_module(
+        "bbox_drawer", ["--set", f"images={photos}", "--set", f"output_dir={out}", "--set", "categories=[a,b,c,d,e,f]"]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "categories" in err and "Traceback" not in err
     (tmp_path / "bad.json").write_text("{not json")
-    rc = run_module("bbox_drawer", ["--set", f"images={photos}", "--set", f"output_dir={out}",
-                                    "--set", f"import_coco={tmp_path / 'bad.json'}"])
+    rc = run_module(
+        "bbox_drawer",
+        ["--set", f"images={photos}", "--set", f"output_dir={out}", "--set", f"import_coco={tmp_path / 'bad.json'}"],
+    )
     err = capsys.readouterr().err
     assert rc == 2 and "bad.json" in err and "not valid JSON" in err
 
@@ -375,10 +402,16 @@ def test_cli_run_exports_and_bad_input_is_a_clear_error(photos, tmp_path, capsys
 def test_tiny_field_truth_round_trip(tiny_field, tmp_path):
     """The synthetic field's undistorted truth boxes imported, exported, and equal to the truth."""
     truth = json.loads(tiny_field.boxes_undistorted.read_text())
-    cfg = load_config(BboxDrawerConfig, None, [f"images={tiny_field.undistorted_images}",
-                                             f"output_dir={tmp_path / 'out'}",
-                                             f"import_coco={tiny_field.boxes_undistorted}",
-                                             "include_unseen=true"])
+    cfg = load_config(
+        BboxDrawerConfig,
+        None,
+        [
+            f"images={tiny_field.undistorted_images}",
+            f"output_dir={tmp_path / 'out'}",
+            f"import_coco={tiny_field.boxes_undistorted}",
+            "include_unseen=true",
+        ],
+    )
     out = run(cfg)
     ds = json.loads(out["coco"].read_text())
     want = {}
@@ -395,8 +428,6 @@ def test_tiny_field_truth_round_trip(tiny_field, tmp_path):
         assert len(g) == len(w)
         nearest = np.abs(w[:, None, :] - g[None, :, :]).max(axis=2).min(axis=1)
         assert nearest.max() <= 0.011  # x, y and x2, y2 are kept to 0.01 px
-
-
 
 
 # -- a real window -------------------------------------------------------------------------------------------
@@ -440,7 +471,7 @@ def test_gui_in_a_real_window(photos, tmp_path):
     assert "backend tkagg" in r.stdout.lower()
     boxes = json.loads(r.stdout.split("BOXES", 1)[1])
     assert boxes == {"a.png": [[20, 30, 60, 80]], "b.png": [[5, 5, 25, 45]]}
-    assert (tmp_path / "out" / "annotations.json").is_file()     # exported when the window closed
+    assert (tmp_path / "out" / "annotations.json").is_file()  # exported when the window closed
 
 
 # -- real size ----------------------------------------------------------------------------------------------
@@ -473,7 +504,7 @@ def test_gui_on_a_20_megapixel_photo_with_3000_boxes(tmp_path):
     g = BboxDrawerGUI(store, headless=True, dpi=100)
     fig, ax = g.fig, g.ax
     fig.canvas.draw()
-    assert g.image_artist.shown_level >= 2                       # the whole photo: never at full resolution
+    assert g.image_artist.shown_level >= 2  # the whole photo: never at full resolution
     assert len(ax.collections) == 1 and sum(len(p.vertices) for p in ax.collections[0].get_paths()) == 5 * 3000
     full_draws = []
     real_draw = fig.canvas.draw
@@ -485,10 +516,10 @@ def test_gui_on_a_20_megapixel_photo_with_3000_boxes(tmp_path):
     for i in range(1, 11):  # motion events delivered without gui_events' redraw before each
         px, py = ax.transData.transform((free[0] + 40 * i, free[1] + 30 * i))
         fig.canvas.callbacks.process("motion_notify_event", MouseEvent("motion_notify_event", fig.canvas, px, py))
-    assert len(full_draws) == n_press                            # moves are blitted
+    assert len(full_draws) == n_press  # moves are blitted
     ge.mouse(fig, ax, "button_release_event", free[0] + 400, free[1] + 300)
     new = store.boxes("big.jpg")[-1]
-    screen_px = 1 / g.px_per_unit()   # events come in whole screen pixels: ~5.7 photo pixels here
+    screen_px = 1 / g.px_per_unit()  # events come in whole screen pixels: ~5.7 photo pixels here
     assert np.allclose(new["xyxy"], [free[0], free[1], free[0] + 400, free[1] + 300], atol=screen_px + 0.5)
     assert g.selected == new["id"]
     # move the new box, zoom in to the photo's pixels, pan with the right button
@@ -501,7 +532,7 @@ def test_gui_on_a_20_megapixel_photo_with_3000_boxes(tmp_path):
     assert g.image_artist.shown_level == 0
     before = ax.get_xlim()
     ge.drag(fig, ax, free[0] + 100, free[1] + 100, free[0] + 80, free[1] + 100, steps=2, button=3)
-    assert ax.get_xlim()[0] > before[0] + 5   # the photo follows the mouse (leftwards: the view moves right)
+    assert ax.get_xlim()[0] > before[0] + 5  # the photo follows the mouse (leftwards: the view moves right)
     assert len(store.boxes("big.jpg")) == 3001
 
 
@@ -510,12 +541,16 @@ def test_annotated_region_is_recorded_for_module_5(photos, tmp_path):
     owned.write_text(json.dumps({"a.png": [[10, 10], [190, 10], [190, 140], [10, 140]]}))
     base = [f"images={photos}", "export_yolo=false", f"owned_areas={owned}"]
     for mode, expected in (("auto", [[10, 10], [190, 10], [190, 140], [10, 140]]), ("image", None)):
-        cfg = load_config(BboxDrawerConfig, None, [*base, f"output_dir={tmp_path / mode}", f"annotated_region={mode}",
-                                                 "include_unseen=true"])
+        cfg = load_config(
+            BboxDrawerConfig,
+            None,
+            [*base, f"output_dir={tmp_path / mode}", f"annotated_region={mode}", "include_unseen=true"],
+        )
         AnnotationStore(photos, tmp_path / mode).add("b.png", [5, 5, 40, 40])  # an export needs a box
         ds = json.loads(run(cfg)["coco"].read_text())
         regions = {im["file_name"]: im.get("annotated_region") for im in ds["images"]}
-        assert regions == {"a.png": expected, "b.png": None}   # b.png has no owned area: annotated whole
+        assert regions == {"a.png": expected, "b.png": None}  # b.png has no owned area: annotated whole
     with pytest.raises(ConfigError, match="owned areas"):
-        load_config(BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'x'}",
-                                           "annotated_region=owned"])
+        load_config(
+            BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'x'}", "annotated_region=owned"]
+        )

@@ -67,7 +67,7 @@ def test_antialiased_binary_masks_are_binary_and_give_the_true_count(labels, tmp
     cv2.imwrite(str(masks / "jpeg.jpg"), variants["area"], [cv2.IMWRITE_JPEG_QUALITY, 75])
     Image.fromarray(variants["area"]).save(masks / "gif.gif")  # GIF through PIL
     for path in masks.iterdir():
-        assert len(np.unique(read_mask(path))) > 8             # anti-aliased: many grey levels
+        assert len(np.unique(read_mask(path))) > 8  # anti-aliased: many grey levels
     names = ["area.JPG", "lanczos.JPG", "jpeg.JPG", "gif.JPG"]
     with caplog.at_level(logging.INFO, logger="matchplant"):
         out = read_mask_boxes(masks, names, MIN_AREA, sizes={n: (W, H) for n in names})
@@ -94,7 +94,7 @@ def test_binary_boxes_match_the_objects_extent(labels):
 def test_colour_instance_masks_give_one_box_per_plant(labels, tmp_path, layout, caplog):
     ids = _ids(labels)
     if layout == "palette":
-        ids = np.where(ids <= 200, ids, 0)                     # a palette holds at most 255 colours
+        ids = np.where(ids <= 200, ids, 0)  # a palette holds at most 255 colours
     rng = np.random.default_rng(1)
     palette = np.unique(rng.integers(40, 256, (400, 3)), axis=0)[: ids.max() + 1].astype(np.uint8)
     palette[0] = 0
@@ -109,12 +109,12 @@ def test_colour_instance_masks_give_one_box_per_plant(labels, tmp_path, layout, 
         im = Image.fromarray(ids.astype(np.uint8), mode="L").convert("P")
         im.putpalette(palette.ravel().tolist() + [0] * (768 - palette.size))
         im.save(path)
-    assert read_mask(path).ndim == 3                           # read as its colours
+    assert read_mask(path).ndim == 3  # read as its colours
     with caplog.at_level(logging.INFO, logger="matchplant"):
         boxes = read_mask_boxes(path.parent, ["IMG_1.JPG"], 1)["IMG_1.JPG"]
     assert "read as instance" in caplog.text and "one object per colour" in caplog.text
     ref = []
-    for v in np.unique(ids[ids > 0]):                          # numpy over the same pixels, one id at a time
+    for v in np.unique(ids[ids > 0]):  # numpy over the same pixels, one id at a time
         rows, cols = np.nonzero(ids == v)
         ref.append([float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)])
     assert sorted(b.xyxy for b in boxes) == sorted(ref)
@@ -135,7 +135,7 @@ def test_grey_instance_ids_stay_instances(labels):
     got = mask_objects(ids, 1)
     assert got.mode == "instance" and len(got.boxes) == len(np.unique(ids[ids > 0]))
     few = np.zeros((50, 60), np.uint8)
-    few[5:15, 5:15], few[20:30, 30:50] = 1, 7                  # two plants, ids 1 and 7
+    few[5:15, 5:15], few[20:30, 30:50] = 1, 7  # two plants, ids 1 and 7
     assert mask_objects(few).mode == "instance" and len(mask_objects(few).boxes) == 2
 
 
@@ -144,7 +144,7 @@ def test_mode_and_threshold_overrule_and_warnings(labels, tmp_path, caplog):
     forced = mask_objects(m, 1, mode="instance")
     assert forced.mode == "instance" and any("separate pieces" in w for w in forced.warnings)
     assert any("span more than" in w for w in forced.warnings)
-    high = mask_objects(m, MIN_AREA, threshold=250)            # a high cut: smaller objects
+    high = mask_objects(m, MIN_AREA, threshold=250)  # a high cut: smaller objects
     auto = mask_objects(m, MIN_AREA)
     assert high.mode == "binary" and high.threshold == 250 and auto.threshold == 127.5
     area_high = sum((b.xyxy[2] - b.xyxy[0]) * (b.xyxy[3] - b.xyxy[1]) for b in high.boxes)
@@ -166,7 +166,7 @@ def test_mask_names_and_formats(tmp_path):
     d.mkdir()
     m = np.zeros((20, 30), np.uint8)
     m[2:8, 3:9] = 255
-    (d / "IMG_1.npy").write_bytes(b"\x93NUMPY")                # named after the photo, but no image
+    (d / "IMG_1.npy").write_bytes(b"\x93NUMPY")  # named after the photo, but no image
     with pytest.raises(InputError, match=r"\.npy files .*not read as images.*GIF"):
         read_mask_boxes(d, ["IMG_1.JPG"])
     Image.fromarray(m).save(d / "3f2a1b7c-IMG_2.JPG_mask.gif")  # upload prefix, photo extension, _mask, GIF

@@ -100,8 +100,9 @@ def test_cuda_request_without_a_gpu_says_so():
     torch = pytest.importorskip("torch")
     if torch.cuda.is_available():
         pytest.skip("a GPU is present")
-    r = subprocess.run([sys.executable, "-m", "bench", "--device", "cuda", "--no-save"], capture_output=True,
-                       text=True, cwd=ROOT)
+    r = subprocess.run(
+        [sys.executable, "-m", "bench", "--device", "cuda", "--no-save"], capture_output=True, text=True, cwd=ROOT
+    )
     assert r.returncode == 2 and "no CUDA GPU" in r.stderr and "Traceback" not in r.stderr
 
 

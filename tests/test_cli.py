@@ -91,9 +91,9 @@ def test_key_alias_reads_the_shared_name_with_a_note(tmp_path, caplog):
         cfg = load_config(PlantProjectionConfig, p, check_paths=False, strict=False)
     assert cfg.project == tmp_path / "odm"
     assert "read as 'project'" in caplog.text
-    cfg = load_config(PlantProjectionConfig, None, [f"project_dir={tmp_path / 'odm'}"], check_paths=False,
-                      strict=False)
+    cfg = load_config(PlantProjectionConfig, None, [f"project_dir={tmp_path / 'odm'}"], check_paths=False, strict=False)
     assert cfg.project == tmp_path / "odm"
     with pytest.raises(ConfigError, match="'project_dir' and 'project'"):
-        load_config(PlantProjectionConfig, write(tmp_path, "project_dir: odm\nproject: odm\n"),
-                    check_paths=False, strict=False)
+        load_config(
+            PlantProjectionConfig, write(tmp_path, "project_dir: odm\nproject: odm\n"), check_paths=False, strict=False
+        )

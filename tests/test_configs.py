@@ -30,11 +30,14 @@ def test_folder_config_matches_the_code(path):
     cfg = load_config(spec.config, path, strict=False)
     expected = to_yaml(cfg, header=config_header(spec), base=path.parent)
     text = path.read_text(encoding="utf-8")
-    diff = "\n".join(difflib.unified_diff(text.splitlines(), expected.splitlines(), "on disk", "from the code",
-                                          lineterm="", n=0))
-    assert text == expected, (f"{path.relative_to(ROOT)} has drifted from the code; regenerate it with\n"
-                              f"  matchplant {spec.name} --config {path.relative_to(ROOT)} "
-                              f"--write-config {path.relative_to(ROOT)}\n{diff}")
+    diff = "\n".join(
+        difflib.unified_diff(text.splitlines(), expected.splitlines(), "on disk", "from the code", lineterm="", n=0)
+    )
+    assert text == expected, (
+        f"{path.relative_to(ROOT)} has drifted from the code; regenerate it with\n"
+        f"  matchplant {spec.name} --config {path.relative_to(ROOT)} "
+        f"--write-config {path.relative_to(ROOT)}\n{diff}"
+    )
 
 
 def test_write_config_keeps_values_and_paths_relative(tmp_path, capsys):
@@ -56,8 +59,13 @@ def test_write_config_keeps_values_and_paths_relative(tmp_path, capsys):
     assert load_config(spec.config, tmp_path / "defaults.yaml", strict=False).categories == ["plant"]
 
 
-@pytest.mark.parametrize("step, old, new", [("plant_projection", "write_shapefile", "vector_formats: [gpkg, shp]"),
-                                            ("spatial_stat_extractor", "write_polygons", "vector_formats: [gpkg, shp]")])
+@pytest.mark.parametrize(
+    "step, old, new",
+    [
+        ("plant_projection", "write_shapefile", "vector_formats: [gpkg, shp]"),
+        ("spatial_stat_extractor", "write_polygons", "vector_formats: [gpkg, shp]"),
+    ],
+)
 def test_a_renamed_key_names_its_successor(tmp_path, step, old, new):
     from matchplant.core.runtime.errors import ConfigError
 

@@ -122,8 +122,17 @@ def test_duplicates_degenerate_and_invalid_boxes():
     box = np.array([[0.0, 0.0, 1.0, 1.0]]) + UTM
     i, j, iou = overlapping_pairs(np.repeat(box, 4, axis=0))
     assert list(zip(i, j)) == [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] and np.all(iou == 1)
-    bad = np.array([[np.nan, 0, 1, 1], [0, 0, 0, 1], [0, 0, 1, 0], [1, 1, 0, 0], [0, 0, np.inf, 1],
-                    [-np.inf, 0, 1, 1], [0, 0, 1, 1]])
+    bad = np.array(
+        [
+            [np.nan, 0, 1, 1],
+            [0, 0, 0, 1],
+            [0, 0, 1, 0],
+            [1, 1, 0, 0],
+            [0, 0, np.inf, 1],
+            [-np.inf, 0, 1, 1],
+            [0, 0, 1, 1],
+        ]
+    )
     i, j, iou = overlapping_pairs(bad)  # only the last box is a box: no pair
     assert len(i) == len(j) == len(iou) == 0
     i, j, iou = overlapping_pairs(bad, np.array([[0.2, 0.2, 0.8, 0.8]]))

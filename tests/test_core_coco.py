@@ -13,8 +13,9 @@ from matchplant.core.runtime.errors import InputError
 
 def _dataset():
     ds = coco.new_dataset(["maize", "weed"])
-    ds["images"] = [{"id": 1, "file_name": "t.png", "width": 100, "height": 80, "source_image": "a.JPG",
-                     "x0": 900, "y0": 100}]
+    ds["images"] = [
+        {"id": 1, "file_name": "t.png", "width": 100, "height": 80, "source_image": "a.JPG", "x0": 900, "y0": 100}
+    ]
     ds["annotations"] = [coco.make_annotation(1, 1, [10, 10, 20, 30]), coco.make_annotation(2, 1, [50, 5, 5, 5], 2)]
     return ds
 
@@ -29,13 +30,16 @@ def test_coco_roundtrip_and_provenance(tmp_path):
     np.testing.assert_array_equal(coco.boxes_xyxy(again["annotations"]), [[10, 10, 30, 40], [50, 5, 55, 10]])
 
 
-@pytest.mark.parametrize("mutate, words", [
-    (lambda d: d["annotations"].append(coco.make_annotation(1, 1, [0, 0, 1, 1])), "duplicate annotation ids"),
-    (lambda d: d["annotations"].append(coco.make_annotation(9, 7, [0, 0, 1, 1])), "missing image 7"),
-    (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [0, 0, 1, 1], 5)), "unknown category 5"),
-    (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [0, 0, 0, 4])), "size 0.0x4.0"),
-    (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [90, 70, 30, 30])), "outside t.png"),
-])
+@pytest.mark.parametrize(
+    "mutate, words",
+    [
+        (lambda d: d["annotations"].append(coco.make_annotation(1, 1, [0, 0, 1, 1])), "duplicate annotation ids"),
+        (lambda d: d["annotations"].append(coco.make_annotation(9, 7, [0, 0, 1, 1])), "missing image 7"),
+        (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [0, 0, 1, 1], 5)), "unknown category 5"),
+        (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [0, 0, 0, 4])), "size 0.0x4.0"),
+        (lambda d: d["annotations"].append(coco.make_annotation(9, 1, [90, 70, 30, 30])), "outside t.png"),
+    ],
+)
 def test_coco_validation(tmp_path, mutate, words):
     ds = _dataset()
     mutate(ds)

@@ -22,21 +22,24 @@ def test_load_defaults_yaml_and_overrides(tmp_path):
     assert cfg.output_dir == tmp_path / "out"
 
 
-@pytest.mark.parametrize("text, overrides, words", [
-    ("images: imgs\ntile_sise: 512\n", [], ["tile_sise", "did you mean 'tile_size'"]),
-    ("images: imgs\noptim:\n  lrate: 0.1\n", [], ["optim.lrate", "optim.lr"]),
-    ("images: imgs\n", ["tilesize=3"], ["tilesize", "tile_size"]),
-    ("images: imgs\ntile_size: big\n", [], ["tile_size", "whole number", "big"]),
-    ("images: imgs\nverbose: 3\n", [], ["verbose", "true or false"]),
-    ("images: imgs\ntile_size: 10\n", [], ["tile_size", "minimum 64"]),
-    ("images: imgs\noptim:\n  lr: 2\n", [], ["optim.lr", "maximum 1"]),
-    ("images: imgs\nmode: slow\n", [], ["mode", "'fast' or 'exact'"]),
-    ("images: imgs\noptim:\n  schedule: cosin\n", [], ["optim.schedule", "did you mean 'cosine'"]),
-    ("images: nowhere\n", [], ["images", "not found", "nowhere"]),
-    ("tile_size: 512\n", [], ["images", "required"]),
-    ("images: imgs\n  bad: [\n", [], ["not valid YAML", "line"]),
-    ("- a\n- b\n", [], ["mapping"]),
-])
+@pytest.mark.parametrize(
+    "text, overrides, words",
+    [
+        ("images: imgs\ntile_sise: 512\n", [], ["tile_sise", "did you mean 'tile_size'"]),
+        ("images: imgs\noptim:\n  lrate: 0.1\n", [], ["optim.lrate", "optim.lr"]),
+        ("images: imgs\n", ["tilesize=3"], ["tilesize", "tile_size"]),
+        ("images: imgs\ntile_size: big\n", [], ["tile_size", "whole number", "big"]),
+        ("images: imgs\nverbose: 3\n", [], ["verbose", "true or false"]),
+        ("images: imgs\ntile_size: 10\n", [], ["tile_size", "minimum 64"]),
+        ("images: imgs\noptim:\n  lr: 2\n", [], ["optim.lr", "maximum 1"]),
+        ("images: imgs\nmode: slow\n", [], ["mode", "'fast' or 'exact'"]),
+        ("images: imgs\noptim:\n  schedule: cosin\n", [], ["optim.schedule", "did you mean 'cosine'"]),
+        ("images: nowhere\n", [], ["images", "not found", "nowhere"]),
+        ("tile_size: 512\n", [], ["images", "required"]),
+        ("images: imgs\n  bad: [\n", [], ["not valid YAML", "line"]),
+        ("- a\n- b\n", [], ["mapping"]),
+    ],
+)
 def test_config_errors_name_the_key_and_the_fix(tmp_path, text, overrides, words):
     (tmp_path / "imgs").mkdir()
     p = write(tmp_path, text)
@@ -87,8 +90,10 @@ def test_paths_of_keys_a_mode_does_not_read_are_not_checked(tmp_path):
     (tmp_path / "ref.geojson").write_text("{}")
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "plants.gpkg").write_text("")
-    text = (f"predictions: {tmp_path / 'missing.json'}\nevaluate:\n  reference: {tmp_path / 'ref.geojson'}\n"
-            f"output_dir: {tmp_path / 'out'}\n")
+    text = (
+        f"predictions: {tmp_path / 'missing.json'}\nevaluate:\n  reference: {tmp_path / 'ref.geojson'}\n"
+        f"output_dir: {tmp_path / 'out'}\n"
+    )
     (tmp_path / "c.yaml").write_text(text + "mode: evaluate\n")
     cfg = load_config(PlantProjectionConfig, tmp_path / "c.yaml")
     assert cfg.mode == "evaluate"

@@ -85,16 +85,46 @@ def test_reconstruction_roundtrip(berlin, tmp_path):
 # camera models
 
 CAMERAS = [
-    camera_from_opensfm("persp", {"projection_type": "perspective", "width": 4000, "height": 3000,
-                                  "focal": 0.9, "k1": -0.05, "k2": 0.01}),
-    camera_from_opensfm("brown", {"projection_type": "brown", "width": 5472, "height": 3648, "focal_x": 0.666,
-                                  "focal_y": 0.667, "c_x": -0.0015, "c_y": 0.0047, "k1": -0.264, "k2": 0.102,
-                                  "k3": -0.026, "p1": 0.0007, "p2": 0.00026}),
-    camera_from_opensfm("fish", {"projection_type": "fisheye", "width": 4000, "height": 3000, "focal": 0.6,
-                                 "k1": 0.02, "k2": -0.01}),
-    camera_from_opensfm("fishcv", {"projection_type": "fisheye_opencv", "width": 4000, "height": 3000,
-                                   "focal_x": 0.6, "focal_y": 0.61, "c_x": 0.002, "c_y": -0.001, "k1": 0.01,
-                                   "k2": -0.005, "k3": 0.001, "k4": -0.0005}),
+    camera_from_opensfm(
+        "persp",
+        {"projection_type": "perspective", "width": 4000, "height": 3000, "focal": 0.9, "k1": -0.05, "k2": 0.01},
+    ),
+    camera_from_opensfm(
+        "brown",
+        {
+            "projection_type": "brown",
+            "width": 5472,
+            "height": 3648,
+            "focal_x": 0.666,
+            "focal_y": 0.667,
+            "c_x": -0.0015,
+            "c_y": 0.0047,
+            "k1": -0.264,
+            "k2": 0.102,
+            "k3": -0.026,
+            "p1": 0.0007,
+            "p2": 0.00026,
+        },
+    ),
+    camera_from_opensfm(
+        "fish", {"projection_type": "fisheye", "width": 4000, "height": 3000, "focal": 0.6, "k1": 0.02, "k2": -0.01}
+    ),
+    camera_from_opensfm(
+        "fishcv",
+        {
+            "projection_type": "fisheye_opencv",
+            "width": 4000,
+            "height": 3000,
+            "focal_x": 0.6,
+            "focal_y": 0.61,
+            "c_x": 0.002,
+            "c_y": -0.001,
+            "k1": 0.01,
+            "k2": -0.005,
+            "k3": 0.001,
+            "k4": -0.0005,
+        },
+    ),
 ]
 
 
@@ -115,8 +145,13 @@ def test_brown_projection_matches_opencv():
     rng = np.random.default_rng(3)
     X = np.column_stack([rng.uniform(-0.4, 0.4, (50, 2)), rng.uniform(0.8, 3.0, 50)])
     S = max(cam.width, cam.height)
-    K = np.array([[cam.focal_x * S, 0, cam.c_x * S + (cam.width - 1) / 2],
-                  [0, cam.focal_y * S, cam.c_y * S + (cam.height - 1) / 2], [0, 0, 1]])
+    K = np.array(
+        [
+            [cam.focal_x * S, 0, cam.c_x * S + (cam.width - 1) / 2],
+            [0, cam.focal_y * S, cam.c_y * S + (cam.height - 1) / 2],
+            [0, 0, 1],
+        ]
+    )
     dist = np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3])
     expect, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
     np.testing.assert_allclose(cam.project(X), expect.reshape(-1, 2), rtol=1e-10, atol=1e-8)
@@ -164,9 +199,13 @@ def test_topocentric_frame_matches_independent_enu_math():
     lat, lon = np.radians(LAT), np.radians(LON)
     to_ecef = Transformer.from_crs(CRS.from_epsg(4979), CRS.from_epsg(4978), always_xy=True)
     x0 = np.array(to_ecef.transform(LON, LAT, 350.0))
-    R = np.array([[-np.sin(lon), np.cos(lon), 0],
-                  [-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)],
-                  [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)]])
+    R = np.array(
+        [
+            [-np.sin(lon), np.cos(lon), 0],
+            [-np.sin(lat) * np.cos(lon), -np.sin(lat) * np.sin(lon), np.cos(lat)],
+            [np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)],
+        ]
+    )
     ecef = x0 + enu @ R
     lon_, lat_, h_ = to_ecef.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2], direction="INVERSE")
     e, n = Transformer.from_crs(4326, CRS14, always_xy=True).transform(lon_, lat_)
@@ -201,8 +240,13 @@ def sloped_surface(res=0.05, size=1600, hole=True):
     xs = x0 + (np.arange(size) + 0.5) * res
     ys = y0 - (np.arange(size) + 0.5) * res
     X, Y = np.meshgrid(xs, ys)
-    Z = (300 + 0.08 * (X - x0) + 0.03 * (y0 - Y) + 0.4 * np.sin((X - x0) / 5.0)
-         + 0.5 * np.exp(-((X - 688000) ** 2 + (Y - 4525000) ** 2) / 0.3))  # a "plant" bump
+    Z = (
+        300
+        + 0.08 * (X - x0)
+        + 0.03 * (y0 - Y)
+        + 0.4 * np.sin((X - x0) / 5.0)
+        + 0.5 * np.exp(-((X - 688000) ** 2 + (Y - 4525000) ** 2) / 0.3)
+    )  # a "plant" bump
     if hole:
         Z[200:230, 1300:1340] = np.nan
     return Surface(Z, Affine(res, 0, x0, 0, -res, y0), crs=CRS14)
@@ -210,8 +254,10 @@ def sloped_surface(res=0.05, size=1600, hole=True):
 
 def looking_down(tilt_deg: float, heading_deg: float = 20.0) -> np.ndarray:
     """World->camera rotation of a camera looking down, pitched ``tilt_deg`` off nadir."""
-    cam_to_world = (Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
-                    @ Rotation.from_euler("x", 180 + tilt_deg, degrees=True).as_matrix())
+    cam_to_world = (
+        Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
+        @ Rotation.from_euler("x", 180 + tilt_deg, degrees=True).as_matrix()
+    )
     return cam_to_world.T
 
 
@@ -270,14 +316,22 @@ def test_minus_9999_is_nodata_when_reading(tmp_path):
     data = np.full((20, 20), 10.0, dtype="float32")
     data[5:8, 5:8] = -9999
     path = tmp_path / "dsm.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=20, height=20, count=1, dtype="float32",
-                       crs=CRS14, transform=Affine(0.1, 0, 0, 0, -0.1, 2)) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=20,
+        height=20,
+        count=1,
+        dtype="float32",
+        crs=CRS14,
+        transform=Affine(0.1, 0, 0, 0, -0.1, 2),
+    ) as dst:
         dst.write(data, 1)
     s = Surface.open(path)
     assert np.isnan(s.data[6, 6]) and s.zmin == 10.0
     win = Surface.open(path, bounds=(0.5, 0.5, 1.0, 1.0))
     assert win.data.shape[0] < 20 and win.data.shape[1] < 20
-
 
 
 @pytest.mark.parametrize("how", ["nodata", "mask band"])
@@ -288,8 +342,15 @@ def test_holes_from_a_declared_nodata_or_a_mask_band(tmp_path, how):
     data = np.full((20, 20), 10.0, dtype="float32")
     data[2:4, 2:4] = -32767 if how == "nodata" else 55.0  # under a mask, any value is a hole
     path = tmp_path / "dsm.tif"
-    profile = dict(driver="GTiff", width=20, height=20, count=1, dtype="float32", crs=CRS14,
-                   transform=Affine(0.1, 0, 0, 0, -0.1, 2))
+    profile = dict(
+        driver="GTiff",
+        width=20,
+        height=20,
+        count=1,
+        dtype="float32",
+        crs=CRS14,
+        transform=Affine(0.1, 0, 0, 0, -0.1, 2),
+    )
     if how == "nodata":
         profile["nodata"] = -32767
     with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(path, "w", **profile) as dst:

@@ -62,21 +62,35 @@ def tree(tmp_path):
 
 
 def test_path_fields_walk_sections_and_lists(tree):
-    cfg = StepConfig(images=tree / "images", rasters=Rasters(dsm=tree / "data" / "dsm.tif"),
-                     bands=[Band(tree / "b1.tif"), Band(None)], output_dir=tree / "out")
+    cfg = StepConfig(
+        images=tree / "images",
+        rasters=Rasters(dsm=tree / "data" / "dsm.tif"),
+        bands=[Band(tree / "b1.tif"), Band(None)],
+        output_dir=tree / "out",
+    )
     assert [(k, kind) for k, _, kind in path_fields(cfg)] == [
-        ("images", "dir"), ("rasters.dsm", "file"), ("bands[0].path", "file"), ("output_dir", "out")]
+        ("images", "dir"),
+        ("rasters.dsm", "file"),
+        ("bands[0].path", "file"),
+        ("output_dir", "out"),
+    ]
 
 
-@pytest.mark.parametrize("settings, words", [
-    ({"polygons": "data/plants.gpkg", "output_dir": "data"}, ["output folder 'output_dir'", "contains the input 'polygons'"]),
-    ({"images": "images", "output_dir": "images"}, ["output 'output_dir' is the same path as input 'images'"]),
-    ({"images": "images", "output_dir": "images/out"}, ["inside the input folder 'images'"]),
-    ({"annotations": "images", "output_dir": "images/sub/out"}, ["inside the input folder 'annotations'"]),
-    ({"rasters": Rasters(dsm="data/dsm.tif"), "output_dir": "data/"}, ["contains the input 'rasters.dsm'"]),
-    ({"bands": [Band("data/dsm.tif")], "output_dir": "data/dsm.tif"}, ["same path as input 'bands[0].path'"]),
-    ({"images": "images", "output_dir": "images/../images/./"}, ["same path as input 'images'"]),
-])
+@pytest.mark.parametrize(
+    "settings, words",
+    [
+        (
+            {"polygons": "data/plants.gpkg", "output_dir": "data"},
+            ["output folder 'output_dir'", "contains the input 'polygons'"],
+        ),
+        ({"images": "images", "output_dir": "images"}, ["output 'output_dir' is the same path as input 'images'"]),
+        ({"images": "images", "output_dir": "images/out"}, ["inside the input folder 'images'"]),
+        ({"annotations": "images", "output_dir": "images/sub/out"}, ["inside the input folder 'annotations'"]),
+        ({"rasters": Rasters(dsm="data/dsm.tif"), "output_dir": "data/"}, ["contains the input 'rasters.dsm'"]),
+        ({"bands": [Band("data/dsm.tif")], "output_dir": "data/dsm.tif"}, ["same path as input 'bands[0].path'"]),
+        ({"images": "images", "output_dir": "images/../images/./"}, ["same path as input 'images'"]),
+    ],
+)
 def test_outputs_over_inputs_are_refused(tree, settings, words):
     def absolute(v):
         if isinstance(v, Rasters):
@@ -84,6 +98,7 @@ def test_outputs_over_inputs_are_refused(tree, settings, words):
         if isinstance(v, list):
             return [Band(tree / b.path) for b in v]
         return tree / v
+
     cfg = StepConfig(**{k: absolute(v) for k, v in settings.items()})
     with pytest.raises(ConfigError) as info:
         check_outputs_are_not_inputs(cfg)
@@ -125,8 +140,13 @@ def test_a_step_may_declare_that_it_writes_into_its_inputs(tree):
     with pytest.raises(ConfigError, match="same path as input 'project_dir'"):
         check_outputs(ReadsAProject(project_dir=tree / "images", output_dir=tree / "images"))
     with pytest.raises(ConfigError, match="contains the input 'boundary'"):
-        check_outputs(ReadsAProject(project_dir=tree / "images", boundary=tree / "images" / "sub" / "aoi.gpkg",
-                                    output_dir=tree / "images" / "sub"))
+        check_outputs(
+            ReadsAProject(
+                project_dir=tree / "images",
+                boundary=tree / "images" / "sub" / "aoi.gpkg",
+                output_dir=tree / "images" / "sub",
+            )
+        )
 
 
 @pytest.mark.skipif(sys.platform == "win32" or os.geteuid() == 0, reason="root writes into read-only folders")
@@ -181,8 +201,12 @@ def test_staged_outputs_move_into_place_on_success_keeping_other_files(tmp_path)
         (stage / "images" / "a.jpg").write_bytes(b"jpg")
         assert (out / "report.csv").read_text() == "old report"  # nothing visible before success
         assert not (out / "images").exists()
-    assert snapshot(out) == {"logs/run_1.log": b"old log", "report.csv": b"new report", "keep.txt": b"not rewritten",
-                             "images/a.jpg": b"jpg"}
+    assert snapshot(out) == {
+        "logs/run_1.log": b"old log",
+        "report.csv": b"new report",
+        "keep.txt": b"not rewritten",
+        "images/a.jpg": b"jpg",
+    }
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
 
 

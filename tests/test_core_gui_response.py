@@ -9,7 +9,7 @@ import json
 import pytest
 from conftest import run_in_xvfb, xvfb_available
 
-CODE = r'''
+CODE = r"""
 import json, time
 import numpy as np
 from matplotlib.backend_bases import KeyEvent, MouseEvent
@@ -78,7 +78,7 @@ print(json.dumps({"quiet_s": quiet, "plain_s": plain, "typed": typed, "title": s
                   "text_x0": ext.x0, "text_x1": ext.x1, "box_x0": axbb.x0, "box_x1": axbb.x1,
                   "clipped": box.text_disp.get_clip_on() and (box.text_disp.get_clip_box() is not None or box.text_disp.get_clip_path() is not None), **{k: v for k, v in seen.items() if k != "click"}}))
 close(screen.fig)
-'''
+"""
 
 
 def test_keystrokes_busy_indicator_and_long_paths_in_a_real_window(tmp_path):
@@ -90,8 +90,8 @@ def test_keystrokes_busy_indicator_and_long_paths_in_a_real_window(tmp_path):
     r = json.loads(res.stdout.strip().splitlines()[-1])
     print(r)
     assert sorted(r["typed"]) == sorted("abc" + "x" * 15)  # every keystroke arrived
-    assert r["quiet_s"] <= 0.100, r                        # drawn within 100 ms (median of 15)
-    assert r["quiet_s"] < r["plain_s"], r                  # and faster than Matplotlib's own text box
+    assert r["quiet_s"] <= 0.100, r  # drawn within 100 ms (median of 15)
+    assert r["quiet_s"] < r["plain_s"], r  # and faster than Matplotlib's own text box
     assert r["status"].startswith("working") and r["status_drawn"] and r["after_click_s"] <= 0.5, r
     assert r["title"] == "MatchPlant - 8 Test step" and not r["toolbar"]  # a form: no pan/zoom toolbar under it
     # the end of a long path (its file name) shows inside the field; the rest is clipped to the field

@@ -64,6 +64,7 @@ def gcp_truth(field) -> dict:
 
 # -- module 1 ----------------------------------------------------------------------------------------
 
+
 @pytest.mark.slow
 @pytest.mark.gui
 def test_gcp_setup_screen_full_run(tiny_field, tmp_path):
@@ -96,6 +97,7 @@ def test_gcp_setup_screen_full_run(tiny_field, tmp_path):
 
 # -- module 3 ----------------------------------------------------------------------------------------
 
+
 @pytest.mark.slow
 @pytest.mark.gui
 def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
@@ -103,8 +105,9 @@ def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
     from matchplant.min_img_finder.gui import MinImgFinderSetup
 
     out = tmp_path / "sel"
-    setup = MinImgFinderSetup(MinImgFinderConfig(), headless=True,
-                           chooser=Picker(("folder", tiny_field.root), ("folder", out)))
+    setup = MinImgFinderSetup(
+        MinImgFinderConfig(), headless=True, chooser=Picker(("folder", tiny_field.root), ("folder", out))
+    )
     browse(setup.screen, "project_dir")
     browse(setup.screen, "output_dir")
     press(setup.screen.run_button)
@@ -130,8 +133,9 @@ def test_min_images_setup_screen_reports_a_wrong_folder(tmp_path):
     from matchplant.min_img_finder.config import MinImgFinderConfig
     from matchplant.min_img_finder.gui import MinImgFinderSetup
 
-    setup = MinImgFinderSetup(MinImgFinderConfig(), headless=True,
-                           chooser=Picker(("folder", tmp_path), ("folder", tmp_path / "o")))
+    setup = MinImgFinderSetup(
+        MinImgFinderConfig(), headless=True, chooser=Picker(("folder", tmp_path), ("folder", tmp_path / "o"))
+    )
     browse(setup.screen, "project_dir")
     browse(setup.screen, "output_dir")
     press(setup.screen.run_button)
@@ -141,13 +145,18 @@ def test_min_images_setup_screen_reports_a_wrong_folder(tmp_path):
 
 # -- module 9 ----------------------------------------------------------------------------------------
 
+
 @pytest.mark.gui
 def test_stats_window_pickers_full_run(tiny_field, tmp_path):
     from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
     from matchplant.spatial_stat_extractor.gui import SpatialStatExtractorGUI
 
-    picker = Picker(("file", tiny_field.map_boxes), ("file", tiny_field.dsm), ("file", tiny_field.dtm),
-                    ("folder", tmp_path / "stats"))
+    picker = Picker(
+        ("file", tiny_field.map_boxes),
+        ("file", tiny_field.dsm),
+        ("file", tiny_field.dtm),
+        ("folder", tmp_path / "stats"),
+    )
     gui = SpatialStatExtractorGUI(SpatialStatExtractorConfig(), headless=True, chooser=picker)
     for key in ("polygons", "rasters.dsm", "rasters.dtm", "output_dir"):
         browse(gui, key)
@@ -164,14 +173,19 @@ def test_stats_window_pickers_full_run(tiny_field, tmp_path):
 
 # -- module 4 ----------------------------------------------------------------------------------------
 
+
 def free_spots(boxes, width, height, n=2, side=12, margin=12):
     """``n`` squares of ``side`` px on free ground (``margin`` px from every box and from the edges)."""
     b = np.asarray(boxes, float).reshape(-1, 4)
     spots = []
     for y in range(margin, height - side - margin, 4):
         for x in range(margin, width - side - margin, 4):
-            if not ((b[:, 0] - margin < x + side) & (x < b[:, 2] + margin) &
-                    (b[:, 1] - margin < y + side) & (y < b[:, 3] + margin)).any():
+            if not (
+                (b[:, 0] - margin < x + side)
+                & (x < b[:, 2] + margin)
+                & (b[:, 1] - margin < y + side)
+                & (y < b[:, 3] + margin)
+            ).any():
                 spots.append((x, y))
                 b = np.vstack([b, [x, y, x + side, y + side]])
                 if len(spots) == n:
@@ -204,7 +218,7 @@ def check_annotations(out: Path, truth: dict, drawn: dict) -> None:
         # imported boxes to the 0.01 px COCO keeps; drawn ones to 1 px (events come in whole screen pixels)
         want = [(b, "plant", 0.011) for b in boxes] + [(b, c, 1.0) for b, c in drawn.get(name, [])]
         assert len(got[name]) == len(want), name
-        for box, cat, tol in want:   # each wanted box found, with its category
+        for box, cat, tol in want:  # each wanted box found, with its category
             assert any(c == cat and np.abs(np.subtract(g, box)).max() <= tol for g, c in got[name]), (name, box, cat)
 
 
@@ -229,15 +243,16 @@ def test_bbox_setup_screen_full_run(tiny_field, tmp_path):
     assert screen.ran, screen.status.get_text()
     g = setup.window
     truth = truth_boxes(tiny_field)
-    assert g.store.count() == sum(map(len, truth.values()))          # the chosen import, every box
+    assert g.store.count() == sum(map(len, truth.values()))  # the chosen import, every box
     # draw a plant, press 2 (the next box is a weed: the plant stays a plant), draw a weed, quit
     (x0, y0), (x1, y1) = free_spots(truth[g.name], *g.store.size(g.name))
     ge.drag(g.fig, g.ax, x0, y0, x0 + 12, y0 + 12, steps=1)
     ge.key(g.fig, "2")
     ge.drag(g.fig, g.ax, x1, y1, x1 + 12, y1 + 12, steps=1)
     ge.key(g.fig, "q")
-    check_annotations(out, truth, {g.name: [([x0, y0, x0 + 12, y0 + 12], "plant"),
-                                            ([x1, y1, x1 + 12, y1 + 12], "weed")]})
+    check_annotations(
+        out, truth, {g.name: [([x0, y0, x0 + 12, y0 + 12], "plant"), ([x1, y1, x1 + 12, y1 + 12], "weed")]}
+    )
     assert (out / "yolo" / "classes.txt").read_text().split() == ["plant", "weed"]
 
 
@@ -249,8 +264,12 @@ def test_bbox_setup_screen_reports_a_bad_import(tiny_field, tmp_path):
 
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
-    setup = BboxDrawerSetup(BboxDrawerConfig(), headless=True, dpi=50, chooser=Picker(
-        ("folder", tiny_field.undistorted_images), ("folder", tmp_path / "o"), ("file", bad)))
+    setup = BboxDrawerSetup(
+        BboxDrawerConfig(),
+        headless=True,
+        dpi=50,
+        chooser=Picker(("folder", tiny_field.undistorted_images), ("folder", tmp_path / "o"), ("file", bad)),
+    )
     for key in ("images", "output_dir", "import_coco"):
         browse(setup.screen, key)
     press(setup.screen.run_button)
@@ -294,9 +313,9 @@ def test_tiling_setup_screen_full_run(tiny_field, tmp_path):
     press(setup.screen.run_button)
     assert setup.screen.ran, setup.screen.status.get_text()
     preview = setup.preview
-    assert preview.boxes["images"].text == str(tiny_field.undistorted_images)   # the chosen paths, in its boxes
+    assert preview.boxes["images"].text == str(tiny_field.undistorted_images)  # the chosen paths, in its boxes
     assert len(preview.sources) == 9 and "boxes: 339 of 339 kept" in preview.summary.get_text()
-    assert not out.exists()                                  # a preview writes nothing
+    assert not out.exists()  # a preview writes nothing
     press(preview.buttons["Run"])
     assert preview.status.get_text().startswith("done"), preview.status.get_text()
     check_tiles(out, tiny_field)
@@ -310,8 +329,12 @@ def test_tiling_setup_screen_reports_bad_annotations(tiny_field, tmp_path):
 
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
-    setup = ImgSplitterSetup(ImgSplitterConfig(**TILING), headless=True, dpi=40, chooser=Picker(
-        ("folder", tiny_field.undistorted_images), ("file", bad), ("folder", tmp_path / "o")))
+    setup = ImgSplitterSetup(
+        ImgSplitterConfig(**TILING),
+        headless=True,
+        dpi=40,
+        chooser=Picker(("folder", tiny_field.undistorted_images), ("file", bad), ("folder", tmp_path / "o")),
+    )
     for key in ("images", "annotations", "output_dir"):
         browse(setup.screen, key)
     press(setup.screen.run_button)
@@ -321,14 +344,23 @@ def test_tiling_setup_screen_reports_bad_annotations(tiny_field, tmp_path):
 
 # -- no display ------------------------------------------------------------------------------------
 
+
 @pytest.mark.slow
-@pytest.mark.parametrize("folder,script", [("1_gcp_finder", "gcp_finder.py"), ("3_min_img_finder", "min_img_finder.py"),
-                                           ("4_bbox_drawer", "bbox_drawer.py"), ("5_img_splitter", "img_splitter.py"),
-                                           ("9_spatial_stat_extractor", "spatial_stat_extractor.py")])
+@pytest.mark.parametrize(
+    "folder,script",
+    [
+        ("1_gcp_finder", "gcp_finder.py"),
+        ("3_min_img_finder", "min_img_finder.py"),
+        ("4_bbox_drawer", "bbox_drawer.py"),
+        ("5_img_splitter", "img_splitter.py"),
+        ("9_spatial_stat_extractor", "spatial_stat_extractor.py"),
+    ],
+)
 def test_gui_without_display_is_a_clear_error(folder, script):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    r = subprocess.run([sys.executable, str(ROOT / folder / script), "--gui"], capture_output=True, text=True,
-                       timeout=120, env=env)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / folder / script), "--gui"], capture_output=True, text=True, timeout=120, env=env
+    )
     assert r.returncode == 2, r.stderr
     assert "needs a window" in r.stderr and "without --gui" in r.stderr and "Traceback" not in r.stderr
 
@@ -366,8 +398,13 @@ plt.show()
 
 
 def _xvfb(answers, build, actions, ran):
-    code = XVFB.format(tests=str(Path(__file__).parent), answers=[(k, str(p)) for k, p in answers], build=build,
-                       actions=actions, ran=ran)
+    code = XVFB.format(
+        tests=str(Path(__file__).parent),
+        answers=[(k, str(p)) for k, p in answers],
+        build=build,
+        actions=actions,
+        ran=ran,
+    )
     r = run_in_xvfb(textwrap.dedent(code), timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr[-3000:]
     assert "RAN True" in r.stdout, r.stdout + r.stderr[-3000:]
@@ -378,28 +415,40 @@ def _xvfb(answers, build, actions, ran):
 def test_setup_screens_in_real_windows(tiny_field, tmp_path):
     """Each screen in a TkAgg window on a virtual display, its files chosen in Tk's real dialogs."""
     run = "click(fig, screen.run_button.ax, 0.5, 0.5)"
-    _xvfb([("images", tiny_field.images), ("survey", tiny_field.gcp_survey), ("output_dir", tmp_path / "gcp")],
-          "from matchplant.gcp_finder.config import GcpFinderConfig\n"
-          "from matchplant.gcp_finder.gui import GcpFinderSetup\n"
-          f"setup = GcpFinderSetup(GcpFinderConfig(survey_crs={crs_of(tiny_field)!r}, auto=True))\n"
-          "screen = setup.screen\nbuttons = screen.browse_buttons",
-          run, "screen.ran and setup.marking is not None")
+    _xvfb(
+        [("images", tiny_field.images), ("survey", tiny_field.gcp_survey), ("output_dir", tmp_path / "gcp")],
+        "from matchplant.gcp_finder.config import GcpFinderConfig\n"
+        "from matchplant.gcp_finder.gui import GcpFinderSetup\n"
+        f"setup = GcpFinderSetup(GcpFinderConfig(survey_crs={crs_of(tiny_field)!r}, auto=True))\n"
+        "screen = setup.screen\nbuttons = screen.browse_buttons",
+        run,
+        "screen.ran and setup.marking is not None",
+    )
     assert (tmp_path / "gcp" / "gcp_list.txt").is_file()
-    _xvfb([("project_dir", tiny_field.root), ("output_dir", tmp_path / "sel")],
-          "from matchplant.min_img_finder.config import MinImgFinderConfig\n"
-          "from matchplant.min_img_finder.gui import MinImgFinderSetup\n"
-          "setup = MinImgFinderSetup(MinImgFinderConfig())\n"
-          "screen = setup.screen\nbuttons = screen.browse_buttons",
-          run, "screen.ran and setup.editor.ax.get_legend() is not None")
+    _xvfb(
+        [("project_dir", tiny_field.root), ("output_dir", tmp_path / "sel")],
+        "from matchplant.min_img_finder.config import MinImgFinderConfig\n"
+        "from matchplant.min_img_finder.gui import MinImgFinderSetup\n"
+        "setup = MinImgFinderSetup(MinImgFinderConfig())\n"
+        "screen = setup.screen\nbuttons = screen.browse_buttons",
+        run,
+        "screen.ran and setup.editor.ax.get_legend() is not None",
+    )
     assert (tmp_path / "sel" / "coverage.png").is_file()
-    _xvfb([("polygons", tiny_field.map_boxes), ("rasters.dsm", tiny_field.dsm), ("rasters.dtm", tiny_field.dtm),
-           ("output_dir", tmp_path / "stats")],
-          "from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig\n"
-          "from matchplant.spatial_stat_extractor.gui import SpatialStatExtractorGUI\n"
-          "screen = SpatialStatExtractorGUI(SpatialStatExtractorConfig())\nbuttons = screen.pickers\n"
-          f"screen.boxes['polygons_crs'].set_val({crs_of(tiny_field)!r})",
-          "click(fig, screen.btn_run.ax, 0.5, 0.5); screen.wait(120)",
-          "screen.status.get_text().startswith('done')")
+    _xvfb(
+        [
+            ("polygons", tiny_field.map_boxes),
+            ("rasters.dsm", tiny_field.dsm),
+            ("rasters.dtm", tiny_field.dtm),
+            ("output_dir", tmp_path / "stats"),
+        ],
+        "from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig\n"
+        "from matchplant.spatial_stat_extractor.gui import SpatialStatExtractorGUI\n"
+        "screen = SpatialStatExtractorGUI(SpatialStatExtractorConfig())\nbuttons = screen.pickers\n"
+        f"screen.boxes['polygons_crs'].set_val({crs_of(tiny_field)!r})",
+        "click(fig, screen.btn_run.ax, 0.5, 0.5); screen.wait(120)",
+        "screen.status.get_text().startswith('done')",
+    )
     assert len(pd.read_csv(tmp_path / "stats" / "stats.csv")) == len(pd.read_csv(tiny_field.plants_csv))
 
 
@@ -411,29 +460,42 @@ def test_setup_screens_4_and_5_in_real_windows(tiny_field, tmp_path):
     first = sorted(truth)[0]
     (x0, y0), (x1, y1) = free_spots(truth[first], 400, 300)
     draw = "drag(g.fig, g.ax, {0}, {1}, {0} + 12, {1} + 12, steps=1)"
-    _xvfb([("images", tiny_field.undistorted_images), ("output_dir", tmp_path / "labels"),
-           ("import_coco", tiny_field.boxes_undistorted)],
-          "from gui_events import drag, key as type_key\n"  # the template's loop has its own 'key'
-          "from matchplant.bbox_drawer.run import BboxDrawerConfig\n"
-          "from matchplant.bbox_drawer.gui import BboxDrawerSetup\n"
-          "setup = BboxDrawerSetup(BboxDrawerConfig(categories=['plant', 'weed']))\n"
-          "screen = setup.screen\nbuttons = screen.browse_buttons",
-          "click(fig, screen.run_button.ax, 0.5, 0.5); g = setup.window; "
-          "shown = g.fig.canvas.manager.window.state() == 'normal'; "
-          f"{draw.format(x0, y0)}; type_key(g.fig, '2'); {draw.format(x1, y1)}; type_key(g.fig, 'q')",
-          f"screen.ran and shown and g.name == {first!r}")
-    check_annotations(tmp_path / "labels", truth, {first: [([x0, y0, x0 + 12, y0 + 12], "plant"),
-                                                           ([x1, y1, x1 + 12, y1 + 12], "weed")]})
-    _xvfb([("images", tiny_field.undistorted_images), ("annotations", tiny_field.boxes_undistorted),
-           ("output_dir", tmp_path / "tiles")],
-          "from matchplant.img_splitter.run import ImgSplitterConfig\n"
-          "from matchplant.img_splitter.gui import ImgSplitterSetup\n"
-          f"setup = ImgSplitterSetup(ImgSplitterConfig(**{TILING!r}))\n"
-          "screen = setup.screen\nbuttons = screen.browse_buttons",
-          "click(fig, screen.run_button.ax, 0.5, 0.5); p = setup.preview; "
-          "shown = p.fig.canvas.manager.window.state() == 'normal'; "
-          "click(p.fig, p.buttons['Run'].ax, 0.5, 0.5)",
-          "screen.ran and shown and p.result is not None")
+    _xvfb(
+        [
+            ("images", tiny_field.undistorted_images),
+            ("output_dir", tmp_path / "labels"),
+            ("import_coco", tiny_field.boxes_undistorted),
+        ],
+        "from gui_events import drag, key as type_key\n"  # the template's loop has its own 'key'
+        "from matchplant.bbox_drawer.run import BboxDrawerConfig\n"
+        "from matchplant.bbox_drawer.gui import BboxDrawerSetup\n"
+        "setup = BboxDrawerSetup(BboxDrawerConfig(categories=['plant', 'weed']))\n"
+        "screen = setup.screen\nbuttons = screen.browse_buttons",
+        "click(fig, screen.run_button.ax, 0.5, 0.5); g = setup.window; "
+        "shown = g.fig.canvas.manager.window.state() == 'normal'; "
+        f"{draw.format(x0, y0)}; type_key(g.fig, '2'); {draw.format(x1, y1)}; type_key(g.fig, 'q')",
+        f"screen.ran and shown and g.name == {first!r}",
+    )
+    check_annotations(
+        tmp_path / "labels",
+        truth,
+        {first: [([x0, y0, x0 + 12, y0 + 12], "plant"), ([x1, y1, x1 + 12, y1 + 12], "weed")]},
+    )
+    _xvfb(
+        [
+            ("images", tiny_field.undistorted_images),
+            ("annotations", tiny_field.boxes_undistorted),
+            ("output_dir", tmp_path / "tiles"),
+        ],
+        "from matchplant.img_splitter.run import ImgSplitterConfig\n"
+        "from matchplant.img_splitter.gui import ImgSplitterSetup\n"
+        f"setup = ImgSplitterSetup(ImgSplitterConfig(**{TILING!r}))\n"
+        "screen = setup.screen\nbuttons = screen.browse_buttons",
+        "click(fig, screen.run_button.ax, 0.5, 0.5); p = setup.preview; "
+        "shown = p.fig.canvas.manager.window.state() == 'normal'; "
+        "click(p.fig, p.buttons['Run'].ax, 0.5, 0.5)",
+        "screen.ran and shown and p.result is not None",
+    )
     check_tiles(tmp_path / "tiles", tiny_field)
 
 
@@ -464,8 +526,10 @@ def test_a_long_path_given_at_start_shows_its_end_inside_its_field():
     fig = Figure(figsize=(8, 3))
     FigureCanvasAgg(fig)
     long = "/home/breeder/field_trials/2026/sorghum_north/flight_07/odm_project/odm_dem/dsm_final.tif"
-    boxes = {text: QuietTextBox(fig.add_axes((0.3, y, 0.4, 0.2)), "DSM ", initial=text)
-             for text, y in ((long, 0.6), ("dsm.tif", 0.2))}
+    boxes = {
+        text: QuietTextBox(fig.add_axes((0.3, y, 0.4, 0.2)), "DSM ", initial=text)
+        for text, y in ((long, 0.6), ("dsm.tif", 0.2))
+    }
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     ext = {text: box.text_disp.get_window_extent(renderer) for text, box in boxes.items()}

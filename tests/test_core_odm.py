@@ -35,8 +35,10 @@ def test_odm_project_reports_missing_outputs_with_options(tmp_path, data_dir):
 def test_odm_project_reads_real_undistorted_size(tmp_path, data_dir):
     root = tmp_path / "proj"
     (root / "opensfm" / "undistorted" / "images").mkdir(parents=True)
-    shutil.copy(data_dir / "opensfm-berlin" / "reconstruction_example.json",
-                root / "opensfm" / "undistorted" / "reconstruction.json")
+    shutil.copy(
+        data_dir / "opensfm-berlin" / "reconstruction_example.json",
+        root / "opensfm" / "undistorted" / "reconstruction.json",
+    )
     Image.new("RGB", (1632, 1224)).save(root / "opensfm" / "undistorted" / "images" / "01.jpg.tif")
     project = ODMProject(root)
     shot = project.shot("01.jpg", undistorted=True)

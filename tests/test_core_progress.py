@@ -66,5 +66,7 @@ def test_progress_is_silent_for_short_loops_and_when_quiet(monkeypatch):
 
 
 def test_progress_line_format():
-    assert progress_line("tiles", 30, 120, 60.0, "tile") == "tiles: 30/120 tile 25% (1:00 elapsed, 2.0 s/tile, ETA 3:00)"
+    assert (
+        progress_line("tiles", 30, 120, 60.0, "tile") == "tiles: 30/120 tile 25% (1:00 elapsed, 2.0 s/tile, ETA 3:00)"
+    )
     assert progress_line("x", 5, None, 2.0) == "x: 5 it (0:02 elapsed, 2.50 it/s)"

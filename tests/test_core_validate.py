@@ -15,7 +15,20 @@ from shapely.geometry import box
 
 from matchplant.core.runtime import validate_gis
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.core.runtime.validate import check_coordinates, check_jpeg, check_path, check_range, did_you_mean, match_name, match_names, name_key, read_csv, read_json, read_text, read_yaml
+from matchplant.core.runtime.validate import (
+    check_coordinates,
+    check_jpeg,
+    check_path,
+    check_range,
+    did_you_mean,
+    match_name,
+    match_names,
+    name_key,
+    read_csv,
+    read_json,
+    read_text,
+    read_yaml,
+)
 from matchplant.core.runtime.validate_gis import check_raster, check_vector
 
 
@@ -37,25 +50,36 @@ def test_did_you_mean_and_name_matching():
     assert did_you_mean("ZZZ", ["tile_size"]) == ""
     assert did_you_mean("PLANTS", ["plants", "boxes"]) == "did you mean 'plants'?"
     assert name_key("a/b/IMG_1.JPG") == name_key("img_1.tif") == name_key("IMG_1") == "img_1"
-    matched, unmatched = match_names(["IMG_1.tif", "IMG_2.jpg", "IMG_3.JPG", "other.JPG"],
-                                     ["IMG_1", "IMG_2.JPG", "IMG_3.JPG"])
+    matched, unmatched = match_names(
+        ["IMG_1.tif", "IMG_2.jpg", "IMG_3.JPG", "other.JPG"], ["IMG_1", "IMG_2.JPG", "IMG_3.JPG"]
+    )
     assert matched == {"IMG_1.tif": "IMG_1", "IMG_2.jpg": "IMG_2.JPG", "IMG_3.JPG": "IMG_3.JPG"}
     assert unmatched == ["other.JPG"]
     # ambiguous loose matches are not guessed
     assert match_names(["a.jpg"], ["A.JPG", "a.tif"]) == ({}, ["a.jpg"])
     assert match_name("IMG_1.tif", ["IMG_1.JPG"], what="image") == "IMG_1.JPG"
-    fails(lambda: match_name("IMG_7.JPG", ["IMG_1.JPG", "IMG_2.JPG"], what="image", path="rec.json"),
-          "image 'IMG_7.JPG' not found", "did you mean", "rec.json")
-    fails(lambda: match_name("plnts", ["plants", "boxes"], what="layer", error=ConfigError),
-          "did you mean 'plants'", exc=ConfigError)
+    fails(
+        lambda: match_name("IMG_7.JPG", ["IMG_1.JPG", "IMG_2.JPG"], what="image", path="rec.json"),
+        "image 'IMG_7.JPG' not found",
+        "did you mean",
+        "rec.json",
+    )
+    fails(
+        lambda: match_name("plnts", ["plants", "boxes"], what="layer", error=ConfigError),
+        "did you mean 'plants'",
+        exc=ConfigError,
+    )
 
 
 # -- text, JSON, YAML -------------------------------------------------------------------------------------------
 
 
 def test_read_text_accepts_windows_encodings(tmp_path):
-    for name, data in [("bom.txt", b"\xef\xbb\xbfa,b\r\n1,2\r\n"), ("u16.txt", "a,b\r\n1,2\r\n".encode("utf-16")),
-                       ("plain.txt", b"a,b\n1,2\n")]:
+    for name, data in [
+        ("bom.txt", b"\xef\xbb\xbfa,b\r\n1,2\r\n"),
+        ("u16.txt", "a,b\r\n1,2\r\n".encode("utf-16")),
+        ("plain.txt", b"a,b\n1,2\n"),
+    ]:
         (tmp_path / name).write_bytes(data)
         assert read_text(tmp_path / name) == "a,b\n1,2\n"
     (tmp_path / "latin.txt").write_bytes("champ é\n".encode("cp1252"))
@@ -80,7 +104,7 @@ def test_read_json(tmp_path):
     fails(lambda: read_json(p, required=["images"]), "has no 'images'; did you mean 'image'?")
     p.write_text("  \n")
     fails(lambda: read_json(p), "is empty")
-    p.write_bytes(b"\xef\xbb\xbf{\"a\": 1}\r\n")
+    p.write_bytes(b'\xef\xbb\xbf{"a": 1}\r\n')
     assert read_json(p) == {"a": 1}
 
 
@@ -105,13 +129,16 @@ def test_read_yaml(tmp_path):
 # -- CSV --------------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("text", [
-    "id,x,y,z\nA,1.5,2,3\nB,4,5,6\n",
-    "\ufeffid;x;y;z\r\nA;1,5;2;3\r\nB;4;5;6\r\n",  # Excel in a comma-decimal locale
-    "ID\tX\tY\tZ\nA\t1.5\t2\t3\nB\t4\t5\t6\n",
-    "id x y z\nA 1.5 2 3\nB 4 5 6\n",
-    "# survey of 2024\nid, x, y, z\n\nA, 1.5, 2, 3\nB, 4, 5, 6\n",
-])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "id,x,y,z\nA,1.5,2,3\nB,4,5,6\n",
+        "\ufeffid;x;y;z\r\nA;1,5;2;3\r\nB;4;5;6\r\n",  # Excel in a comma-decimal locale
+        "ID\tX\tY\tZ\nA\t1.5\t2\t3\nB\t4\t5\t6\n",
+        "id x y z\nA 1.5 2 3\nB 4 5 6\n",
+        "# survey of 2024\nid, x, y, z\n\nA, 1.5, 2, 3\nB, 4, 5, 6\n",
+    ],
+)
 def test_read_csv_accepts_the_usual_dialects(tmp_path, text):
     p = tmp_path / "gcp.csv"
     p.write_bytes(text.encode("utf-8"))
@@ -152,8 +179,11 @@ def test_read_csv_errors_name_the_line_and_column(tmp_path):
 
 def test_check_range():
     check_range([0.1, 0.5, 1.0], lo=0, hi=1, what="score")
-    fails(lambda: check_range([0.1, 1.5, 2], lo=0, hi=1, what="score", lines=[2, 3, 4], path="p.json"),
-          "line 3: score = 1.5 is outside [0, 1] (2 of 3 values)", "p.json")
+    fails(
+        lambda: check_range([0.1, 1.5, 2], lo=0, hi=1, what="score", lines=[2, 3, 4], path="p.json"),
+        "line 3: score = 1.5 is outside [0, 1] (2 of 3 values)",
+        "p.json",
+    )
     fails(lambda: check_range([1, np.nan], what="height"), "height = nan")
     fails(lambda: check_range([-1], lo=0, what="width", unit="px"), "outside [0, ] px")
 
@@ -161,9 +191,14 @@ def test_check_range():
 def test_check_coordinates_units():
     check_coordinates([-96.1, -96.2], [41.1, 41.2], geographic=True)
     check_coordinates([500100.0, 500200.0], [4550000.0, 4550100.0], geographic=False)
-    fails(lambda: check_coordinates([500100.0, 500200.0], [4550000.0, 4550100.0], geographic=True,
-                                    path="log.csv", lines=[2, 3]),
-          "line 2: coordinates (500100, 4.55e+06) are not degrees", "projected metres", "log.csv")
+    fails(
+        lambda: check_coordinates(
+            [500100.0, 500200.0], [4550000.0, 4550100.0], geographic=True, path="log.csv", lines=[2, 3]
+        ),
+        "line 2: coordinates (500100, 4.55e+06) are not degrees",
+        "projected metres",
+        "log.csv",
+    )
     fails(lambda: check_coordinates([41.1, 41.2], [-96.1, -96.2], geographic=True), "look swapped")
     fails(lambda: check_coordinates([-96.1, -96.2], [41.1, 41.2], geographic=False), "look like degrees")
     fails(lambda: check_coordinates([1.0, np.inf], [1.0, 2.0], geographic=True), "coordinates x = inf")
@@ -176,8 +211,11 @@ def test_check_path(tmp_path):
     check_path(tmp_path, "exists", key="annotations")
     fails(lambda: check_path(tmp_path / "no.txt", "file", key="survey"), "'survey': file not found", exc=ConfigError)
     fails(lambda: check_path(tmp_path, "file", key="survey"), "must be a file, but this is a folder", exc=ConfigError)
-    fails(lambda: check_path(tmp_path / "f.txt", "dir", key="images"), "must be a folder, but this is a file",
-          exc=ConfigError)
+    fails(
+        lambda: check_path(tmp_path / "f.txt", "dir", key="images"),
+        "must be a folder, but this is a file",
+        exc=ConfigError,
+    )
 
 
 # -- rasters, vectors, JPEG ---------------------------------------------------------------------------------------
@@ -185,8 +223,18 @@ def test_check_path(tmp_path):
 
 def write_raster(path, data, crs="EPSG:32614", nodata=None, transform=Affine(0.1, 0, 500000, 0, -0.1, 4500000)):
     data = np.atleast_3d(data).transpose(2, 0, 1) if data.ndim == 2 else data
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1], count=data.shape[0],
-                       dtype=data.dtype, crs=crs, transform=transform, nodata=nodata) as ds:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[2],
+        height=data.shape[1],
+        count=data.shape[0],
+        dtype=data.dtype,
+        crs=crs,
+        transform=transform,
+        nodata=nodata,
+    ) as ds:
         ds.write(data)
     return path
 
@@ -227,9 +275,22 @@ def test_check_raster_looks_at_a_few_blocks_before_any_scan(tmp_path, monkeypatc
     """A big tiled raster is judged from at most 8 x 8 of its tiles (not a decimated read, which decompresses
     every tile of a raster without overviews); only a band that looks empty there is scanned in full."""
     path = tmp_path / "tiled.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=4096, height=4096, count=1, dtype="float32", nodata=-1,
-                       crs="EPSG:32615", transform=Affine(0.01, 0, 0, 0, -0.01, 0), tiled=True, blockxsize=256,
-                       blockysize=256, compress="deflate") as ds:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=4096,
+        height=4096,
+        count=1,
+        dtype="float32",
+        nodata=-1,
+        crs="EPSG:32615",
+        transform=Affine(0.01, 0, 0, 0, -0.01, 0),
+        tiled=True,
+        blockxsize=256,
+        blockysize=256,
+        compress="deflate",
+    ) as ds:
         ds.write(np.full((4096, 4096), -1, "float32"), 1)
         ds.write(np.ones((256, 256), "float32"), 1, window=rasterio.windows.Window(2304, 2304, 256, 256))
     with rasterio.open(path) as ds:
@@ -245,7 +306,7 @@ def test_check_raster_looks_at_a_few_blocks_before_any_scan(tmp_path, monkeypatc
     check_raster(path)  # tile (9, 9) of 16 x 16 is among the 8 x 8 sampled: no scan
     assert 0 < len(read) <= 64 and all(k["window"].width == 256 for k in read)
     # a truncated copy fails: the sample holds the last tile, at the end of the file
-    (tmp_path / "cut.tif").write_bytes(path.read_bytes()[:path.stat().st_size * 2 // 3])
+    (tmp_path / "cut.tif").write_bytes(path.read_bytes()[: path.stat().st_size * 2 // 3])
     fails(lambda: check_raster(tmp_path / "cut.tif"), "cannot be read", "cut.tif")
 
 

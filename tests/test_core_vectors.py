@@ -23,8 +23,16 @@ VECTOR_WRITE = re.compile(r"\.to_file\(|write_dataframe\(|\b(GPKG|ESRI Shapefile
 def plants(crs="EPSG:32615"):
     x = 500000.0 + 2 * np.arange(3)
     boxes = shapely.box(x, 4e6, x + 1, 4e6 + 1)
-    return gpd.GeoDataFrame({"plant_id": [1, 2, 3], "source_image": ["a.JPG", "b.JPG", "c.JPG"],
-                             "cut": [True, False, True], "score": [0.5, 0.25, 0.125]}, geometry=boxes, crs=crs)
+    return gpd.GeoDataFrame(
+        {
+            "plant_id": [1, 2, 3],
+            "source_image": ["a.JPG", "b.JPG", "c.JPG"],
+            "cut": [True, False, True],
+            "score": [0.5, 0.25, 0.125],
+        },
+        geometry=boxes,
+        crs=crs,
+    )
 
 
 def test_only_the_writer_writes_vector_files():
@@ -64,8 +72,7 @@ def test_shapefile_columns_and_layers(tmp_path):
     layers = {"plants": gdf, "first": gdf.iloc[:1]}
     assert write_layers(layers, tmp_path / "two.gpkg") == [tmp_path / "two.gpkg"]
     assert [name for name, _ in pyogrio.list_layers(tmp_path / "two.gpkg")] == ["plants", "first"]
-    assert write_layers(layers, tmp_path / "two.geojson") == [tmp_path / "two.geojson",
-                                                               tmp_path / "two_first.geojson"]
+    assert write_layers(layers, tmp_path / "two.geojson") == [tmp_path / "two.geojson", tmp_path / "two_first.geojson"]
     assert len(gpd.read_file(tmp_path / "two_first.geojson")) == 1
     written = write_formats({"plants": gdf}, tmp_path / "out" / "p", ["gpkg", "shp", "geojson"])
     assert {k: v.name for k, v in written.items()} == {"gpkg": "p.gpkg", "shp": "p.shp", "geojson": "p.geojson"}

@@ -9,19 +9,42 @@ from PIL import Image
 
 from matchplant.demo import TABLE_END, TABLE_START, demo_table, update_docs
 
-SUMMARY = {"detector": {"coco": {"AP50": 0.8812, "AP": 0.3104}}, "training": {"epochs_done": 2},
-           "projection": {"share_matched": 0.991, "share_iou_above_0.5": 0.962, "iou_median": 0.871},
-           "traits": {"plants": 1300, "true_plants": 1292, "height_r": 0.9991, "height_box_r": 0.963,
-                      "ndvi_r": 0.998, "ndvi_box_r": 0.32, "outline_iou_median": 0.897},
-           "plots": {"plots": 63, "stand_count_exact_share": 62 / 63, "gaps_found_share": 1.0, "false_gap_share": 0.0},
-           "growth": {"reused_box_centre_error_median_m": 0.0427, "recentred_error_median_m": 0.0044}}
+SUMMARY = {
+    "detector": {"coco": {"AP50": 0.8812, "AP": 0.3104}},
+    "training": {"epochs_done": 2},
+    "projection": {"share_matched": 0.991, "share_iou_above_0.5": 0.962, "iou_median": 0.871},
+    "traits": {
+        "plants": 1300,
+        "true_plants": 1292,
+        "height_r": 0.9991,
+        "height_box_r": 0.963,
+        "ndvi_r": 0.998,
+        "ndvi_box_r": 0.32,
+        "outline_iou_median": 0.897,
+    },
+    "plots": {"plots": 63, "stand_count_exact_share": 62 / 63, "gaps_found_share": 1.0, "false_gap_share": 0.0},
+    "growth": {"reused_box_centre_error_median_m": 0.0427, "recentred_error_median_m": 0.0044},
+}
 
 
 def test_table_shows_the_run_figures():
     table = demo_table(SUMMARY)
-    for text in ("AP50 88.1%", "AP 31.0%", "2 epochs", "99.1%", "96.2%", "median IoU 0.87", "1300 records for 1292",
-                 "over the canopy 0.999", "over the box 0.963", "box mean 0.320", "median IoU 0.90",
-                 "98.4% of 63 plots", "0.043 m", "0.004 m"):
+    for text in (
+        "AP50 88.1%",
+        "AP 31.0%",
+        "2 epochs",
+        "99.1%",
+        "96.2%",
+        "median IoU 0.87",
+        "1300 records for 1292",
+        "over the canopy 0.999",
+        "over the box 0.963",
+        "box mean 0.320",
+        "median IoU 0.90",
+        "98.4% of 63 plots",
+        "0.043 m",
+        "0.004 m",
+    ):
         assert text in table, (text, table)
     assert "n/a" in demo_table({})  # a missing figure says so instead of inventing one
 
@@ -43,8 +66,11 @@ def test_update_docs_rewrites_only_the_table_and_copies_the_figures(tmp_path):
     assert not (root / "docs" / "coverage.jpg").exists()  # the run made no coverage map: nothing is invented
 
 
-NOISY = {"traits": {"height_r": 0.912, "ndvi_r": 0.871, "outline_iou_median": 0.61, "height_box_r": 0.9},
-         "plots": {"plots": 63, "stand_count_exact_share": 0.5}, "projection": {"share_matched": 0.95}}
+NOISY = {
+    "traits": {"height_r": 0.912, "ndvi_r": 0.871, "outline_iou_median": 0.61, "height_box_r": 0.9},
+    "plots": {"plots": 63, "stand_count_exact_share": 0.5},
+    "projection": {"share_matched": 0.95},
+}
 
 
 def test_table_puts_the_realistic_field_beside_the_exact_one_and_says_what_was_scored():
@@ -65,8 +91,13 @@ def test_table_puts_the_realistic_field_beside_the_exact_one_and_says_what_was_s
 def test_held_out_photos_leave_out_the_train_and_val_splits(tmp_path):
     from matchplant.demo import held_out_photos, link_photos
 
-    summary = {"splits": {"train": {"source_images": ["b.tif", "d.tif"]}, "val": {"source_images": ["c.tif"]},
-                          "test": {"source_images": ["e.tif"]}}}
+    summary = {
+        "splits": {
+            "train": {"source_images": ["b.tif", "d.tif"]},
+            "val": {"source_images": ["c.tif"]},
+            "test": {"source_images": ["e.tif"]},
+        }
+    }
     photos = ["a.tif", "b.tif", "c.tif", "d.tif", "e.tif", "f.tif"]
     held, splits = held_out_photos(summary, photos)
     assert held == ["a.tif", "e.tif", "f.tif"] and splits["train"] == ["b.tif", "d.tif"]

@@ -26,9 +26,16 @@ def _terminal_sigint() -> None:
 
 def _start(out: Path) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg", MATCHPLANT_QUIET="0")
-    return subprocess.Popen([sys.executable, "-m", "matchplant.demo", "--preset", "tiny", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO,
-                            start_new_session=True, preexec_fn=_terminal_sigint)
+    return subprocess.Popen(
+        [sys.executable, "-m", "matchplant.demo", "--preset", "tiny", "--out", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        cwd=REPO,
+        start_new_session=True,
+        preexec_fn=_terminal_sigint,
+    )
 
 
 def _interrupt_when(proc: subprocess.Popen, seen, timeout: float = 240) -> tuple[int, list[str]]:
@@ -64,8 +71,9 @@ def test_ctrl_c_while_starting_gives_one_line_and_130(tmp_path):
 
 @pytest.mark.slow
 def test_ctrl_c_during_a_step_gives_one_line_and_130(tmp_path):
-    rc, after = _interrupt_when(_start(tmp_path / "demo"), lambda lines: any("rendering images" in ln or
-                                                                              "running" in ln for ln in lines))
+    rc, after = _interrupt_when(
+        _start(tmp_path / "demo"), lambda lines: any("rendering images" in ln or "running" in ln for ln in lines)
+    )
     _one_line(rc, after)
     # ours is the only line after the interrupt (progress output aside)
     assert [ln for ln in after if not ln.startswith(("rendering", "generating", "["))] == [after[-1]], after
@@ -81,12 +89,24 @@ def test_make_demo_adds_no_line_of_its_own(tmp_path):
     (bin_dir / "python").chmod(0o755)
     (tmp_path / "venv" / ".installed").touch()  # newer than the requirements: make installs nothing
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen(["make", "-s", "-C", str(REPO), "demo", f"VENV={tmp_path / 'venv'}",
-                             f"DEMO_ARGS=--preset tiny --out {tmp_path / 'demo'}"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
-                            start_new_session=True, preexec_fn=_terminal_sigint)
-    rc, after = _interrupt_when(proc, lambda lines: any("rendering images" in ln or "running" in ln
-                                                        for ln in lines))
+    proc = subprocess.Popen(
+        [
+            "make",
+            "-s",
+            "-C",
+            str(REPO),
+            "demo",
+            f"VENV={tmp_path / 'venv'}",
+            f"DEMO_ARGS=--preset tiny --out {tmp_path / 'demo'}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+        start_new_session=True,
+        preexec_fn=_terminal_sigint,
+    )
+    rc, after = _interrupt_when(proc, lambda lines: any("rendering images" in ln or "running" in ln for ln in lines))
     assert rc in (-signal.SIGINT, 130), after  # make ends by the signal: the shell reports 130
     assert not any(ln.startswith("make") for ln in after), after
     assert after[-1].startswith("interrupted (Ctrl-C)") and not any("Traceback" in ln for ln in after), after

@@ -36,15 +36,35 @@ def test_scoring_on_a_split_that_excludes_the_training_photos(tiny_field, tmp_pa
     images, preds = [], []
     for im in ds["images"]:
         if im["file_name"] in held:
-            images.append({"id": im["id"], "file_name": im["file_name"], "width": im["width"],
-                           "height": im["height"], "source_image": im["file_name"], "x0": 0, "y0": 0})
-            preds += [{"id": len(preds) + 1, "image_id": im["id"], "category_id": 1, "bbox": a["bbox"], "score": 0.9}
-                      for a in by_image[im["id"]]]
-    predictions = write_predictions(tmp_path / "7_detect" / "predictions.json", images,
-                                    [{"id": 1, "name": "plant", "supercategory": "plant"}], preds)
+            images.append(
+                {
+                    "id": im["id"],
+                    "file_name": im["file_name"],
+                    "width": im["width"],
+                    "height": im["height"],
+                    "source_image": im["file_name"],
+                    "x0": 0,
+                    "y0": 0,
+                }
+            )
+            preds += [
+                {"id": len(preds) + 1, "image_id": im["id"], "category_id": 1, "bbox": a["bbox"], "score": 0.9}
+                for a in by_image[im["id"]]
+            ]
+    predictions = write_predictions(
+        tmp_path / "7_detect" / "predictions.json",
+        images,
+        [{"id": 1, "name": "plant", "supercategory": "plant"}],
+        preds,
+    )
     crs = read_json(tiny_field.field_json)["crs"]
-    spec = {"output_dir": ".", "field": str(tiny_field.root), "crs": crs, "predictions": str(predictions),
-            "steps": map_steps(tiny_field.root, "${predictions}")}
+    spec = {
+        "output_dir": ".",
+        "field": str(tiny_field.root),
+        "crs": crs,
+        "predictions": str(predictions),
+        "steps": map_steps(tiny_field.root, "${predictions}"),
+    }
     pipe = tmp_path / "pipeline.yaml"
     pipe.write_text(yaml.safe_dump(spec, sort_keys=False))
     run_pipeline(PipelineConfig(pipeline=pipe))

@@ -13,7 +13,9 @@ from log_records import log_records, messages
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.detection.device import (
-    cuda_unusable_reason, explain_device, select_device,
+    cuda_unusable_reason,
+    explain_device,
+    select_device,
 )
 
 
@@ -49,5 +51,3 @@ def test_cuda_reasons_name_the_cause():
 
     cuda_build = SimpleNamespace(version=SimpleNamespace(cuda="13.0"), cuda=SimpleNamespace(is_available=old_driver))
     assert "driver on your system is too old" in cuda_unusable_reason(cuda_build)
-
-

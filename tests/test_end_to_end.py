@@ -29,42 +29,112 @@ def pipeline(field, crs: str) -> dict:
         "field": str(field),
         "crs": crs,
         "steps": [
-            {"name": "gps", "module": "gps_embed",
-             "config": {"images": "${field}/images_nogps", "gnss_log": "${field}/gnss/events.txt",
-                        "log_crs": "${crs}"}},
-            {"name": "gcp", "module": "gcp_finder",
-             "config": {"images": "${gps.output_dir}/images", "survey": "${field}/gcp/gcp_survey.csv",
-                        "survey_crs": "${crs}", "auto": True}},
+            {
+                "name": "gps",
+                "module": "gps_embed",
+                "config": {
+                    "images": "${field}/images_nogps",
+                    "gnss_log": "${field}/gnss/events.txt",
+                    "log_crs": "${crs}",
+                },
+            },
+            {
+                "name": "gcp",
+                "module": "gcp_finder",
+                "config": {
+                    "images": "${gps.output_dir}/images",
+                    "survey": "${field}/gcp/gcp_survey.csv",
+                    "survey_crs": "${crs}",
+                    "auto": True,
+                },
+            },
             {"name": "odm", "module": "odm_runner", "config": {"project_dir": "${field}", "check_only": True}},
             {"name": "select", "module": "min_img_finder", "config": {"project_dir": "${field}"}},
-            {"name": "annotate", "module": "bbox_drawer",
-             "config": {"images": "${select.output_dir}/images",
-                        "import_coco": "${field}/truth/boxes_undistorted.json", "min_score": 0.0}},
-            {"name": "tiles", "module": "img_splitter",
-             "config": {"images": "${select.output_dir}/images",
-                        "annotations": "${annotate.output_dir}/annotations.json", "tile_size": 128,
-                        "overlap": 32, "split": [0.5, 0.25, 0.25], "workers": 1}},
-            {"name": "train", "module": "train",
-             "config": {"train_json": "${tiles.output_dir}/train.json", "val_json": "${tiles.output_dir}/val.json",
-                        "model": {"architecture": "fasterrcnn_mobilenet_v3_large_fpn", "pretrained": "none",
-                                  "min_size": 128, "max_size": 128,
-                                  "rpn": {"pre_nms_top_n_train": 200, "post_nms_top_n_train": 100,
-                                          "pre_nms_top_n_test": 100, "post_nms_top_n_test": 100},
-                                  "roi": {"batch_size_per_image": 32}},
-                        "epochs": 1, "batch_size": 4, "num_workers": 0, "warmup_iters": 2, "save_every": 0}},
-            {"name": "detect", "module": "model_test",
-             "config": {"checkpoint": "${train.output_dir}/checkpoints/last.pt",
-                        "evaluate": {"dataset_json": "${tiles.output_dir}/test.json", "drawn_images": 1},
-                        "detect": {"images": "${select.output_dir}/images", "tile_size": 128, "overlap": 32,
-                                   "score_threshold": 0.0, "drawn_images": 1}}},
-            {"name": "plants", "module": "project_boxes",
-             "config": {"project": "${field}", "predictions": "${truth_predictions}",
-                        "images_from": "${field}/truth/boxes_undistorted.json",
-                        "mode": "both", "evaluate": {"reference": "${field}/truth/map_boxes.csv"}}},
-            {"name": "stats", "module": "stat_extractor",
-             "config": {"polygons": "${plants.output_dir}/plants.gpkg",
-                        "rasters": {"dsm": "${field}/odm_dem/dsm.tif", "dtm": "${field}/odm_dem/dtm.tif",
-                                    "multispectral": "${field}/multispectral/multispectral.tif"}}},
+            {
+                "name": "annotate",
+                "module": "bbox_drawer",
+                "config": {
+                    "images": "${select.output_dir}/images",
+                    "import_coco": "${field}/truth/boxes_undistorted.json",
+                    "min_score": 0.0,
+                },
+            },
+            {
+                "name": "tiles",
+                "module": "img_splitter",
+                "config": {
+                    "images": "${select.output_dir}/images",
+                    "annotations": "${annotate.output_dir}/annotations.json",
+                    "tile_size": 128,
+                    "overlap": 32,
+                    "split": [0.5, 0.25, 0.25],
+                    "workers": 1,
+                },
+            },
+            {
+                "name": "train",
+                "module": "train",
+                "config": {
+                    "train_json": "${tiles.output_dir}/train.json",
+                    "val_json": "${tiles.output_dir}/val.json",
+                    "model": {
+                        "architecture": "fasterrcnn_mobilenet_v3_large_fpn",
+                        "pretrained": "none",
+                        "min_size": 128,
+                        "max_size": 128,
+                        "rpn": {
+                            "pre_nms_top_n_train": 200,
+                            "post_nms_top_n_train": 100,
+                            "pre_nms_top_n_test": 100,
+                            "post_nms_top_n_test": 100,
+                        },
+                        "roi": {"batch_size_per_image": 32},
+                    },
+                    "epochs": 1,
+                    "batch_size": 4,
+                    "num_workers": 0,
+                    "warmup_iters": 2,
+                    "save_every": 0,
+                },
+            },
+            {
+                "name": "detect",
+                "module": "model_test",
+                "config": {
+                    "checkpoint": "${train.output_dir}/checkpoints/last.pt",
+                    "evaluate": {"dataset_json": "${tiles.output_dir}/test.json", "drawn_images": 1},
+                    "detect": {
+                        "images": "${select.output_dir}/images",
+                        "tile_size": 128,
+                        "overlap": 32,
+                        "score_threshold": 0.0,
+                        "drawn_images": 1,
+                    },
+                },
+            },
+            {
+                "name": "plants",
+                "module": "project_boxes",
+                "config": {
+                    "project": "${field}",
+                    "predictions": "${truth_predictions}",
+                    "images_from": "${field}/truth/boxes_undistorted.json",
+                    "mode": "both",
+                    "evaluate": {"reference": "${field}/truth/map_boxes.csv"},
+                },
+            },
+            {
+                "name": "stats",
+                "module": "stat_extractor",
+                "config": {
+                    "polygons": "${plants.output_dir}/plants.gpkg",
+                    "rasters": {
+                        "dsm": "${field}/odm_dem/dsm.tif",
+                        "dtm": "${field}/odm_dem/dtm.tif",
+                        "multispectral": "${field}/multispectral/multispectral.tif",
+                    },
+                },
+            },
         ],
     }
 
@@ -76,8 +146,10 @@ def season(tiny_field, tmp_path_factory):
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("season")
     truth = json.loads(tiny_field.boxes_undistorted.read_text())
-    results = [{"image_id": a["image_id"], "category_id": a["category_id"], "bbox": a["bbox"], "score": 1.0}
-               for a in truth["annotations"]]
+    results = [
+        {"image_id": a["image_id"], "category_id": a["category_id"], "bbox": a["bbox"], "score": 1.0}
+        for a in truth["annotations"]
+    ]
     (root / "truth_predictions.json").write_text(json.dumps(results))
     crs = json.loads(tiny_field.field_json.read_text())["crs"]
     spec = pipeline(tiny_field.root, crs)
@@ -92,9 +164,18 @@ def test_every_step_runs_and_chains(season):
     root, pipe, first, field = season
     assert list(first.values()) == ["ran"] * 10
     run = root / "run"
-    for f in ("gps/match_report.csv", "gcp/gcp_list.txt", "odm/odm_manifest.json", "select/selected_images.csv",
-              "annotate/annotations.json", "tiles/train.json", "train/checkpoints/last.pt",
-              "detect/predictions.json", "plants/plants.gpkg", "stats/stats.csv"):
+    for f in (
+        "gps/match_report.csv",
+        "gcp/gcp_list.txt",
+        "odm/odm_manifest.json",
+        "select/selected_images.csv",
+        "annotate/annotations.json",
+        "tiles/train.json",
+        "train/checkpoints/last.pt",
+        "detect/predictions.json",
+        "plants/plants.gpkg",
+        "stats/stats.csv",
+    ):
         assert (run / f).is_file(), f
 
 
@@ -138,11 +219,13 @@ def _exif_latlon(path) -> tuple[float, float]:
     gps = piexif.load(str(path))["GPS"]
 
     def deg(v, ref):
-        d = sum(n / q / 60 ** i for i, (n, q) in enumerate(v))
+        d = sum(n / q / 60**i for i, (n, q) in enumerate(v))
         return -d if ref in (b"S", b"W") else d
 
-    return (deg(gps[piexif.GPSIFD.GPSLatitude], gps[piexif.GPSIFD.GPSLatitudeRef]),
-            deg(gps[piexif.GPSIFD.GPSLongitude], gps[piexif.GPSIFD.GPSLongitudeRef]))
+    return (
+        deg(gps[piexif.GPSIFD.GPSLatitude], gps[piexif.GPSIFD.GPSLatitudeRef]),
+        deg(gps[piexif.GPSIFD.GPSLongitude], gps[piexif.GPSIFD.GPSLongitudeRef]),
+    )
 
 
 def test_rerun_skips_and_a_failed_step_resumes(season, tmp_path):

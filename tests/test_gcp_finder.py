@@ -34,11 +34,11 @@ from matchplant.gcp_finder.target import detect_target
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).parent / "data" / "gcp_lists"
 UTM = "EPSG:32614"
-W, H, GSD = 600, 400, 0.01       # image size, metres per pixel at the GCPs
+W, H, GSD = 600, 400, 0.01  # image size, metres per pixel at the GCPs
 FOCAL_MM, SENSOR_MM = 8.8, 13.2  # DJI FC6310 (Phantom 4 Pro): in the built-in sensor table
 HEIGHT = GSD * FOCAL_MM / SENSOR_MM * W  # camera height above the GCPs giving that GSD: 4 m
 GROUND = 350.0
-TARGET = 0.5                     # side of the 2x2 checker target, m
+TARGET = 0.5  # side of the 2x2 checker target, m
 GCPS = {"G1": (700000.0, 4500000.0), "G2": (700001.2, 4500000.5), "G3": (700003.5, 4500002.5)}
 
 
@@ -55,7 +55,7 @@ def pixel_of(gx, gy, cam, yaw_deg):
 def render(cam, yaw_deg, rng, ss=2) -> np.ndarray:
     """A nadir view of textured soil with the checker targets (anti-aliased by supersampling)."""
     psi = math.radians(yaw_deg)
-    v, u = np.mgrid[0:H * ss, 0:W * ss]
+    v, u = np.mgrid[0 : H * ss, 0 : W * ss]
     u = (u + 0.5) / ss - 0.5 - (W - 1) / 2
     v = (v + 0.5) / ss - 0.5 - (H - 1) / 2
     right, up = u * GSD, -v * GSD
@@ -76,24 +76,34 @@ def render(cam, yaw_deg, rng, ss=2) -> np.ndarray:
 
 def make_image(path: Path, cam, yaw_deg: float | None, rng, t: int, xmp: bool = True, model=b"FC6310") -> None:
     lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(cam[0], cam[1])
-    exif = {"0th": {piexif.ImageIFD.Make: b"DJI", piexif.ImageIFD.Model: model},
-            "Exif": {piexif.ExifIFD.FocalLength: (int(FOCAL_MM * 100), 100),
-                     piexif.ExifIFD.DateTimeOriginal: f"2024:06:05 15:30:{t:02d}".encode()},
-            "GPS": gps_ifd(lat, lon, GROUND + HEIGHT)}
+    exif = {
+        "0th": {piexif.ImageIFD.Make: b"DJI", piexif.ImageIFD.Model: model},
+        "Exif": {
+            piexif.ExifIFD.FocalLength: (int(FOCAL_MM * 100), 100),
+            piexif.ExifIFD.DateTimeOriginal: f"2024:06:05 15:30:{t:02d}".encode(),
+        },
+        "GPS": gps_ifd(lat, lon, GROUND + HEIGHT),
+    }
     buf = io.BytesIO()
     Image.fromarray(render(cam, yaw_deg or 0.0, rng)).save(buf, "jpeg", quality=95, exif=piexif.dump(exif))
     data = buf.getvalue()
     if xmp and yaw_deg is not None:
-        payload = (b"http://ns.adobe.com/xap/1.0/\x00<x:xmpmeta xmlns:x='adobe:ns:meta/'><rdf:Description "
-                   b"drone-dji:RelativeAltitude=\"+4.00\" drone-dji:GimbalPitchDegree=\"-90.0\" "
-                   b"drone-dji:FlightYawDegree=\"+" + f"{yaw_deg:.1f}".encode() + b"\"/></x:xmpmeta>")
+        payload = (
+            b"http://ns.adobe.com/xap/1.0/\x00<x:xmpmeta xmlns:x='adobe:ns:meta/'><rdf:Description "
+            b'drone-dji:RelativeAltitude="+4.00" drone-dji:GimbalPitchDegree="-90.0" '
+            b'drone-dji:FlightYawDegree="+' + f"{yaw_deg:.1f}".encode() + b'"/></x:xmpmeta>'
+        )
         end = [e for m, s, e in jpeg_segments(data)[0] if m == 0xE1][0]
         data = data[:end] + b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload + data[end:]
     path.write_bytes(data)
 
 
-CAMS = {"IMG_0001.JPG": ((700000.3, 4500000.2), 0.0), "IMG_0002.JPG": ((700001.0, 4500000.9), 90.0),
-        "IMG_0003.JPG": ((700002.2, 4500001.0), 200.0), "IMG_0004.JPG": ((700008.0, 4500008.0), 30.0)}
+CAMS = {
+    "IMG_0001.JPG": ((700000.3, 4500000.2), 0.0),
+    "IMG_0002.JPG": ((700001.0, 4500000.9), 90.0),
+    "IMG_0003.JPG": ((700002.2, 4500001.0), 200.0),
+    "IMG_0004.JPG": ((700008.0, 4500008.0), 30.0),
+}
 
 
 @pytest.fixture(scope="module")
@@ -118,8 +128,9 @@ def flight(tmp_path_factory):
 
 
 def cfg_for(root: Path, out: Path, **kw) -> GcpFinderConfig:
-    return GcpFinderConfig(**{"images": root / "images", "survey": root / "survey.csv", "survey_crs": UTM,
-                              "output_dir": out, **kw})
+    return GcpFinderConfig(
+        **{"images": root / "images", "survey": root / "survey.csv", "survey_crs": UTM, "output_dir": out, **kw}
+    )
 
 
 def test_image_info_and_xmp(flight):
@@ -128,8 +139,9 @@ def test_image_info_and_xmp(flight):
     assert (info.width, info.height, info.model, info.focal_mm) == (W, H, "FC6310", FOCAL_MM)
     assert info.yaw == 90.0 and info.pitch == -90.0 and info.relative_alt == 4.0
     assert abs(info.alt - (GROUND + HEIGHT)) < 1e-3
-    assert parse_dji_xmp('<drone-dji:GimbalYawDegree>-12.5</drone-dji:GimbalYawDegree> '
-                         'drone-dji:FlightYawDegree="+3"') == {"gimbal_yaw": -12.5, "flight_yaw": 3.0}
+    assert parse_dji_xmp(
+        '<drone-dji:GimbalYawDegree>-12.5</drone-dji:GimbalYawDegree> drone-dji:FlightYawDegree="+3"'
+    ) == {"gimbal_yaw": -12.5, "flight_yaw": 3.0}
 
 
 def test_tiff_images(flight, tmp_path):
@@ -192,8 +204,11 @@ def test_lonlat_survey_gives_utm_output(flight, tmp_path):
         for gid, (x, y) in GCPS.items():
             lon, lat = t.transform(x, y)
             fh.write(f"{gid},{lat:.10f},{lon:.10f},{GROUND}\n")
-    finder = find_candidates(GcpFinderConfig(images=root / "images", survey=tmp_path / "ll.csv",
-                                             survey_crs="EPSG:4326", output_dir=tmp_path / "o"))
+    finder = find_candidates(
+        GcpFinderConfig(
+            images=root / "images", survey=tmp_path / "ll.csv", survey_crs="EPSG:4326", output_dir=tmp_path / "o"
+        )
+    )
     assert finder.crs.to_epsg() == 32614
     assert abs(finder.gcps["G2"].x - GCPS["G2"][0]) < 1e-3
     assert {(c.gcp, c.image) for v in finder.candidates.values() for c in v} == set(truth)
@@ -257,8 +272,9 @@ def test_survey_errors(flight, tmp_path):
 
 def test_unknown_camera_needs_sensor_width(tmp_path):
     (tmp_path / "images").mkdir()
-    make_image(tmp_path / "images" / "a.jpg", (700000.3, 4500000.2), 0.0, np.random.default_rng(0), 1,
-               model=b"MysteryCam")
+    make_image(
+        tmp_path / "images" / "a.jpg", (700000.3, 4500000.2), 0.0, np.random.default_rng(0), 1, model=b"MysteryCam"
+    )
     (tmp_path / "survey.csv").write_text("id,x,y,z\nG1,700000,4500000,350\n")
     with pytest.raises(InputError, match="sensor_width_mm"):
         find_candidates(cfg_for(tmp_path, tmp_path / "o"))
@@ -405,17 +421,21 @@ def test_gui_real_window_xvfb(flight, tmp_path):
 def test_folder_config_and_help():
     cfg = load_config(GcpFinderConfig, ROOT / "1_gcp_finder" / "config.yaml", check_paths=False, strict=False)
     assert 0 < cfg.max_center_distance <= 1
-    r = subprocess.run([sys.executable, str(ROOT / "1_gcp_finder" / "gcp_finder.py"), "--help"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "1_gcp_finder" / "gcp_finder.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--gui" in r.stdout
 
 
 # -- the synthetic field ---------------------------------------------------------------------------
 
+
 def _field_cfg(field, out, **kw) -> GcpFinderConfig:
     meta = json.loads(field.field_json.read_text())
-    return GcpFinderConfig(images=field.images, survey=field.gcp_survey, survey_crs=meta["crs"], output_dir=out,
-                           **kw)
+    return GcpFinderConfig(images=field.images, survey=field.gcp_survey, survey_crs=meta["crs"], output_dir=out, **kw)
 
 
 def _field_truth(field) -> dict:
@@ -473,8 +493,7 @@ def test_survey_values_checked_with_their_line(flight, tmp_path):
         survey([rows[0], rows[1], rows[2], rows[2].replace(rows[2].split(",")[1], "1")])
     with pytest.raises(InputError, match="line 2: column 'x' is 'n/a'"):
         survey([rows[0], "G9,n/a,4500000,300", *rows[1:]])
-    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(
-        *map(float, rows[1].split(",")[1:3]))
+    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(*map(float, rows[1].split(",")[1:3]))
     with pytest.raises(InputError, match="look like degrees"):  # lon/lat in a survey said to be UTM
         survey([rows[0], f"G1,{lon},{lat},300", f"G2,{lon + 1e-5},{lat},300"])
     with pytest.raises(InputError, match="swapped"):  # lat in x, lon in y
@@ -489,16 +508,19 @@ def test_continued_list_drops_foreign_images_and_outside_marks(flight, tmp_path)
     (gid, image), (u, v) = next(iter(truth.items()))
     g = finder.gcps[gid]
     earlier = tmp_path / "earlier.txt"
-    earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n"
-                       f"{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n"
-                       f"{g.x} {g.y} {g.z} 10 99999 {image} {gid}\n")
+    earlier.write_text(
+        f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n"
+        f"{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n"
+        f"{g.x} {g.y} {g.z} 10 99999 {image} {gid}\n"
+    )
     store = MarkStore(finder, tmp_path / "gcp_list.txt", autosave=False)
     assert store.load(earlier) == 1 and list(store.marks) == [(gid, image)]
     earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} nan {v} {image} {gid}\n")
     with pytest.raises(InputError, match="line 2"):
         store.load(earlier)
     # run() writes the continued list back without them, even without 'auto'
-    earlier.write_text(f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n"
-                       f"{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n")
+    earlier.write_text(
+        f"EPSG:32614\n{g.x} {g.y} {g.z} {u} {v} {image} {gid}\n{g.x} {g.y} {g.z} 10 10 OTHER_FLIGHT_0001.JPG {gid}\n"
+    )
     run(cfg_for(root, tmp_path / "out", gcp_list=earlier))
     assert [(m.gcp, m.image) for m in read_gcp_list(tmp_path / "out" / "gcp_list.txt")[2]] == [(gid, image)]

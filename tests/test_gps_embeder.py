@@ -29,16 +29,18 @@ from matchplant.core.formats.exif import (
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
 from matchplant.core.runtime.io import BatchedWrites
-from matchplant.gps_embeder.gnss_log import read_gnss_log
-from matchplant.gps_embeder.matching import assign_events, estimate_clock_offset
 from matchplant.gps_embeder import GpsEmbederConfig
 from matchplant.gps_embeder import run as embed_gps
+from matchplant.gps_embeder.gnss_log import read_gnss_log
+from matchplant.gps_embeder.matching import assign_events, estimate_clock_offset
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = calendar.timegm((2024, 6, 3, 15, 0, 0))  # camera clock of the first image (UTC)
-XMP = (b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
-       b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" drone-dji:FlightYawDegree="+12.3"/>'
-       b'</rdf:RDF></x:xmpmeta>')
+XMP = (
+    b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+    b'<rdf:Description xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" drone-dji:FlightYawDegree="+12.3"/>'
+    b"</rdf:RDF></x:xmpmeta>"
+)
 
 
 def make_jpeg(path: Path, t: float | None, seed: int = 0, xmp: bool = True, size=(48, 32)) -> None:
@@ -62,8 +64,9 @@ def make_jpeg(path: Path, t: float | None, seed: int = 0, xmp: bool = True, size
     path.write_bytes(data)
 
 
-def make_flight(tmp: Path, n: int = 12, offset: float = 3600.4, crs: str = "EPSG:32614", drop_events=(),
-                no_time=(), gps_base=True):
+def make_flight(
+    tmp: Path, n: int = 12, offset: float = 3600.4, crs: str = "EPSG:32614", drop_events=(), no_time=(), gps_base=True
+):
     """Images every 2.0 s (+ jitter) and an events.txt whose clock is the camera's + ``offset``."""
     rng = np.random.default_rng(1)
     img_dir = tmp / "images"
@@ -78,8 +81,9 @@ def make_flight(tmp: Path, n: int = 12, offset: float = 3600.4, crs: str = "EPSG
     stamp = utc + (18.0 if gps_base else 0.0)
     to_log = Transformer.from_crs("EPSG:32614", crs, always_xy=True)
     x, y = to_log.transform(e, nn)
-    lines = ["Timestamp\tX\tY\tZ"] + [f"{stamp[i]:.3f}\t{x[i]:.10f}\t{y[i]:.10f}\t{z[i]:.3f}" for i in range(n)
-                                      if i not in drop_events]
+    lines = ["Timestamp\tX\tY\tZ"] + [
+        f"{stamp[i]:.3f}\t{x[i]:.10f}\t{y[i]:.10f}\t{z[i]:.3f}" for i in range(n) if i not in drop_events
+    ]
     log = tmp / "events.txt"
     log.write_text("\n".join(lines) + "\n")
     lon, lat = Transformer.from_crs("EPSG:32614", "EPSG:4326", always_xy=True).transform(e, nn)
@@ -190,7 +194,7 @@ def test_splice_keeps_jfif_and_xmp(tmp_path):
     segs, sos = jpeg_segments(out)
     markers = [m for m, _, _ in segs]
     assert markers[0] == 0xE0 and markers[1] == 0xE1  # JFIF then EXIF, as before
-    assert sum(out[s + 4:s + 10] == b"Exif\x00\x00" for m, s, e in segs if m == 0xE1) == 1
+    assert sum(out[s + 4 : s + 10] == b"Exif\x00\x00" for m, s, e in segs if m == 0xE1) == 1
     assert XMP in out and jpeg_scan_data(out) == jpeg_scan_data(data)
     # a JPEG without EXIF gets one after its JFIF segment
     buf = io.BytesIO()
@@ -203,8 +207,7 @@ def test_splice_keeps_jfif_and_xmp(tmp_path):
 
 
 def test_exif_time_subseconds_and_offset():
-    exif = {"Exif": {piexif.ExifIFD.DateTimeOriginal: b"2024:06:03 15:00:00",
-                     piexif.ExifIFD.SubSecTimeOriginal: b"45"}}
+    exif = {"Exif": {piexif.ExifIFD.DateTimeOriginal: b"2024:06:03 15:00:00", piexif.ExifIFD.SubSecTimeOriginal: b"45"}}
     assert exif_time(exif) == T0 + 0.45
     assert exif_time(exif, utc_offset_h=-5) == T0 + 0.45 + 5 * 3600
     exif["Exif"][0x9011] = b"+02:00"
@@ -221,17 +224,21 @@ def test_log_formats(tmp_path):
     assert g.times[0] == T0 + 1.25 and np.allclose(g.wgs84()[1], [-96.6, 40.2, 301])
     # RTKLIB .pos (GPST, degrees)
     p = tmp_path / "sol.pos"
-    p.write_text("% program   : RTKPOST ver.2.4.3\n"
-                 "%  GPST                  latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)\n"
-                 "2024/06/03 15:00:19.000   40.123456789  -96.123456789   215.1234   1  10   0.0034\n")
+    p.write_text(
+        "% program   : RTKPOST ver.2.4.3\n"
+        "%  GPST                  latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)\n"
+        "2024/06/03 15:00:19.000   40.123456789  -96.123456789   215.1234   1  10   0.0034\n"
+    )
     g = read_gnss_log(p)
     assert g.times[0] == T0 + 1.0 and np.allclose(g.wgs84()[0], [-96.123456789, 40.123456789, 215.1234])
     # DJI MRK: seconds of GPS week and [week]
     gps_s = T0 + 18 + 2.5 - calendar.timegm((1980, 1, 6, 0, 0, 0))
     week, sow = divmod(gps_s, 604800)
     p = tmp_path / "DJI_202406031500_001_Timestamp.MRK"
-    p.write_text(f"1\t{sow:.6f}\t[{int(week)}]\t    -8,N\t    12,E\t   -99,V\t40.26851713,Lat\t-96.73881287,Lon\t"
-                 "196.052,Ellh\t0.010176, 0.008962, 0.024126\t16,Q\n")
+    p.write_text(
+        f"1\t{sow:.6f}\t[{int(week)}]\t    -8,N\t    12,E\t   -99,V\t40.26851713,Lat\t-96.73881287,Lon\t"
+        "196.052,Ellh\t0.010176, 0.008962, 0.024126\t16,Q\n"
+    )
     g = read_gnss_log(p)
     assert g.format == "mrk" and abs(g.times[0] - (T0 + 2.5)) < 1e-6
     assert np.allclose(g.wgs84()[0], [-96.73881287, 40.26851713, 196.052])
@@ -261,8 +268,12 @@ def test_clear_errors(tmp_path):
 def test_folder_config_and_help():
     cfg = load_config(GpsEmbederConfig, ROOT / "0_gps_embeder" / "config.yaml", check_paths=False, strict=False)
     assert cfg.tolerance_s > 0
-    r = subprocess.run([sys.executable, str(ROOT / "0_gps_embeder" / "gps_embeder.py"), "--help"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "0_gps_embeder" / "gps_embeder.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--config" in r.stdout
 
 
@@ -272,8 +283,9 @@ def test_synthetic_field(tiny_field, tmp_path):
 
     field = json.loads(tiny_field.field_json.read_text())
     out = tmp_path / "out"
-    cfg = GpsEmbederConfig(images=tiny_field.images_nogps, gnss_log=tiny_field.gnss_log, output_dir=out,
-                         log_crs=field["crs"])
+    cfg = GpsEmbederConfig(
+        images=tiny_field.images_nogps, gnss_log=tiny_field.gnss_log, output_dir=out, log_crs=field["crs"]
+    )
     rows = embed_gps(cfg)
     assert rows and all(r["status"] == "matched" for r in rows)
     summary = json.loads((out / "match_summary.json").read_text())  # the field's true clock error
@@ -301,8 +313,12 @@ def test_log_values_are_checked_with_their_line(tmp_path):
     p = tmp_path / "events.txt"
     head = "# receiver export\nTimestamp\tX\tY\tZ\n"
     good = [f"{1717601400 + 2 * k}.0\t{500000 + k}\t4600000\t300" for k in range(5)]
-    cases = {"nan position": (3, "\tnan\t", "position"), "ms timestamp": (None, None, "timestamp_unit"),
-             "absurd time": (4, "9e15", "absurd"), "height in mm": (None, "mm", "height")}
+    cases = {
+        "nan position": (3, "\tnan\t", "position"),
+        "ms timestamp": (None, None, "timestamp_unit"),
+        "absurd time": (4, "9e15", "absurd"),
+        "height in mm": (None, "mm", "height"),
+    }
     for name, (line, what, expect) in cases.items():
         rows = list(good)
         if name == "nan position":
@@ -310,7 +326,7 @@ def test_log_values_are_checked_with_their_line(tmp_path):
         elif name == "ms timestamp":
             rows = [f"{float(r.split()[0]) * 1000:.0f}\t" + "\t".join(r.split()[1:]) for r in rows]
         elif name == "absurd time":
-            rows[1] = what + rows[1][rows[1].index("\t"):]
+            rows[1] = what + rows[1][rows[1].index("\t") :]
         else:
             rows = [r[: r.rindex("\t")] + "\t300000" for r in rows]
         p.write_text(head + "\n".join(rows) + "\n")

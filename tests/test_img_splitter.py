@@ -49,8 +49,15 @@ def _random_boxes(rng, w, h, n):
 
 
 def _cfg(tmp_path, **kw) -> ImgSplitterConfig:
-    sets = {"images": tmp_path / "images", "annotations": tmp_path / "annotations.json",
-            "output_dir": tmp_path / "out", "tile_size": 128, "overlap": 20, "workers": 1, **kw}
+    sets = {
+        "images": tmp_path / "images",
+        "annotations": tmp_path / "annotations.json",
+        "output_dir": tmp_path / "out",
+        "tile_size": 128,
+        "overlap": 20,
+        "workers": 1,
+        **kw,
+    }
     return load_config(ImgSplitterConfig, None, [f"{k}={v}" for k, v in sets.items()])
 
 
@@ -62,9 +69,9 @@ def _load(out: Path, split: str) -> dict:
 def field(tmp_path):
     rng = np.random.default_rng(0)
     sizes = {f"p{i}.png": (300 + 37 * i, 200 + 11 * i) for i in range(7)}
-    sizes["small.png"] = (90, 70)               # smaller than a tile
-    sizes["empty.png"] = (260, 140)             # annotated, no plants
-    sizes["photo.jpg"] = (250, 210)             # lossy source: tiles become PNG
+    sizes["small.png"] = (90, 70)  # smaller than a tile
+    sizes["empty.png"] = (260, 140)  # annotated, no plants
+    sizes["photo.jpg"] = (250, 210)  # lossy source: tiles become PNG
     boxes = {n: _random_boxes(rng, w, h, 25) for n, (w, h) in sizes.items() if n != "empty.png"}
     boxes["small.png"] = [([10, 10, 30, 20], 1)]
     _dataset(tmp_path, sizes, boxes)
@@ -75,8 +82,12 @@ def test_folder_config_loads_and_help_works():
     cfg = load_config(ImgSplitterConfig, ROOT / "5_img_splitter" / "config.yaml", strict=False)
     assert (cfg.tile_size, cfg.overlap, cfg.min_visible, cfg.min_box_side) == (1024, 100, 0.3, 10.0)
     assert cfg.split == [0.7, 0.15, 0.15]
-    r = subprocess.run([sys.executable, str(ROOT / "5_img_splitter" / "img_splitter.py"), "--help"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "5_img_splitter" / "img_splitter.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--gui" in r.stdout
 
 
@@ -94,7 +105,9 @@ def test_every_kept_box_is_its_original_clipped_and_shifted(field):
     src = json.loads((field / "annotations.json").read_text())
     src_boxes = {}
     for im in src["images"]:
-        src_boxes[im["file_name"]] = [(a["bbox"], a["category_id"]) for a in src["annotations"] if a["image_id"] == im["id"]]
+        src_boxes[im["file_name"]] = [
+            (a["bbox"], a["category_id"]) for a in src["annotations"] if a["image_id"] == im["id"]
+        ]
     n_tiles = 0
     for split in ("train", "val", "test"):
         ds = _load(cfg.output_dir, split)
@@ -106,7 +119,7 @@ def test_every_kept_box_is_its_original_clipped_and_shifted(field):
             n_tiles += 1
             tile = shapely_box(im["x0"], im["y0"], im["x0"] + im["width"], im["y0"] + im["height"])
             expected = []
-            for (x, y, w, h), cat in src_boxes[im["source_image"]]:   # independent geometry: shapely
+            for (x, y, w, h), cat in src_boxes[im["source_image"]]:  # independent geometry: shapely
                 inter = tile.intersection(shapely_box(x, y, x + w, y + h))
                 if inter.is_empty or inter.area / (w * h) < 0.3:
                     continue
@@ -129,7 +142,7 @@ def test_splits_by_source_image_and_seeded(field):
         for im in _load(cfg.output_dir, split)["images"]:
             owners.setdefault(im["source_image"], set()).add(split)
             assert (cfg.output_dir / split / "images" / im["file_name"]).is_file()
-    assert all(len(s) == 1 for s in owners.values())             # no photo in two splits
+    assert all(len(s) == 1 for s in owners.values())  # no photo in two splits
     assert len(owners) == 10
     assert [summary["splits"][k]["images"] for k in ("train", "val", "test")] == [7, 2, 1]
     names = [f"im{i}" for i in range(20)]
@@ -147,24 +160,28 @@ def test_spatial_split_keeps_val_and_test_together(tmp_path):
 
 def test_box_across_a_border_is_in_every_tile_where_enough_is_visible(tmp_path):
     # width 300, tile 128, overlap 20: tiles start at x = 0, 108, 172 (one row: height 100)
-    box = [96, 30, 50, 40]                     # x 96..146: 32/50 in tile 0, 38/50 in tile 108, none in 172
-    box2 = [150, 30, 40, 40]                   # x 150..190: all in tile 108, 18/40 = 0.45 in tile 172
-    box3 = [225, 30, 40, 40]                   # x 225..265: 11/40 = 0.275 in tile 108 (dropped), all in 172
+    box = [96, 30, 50, 40]  # x 96..146: 32/50 in tile 0, 38/50 in tile 108, none in 172
+    box2 = [150, 30, 40, 40]  # x 150..190: all in tile 108, 18/40 = 0.45 in tile 172
+    box3 = [225, 30, 40, 40]  # x 225..265: 11/40 = 0.275 in tile 108 (dropped), all in 172
     _dataset(tmp_path, {"a.png": (300, 100)}, {"a.png": [(box, 1), (box2, 1), (box3, 1)]})
     cfg = _cfg(tmp_path, tile_size=128, overlap=20, min_visible=0.3, min_box_side=10, split="[1, 0, 0]")
     run(cfg)
     ds = _load(cfg.output_dir, "train")
-    per_tile = {im["x0"]: sorted(a["bbox"] for a in ds["annotations"] if a["image_id"] == im["id"])
-                for im in ds["images"]}
-    assert per_tile == {0: [[96, 30, 32, 40]],
-                        108: [[0, 30, 38, 40], [42, 30, 40, 40]],
-                        172: [[0, 30, 18, 40], [53, 30, 40, 40]]}
+    per_tile = {
+        im["x0"]: sorted(a["bbox"] for a in ds["annotations"] if a["image_id"] == im["id"]) for im in ds["images"]
+    }
+    assert per_tile == {
+        0: [[96, 30, 32, 40]],
+        108: [[0, 30, 38, 40], [42, 30, 40, 40]],
+        172: [[0, 30, 18, 40], [53, 30, 40, 40]],
+    }
     # the paper's name for the threshold: with iou 0.5 the 0.45 piece in tile 172 goes
     cfg = _cfg(tmp_path, iou=0.5, split="[1, 0, 0]")
     run(cfg)
     ds = _load(cfg.output_dir, "train")
-    assert sorted(a["bbox"] for a in ds["annotations"] if ds["images"][a["image_id"] - 1]["x0"] == 172) == \
-        [[53, 30, 40, 40]]
+    assert sorted(a["bbox"] for a in ds["annotations"] if ds["images"][a["image_id"] - 1]["x0"] == 172) == [
+        [53, 30, 40, 40]
+    ]
 
 
 def test_dropped_csv_names_the_limit_that_dropped_each_box(tmp_path):
@@ -172,8 +189,8 @@ def test_dropped_csv_names_the_limit_that_dropped_each_box(tmp_path):
     too small (not "at most 100 % visible"), one cut too thin by every tile is not visible enough."""
     import csv
 
-    tiny = [40, 40, 6, 6]                       # whole in a tile, but 6 px < min_box_side 10
-    cut = [96, 30, 50, 40]                      # x 96..146: 32/50 in tile 0, 38/50 in tile 108, < 0.9 in both
+    tiny = [40, 40, 6, 6]  # whole in a tile, but 6 px < min_box_side 10
+    cut = [96, 30, 50, 40]  # x 96..146: 32/50 in tile 0, 38/50 in tile 108, < 0.9 in both
     _dataset(tmp_path, {"a.png": (300, 100)}, {"a.png": [(tiny, 1), (cut, 1), ([150, 30, 40, 40], 1)]})
     cfg = _cfg(tmp_path, tile_size=128, overlap=20, min_visible=0.9, min_box_side=10, split="[1, 0, 0]")
     run(cfg)
@@ -192,14 +209,14 @@ def test_edge_cases_small_empty_missing_and_lossless(field, tmp_path):
     write_dataset(field / "annotations.json", ann)
     cfg = _cfg(field, negative_share=1.0, split="[1, 0, 0]", yolo=True)
     summary = run(cfg)
-    assert summary["missing_images"] == ["missing_photo.png"]           # skipped with a warning
+    assert summary["missing_images"] == ["missing_photo.png"]  # skipped with a warning
     ds = _load(cfg.output_dir, "train")
     by_source = {}
     for im in ds["images"]:
         by_source.setdefault(im["source_image"], []).append(im)
-    small = by_source["small.png"]                                       # smaller than a tile: one tile
+    small = by_source["small.png"]  # smaller than a tile: one tile
     assert [(t["x0"], t["y0"], t["width"], t["height"]) for t in small] == [(0, 0, 90, 70)]
-    empty = by_source["empty.png"]                                       # no plants: negatives only
+    empty = by_source["empty.png"]  # no plants: negatives only
     assert len(empty) == len(tile_grid(260, 140, 128, 20))
     assert not [a for a in ds["annotations"] if a["image_id"] in {t["id"] for t in empty}]
     # tiles are lossless crops; a JPEG source gives PNG tiles equal to its decoded pixels
@@ -208,10 +225,12 @@ def test_edge_cases_small_empty_missing_and_lossless(field, tmp_path):
         for t in by_source[name]:
             assert t["file_name"].endswith(".png")
             tile = cv2.imread(str(cfg.output_dir / "train" / "images" / t["file_name"]), cv2.IMREAD_UNCHANGED)
-            assert np.array_equal(tile, source[t["y0"]:t["y0"] + t["height"], t["x0"]:t["x0"] + t["width"]])
+            assert np.array_equal(tile, source[t["y0"] : t["y0"] + t["height"], t["x0"] : t["x0"] + t["width"]])
     # YOLO: one label file per tile, one line per annotation
-    lines = sum(len((cfg.output_dir / "train" / "labels" / (Path(t["file_name"]).stem + ".txt")).read_text().splitlines())
-                for t in ds["images"])
+    lines = sum(
+        len((cfg.output_dir / "train" / "labels" / (Path(t["file_name"]).stem + ".txt")).read_text().splitlines())
+        for t in ds["images"]
+    )
     assert lines == len(ds["annotations"]) and (cfg.output_dir / "data.yaml").is_file()
     # no negatives kept with share 0; the rerun removes the previous run's extra tiles
     cfg0 = _cfg(field, negative_share=0.0, split="[1, 0, 0]")
@@ -245,22 +264,24 @@ def test_bad_inputs_are_clear_errors(field, tmp_path):
         _cfg(field, tile_size=64, overlap=64)
     with pytest.raises(ConfigError, match="split"):
         _cfg(field, split="[0.5, 0.5]")
-    with pytest.raises(ConfigError, match="'split' shares must add up to 1"):   # not normalised silently
+    with pytest.raises(ConfigError, match="'split' shares must add up to 1"):  # not normalised silently
         _cfg(field, split="[0.6, 0.3, 0.3]")
     # a tile larger than every image: no tiling, each image whole as one tile (inspect's advice for large
     # objects), with its boxes as they are
-    whole = run(_cfg(field, tile_size=1024, overlap=0, negative_share=1.0, output_dir=field / "whole",
-                     split="[1, 0, 0]"))
+    whole = run(
+        _cfg(field, tile_size=1024, overlap=0, negative_share=1.0, output_dir=field / "whole", split="[1, 0, 0]")
+    )
     ds = _load(field / "whole", "train")
     assert whole["tiles"] == len(ds["images"]) and all((im["x0"], im["y0"]) == (0, 0) for im in ds["images"])
     sizes = {im["file_name"]: (im["width"], im["height"]) for im in ann_images(field)}
-    assert {im["source_image"]: (im["width"], im["height"]) for im in ds["images"]} == \
-        {k: v for k, v in sizes.items() if k in {im["source_image"] for im in ds["images"]}}
+    assert {im["source_image"]: (im["width"], im["height"]) for im in ds["images"]} == {
+        k: v for k, v in sizes.items() if k in {im["source_image"] for im in ds["images"]}
+    }
     ann = json.loads((field / "annotations.json").read_text())
     write_dataset(field / "no_boxes.json", dict(ann, annotations=[]))
-    with pytest.raises(InputError, match="no box"):                          # no silent negatives-only tiles
+    with pytest.raises(InputError, match="no box"):  # no silent negatives-only tiles
         run(_cfg(field, annotations=field / "no_boxes.json"))
-    assert not (field / "out").exists()                                      # nothing written by failed runs
+    assert not (field / "out").exists()  # nothing written by failed runs
 
 
 def ann_images(field: Path) -> list[dict]:
@@ -270,7 +291,7 @@ def ann_images(field: Path) -> list[dict]:
     cv2.imwrite(str(other / "x.png"), np.zeros((10, 10, 3), np.uint8))
     with pytest.raises(InputError, match="none of the 10 annotated images"):
         run(_cfg(field, images=other))
-    cv2.imwrite(str(field / "images" / "p1.png"), np.zeros((10, 10, 3), np.uint8))   # resized on disk
+    cv2.imwrite(str(field / "images" / "p1.png"), np.zeros((10, 10, 3), np.uint8))  # resized on disk
     with pytest.raises(InputError, match="p1.png"):
         run(_cfg(field))
 
@@ -298,7 +319,7 @@ def test_gui_preview_and_run(field, tmp_path):
     assert g.cfg.tile_size == 96 and len(g.sources[g.index].plan.tiles) == len(tile_grid(s.width, s.height, 96, 20))
     ge.click(g.fig, g.buttons["image >"].ax, 0.5, 0.5)
     assert g.index == 1
-    g.boxes["overlap"].set_val("500")                    # a bad value: a message, not a crash
+    g.boxes["overlap"].set_val("500")  # a bad value: a message, not a crash
     ge.click(g.fig, g.buttons["Preview"].ax, 0.5, 0.5)
     assert "overlap" in g.status.get_text() and g.status.get_color() == "#c00000"
     g.boxes["overlap"].set_val("20")
@@ -311,17 +332,27 @@ def test_gui_preview_and_run(field, tmp_path):
 
 def test_tiny_field_tiles(tiny_field, tmp_path):
     f = tiny_field
-    cfg = load_config(ImgSplitterConfig, None, [f"images={f.undistorted_images}", f"annotations={f.boxes_undistorted}",
-                                           f"output_dir={tmp_path / 'out'}", "tile_size=256", "overlap=40",
-                                           "negative_share=1", "workers=1", "min_box_side=0", "min_visible=0"])
+    cfg = load_config(
+        ImgSplitterConfig,
+        None,
+        [
+            f"images={f.undistorted_images}",
+            f"annotations={f.boxes_undistorted}",
+            f"output_dir={tmp_path / 'out'}",
+            "tile_size=256",
+            "overlap=40",
+            "negative_share=1",
+            "workers=1",
+            "min_box_side=0",
+            "min_visible=0",
+        ],
+    )
     summary = run(cfg)
     truth = json.loads(f.boxes_undistorted.read_text())
     assert summary["boxes"] == len(truth["annotations"]) and summary["boxes_kept"] == summary["boxes"]
     tiles = [im for k in ("train", "val", "test") for im in _load(cfg.output_dir, k)["images"]]
     assert len(tiles) == len(truth["images"]) * len(tile_grid(400, 300, 256, 40))
-    assert all(t["file_name"].endswith(".tif") for t in tiles)           # TIFF sources stay TIFF
-
-
+    assert all(t["file_name"].endswith(".tif") for t in tiles)  # TIFF sources stay TIFF
 
 
 def _owned_area_annotation(f, out: Path, record_region: bool) -> Path:
@@ -366,10 +397,13 @@ def _unlabelled_plants(f, out: Path) -> tuple[int, int]:
             ids = cv2.imread(str(f.masks_undistorted / (im["source_image"][:-4] + ".png")), cv2.IMREAD_UNCHANGED)
             counts = np.bincount(ids.ravel())
             x0, y0, w, h = im["x0"], im["y0"], im["width"], im["height"]
-            tile = ids[y0:y0 + h, x0:x0 + w]
+            tile = ids[y0 : y0 + h, x0 : x0 + w]
             if im.get("masked_outside_region"):
-                region = next(i for i in json.loads((out.parent / "ann" / "annotations.json").read_text())["images"]
-                              if i["file_name"] == im["source_image"])["annotated_region"]
+                region = next(
+                    i
+                    for i in json.loads((out.parent / "ann" / "annotations.json").read_text())["images"]
+                    if i["file_name"] == im["source_image"]
+                )["annotated_region"]
                 tile = mask_outside(tile, region, x0, y0)
             boxes = np.array([[x, y, x + bw, y + bh] for x, y, bw, bh in by_image[im["id"]]]).reshape(-1, 4)
             for pid in np.unique(tile[tile > 0]):
@@ -391,15 +425,29 @@ def test_owned_area_annotation_teaches_no_plant_as_background(tiny_field, tmp_pa
         (tmp_path / "ann").mkdir(exist_ok=True)
         ann = _owned_area_annotation(f, tmp_path / "ann" / "annotations.json", record)
         out = tmp_path / f"tiles_{record}"
-        summary = run(load_config(ImgSplitterConfig, None, [
-            f"images={f.undistorted_images}", f"annotations={ann}", f"output_dir={out}", "tile_size=128",
-            "overlap=32", "negative_share=1", "workers=1", "min_box_side=2", "min_visible=0.3"]))
+        summary = run(
+            load_config(
+                ImgSplitterConfig,
+                None,
+                [
+                    f"images={f.undistorted_images}",
+                    f"annotations={ann}",
+                    f"output_dir={out}",
+                    "tile_size=128",
+                    "overlap=32",
+                    "negative_share=1",
+                    "workers=1",
+                    "min_box_side=2",
+                    "min_visible=0.3",
+                ],
+            )
+        )
         results[record] = (_unlabelled_plants(f, out), summary)
     (bad, seen_bad), _ = results[False]
     (unlabelled, seen), summary = results[True]
     print(f"unlabelled visible plants: whole tiles {bad}/{seen_bad}, masked to the owned area {unlabelled}/{seen}")
-    assert bad > 0.2 * seen_bad                        # whole tiles over owned-area boxes: plants taught as soil
-    assert seen > 50 and unlabelled == 0               # masked to the annotated region: none
+    assert bad > 0.2 * seen_bad  # whole tiles over owned-area boxes: plants taught as soil
+    assert seen > 50 and unlabelled == 0  # masked to the annotated region: none
     assert summary["annotated_regions"]["images"] == 9 and summary["annotated_regions"]["tiles_outside_region"] > 0
 
 
@@ -428,12 +476,18 @@ def test_gui_in_a_real_window(field, tmp_path):
 
     if not xvfb_available():
         pytest.skip("Xvfb is not installed")
-    sets = [f"images={field / 'images'}", f"annotations={field / 'annotations.json'}",
-            f"output_dir={tmp_path / 'xout'}", "tile_size=128", "overlap=20", "workers=1"]
+    sets = [
+        f"images={field / 'images'}",
+        f"annotations={field / 'annotations.json'}",
+        f"output_dir={tmp_path / 'xout'}",
+        "tile_size=128",
+        "overlap=20",
+        "workers=1",
+    ]
     r = run_in_xvfb(XVFB.format(sets=sets), timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "backend tkagg" in r.stdout.lower()
     tiles = int(r.stdout.split("TILES")[1])
-    assert tiles == len(json.loads((tmp_path / "xout" / "train.json").read_text())["images"]) + \
-        len(json.loads((tmp_path / "xout" / "val.json").read_text())["images"]) + \
-        len(json.loads((tmp_path / "xout" / "test.json").read_text())["images"])
+    assert tiles == len(json.loads((tmp_path / "xout" / "train.json").read_text())["images"]) + len(
+        json.loads((tmp_path / "xout" / "val.json").read_text())["images"]
+    ) + len(json.loads((tmp_path / "xout" / "test.json").read_text())["images"])

@@ -31,7 +31,7 @@ def test_inspect_reports_sizes_and_advice(tmp_path, capsys):
     r = json.loads(report.read_text())
     s = r["objects_px"]
     assert s["boxes"] == 500
-    assert s["width"]["p50"] == pytest.approx(np.percentile(w, 50), abs=0.01)       # independent numpy check
+    assert s["width"]["p50"] == pytest.approx(np.percentile(w, 50), abs=0.01)  # independent numpy check
     assert s["sqrt_area"]["p5"] == pytest.approx(np.percentile(np.sqrt(w * h), 5), abs=0.01)
     a = r["recommended"]
     # ~40-46 px plants (longest 1 %: 63 px): overlap above the largest plants, tile 8x it, no enlargement
@@ -54,7 +54,7 @@ def test_photos_smaller_than_the_tile_are_not_tiled():
     stats = size_stats(np.full(100, 40.0), np.full(100, 40.0))
     sizes = [(383, 412), (416, 345), (400, 400)]
     a = recommend(stats, sizes)
-    assert 8 * 40 * 1.1 > 345 and a["tile_size"] == 416     # the preferred tile exceeds every photo
+    assert 8 * 40 * 1.1 > 345 and a["tile_size"] == 416  # the preferred tile exceeds every photo
     assert a["min_size"] == a["max_size"] == 416 and a["median_object_px_in_detector"] == 40
     assert "no tiling" in tiling_note(a, sizes)
 
@@ -77,14 +77,26 @@ def _photos_and_tiles(tmp_path, size=(512, 384), n=40, tile=128, overlap=48):
         boxes = make_photo(tmp_path / "photos" / name, *size, n_plants=n, radius=(8, 14), seed=20 + k)
         ds["images"].append({"id": k + 1, "file_name": name, "width": size[0], "height": size[1]})
         for b in boxes:
-            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, k + 1,
-                                                     [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
+            ds["annotations"].append(
+                make_annotation(len(ds["annotations"]) + 1, k + 1, [b[0], b[1], b[2] - b[0], b[3] - b[1]])
+            )
     write_dataset(tmp_path / "ann.json", ds)
-    run_tiling(load_config(ImgSplitterConfig, None, [f"images={tmp_path / 'photos'}",
-                                                     f"annotations={tmp_path / 'ann.json'}",
-                                                     f"output_dir={tmp_path / 'tiles'}", f"tile_size={tile}",
-                                                     f"overlap={overlap}", "split=[1.0, 0.0, 0.0]",
-                                                     "negative_share=1", "workers=1"]))
+    run_tiling(
+        load_config(
+            ImgSplitterConfig,
+            None,
+            [
+                f"images={tmp_path / 'photos'}",
+                f"annotations={tmp_path / 'ann.json'}",
+                f"output_dir={tmp_path / 'tiles'}",
+                f"tile_size={tile}",
+                f"overlap={overlap}",
+                "split=[1.0, 0.0, 0.0]",
+                "negative_share=1",
+                "workers=1",
+            ],
+        )
+    )
     return tmp_path / "ann.json", tmp_path / "tiles" / "train.json"
 
 
@@ -109,7 +121,7 @@ def test_tiles_give_the_advice_of_their_photos(tmp_path, capsys):
 
 def test_a_tile_equal_to_the_photo_is_called_no_tiling(tmp_path, capsys):
     rng = np.random.default_rng(1)
-    w, h = rng.normal(110, 10, 200), rng.normal(110, 10, 200)   # large plants: tile capped at the photo side
+    w, h = rng.normal(110, 10, 200), rng.normal(110, 10, 200)  # large plants: tile capped at the photo side
     coco = _dataset(tmp_path / "a.json", zip(w, h), image=(1024, 1024))
     assert cli_main(["inspect", str(coco)]) == 0
     out = capsys.readouterr().out
@@ -121,12 +133,15 @@ def test_a_tile_equal_to_the_photo_is_called_no_tiling(tmp_path, capsys):
     assert "no tiling" not in out and "tiles per photo (1024x1024)" in out
 
 
-@pytest.mark.parametrize("breakage, said", [
-    (lambda ds: ds["annotations"][1].pop("bbox"), "annotation 2: no 'bbox'"),
-    (lambda ds: ds["annotations"][0].update(bbox="10, 10, 40, 40"), "'bbox' = '10, 10, 40, 40' (str)"),
-    (lambda ds: ds["images"][0].pop("width"), "no valid 'width'/'height'"),
-    (lambda ds: ds["images"][0].update(height="3648"), "no valid 'width'/'height'"),
-])
+@pytest.mark.parametrize(
+    "breakage, said",
+    [
+        (lambda ds: ds["annotations"][1].pop("bbox"), "annotation 2: no 'bbox'"),
+        (lambda ds: ds["annotations"][0].update(bbox="10, 10, 40, 40"), "'bbox' = '10, 10, 40, 40' (str)"),
+        (lambda ds: ds["images"][0].pop("width"), "no valid 'width'/'height'"),
+        (lambda ds: ds["images"][0].update(height="3648"), "no valid 'width'/'height'"),
+    ],
+)
 def test_broken_coco_structure_is_a_clear_error(tmp_path, capsys, breakage, said):
     coco = _dataset(tmp_path / "a.json", [(40, 40)] * 3)
     ds = json.loads(coco.read_text())

@@ -100,7 +100,9 @@ def test_layers_are_respected():
         for name, line, _ in internal_imports(path):
             other = layer(name)
             if other != own and other not in ALLOWED[own]:
-                bad.append(f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'matchplant'})")
+                bad.append(
+                    f"{path.relative_to(PACKAGE.parent)}:{line} ({own}) imports {name} ({other or 'matchplant'})"
+                )
     assert not bad, "imports across layers:\n" + "\n".join(bad)
 
 
@@ -150,13 +152,16 @@ def step_role(module: str) -> str:
 def test_a_large_step_shows_its_roles(word):
     flat = sorted(p.name for p in (PACKAGE / word).glob("*.py"))
     if word not in STEP_ROLES:
-        assert len(flat) <= MAX_FLAT_STEP, (f"matchplant/{word} has {len(flat)} files in one folder: show its roles "
-                                            f"as folders and name them in STEP_ROLES (docs/DESIGN.md §1)")
+        assert len(flat) <= MAX_FLAT_STEP, (
+            f"matchplant/{word} has {len(flat)} files in one folder: show its roles "
+            f"as folders and name them in STEP_ROLES (docs/DESIGN.md §1)"
+        )
         return
     assert len(flat) <= MAX_FACE, f"matchplant/{word}'s face has {len(flat)} files (at most {MAX_FACE}): {flat}"
     folders = sorted(p.name for p in (PACKAGE / word).iterdir() if (p / "__init__.py").is_file())
-    assert folders == sorted(STEP_ROLES[word]), f"matchplant/{word}: role folders {folders}, STEP_ROLES names " \
-                                                f"{sorted(STEP_ROLES[word])}"
+    assert folders == sorted(STEP_ROLES[word]), (
+        f"matchplant/{word}: role folders {folders}, STEP_ROLES names {sorted(STEP_ROLES[word])}"
+    )
 
 
 @pytest.mark.parametrize("word", sorted(STEP_ROLES))
@@ -209,7 +214,7 @@ def find_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
         stack.append(m)
         for t in sorted(graph[m]):
             if state.get(t) == 1:
-                cycles.append(stack[stack.index(t):] + [t])
+                cycles.append(stack[stack.index(t) :] + [t])
             elif t not in state:
                 visit(t)
         stack.pop()
@@ -227,8 +232,12 @@ def test_no_import_cycles():
 
 
 def test_internal_imports_are_at_the_top():
-    inner = [f"{p.relative_to(PACKAGE.parent)}:{line} imports {name} inside a function"
-             for p in SOURCES for name, line, in_function in internal_imports(p) if in_function]
+    inner = [
+        f"{p.relative_to(PACKAGE.parent)}:{line} imports {name} inside a function"
+        for p in SOURCES
+        for name, line, in_function in internal_imports(p)
+        if in_function
+    ]
     assert not inner, "\n".join(inner)
 
 
@@ -256,6 +265,7 @@ def test_the_checker_sees_cycles_and_inner_imports(tmp_path):
 
 
 # -- the face of a step ---------------------------------------------------------------------------------------
+
 
 def class_prefix(word: str) -> str:
     return "".join(part.capitalize() for part in word.split("_"))

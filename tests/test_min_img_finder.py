@@ -44,8 +44,17 @@ def dsm_height(x, y):
     return 300.0 + 0.02 * x + 0.4 * np.clip(np.sin(x * 3.0) * np.sin(y * 2.5), 0, None)
 
 
-def make_project(root: Path, nx: int = 4, ny: int = 3, spacing=(2.0, 1.5), altitude: float = 6.0,
-                 size=(80, 60), focal: float = 1.0, tilt_deg: float = 0.0, ortho_margin: float = 1.2) -> Path:
+def make_project(
+    root: Path,
+    nx: int = 4,
+    ny: int = 3,
+    spacing=(2.0, 1.5),
+    altitude: float = 6.0,
+    size=(80, 60),
+    focal: float = 1.0,
+    tilt_deg: float = 0.0,
+    ortho_margin: float = 1.2,
+) -> Path:
     crs = CRS.from_epsg(32614)
     lon, lat = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True).transform(*OFFSET)
     w, h = size
@@ -67,15 +76,25 @@ def make_project(root: Path, nx: int = 4, ny: int = 3, spacing=(2.0, 1.5), altit
     X, Y = np.meshgrid(xs, ys)
     transform = from_origin(OFFSET[0] + x0, OFFSET[1] + y0 + rows * res, res, res)
     # orthophoto valid where the cameras' centres are within a margin (a rectangle with a notch)
-    valid = (X > 1.0 - ortho_margin) & (X < 1.0 + (nx - 1) * spacing[0] + ortho_margin) & \
-            (Y > 1.0 - ortho_margin) & (Y < 1.0 + (ny - 1) * spacing[1] + ortho_margin)
+    valid = (
+        (X > 1.0 - ortho_margin)
+        & (X < 1.0 + (nx - 1) * spacing[0] + ortho_margin)
+        & (Y > 1.0 - ortho_margin)
+        & (Y < 1.0 + (ny - 1) * spacing[1] + ortho_margin)
+    )
     valid &= ~((X > 1.0 + (nx - 1) * spacing[0] + ortho_margin - 0.8) & (Y < 1.0 - ortho_margin + 0.8))
     rgba = np.zeros((4, rows, cols), dtype="uint8")
     rgba[1] = 140
     rgba[3] = np.where(valid, 255, 0)
-    return write_odm_project(root, crs=crs, offset=OFFSET, shots=shots,
-                             reference_lla={"latitude": lat, "longitude": lon, "altitude": 0.0},
-                             dsm=Raster(dsm_height(X, Y), transform), orthophoto=Raster(rgba, transform))
+    return write_odm_project(
+        root,
+        crs=crs,
+        offset=OFFSET,
+        shots=shots,
+        reference_lla={"latitude": lat, "longitude": lon, "altitude": 0.0},
+        dsm=Raster(dsm_height(X, Y), transform),
+        orthophoto=Raster(rgba, transform),
+    )
 
 
 def cfg_for(project: Path, out: Path, *overrides: str) -> MinImgFinderConfig:
@@ -129,6 +148,7 @@ def test_footprint_corners_are_ray_dsm_intersections(finder, small_project):
     # every border vertex lies on the DSM and projects back onto the image border
     assert fp.hit.all()
     from matchplant.core.geometry.ground import ground_to_pixels
+
     np.testing.assert_allclose(ground_to_pixels(fp.shot, fp.border, finder.frame), fp.border_uv, atol=1e-6)
     z = finder.surface.sample(fp.border[:, 0], fp.border[:, 1])
     np.testing.assert_allclose(fp.border[:, 2], z, atol=2e-3)
@@ -152,8 +172,9 @@ def test_footprint_of_tilted_camera_is_a_trapezoid(tmp_path):
 
 def test_aoi_is_the_orthophoto_valid_area(finder):
     nx, ny, sp, m = 4, 3, (2.0, 1.5), 1.2
-    expected = box(OFFSET[0] + 1 - m, OFFSET[1] + 1 - m, OFFSET[0] + 1 + (nx - 1) * sp[0] + m,
-                   OFFSET[1] + 1 + (ny - 1) * sp[1] + m)
+    expected = box(
+        OFFSET[0] + 1 - m, OFFSET[1] + 1 - m, OFFSET[0] + 1 + (nx - 1) * sp[0] + m, OFFSET[1] + 1 + (ny - 1) * sp[1] + m
+    )
     notch = box(expected.bounds[2] - 0.8, expected.bounds[1], expected.bounds[2], expected.bounds[1] + 0.8)
     expected = expected.difference(notch)
     assert finder.aoi.symmetric_difference(expected).area / expected.area < 0.02
@@ -232,8 +253,13 @@ def test_selection_on_generated_flights_vs_milp(tmp_path):
 def hand_grid(A: np.ndarray, weights=None) -> CoverageGrid:
     """A coverage grid from a dense 0/1 matrix (images x cells), cells laid out left to right."""
     m = A.shape[1]
-    return CoverageGrid(x=np.arange(m, dtype=float), y=np.zeros(m), cell=1.0, A=sparse.csr_matrix(A.astype(bool)),
-                        weights=np.ones(m) if weights is None else np.asarray(weights, float))
+    return CoverageGrid(
+        x=np.arange(m, dtype=float),
+        y=np.zeros(m),
+        cell=1.0,
+        A=sparse.csr_matrix(A.astype(bool)),
+        weights=np.ones(m) if weights is None else np.asarray(weights, float),
+    )
 
 
 def brute_force_cover(A: np.ndarray, w: np.ndarray, target: float, cap: float = 1.0) -> list[int] | None:
@@ -246,7 +272,8 @@ def brute_force_cover(A: np.ndarray, w: np.ndarray, target: float, cap: float = 
     for k in range(1, A.shape[0] + 1):
         for rows in itertools.combinations(range(A.shape[0]), k):
             if w[A[list(rows)].any(axis=0)].sum() >= need and all(
-                    shared[i, j] <= (cap + 1e-9) * min(area[i], area[j]) for i, j in itertools.combinations(rows, 2)):
+                shared[i, j] <= (cap + 1e-9) * min(area[i], area[j]) for i, j in itertools.combinations(rows, 2)
+            ):
                 return list(rows)
     return None
 
@@ -255,11 +282,11 @@ def test_solver_on_hand_made_arrays_greedy_trap():
     """The textbook case where plain greedy is not optimal: two rows of 7 cells (R1, R2) are the optimum, but
     S1 (4 + 4 cells) is larger than either, then S2 (2 + 2) and S3 (1 + 1) - three images."""
     A = np.zeros((5, 14), dtype=int)
-    A[0, 0:7] = 1                                  # R1
-    A[1, 7:14] = 1                                 # R2
-    A[2, [0, 1, 2, 3, 7, 8, 9, 10]] = 1            # S1
-    A[3, [4, 5, 11, 12]] = 1                       # S2
-    A[4, [6, 13]] = 1                              # S3
+    A[0, 0:7] = 1  # R1
+    A[1, 7:14] = 1  # R2
+    A[2, [0, 1, 2, 3, 7, 8, 9, 10]] = 1  # S1
+    A[3, [4, 5, 11, 12]] = 1  # S2
+    A[4, [6, 13]] = 1  # S3
     grid = hand_grid(A)
     assert sorted(brute_force_cover(A, grid.weights, 1.0)) == [0, 1]
     best = select_milp(grid, 1.0)
@@ -303,15 +330,40 @@ def test_solver_on_random_arrays_matches_brute_force():
     assert checked == 240 and len(misses) <= 2, misses
 
 
-@pytest.mark.xfail(reason="HiGHS 1.12 (scipy 1.17) proves 5 images optimal where 4 cover everything (its dual "
-                          "bound is above the LP relaxation's 3.5); with the area variables integer it finds 4")
+@pytest.mark.xfail(
+    reason="HiGHS 1.12 (scipy 1.17) proves 5 images optimal where 4 cover everything (its dual "
+    "bound is above the LP relaxation's 3.5); with the area variables integer it finds 4"
+)
 def test_milp_finds_the_brute_force_optimum_where_highs_misses():
-    A = np.array([[0, 0, 1, 1, 0, 1, 0, 0, 0, 1, 1, 1, 0], [0, 0, 0, 0, 0, 0, 1, 1, 0, 1, 1, 0, 0],
-                  [0, 0, 0, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1], [1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1],
-                  [0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1], [0, 1, 0, 1, 0, 1, 0, 0, 1, 0, 0, 0, 0],
-                  [1, 1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 1, 0], [0, 0, 1, 0, 1, 0, 1, 1, 0, 0, 0, 0, 0]])
-    w = np.array([1.016316, 1.38543647, 1.52552656, 1.03312067, 1.27864773, 1.64787107, 1.86376897, 0.72659342,
-                  1.90012909, 0.5077683, 1.62946626, 1.71579025, 0.70514608])
+    A = np.array(
+        [
+            [0, 0, 1, 1, 0, 1, 0, 0, 0, 1, 1, 1, 0],
+            [0, 0, 0, 0, 0, 0, 1, 1, 0, 1, 1, 0, 0],
+            [0, 0, 0, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1],
+            [1, 0, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 1],
+            [0, 1, 1, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1],
+            [0, 1, 0, 1, 0, 1, 0, 0, 1, 0, 0, 0, 0],
+            [1, 1, 0, 0, 1, 0, 0, 0, 0, 0, 1, 1, 0],
+            [0, 0, 1, 0, 1, 0, 1, 1, 0, 0, 0, 0, 0],
+        ]
+    )
+    w = np.array(
+        [
+            1.016316,
+            1.38543647,
+            1.52552656,
+            1.03312067,
+            1.27864773,
+            1.64787107,
+            1.86376897,
+            0.72659342,
+            1.90012909,
+            0.5077683,
+            1.62946626,
+            1.71579025,
+            0.70514608,
+        ]
+    )
     assert brute_force_cover(A, w, 1.0) == [0, 1, 2, 6]
     assert len(select_milp(hand_grid(A, w), 1.0).indices) == 4
 
@@ -331,11 +383,11 @@ def test_owned_areas_partition_the_covered_field(finder):
     owned = list(result.owned.values())
     covered = shapely.union_all([fp.polygon for fp in result.selected]).intersection(finder.aoi)
     total = sum(o.area for o in owned)
-    assert total == pytest.approx(covered.area, rel=1e-6)        # nothing lost
-    for a in range(len(owned)):                                     # nothing owned twice
+    assert total == pytest.approx(covered.area, rel=1e-6)  # nothing lost
+    for a in range(len(owned)):  # nothing owned twice
         for b in range(a + 1, len(owned)):
             assert owned[a].intersection(owned[b]).area < 1e-6
-    for fp in result.selected:                                      # an image owns only what it sees
+    for fp in result.selected:  # an image owns only what it sees
         assert result.owned[fp.name].difference(fp.polygon).area < 1e-6
 
 
@@ -381,7 +433,9 @@ def test_run_writes_every_output(small_project, tmp_path):
     assert [r["image"] for r in rows] == [fp.name for fp in result.selected]
     for r in rows:
         assert (out / "images" / r["file"]).is_file()
-        assert (out / "images" / r["file"]).read_bytes() == (small_project / "opensfm/undistorted/images" / r["file"]).read_bytes()
+        assert (out / "images" / r["file"]).read_bytes() == (
+            small_project / "opensfm/undistorted/images" / r["file"]
+        ).read_bytes()
     assert float(rows[-1]["cumulative_coverage_pct"]) >= 95.0 - 0.5
     owned = json.loads((out / "owned_areas.json").read_text())
     assert set(owned) == {r["file"] for r in rows} and all(len(v) >= 3 for v in owned.values())
@@ -389,11 +443,13 @@ def test_run_writes_every_output(small_project, tmp_path):
     assert summary["coverage_pct"] >= 95.0 - 1e-6 and summary["images_selected"] == len(rows)
     import geopandas as gpd
     import pyogrio
+
     layers = {name for name, _ in pyogrio.list_layers(out / "footprints.gpkg")}
     assert layers == {"footprints", "owned", "aoi", "uncovered"}
     fps = gpd.read_file(out / "footprints.gpkg", layer="footprints")
     assert len(fps) == 12 and fps.selected.sum() == len(rows) and fps.crs.to_epsg() == 32614
     from PIL import Image
+
     with Image.open(out / "coverage.png") as im:
         assert im.width > 400 and len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)) > 20
 
@@ -420,8 +476,7 @@ def test_folder_config_loads_and_help_works():
     text = (FOLDER / "config.yaml").read_text()
     keys = [ln for ln in text.splitlines() if re.match(r"^[a-z_]+:", ln)]
     assert all(text.splitlines()[text.splitlines().index(k) - 1].startswith("#") for k in keys)
-    res = subprocess.run([sys.executable, str(FOLDER / "min_img_finder.py"), "--help"], capture_output=True,
-                         text=True)
+    res = subprocess.run([sys.executable, str(FOLDER / "min_img_finder.py"), "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "--gui" in res.stdout
 
 
@@ -432,8 +487,18 @@ def test_missing_dsm_is_a_clear_cli_error(small_project, tmp_path):
     copy = tmp_path / "p"
     shutil.copytree(small_project, copy)
     (copy / "odm_dem/dsm.tif").unlink()
-    res = subprocess.run([sys.executable, str(FOLDER / "min_img_finder.py"), "--set", f"project_dir={copy}",
-                          "--set", f"output_dir={tmp_path / 'o'}"], capture_output=True, text=True)
+    res = subprocess.run(
+        [
+            sys.executable,
+            str(FOLDER / "min_img_finder.py"),
+            "--set",
+            f"project_dir={copy}",
+            "--set",
+            f"output_dir={tmp_path / 'o'}",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 2 and "Traceback" not in res.stderr and "--dsm" in res.stderr
 
 
@@ -451,6 +516,7 @@ def test_gui_headless_toggle_select_save(small_project, tmp_path):
     gui = MinImgFinderGUI(cfg_for(small_project, tmp_path / "out"), headless=True)
     first = list(gui.result.selection.indices)
     assert gui.finder.exact_coverage(first) >= 0.95 - 1e-9
+
     # click inside a selected image's owned area: it is removed, coverage drops
     def marks():  # number drawn on each selected image -> its colour
         return {t.get_text(): t.get_bbox_patch().get_edgecolor() for t in gui.ax.texts if t.get_bbox_patch()}
@@ -498,7 +564,7 @@ from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.gui import close, show
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.gui import MinImgFinderGUI
-cfg = load_config(MinImgFinderConfig, None, ["project_dir={small_project}", "output_dir={tmp_path / 'o'}"])
+cfg = load_config(MinImgFinderConfig, None, ["project_dir={small_project}", "output_dir={tmp_path / "o"}"])
 gui = MinImgFinderGUI(cfg, headless=False)
 assert matplotlib.get_backend().lower() == "tkagg", matplotlib.get_backend()
 timer = gui.fig.canvas.new_timer(interval=1500)

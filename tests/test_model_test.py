@@ -18,9 +18,9 @@ from matchplant.core.formats.coco import make_annotation, new_dataset, write_dat
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
 from matchplant.detection.model import build_detector
-from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import detect_image, merge_tile_boxes, run, tile_starts
@@ -35,9 +35,19 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """An (untrained) small detector saved as a module 6 checkpoint: the file contract, not accuracy."""
-    cfg = load_config(ModelTrainConfig, None, ["train_json=x", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-                                          "model.pretrained=none", "model.min_size=64", "model.max_size=128"],
-                      check_paths=False, strict=False)
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            "train_json=x",
+            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+            "model.pretrained=none",
+            "model.min_size=64",
+            "model.max_size=128",
+        ],
+        check_paths=False,
+        strict=False,
+    )
     torch.manual_seed(0)
     model = build_detector(cfg.model, 2)
     with torch.no_grad():  # every box scores about 0.01: below the usual 0.05 cut
@@ -71,8 +81,12 @@ def pycocotools_direct(gt_path: Path, results: list[dict], max_dets: int) -> np.
 def test_folder_config_and_help():
     cfg = load_config(ModelTestConfig, ROOT / "7_model_test" / "test_config.yaml", check_paths=False)
     assert cfg.evaluate.max_detections > 100 and cfg.evaluate.operating_threshold == 0.5
-    r = subprocess.run([sys.executable, str(ROOT / "7_model_test" / "model_test.py"), "--help"], capture_output=True,
-                       text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "7_model_test" / "model_test.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--config" in r.stdout
 
 
@@ -94,12 +108,24 @@ def test_coco_evaluation_equals_pycocotools_and_dense_maxdets(tmp_path):
     for a in ds["annotations"]:
         if rng.random() < 0.85:  # found, with some box noise
             x, y, w, h = a["bbox"]
-            results.append({"image_id": a["image_id"], "category_id": 1, "score": float(rng.uniform(0.3, 1)),
-                            "bbox": [x + rng.normal(0, 0.05 * w), y + rng.normal(0, 0.05 * h), w, h]})
+            results.append(
+                {
+                    "image_id": a["image_id"],
+                    "category_id": 1,
+                    "score": float(rng.uniform(0.3, 1)),
+                    "bbox": [x + rng.normal(0, 0.05 * w), y + rng.normal(0, 0.05 * h), w, h],
+                }
+            )
     for img_id in (1, 2, 3):  # false positives
         for _ in range(10):
-            results.append({"image_id": img_id, "category_id": 1, "score": float(rng.uniform(0, 0.6)),
-                            "bbox": [*rng.uniform(0, 1900, 2), 30.0, 30.0]})
+            results.append(
+                {
+                    "image_id": img_id,
+                    "category_id": 1,
+                    "score": float(rng.uniform(0, 0.6)),
+                    "bbox": [*rng.uniform(0, 1900, 2), 30.0, 30.0],
+                }
+            )
     stats, ev = coco_evaluate(ds, results, max_dets=300)
     direct = pycocotools_direct(gt_path, results, 300)
     ours = [stats[k] if stats[k] is not None else -1 for k in stats]
@@ -115,20 +141,34 @@ def test_coco_evaluation_equals_pycocotools_and_dense_maxdets(tmp_path):
     scores, hits, n_gt = matches_at_iou50(ev)
     assert n_gt == 170 and len(scores) == len(results)
     op = operating_point(scores, hits, n_gt, 0.5)
-    found = sum(1 for r in results[:len(results) - 30] if r["score"] >= 0.5)  # noisy true boxes have IoU > 0.5
-    fps = sum(1 for r in results[len(results) - 30:] if r["score"] >= 0.5)
+    found = sum(1 for r in results[: len(results) - 30] if r["score"] >= 0.5)  # noisy true boxes have IoU > 0.5
+    fps = sum(1 for r in results[len(results) - 30 :] if r["score"] >= 0.5)
     assert (op["tp"], op["fp"], op["fn"]) == (found, fps, 170 - found)
     assert op["f1"] == pytest.approx(2 * op["precision"] * op["recall"] / (op["precision"] + op["recall"]))
 
 
 def test_evaluate_writes_metrics_figures_and_matches_pycocotools(checkpoint, tmp_path):
-    tiles = make_tiles(tmp_path / "tiles", n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1,
-                       name="test.json")
+    tiles = make_tiles(
+        tmp_path / "tiles", n_images=4, size=64, plants=(1, 3), radius=(5, 9), negatives=1, name="test.json"
+    )
     out = tmp_path / "out"
     from matchplant.cli import run_module
-    code = run_module("model_test", ["--set", f"checkpoint={checkpoint}", "--set", f"evaluate.dataset_json={tiles}",
-                                     "--set", f"output_dir={out}", "--set", "evaluate.drawn_images=2",
-                                     "--set", "device=cpu"])
+
+    code = run_module(
+        "model_test",
+        [
+            "--set",
+            f"checkpoint={checkpoint}",
+            "--set",
+            f"evaluate.dataset_json={tiles}",
+            "--set",
+            f"output_dir={out}",
+            "--set",
+            "evaluate.drawn_images=2",
+            "--set",
+            "device=cpu",
+        ],
+    )
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     for name in ("pr_curve.png", "score_histogram.png"):
@@ -151,6 +191,7 @@ def test_evaluate_writes_metrics_figures_and_matches_pycocotools(checkpoint, tmp
 
 def oracle(truth: np.ndarray, origins_seen: list):
     """A perfect detector: each plant's box clipped to the tile (cut plants give partial boxes)."""
+
     def predict(tiles):
         out = []
         for tile in tiles:
@@ -161,6 +202,7 @@ def oracle(truth: np.ndarray, origins_seen: list):
             keep = ((b[:, 2] - b[:, 0]) > 1) & ((b[:, 3] - b[:, 1]) > 1)
             out.append((b[keep], np.full(keep.sum(), 0.9), np.ones(keep.sum(), dtype=int)))
         return out
+
     return predict
 
 
@@ -174,11 +216,13 @@ def test_tiled_detection_finds_each_cut_plant_once(tmp_path):
     # how many plants do tile borders cut? (the test must contain some)
     cut = sum(any((b[0] < x + tile < b[2]) or (b[0] < x < b[2]) for x in xs) for b in truth)
     assert cut >= 10
-    boxes, scores, labels = detect_image(img, oracle(truth, list(origins)), tile_size=tile, overlap=overlap,
-                                         batch_size=3)
+    boxes, scores, labels = detect_image(
+        img, oracle(truth, list(origins)), tile_size=tile, overlap=overlap, batch_size=3
+    )
     assert len(boxes) == len(truth)
     # each true plant matched by exactly one box, the whole box
     from torchvision.ops import box_iou
+
     iou = box_iou(torch.as_tensor(truth), torch.as_tensor(boxes)).numpy()
     assert (iou.max(axis=1) > 0.99).all() and ((iou > 0.5).sum(axis=1) == 1).all()
     # without the merge every cut plant would be counted several times
@@ -189,8 +233,9 @@ def test_tiled_detection_finds_each_cut_plant_once(tmp_path):
 def test_merge_keeps_plants_larger_than_the_overlap():
     # one plant cut in two tiles with no whole view, and a whole plant with a duplicate from another tile
     boxes = np.array([[90, 10, 100, 40], [100, 10, 130, 40], [10, 10, 30, 30], [10.5, 10, 30, 30]], float)
-    keep = merge_tile_boxes(boxes, np.array([0.9, 0.8, 0.95, 0.7]), np.ones(4, int),
-                            np.array([True, True, False, False]))
+    keep = merge_tile_boxes(
+        boxes, np.array([0.9, 0.8, 0.95, 0.7]), np.ones(4, int), np.array([True, True, False, False])
+    )
     assert sorted(keep.tolist()) == [0, 1, 2]
 
 
@@ -198,9 +243,19 @@ def test_detect_on_new_images_writes_predictions_for_module_8(checkpoint, tmp_pa
     make_photo(tmp_path / "imgs" / "DJI_0001.JPG.tif", 300, 200, n_plants=10, seed=1)
     make_photo(tmp_path / "imgs" / "DJI_0002.JPG.tif", 150, 260, n_plants=5, seed=2)
     (tmp_path / "imgs" / "notes.txt").write_text("not an image")
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
-                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
-                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [
+            f"checkpoint={checkpoint}",
+            f"detect.images={tmp_path / 'imgs'}",
+            f"output_dir={tmp_path / 'out'}",
+            "detect.tile_size=128",
+            "detect.overlap=32",
+            "detect.score_threshold=0.0",
+            "device=cpu",
+        ],
+    )
     run(cfg)
     preds = read_predictions(tmp_path / "out" / "predictions.json")
     assert [im["file_name"] for im in preds["images"]] == ["DJI_0001.JPG.tif", "DJI_0002.JPG.tif"]
@@ -220,11 +275,17 @@ def test_errors(checkpoint, tmp_path):
     with pytest.raises(ConfigError, match="nothing to do"):
         load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}"])
     with pytest.raises(ConfigError, match="overlap"):
-        load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path}",
-                                            "detect.tile_size=100", "detect.overlap=100"])
+        load_config(
+            ModelTestConfig,
+            None,
+            [f"checkpoint={checkpoint}", f"detect.images={tmp_path}", "detect.tile_size=100", "detect.overlap=100"],
+        )
     (tmp_path / "empty").mkdir()
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'empty'}",
-                                              f"output_dir={tmp_path / 'o'}"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'empty'}", f"output_dir={tmp_path / 'o'}"],
+    )
     with pytest.raises(InputError, match="no images"):
         run(cfg)
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
@@ -246,10 +307,19 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     truth = read_dataset(tiny_field.boxes_undistorted)
     sizes = np.asarray([a["bbox"][2:] for a in truth["annotations"]])
     overlap = int(sizes.max()) + 4  # more than the largest plant
-    tiling = load_config(ImgSplitterConfig, None, [f"images={tiny_field.undistorted_images}",
-                                              f"annotations={tiny_field.boxes_undistorted}",
-                                              f"output_dir={tmp_path / 'tiles'}", "tile_size=192",
-                                              f"overlap={overlap}", "negative_share=1", "workers=1"])
+    tiling = load_config(
+        ImgSplitterConfig,
+        None,
+        [
+            f"images={tiny_field.undistorted_images}",
+            f"annotations={tiny_field.boxes_undistorted}",
+            f"output_dir={tmp_path / 'tiles'}",
+            "tile_size=192",
+            f"overlap={overlap}",
+            "negative_share=1",
+            "workers=1",
+        ],
+    )
     run_tiling(tiling)
     ds = CocoDetection(tmp_path / "tiles" / "train.json")  # module 5's layout is found as it is
     image, target = ds[0]
@@ -265,6 +335,7 @@ def test_tiny_field_tiles_and_whole_image_detection(tiny_field, tmp_path):
     assert len(origins) > 1
     boxes, _, _ = detect_image(photo, oracle(gt, list(origins)), tile_size=192, overlap=overlap)
     from torchvision.ops import box_iou
+
     iou = box_iou(torch.as_tensor(gt), torch.as_tensor(boxes)).numpy()
     assert len(boxes) == len(gt) and (iou.max(axis=1) > 0.99).all()
 
@@ -275,15 +346,36 @@ def test_torchrun_two_processes_write_the_single_process_predictions(checkpoint,
     predictions file results, equal to a single process's."""
     for k, (w, h) in enumerate([(300, 200), (150, 260), (200, 200), (260, 150), (180, 220)]):
         make_photo(tmp_path / "imgs" / f"DJI_{k:04d}.JPG.tif", w, h, n_plants=6, seed=k)
-    common = [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}", "detect.tile_size=128",
-              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu", "evaluate.dataset_json=null",
-              "detect.drawn_images=0"]
+    common = [
+        f"checkpoint={checkpoint}",
+        f"detect.images={tmp_path / 'imgs'}",
+        "detect.tile_size=128",
+        "detect.overlap=32",
+        "detect.score_threshold=0.0",
+        "device=cpu",
+        "evaluate.dataset_json=null",
+        "detect.drawn_images=0",
+    ]
     run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'one'}"]))
     sets = [a for c in common + [f"output_dir={tmp_path / 'two'}"] for a in ("--set", c)]
     env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(ROOT / "7_model_test" / "model_test.py"), *sets],
-                          capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--standalone",
+            "--nproc_per_node",
+            "2",
+            str(ROOT / "7_model_test" / "model_test.py"),
+            *sets,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        cwd=tmp_path,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "by 2 processes" in proc.stderr + proc.stdout
     one = json.loads((tmp_path / "one" / "predictions.json").read_text())
@@ -325,18 +417,38 @@ def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
     from matchplant.model_test.scale import check_found_scale
     from matchplant.model_train.run import train
 
-    tiles = make_tiles(tmp_path / "tiles", n_images=4, size=128, plants=(1, 3), radius=(8, 12), negatives=0,
-                       name="train.json")
-    cfg = load_config(ModelTrainConfig, None, [f"train_json={tiles}", f"output_dir={tmp_path / 'run'}", "epochs=1",
-                                          "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-                                          "model.pretrained=none", "model.min_size=64", "model.max_size=64",
-                                          "model.anchor_sizes=auto", "batch_size=4", "num_workers=0",
-                                          "warmup_iters=1", "save_every=0", "model.rpn.post_nms_top_n_test=50"])
+    tiles = make_tiles(
+        tmp_path / "tiles", n_images=4, size=128, plants=(1, 3), radius=(8, 12), negatives=0, name="train.json"
+    )
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            f"train_json={tiles}",
+            f"output_dir={tmp_path / 'run'}",
+            "epochs=1",
+            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+            "model.pretrained=none",
+            "model.min_size=64",
+            "model.max_size=64",
+            "model.anchor_sizes=auto",
+            "batch_size=4",
+            "num_workers=0",
+            "warmup_iters=1",
+            "save_every=0",
+            "model.rpn.post_nms_top_n_test=50",
+        ],
+    )
     train(cfg)
     ck_path = tmp_path / "run" / "checkpoints" / "last.pt"
     make_photo(tmp_path / "imgs" / "a.png", 300, 200, n_plants=8, radius=(8, 12), seed=1)
-    common = [f"checkpoint={ck_path}", f"detect.images={tmp_path / 'imgs'}", "detect.score_threshold=0.0",
-              "device=cpu", "detect.drawn_images=0"]
+    common = [
+        f"checkpoint={ck_path}",
+        f"detect.images={tmp_path / 'imgs'}",
+        "detect.score_threshold=0.0",
+        "device=cpu",
+        "detect.drawn_images=0",
+    ]
     with _Records() as rec:
         run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'default'}"]))
     info = read_predictions(tmp_path / "default" / "predictions.json")["info"]
@@ -344,12 +456,18 @@ def test_module7_tiles_at_the_checkpoints_training_tile_size(tmp_path):
     # no tile-size warning before detection (the 1-epoch model's boxes may still warn about "the plants found")
     assert not any("training size" in w for w in rec.warnings() if w.startswith("detect.tile_size")), rec.warnings()
     with _Records() as rec:
-        run(load_config(ModelTestConfig, None, common + [f"output_dir={tmp_path / 'big'}", "detect.tile_size=1024",
-                                                         "detect.overlap=64"]))
+        run(
+            load_config(
+                ModelTestConfig,
+                None,
+                common + [f"output_dir={tmp_path / 'big'}", "detect.tile_size=1024", "detect.overlap=64"],
+            )
+        )
     assert read_predictions(tmp_path / "big" / "predictions.json")["info"]["tile_size"] == 1024
     assert any("detect.tile_size 1024" in w and "0.12x" in w for w in rec.warnings()), rec.warnings()
     # after detection: plants found at 3x their training size (photos of another ground resolution)
     from matchplant.detection.checkpoint import read_checkpoint
+
     ck = read_checkpoint(ck_path)
     med = ck["training_geometry"]["objects_input_px"] * 128 / 64  # training plants in tile pixels
     big = np.array([[0, 0, 3 * med, 3 * med]] * 5)
@@ -372,13 +490,27 @@ def _tiled_truth(tmp_path: Path):
         boxes = make_photo(tmp_path / "photos" / name, 400, 300, n_plants=30, radius=(8, 14), seed=10 + k)
         ds["images"].append({"id": k + 1, "file_name": name, "width": 400, "height": 300})
         for b in boxes:
-            ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, k + 1,
-                                                     [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
+            ds["annotations"].append(
+                make_annotation(len(ds["annotations"]) + 1, k + 1, [b[0], b[1], b[2] - b[0], b[3] - b[1]])
+            )
         truth[name] = boxes
     write_dataset(tmp_path / "ann.json", ds)
-    run_tiling(load_config(ImgSplitterConfig, None, [f"images={tmp_path / 'photos'}", f"annotations={tmp_path / 'ann.json'}",
-                                                f"output_dir={tmp_path / 'tiles'}", "tile_size=128", "overlap=48",
-                                                "split=[0.0, 0.0, 1.0]", "negative_share=0", "workers=1"]))
+    run_tiling(
+        load_config(
+            ImgSplitterConfig,
+            None,
+            [
+                f"images={tmp_path / 'photos'}",
+                f"annotations={tmp_path / 'ann.json'}",
+                f"output_dir={tmp_path / 'tiles'}",
+                "tile_size=128",
+                "overlap=48",
+                "split=[0.0, 0.0, 1.0]",
+                "negative_share=0",
+                "workers=1",
+            ],
+        )
+    )
     test = read_dataset(tmp_path / "tiles" / "test.json")
     images = {im["id"]: im for im in test["images"]}
     plant_of = {}
@@ -386,8 +518,15 @@ def _tiled_truth(tmp_path: Path):
         im = images[a["image_id"]]
         x0, y0, w, h = im["x0"], im["y0"], im["width"], im["height"]
         t = truth[im["source_image"]]
-        clipped = np.stack([np.maximum(t[:, 0], x0), np.maximum(t[:, 1], y0), np.minimum(t[:, 2], x0 + w),
-                            np.minimum(t[:, 3], y0 + h)], axis=1)
+        clipped = np.stack(
+            [
+                np.maximum(t[:, 0], x0),
+                np.maximum(t[:, 1], y0),
+                np.minimum(t[:, 2], x0 + w),
+                np.minimum(t[:, 3], y0 + h),
+            ],
+            axis=1,
+        )
         x, y, bw, bh = a["bbox"]
         err = np.abs(clipped - [x0 + x, y0 + y, x0 + x + bw, y0 + y + bh]).max(axis=1)
         assert err.min() < 0.02
@@ -408,16 +547,31 @@ def test_distinct_plants_counted_once_across_overlapping_tiles(tmp_path, checkpo
     assert len(pairs) == n_true
     # plants found: a perfect detector on every second tile finds the plants with a copy there
     seen = {im["id"] for im in test["images"][::2]}
-    results = [{"image_id": a["image_id"], "category_id": 1, "bbox": a["bbox"], "score": 0.9}
-               for a in test["annotations"] if a["image_id"] in seen]
+    results = [
+        {"image_id": a["image_id"], "category_id": 1, "bbox": a["bbox"], "score": 0.9}
+        for a in test["annotations"]
+        if a["image_id"] in seen
+    ]
     _, ev = coco_evaluate(test, results)
-    assert found_objects(ev, object_of, 0.5) == len({plant_of[a["id"]] for a in test["annotations"]
-                                                     if a["image_id"] in seen})
+    assert found_objects(ev, object_of, 0.5) == len(
+        {plant_of[a["id"]] for a in test["annotations"] if a["image_id"] in seen}
+    )
     assert found_objects(ev, object_of, 0.95) == 0
     # module 7's metrics.json: plants are distinct plants, tile boxes are counted apart; fractions only
     out = tmp_path / "eval"
-    run(load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"evaluate.dataset_json={tmp_path / 'tiles' / 'test.json'}",
-                                            f"output_dir={out}", "device=cpu", "evaluate.drawn_images=0"]))
+    run(
+        load_config(
+            ModelTestConfig,
+            None,
+            [
+                f"checkpoint={checkpoint}",
+                f"evaluate.dataset_json={tmp_path / 'tiles' / 'test.json'}",
+                f"output_dir={out}",
+                "device=cpu",
+                "evaluate.drawn_images=0",
+            ],
+        )
+    )
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["plants"] == n_true and metrics["tile_boxes"] == len(test["annotations"])
     assert "fractions 0..1" in metrics["units"]
@@ -430,12 +584,13 @@ def test_distinct_plants_counted_once_across_overlapping_tiles(tmp_path, checkpo
 def test_nested_duplicates_from_another_tile_are_merged():
     """A plant whole in tile A, and seen by tile B only as a nested part (IoU 0.36: NMS keeps both): one
     plant. When tile B also saw the whole plant, its inner box is a second plant and is kept."""
-    img = np.zeros((200, 300, 3), np.uint8)   # tiles at x 0 and 100 (200 px, overlap 100)
+    img = np.zeros((200, 300, 3), np.uint8)  # tiles at x 0 and 100 (200 px, overlap 100)
     plant, part, small = [120, 50, 170, 100], [130, 60, 160, 90], [135, 65, 155, 85]
 
     def predictor(answers):
         def predict(tiles):
             return [answers.pop(0) for _ in tiles]
+
         return predict
 
     def tile(*boxes, score=0.9):
@@ -443,16 +598,18 @@ def test_nested_duplicates_from_another_tile_are_merged():
         return b, np.full(len(b), score), np.ones(len(b), int)
 
     shift = np.array([100, 0, 100, 0])
-    boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
-                               overlap=100)
+    boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200, overlap=100)
     assert boxes.tolist() == [plant]
-    boxes, _, _ = detect_image(img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200,
-                               overlap=100, merge_containment=1.0)   # 'part' is wholly inside: still merged
+    boxes, _, _ = detect_image(
+        img, predictor([tile(plant), tile(np.array(part) - shift)]), tile_size=200, overlap=100, merge_containment=1.0
+    )  # 'part' is wholly inside: still merged
     assert boxes.tolist() == [plant]
     # a box far inside a larger one of its class on the same photo is merged too (issue 26: one pass over the
     # photo's final boxes), even when one tile saw both
-    answers = [tile(plant), (np.array([np.array(plant) - shift, np.array(small) - shift], float),
-                             np.array([0.8, 0.95]), np.ones(2, int))]
+    answers = [
+        tile(plant),
+        (np.array([np.array(plant) - shift, np.array(small) - shift], float), np.array([0.8, 0.95]), np.ones(2, int)),
+    ]
     counts: dict = {}
     boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100, counts=counts)
     assert boxes.tolist() == [plant] and counts["nested_merged"] == 1 and counts["tiles"] == 2
@@ -461,10 +618,19 @@ def test_nested_duplicates_from_another_tile_are_merged():
 def _nested_pairs(boxes: np.ndarray, labels: np.ndarray, share: float = 0.8) -> int:
     """Pairs (inner, outer) of same-class boxes with the inner one >= share inside the larger: shapely, box by box."""
     from shapely.geometry import box as sbox
+
     polys = [sbox(*b) for b in boxes]
-    return sum(1 for i, a in enumerate(polys) for j, b in enumerate(polys)
-               if i != j and labels[i] == labels[j] and a.area <= b.area and a.area > 0
-               and (a.area < b.area or i > j) and a.intersection(b).area >= share * a.area)
+    return sum(
+        1
+        for i, a in enumerate(polys)
+        for j, b in enumerate(polys)
+        if i != j
+        and labels[i] == labels[j]
+        and a.area <= b.area
+        and a.area > 0
+        and (a.area < b.area or i > j)
+        and a.intersection(b).area >= share * a.area
+    )
 
 
 def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
@@ -474,7 +640,7 @@ def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
     xy = np.stack(np.meshgrid(np.arange(6) * 60 + 10, np.arange(5) * 60 + 10), -1).reshape(-1, 2).astype(float)
     plants = np.hstack([xy, xy + rng.uniform(30, 45, (30, 2))])
     w = plants[:12, 2:] - plants[:12, :2]
-    parts = plants[:12] + np.hstack([w * 0.2, -w * 0.15])         # inside, IoU about 0.4: NMS keeps them
+    parts = plants[:12] + np.hstack([w * 0.2, -w * 0.15])  # inside, IoU about 0.4: NMS keeps them
     other = plants[12:15] + np.hstack([w[:3] * 0.1, -w[:3] * 0.1])  # class 2 inside class 1
     boxes = np.vstack([plants, parts, other])
     labels = np.r_[np.ones(42, int), np.full(3, 2)]
@@ -483,9 +649,9 @@ def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
 
     def predict(tiles):
         return [(boxes, scores, labels)]
+
     counts: dict = {}
-    out_b, _, out_l = detect_image(np.zeros((340, 400, 3), np.uint8), predict, tile_size=512, overlap=64,
-                                       counts=counts)
+    out_b, _, out_l = detect_image(np.zeros((340, 400, 3), np.uint8), predict, tile_size=512, overlap=64, counts=counts)
     assert len(out_b) == 33 and counts["nested_merged"] == 12 and _nested_pairs(out_b, out_l) == 0
     assert sorted(map(tuple, out_b[out_l == 1])) == sorted(map(tuple, plants))  # the larger boxes stay
 
@@ -494,9 +660,19 @@ def test_detection_output_holds_no_nested_box(checkpoint, tmp_path, caplog):
     """A real run (untrained model, every box kept): predictions.json holds no box >= 80 % inside another of its
     class on the same photo, and the log says how many were merged."""
     make_photo(tmp_path / "imgs" / "a.png", 300, 220, n_plants=12, seed=7)
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
-                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
-                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [
+            f"checkpoint={checkpoint}",
+            f"detect.images={tmp_path / 'imgs'}",
+            f"output_dir={tmp_path / 'out'}",
+            "detect.tile_size=128",
+            "detect.overlap=32",
+            "detect.score_threshold=0.0",
+            "device=cpu",
+        ],
+    )
     with caplog.at_level("INFO"):
         run(cfg)
     preds = read_predictions(tmp_path / "out" / "predictions.json")["predictions"]
@@ -514,15 +690,21 @@ def test_checkpoint_errors_say_what_the_file_is(checkpoint, tmp_path):
     from matchplant.detection.checkpoint import load_detector, read_checkpoint
 
     data = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    cases = {"weights.pth": (lambda p: torch.save(data["model_state"], p), "bare weights"),
-             "whole.pt": (lambda p: torch.save(load_detector(checkpoint)[0], p), "whole pickled model"),
-             "cut.pt": (lambda p: p.write_bytes(Path(checkpoint).read_bytes()[:50_000]), "truncated"),
-             "empty.pt": (lambda p: p.write_bytes(b""), "empty"),
-             "notes.pt": (lambda p: p.write_text("epochs: 30\n"), "text file"),
-             "yolo.pt": (lambda p: torch.save(dict(data, model_config=dict(data["model_config"], architecture="yolo")),
-                                              p), "'yolo' model"),
-             "noclass.pt": (lambda p: torch.save({k: v for k, v in data.items() if k != "class_names"}, p),
-                            "'class_names' is missing")}
+    cases = {
+        "weights.pth": (lambda p: torch.save(data["model_state"], p), "bare weights"),
+        "whole.pt": (lambda p: torch.save(load_detector(checkpoint)[0], p), "whole pickled model"),
+        "cut.pt": (lambda p: p.write_bytes(Path(checkpoint).read_bytes()[:50_000]), "truncated"),
+        "empty.pt": (lambda p: p.write_bytes(b""), "empty"),
+        "notes.pt": (lambda p: p.write_text("epochs: 30\n"), "text file"),
+        "yolo.pt": (
+            lambda p: torch.save(dict(data, model_config=dict(data["model_config"], architecture="yolo")), p),
+            "'yolo' model",
+        ),
+        "noclass.pt": (
+            lambda p: torch.save({k: v for k, v in data.items() if k != "class_names"}, p),
+            "'class_names' is missing",
+        ),
+    }
     for name, (write, said) in cases.items():
         write(tmp_path / name)
         with pytest.raises(InputError, match=said) as err:
@@ -537,8 +719,13 @@ def test_checkpoint_errors_say_what_the_file_is(checkpoint, tmp_path):
 
 def test_detection_that_finds_nothing_says_why_and_writes_nothing(checkpoint, tmp_path):
     make_photo(tmp_path / "imgs" / "DJI_0001.JPG", 150, 100, n_plants=4, seed=3)
-    common = [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}", "detect.tile_size=128",
-              "detect.overlap=32", "device=cpu"]
+    common = [
+        f"checkpoint={checkpoint}",
+        f"detect.images={tmp_path / 'imgs'}",
+        "detect.tile_size=128",
+        "detect.overlap=32",
+        "device=cpu",
+    ]
     cfg = load_config(ModelTestConfig, None, [*common, f"output_dir={tmp_path / 'out'}", "detect.score_threshold=0.5"])
     with pytest.raises(InputError, match="no plant found on any of the 1 image") as err:
         run(cfg)
@@ -551,9 +738,19 @@ def test_detection_that_finds_nothing_says_why_and_writes_nothing(checkpoint, tm
 
 def test_detection_on_an_image_smaller_than_the_tile_warns_and_uses_the_image(checkpoint, tmp_path, caplog):
     make_photo(tmp_path / "one.png", 90, 70, n_plants=3, seed=4)
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'one.png'}",
-                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=1024",
-                                              "detect.overlap=256", "detect.score_threshold=0", "device=cpu"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [
+            f"checkpoint={checkpoint}",
+            f"detect.images={tmp_path / 'one.png'}",
+            f"output_dir={tmp_path / 'out'}",
+            "detect.tile_size=1024",
+            "detect.overlap=256",
+            "detect.score_threshold=0",
+            "device=cpu",
+        ],
+    )
     with caplog.at_level("WARNING"):
         run(cfg)
     assert any("larger than 1 of the 1 image" in r.message and "90x70" in r.message for r in caplog.records)
@@ -567,13 +764,23 @@ def test_rerun_into_the_same_folder_leaves_nothing_stale(checkpoint, tmp_path):
     for name in ("a.png", "b.png", "c.png"):
         make_photo(tmp_path / "first" / name, 150, 120, n_plants=4, seed=len(name) + ord(name[0]))
     make_photo(tmp_path / "second" / "z.png", 150, 120, n_plants=4, seed=9)
-    common = [f"checkpoint={checkpoint}", f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
-              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu"]
+    common = [
+        f"checkpoint={checkpoint}",
+        f"output_dir={tmp_path / 'out'}",
+        "detect.tile_size=128",
+        "detect.overlap=32",
+        "detect.score_threshold=0.0",
+        "device=cpu",
+    ]
     run(load_config(ModelTestConfig, None, [*common, f"detect.images={tmp_path / 'first'}", "detect.drawn_images=3"]))
 
     def files():
-        return {p.relative_to(tmp_path / "out").as_posix() for p in (tmp_path / "out").rglob("*")
-                if p.is_file() and "logs" not in p.parts}
+        return {
+            p.relative_to(tmp_path / "out").as_posix()
+            for p in (tmp_path / "out").rglob("*")
+            if p.is_file() and "logs" not in p.parts
+        }
+
     assert {"detections/a.png", "detections/b.png", "detections/c.png"} <= files()
     assert files() == set(json.loads((tmp_path / "out" / "manifest.json").read_text())["files"])
     (tmp_path / "out" / "my_notes.txt").write_text("kept")
@@ -603,10 +810,21 @@ def test_detection_estimate_holds_against_the_measured_run(checkpoint, tmp_path,
     """The estimate logged before detection is within 50 % of the detection's measured time."""
     for k in range(3):
         make_photo(tmp_path / "imgs" / f"p{k}.png", 420, 300, n_plants=10, seed=30 + k)
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={checkpoint}", f"detect.images={tmp_path / 'imgs'}",
-                                              f"output_dir={tmp_path / 'out'}", "detect.tile_size=128",
-                                              "detect.overlap=32", "detect.score_threshold=0.0", "device=cpu",
-                                              "detect.drawn_images=0", "batch_size=1"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [
+            f"checkpoint={checkpoint}",
+            f"detect.images={tmp_path / 'imgs'}",
+            f"output_dir={tmp_path / 'out'}",
+            "detect.tile_size=128",
+            "detect.overlap=32",
+            "detect.score_threshold=0.0",
+            "device=cpu",
+            "detect.drawn_images=0",
+            "batch_size=1",
+        ],
+    )
     with caplog.at_level("INFO"):
         run(cfg)
     timing = read_predictions(tmp_path / "out" / "predictions.json")["info"]["timing"]

@@ -22,9 +22,9 @@ from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import InputError
 from matchplant.detection import lite
 from matchplant.detection.architectures import ARCHITECTURES
+from matchplant.detection.checkpoint import load_detector, load_matching_weights
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import ModelConfig, build_detector
-from matchplant.detection.checkpoint import load_detector, load_matching_weights
 from matchplant.detection.synth import make_photo
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import run
@@ -38,8 +38,7 @@ def paper_model(num_classes: int = 2):
     """As the paper's code builds it: torchvision's detector, a new FastRCNNPredictor for our classes."""
     torch.manual_seed(1)
     model = tvd.fasterrcnn_mobilenet_v3_large_fpn(weights=None, weights_backbone=None)
-    model.roi_heads.box_predictor = FastRCNNPredictor(model.roi_heads.box_predictor.cls_score.in_features,
-                                                      num_classes)
+    model.roi_heads.box_predictor = FastRCNNPredictor(model.roi_heads.box_predictor.cls_score.in_features, num_classes)
     return model
 
 
@@ -48,8 +47,15 @@ def paper_files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("foreign")
     model = paper_model()
     opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9)
-    torch.save({"epoch": 12, "model_state_dict": model.state_dict(), "optimizer_state_dict": opt.state_dict(),
-                "best_map": 0.61}, folder / "Pre-trained model_Faster R-CNN.pt")
+    torch.save(
+        {
+            "epoch": 12,
+            "model_state_dict": model.state_dict(),
+            "optimizer_state_dict": opt.state_dict(),
+            "best_map": 0.61,
+        },
+        folder / "Pre-trained model_Faster R-CNN.pt",
+    )
     torch.save(model.state_dict(), folder / "weights.pth")
     return model, folder / "Pre-trained model_Faster R-CNN.pt", folder / "weights.pth"
 
@@ -58,10 +64,20 @@ def paper_files(tmp_path_factory):
 def test_paper_checkpoint_detects_in_module_7_as_torchvision_does(paper_files, tmp_path):
     model, paper, _ = paper_files
     make_photo(tmp_path / "imgs" / "a.png", 160, 120, n_plants=6, seed=2)
-    cfg = load_config(ModelTestConfig, None, [f"checkpoint={paper}", f"detect.images={tmp_path / 'imgs'}",
-                                              f"output_dir={tmp_path / 'out'}", "class_names=[maize]",
-                                              "detect.tile_size=256", "detect.overlap=32",
-                                              "detect.score_threshold=0.0", "device=cpu"])
+    cfg = load_config(
+        ModelTestConfig,
+        None,
+        [
+            f"checkpoint={paper}",
+            f"detect.images={tmp_path / 'imgs'}",
+            f"output_dir={tmp_path / 'out'}",
+            "class_names=[maize]",
+            "detect.tile_size=256",
+            "detect.overlap=32",
+            "detect.score_threshold=0.0",
+            "device=cpu",
+        ],
+    )
     run(cfg)
     out = read_predictions(tmp_path / "out" / "predictions.json")
     assert [c["name"] for c in out["categories"]] == ["maize"]
@@ -103,13 +119,16 @@ def test_foreign_weights_start_a_module_6_fine_tune(paper_files):
     assert src["foreign"]["epoch"] == 12 and src["foreign"]["best_map"] == 0.61
     model = build_detector(ModelConfig(architecture=ARCH, pretrained="none"), 4, load_weights=False)
     loaded, skipped = load_matching_weights(model, src["model_state"])
-    assert sorted({k.rsplit(".", 1)[0] for k in skipped}) == ["roi_heads.box_predictor.bbox_pred",
-                                                               "roi_heads.box_predictor.cls_score"]
+    assert sorted({k.rsplit(".", 1)[0] for k in skipped}) == [
+        "roi_heads.box_predictor.bbox_pred",
+        "roi_heads.box_predictor.cls_score",
+    ]
     assert len(loaded) == len(src["model_state"]) - 4
 
 
-@pytest.mark.parametrize("arch", [pytest.param(a, marks=[] if a == "fasterrcnn_resnet50_fpn" else pytest.mark.slow)
-                                  for a in ARCHITECTURES])
+@pytest.mark.parametrize(
+    "arch", [pytest.param(a, marks=[] if a == "fasterrcnn_resnet50_fpn" else pytest.mark.slow) for a in ARCHITECTURES]
+)
 def test_every_architecture_is_recognised_from_its_weights(arch, tmp_path):
     """Bare weights of each architecture, as torchvision builds it for 4 classes (shapes only: meta tensors)."""
     builder = getattr(lite, ARCHITECTURES[arch].builder, None) or getattr(tvd, ARCHITECTURES[arch].builder)
@@ -149,6 +168,7 @@ def test_torchvision_weights_in_the_hub_cache_work_offline(tmp_path, monkeypatch
 
         def offline(*args, **kwargs):
             raise urllib.error.URLError("no network")
+
         monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
         model = build_detector(ModelConfig(architecture=ARCH, pretrained="coco"), 2)
     finally:

@@ -7,7 +7,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 import urllib.error
 from pathlib import Path
 
@@ -19,9 +18,9 @@ from matchplant.cli import build_parser
 from matchplant.core.runtime.config import field_help, load_config
 from matchplant.core.runtime.errors import ConfigError, DependencyError, InputError
 from matchplant.detection.architectures import ARCHITECTURES, get_architecture
+from matchplant.detection.checkpoint import load_detector, read_checkpoint
 from matchplant.detection.data import AugmentConfig, CocoDetection
 from matchplant.detection.model import ModelConfig, apply_freezing, build_detector
-from matchplant.detection.checkpoint import load_detector, read_checkpoint
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import build_optimizer, build_scheduler, lr_factor, train
@@ -30,11 +29,23 @@ from matchplant.steps.model_train import SPEC
 ROOT = Path(__file__).resolve().parents[1]
 MOBILE = "fasterrcnn_mobilenet_v3_large_fpn"
 # small and fast: 64 px tiles, few proposals and samples
-FAST = [f"model.architecture={MOBILE}", "model.pretrained=none", "model.min_size=64", "model.max_size=64",
-        "model.anchor_sizes=[[8,16,32],[8,16,32],[8,16,32]]", "model.roi.batch_size_per_image=32",
-        "model.rpn.pre_nms_top_n_train=100", "model.rpn.post_nms_top_n_train=100",
-        "model.rpn.pre_nms_top_n_test=100", "model.rpn.post_nms_top_n_test=100",
-        "batch_size=4", "num_workers=0", "warmup_iters=2", "save_every=2", "epochs=2"]
+FAST = [
+    f"model.architecture={MOBILE}",
+    "model.pretrained=none",
+    "model.min_size=64",
+    "model.max_size=64",
+    "model.anchor_sizes=[[8,16,32],[8,16,32],[8,16,32]]",
+    "model.roi.batch_size_per_image=32",
+    "model.rpn.pre_nms_top_n_train=100",
+    "model.rpn.post_nms_top_n_train=100",
+    "model.rpn.pre_nms_top_n_test=100",
+    "model.rpn.post_nms_top_n_test=100",
+    "batch_size=4",
+    "num_workers=0",
+    "warmup_iters=2",
+    "save_every=2",
+    "epochs=2",
+]
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -46,8 +57,9 @@ def tiles(train_tiles):
 
 
 def fast_config(tiles, out: Path, *extra: str) -> ModelTrainConfig:
-    return load_config(ModelTrainConfig, None, [f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}",
-                                           *FAST, *extra])
+    return load_config(
+        ModelTrainConfig, None, [f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}", *FAST, *extra]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -63,12 +75,18 @@ def trained(tiles, tmp_path_factory):
 
 def test_folder_configs_load_and_help(tiles):
     for name in ("train_config.yaml", "transfer_config.yaml"):
-        cfg = load_config(ModelTrainConfig, ROOT / "6_model_train" / name, [f"train_json={tiles[0]}"], check_paths=False)
+        cfg = load_config(
+            ModelTrainConfig, ROOT / "6_model_train" / name, [f"train_json={tiles[0]}"], check_paths=False
+        )
         assert cfg.lr.backbone > 0
     transfer = load_config(ModelTrainConfig, ROOT / "6_model_train" / "transfer_config.yaml", check_paths=False)
     assert transfer.freeze == ["backbone", "fpn"] and transfer.model.checkpoint is not None
-    r = subprocess.run([sys.executable, str(ROOT / "6_model_train" / "model_train.py"), "--help"], capture_output=True,
-                       text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "6_model_train" / "model_train.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--resume" in r.stdout
     args = build_parser(SPEC).parse_args(["--resume"])
     assert args.flag__resume == "true"
@@ -89,7 +107,10 @@ CHANGED = {  # key -> (new value, how to read it back from the built model)
     "min_size": (96, lambda m: m.transform.min_size[0]),
     "max_size": (160, lambda m: m.transform.max_size),
     "anchor_sizes": ([[12, 24], [48, 64], [96, 128]], lambda m: [list(s) for s in m.rpn.anchor_generator.sizes]),
-    "aspect_ratios": ([0.5, 1.0, 2.0, 4.0], lambda m: [round(float(r), 3) for r in m.rpn.anchor_generator.aspect_ratios[0]]),
+    "aspect_ratios": (
+        [0.5, 1.0, 2.0, 4.0],
+        lambda m: [round(float(r), 3) for r in m.rpn.anchor_generator.aspect_ratios[0]],
+    ),
     "rpn.fg_iou_thresh": (0.6, lambda m: m.rpn.proposal_matcher.high_threshold),
     "rpn.bg_iou_thresh": (0.2, lambda m: m.rpn.proposal_matcher.low_threshold),
     "rpn.batch_size_per_image": (128, lambda m: m.rpn.fg_bg_sampler.batch_size_per_image),
@@ -113,9 +134,11 @@ def test_every_model_setting_takes_effect():
     keys = set(field_help(ModelConfig)) - {"architecture", "pretrained", "checkpoint"}
     assert keys == set(CHANGED), "each model setting needs a check here"
     base = build_detector(load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none"]), 2)
-    cfg = load_config(ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none",
-                                          *(f"{k}={v}" for k, (v, _) in CHANGED.items())])
+    cfg = load_config(
+        ModelConfig, None, [f"architecture={MOBILE}", "pretrained=none", *(f"{k}={v}" for k, (v, _) in CHANGED.items())]
+    )
     model = build_detector(cfg, 3)
+
     def same(a, b):
         return a == b if isinstance(b, list) and isinstance(b[0], list) else a == pytest.approx(b)
 
@@ -125,7 +148,9 @@ def test_every_model_setting_takes_effect():
     # 2 sizes x 4 ratios: the RPN head has one output per anchor shape, and the model trains with it
     assert model.rpn.head.cls_logits.out_channels == 8 and model.roi_heads.box_predictor.cls_score.out_features == 3
     model.train()
-    losses = model([torch.rand(3, 96, 96)], [{"boxes": torch.tensor([[10.0, 10, 40, 30]]), "labels": torch.tensor([2])}])
+    losses = model(
+        [torch.rand(3, 96, 96)], [{"boxes": torch.tensor([[10.0, 10, 40, 30]]), "labels": torch.tensor([2])}]
+    )
     assert all(torch.isfinite(v) for v in losses.values())
     # min/max size resize the input
     images, _ = model.transform([torch.rand(3, 300, 600)])
@@ -243,15 +268,17 @@ def test_augmentation_moves_boxes_and_keeps_negatives(tiles):
     img0, t0 = plain[0]
     img1, t1 = flip[0]
     w, h = img0.shape[2], img0.shape[1]
-    expected = torch.stack([w - t0["boxes"][:, 2], h - t0["boxes"][:, 3], w - t0["boxes"][:, 0],
-                            h - t0["boxes"][:, 1]], dim=1)
+    expected = torch.stack(
+        [w - t0["boxes"][:, 2], h - t0["boxes"][:, 3], w - t0["boxes"][:, 0], h - t0["boxes"][:, 1]], dim=1
+    )
     assert torch.allclose(t1["boxes"], expected)
     assert torch.allclose(img1, img0.flip(1).flip(2))
     for b in t1["boxes"].round().int():  # the plant's green is inside its moved box
-        patch = img1[:, b[1]:b[3], b[0]:b[2]]
+        patch = img1[:, b[1] : b[3], b[0] : b[2]]
         assert (patch[1] > patch[0] + 0.2).float().mean() > 0.4
-    jitter = CocoDetection(tiles[0], augment=AugmentConfig(hflip=0, vflip=0, brightness=0.5, contrast=0.5,
-                                                           saturation=0.5))
+    jitter = CocoDetection(
+        tiles[0], augment=AugmentConfig(hflip=0, vflip=0, brightness=0.5, contrast=0.5, saturation=0.5)
+    )
     torch.manual_seed(1)
     img2, t2 = jitter[0]
     assert torch.equal(t2["boxes"], t0["boxes"]) and not torch.allclose(img2, img0)
@@ -274,6 +301,7 @@ def test_bad_inputs(tiles, tmp_path):
         torch.save({"a": 1}, tmp_path / "x.pt")
         read_checkpoint(tmp_path / "x.pt")
     from matchplant.cli import run_module
+
     assert run_module("train", ["--set", f"train_json={tmp_path / 'nope.json'}"]) == 2
 
 
@@ -292,8 +320,16 @@ def test_training_run_outputs(trained):
         assert "AP" in h["val"] and "AP50" in h["val"]
         assert set(h["lr"]) == {"backbone", "fpn", "rpn", "roi_heads"}
     ck = read_checkpoint(out / "checkpoints" / "last.pt")  # self-contained (DESIGN §2)
-    for key in ("model_state", "model_config", "class_names", "epoch", "optimizer_state", "scheduler_state",
-                "metrics", "history"):
+    for key in (
+        "model_state",
+        "model_config",
+        "class_names",
+        "epoch",
+        "optimizer_state",
+        "scheduler_state",
+        "metrics",
+        "history",
+    ):
         assert key in ck
     assert ck["epoch"] == 2 and ck["class_names"] == ["plant"]
     model, _ = load_detector(out / "checkpoints" / "last.pt")
@@ -329,8 +365,9 @@ def test_resume_after_crash_continues_the_same_run(tiles, trained, tmp_path):
     assert sa.keys() == sb.keys()
     for k in sa:
         assert torch.allclose(sa[k]["momentum_buffer"], sb[k]["momentum_buffer"], atol=1e-5)
-    assert [h["losses"]["loss"] for h in a["history"]] == pytest.approx([h["losses"]["loss"] for h in b["history"]],
-                                                                        rel=1e-4)
+    assert [h["losses"]["loss"] for h in a["history"]] == pytest.approx(
+        [h["losses"]["loss"] for h in b["history"]], rel=1e-4
+    )
 
 
 def test_transfer_with_frozen_backbone_changes_only_unfrozen(trained, tmp_path):
@@ -339,13 +376,24 @@ def test_transfer_with_frozen_backbone_changes_only_unfrozen(trained, tmp_path):
     d = tmp_path / "two"
     js = make_tiles(d, n_images=4, size=64, plants=(1, 2), radius=(5, 9), negatives=0, seed=5, name="t.json")
     import json
+
     data = json.loads(js.read_text())
     data["categories"].append({"id": 2, "name": "weed", "supercategory": "plant"})
     data["annotations"][0]["category_id"] = 2
     js.write_text(json.dumps(data))
-    cfg = load_config(ModelTrainConfig, None, [f"train_json={js}", f"output_dir={tmp_path / 'tl'}", *FAST, "epochs=1",
-                                          f"model.checkpoint={src_dir / 'checkpoints' / 'last.pt'}",
-                                          "freeze=[backbone, fpn]", "trainable_backbone_layers=0"])
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            f"train_json={js}",
+            f"output_dir={tmp_path / 'tl'}",
+            *FAST,
+            "epochs=1",
+            f"model.checkpoint={src_dir / 'checkpoints' / 'last.pt'}",
+            "freeze=[backbone, fpn]",
+            "trainable_backbone_layers=0",
+        ],
+    )
     train(cfg)
     src = read_checkpoint(src_dir / "checkpoints" / "last.pt")["model_state"]
     new = read_checkpoint(tmp_path / "tl" / "checkpoints" / "last.pt")
@@ -361,8 +409,9 @@ def test_transfer_with_frozen_backbone_changes_only_unfrozen(trained, tmp_path):
 @pytest.mark.slow
 def test_training_reduces_the_loss(tiles, tmp_path):
     """Fitting a few tiles: the optimisation (per-part SGD) must lower the loss clearly."""
-    cfg = fast_config(tiles, tmp_path, "warmup_iters=0", "lr.backbone=0.01", "lr.fpn=0.01", "lr.rpn=0.02",
-                      "lr.roi_heads=0.02")
+    cfg = fast_config(
+        tiles, tmp_path, "warmup_iters=0", "lr.backbone=0.01", "lr.fpn=0.01", "lr.rpn=0.02", "lr.roi_heads=0.02"
+    )
     torch.manual_seed(0)
     model = build_detector(cfg.model, 2)
     apply_freezing(model, MOBILE, 6, [])
@@ -380,16 +429,34 @@ def test_training_reduces_the_loss(tiles, tmp_path):
     assert np.mean(losses[-3:]) < 0.85 * np.mean(losses[:2]) and losses[-1] < losses[0], losses
 
 
-@pytest.mark.skipif(not __import__("os").environ.get("MATCHPLANT_TEST_DDP"),
-                    reason="two processes (about 40 s on 2 cores): set MATCHPLANT_TEST_DDP=1")
+@pytest.mark.skipif(
+    not __import__("os").environ.get("MATCHPLANT_TEST_DDP"),
+    reason="two processes (about 40 s on 2 cores): set MATCHPLANT_TEST_DDP=1",
+)
 def test_torchrun_two_processes(tiles, tmp_path):
     """DistributedDataParallel on the CPU (gloo): two processes train one run, rank 0 writes it."""
     import os
+
     out = tmp_path / "ddp"
-    args = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port", "29541",
-            str(ROOT / "6_model_train" / "model_train.py"), "--set", f"train_json={tiles[0]}", "--set",
-            f"val_json={tiles[1]}", "--set", f"output_dir={out}", *[x for s in FAST for x in ("--set", s)],
-            "--set", "batch_size=2"]
+    args = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "--master_port",
+        "29541",
+        str(ROOT / "6_model_train" / "model_train.py"),
+        "--set",
+        f"train_json={tiles[0]}",
+        "--set",
+        f"val_json={tiles[1]}",
+        "--set",
+        f"output_dir={out}",
+        *[x for s in FAST for x in ("--set", s)],
+        "--set",
+        "batch_size=2",
+    ]
     r = subprocess.run(args, capture_output=True, text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert r.returncode == 0, r.stderr[-2000:]
     ck = read_checkpoint(out / "checkpoints" / "last.pt")
@@ -408,13 +475,27 @@ def test_the_estimate_before_training_holds_for_the_measured_run(tmp_path):
     d = tmp_path / "tiles"
     # 30 iterations: enough for the probe (at most 5 % of the run) to time a steady iteration after the first; on a
     # 6-iteration run it times only the first, warm-up included, and the estimate came out 1.7x the run
-    big = (make_tiles(d, n_images=40, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=3, name="t.json"),
-           make_tiles(d, n_images=2, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=4, name="v.json"))
+    big = (
+        make_tiles(d, n_images=40, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=3, name="t.json"),
+        make_tiles(d, n_images=2, size=128, plants=(3, 6), radius=(6, 12), negatives=0, seed=4, name="v.json"),
+    )
     out = tmp_path / "run"
-    sets = [f"train_json={big[0]}", f"val_json={big[1]}", f"output_dir={out}", *FAST, "model.min_size=128",
-            "model.max_size=128", "epochs=3", "save_every=0"]
-    r = subprocess.run([sys.executable, "-m", "matchplant.cli", "model_train", "--quiet",
-                        *[a for kv in sets for a in ("--set", kv)]], capture_output=True, text=True, timeout=600)
+    sets = [
+        f"train_json={big[0]}",
+        f"val_json={big[1]}",
+        f"output_dir={out}",
+        *FAST,
+        "model.min_size=128",
+        "model.max_size=128",
+        "epochs=3",
+        "save_every=0",
+    ]
+    r = subprocess.run(
+        [sys.executable, "-m", "matchplant.cli", "model_train", "--quiet", *[a for kv in sets for a in ("--set", kv)]],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     summary = json.loads((out / "training_summary.json").read_text())
     estimate, measured = summary["estimate"]["planned_s"], summary["this_session_s"]
@@ -442,21 +523,21 @@ def test_max_minutes_shorter_than_an_iteration_still_trains_one_and_saves(tiles,
 @pytest.mark.parametrize("arch", ["retinanet_resnet50_fpn", "fcos_resnet50_fpn"])
 def test_one_stage_detectors_train_save_transfer_and_evaluate(arch, tiles, tmp_path):
     """RetinaNet and FCOS beside Faster R-CNN: same targets, checkpoint, transfer learning and evaluation."""
+    from matchplant.detection.checkpoint import load_matching_weights, save_checkpoint
     from matchplant.detection.evaluate import coco_evaluate, predict_dataset
     from matchplant.detection.model import model_parts, parameter_groups, set_score_threshold
-    from matchplant.detection.checkpoint import load_matching_weights, save_checkpoint
 
     cfg = load_config(ModelConfig, None, [f"architecture={arch}", "pretrained=none", "min_size=64", "max_size=64"])
     torch.manual_seed(0)
     model = build_detector(cfg, 2)
     assert not hasattr(model, "rpn") and model_parts(model)["roi_heads"] is model.head
-    apply_freezing(model, arch, 3, ["rpn"])          # 'rpn' is empty for a one-stage model: nothing else frozen
+    apply_freezing(model, arch, 3, ["rpn"])  # 'rpn' is empty for a one-stage model: nothing else frozen
     groups = parameter_groups(model, {"backbone": 0.01, "fpn": 0.01, "rpn": 0.01, "roi_heads": 0.01})
     assert [g["name"] for g in groups] == ["backbone", "fpn", "roi_heads"]
     ds = CocoDetection(tiles[0])
     model.train()
     images, targets = zip(*[ds[i] for i in range(4)])
-    losses = model(list(images), list(targets))       # module 5's targets as they are
+    losses = model(list(images), list(targets))  # module 5's targets as they are
     assert all(torch.isfinite(v) for v in losses.values())
     opt = torch.optim.SGD([p for g in groups for p in g["params"]], lr=0.001)
     sum(losses.values()).backward()
@@ -495,8 +576,9 @@ def test_one_stage_coco_weights_rebuild_without_download(monkeypatch, tmp_path):
 
     from matchplant.detection.checkpoint import save_checkpoint
 
-    cfg = load_config(ModelConfig, None, ["architecture=retinanet_resnet50_fpn", "pretrained=coco",
-                                          "min_size=64", "max_size=64"])
+    cfg = load_config(
+        ModelConfig, None, ["architecture=retinanet_resnet50_fpn", "pretrained=coco", "min_size=64", "max_size=64"]
+    )
     torch.manual_seed(3)
     served = build_detector(cfg, 91, load_weights=False).state_dict()
     monkeypatch.setattr(api, "load_state_dict_from_url", lambda *a, **k: served)
@@ -525,8 +607,11 @@ def test_anchor_sizes_auto_from_the_training_boxes(tiles, tmp_path):
     objects = np.sqrt([a["bbox"][2] * a["bbox"][3] for a in ds["annotations"]])
     for arch, levels in (("fasterrcnn_resnet50_fpn", 5), (MOBILE, 3), ("retinanet_resnet50_fpn", 5)):
         for scale in (1, 2):  # min_size = 2 x the tile: objects (and anchors) twice as large
-            cfg = load_config(ModelConfig, None, [f"architecture={arch}", "anchor_sizes=auto",
-                                                  f"min_size={512 * scale}", f"max_size={512 * scale}"])
+            cfg = load_config(
+                ModelConfig,
+                None,
+                [f"architecture={arch}", "anchor_sizes=auto", f"min_size={512 * scale}", f"max_size={512 * scale}"],
+            )
             sizes = resolve_auto_anchors(cfg, ds).anchor_sizes
             assert len(sizes) == levels
             flat = np.array(sorted({s for level in sizes for s in level}), float)
@@ -534,7 +619,7 @@ def test_anchor_sizes_auto_from_the_training_boxes(tiles, tmp_path):
             lo, hi = np.percentile(objects * scale, [1, 99])
             for size in np.linspace(lo, hi, 20):
                 assert (np.minimum(size, flat) ** 2 / np.maximum(size, flat) ** 2).max() >= 0.5, (arch, size, sizes)
-            assert flat.min() <= lo and flat.min() >= 0.5 * lo   # the smallest anchor sits at the small objects
+            assert flat.min() <= lo and flat.min() >= 0.5 * lo  # the smallest anchor sits at the small objects
     with pytest.raises(ConfigError, match="computed from the training boxes"):
         build_detector(load_config(ModelConfig, None, ["anchor_sizes=auto", "pretrained=none"]), 2)
     out = tmp_path / "run"
@@ -567,8 +652,9 @@ def test_summary_reports_a_small_validation_set_and_the_geometry(trained, tiles)
 def test_lr_schedule_laid_over_the_planned_iterations():
     from matchplant.model_train.budget import Costs, plan_iterations
 
-    cfg = load_config(ModelTrainConfig, None, ["train_json=x", "epochs=30", "step_size=10", "warmup_iters=0"],
-                      check_paths=False)
+    cfg = load_config(
+        ModelTrainConfig, None, ["train_json=x", "epochs=30", "step_size=10", "warmup_iters=0"], check_paths=False
+    )
     # 30 epochs of 5 iterations planned as 30 iterations: the decays at epochs 10 and 20 come at 1/3 and 2/3
     assert [lr_factor(cfg, e * 5, 5, 30) for e in range(6)] == pytest.approx([1, 1, 0.1, 0.1, 0.01, 0.01])
     assert [lr_factor(cfg, e * 5, 5) for e in (0, 9, 10, 20)] == pytest.approx([1, 1, 0.1, 0.01])  # as set
@@ -579,9 +665,9 @@ def test_lr_schedule_laid_over_the_planned_iterations():
     n = plan_iterations(40, 0, 4, costs, 100.0, 1, True)
     # computed by hand: 8 iterations = 80 s + 2 validations + 2 checkpoints = 94 s; 9 = 90 + 3 x 7 = 111 s
     assert n == 8
-    assert plan_iterations(40, 0, 4, costs, 10_000.0, 1, True) == 40       # everything fits
-    assert plan_iterations(40, 6, 4, costs, 0.0, 1, True) == 6             # over budget already: the ones done
-    assert plan_iterations(40, 0, 4, costs, 100.0, 1, False) == 9          # no validation: 90 + 3 x 2 = 96 s
+    assert plan_iterations(40, 0, 4, costs, 10_000.0, 1, True) == 40  # everything fits
+    assert plan_iterations(40, 6, 4, costs, 0.0, 1, True) == 6  # over budget already: the ones done
+    assert plan_iterations(40, 0, 4, costs, 100.0, 1, False) == 9  # no validation: 90 + 3 x 2 = 96 s
 
 
 def test_schedule_scales_with_the_dataset_and_warns_when_it_cannot_reach_the_rate():
@@ -599,8 +685,12 @@ def test_schedule_scales_with_the_dataset_and_warns_when_it_cannot_reach_the_rat
     assert default.warmup_iters is None and warmup_length(default, planned) == round(0.05 * planned)
     assert schedule_warning(default, 9, planned) is None and peak_factor(default, 9, planned) == pytest.approx(1.0)
     assert warmup_length(default, 10 * planned) == round(0.05 * 10 * planned)  # scales with the dataset
-    frac = load_config(ModelTrainConfig, None, ["train_json=x", "schedule=multistep", "milestone_fractions=[0.5, 0.75]",
-                                                "warmup_iters=0"], check_paths=False)
+    frac = load_config(
+        ModelTrainConfig,
+        None,
+        ["train_json=x", "schedule=multistep", "milestone_fractions=[0.5, 0.75]", "warmup_iters=0"],
+        check_paths=False,
+    )
     assert [lr_factor(frac, i, 9, 100) for i in (49, 50, 74, 75)] == pytest.approx([1, 0.1, 0.1, 0.01])
 
 
@@ -608,8 +698,17 @@ def _fake_probe(iteration_s: float):
     from matchplant.model_train.probe import Probe
 
     def probe(*args, **kwargs):
-        return Probe(first_s=iteration_s, iteration_s=iteration_s, iterations=1, load_s=0.0, inference_s_per_image=0.1,
-                     peak_memory_mb=100.0, batch=4, input_px=(64, 64))
+        return Probe(
+            first_s=iteration_s,
+            iteration_s=iteration_s,
+            iterations=1,
+            load_s=0.0,
+            inference_s_per_image=0.1,
+            peak_memory_mb=100.0,
+            batch=4,
+            input_px=(64, 64),
+        )
+
     return probe
 
 
@@ -643,7 +742,7 @@ def test_the_plan_is_refitted_half_way_at_the_real_pace(tiles, monkeypatch):
     session.dist_info, session.device = Shard(), torch.device("cpu")
     done = 0
     while done < plan.iters:
-        _Clock.now += 2.0 if not plan.fitted else 1.0   # 2 s per iteration at first, then 1 s
+        _Clock.now += 2.0 if not plan.fitted else 1.0  # 2 s per iteration at first, then 1 s
         done += 1
         if session.after_step(done, 2.0 if not plan.fitted else 1.0):
             break
@@ -719,15 +818,15 @@ def test_training_on_crops_resumed_mid_epoch_repeats_the_uninterrupted_run(tiles
 
 
 @pytest.mark.slow
-def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tiles, trained, tmp_path, monkeypatch,
-                                                                           capsys):
+def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(
+    tiles, trained, tmp_path, monkeypatch, capsys
+):
     """Ctrl-C (a real SIGINT) during epoch 2: the command writes the checkpoint, prints one line and exits 130;
     --resume then ends where the uninterrupted run ended."""
     import os
     import signal
 
     from matchplant.cli import run_module
-
     from matchplant.model_train.budget import Budget
 
     real_after = Budget.after_step
@@ -739,8 +838,9 @@ def test_ctrl_c_mid_epoch_writes_a_checkpoint_exits_130_and_resumes_exactly(tile
 
     monkeypatch.setattr(Budget, "after_step", interrupt)
     out = tmp_path / "ctrl_c"
-    argv = [x for s in (f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}", *FAST)
-            for x in ("--set", s)]
+    argv = [
+        x for s in (f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={out}", *FAST) for x in ("--set", s)
+    ]
     capsys.readouterr()
     assert run_module("model_train", [*argv, "--quiet"]) == 130
     err = capsys.readouterr().err.strip().splitlines()
@@ -761,8 +861,11 @@ def test_resume_refuses_a_changed_architecture_and_fresh_starts_over(tiles, trai
     shutil.copytree(trained[0], out)
     last = out / "checkpoints" / "last.pt"
     with pytest.raises(ConfigError) as err:
-        train(fast_config(tiles, out, "resume=true", "model.architecture=fasterrcnn_resnet50_fpn",
-                          "model.anchor_sizes=null"))
+        train(
+            fast_config(
+                tiles, out, "resume=true", "model.architecture=fasterrcnn_resnet50_fpn", "model.anchor_sizes=null"
+            )
+        )
     assert "model.architecture" in str(err.value) and err.value.path == last and "--fresh" in err.value.fix
     assert "fasterrcnn_mobilenet_v3_large_fpn" in err.value.fix
     with pytest.raises(ConfigError, match="model.min_size is 96"):
@@ -779,8 +882,8 @@ def test_threads_chosen_from_the_usable_cores_and_the_load(monkeypatch):
     from matchplant.detection.device import choose_threads, configure_threads, usable_cores
 
     assert choose_threads(cores=8, load=0.2)[0] == 8
-    assert choose_threads(cores=8, load=3.4)[0] == 5                  # 3 cores busy with other work
-    assert choose_threads(cores=2, load=9.0)[0] == 1                  # always at least one
+    assert choose_threads(cores=8, load=3.4)[0] == 5  # 3 cores busy with other work
+    assert choose_threads(cores=2, load=9.0)[0] == 1  # always at least one
     threads, why = choose_threads(3, cores=8, load=0.0)
     assert threads == 3 and "set in the config" in why
     if hasattr(os, "sched_getaffinity"):
@@ -814,6 +917,7 @@ def test_architecture_auto_fits_the_device_and_the_budget(tiles):
     budget_min = 100 * probe.iteration_s * RESNET_TRAIN_COST * 100 / 60
     assert choose("model.anchor_sizes=null", f"max_minutes={budget_min:.3f}")[0] == PAPER
 
+
 def test_auto_on_a_cpu_sizes_the_proposals_to_the_plants_and_keeps_set_values():
     """Issue 28: on a CPU, auto lowers the box head's samples and the proposal counts left at torchvision's
     GPU-sized defaults, to what the densest training tiles need; values the user set stay."""
@@ -826,9 +930,9 @@ def test_auto_on_a_cpu_sizes_the_proposals_to_the_plants_and_keeps_set_values():
     assert (sized.rpn.post_nms_top_n_train, sized.rpn.pre_nms_top_n_train) == (500, 1000)
     assert (sized.rpn.post_nms_top_n_test, sized.rpn.pre_nms_top_n_test) == (300, 600)
     assert "at most 61 plants" in why and "model.roi.batch_size_per_image: 192" in why
-    dense, _ = cpu_proposals(model, [400] * 10)            # 400 plants a tile: 1600 proposals, 512 samples
+    dense, _ = cpu_proposals(model, [400] * 10)  # 400 plants a tile: 1600 proposals, 512 samples
     assert dense.rpn.post_nms_top_n_train == 1600 and dense.roi.batch_size_per_image == 512
-    assert dense.rpn.pre_nms_top_n_train == 2000          # never above the default
+    assert dense.rpn.pre_nms_top_n_train == 2000  # never above the default
     mine = dataclasses.replace(model, roi=dataclasses.replace(model.roi, batch_size_per_image=256))  # set by hand
     kept, _ = cpu_proposals(mine, [5] * 10)
     assert kept.roi.batch_size_per_image == 256 and kept.rpn.post_nms_top_n_train == 500
@@ -899,6 +1003,7 @@ def test_json_sizes_against_the_files(tiles, tmp_path, caplog):
             if boxes:
                 for a in data["annotations"]:
                     a["bbox"] = [2 * v for v in a["bbox"]]
+
         return edit
 
     inside = _edited(tiles, tmp_path, doubled(False), "sizes_inside.json")

@@ -12,9 +12,9 @@ import torch
 
 from matchplant.core.runtime.config import load_config, to_dict
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.detection.checkpoint import load_detector, save_checkpoint
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.model import ModelConfig, backbone_stages, build_detector
-from matchplant.detection.checkpoint import load_detector, save_checkpoint
 from matchplant.detection.synth import make_tiles
 from matchplant.model_train.budget import Budget
 from matchplant.model_train.choose import (
@@ -47,8 +47,13 @@ def config(tiles, *extra: str) -> ModelTrainConfig:
 
 
 def test_the_light_detector_is_small_trains_and_round_trips(tmp_path):
-    cfg = ModelConfig(architecture=LITE, pretrained="none", min_size=64, max_size=64,
-                      anchor_sizes=[[8, 10, 13], [16, 20, 25], [32, 40, 50]])
+    cfg = ModelConfig(
+        architecture=LITE,
+        pretrained="none",
+        min_size=64,
+        max_size=64,
+        anchor_sizes=[[8, 10, 13], [16, 20, 25], [32, 40, 50]],
+    )
     model = build_detector(cfg, 2)
     # torchvision's parts at the lite widths: a 64-channel FPN at strides 8, 16 (+ pool) and a 256-wide box head
     assert model.backbone.out_channels == 64 and model.roi_heads.box_head.fc6.in_features == 64 * 7 * 7
@@ -79,20 +84,24 @@ def test_auto_picks_the_light_detector_from_random_weights_on_a_cpu_only(tiles):
 
     arch, why, probe = choose()
     assert arch == LITE and probe is None and "random weights on a CPU" in why
-    assert choose(LITE_ANCHORS)[0] == LITE              # 3 levels: MobileNetV3 or the light one
-    assert choose(device=GPU)[0] == PAPER               # on a GPU the paper's
+    assert choose(LITE_ANCHORS)[0] == LITE  # 3 levels: MobileNetV3 or the light one
+    assert choose(device=GPU)[0] == PAPER  # on a GPU the paper's
     assert choose("model.pretrained=imagenet", "model.checkpoint=null", LITE_ANCHORS)[0] == MOBILE  # not from scratch
     assert choose("model.anchor_sizes=[[8],[16],[32],[64],[128]]")[0] == PAPER  # 5 levels: only ResNet-50
 
 
 def test_training_crops_are_chosen_on_a_cpu_from_random_weights_logged_and_overridable(tiles, caplog):
-    chosen, why = cpu_crop(config(tiles), CPU)           # min_size 800 by default
+    chosen, why = cpu_crop(config(tiles), CPU)  # min_size 800 by default
     assert chosen.augment.crop == CPU_CROP and f"augment.crop: {CPU_CROP}" in why
-    for extra, device in (([], GPU), (["model.pretrained=coco"], CPU), (["model.min_size=224", "model.max_size=224"], CPU),
-                          ([f"model.architecture={MOBILE}"], CPU)):  # a named architecture trains as set
+    for extra, device in (
+        ([], GPU),
+        (["model.pretrained=coco"], CPU),
+        (["model.min_size=224", "model.max_size=224"], CPU),
+        ([f"model.architecture={MOBILE}"], CPU),
+    ):  # a named architecture trains as set
         kept, why = cpu_crop(config(tiles, *extra), device)
         assert kept.augment.crop == 0 and why is None, extra
-    for value in (0, 320):                                # set by hand: kept
+    for value in (0, 320):  # set by hand: kept
         kept, why = cpu_crop(config(tiles, f"augment.crop={value}"), CPU)
         assert kept.augment.crop == value and why is None
 
@@ -101,9 +110,14 @@ def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
     cfg = config(tiles, "max_minutes=15")
     cfg, size, why = scratch_budget(cfg, CPU, Budget.from_config(cfg))
     assert cfg.epochs == SCRATCH_EPOCHS and size and "max_minutes = 15" in why
-    for extra, device in ((["max_minutes=15", "epochs=40"], CPU), (["max_minutes=15", "val_every=3"], CPU),
-                          ([], CPU), (["max_minutes=15"], GPU), (["max_minutes=15", "model.pretrained=coco"], CPU),
-                          (["max_minutes=15", f"model.architecture={LITE}"], CPU)):
+    for extra, device in (
+        (["max_minutes=15", "epochs=40"], CPU),
+        (["max_minutes=15", "val_every=3"], CPU),
+        ([], CPU),
+        (["max_minutes=15"], GPU),
+        (["max_minutes=15", "model.pretrained=coco"], CPU),
+        (["max_minutes=15", f"model.architecture={LITE}"], CPU),
+    ):
         kept, size, why = scratch_budget(config(tiles, *extra), device, Budget.from_config(config(tiles, *extra)))
         assert kept == config(tiles, *extra) and not size and why is None, extra
     # validation at most ~10 % of training: 3.8 s against 22.2 s epochs -> every 2nd epoch; cheap -> every epoch
@@ -115,9 +129,20 @@ def test_a_resumed_run_keeps_the_crop_epochs_and_validation_auto_chose(tiles):
     cfg = config(tiles, "max_minutes=15")
     chosen, _ = cpu_crop(cfg, CPU)
     chosen, _, _ = scratch_budget(chosen, CPU, Budget.from_config(cfg))
-    saved = to_dict(load_config(ModelTrainConfig, None, [f"train_json={tiles[0]}", "model.pretrained=none",
-                                                         "max_minutes=15", f"augment.crop={chosen.augment.crop}",
-                                                         f"epochs={chosen.epochs}", "val_every=3"]))
+    saved = to_dict(
+        load_config(
+            ModelTrainConfig,
+            None,
+            [
+                f"train_json={tiles[0]}",
+                "model.pretrained=none",
+                "max_minutes=15",
+                f"augment.crop={chosen.augment.crop}",
+                f"epochs={chosen.epochs}",
+                "val_every=3",
+            ],
+        )
+    )
     resumed = resumed_recipe(cfg, saved)
     assert (resumed.augment.crop, resumed.epochs, resumed.val_every) == (CPU_CROP, SCRATCH_EPOCHS, 3)
     mine = resumed_recipe(config(tiles, "max_minutes=15", "epochs=40", "augment.crop=0"), saved)
@@ -127,7 +152,7 @@ def test_a_resumed_run_keeps_the_crop_epochs_and_validation_auto_chose(tiles):
 def test_crops_keep_the_detectors_scale_hold_a_plant_and_repeat_with_the_seed(tmp_path):
     tiles = make_tiles(tmp_path, n_images=6, size=128, plants=(1, 2), radius=(6, 10), negatives=0, seed=3)
     ds, plain = CocoDetection(tiles), CocoDetection(tiles)
-    ds.crop_windows(48, 256, 256, on_plant=1.0)           # 128 px tiles at the detector's 256 px: x2, then 48 px
+    ds.crop_windows(48, 256, 256, on_plant=1.0)  # 128 px tiles at the detector's 256 px: x2, then 48 px
     ds.set_seed(7)
     for i in range(len(ds)):
         image, target = ds[i]
@@ -135,7 +160,7 @@ def test_crops_keep_the_detectors_scale_hold_a_plant_and_repeat_with_the_seed(tm
         sizes = 2 * (plain.target(i)["boxes"][:, 2:] - plain.target(i)["boxes"][:, :2])
         b = target["boxes"]
         inside = (b[:, 0] > 0) & (b[:, 1] > 0) & (b[:, 2] < 48) & (b[:, 3] < 48)
-        for w, h in (b[inside, 2:] - b[inside, :2]).tolist():   # whole boxes: twice a tile box's size
+        for w, h in (b[inside, 2:] - b[inside, :2]).tolist():  # whole boxes: twice a tile box's size
             assert np.min(np.abs(sizes.numpy() - [w, h]).max(axis=1)) < 1.0
         again, target2 = ds[i]
         assert torch.equal(image, again) and torch.equal(target["boxes"], target2["boxes"])
@@ -143,11 +168,27 @@ def test_crops_keep_the_detectors_scale_hold_a_plant_and_repeat_with_the_seed(tm
 
 
 def test_a_run_on_crops_trains_at_the_crop_and_times_detection_on_whole_tiles(tiles, tmp_path, caplog):
-    cfg = load_config(ModelTrainConfig, None, [
-        f"train_json={tiles[0]}", f"val_json={tiles[1]}", f"output_dir={tmp_path}", f"model.architecture={LITE}",
-        "model.pretrained=none", "model.min_size=64", "model.max_size=64", LITE_ANCHORS, "augment.crop=32",
-        "batch_size=4", "num_workers=0", "epochs=1", "model.roi.batch_size_per_image=32",
-        "model.rpn.post_nms_top_n_train=100", "model.rpn.pre_nms_top_n_train=100"])
+    cfg = load_config(
+        ModelTrainConfig,
+        None,
+        [
+            f"train_json={tiles[0]}",
+            f"val_json={tiles[1]}",
+            f"output_dir={tmp_path}",
+            f"model.architecture={LITE}",
+            "model.pretrained=none",
+            "model.min_size=64",
+            "model.max_size=64",
+            LITE_ANCHORS,
+            "augment.crop=32",
+            "batch_size=4",
+            "num_workers=0",
+            "epochs=1",
+            "model.roi.batch_size_per_image=32",
+            "model.rpn.post_nms_top_n_train=100",
+            "model.rpn.pre_nms_top_n_train=100",
+        ],
+    )
     with caplog.at_level(logging.INFO):
         summary = train(cfg)
     assert summary["status"] == "finished" and tuple(summary["estimate"]["probe"]["input_px"]) == (32, 32)

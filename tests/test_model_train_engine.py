@@ -12,8 +12,8 @@ import torch
 
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import MatchPlantError
-from matchplant.detection.model import build_detector
 from matchplant.detection.checkpoint import read_checkpoint
+from matchplant.detection.model import build_detector
 from matchplant.model_train import budget as budget_mod
 from matchplant.model_train.budget import LONG_RUN_S, Budget, Costs
 from matchplant.model_train.checkpoint import restore, save
@@ -63,11 +63,11 @@ def test_the_budget_reads_max_minutes_once_and_gives_seconds_and_the_fallback(cl
 
 
 def test_the_stop_decision_keeps_time_for_the_last_validation_and_checkpoint(clock):
-    b = _running(1, clock)   # 60 s; the reserve is 5 + 2 = 7 s
+    b = _running(1, clock)  # 60 s; the reserve is 5 + 2 = 7 s
     assert b.reserve() == 7.0
-    clock.now += 51.0         # 51 s spent: the next 1 s iteration + 7 s = 59 s <= 60: go on
+    clock.now += 51.0  # 51 s spent: the next 1 s iteration + 7 s = 59 s <= 60: go on
     assert b.after_step(1, 1.0) is None
-    clock.now += 1.5          # 52.5 + 1 + 7 = 60.5 s > 60: stop
+    clock.now += 1.5  # 52.5 + 1 + 7 = 60.5 s > 60: stop
     assert b.after_step(2, 1.0) == "budget"
     assert b.out_of_time_for(0.0) and not _running(10, clock).out_of_time_for(5.0)
     b.stop_flag.requested = True
@@ -78,11 +78,11 @@ def test_the_stop_decision_keeps_time_for_the_last_validation_and_checkpoint(clo
 
 
 def test_the_first_refit_follows_the_measured_speed(clock):
-    b = _running(1, clock, validated=False)   # 60 s, reserve 2 s
+    b = _running(1, clock, validated=False)  # 60 s, reserve 2 s
     b.fit(0, b.costs, 60.0, "probe")
     # by hand: n iterations cost n + 2 x (epochs begun) s; 50 + 5 x 2 = 60 fits, 51 + 6 x 2 = 63 does not
     assert b.plan.iters == 50 and b.plan.source == "probe"
-    for done in range(1, 11):                 # 10 steps at 2 s: the refit comes at min(10, 50 // 10) = 5
+    for done in range(1, 11):  # 10 steps at 2 s: the refit comes at min(10, 50 // 10) = 5
         clock.now += 2.0
         b.after_step(done, 2.0)
         if done == 5:
@@ -96,13 +96,19 @@ def test_status_messages(clock):
     b = _running(1.5, clock)
     assert b.status(100) == ("finished", "finished all 10 epochs (100 iterations)")
     b.plan.iters = 40
-    assert b.status(40) == ("stopped_by_max_minutes", "stopped by max_minutes (1.5) after 40 of 100 iterations (4 of "
-                            "10 epochs), the end of the plan fitted to the budget (the learning-rate schedule ran "
-                            "its course)")
-    assert b.status(25)[1].endswith("after 25 of 100 iterations (2.5 of 10 epochs); --resume continues the planned "
-                                    "40 iterations")
-    assert b.status(25, interrupted=True) == ("interrupted", "interrupted (Ctrl-C) after 25 of 100 iterations (2.5 "
-                                              "of 10 epochs); --resume continues exactly there")
+    assert b.status(40) == (
+        "stopped_by_max_minutes",
+        "stopped by max_minutes (1.5) after 40 of 100 iterations (4 of "
+        "10 epochs), the end of the plan fitted to the budget (the learning-rate schedule ran "
+        "its course)",
+    )
+    assert b.status(25)[1].endswith(
+        "after 25 of 100 iterations (2.5 of 10 epochs); --resume continues the planned 40 iterations"
+    )
+    assert b.status(25, interrupted=True) == (
+        "interrupted",
+        "interrupted (Ctrl-C) after 25 of 100 iterations (2.5 of 10 epochs); --resume continues exactly there",
+    )
 
 
 class _Toy(torch.nn.Module):
@@ -113,7 +119,7 @@ class _Toy(torch.nn.Module):
         self.w = torch.nn.Parameter(torch.zeros(1))
 
     def forward(self, images, targets):
-        return {"loss_a": ((self.w - 3) ** 2).sum(), "loss_b": (self.w ** 2 / 2).sum()}
+        return {"loss_a": ((self.w - 3) ** 2).sum(), "loss_b": (self.w**2 / 2).sum()}
 
 
 def _toy_parts(lr=0.1):
@@ -140,20 +146,50 @@ def test_one_step_updates_the_weights_and_the_schedule_by_hand():
 
 
 def test_one_epoch_stops_when_asked_and_sums_the_losses():
-    model, opt, sched, scaler = _toy_parts(lr=0.0)          # the losses stay 9 and 0
+    model, opt, sched, scaler = _toy_parts(lr=0.0)  # the losses stay 9 and 0
     sums, seen = {"loss": 9.0, "loss_a": 9.0, "loss_b": 0.0}, []  # resumed after one batch
-    reason, batches = train_one_epoch(model, [BATCH] * 5, opt, sched, scaler, torch.device("cpu"), False, "e",
-                                      sums, 1, lambda s: seen.append(s) or ("budget" if len(seen) == 2 else None),
-                                      slow=False, limit=4)
+    reason, batches = train_one_epoch(
+        model,
+        [BATCH] * 5,
+        opt,
+        sched,
+        scaler,
+        torch.device("cpu"),
+        False,
+        "e",
+        sums,
+        1,
+        lambda s: seen.append(s) or ("budget" if len(seen) == 2 else None),
+        slow=False,
+        limit=4,
+    )
     assert reason == "budget" and batches == 3 and len(seen) == 2
     assert sums == pytest.approx({"loss": 27.0, "loss_a": 27.0, "loss_b": 0.0})
-    reason, batches = train_one_epoch(model, [BATCH] * 5, opt, sched, scaler, torch.device("cpu"), False, "e",
-                                      {}, 0, lambda s: None, slow=False, limit=4)
-    assert reason is None and batches == 4                   # the limit (the plan's end inside the epoch)
+    reason, batches = train_one_epoch(
+        model,
+        [BATCH] * 5,
+        opt,
+        sched,
+        scaler,
+        torch.device("cpu"),
+        False,
+        "e",
+        {},
+        0,
+        lambda s: None,
+        slow=False,
+        limit=4,
+    )
+    assert reason is None and batches == 4  # the limit (the plan's end inside the epoch)
 
 
-FAST = ["model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "model.pretrained=none", "model.min_size=64",
-        "model.max_size=64", "model.anchor_sizes=[[8,16,32],[8,16,32],[8,16,32]]"]
+FAST = [
+    "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+    "model.pretrained=none",
+    "model.min_size=64",
+    "model.max_size=64",
+    "model.anchor_sizes=[[8,16,32],[8,16,32],[8,16,32]]",
+]
 
 
 def test_a_checkpoint_round_trip_restores_the_state_mid_epoch(tmp_path: Path):
@@ -166,16 +202,32 @@ def test_a_checkpoint_round_trip_restores_the_state_mid_epoch(tmp_path: Path):
     opt = build_optimizer(cfg, core)
     sched = build_scheduler(cfg, opt, 10, plan)
     for _ in range(3):
-        opt.step()   # no gradients: nothing moves but the schedule
+        opt.step()  # no gradients: nothing moves but the schedule
         sched.step()
 
     def job(optimizer, scheduler):
-        return SimpleNamespace(optimizer=optimizer, scheduler=scheduler, scaler=None, amp=False, cfg=cfg, iters=10,
-                               geometry={"tile_size": 64}, budget=budget, ck_dir=tmp_path, core=core,
-                               model_cfg=cfg.model, class_names=["plant"], train_ds=SimpleNamespace(category_ids=[1]))
+        return SimpleNamespace(
+            optimizer=optimizer,
+            scheduler=scheduler,
+            scaler=None,
+            amp=False,
+            cfg=cfg,
+            iters=10,
+            geometry={"tile_size": 64},
+            budget=budget,
+            ck_dir=tmp_path,
+            core=core,
+            model_cfg=cfg.model,
+            class_names=["plant"],
+            train_ds=SimpleNamespace(category_ids=[1]),
+        )
 
-    state = TrainState(done=13, history=[{"epoch": 1, "iterations": 10}], best={"epoch": 1, "value": 0.5},
-                       stop_rng={"torch": torch.get_rng_state()})
+    state = TrainState(
+        done=13,
+        history=[{"epoch": 1, "iterations": 10}],
+        best={"epoch": 1, "value": 0.5},
+        stop_rng={"torch": torch.get_rng_state()},
+    )
     save(job(opt, sched), state, "last.pt", 1, {"val": {"AP50": 0.5}}, {"batches": 3, "sums": {"loss": 2.0}})
     ck = read_checkpoint(tmp_path / "last.pt")
     assert (ck["epoch"], ck["iteration"], ck["planned_iters"], ck["iters_per_epoch"]) == (1, 13, 17, 10)
@@ -188,8 +240,9 @@ def test_a_checkpoint_round_trip_restores_the_state_mid_epoch(tmp_path: Path):
     sched2 = build_scheduler(cfg, opt2, 10, budget.plan)
     back = restore(job(opt2, sched2), ck)
     assert (back.done, back.history, back.best) == (13, state.history, state.best)
-    assert back.progress == {"batches": 3, "sums": {"loss": 2.0}} and torch.equal(back.rng["torch"],
-                                                                                   state.stop_rng["torch"])
+    assert back.progress == {"batches": 3, "sums": {"loss": 2.0}} and torch.equal(
+        back.rng["torch"], state.stop_rng["torch"]
+    )
     assert (budget.plan.iters, budget.plan.fitted, budget.plan.source) == (17, True, "resumed")
     assert sched2.last_epoch == 3 and opt2.param_groups[0]["lr"] == opt.param_groups[0]["lr"]
     assert restore(job(opt2, sched2), None) == TrainState()

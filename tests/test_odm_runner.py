@@ -65,7 +65,7 @@ def test_docker_command_defaults_linux(tmp_path):
     # a path with a space stays one argument: the whole 'host:container' mount spec
     assert argv[argv.index("-v") + 1] == f"{project}:{CONTAINER_PROJECT}"
     image = argv.index("opendronemap/odm")
-    odm = argv[image + 1:]
+    odm = argv[image + 1 :]
     assert odm[:2] == ["--project-path", "/datasets"]
     assert "--dsm" in odm and "--dtm" in odm
     assert odm[odm.index("--orthophoto-resolution") + 1] == "0.5"
@@ -75,16 +75,22 @@ def test_docker_command_defaults_linux(tmp_path):
 
 def test_docker_command_gcp_extra_options_and_gpu(tmp_path):
     project = make_project(tmp_path, gcp=True)
-    cfg = cfg_for(project, "odm.extra={feature-quality: high, fast-orthophoto: true, use-3dmesh: false}",
-                  "odm.dtm=false", "odm.dem_resolution=2", "docker.gpus=true", "docker.image=opendronemap/odm:gpu",
-                  "docker.extra_args=[--memory, 16g]")
+    cfg = cfg_for(
+        project,
+        "odm.extra={feature-quality: high, fast-orthophoto: true, use-3dmesh: false}",
+        "odm.dtm=false",
+        "odm.dem_resolution=2",
+        "docker.gpus=true",
+        "docker.image=opendronemap/odm:gpu",
+        "docker.extra_args=[--memory, 16g]",
+    )
     gcp = find_gcp_file(cfg)
     assert gcp == project / "images" / "gcp_list.txt"
     argv = docker_command(cfg, platform="darwin", uid=501, gid=20, gcp_file=gcp)
     assert argv[argv.index("--user") + 1] == "501:20"
     assert argv[argv.index("--gpus") + 1] == "all"
     assert argv[argv.index("--memory") + 1] == "16g"
-    odm = argv[argv.index("opendronemap/odm:gpu") + 1:]
+    odm = argv[argv.index("opendronemap/odm:gpu") + 1 :]
     assert odm[odm.index("--gcp") + 1] == f"{CONTAINER_PROJECT}/images/gcp_list.txt"
     assert "--dtm" not in odm and "--dsm" in odm
     assert odm[odm.index("--dem-resolution") + 1] == "2"
@@ -109,7 +115,9 @@ def test_docker_command_gcp_and_images_outside_project(tmp_path):
 
 
 def test_docker_command_windows_paths(tmp_path):
-    cfg = OdmRunnerConfig(project_dir=r"C:\Users\Ana Lima\Field 2024", gcp_file=r"C:\Users\Ana Lima\Field 2024\gcp_list.txt")
+    cfg = OdmRunnerConfig(
+        project_dir=r"C:\Users\Ana Lima\Field 2024", gcp_file=r"C:\Users\Ana Lima\Field 2024\gcp_list.txt"
+    )
     argv = docker_command(cfg, platform="win32", gcp_file=cfg.gcp_file)
     assert "--user" not in argv  # Docker Desktop on Windows maps ownership itself
     assert argv[argv.index("-v") + 1] == r"C:\Users\Ana Lima\Field 2024:/datasets/code"
@@ -127,7 +135,7 @@ def test_odm_extra_rejects_options_that_lose_outputs(tmp_path):
 # the Docker runner, with a stand-in 'docker' program (no Docker engine on test machines)
 
 
-FAKE_DOCKER = r'''#!{python}
+FAKE_DOCKER = r"""#!{python}
 import sys, time
 args = sys.argv[1:]
 if args[:1] == ["info"]:
@@ -137,15 +145,22 @@ with open({record!r}, "w") as fh:
 for i in range(3):
     print(f"[INFO] fake ODM step {{i}}", flush=True)
 sys.exit({run_code})
-'''
+"""
 
 
 def fake_docker(tmp_path: Path, *, run_code: int = 0, info_code: int = 0) -> tuple[Path, Path]:
     record = tmp_path / "docker_args.txt"
     exe = tmp_path / "bin" / "docker"
     exe.parent.mkdir(exist_ok=True)
-    exe.write_text(FAKE_DOCKER.format(python=sys.executable, record=str(record), run_code=run_code,
-                                      info_code=info_code, state="27.0" if info_code == 0 else "Cannot connect"))
+    exe.write_text(
+        FAKE_DOCKER.format(
+            python=sys.executable,
+            record=str(record),
+            run_code=run_code,
+            info_code=info_code,
+            state="27.0" if info_code == 0 else "Cannot connect",
+        )
+    )
     exe.chmod(0o755)
     return exe, record
 
@@ -220,13 +235,16 @@ def copy_outputs(src: Path, dst: Path) -> None:
     shutil.copytree(src, dst, ignore=lambda d, names: [n for n in names if Path(d) == src and n in top])
 
 
-@pytest.mark.parametrize("remove, option", [
-    ("odm_dem/dtm.tif", "--dtm"),
-    ("odm_dem/dsm.tif", "--dsm"),
-    ("opensfm/undistorted", "--optimize-disk-space"),
-    ("odm_orthophoto/odm_orthophoto.tif", "--skip-orthophoto"),
-    ("odm_georeferencing/coords.txt", "gcp_list.txt"),
-])
+@pytest.mark.parametrize(
+    "remove, option",
+    [
+        ("odm_dem/dtm.tif", "--dtm"),
+        ("odm_dem/dsm.tif", "--dsm"),
+        ("opensfm/undistorted", "--optimize-disk-space"),
+        ("odm_orthophoto/odm_orthophoto.tif", "--skip-orthophoto"),
+        ("odm_georeferencing/coords.txt", "gcp_list.txt"),
+    ],
+)
 def test_check_outputs_names_the_option_for_each_missing_piece(tiny_field, tmp_path, remove, option):
     copy = tmp_path / "project"
     copy_outputs(tiny_field.root, copy)
@@ -237,10 +255,13 @@ def test_check_outputs_names_the_option_for_each_missing_piece(tiny_field, tmp_p
     assert any(remove.split("/")[-1] in p and option in p for p in report.problems), report.problems
 
 
-@pytest.mark.parametrize("damage, message", [
-    (lambda p: p.write_bytes(p.read_bytes()[:1000]), "truncated"),
-    (lambda p: p.write_text(json.dumps([dict(json.loads(p.read_text())[0], shots={})])), "no images"),
-])
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda p: p.write_bytes(p.read_bytes()[:1000]), "truncated"),
+        (lambda p: p.write_text(json.dumps([dict(json.loads(p.read_text())[0], shots={})])), "no images"),
+    ],
+)
 def test_check_outputs_reads_the_reconstruction(tiny_field, tmp_path, damage, message):
     copy = tmp_path / "project"
     copy_outputs(tiny_field.root, copy)
@@ -295,7 +316,8 @@ class FakeNodeODM:
                 if "multipart/form-data" not in self.headers.get("Content-Type", ""):
                     return {}  # commit has no body
                 msg = email.parser.BytesParser().parsebytes(
-                    b"Content-Type: " + self.headers["Content-Type"].encode() + b"\r\n\r\n" + raw)
+                    b"Content-Type: " + self.headers["Content-Type"].encode() + b"\r\n\r\n" + raw
+                )
                 fields = {}
                 for part in msg.get_payload():
                     name = part.get_param("name", header="content-disposition")
@@ -306,8 +328,15 @@ class FakeNodeODM:
                 path = self.path.split("?")[0]
                 outer.calls.append("GET " + path)
                 if path == "/info":
-                    return self._json({"version": "2.2.1", "taskQueueCount": len(outer.tasks), "engine": "odm",
-                                       "engineVersion": "3.5.0", "maxImages": None})
+                    return self._json(
+                        {
+                            "version": "2.2.1",
+                            "taskQueueCount": len(outer.tasks),
+                            "engine": "odm",
+                            "engineVersion": "3.5.0",
+                            "maxImages": None,
+                        }
+                    )
                 m = re.fullmatch(r"/task/([^/]+)/(info|download/all\.zip|output)", path)
                 if not m or m.group(1) not in outer.tasks:
                     return self._json({"error": "Invalid uuid"})
@@ -317,10 +346,18 @@ class FakeNodeODM:
                         task["progress"] = min(100, task["progress"] + 100 // outer.steps + 1)
                         if task["progress"] >= 100:
                             task["status"] = 40
-                    return self._json({"uuid": m.group(1), "name": task["name"], "dateCreated": 1_700_000_000_000,
-                                       "processingTime": 1000, "status": {"code": task["status"]},
-                                       "options": task["options"], "imagesCount": len(task["files"]),
-                                       "progress": task["progress"]})
+                    return self._json(
+                        {
+                            "uuid": m.group(1),
+                            "name": task["name"],
+                            "dateCreated": 1_700_000_000_000,
+                            "processingTime": 1000,
+                            "status": {"code": task["status"]},
+                            "options": task["options"],
+                            "imagesCount": len(task["files"]),
+                            "progress": task["progress"],
+                        }
+                    )
                 if m.group(2) == "output":
                     return self._json(["fake log line"])
                 body = outer.zip_bytes(task["outputs"])
@@ -338,8 +375,14 @@ class FakeNodeODM:
                     uid = str(uuidlib.uuid4())
                     opts = json.loads(form["options"][0][1])
                     outs = json.loads(form["outputs"][0][1]) if "outputs" in form else []
-                    outer.tasks[uid] = {"name": form["name"][0][1].decode(), "options": opts, "outputs": outs,
-                                        "files": [], "status": 10, "progress": 0}
+                    outer.tasks[uid] = {
+                        "name": form["name"][0][1].decode(),
+                        "options": opts,
+                        "outputs": outs,
+                        "files": [],
+                        "status": 10,
+                        "progress": 0,
+                    }
                     return self._json({"uuid": uid})
                 m = re.fullmatch(r"/task/new/(upload|commit)/([^/]+)", path)
                 if not m or m.group(2) not in outer.tasks:
@@ -374,8 +417,14 @@ class FakeNodeODM:
 
 
 def nodeodm_cfg(project: Path, port: int, *extra: str) -> OdmRunnerConfig:
-    return cfg_for(project, "backend=nodeodm", f"nodeodm.url=http://127.0.0.1:{port}", "nodeodm.poll_seconds=0.05",
-                   "nodeodm.parallel_uploads=2", *extra)
+    return cfg_for(
+        project,
+        "backend=nodeodm",
+        f"nodeodm.url=http://127.0.0.1:{port}",
+        "nodeodm.poll_seconds=0.05",
+        "nodeodm.parallel_uploads=2",
+        *extra,
+    )
 
 
 def test_nodeodm_upload_process_download(tiny_field, tmp_path):
@@ -385,8 +434,11 @@ def test_nodeodm_upload_process_download(tiny_field, tmp_path):
         assert report.ok, report.problems
         (task,) = node.tasks.values()
         assert sorted(task["files"]) == ["IMG_0000.JPG", "IMG_0001.JPG", "IMG_0002.JPG", "gcp_list.txt"]
-        assert task["options"] == [{"name": "dsm", "value": True}, {"name": "dtm", "value": True},
-                                   {"name": "orthophoto-resolution", "value": 0.5}]
+        assert task["options"] == [
+            {"name": "dsm", "value": True},
+            {"name": "dtm", "value": True},
+            {"name": "orthophoto-resolution", "value": 0.5},
+        ]
         assert task["outputs"] == NODEODM_OUTPUTS
     # the downloaded outputs are byte-identical to the server's
     for rel in ("odm_dem/dsm.tif", "opensfm/undistorted/reconstruction.json", "odm_georeferencing/coords.txt"):
@@ -402,8 +454,14 @@ def test_nodeodm_resumes_saved_task_without_uploading(tiny_field, tmp_path):
     project = make_project(tmp_path)
     with FakeNodeODM(tiny_field.root) as node:
         uid = "0f0e0d0c-0000-4000-8000-000000000001"
-        node.tasks[uid] = {"name": "earlier", "options": [], "outputs": NODEODM_OUTPUTS, "files": ["a.JPG"],
-                           "status": 20, "progress": 40}
+        node.tasks[uid] = {
+            "name": "earlier",
+            "options": [],
+            "outputs": NODEODM_OUTPUTS,
+            "files": ["a.JPG"],
+            "status": 20,
+            "progress": 40,
+        }
         out_of(project).mkdir()
         (out_of(project) / "nodeodm_task.json").write_text(json.dumps({"uuid": uid}))
         run(nodeodm_cfg(project, node.port))
@@ -435,12 +493,19 @@ def test_folder_config_loads_and_help_works():
     res = subprocess.run([sys.executable, str(FOLDER / "odm_runner.py"), "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "--project" in res.stdout
     if shutil.which("bash"):
-        res = subprocess.run(["bash", str(FOLDER / "run_odm.sh"), "--help"], capture_output=True, text=True,
-                             env=dict(os.environ, PYTHON=sys.executable))
+        res = subprocess.run(
+            ["bash", str(FOLDER / "run_odm.sh"), "--help"],
+            capture_output=True,
+            text=True,
+            env=dict(os.environ, PYTHON=sys.executable),
+        )
         assert res.returncode == 0 and "--backend" in res.stdout
 
 
 def test_cli_error_without_traceback(tmp_path):
-    res = subprocess.run([sys.executable, str(FOLDER / "odm_runner.py"), "--set", f"project_dir={tmp_path / 'nope'}"],
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        [sys.executable, str(FOLDER / "odm_runner.py"), "--set", f"project_dir={tmp_path / 'nope'}"],
+        capture_output=True,
+        text=True,
+    )
     assert res.returncode == 2 and "Traceback" not in res.stderr and "project_dir" in res.stderr

@@ -62,7 +62,8 @@ def setup(tmp_path, monkeypatch):
         "text: words.txt\n"
         "steps:\n"
         "  - name: shout\n    module: upper\n    config: {source: '${text}'}\n"
-        "  - name: tally\n    module: count\n    config: {source: '${shout.output_dir}/upper.txt'}\n")
+        "  - name: tally\n    module: count\n    config: {source: '${shout.output_dir}/upper.txt'}\n"
+    )
     return tmp_path, pipe
 
 
@@ -167,25 +168,39 @@ def failure(pipe: Path, exc: type = ConfigError) -> str:
 SHOUT = "  - name: shout\n    module: upper\n    config: {source: '${text}'}\n"
 
 
-@pytest.mark.parametrize("step2, expected", [
-    ("  - name: tally\n    module: img_spliter\n", "did you mean 'img_splitter'"),
-    ("  - name: tally\n    module: frobnicate\n", "set 'module' to one of: gps_embeder, gcp_finder"),
-    ("  - name: tally\n    module: count\n    config: {sorce: '${shout.output_dir}/upper.txt'}\n",
-     "did you mean 'source'"),
-    ("  - name: tally\n    module: count\n    config: {source: '${shuot.output_dir}/upper.txt'}\n",
-     "did you mean 'shout.output_dir'"),
-    ("  - name: tally\n    module: count\n    config: {source: '${shout.output_folder}/upper.txt'}\n",
-     "did you mean 'output_dir'"),
-    ("  - name: tally\n    module: count\n    config: {source: '${tally.output_dir}/upper.txt'}\n",
-     "refers to this step itself"),
-    ("  - name: tally\n    module: count\n    config: {source: '${shout}/upper.txt'}\n", "names a step but no key"),
-    ("  - name: tally\n    module: count\n    config: {source: '${shout.output_dir/upper.txt'}\n", "malformed"),
-    ("  - name: shout\n    module: count\n", "two steps are named 'shout'"),
-    ("  - count\n", "write it as '- module: count'"),
-    ("  - name: tally\n    modul: count\n", "did you mean 'module'"),
-    ("  - name: tally\n    module: count\n    config: [a, b]\n", "'config' must be 'key: value' lines"),
-    ("  - name: tally\n    module: upper\n    config: {source: '${text}', fail: maybe}\n", "'fail' must be true or false"),
-])
+@pytest.mark.parametrize(
+    "step2, expected",
+    [
+        ("  - name: tally\n    module: img_spliter\n", "did you mean 'img_splitter'"),
+        ("  - name: tally\n    module: frobnicate\n", "set 'module' to one of: gps_embeder, gcp_finder"),
+        (
+            "  - name: tally\n    module: count\n    config: {sorce: '${shout.output_dir}/upper.txt'}\n",
+            "did you mean 'source'",
+        ),
+        (
+            "  - name: tally\n    module: count\n    config: {source: '${shuot.output_dir}/upper.txt'}\n",
+            "did you mean 'shout.output_dir'",
+        ),
+        (
+            "  - name: tally\n    module: count\n    config: {source: '${shout.output_folder}/upper.txt'}\n",
+            "did you mean 'output_dir'",
+        ),
+        (
+            "  - name: tally\n    module: count\n    config: {source: '${tally.output_dir}/upper.txt'}\n",
+            "refers to this step itself",
+        ),
+        ("  - name: tally\n    module: count\n    config: {source: '${shout}/upper.txt'}\n", "names a step but no key"),
+        ("  - name: tally\n    module: count\n    config: {source: '${shout.output_dir/upper.txt'}\n", "malformed"),
+        ("  - name: shout\n    module: count\n", "two steps are named 'shout'"),
+        ("  - count\n", "write it as '- module: count'"),
+        ("  - name: tally\n    modul: count\n", "did you mean 'module'"),
+        ("  - name: tally\n    module: count\n    config: [a, b]\n", "'config' must be 'key: value' lines"),
+        (
+            "  - name: tally\n    module: upper\n    config: {source: '${text}', fail: maybe}\n",
+            "'fail' must be true or false",
+        ),
+    ],
+)
 def test_problems_of_step_2_are_found_before_step_1_runs(setup, step2, expected):
     tmp, pipe = setup
     message = failure(write(pipe, SHOUT + step2))
@@ -195,19 +210,34 @@ def test_problems_of_step_2_are_found_before_step_1_runs(setup, step2, expected)
 
 def test_forward_reference_and_cycle(setup):
     tmp, pipe = setup
-    message = failure(write(pipe, "  - name: a\n    module: count\n    config: {source: '${b.output_dir}/upper.txt'}\n"
-                                  "  - name: b\n    module: upper\n    config: {source: '${text}'}\n"))
+    message = failure(
+        write(
+            pipe,
+            "  - name: a\n    module: count\n    config: {source: '${b.output_dir}/upper.txt'}\n"
+            "  - name: b\n    module: upper\n    config: {source: '${text}'}\n",
+        )
+    )
     assert "refers to step 'b', which runs later (step 2)" in message and "move 'b' before 'a'" in message
-    message = failure(write(pipe, "  - name: a\n    module: count\n    config: {source: '${b.output_dir}/upper.txt'}\n"
-                                  "  - name: b\n    module: upper\n    config: {source: '${a.output_dir}/x.txt'}\n"))
+    message = failure(
+        write(
+            pipe,
+            "  - name: a\n    module: count\n    config: {source: '${b.output_dir}/upper.txt'}\n"
+            "  - name: b\n    module: upper\n    config: {source: '${a.output_dir}/x.txt'}\n",
+        )
+    )
     assert "a cycle: 'b' also refers to 'a'" in message
 
 
 def test_every_problem_is_listed_with_its_step_and_line(setup):
     tmp, pipe = setup
-    message = failure(write(pipe, "  - name: shout\n    module: gps_embedr\n"
-                                  "  - name: tally\n    module: count\n    config: {source: nothing.txt}\n"
-                                  "  - name: third\n    module: count\n    config: {source: '${nope}'}\n"))
+    message = failure(
+        write(
+            pipe,
+            "  - name: shout\n    module: gps_embedr\n"
+            "  - name: tally\n    module: count\n    config: {source: nothing.txt}\n"
+            "  - name: third\n    module: count\n    config: {source: '${nope}'}\n",
+        )
+    )
     assert message.startswith("3 problems in pipeline.yaml (no step has run)")
     assert "step 1 'shout' (gps_embedr), line 4" in message and "did you mean 'gps_embeder'" in message
     assert "step 2 'tally' (count), line 6" in message and "nothing.txt" in message
@@ -216,20 +246,28 @@ def test_every_problem_is_listed_with_its_step_and_line(setup):
 
 def test_a_reference_to_a_broken_step_is_not_reported_twice(setup):
     tmp, pipe = setup
-    message = failure(write(pipe, "  - name: shout\n    module: upper\n    config: {source: '${text}', fail: 3}\n"
-                                  "  - name: tally\n    module: count\n    config: {source: '${shout.output_dir}/u'}\n"))
+    message = failure(
+        write(
+            pipe,
+            "  - name: shout\n    module: upper\n    config: {source: '${text}', fail: 3}\n"
+            "  - name: tally\n    module: count\n    config: {source: '${shout.output_dir}/u'}\n",
+        )
+    )
     assert "'fail' must be true or false" in message and "tally" not in message
 
 
-@pytest.mark.parametrize("text, expected", [
-    ("", "pipeline file is empty"),
-    ("output_dir: results\nstep:\n  - module: upper\n", "it has 'step': did you mean 'steps'"),
-    ("steps:\n  module: upper\n", "'steps' must be a list"),
-    ("steps:\n  - module: upper\n    config: {source: [x\n", "not valid YAML at line"),
-    ("steps:\n\t- module: upper\n", "line 2 is indented with a tab"),
-    ("steps:\n  - module: upper\n    config: {source: a.txt}\n    config: {source: b.txt}\n", "appears twice"),
-    ("- module: upper\n", "expected an object"),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("", "pipeline file is empty"),
+        ("output_dir: results\nstep:\n  - module: upper\n", "it has 'step': did you mean 'steps'"),
+        ("steps:\n  module: upper\n", "'steps' must be a list"),
+        ("steps:\n  - module: upper\n    config: {source: [x\n", "not valid YAML at line"),
+        ("steps:\n\t- module: upper\n", "line 2 is indented with a tab"),
+        ("steps:\n  - module: upper\n    config: {source: a.txt}\n    config: {source: b.txt}\n", "appears twice"),
+        ("- module: upper\n", "expected an object"),
+    ],
+)
 def test_bad_pipeline_file_structure(setup, text, expected):
     tmp, pipe = setup
     pipe.write_text(text)
@@ -247,7 +285,9 @@ def test_bom_crlf_pipeline_and_typed_whole_references(setup):
 
 def test_a_literal_path_to_an_earlier_output_says_how_to_refer_to_it(setup):
     tmp, pipe = setup
-    message = failure(write(pipe, SHOUT + "  - name: tally\n    module: count\n    config: {source: results/shout/upper.txt}\n"))
+    message = failure(
+        write(pipe, SHOUT + "  - name: tally\n    module: count\n    config: {source: results/shout/upper.txt}\n")
+    )
     assert "refer to it as '${shout.output_dir}/upper.txt'" in message
 
 
@@ -256,13 +296,19 @@ def test_outputs_over_inputs_are_refused_before_any_step_runs(setup):
     (tmp / "data").mkdir()
     (tmp / "data" / "words.txt").write_text("a b")
     # the step's own output folder holds its input
-    message = failure(write(pipe, "  - name: shout\n    module: upper\n"
-                                  "    config: {source: data/words.txt, output_dir: data}\n"))
+    message = failure(
+        write(pipe, "  - name: shout\n    module: upper\n    config: {source: data/words.txt, output_dir: data}\n")
+    )
     assert "output folder 'output_dir'" in message and "contains the input 'source'" in message
     # a later step writes into the folder of an earlier step's input
-    message = failure(write(pipe, "  - name: shout\n    module: upper\n    config: {source: data/words.txt}\n"
-                                  "  - name: tally\n    module: count\n"
-                                  "    config: {source: '${shout.output_dir}/upper.txt', output_dir: data}\n"))
+    message = failure(
+        write(
+            pipe,
+            "  - name: shout\n    module: upper\n    config: {source: data/words.txt}\n"
+            "  - name: tally\n    module: count\n"
+            "    config: {source: '${shout.output_dir}/upper.txt', output_dir: data}\n",
+        )
+    )
     assert "tally.output_dir" in message and "shout.source" in message
     assert (tmp / "data" / "words.txt").read_text() == "a b"
 
@@ -275,6 +321,11 @@ def test_unknown_from_step_has_did_you_mean(setup):
 
 def test_every_bad_key_of_one_step_is_reported(setup):
     tmp, pipe = setup
-    message = failure(write(pipe, SHOUT + "  - name: tally\n    module: count\n"
-                                          "    config: {sorce: '${shout.output_dir}/u', output_dir: '${nope}'}\n"))
+    message = failure(
+        write(
+            pipe,
+            SHOUT + "  - name: tally\n    module: count\n"
+            "    config: {sorce: '${shout.output_dir}/u', output_dir: '${nope}'}\n",
+        )
+    )
     assert "2 problems" in message and "did you mean 'source'" in message and "'${nope}'" in message

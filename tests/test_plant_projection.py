@@ -72,7 +72,7 @@ def dsm_array(plants, size=(700, 600)):
     X, Y = np.meshgrid((np.arange(cols) + 0.5) * RES, 7.0 - (np.arange(rows) + 0.5) * RES)
     Z = terrain(X, Y)
     for xi, yi, ri, hi in zip(x, y, r, h):
-        d2 = ((X - xi) ** 2 + (Y - yi) ** 2) / ri ** 2
+        d2 = ((X - xi) ** 2 + (Y - yi) ** 2) / ri**2
         Z = np.maximum(Z, np.where(d2 < 1, terrain(X, Y) + hi * (1 - d2), -np.inf))
     return Z, Affine(RES, 0, OFFSET[0], 0, -RES, OFFSET[1] + 7.0)
 
@@ -89,8 +89,10 @@ def surface_points(plants, n_theta=90, n_rho=12):
 
 
 def pose(tilt_deg, heading_deg):
-    cam_to_world = (Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
-                    @ Rotation.from_euler("x", 180 + tilt_deg, degrees=True).as_matrix())
+    cam_to_world = (
+        Rotation.from_euler("z", heading_deg, degrees=True).as_matrix()
+        @ Rotation.from_euler("x", 180 + tilt_deg, degrees=True).as_matrix()
+    )
     return cam_to_world.T
 
 
@@ -101,24 +103,47 @@ def build_project(root: Path, *, tilt=0.0, heading=0.0, seed=0, fisheye=False):
     Z, transform = dsm_array(plants)
     w, h = 480, 360
     if fisheye:
-        raw = FisheyeCamera(id="cam", projection_type="fisheye", width=w, height=h, focal_x=0.7, focal_y=0.7,
-                            k1=-0.02, k2=0.003)
+        raw = FisheyeCamera(
+            id="cam", projection_type="fisheye", width=w, height=h, focal_x=0.7, focal_y=0.7, k1=-0.02, k2=0.003
+        )
     else:
-        raw = PinholeCamera(id="cam", projection_type="brown", width=w, height=h, focal_x=0.85, focal_y=0.86,
-                            c_x=0.004, c_y=-0.003, k1=-0.08, k2=0.02, p1=0.001, p2=-0.0005)
+        raw = PinholeCamera(
+            id="cam",
+            projection_type="brown",
+            width=w,
+            height=h,
+            focal_x=0.85,
+            focal_y=0.86,
+            c_x=0.004,
+            c_y=-0.003,
+            k1=-0.08,
+            k2=0.02,
+            p1=0.001,
+            p2=-0.0005,
+        )
     und = PinholeCamera(id="cam", projection_type="perspective", width=w, height=h, focal_x=0.85, focal_y=0.85)
     shots_raw, shots_und = {}, {}
     for i, (cx, cy) in enumerate([(a, b) for b in (2.0, 3.2, 4.4) for a in (2.0, 3.2)]):
         back = 4.0 * np.tan(np.radians(tilt))  # oblique: stand back so the field stays in view
-        c = np.array([cx - back * np.sin(np.radians(heading)), cy - back * np.cos(np.radians(heading)),
-                      terrain(cx, cy) + 4.0])
+        c = np.array(
+            [cx - back * np.sin(np.radians(heading)), cy - back * np.cos(np.radians(heading)), terrain(cx, cy) + 4.0]
+        )
         R = pose(tilt, heading) @ Rotation.from_euler("xyz", rng.normal(0, 1.0, 3), degrees=True).as_matrix().T
         name = f"IMG_{i:03d}.JPG"
         shots_raw[name] = Shot.from_center(name, raw, R, c)
         shots_und[name] = Shot.from_center(name, und, R, c)
     ref = {"latitude": 40.6, "longitude": -96.6, "altitude": 0.0}
-    write_odm_project(root, crs=CRS14, offset=OFFSET, reference_lla=ref, shots=shots_raw, undistorted_shots=shots_und, dsm=Raster(Z, transform), topocentric_copy=True,
-                      image_color=(90, 70, 50))
+    write_odm_project(
+        root,
+        crs=CRS14,
+        offset=OFFSET,
+        reference_lla=ref,
+        shots=shots_raw,
+        undistorted_shots=shots_und,
+        dsm=Raster(Z, transform),
+        topocentric_copy=True,
+        image_color=(90, 70, 50),
+    )
 
     pts = surface_points(plants)
     x, y, r, _ = plants
@@ -133,8 +158,16 @@ def build_project(root: Path, *, tilt=0.0, heading=0.0, seed=0, fisheye=False):
             fname = f"{name}.tif" if kind == "undistorted" else name
             images.append({"id": k + 1, "file_name": fname, "width": w, "height": h})
             for pid in np.flatnonzero(inside):
-                anns.append({"id": len(anns) + 1, "image_id": k + 1, "category_id": 1, "score": 1.0,
-                             "bbox": [*lo[pid], *(hi[pid] - lo[pid])], "plant_id": int(pid + 1)})
+                anns.append(
+                    {
+                        "id": len(anns) + 1,
+                        "image_id": k + 1,
+                        "category_id": 1,
+                        "score": 1.0,
+                        "bbox": [*lo[pid], *(hi[pid] - lo[pid])],
+                        "plant_id": int(pid + 1),
+                    }
+                )
         gt[kind] = {"images": images, "categories": [{"id": 1, "name": "maize"}], "predictions": anns}
     return truth, gt
 
@@ -150,8 +183,17 @@ def tiles_of(gt: dict, tile=240, overlap=40) -> dict:
             for x0 in range(0, im["width"] - overlap, tile - overlap):
                 tw, th = min(tile, im["width"] - x0), min(tile, im["height"] - y0)
                 tid = len(images) + 1
-                images.append({"id": tid, "file_name": f"{im['file_name']}_{x0}_{y0}.png", "width": tw,
-                               "height": th, "source_image": im["file_name"], "x0": x0, "y0": y0})
+                images.append(
+                    {
+                        "id": tid,
+                        "file_name": f"{im['file_name']}_{x0}_{y0}.png",
+                        "width": tw,
+                        "height": th,
+                        "source_image": im["file_name"],
+                        "x0": x0,
+                        "y0": y0,
+                    }
+                )
                 for a in by_image.get(im["id"], []):
                     x, y, bw, bh = a["bbox"]
                     x1, y1 = max(x, x0), max(y, y0)
@@ -247,8 +289,9 @@ def test_box_outline_runs_around_the_box():
 
 def test_inscribed_box_of_a_rotated_square_is_the_round_plants_box():
     a = np.radians(30)
-    sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) @ np.array([[np.cos(a), np.sin(a)],
-                                                                           [-np.sin(a), np.cos(a)]])
+    sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], float) @ np.array(
+        [[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]]
+    )
     sq += [700000.0, 4500000.0]  # UTM-sized numbers must not lose precision
     box, c, area = outline_boxes(sq[None], "inscribed")
     assert np.allclose(box[0] - [700000, 4500000, 700000, 4500000], [-1, -1, 1, 1], atol=1e-6)
@@ -287,8 +330,9 @@ def test_nadir_undistorted_boxes_land_on_the_plants(nadir_project):
     # see their east side across the plant and their west side from its own side (and so on for each axis)
     project = ODMProject(root)
     t = views.table
-    cam = np.array([project.frame_of(s).to_map(project.shot(s, undistorted=True).center[None, :])[0, :2]
-                    for s in t["shot_id"]])
+    cam = np.array(
+        [project.frame_of(s).to_map(project.shot(s, undistorted=True).center[None, :])[0, :2] for s in t["shot_id"]]
+    )
     half = np.column_stack([t["xmax"] - t["xmin"], t["ymax"] - t["ymin"]]) / 2
     off = t[["cx", "cy"]].to_numpy() - cam
     for axis, (low, high) in enumerate([("across_w", "across_e"), ("across_s", "across_n")]):
@@ -365,7 +409,7 @@ def test_missing_image_nodata_and_outside_are_reported(tmp_path, nadir_project):
     with rasterio.open(root / "odm_dem" / "dsm.tif", "r+") as dst:
         z = dst.read(1)
         r, c = dst.index(x, y)
-        z[r - half:r + half, c - half:c + half] = -9999
+        z[r - half : r + half, c - half : c + half] = -9999
         dst.write(z, 1)
     preds = gt["undistorted"]
     views, rejected, plants, _ = project_and_score(root, preds, truth)
@@ -401,13 +445,22 @@ def test_run_writes_outputs_and_reports(tmp_path, nadir_project):
     preds["images"] = preds["images"] + [{"id": 99, "file_name": "NOT_FLOWN.JPG.tif", "width": 480, "height": 360}]
     preds["predictions"] = preds["predictions"] + [
         {"image_id": 99, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.9},
-        {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.1}]
+        {"image_id": 1, "category_id": 1, "bbox": [10, 10, 20, 20], "score": 0.1},
+    ]
     (tmp_path / "preds.json").write_text(json.dumps(preds))
     pd.DataFrame(truth, columns=["xmin", "ymin", "xmax", "ymax"]).to_csv(tmp_path / "ref.csv", index=False)
-    cfg = load_config(PlantProjectionConfig, None, [f"project={src}", f"predictions={tmp_path / 'preds.json'}",
-                                                 f"output_dir={tmp_path / 'out'}", "mode=both",
-                                                 f"evaluate.reference={tmp_path / 'ref.csv'}",
-                                                 "vector_formats=[gpkg, shp]"])
+    cfg = load_config(
+        PlantProjectionConfig,
+        None,
+        [
+            f"project={src}",
+            f"predictions={tmp_path / 'preds.json'}",
+            f"output_dir={tmp_path / 'out'}",
+            "mode=both",
+            f"evaluate.reference={tmp_path / 'ref.csv'}",
+            "vector_formats=[gpkg, shp]",
+        ],
+    )
     result = run(cfg)
     out = tmp_path / "out"
     gdf = gpd.read_file(out / "plants.gpkg", layer="plants")
@@ -433,8 +486,9 @@ def test_coco_reference_over_orthophoto(tmp_path, nadir_project):
     _, truth, _ = nadir_project
     t = Affine(0.005, 0, OFFSET[0], 0, -0.005, OFFSET[1] + 7.0)
     ortho = tmp_path / "ortho.tif"
-    with rasterio.open(ortho, "w", driver="GTiff", width=1200, height=1400, count=3, dtype="uint8", crs=CRS14,
-                       transform=t) as dst:
+    with rasterio.open(
+        ortho, "w", driver="GTiff", width=1200, height=1400, count=3, dtype="uint8", crs=CRS14, transform=t
+    ) as dst:
         dst.write(np.full((3, 1400, 1200), 120, np.uint8))
     inv = ~t
     anns = []
@@ -442,8 +496,11 @@ def test_coco_reference_over_orthophoto(tmp_path, nadir_project):
         c1, r1 = inv @ (x1, y2)
         c2, r2 = inv @ (x2, y1)
         anns.append({"id": k + 1, "image_id": 1, "category_id": 1, "bbox": [c1, r1, c2 - c1, r2 - r1]})
-    coco = {"images": [{"id": 1, "file_name": "ortho.tif", "width": 1200, "height": 1400}],
-            "annotations": anns, "categories": [{"id": 1, "name": "maize"}]}
+    coco = {
+        "images": [{"id": 1, "file_name": "ortho.tif", "width": 1200, "height": 1400}],
+        "annotations": anns,
+        "categories": [{"id": 1, "name": "maize"}],
+    }
     (tmp_path / "ref.json").write_text(json.dumps(coco))
     boxes = read_boxes(tmp_path / "ref.json", orthophoto=ortho)
     assert np.allclose(boxes, truth, atol=1e-6)
@@ -458,8 +515,9 @@ def test_bad_inputs_are_clear_errors(tmp_path, nadir_project):
     with pytest.raises(MatchPlantError, match="predictions"):
         load_config(PlantProjectionConfig, None, [f"project={root}", f"output_dir={tmp_path}"])
     (tmp_path / "p.json").write_text("[1, 2")
-    cfg = load_config(PlantProjectionConfig, None, [f"project={root}", f"predictions={tmp_path / 'p.json'}",
-                                                 f"output_dir={tmp_path}"])
+    cfg = load_config(
+        PlantProjectionConfig, None, [f"project={root}", f"predictions={tmp_path / 'p.json'}", f"output_dir={tmp_path}"]
+    )
     with pytest.raises(MatchPlantError, match="truncated|not valid JSON"):
         run(cfg)
     with pytest.raises(MatchPlantError, match="evaluate.reference"):
@@ -470,9 +528,9 @@ def test_resolve_images_matches_names_that_differ_by_case_or_extension():
     und = orig = {"IMG_1.JPG", "IMG_2.JPG", "IMG_2.DNG", "A"}
     names = ["IMG_1.JPG.tif", "IMG_1.tif", "img_1.jpg.tif", "IMG_1.jpg", "A.tif", "IMG_2.tif", "IMG_9.JPG.tif"]
     got, hints = resolve_images(names, und, orig)
-    assert got["IMG_1.JPG.tif"] == ("IMG_1.JPG", True)                  # ODM's own name
+    assert got["IMG_1.JPG.tif"] == ("IMG_1.JPG", True)  # ODM's own name
     assert got["IMG_1.tif"] == got["img_1.jpg.tif"] == ("IMG_1.JPG", True)  # extension or case differ
-    assert got["IMG_1.jpg"] == ("IMG_1.JPG", False)                      # an original photo
+    assert got["IMG_1.jpg"] == ("IMG_1.JPG", False)  # an original photo
     assert got["A.tif"] == ("A", True)
     assert got["IMG_2.tif"][0] is None and got["IMG_9.JPG.tif"][0] is None  # ambiguous (JPG, DNG); unknown
     assert "did you mean" in hints["IMG_9.JPG.tif"]
@@ -480,14 +538,17 @@ def test_resolve_images_matches_names_that_differ_by_case_or_extension():
     assert got["IMG_1.jpg.tif"][0] is None  # boxes said to be on originals are not moved to undistorted images
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda d: {"images": d["images"], "annotations": d["predictions"]}, "COCO dataset"),
-    (lambda d: d["predictions"], "images_from"),
-    (lambda d: dict(d, predictions=[]), "no detections"),
-    (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[1, 2, float("nan"), 3])]), r"predictions\[0\]"),
-    (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[10, 10, -3, 3])]), "negative"),
-    (lambda d: dict(d, predictions=[dict(d["predictions"][0], score=87)]), "percentage"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda d: {"images": d["images"], "annotations": d["predictions"]}, "COCO dataset"),
+        (lambda d: d["predictions"], "images_from"),
+        (lambda d: dict(d, predictions=[]), "no detections"),
+        (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[1, 2, float("nan"), 3])]), r"predictions\[0\]"),
+        (lambda d: dict(d, predictions=[dict(d["predictions"][0], bbox=[10, 10, -3, 3])]), "negative"),
+        (lambda d: dict(d, predictions=[dict(d["predictions"][0], score=87)]), "percentage"),
+    ],
+)
 def test_read_predictions_names_what_is_wrong(tmp_path, nadir_project, change, message):
     _, _, gt = nadir_project
     path = tmp_path / "p.json"
@@ -500,8 +561,9 @@ def test_read_predictions_names_what_is_wrong(tmp_path, nadir_project, change, m
 def test_folder_config_and_help():
     cfg = load_config(PlantProjectionConfig, FOLDER / "config.yaml", check_paths=False, strict=False)
     assert cfg.mode == "project" and cfg.merge == "nadir"
-    r = subprocess.run([sys.executable, str(FOLDER / "plant_projection.py"), "--help"], capture_output=True, text=True,
-                       timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(FOLDER / "plant_projection.py"), "--help"], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 0 and "--predictions" in r.stdout
 
 
@@ -513,8 +575,11 @@ def gt_predictions(field, raw=False) -> dict:
     from matchplant.core.formats.coco import read_dataset
 
     ds = read_dataset(field.boxes_raw if raw else field.boxes_undistorted, validate=False)
-    return {"images": ds["images"], "categories": ds["categories"],
-            "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+    return {
+        "images": ds["images"],
+        "categories": ds["categories"],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
+    }
 
 
 def score_field(field, raw=False, merge="nadir"):
@@ -562,9 +627,10 @@ def test_topocentric_reconstruction_gives_the_same_plants(tiny_field, tmp_path):
     und = read_reconstruction(osfm / "undistorted" / "reconstruction.json")
     ucam = next(iter(und.cameras.values()))
     (osfm / "reconstruction.topocentric.json").replace(osfm / "reconstruction.json")
-    write_reconstruction(osfm / "undistorted" / "reconstruction.json",
-                         replace(topo, cameras={ucam.id: ucam},
-                                 shots={k: v.with_camera(ucam) for k, v in topo.shots.items()}))
+    write_reconstruction(
+        osfm / "undistorted" / "reconstruction.json",
+        replace(topo, cameras={ucam.id: ucam}, shots={k: v.with_camera(ucam) for k, v in topo.shots.items()}),
+    )
     crs, offset = read_coords_txt(root / "odm_georeferencing" / "coords.txt")
     write_coords_txt(root / "odm_georeferencing" / "coords.txt", crs, offset + [1.0, 1.0, 0.0])  # older ODM
     assert isinstance(ODMProject(root).frame(), TopocentricFrame)
@@ -606,8 +672,9 @@ def test_plain_coco_results_list_with_images_from(tiny_field, tmp_path, nadir_pr
 def oblique_field(tmp_path_factory, request):
     from matchplant.simfield import generate_field
 
-    return generate_field(preset="tiny", seed=request.param, out=tmp_path_factory.mktemp("oblique"), tilt_deg=20,
-                          slope_pct=10)
+    return generate_field(
+        preset="tiny", seed=request.param, out=tmp_path_factory.mktemp("oblique"), tilt_deg=20, slope_pct=10
+    )
 
 
 @pytest.mark.slow

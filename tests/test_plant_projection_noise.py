@@ -75,16 +75,20 @@ def test_noisy_dsm_gives_one_record_per_plant(noisy_field):
     """The generator's boxes of every photo on the noisy DSM: no box lost to a hole, one record per plant, and
     the plants' map boxes where the truth has them."""
     ds = read_dataset(noisy_field.boxes_undistorted, validate=False)
-    preds = {"images": ds["images"], "categories": ds["categories"],
-             "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+    preds = {
+        "images": ds["images"],
+        "categories": ds["categories"],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
+    }
     views, rejected = project_predictions(ODMProject(noisy_field.root), preds)
     plants = merge_views(views)
     truth = pd.read_csv(noisy_field.map_boxes)
     assert len(rejected) == 0, rejected["reason"].value_counts()
     per_truth = views.table.groupby("truth_plant_id")["plant_id"].nunique()
     assert len(plants) == len(truth) and (per_truth == 1).all(), per_truth.value_counts()
-    m = evaluate_boxes(truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
-                       plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    m = evaluate_boxes(
+        truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+    )
     assert m["share_iou_above_0.5"] >= 0.97 and m["iou_median"] >= 0.85, m
 
 

@@ -53,8 +53,11 @@ def split(tiny_field, tmp_path_factory) -> FieldPaths:
 
 def _truth_predictions(f: FieldPaths) -> dict:
     ds = read_dataset(f.boxes_undistorted, validate=False)
-    return {"images": ds["images"], "categories": ds["categories"],
-            "predictions": [dict(a, score=1.0) for a in ds["annotations"]]}
+    return {
+        "images": ds["images"],
+        "categories": ds["categories"],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
+    }
 
 
 def test_split_lines_share_one_line():
@@ -68,8 +71,13 @@ def test_layout_is_odm_split_merge(split):
     assert not (root / "opensfm" / "reconstruction.json").exists()
     for name in ("submodel_0000", "submodel_0001"):
         sub = root / "submodels" / name
-        for rel in ("opensfm/reconstruction.json", "opensfm/undistorted/reconstruction.json",
-                    "odm_georeferencing/coords.txt", "odm_dem/dsm.tif", "odm_orthophoto/odm_orthophoto.tif"):
+        for rel in (
+            "opensfm/reconstruction.json",
+            "opensfm/undistorted/reconstruction.json",
+            "odm_georeferencing/coords.txt",
+            "odm_dem/dsm.tif",
+            "odm_orthophoto/odm_orthophoto.tif",
+        ):
             assert (sub / rel).is_file(), rel
         assert any((sub / "opensfm/undistorted/images").iterdir())
     info = read_json(split.truth / "split.json")
@@ -127,8 +135,9 @@ def test_projection_over_submodels_places_each_plant_once(split):
     assert len(rejected) == 0
     plants = merge_views(views)
     truth = pd.read_csv(split.map_boxes)
-    m = evaluate_boxes(truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(),
-                       plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
+    m = evaluate_boxes(
+        truth[["xmin", "ymin", "xmax", "ymax"]].to_numpy(), plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
+    )
     # issue 18's acceptance: each shot's boxes meet its own submodel's DSM and the submodels' views are aligned,
     # so only their common offset (a centimetre) remains: median IoU >= 0.9, no plant twice. Of tiny's 46 plants
     # 1 stays under IoU 0.5: seen only obliquely at the field's edge, its far sides are guesses. What the split
@@ -140,7 +149,8 @@ def test_projection_over_submodels_places_each_plant_once(split):
     counts = plants["truth_plant_id"].value_counts()
     assert len(plants) == len(truth) and counts.max() == 1  # no plant twice (seen from two submodels)
     owners = views.table.groupby("truth_plant_id")["shot_id"].agg(
-        lambda s: {ODMProject(split.root).owner(x).name for x in s})
+        lambda s: {ODMProject(split.root).owner(x).name for x in s}
+    )
     assert (owners.map(len) == 2).any()  # some plants merged from views of both submodels
 
 
@@ -206,8 +216,10 @@ def test_rays_that_leave_their_submodels_dsm_meet_the_merged_one(split, tmp_path
     assert len(rejected) == 0 and len(views.table) == len(preds["predictions"])
     (field / "odm_dem" / "dsm.tif").unlink()
     _, lost = project_predictions(ODMProject(field), preds)
-    assert len(lost) > 0 and set(lost["reason"]) <= {"ray meets the ground in a DSM nodata area",
-                                                     "ray leaves the DSM before reaching the ground"}
+    assert len(lost) > 0 and set(lost["reason"]) <= {
+        "ray meets the ground in a DSM nodata area",
+        "ray leaves the DSM before reaching the ground",
+    }
 
 
 def test_module_8_needs_no_merged_dsm_when_every_submodel_has_its_own(split, tmp_path, caplog):
@@ -217,8 +229,16 @@ def test_module_8_needs_no_merged_dsm_when_every_submodel_has_its_own(split, tmp
     shutil.copytree(split.root, field)
     (field / "odm_dem" / "dsm.tif").unlink()
     write_json(tmp_path / "predictions.json", _truth_predictions(split))
-    cfg = load_config(PlantProjectionConfig, None, [f"project={field}", f"predictions={tmp_path / 'predictions.json'}",
-                                               f"output_dir={tmp_path / 'out'}", "mode=project"])
+    cfg = load_config(
+        PlantProjectionConfig,
+        None,
+        [
+            f"project={field}",
+            f"predictions={tmp_path / 'predictions.json'}",
+            f"output_dir={tmp_path / 'out'}",
+            "mode=project",
+        ],
+    )
     with caplog.at_level(logging.INFO, logger="matchplant"):
         summary = run_projection_step(cfg)["projection"]
     assert "covers only" not in caplog.text
@@ -228,9 +248,16 @@ def test_module_8_needs_no_merged_dsm_when_every_submodel_has_its_own(split, tmp
 def test_module_3_selection_covers_the_whole_field(split, tiny_field, tmp_path):
     """The selection spans both submodels and covers what the whole flight covers (tiny's flight leaves a
     sixth of its orthophoto unseen, split or not)."""
+
     def finder(root):
-        return MinImageFinder(load_config(MinImgFinderConfig, None, [f"project_dir={root}", "copy_images=none",
-                                                                  f"output_dir={tmp_path / root.name}"]))
+        return MinImageFinder(
+            load_config(
+                MinImgFinderConfig,
+                None,
+                [f"project_dir={root}", "copy_images=none", f"output_dir={tmp_path / root.name}"],
+            )
+        )
+
     f, single = finder(split.root), finder(tiny_field.root)
     assert len(f.footprints) == 9
     assert {fp.frame is not None for fp in f.footprints} == {True}
@@ -270,14 +297,36 @@ def test_module_7_lists_every_submodels_images_once(split):
 def _views(rows: list[dict]) -> ProjectedViews:
     """Projected views made by hand (map boxes, off-nadir angle, unseen sides and sides seen across the plant as
     strings of w, s, e, n): the merge's inputs, where each view's truth is known exactly."""
-    t = pd.DataFrame([{"xmin": r["box"][0], "ymin": r["box"][1], "xmax": r["box"][2], "ymax": r["box"][3],
-                       "off_nadir_deg": r["off_nadir"], "image_id": r["image"], "shot_id": f"SIM_{r['image']:04d}.JPG",
-                       "undistorted": True, "submodel": r.get("submodel", "submodel_0000"), "cut": False,
-                       "category_id": 1, "category": "plant", "score": 1.0, "source_image": f"SIM_{r['image']:04d}",
-                       "u1": 0.0, "v1": 0.0, "u2": 10.0, "v2": 10.0, "z": 0.0, "truth_plant_id": r["plant"],
-                       **{c: side in r.get("unseen", "") for c, side in zip(UNSEEN_COLUMNS, "wsen")},
-                       **{c: False for c in BESIDE_CUT_COLUMNS},
-                       **{c: side in r.get("across", "") for c, side in zip(ACROSS_COLUMNS, "wsen")}} for r in rows])
+    t = pd.DataFrame(
+        [
+            {
+                "xmin": r["box"][0],
+                "ymin": r["box"][1],
+                "xmax": r["box"][2],
+                "ymax": r["box"][3],
+                "off_nadir_deg": r["off_nadir"],
+                "image_id": r["image"],
+                "shot_id": f"SIM_{r['image']:04d}.JPG",
+                "undistorted": True,
+                "submodel": r.get("submodel", "submodel_0000"),
+                "cut": False,
+                "category_id": 1,
+                "category": "plant",
+                "score": 1.0,
+                "source_image": f"SIM_{r['image']:04d}",
+                "u1": 0.0,
+                "v1": 0.0,
+                "u2": 10.0,
+                "v2": 10.0,
+                "z": 0.0,
+                "truth_plant_id": r["plant"],
+                **{c: side in r.get("unseen", "") for c, side in zip(UNSEEN_COLUMNS, "wsen")},
+                **{c: False for c in BESIDE_CUT_COLUMNS},
+                **{c: side in r.get("across", "") for c, side in zip(ACROSS_COLUMNS, "wsen")},
+            }
+            for r in rows
+        ]
+    )
     t["cx"], t["cy"] = (t["xmin"] + t["xmax"]) / 2, (t["ymin"] + t["ymax"]) / 2
     t["area_m2"] = (t["xmax"] - t["xmin"]) * (t["ymax"] - t["ymin"])
     n = len(t)
@@ -294,13 +343,28 @@ def test_a_seen_side_beyond_every_guess_of_it_is_an_overshoot():
     truth = (0.0, 0.0, 0.4, 0.1)
 
     def plant(north_seen_by_b: float, guess: float, across: str = "n") -> pd.Series:
-        views = _views([
-            {"box": (0.0, 0.0, 0.4, guess), "off_nadir": 20.0, "image": 1, "plant": 1, "unseen": "n"},
-            {"box": (0.0, 0.0, 0.4, guess + 0.005), "off_nadir": 26.0, "image": 2, "plant": 1, "unseen": "n"},
-            {"box": (0.001, 0.0, 0.401, north_seen_by_b), "off_nadir": 28.0, "image": 3, "plant": 1,
-             "submodel": "submodel_0001", "across": across},
-            {"box": (0.001, 0.0, 0.401, north_seen_by_b + 0.005), "off_nadir": 31.0, "image": 4, "plant": 1,
-             "submodel": "submodel_0001", "across": across}])
+        views = _views(
+            [
+                {"box": (0.0, 0.0, 0.4, guess), "off_nadir": 20.0, "image": 1, "plant": 1, "unseen": "n"},
+                {"box": (0.0, 0.0, 0.4, guess + 0.005), "off_nadir": 26.0, "image": 2, "plant": 1, "unseen": "n"},
+                {
+                    "box": (0.001, 0.0, 0.401, north_seen_by_b),
+                    "off_nadir": 28.0,
+                    "image": 3,
+                    "plant": 1,
+                    "submodel": "submodel_0001",
+                    "across": across,
+                },
+                {
+                    "box": (0.001, 0.0, 0.401, north_seen_by_b + 0.005),
+                    "off_nadir": 31.0,
+                    "image": 4,
+                    "plant": 1,
+                    "submodel": "submodel_0001",
+                    "across": across,
+                },
+            ]
+        )
         plants = merge_views(views)
         assert len(plants) == 1
         return plants.iloc[0]
@@ -322,8 +386,10 @@ def test_two_boxes_of_one_photo_are_two_plants():
     The detector's non-maximum suppression left one box per plant in each photo: two boxes of one photo join only
     by their IoU, never by lying inside one another. The same two boxes from two photos still join (an oblique
     view with a guessed side contains its plant's near-nadir view)."""
-    rows = [{"box": (0.006, 0.018, 0.644, 0.137), "off_nadir": 31.59, "image": 7, "plant": 1, "unseen": "se"},
-            {"box": (-0.005, -0.197, 0.678, 0.351), "off_nadir": 31.61, "image": 7, "plant": 2, "unseen": "se"}]
+    rows = [
+        {"box": (0.006, 0.018, 0.644, 0.137), "off_nadir": 31.59, "image": 7, "plant": 1, "unseen": "se"},
+        {"box": (-0.005, -0.197, 0.678, 0.351), "off_nadir": 31.61, "image": 7, "plant": 2, "unseen": "se"},
+    ]
     plants = merge_views(_views(rows))
     assert sorted(plants["truth_plant_id"]) == [1, 2]
     assert plants.set_index("truth_plant_id").loc[1, "ymin"] == pytest.approx(0.018)

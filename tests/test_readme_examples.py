@@ -37,10 +37,15 @@ COMMAND = re.compile(r"^((python|matchplant|torchrun|docker|telnet|make|source)\
 
 # (pattern, reason): commands not run here, and why
 SKIPS = [
-    (r"^make (demo|test)\b", "make demo is the demo itself (minutes; its report is checked by the demo); "
-                             "make test runs this suite"),
-    (r"^make install-cpu\b", "installs PyTorch's CPU build from download.pytorch.org (the network; this "
-                             "machine reaches only its package mirror)"),
+    (
+        r"^make (demo|test)\b",
+        "make demo is the demo itself (minutes; its report is checked by the demo); make test runs this suite",
+    ),
+    (
+        r"^make install-cpu\b",
+        "installs PyTorch's CPU build from download.pytorch.org (the network; this "
+        "machine reaches only its package mirror)",
+    ),
     (r"(-m venv|-m pip install)", "installs the environment (network, minutes); this test runs inside it"),
     (r"^(source \S*activate|\S*[/\\]activate)", "activates the environment this test runs in"),
     (r"-m pytest", "this test suite itself"),
@@ -56,39 +61,85 @@ SKIPS = [
 
 # README path -> tiny-field path. F: the tiny field, W: the code copy (cwd), U: the user's folders outside it
 SUBSTITUTIONS = {
-    "flight/images": "{F}/images_nogps", "flight/events.txt": "{F}/gnss/events.txt", "flight/gps": "{U}/flight_gps",
+    "flight/images": "{F}/images_nogps",
+    "flight/events.txt": "{F}/gnss/events.txt",
+    "flight/gps": "{U}/flight_gps",
     "runs/labels/annotations.json": "{F}/truth/boxes_undistorted.json",  # module 4 draws them in its window
-    "project/selected": "{F}/opensfm/undistorted/images", "project/labels": "{U}/labels",
+    "project/selected": "{F}/opensfm/undistorted/images",
+    "project/labels": "{U}/labels",
     "project/labels/annotations.json": "{F}/truth/boxes_undistorted.json",
-    "project/predictions.json": "{U}/true_predictions.json", "project/tiles": "{W}/runs/tiles",
-    "ms.tif": "{F}/multispectral/multispectral.tif", "multispectral.tif": "{F}/multispectral/multispectral.tif",
-    "field/odm": "{W}/odm_project", "detections/predictions.json": "{W}/runs/test/predictions.json",
-    "field/plants": "{U}/plants", "orthophoto_boxes.json": "{F}/truth/map_boxes.csv",
+    "project/predictions.json": "{U}/true_predictions.json",
+    "project/tiles": "{W}/runs/tiles",
+    "ms.tif": "{F}/multispectral/multispectral.tif",
+    "multispectral.tif": "{F}/multispectral/multispectral.tif",
+    "field/odm": "{W}/odm_project",
+    "detections/predictions.json": "{W}/runs/test/predictions.json",
+    "field/plants": "{U}/plants",
+    "orthophoto_boxes.json": "{F}/truth/map_boxes.csv",
 }
 # the user's ODM project, wherever the README puts it: the tiny field's copy in odm_project/
 PREFIXES = {"/data/my_field": "{W}/odm_project", "/data/odm/field3": "{W}/odm_project"}
 # 'my.yaml' is the user's own config: the keys it holds for each module
 MY_YAML = {
-    "gcp_finder": {"images": "{F}/images", "survey": "{F}/gcp/gcp_survey.csv", "survey_crs": "{CRS}",
-                   "output_dir": "{W}/runs/gcp_finder"},
+    "gcp_finder": {
+        "images": "{F}/images",
+        "survey": "{F}/gcp/gcp_survey.csv",
+        "survey_crs": "{CRS}",
+        "output_dir": "{W}/runs/gcp_finder",
+    },
     "min_img_finder": {"project_dir": "{W}/odm_project"},
     "plant_projection": {"project": "{W}/odm_project", "predictions": "{W}/runs/test/predictions.json"},
 }
 # appended to training commands: a tiny model that trains in seconds (the example's own keys still apply)
-TINY = ["--set", "model.rpn.pre_nms_top_n_train=200", "--set", "model.rpn.post_nms_top_n_train=100",
-        "--set", "model.rpn.pre_nms_top_n_test=200", "--set", "model.rpn.post_nms_top_n_test=100",
-        "--set", "model.roi.batch_size_per_image=64", "--set", "epochs=1", "--set", "model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "--set",
-        "model.pretrained=none", "--set", "model.min_size=128", "--set", "model.max_size=160", "--set",
-        "num_workers=0", "--set", "warmup_iters=0", "--set", "device=cpu", "--set", "batch_size=2"]
+TINY = [
+    "--set",
+    "model.rpn.pre_nms_top_n_train=200",
+    "--set",
+    "model.rpn.post_nms_top_n_train=100",
+    "--set",
+    "model.rpn.pre_nms_top_n_test=200",
+    "--set",
+    "model.rpn.post_nms_top_n_test=100",
+    "--set",
+    "model.roi.batch_size_per_image=64",
+    "--set",
+    "epochs=1",
+    "--set",
+    "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+    "--set",
+    "model.pretrained=none",
+    "--set",
+    "model.min_size=128",
+    "--set",
+    "model.max_size=160",
+    "--set",
+    "num_workers=0",
+    "--set",
+    "warmup_iters=0",
+    "--set",
+    "device=cpu",
+    "--set",
+    "batch_size=2",
+]
 # module 5 runs as printed: its default 1024 px tile is larger than the tiny field's 400 x 300 px photos, so
 # each photo is one tile (no tiling), as on the demo's photos
 # module 7: the one-epoch model's boxes score low; keep them all (the true boxes stand in for module 8 anyway)
 EXTRA = {"model_train": TINY, "model_test": ["--set", "detect.score_threshold=0.0"]}
 # commands that read what a later module writes run after it
 RUN_AFTER = {"import_predictions=": 7.5}
-STEP_NUMBERS = {"gps_embeder": 0, "gcp_finder": 1, "odm_runner": 2, "min_img_finder": 3, "bbox_drawer": 4,
-                "img_splitter": 5, "model_train": 6, "model_test": 7, "plant_projection": 8,
-                "spatial_stat_extractor": 9, "run": 10}
+STEP_NUMBERS = {
+    "gps_embeder": 0,
+    "gcp_finder": 1,
+    "odm_runner": 2,
+    "min_img_finder": 3,
+    "bbox_drawer": 4,
+    "img_splitter": 5,
+    "model_train": 6,
+    "model_test": 7,
+    "plant_projection": 8,
+    "spatial_stat_extractor": 9,
+    "run": 10,
+}
 
 
 def _commands_in(doc: Path) -> list[tuple[str, str]]:
@@ -137,6 +188,7 @@ def order(item) -> float:
 
 # --------------------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def workspace(tiny_field, tmp_path_factory):
     """The code's folders under git, the user's data beside them as the folder configs expect."""
@@ -162,20 +214,40 @@ def workspace(tiny_field, tmp_path_factory):
 
 def _commit(git: str, folder: Path) -> None:
     subprocess.run([git, "add", "-A"], cwd=folder, check=True)
-    subprocess.run([git, "-c", "user.name=test", "-c", "user.email=test@example.org", "-c", "commit.gpgsign=false",
-                    "commit", "-q", "-m", "the code"], cwd=folder, capture_output=True)
+    subprocess.run(
+        [
+            git,
+            "-c",
+            "user.name=test",
+            "-c",
+            "user.email=test@example.org",
+            "-c",
+            "commit.gpgsign=false",
+            "commit",
+            "-q",
+            "-m",
+            "the code",
+        ],
+        cwd=folder,
+        capture_output=True,
+    )
 
 
 def _status(ws) -> str:
-    r = subprocess.run([ws["git"], "status", "--porcelain", "--untracked-files=all"], cwd=ws["w"],
-                       capture_output=True, text=True, check=True)
+    r = subprocess.run(
+        [ws["git"], "status", "--porcelain", "--untracked-files=all"],
+        cwd=ws["w"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     return r.stdout
 
 
 def _prefixed(value: str, names) -> str:
     for prefix, tiny in PREFIXES.items():
         if value == prefix or value.startswith(prefix + "/"):
-            return tiny.format(**names) + value[len(prefix):]
+            return tiny.format(**names) + value[len(prefix) :]
     return value
 
 
@@ -205,10 +277,22 @@ def true_predictions(field_root: Path, path: Path) -> None:
     from matchplant.core.formats.predictions import write_predictions
 
     truth = json.loads((field_root / "truth" / "boxes_undistorted.json").read_text())
-    images = [{"id": im["id"], "file_name": im["file_name"], "width": im["width"], "height": im["height"],
-               "source_image": im["file_name"], "x0": 0, "y0": 0} for im in truth["images"]]
-    preds = [{"id": a["id"], "image_id": a["image_id"], "category_id": a["category_id"], "bbox": a["bbox"],
-              "score": 1.0} for a in truth["annotations"]]
+    images = [
+        {
+            "id": im["id"],
+            "file_name": im["file_name"],
+            "width": im["width"],
+            "height": im["height"],
+            "source_image": im["file_name"],
+            "x0": 0,
+            "y0": 0,
+        }
+        for im in truth["images"]
+    ]
+    preds = [
+        {"id": a["id"], "image_id": a["image_id"], "category_id": a["category_id"], "bbox": a["bbox"], "score": 1.0}
+        for a in truth["annotations"]
+    ]
     write_predictions(path, images, truth["categories"], preds)
 
 

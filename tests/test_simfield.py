@@ -34,6 +34,7 @@ def _csv(path):
 
 def _mask(path):
     import cv2
+
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
@@ -101,9 +102,16 @@ def test_boxes_match_rendered_plant_masks(tiny_field):
 
 
 def test_orthophoto_dsm_ndvi_agree(tiny_field):
-    opened = {name: rasterio.open(path) for name, path in (
-        ("dsm", tiny_field.dsm), ("dtm", tiny_field.dtm), ("ortho", tiny_field.orthophoto),
-        ("ms", tiny_field.multispectral), ("ids", tiny_field.plant_ids))}
+    opened = {
+        name: rasterio.open(path)
+        for name, path in (
+            ("dsm", tiny_field.dsm),
+            ("dtm", tiny_field.dtm),
+            ("ortho", tiny_field.orthophoto),
+            ("ms", tiny_field.multispectral),
+            ("ids", tiny_field.plant_ids),
+        )
+    }
     try:
         ref = opened["dsm"]
         for name, src in opened.items():
@@ -141,7 +149,7 @@ def test_orthophoto_dsm_ndvi_agree(tiny_field):
 
 
 def _exif_degrees(value) -> float:
-    return sum(num / den / 60 ** i for i, (num, den) in enumerate(value))
+    return sum(num / den / 60**i for i, (num, den) in enumerate(value))
 
 
 def test_project_passes_odm_reader_and_exif_matches_cameras(tiny_field):
@@ -158,6 +166,7 @@ def test_project_passes_odm_reader_and_exif_matches_cameras(tiny_field):
     assert next(iter(rec.cameras.values())).projection_type == "brown"
     assert next(iter(urec.cameras.values())).projection_type == "perspective"
     from pyproj import Transformer
+
     to_lla = Transformer.from_crs(frame.crs, "EPSG:4326", always_xy=True)
     for shot_id, shot in rec.shots.items():
         centre = frame.to_map(shot.center[None, :])[0]
@@ -181,6 +190,7 @@ def test_project_passes_odm_reader_and_exif_matches_cameras(tiny_field):
 
 def _strip_exif(path) -> bytes:
     import io
+
     out = io.BytesIO()
     piexif.remove(path.read_bytes(), out)
     return out.getvalue()
@@ -196,8 +206,9 @@ def test_topocentric_reconstruction_matches(tiny_field):
     probe = frame.to_map(rec.points[:50])  # points on the field's surface, in the map CRS
     for shot_id, shot in rec.shots.items():
         t = topo.shots[shot_id]
-        np.testing.assert_allclose(tframe.to_map(t.center[None, :])[0], frame.to_map(shot.center[None, :])[0],
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            tframe.to_map(t.center[None, :])[0], frame.to_map(shot.center[None, :])[0], atol=1e-6
+        )
         # the same ground points land on the same pixels through either file
         a = ground_to_pixels(shot, probe, frame)
         b = ground_to_pixels(t, probe, tframe)
@@ -254,8 +265,16 @@ def test_tiny_is_fast_and_deterministic(tiny_field, tmp_path):
     cpu = cpu_time() - cpu
     # CPU rather than wall time: the test machine is shared; on an idle machine wall ~ CPU
     assert cpu < 10.0, f"tiny took {cpu:.1f} s of CPU"
-    for name in ("plants_csv", "boxes_raw", "boxes_undistorted", "gcp_pixels", "gnss_log", "reconstruction",
-                 "topocentric_reconstruction", "coords"):
+    for name in (
+        "plants_csv",
+        "boxes_raw",
+        "boxes_undistorted",
+        "gcp_pixels",
+        "gnss_log",
+        "reconstruction",
+        "topocentric_reconstruction",
+        "coords",
+    ):
         assert getattr(again, name).read_bytes() == getattr(tiny_field, name).read_bytes(), name
     first = sorted(tiny_field.images.iterdir())[0].name
     assert (again.images / first).read_bytes() == (tiny_field.images / first).read_bytes()
@@ -268,8 +287,12 @@ def test_seed_overrides_and_cli(tmp_path):
 
     small = dict(image_width=96, field_width=1.6, field_length=1.2)
     out = tmp_path / "cli"
-    code = run_module("simfield", ["--preset", "tiny", "--seed", "3", "--out", str(out), "--quiet"] +
-                      [f"--set={k}={v}" for k, v in small.items()] + ["--set=tilt_deg=15"])
+    code = run_module(
+        "simfield",
+        ["--preset", "tiny", "--seed", "3", "--out", str(out), "--quiet"]
+        + [f"--set={k}={v}" for k, v in small.items()]
+        + ["--set=tilt_deg=15"],
+    )
     assert code == 0
     field = read_json(FieldPaths(out).field_json)
     assert field["seed"] == 3 and field["flight"]["tilt_deg"] == 15 and field["camera"]["opensfm"]["width"] == 96
@@ -328,15 +351,19 @@ def test_plot_truth_agrees_with_the_plants(tiny_field):
     gaps = pd.read_csv(tiny_field.gaps_csv)
     plants = pd.read_csv(tiny_field.plants_csv)
     book = pd.read_csv(tiny_field.field_book)
-    assert len(plots) == grid["columns"] * grid["ranges"] == len(book) and list(book["plot_id"]) == list(plots["plot_id"])
+    assert len(plots) == grid["columns"] * grid["ranges"] == len(book) and list(book["plot_id"]) == list(
+        plots["plot_id"]
+    )
     assert (plots["stand_count"] + plots["gaps"] == plots["expected"]).all()
     assert (plots["expected"] == grid["rows_per_plot"] * round(grid["plot_length"] / grid["plant_spacing"])).all()
     outlines = shapely.from_wkt(plots["geometry"].to_numpy())
     for outline, count in zip(outlines, plots["stand_count"]):
         assert shapely.contains_xy(outline, plants["x"], plants["y"]).sum() == count
     assert len(gaps) == plots["gaps"].sum()
-    d = np.hypot(gaps["x"].to_numpy()[:, None] - plants["x"].to_numpy()[None], gaps["y"].to_numpy()[:, None] -
-                 plants["y"].to_numpy()[None])
+    d = np.hypot(
+        gaps["x"].to_numpy()[:, None] - plants["x"].to_numpy()[None],
+        gaps["y"].to_numpy()[:, None] - plants["y"].to_numpy()[None],
+    )
     assert d.min() > 0.1  # nothing grows where a seed is missing
     corners = np.array(grid["corners"])
     assert shapely.Polygon(corners).area == pytest.approx(sum(o.area for o in outlines))

@@ -156,8 +156,8 @@ def test_skewed_plot_grid_truth_agrees_with_module_9s_grid_and_the_plants(tmp_pa
     """A parallelogram grid: module 9's plot_grid from truth/plots.json's corners gives truth/plots.csv's
     outlines; every plant of a plot stands inside it, every gap lies inside its plot and on its row, and no
     plant grows at a gap."""
-    from matchplant.spatial_stat_extractor.plots.table import plot_grid
     from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
+    from matchplant.spatial_stat_extractor.plots.table import plot_grid
 
     field = generate_field("tiny", seed=1, out=tmp_path / "skew", plot_skew_deg=skew, image_width=200)
     grid = read_json(field.plots_json)
@@ -178,8 +178,10 @@ def test_skewed_plot_grid_truth_agrees_with_module_9s_grid_and_the_plants(tmp_pa
         assert shapely.contains_xy(outline, plants["x"], plants["y"]).sum() == count
         g = gaps[gaps["plot_id"] == pid]
         assert shapely.contains_xy(outline, g["x"], g["y"]).all()  # every gap inside its own plot
-    d = np.hypot(gaps["x"].to_numpy()[:, None] - plants["x"].to_numpy()[None],
-                 gaps["y"].to_numpy()[:, None] - plants["y"].to_numpy()[None])
+    d = np.hypot(
+        gaps["x"].to_numpy()[:, None] - plants["x"].to_numpy()[None],
+        gaps["y"].to_numpy()[:, None] - plants["y"].to_numpy()[None],
+    )
     assert len(gaps) and d.min() > 0.1
     # the seeds of one row follow the grid: row r's seeds start (x_r - x_0) tan(skew) further north
     first = plants.sort_values("y").groupby("row").first()

@@ -51,11 +51,15 @@ def make_polygons(transform, h, w, n=45, seed=2):
         elif kind == 1:
             g = shapely.Point(cx, cy).buffer(rng.uniform(0.4, 5), quad_segs=5)
         elif kind == 2:
-            g = shapely.Point(cx, cy).buffer(rng.uniform(2.5, 6)).difference(
-                shapely.Point(cx + 0.4, cy - 0.3).buffer(1.3))
+            g = (
+                shapely.Point(cx, cy)
+                .buffer(rng.uniform(2.5, 6))
+                .difference(shapely.Point(cx + 0.4, cy - 0.3).buffer(1.3))
+            )
         else:
-            g = shapely.MultiPolygon([shapely.box(cx, cy, cx + 1.7, cy + 2.2),
-                                      shapely.box(cx + 3.1, cy + 0.3, cx + 4.4, cy + 1.9)])
+            g = shapely.MultiPolygon(
+                [shapely.box(cx, cy, cx + 1.7, cy + 2.2), shapely.box(cx + 3.1, cy + 0.3, cx + 4.4, cy + 1.9)]
+            )
         geoms.append(g)
     geoms.append(shapely.box(x0 - 50, y1 + 10, x0 - 40, y1 + 20))  # far outside
     return geoms
@@ -150,8 +154,18 @@ def raster_file(tmp_path_factory, synthetic):
 
     data, transform, _ = synthetic
     path = tmp_path_factory.mktemp("r") / "raster.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
-                      dtype="float32", crs=CRS, transform=transform, nodata=-9999.0) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[1],
+        height=data.shape[0],
+        count=1,
+        dtype="float32",
+        crs=CRS,
+        transform=transform,
+        nodata=-9999.0,
+    ) as dst:
         dst.write(data, 1)
     return path
 
@@ -165,8 +179,9 @@ def raster_file(tmp_path_factory, synthetic):
 @pytest.mark.parametrize("mode", ["center", "coverage"])
 def test_equals_brute_force(synthetic, mode):
     data, transform, geoms = synthetic
-    res = zonal_stats(geoms, ArraySource(data, transform, nodata=-9999), STATS, [10, 90], mode=mode,
-                      max_cells=3000, max_window=6000)  # small batches: exercise batching and windows
+    res = zonal_stats(
+        geoms, ArraySource(data, transform, nodata=-9999), STATS, [10, 90], mode=mode, max_cells=3000, max_window=6000
+    )  # small batches: exercise batching and windows
     ref = brute_force(data, transform, geoms, mode, [10, 90])
     assert_stats_equal(res.stats, ref)
     assert res.outside[-1] and res.outside.sum() >= 1
@@ -178,12 +193,26 @@ def test_equals_brute_force(synthetic, mode):
 def test_equals_rasterstats(synthetic, raster_file):
     rasterstats = pytest.importorskip("rasterstats")
     data, transform, geoms = synthetic
-    res = zonal_stats(geoms, ArraySource(data, transform, nodata=-9999),
-                      ["count", "min", "max", "mean", "median", "std", "sum"], [25, 95])
-    ref = rasterstats.zonal_stats(geoms, str(raster_file),
-                                  stats="count min max mean median std sum percentile_25 percentile_95")
-    names = {"count": "count", "min": "min", "max": "max", "mean": "mean", "median": "median", "std": "std",
-             "sum": "sum", "p25": "percentile_25", "p95": "percentile_95"}
+    res = zonal_stats(
+        geoms,
+        ArraySource(data, transform, nodata=-9999),
+        ["count", "min", "max", "mean", "median", "std", "sum"],
+        [25, 95],
+    )
+    ref = rasterstats.zonal_stats(
+        geoms, str(raster_file), stats="count min max mean median std sum percentile_25 percentile_95"
+    )
+    names = {
+        "count": "count",
+        "min": "min",
+        "max": "max",
+        "mean": "mean",
+        "median": "median",
+        "std": "std",
+        "sum": "sum",
+        "p25": "percentile_25",
+        "p95": "percentile_95",
+    }
     for ours, theirs in names.items():
         b = np.array([np.nan if r[theirs] is None else r[theirs] for r in ref], float)
         if ours == "count":
@@ -198,14 +227,32 @@ def test_equals_exactextract(synthetic, raster_file):
     import geopandas as gpd
 
     data, transform, geoms = synthetic
-    res = zonal_stats(geoms, ArraySource(data, transform, nodata=-9999),
-                      ["count", "min", "max", "mean", "median", "std", "sum"], [25, 95], mode="coverage")
+    res = zonal_stats(
+        geoms,
+        ArraySource(data, transform, nodata=-9999),
+        ["count", "min", "max", "mean", "median", "std", "sum"],
+        [25, 95],
+        mode="coverage",
+    )
     gdf = gpd.GeoDataFrame({"i": range(len(geoms))}, geometry=geoms, crs=CRS)
-    ee = exactextract.exact_extract(str(raster_file), gdf, ["count", "min", "max", "mean", "median", "stdev",
-                                                            "sum", "quantile(q=0.25)", "quantile(q=0.95)"],
-                                    output="pandas", include_cols=["i"])
-    names = {"count": "count", "min": "min", "max": "max", "mean": "mean", "median": "median", "std": "stdev",
-             "sum": "sum", "p25": "quantile_25", "p95": "quantile_95"}
+    ee = exactextract.exact_extract(
+        str(raster_file),
+        gdf,
+        ["count", "min", "max", "mean", "median", "stdev", "sum", "quantile(q=0.25)", "quantile(q=0.95)"],
+        output="pandas",
+        include_cols=["i"],
+    )
+    names = {
+        "count": "count",
+        "min": "min",
+        "max": "max",
+        "mean": "mean",
+        "median": "median",
+        "std": "stdev",
+        "sum": "sum",
+        "p25": "quantile_25",
+        "p95": "quantile_95",
+    }
     empty = ee["count"].to_numpy() == 0
     for ours, theirs in names.items():
         b = ee[theirs].to_numpy(float).copy()
@@ -226,17 +273,38 @@ def test_coverage_equals_exactextract_on_integer_raster_with_ties(tmp_path):
     data = np.where(data == -9999, -9999, np.round(data * 3)).astype("float32")
     geoms = make_polygons(transform, *data.shape)
     path = tmp_path / "ints.tif"
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[1], height=data.shape[0], count=1,
-                       dtype="float32", crs=CRS, transform=transform, nodata=-9999.0) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[1],
+        height=data.shape[0],
+        count=1,
+        dtype="float32",
+        crs=CRS,
+        transform=transform,
+        nodata=-9999.0,
+    ) as dst:
         dst.write(data, 1)
-    res = zonal_stats(geoms, ArraySource(data, transform, nodata=-9999), ["count", "mean", "median"], [10, 90],
-                      mode="coverage")
+    res = zonal_stats(
+        geoms, ArraySource(data, transform, nodata=-9999), ["count", "mean", "median"], [10, 90], mode="coverage"
+    )
     gdf = gpd.GeoDataFrame({"i": range(len(geoms))}, geometry=geoms, crs=CRS)
-    ee = exactextract.exact_extract(str(path), gdf, ["count", "mean", "median", "quantile(q=0.10)",
-                                                     "quantile(q=0.90)"], output="pandas", include_cols=["i"])
+    ee = exactextract.exact_extract(
+        str(path),
+        gdf,
+        ["count", "mean", "median", "quantile(q=0.10)", "quantile(q=0.90)"],
+        output="pandas",
+        include_cols=["i"],
+    )
     empty = ee["count"].to_numpy() == 0
-    for ours, theirs in {"count": "count", "mean": "mean", "median": "median", "p10": "quantile_10",
-                         "p90": "quantile_90"}.items():
+    for ours, theirs in {
+        "count": "count",
+        "mean": "mean",
+        "median": "median",
+        "p10": "quantile_10",
+        "p90": "quantile_90",
+    }.items():
         b = ee[theirs].to_numpy(float).copy()
         if ours != "count":
             b[empty] = np.nan
@@ -282,8 +350,18 @@ def write_raster(path, data, transform, crs=CRS, nodata=-9999.0):
     data = np.asarray(data, dtype="float32")
     if data.ndim == 2:
         data = data[None]
-    with rasterio.open(path, "w", driver="GTiff", width=data.shape[2], height=data.shape[1], count=data.shape[0],
-                      dtype="float32", crs=crs, transform=transform, nodata=nodata) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=data.shape[2],
+        height=data.shape[1],
+        count=data.shape[0],
+        dtype="float32",
+        crs=crs,
+        transform=transform,
+        nodata=nodata,
+    ) as dst:
         dst.write(data)
     return path
 
@@ -305,7 +383,7 @@ def field(tmp_path):
     xc, yc = to_map(t, cols + 0.5, rows + 0.5)
     chm = np.zeros((h, w))
     for x, y, hh in zip(cx, cy, heights):
-        r2 = ((xc - x) ** 2 + (yc - y) ** 2) / 0.15 ** 2
+        r2 = ((xc - x) ** 2 + (yc - y) ** 2) / 0.15**2
         chm = np.maximum(chm, np.where(r2 < 1, hh * (1 - r2), 0))
     red = np.where(chm > 0, 0.05, 0.20)
     nir = np.where(chm > 0, 0.45, 0.27)
@@ -331,8 +409,9 @@ def test_chm_ndvi_outputs_and_crs(field):
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
-    table, report = extract_stats(polys, [RasterSet(dsm=d / "dsm.tif", dtm=d / "dtm.tif", multispectral=d / "ms.tif")],
-                                  ["max", "mean"], [50])
+    table, report = extract_stats(
+        polys, [RasterSet(dsm=d / "dsm.tif", dtm=d / "dtm.tif", multispectral=d / "ms.tif")], ["max", "mean"], [50]
+    )
     # CHM = DSM - DTM: each plant's maximum is its true height within float32 precision at 300 m
     np.testing.assert_allclose(table["chm_max"], field["heights"], atol=2e-3)
     assert np.all(table["ndvi_max"].round(6) == 0.8)
@@ -378,8 +457,10 @@ def test_dates_wide_and_long(field):
     np.testing.assert_allclose(wide["chm_max_w4"], 1.5 * wide["chm_max_w3"], atol=3e-3)
     long, _ = extract_stats(polys, sets, ["max"], [], layout="long")
     assert list(long.columns) == ["plant_id", "date", "x", "y", "chm_max"] and len(long) == 12
-    assert long.groupby("date")["chm_max"].sum().round(3).tolist() == \
-        [round(float(wide["chm_max_w3"].sum()), 3), round(float(wide["chm_max_w4"].sum()), 3)]
+    assert long.groupby("date")["chm_max"].sum().round(3).tolist() == [
+        round(float(wide["chm_max_w3"].sum()), 3),
+        round(float(wide["chm_max_w4"].sum()), 3),
+    ]
 
 
 def test_csv_inputs(field, tmp_path):
@@ -387,9 +468,11 @@ def test_csv_inputs(field, tmp_path):
 
     b = shapely.bounds(field["boxes"])
     pd.DataFrame({"id": field["ids"], "xmin": b[:, 0], "ymin": b[:, 1], "xmax": b[:, 2], "ymax": b[:, 3]}).to_csv(
-        tmp_path / "boxes.csv", index=False)
+        tmp_path / "boxes.csv", index=False
+    )
     pd.DataFrame({"plant": field["ids"] * 10, "geometry": shapely.to_wkt(field["boxes"])}).to_csv(
-        tmp_path / "wkt.csv", index=False)
+        tmp_path / "wkt.csv", index=False
+    )
     a = read_polygons(tmp_path / "boxes.csv", crs=CRS)
     assert a.crs.to_epsg() == 32615 and a["plant_id"].tolist() == field["ids"].tolist()
     assert shapely.equals(a.geometry.values, field["boxes"]).all()
@@ -479,11 +562,17 @@ def test_cli_end_to_end_with_comparison(field):
     pred["plant_id"] = pred["plant_id"] + 100
     pred.to_file(d / "pred.gpkg", driver="GPKG")
     cfg = d / "cfg.yaml"
-    cfg.write_text("polygons: plants.gpkg\nrasters:\n  date: w3\n  dsm: dsm.tif\n  dtm: dtm.tif\n"
-                   "  multispectral: ms.tif\nmore_dates:\n  - date: w4\n    chm: chm_w4.tif\n"
-                   "percentiles: [5, 95]\nmode: coverage\ncompare:\n  polygons: pred.gpkg\noutput_dir: out\n")
-    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg), "--quiet"],
-                       capture_output=True, text=True, timeout=120)
+    cfg.write_text(
+        "polygons: plants.gpkg\nrasters:\n  date: w3\n  dsm: dsm.tif\n  dtm: dtm.tif\n"
+        "  multispectral: ms.tif\nmore_dates:\n  - date: w4\n    chm: chm_w4.tif\n"
+        "percentiles: [5, 95]\nmode: coverage\ncompare:\n  polygons: pred.gpkg\noutput_dir: out\n"
+    )
+    r = subprocess.run(
+        [sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg), "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     out = d / "out"
     table = pd.read_csv(out / "stats.csv")
@@ -494,8 +583,12 @@ def test_cli_end_to_end_with_comparison(field):
     assert (out / "compare.png").stat().st_size > 10_000
     assert gpd.read_file(out / "stats.gpkg").crs.to_epsg() == 32615
     # a wrong key is a clear message and exit code 2, not a traceback
-    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg),
-                        "--set", "mode=centre"], capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--config", str(cfg), "--set", "mode=centre"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2 and "did you mean 'center'" in r.stderr and "Traceback" not in r.stderr
 
 
@@ -505,8 +598,12 @@ def test_folder_config_and_help():
 
     cfg = load_config(SpatialStatExtractorConfig, FOLDER / "config.yaml", strict=False)
     assert cfg.mode == "center" and cfg.stats
-    r = subprocess.run([sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--help"], capture_output=True,
-                       text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, str(FOLDER / "spatial_stat_extractor.py"), "--help"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 0 and "--gui" in r.stdout and "--dsm" in r.stdout
 
 
@@ -518,8 +615,15 @@ def test_config_checks(tmp_path):
     with pytest.raises(ConfigError, match="no raster given"):
         load_config(SpatialStatExtractorConfig, None, [f"polygons={tmp_path / 'p.gpkg'}"])
     with pytest.raises(ConfigError, match="distinct"):
-        load_config(SpatialStatExtractorConfig, None, [f"polygons={tmp_path / 'p.gpkg'}", f"rasters.chm={tmp_path / 'p.gpkg'}",
-                                        f"more_dates=[{{chm: {tmp_path / 'p.gpkg'}}}]"])
+        load_config(
+            SpatialStatExtractorConfig,
+            None,
+            [
+                f"polygons={tmp_path / 'p.gpkg'}",
+                f"rasters.chm={tmp_path / 'p.gpkg'}",
+                f"more_dates=[{{chm: {tmp_path / 'p.gpkg'}}}]",
+            ],
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -550,8 +654,10 @@ def test_synthetic_field_heights_and_ndvi(tiny_field, tmp_path):
     # each plant's exact footprint (vectorised from the truth label raster): NDVI is the leaf's everywhere
     with rasterio.open(tiny_field.plant_ids) as src:
         label = src.read(1)
-        shapes = [(shapely.geometry.shape(g), int(v)) for g, v in
-                  rasterio.features.shapes(label, mask=label > 0, transform=src.transform)]
+        shapes = [
+            (shapely.geometry.shape(g), int(v))
+            for g, v in rasterio.features.shapes(label, mask=label > 0, transform=src.transform)
+        ]
         crs = src.crs.to_wkt()
     import geopandas as gpd
 
@@ -575,14 +681,20 @@ def test_rerun_into_one_folder_leaves_nothing_stale(field):
     from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 
     d, out = field["dir"], field["dir"] / "stats_out"
-    base = [f"polygons={d / 'plants.gpkg'}", f"rasters.dsm={d / 'dsm.tif'}", f"rasters.dtm={d / 'dtm.tif'}",
-            f"output_dir={out}"]
+    base = [
+        f"polygons={d / 'plants.gpkg'}",
+        f"rasters.dsm={d / 'dsm.tif'}",
+        f"rasters.dtm={d / 'dtm.tif'}",
+        f"output_dir={out}",
+    ]
     run(load_config(SpatialStatExtractorConfig, None, base + ["vector_formats=[gpkg, shp]"]))
     assert (out / "outlines.gpkg").is_file() and (out / "polygons.shp").is_file()
     (out / "my_notes.txt").write_text("mine")
     run(load_config(SpatialStatExtractorConfig, None, base + ["canopy.enabled=false", "vector_formats=[gpkg]"]))
     listed = set(json.loads((out / "manifest.json").read_text())["files"])
-    held = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.relative_to(out).parts[0] != "logs"}
+    held = {
+        p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.relative_to(out).parts[0] != "logs"
+    }
     assert held == listed | {"my_notes.txt"}
     assert not (out / "outlines.gpkg").exists() and not (out / "polygons.shp").exists()
     assert (out / "stats.csv").is_file()

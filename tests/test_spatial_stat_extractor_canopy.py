@@ -19,11 +19,6 @@ from scipy import ndimage as ndi
 
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.spatial_stat_extractor.config import (
-    CanopyConfig,
-    RasterSet,
-    SpatialStatExtractorConfig,
-)
 from matchplant.spatial_stat_extractor.canopy.ground import (
     GroundSample,
     check_chm,
@@ -36,10 +31,15 @@ from matchplant.spatial_stat_extractor.canopy.outlines import (
     segment,
     valid_polygons,
 )
+from matchplant.spatial_stat_extractor.config import (
+    CanopyConfig,
+    RasterSet,
+    SpatialStatExtractorConfig,
+)
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.traits import canopy_traits
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
 
 CRS = "EPSG:32614"
 
@@ -52,8 +52,9 @@ def field():
 def pixel_iou(geoms, f) -> np.ndarray:
     """IoU of each outline (rasterised, pixel centres) with its plant's true footprint (leaf pixels)."""
     n = len(geoms)
-    pred = rasterize(((g, k + 1) for k, g in enumerate(geoms)), out_shape=f.chm.shape, transform=f.transform,
-                     dtype="int32").ravel()
+    pred = rasterize(
+        ((g, k + 1) for k, g in enumerate(geoms)), out_shape=f.chm.shape, transform=f.transform, dtype="int32"
+    ).ravel()
     truth = f.truth.ravel()
     inter = np.bincount(pred[(pred == truth) & (pred > 0)], minlength=n + 1)[1:]
     union = np.bincount(pred, minlength=n + 1)[1:] + np.bincount(truth, minlength=n + 1)[1:] - inter
@@ -63,8 +64,11 @@ def pixel_iou(geoms, f) -> np.ndarray:
 def auto_settings(src, f):
     noise = measure_ground(src, f.boxes, guard_m=0.1)
     th = thresholds("auto", "auto", noise)
-    return noise, th, SegmentSettings(min_height=th.min_height, min_top=th.min_top,
-                                      unclaimed_min_top=th.unclaimed_min_top)
+    return (
+        noise,
+        th,
+        SegmentSettings(min_height=th.min_height, min_top=th.min_top, unclaimed_min_top=th.unclaimed_min_top),
+    )
 
 
 def test_ground_noise_measured_and_outlines_inside_low_plants(field):
@@ -105,8 +109,9 @@ def test_close_planted_field_measures_the_ground_just_outside_the_boxes(field):
 
 def outline_means(geoms, f, layer) -> np.ndarray:
     """Each outline's mean of ``layer`` over its pixels (rasterised, pixel centres): numpy, not module 9."""
-    pred = rasterize(((g, k + 1) for k, g in enumerate(geoms)), out_shape=layer.shape, transform=f.transform,
-                     dtype="int32").ravel()
+    pred = rasterize(
+        ((g, k + 1) for k, g in enumerate(geoms)), out_shape=layer.shape, transform=f.transform, dtype="int32"
+    ).ravel()
     n = len(geoms)
     return np.bincount(pred, weights=layer.ravel(), minlength=n + 1)[1:] / np.bincount(pred, minlength=n + 1)[1:]
 
@@ -122,8 +127,13 @@ def test_ndvi_tells_leaf_edges_from_ground_bumps(field):
     th = thresholds("auto", "auto", noise, "auto")
     assert th.ndvi_soil == pytest.approx(0.15, abs=0.01) and 0.16 < th.ndvi_threshold < 0.3
     assert th.min_height < 0.06 and th.source["ndvi_threshold"].startswith("auto")
-    s = SegmentSettings(min_height=th.min_height, min_top=th.min_top, unclaimed_min_top=th.unclaimed_min_top,
-                        mask_threshold=th.ndvi_threshold, mask_soil=th.ndvi_soil)
+    s = SegmentSettings(
+        min_height=th.min_height,
+        min_top=th.min_top,
+        unclaimed_min_top=th.unclaimed_min_top,
+        mask_threshold=th.ndvi_threshold,
+        mask_soil=th.ndvi_soil,
+    )
     o = segment(f.boxes, src, s, mask_source=ndvi)
     assert not o.from_box.any() and len(o.unclaimed) == 0  # the pale plants (NDVI 0.35-0.45) too
     assert (o.area / shapely.area(f.boxes)).max() <= 0.7
@@ -136,10 +146,10 @@ def test_ndvi_tells_leaf_edges_from_ground_bumps(field):
     # a false box on a 12 cm ground bump between the rows: its top is soil by NDVI, flagged low (not a plant)
     t = f.transform
     cx, cy = t.c + 3.0, t.f - 0.775
-    rows, cols = np.mgrid[0:f.chm.shape[0], 0:f.chm.shape[1]]
+    rows, cols = np.mgrid[0 : f.chm.shape[0], 0 : f.chm.shape[1]]
     xs, ys = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
     assert not f.truth[np.hypot(xs - cx, ys - cy) < 0.1].any()
-    bumpy = f.chm + 0.12 * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 0.02 ** 2))
+    bumpy = f.chm + 0.12 * np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 0.02**2))
     boxes = np.append(f.boxes, shapely.box(cx - 0.04, cy - 0.04, cx + 0.04, cy + 0.04))
     o2 = segment(boxes, ArraySource(bumpy, t), s, mask_source=ndvi)
     assert o2.flag[-1] == "low" and (o2.flag[:-1] == "").all()
@@ -193,10 +203,21 @@ def test_module_9_on_a_noisy_chm_writes_only_valid_polygons(field, tmp_path):
     chm, boxes = write_field(f, tmp_path / "in")
     x0, y0, x1, y1 = f.transform.c, f.transform.f - 3.2, f.transform.c + 6.0, f.transform.f
     corners = [[x0, y0], [x1, y0], [x1, y1], [x0, y1]]
-    cfg = load_config(SpatialStatExtractorConfig, None, [
-        f"polygons={boxes}", f"rasters.chm={chm}", f"output_dir={tmp_path / 'out'}",
-        "vector_formats=[gpkg, shp, geojson]", f"plots.corners={json.dumps(corners)}", "plots.columns=2",
-        "plots.ranges=2", "plots.rows_per_plot=2", "plots.plant_spacing=0.3"])
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={boxes}",
+            f"rasters.chm={chm}",
+            f"output_dir={tmp_path / 'out'}",
+            "vector_formats=[gpkg, shp, geojson]",
+            f"plots.corners={json.dumps(corners)}",
+            "plots.columns=2",
+            "plots.ranges=2",
+            "plots.rows_per_plot=2",
+            "plots.plant_spacing=0.3",
+        ],
+    )
     _, _, report, written = extract_and_write(cfg)
     gis = [p for p in written.values() if str(p).endswith((".gpkg", ".shp", ".geojson"))]
     assert {"outlines.gpkg", "plots.gpkg", "stats.gpkg", "polygons.gpkg"} <= {p.name for p in gis}
@@ -220,9 +241,20 @@ def test_module_9_on_a_noisy_chm_writes_only_valid_polygons(field, tmp_path):
 def test_fills_box_flagged_when_the_threshold_is_below_the_soil(field, tmp_path):
     f = field
     chm, boxes = write_field(f, tmp_path / "in")
-    cfg = load_config(SpatialStatExtractorConfig, None, [
-        f"polygons={boxes}", f"rasters.chm={chm}", f"output_dir={tmp_path / 'out'}", "vector_formats=[]",
-        "canopy.min_height=0.0", "canopy.min_top=0.05", "canopy.margin=0", "canopy.relative=0"])
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={boxes}",
+            f"rasters.chm={chm}",
+            f"output_dir={tmp_path / 'out'}",
+            "vector_formats=[]",
+            "canopy.min_height=0.0",
+            "canopy.min_top=0.05",
+            "canopy.margin=0",
+            "canopy.relative=0",
+        ],
+    )
     _, table, report, _ = extract_and_write(cfg)
     assert report["canopy"]["dates"][0]["fills_box"] == int(table["fills_box"].sum()) > len(table) // 2
     assert (table.loc[table["fills_box"], "canopy_box_ratio"] >= 0.9).all()
@@ -239,8 +271,11 @@ def test_chm_sanity(field):
     auto = ("auto", "auto")
     # DSM and DTM swapped: the CHM is negative under the plants
     n = sample(f, -f.chm)
-    with pytest.raises(InputError, match=r"(?s)negative under \d+ of \d+ plants.*rasters.dsm and rasters.dtm "
-                                         r"look swapped.*swap rasters.dsm and rasters.dtm"):
+    with pytest.raises(
+        InputError,
+        match=r"(?s)negative under \d+ of \d+ plants.*rasters.dsm and rasters.dtm "
+        r"look swapped.*swap rasters.dsm and rasters.dtm",
+    ):
         check_chm(n, thresholds(*auto, n), 10.0, "dsm.tif, dtm.tif", ("rasters.dsm", "rasters.dtm"))
     # in centimetres
     n = sample(f, 100 * f.chm)
@@ -253,15 +288,28 @@ def test_chm_sanity(field):
         check_chm(n, thresholds(*auto, n), 1000.0, "dsm.tif", ("rasters.chm",))
     # canopy.min_top: 5 meant as 5 cm
     n = sample(f, f.chm)
-    with pytest.raises(ConfigError, match=r"(?s)canopy.min_top = 5 m is above the top of every plant.*set canopy.min_top"
-                                          r": 0.05 for 5 cm"):
+    with pytest.raises(
+        ConfigError,
+        match=r"(?s)canopy.min_top = 5 m is above the top of every plant.*set canopy.min_top"
+        r": 0.05 for 5 cm",
+    ):
         check_chm(n, thresholds("auto", 5.0, n), 10.0, "chm.tif", ("rasters.chm",))
     check_chm(n, thresholds(*auto, n), 10.0, "chm.tif", ("rasters.chm",))  # the right CHM passes
 
 
 def write_chm(path, chm, transform):
-    with rasterio.open(path, "w", driver="GTiff", width=chm.shape[1], height=chm.shape[0], count=1,
-                       dtype="float32", crs=CRS, transform=transform, nodata=-9999) as ds:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=chm.shape[1],
+        height=chm.shape[0],
+        count=1,
+        dtype="float32",
+        crs=CRS,
+        transform=transform,
+        nodata=-9999,
+    ) as ds:
         ds.write(np.where(np.isfinite(chm), chm, -9999).astype("float32"), 1)
     return path
 
@@ -280,8 +328,11 @@ def test_a_later_flight_georeferenced_apart_is_caught_and_registered(field, tmp_
     _, boxes = write_field(f, tmp_path / "in")
     plants = read_polygons(boxes)
     sets = [RasterSet(date="d1", chm=chm1), RasterSet(date="d2", chm=chm2)]
-    with pytest.raises(InputError, match=r"(?s)date 'd2'.*shifted 1\.4\d m.*beyond canopy.max_shift = 0\.1 m.*"
-                                         r"canopy.register: true"):
+    with pytest.raises(
+        InputError,
+        match=r"(?s)date 'd2'.*shifted 1\.4\d m.*beyond canopy.max_shift = 0\.1 m.*"
+        r"canopy.register: true",
+    ):
         canopy_traits(plants, sets, CanopyConfig(), ["mean"], [])
     per_date, _, _, report = canopy_traits(plants, sets, CanopyConfig(register=True), ["mean"], [])
     got = report["dates"][1]["registered"]
@@ -302,8 +353,9 @@ def test_unclaimed_canopies_need_six_sd_on_the_chm_alone_and_three_where_ndvi_te
     enough: with 6 SD every missed plant under ~20 cm stayed out of the noisy demo field's stand counts."""
     rng = np.random.default_rng(5)
     soil, tops = rng.normal(0.15, 0.01, 4000), rng.normal(0.7, 0.05, 200)  # NDVI of bare soil and plant tops
-    noise = GroundSample(pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032,
-                        ndvi_soil=soil, ndvi_tops=tops)
+    noise = GroundSample(
+        pixels=10_000, windows=8, p50=0.017, p95=0.07, p99=0.09, sd=0.032, ndvi_soil=soil, ndvi_tops=tops
+    )
     chm_only = thresholds("auto", "auto", noise, None)
     with_ndvi = thresholds("auto", "auto", noise, "auto")
     assert with_ndvi.ndvi_threshold is not None
@@ -340,7 +392,7 @@ def test_unclaimed_canopies_beyond_the_outermost_box_are_seen_whole_and_faint_le
     rr, cc = np.mgrid[0:60, 0:300]
 
     def plant(col, h):
-        return h * np.clip(1 - ((cc - col) ** 2 + (rr - 30) ** 2) / 15 ** 2, 0, None)
+        return h * np.clip(1 - ((cc - col) ** 2 + (rr - 30) ** 2) / 15**2, 0, None)
 
     chm = plant(220, 0.4) + plant(150, 0.4) + plant(60, 0.07)
     ndvi = np.where(chm > 0, 0.8, 0.15)

@@ -20,8 +20,8 @@ def touching_pairs(truth: np.ndarray) -> set[tuple[int, int]]:
     """Pairs of plants (0-based) whose true footprints touch (8-neighbour pixels)."""
     pairs = set()
     for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = truth[max(0, -dr):truth.shape[0] - max(0, dr), max(0, -dc):truth.shape[1] - max(0, dc)]
-        b = truth[max(0, dr):, max(0, dc):][:a.shape[0], :a.shape[1]]
+        a = truth[max(0, -dr) : truth.shape[0] - max(0, dr), max(0, -dc) : truth.shape[1] - max(0, dc)]
+        b = truth[max(0, dr) :, max(0, dc) :][: a.shape[0], : a.shape[1]]
         m = (a > 0) & (b > 0) & (a != b)
         pairs |= {(min(p, q) - 1, max(p, q) - 1) for p, q in zip(a[m], b[m])}
     return pairs
@@ -60,8 +60,9 @@ def test_split_boxes_of_one_noisy_plant_are_one_plant_touching_neighbours_two():
     src = ArraySource(f.chm, f.transform)
     noise = measure_ground(src, f.boxes, guard_m=0.1)
     th = thresholds("auto", "auto", noise)
-    s = SegmentSettings(min_height=th.min_height, min_top=th.min_top, unclaimed_min_top=th.unclaimed_min_top,
-                        noise_sd=th.noise_sd)
+    s = SegmentSettings(
+        min_height=th.min_height, min_top=th.min_top, unclaimed_min_top=th.unclaimed_min_top, noise_sd=th.noise_sd
+    )
     n = len(f.boxes)
     split, extra = split_boxes(f)
     o = segment(np.concatenate([f.boxes, extra]), src, s)
@@ -86,7 +87,7 @@ def test_split_boxes_of_one_noisy_plant_are_one_plant_touching_neighbours_two():
 def dome(cx: float, h: float) -> np.ndarray:
     """A plant's canopy h (1 - rho^2), radius 18 px, centred on row 20 and column ``cx`` of a 40 x 80 grid."""
     yy, xx = np.mgrid[0:40, 0:80].astype(float)
-    return h * np.clip(1 - ((xx - cx) ** 2 + (yy - 20) ** 2) / 18 ** 2, 0, None)
+    return h * np.clip(1 - ((xx - cx) ** 2 + (yy - 20) ** 2) / 18**2, 0, None)
 
 
 def test_one_noisy_dome_is_one_plant_a_valley_parts_two():
@@ -141,7 +142,7 @@ def test_a_split_box_centred_on_a_plant_does_not_move_to_a_low_leaf_at_its_edge(
     chm = dome(30, 0.5)
     chm[20, 30] += 0.02  # noise on the top: the second box's highest local maximum
     chm[17:24, 45:48] = 0.02  # a noise valley across the leaves ...
-    chm[20, 48] = 0.12     # ... and a leaf tip beyond it, at the second box's edge
+    chm[20, 48] = 0.12  # ... and a leaf tip beyond it, at the second box's edge
     peak = ndi.maximum_filter(chm, 5) == chm
     assert peak[20, 48]
     boxes = np.array([[12, 2, 48, 38], [13, 2, 49, 38]])  # c0, r0, c1, r1: both centred on the dome
@@ -192,5 +193,5 @@ def test_a_saddle_is_the_same_whatever_other_pairs_are_tested_with_it():
         line = []
         for k in range(n + 1):
             r, c = round(pr + (qr - pr) * k / n), round(pc + (qc - pc) * k / n)
-            line.append(W[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2].max())
+            line.append(W[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2].max())
         assert got == min(line)

@@ -31,13 +31,25 @@ def small_field(tmp_path):
     chm = np.zeros((h, w), np.float32)
     for px, py, hh in zip(cx, cy, heights):  # a cone per plant, drawn in its own small window
         c0, r0 = int((px - 0.2 - t.c) / t.a), int((py + 0.2 - t.f) / t.e)
-        rows, cols = np.mgrid[r0:r0 + 80, c0:c0 + 80]
+        rows, cols = np.mgrid[r0 : r0 + 80, c0 : c0 + 80]
         x, y = t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e
         r = np.hypot(x - px, y - py) / 0.15
-        np.maximum(chm[r0:r0 + 80, c0:c0 + 80], np.where(r < 1, hh * (1 - r), 0),
-                   out=chm[r0:r0 + 80, c0:c0 + 80])
-    with rasterio.open(tmp_path / "chm.tif", "w", driver="GTiff", width=w, height=h, count=1, dtype="float32",
-                       crs=CRS, transform=t, nodata=-9999.0, tiled=True) as dst:
+        np.maximum(
+            chm[r0 : r0 + 80, c0 : c0 + 80], np.where(r < 1, hh * (1 - r), 0), out=chm[r0 : r0 + 80, c0 : c0 + 80]
+        )
+    with rasterio.open(
+        tmp_path / "chm.tif",
+        "w",
+        driver="GTiff",
+        width=w,
+        height=h,
+        count=1,
+        dtype="float32",
+        crs=CRS,
+        transform=t,
+        nodata=-9999.0,
+        tiled=True,
+    ) as dst:
         dst.write(chm, 1)
     boxes = shapely.box(cx - 0.16, cy - 0.16, cx + 0.16, cy + 0.16)
     gpd.GeoDataFrame({"plant_id": np.arange(1, 41)}, geometry=boxes, crs=CRS).to_file(tmp_path / "plants.gpkg")
@@ -57,8 +69,9 @@ def test_gui_headless(small_field, tmp_path):
     gui.boxes["percentiles"].set_val("10, 90")
     gui.boxes["output_dir"].set_val(str(d / "out"))
     assert gui.cfg.percentiles == [10.0, 90.0] and gui.cfg.rasters.chm == d / "chm.tif"
-    gui.stat_checks.set_active(list(gui.stat_checks.labels).index(
-        next(lb for lb in gui.stat_checks.labels if lb.get_text() == "nodata")))
+    gui.stat_checks.set_active(
+        list(gui.stat_checks.labels).index(next(lb for lb in gui.stat_checks.labels if lb.get_text() == "nodata"))
+    )
     assert "nodata" in gui.cfg.stats
 
     click(gui.fig, gui.btn_preview.ax, 0.5, 0.5)
@@ -90,7 +103,7 @@ def test_gui_headless(small_field, tmp_path):
     gui._set("later_chm", "")
     assert gui.cfg.more_dates == []
     gui.cfg.rasters.date = ""
-    gui._set("rasters.red_band", "")   # empty: from the raster's band names or band_order
+    gui._set("rasters.red_band", "")  # empty: from the raster's band names or band_order
     assert gui.cfg.rasters.red_band is None
 
     # an unusable file: the error is shown in the window, in red, not raised

@@ -23,8 +23,8 @@ from rasterio.warp import calculate_default_transform, reproject
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.spatial_stat_extractor.config import BandFile, Formula, RasterSet
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats
 
 DATA = Path(__file__).parent / "data"
 MS = DATA / "plantcv-geospatial" / "615.tif"  # blue, green, red, red edge, NIR; GDAL labels 1-3 red/green/blue
@@ -43,8 +43,7 @@ def pixels_inside(path: Path, geoms, band_list) -> list[dict[int, np.ndarray]]:
     with rasterio.open(path) as ds:
         data = {b: ds.read(b).astype(float) for b in band_list}
         nodata, t = ds.nodata, ds.transform
-    cols, rows = np.meshgrid(np.arange(data[band_list[0]].shape[1]) + 0.5,
-                             np.arange(data[band_list[0]].shape[0]) + 0.5)
+    cols, rows = np.meshgrid(np.arange(data[band_list[0]].shape[1]) + 0.5, np.arange(data[band_list[0]].shape[0]) + 0.5)
     xs, ys = t @ (cols, rows)
     valid = np.ones(xs.shape, bool)
     for a in data.values():
@@ -68,8 +67,9 @@ def plants_on(path: Path, n: int = 6, size: float = 0.9, seed: int = 3):
     rng = np.random.default_rng(seed)
     x = rng.uniform(b.left + 0.1, b.right - size - 0.1, n)
     y = rng.uniform(b.bottom + 0.1, b.top - size - 0.1, n)
-    return gpd.GeoDataFrame({"plant_id": np.arange(1, n + 1)}, geometry=list(shapely.box(x, y, x + size, y + size)),
-                            crs="EPSG:32615")
+    return gpd.GeoDataFrame(
+        {"plant_id": np.arange(1, n + 1)}, geometry=list(shapely.box(x, y, x + size, y + size)), crs="EPSG:32615"
+    )
 
 
 def write_generic_5band(path: Path, dtype: str, descriptions=None) -> np.ndarray:
@@ -112,9 +112,12 @@ def test_the_right_band_numbers_work_on_the_real_5band_file():
 
 def test_band_order_gives_ndvi_formulas_and_bands_by_name():
     plants = plants_on(MS)
-    rs = RasterSet(multispectral=MS, band_order=ORDER,
-                   formulas=[Formula("ndre", MS, "(nir - rededge) / (nir + rededge)")],
-                   bands=[BandFile("re", MS, "rededge")])
+    rs = RasterSet(
+        multispectral=MS,
+        band_order=ORDER,
+        formulas=[Formula("ndre", MS, "(nir - rededge) / (nir + rededge)")],
+        bands=[BandFile("re", MS, "rededge")],
+    )
     t, _ = extract_stats(plants, [rs], ["mean"], [])
     g = plants.geometry.values
     assert np.allclose(t["ndvi_mean"], ndvi_truth(MS, g, 3, 5), rtol=1e-9)
@@ -122,8 +125,12 @@ def test_band_order_gives_ndvi_formulas_and_bands_by_name():
     assert np.allclose(t["ndre_mean"], [np.mean((v[5] - v[4]) / (v[5] + v[4])) for v in vals], rtol=1e-9)
     assert np.allclose(t["re_mean"], [np.mean(v[4]) for v in vals], rtol=1e-9)
     # red_band by name, synonyms in band_order
-    t2, _ = extract_stats(plants, [RasterSet(multispectral=MS, band_order=["b", "g", "r", "red edge", "NIR"],
-                                             red_band="red", nir_band="nir")], ["mean"], [])
+    t2, _ = extract_stats(
+        plants,
+        [RasterSet(multispectral=MS, band_order=["b", "g", "r", "red edge", "NIR"], red_band="red", nir_band="nir")],
+        ["mean"],
+        [],
+    )
     assert np.allclose(t2["ndvi_mean"], t["ndvi_mean"], rtol=1e-12)
 
 
@@ -183,10 +190,8 @@ def test_colour_labels_of_an_8bit_rgb_image_still_count(tmp_path):
 
 def corners_truth(table: pd.DataFrame, transform) -> np.ndarray:
     """Map bounds of each pixel box from rasterio.transform.xy of its corners."""
-    x0, y0 = rasterio.transform.xy(transform, table["ymin"].to_numpy(float), table["xmin"].to_numpy(float),
-                                   offset="ul")
-    x1, y1 = rasterio.transform.xy(transform, table["ymax"].to_numpy(float), table["xmax"].to_numpy(float),
-                                   offset="ul")
+    x0, y0 = rasterio.transform.xy(transform, table["ymin"].to_numpy(float), table["xmin"].to_numpy(float), offset="ul")
+    x1, y1 = rasterio.transform.xy(transform, table["ymax"].to_numpy(float), table["xmax"].to_numpy(float), offset="ul")
     x0, y0, x1, y1 = map(np.asarray, (x0, y0, x1, y1))
     return np.column_stack([np.minimum(x0, x1), np.minimum(y0, y1), np.maximum(x0, x1), np.maximum(y0, y1)])
 
@@ -198,8 +203,9 @@ def test_deepforest_csv_becomes_map_boxes():
         want, crs = corners_truth(table, ds.transform), ds.crs
     assert len(got) == len(table) == 61 and got.crs.to_epsg() == crs.to_epsg() == 32617
     assert np.allclose(shapely.bounds(got.geometry.values), want, atol=1e-6)
-    assert np.allclose(shapely.area(got.geometry.values),
-                       (table.xmax - table.xmin) * (table.ymax - table.ymin) * 0.01, rtol=1e-9)
+    assert np.allclose(
+        shapely.area(got.geometry.values), (table.xmax - table.xmin) * (table.ymax - table.ymin) * 0.01, rtol=1e-9
+    )
     assert got["plant_id"].tolist() == list(range(1, 62))  # 'label' (Tree) is a class, not an id
     assert set(got["label"]) == {"Tree"} and set(got["image"]) == {"OSBS_029.tif"}
 
@@ -208,23 +214,50 @@ def test_coco_and_module7_predictions_on_the_tile(tmp_path):
     table = pd.read_csv(OSBS_CSV)
     shutil.copy(OSBS, tmp_path / OSBS.name)
     bbox = [[r.xmin, r.ymin, r.xmax - r.xmin, r.ymax - r.ymin] for r in table.itertuples()]
-    coco = {"images": [{"id": 7, "file_name": "OSBS_029.tif", "width": 400, "height": 400}],
-            "categories": [{"id": 1, "name": "tree"}],
-            "annotations": [{"id": 100 + i, "image_id": 7, "category_id": 1, "bbox": b, "area": b[2] * b[3],
-                             "iscrowd": 0} for i, b in enumerate(bbox)]}
+    coco = {
+        "images": [{"id": 7, "file_name": "OSBS_029.tif", "width": 400, "height": 400}],
+        "categories": [{"id": 1, "name": "tree"}],
+        "annotations": [
+            {"id": 100 + i, "image_id": 7, "category_id": 1, "bbox": b, "area": b[2] * b[3], "iscrowd": 0}
+            for i, b in enumerate(bbox)
+        ],
+    }
     (tmp_path / "boxes.json").write_text(json.dumps(coco))
     # module 7's predictions on two tiles of the orthophoto (offsets x0, y0), boxes in tile pixels
-    images = [{"id": 1, "file_name": "OSBS_029_0_0.jpg", "width": 200, "height": 400, "source_image": "OSBS_029.tif",
-               "x0": 0, "y0": 0},
-              {"id": 2, "file_name": "OSBS_029_200_0.jpg", "width": 200, "height": 400,
-               "source_image": "OSBS_029.tif", "x0": 200, "y0": 0}]
+    images = [
+        {
+            "id": 1,
+            "file_name": "OSBS_029_0_0.jpg",
+            "width": 200,
+            "height": 400,
+            "source_image": "OSBS_029.tif",
+            "x0": 0,
+            "y0": 0,
+        },
+        {
+            "id": 2,
+            "file_name": "OSBS_029_200_0.jpg",
+            "width": 200,
+            "height": 400,
+            "source_image": "OSBS_029.tif",
+            "x0": 200,
+            "y0": 0,
+        },
+    ]
     preds = []
     for b in bbox:
         tile = 1 if b[0] < 200 else 2
-        preds.append({"image_id": tile, "category_id": 1, "score": 0.9,
-                      "bbox": [b[0] - (0 if tile == 1 else 200), b[1], b[2], b[3]]})
-    (tmp_path / "predictions.json").write_text(json.dumps({"images": images, "categories": coco["categories"],
-                                                          "predictions": preds}))
+        preds.append(
+            {
+                "image_id": tile,
+                "category_id": 1,
+                "score": 0.9,
+                "bbox": [b[0] - (0 if tile == 1 else 200), b[1], b[2], b[3]],
+            }
+        )
+    (tmp_path / "predictions.json").write_text(
+        json.dumps({"images": images, "categories": coco["categories"], "predictions": preds})
+    )
     with rasterio.open(OSBS) as ds:
         want = corners_truth(table, ds.transform)
     for name in ("boxes.json", "predictions.json"):
@@ -238,9 +271,20 @@ def test_deepforest_csv_through_the_module(tmp_path):
     from matchplant.cli import run_module
 
     out = tmp_path / "out"
-    code = run_module("spatial_stat_extractor", ["--set", f"polygons={OSBS_CSV}", "--set", f"rasters.rgb={OSBS}",
-                                                 "--set", "rasters.indices=[gli]", "--set", f"output_dir={out}",
-                                                 "--quiet"])
+    code = run_module(
+        "spatial_stat_extractor",
+        [
+            "--set",
+            f"polygons={OSBS_CSV}",
+            "--set",
+            f"rasters.rgb={OSBS}",
+            "--set",
+            "rasters.indices=[gli]",
+            "--set",
+            f"output_dir={out}",
+            "--quiet",
+        ],
+    )
     assert code == 0
     t = pd.read_csv(out / "stats.csv")
     g = read_polygons(OSBS_CSV).geometry.values
@@ -259,8 +303,9 @@ def test_pixel_boxes_refused_with_a_reason(tmp_path):
     assert len(read_polygons(tmp_path / "boxes.csv", images=OSBS.parent)) == 61  # the key finds it
     with rasterio.open(OSBS) as src:  # the same pixels without georeference (a PNG export)
         arr = src.read()
-    with rasterio.open(tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3,
-                       dtype="uint8") as dst:
+    with rasterio.open(
+        tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3, dtype="uint8"
+    ) as dst:
         dst.write(arr)
     table.assign(image_path="OSBS_029.png").to_csv(tmp_path / "png.csv", index=False)
     with pytest.raises(InputError, match="no CRS"):
@@ -298,8 +343,9 @@ def to_wgs84(src_path: Path, dst_path: Path) -> None:
         profile.update(crs="EPSG:4326", transform=t, width=w, height=h)
         with rasterio.open(dst_path, "w", **profile) as dst:
             for b in range(1, src.count + 1):
-                reproject(rasterio.band(src, b), rasterio.band(dst, b), resampling=Resampling.nearest,
-                          dst_nodata=src.nodata)
+                reproject(
+                    rasterio.band(src, b), rasterio.band(dst, b), resampling=Resampling.nearest, dst_nodata=src.nodata
+                )
 
 
 def synthetic_chm(path: Path, ms_path: Path | None = None):
@@ -321,12 +367,32 @@ def synthetic_chm(path: Path, ms_path: Path | None = None):
         nir = np.where(d < r, 0.05 * (1 + ndvi) / (1 - ndvi), nir)
         boxes.append(shapely.box(cx - r - 0.05, cy - r - 0.05, cx + r + 0.05, cy + r + 0.05))
         areas.append(np.pi * r * r)
-    with rasterio.open(path, "w", driver="GTiff", width=size, height=size, count=1, dtype="float32",
-                       crs="EPSG:32632", transform=from_origin(x0, y0, res, res), nodata=-9999) as dst:
+    with rasterio.open(
+        path,
+        "w",
+        driver="GTiff",
+        width=size,
+        height=size,
+        count=1,
+        dtype="float32",
+        crs="EPSG:32632",
+        transform=from_origin(x0, y0, res, res),
+        nodata=-9999,
+    ) as dst:
         dst.write(chm, 1)
     if ms_path is not None:
-        with rasterio.open(ms_path, "w", driver="GTiff", width=size, height=size, count=2, dtype="float32",
-                           crs="EPSG:32632", transform=from_origin(x0, y0, res, res), nodata=-9999) as dst:
+        with rasterio.open(
+            ms_path,
+            "w",
+            driver="GTiff",
+            width=size,
+            height=size,
+            count=2,
+            dtype="float32",
+            crs="EPSG:32632",
+            transform=from_origin(x0, y0, res, res),
+            nodata=-9999,
+        ) as dst:
             dst.write(np.stack([red, nir]))
     return gpd.GeoDataFrame({"plant_id": np.arange(1, 13)}, geometry=boxes, crs="EPSG:32632"), np.array(areas)
 
@@ -346,10 +412,18 @@ def test_a_chm_in_degrees_gives_areas_in_square_metres(tmp_path):
     plants.to_file(tmp_path / "plants.gpkg")
     to_wgs84(tmp_path / "chm_utm.tif", tmp_path / "chm_4326.tif")
     to_wgs84(tmp_path / "ms_utm.tif", tmp_path / "ms_4326.tif")
-    utm = run_module9(tmp_path / "plants.gpkg", tmp_path / "a", f"rasters.chm={tmp_path / 'chm_utm.tif'}",
-                      f"rasters.multispectral={tmp_path / 'ms_utm.tif'}")
-    deg = run_module9(tmp_path / "plants.gpkg", tmp_path / "b", f"rasters.chm={tmp_path / 'chm_4326.tif'}",
-                      f"rasters.multispectral={tmp_path / 'ms_4326.tif'}")
+    utm = run_module9(
+        tmp_path / "plants.gpkg",
+        tmp_path / "a",
+        f"rasters.chm={tmp_path / 'chm_utm.tif'}",
+        f"rasters.multispectral={tmp_path / 'ms_utm.tif'}",
+    )
+    deg = run_module9(
+        tmp_path / "plants.gpkg",
+        tmp_path / "b",
+        f"rasters.chm={tmp_path / 'chm_4326.tif'}",
+        f"rasters.multispectral={tmp_path / 'ms_4326.tif'}",
+    )
     heights = 0.3 + 0.05 * np.arange(12)
     assert np.allclose(utm["chm_max"], heights, atol=1e-6) and np.allclose(deg["chm_max"], heights, atol=1e-6)
     # areas in m2 (square degrees would be ~1e-11): the disc's area within the resampling of two warps
@@ -371,8 +445,9 @@ def test_real_lai_in_degrees_under_utm_plants(tmp_path):
     rng = np.random.default_rng(5)
     x = rng.uniform(b[0] + 1, b[2] - 3, 20)
     y = rng.uniform(b[1] + 1, b[3] - 3, 20)
-    plants = gpd.GeoDataFrame({"plant_id": np.arange(1, 21)}, geometry=list(shapely.box(x, y, x + 2, y + 2)),
-                              crs="EPSG:32632")
+    plants = gpd.GeoDataFrame(
+        {"plant_id": np.arange(1, 21)}, geometry=list(shapely.box(x, y, x + 2, y + 2)), crs="EPSG:32632"
+    )
     plants.to_file(tmp_path / "plants.gpkg")
     t = run_module9(tmp_path / "plants.gpkg", tmp_path / "out", f"rasters.bands=[{{name: lai, path: {LAI}}}]")
     # the truth: the file's own pixels whose centres lie in each plant reprojected to degrees (no resampling)

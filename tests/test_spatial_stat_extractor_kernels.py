@@ -14,8 +14,8 @@ from matchplant.spatial_stat_extractor.canopy.grouping import (
     gather_ranges,
     label_boxes,
     labelled_pixels,
-    relabel,
     pixel_window,
+    relabel,
     sort_within_groups,
     values_at,
 )
@@ -43,7 +43,7 @@ def test_gather_ranges_concatenates_each_groups_range():
     length[::7] = 0
     src[5] = src[6]  # two groups share one range (a duplicate box and its plant)
     p, start = gather_ranges(src, length, pix)
-    assert np.array_equal(p, np.concatenate([pix[a:a + n] for a, n in zip(src, length)]))
+    assert np.array_equal(p, np.concatenate([pix[a : a + n] for a, n in zip(src, length)]))
     assert np.array_equal(np.diff(start), length) and start[0] == 0
 
 
@@ -76,8 +76,14 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     pix, start, total, extent, image = labelled_pixels(L, W, windows, reach, home, ids, width, row0, col0)
     r, c = np.nonzero(L)
     kk = L[r, c] - 1
-    keep = (c >= windows[kk, 0]) & (c < windows[kk, 2]) & (r >= windows[kk, 1]) & (r < windows[kk, 3]) & \
-        (W[r, c] >= reach[kk]) & home[kk]
+    keep = (
+        (c >= windows[kk, 0])
+        & (c < windows[kk, 2])
+        & (r >= windows[kk, 1])
+        & (r < windows[kk, 3])
+        & (W[r, c] >= reach[kk])
+        & home[kk]
+    )
     assert keep.sum() > 50
     r, c, kk = r[keep], c[keep], kk[keep]
     order = np.argsort(kk, kind="stable")
@@ -138,7 +144,7 @@ def test_quantiles_of_small_and_large_groups_are_numpys():
     qs = [0.0, 0.1, 0.5, 0.95, 1.0]
     got = quantiles(v, starts, counts, qs)
     for g, (a, n) in enumerate(zip(starts, counts)):
-        want = np.percentile(v[a:a + n], [q * 100 for q in qs]) if n else np.full(len(qs), np.nan)
+        want = np.percentile(v[a : a + n], [q * 100 for q in qs]) if n else np.full(len(qs), np.nan)
         np.testing.assert_allclose(got[g], want, rtol=0, atol=1e-12, err_msg=str(n))
 
 
@@ -149,7 +155,7 @@ def _label_images(rng):
     lab = np.zeros((40, 52), np.int32)
     for j in range(1, 9):
         r, c = rng.integers(0, 40), rng.integers(0, 52)
-        lab[max(0, r - 5):r + 4, max(0, c - 6):c + 3] = j
+        lab[max(0, r - 5) : r + 4, max(0, c - 6) : c + 3] = j
     lab[rng.random(lab.shape) < 0.12] = 0
     yield lab
     ring = np.zeros((9, 9), np.int32)

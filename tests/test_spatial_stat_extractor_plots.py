@@ -26,6 +26,7 @@ from matchplant.spatial_stat_extractor.config import (
     RasterSet,
     SpatialStatExtractorConfig,
 )
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.plots.fieldbook import join_field_book
 from matchplant.spatial_stat_extractor.plots.table import (
     plot_grid,
@@ -33,7 +34,6 @@ from matchplant.spatial_stat_extractor.plots.table import (
     read_plots,
     run_plots,
 )
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.run import extract_and_write
 
 
@@ -63,14 +63,27 @@ def sown_field(angle_deg: float, rng):
                     rows.append((pid, r))
                     n += 1
             truth[pid] = n
-    corners = [origin, origin + cols * width * u, origin + cols * width * u + ranges * length * v,
-               origin + ranges * length * v]
-    cfg = PlotsConfig(corners=[list(c) for c in corners], columns=cols, ranges=ranges, rows_per_plot=rows_per_plot,
-                      plant_spacing=sp)
+    corners = [
+        origin,
+        origin + cols * width * u,
+        origin + cols * width * u + ranges * length * v,
+        origin + ranges * length * v,
+    ]
+    cfg = PlotsConfig(
+        corners=[list(c) for c in corners], columns=cols, ranges=ranges, rows_per_plot=rows_per_plot, plant_spacing=sp
+    )
     xy = np.array(xs)
-    table = pd.DataFrame({"plant_id": np.arange(1, len(xy) + 1), "x": xy[:, 0], "y": xy[:, 1],
-                          "chm_max": rng.uniform(0.2, 0.6, len(xy)), "_plot": [r[0] for r in rows],
-                          "_row": [r[1] for r in rows], "_along": xy @ v})
+    table = pd.DataFrame(
+        {
+            "plant_id": np.arange(1, len(xy) + 1),
+            "x": xy[:, 0],
+            "y": xy[:, 1],
+            "chm_max": rng.uniform(0.2, 0.6, len(xy)),
+            "_plot": [r[0] for r in rows],
+            "_row": [r[1] for r in rows],
+            "_along": xy @ v,
+        }
+    )
     return cfg, table, truth, np.array(gaps)
 
 
@@ -91,7 +104,9 @@ def test_stand_counts_gaps_and_spacing(angle):
     for _, row in per_plot.iterrows():
         mine = table[table["_plot"] == row["plot_id"]]
         d = np.concatenate([np.diff(np.sort(g["_along"].to_numpy())) for _, g in mine.groupby("_row")])
-        assert row["spacing_mean_m"] == pytest.approx(d.mean()) and row["spacing_cv"] == pytest.approx(d.std() / d.mean())
+        assert row["spacing_mean_m"] == pytest.approx(d.mean()) and row["spacing_cv"] == pytest.approx(
+            d.std() / d.mean()
+        )
     # traits: mean, sd and cv per plot, as numpy computes them
     pts = shapely.points(table[["x", "y"]].to_numpy())
     for _, row in per_plot.iterrows():
@@ -111,13 +126,18 @@ def test_plot_polygons_from_a_file_and_a_field_book(tmp_path):
     from_file = read_plots(PlotsConfig(polygons=tmp_path / "plots.gpkg", plant_spacing=0.25), grid.crs)
     # a file without row columns: the direction is left to the plants (see test_plot_file_read_back...)
     assert from_file[["row_dir_x", "row_dir_y"]].isna().all().all()
-    book = pd.DataFrame({"plot_id": range(1, 13), "genotype": [f"G{i % 4}" for i in range(12)],
-                         "rep": [i // 4 + 1 for i in range(12)]})
+    book = pd.DataFrame(
+        {"plot_id": range(1, 13), "genotype": [f"G{i % 4}" for i in range(12)], "rep": [i // 4 + 1 for i in range(12)]}
+    )
     book.to_csv(tmp_path / "book.csv", index=False)
-    file_cfg = PlotsConfig(polygons=tmp_path / "plots.gpkg", plant_spacing=0.25, field_book=tmp_path / "book.csv",
-                           figure_trait="chm_max")
-    polys = gpd.GeoDataFrame(table[["plant_id"]], geometry=shapely.buffer(shapely.points(table[["x", "y"]].to_numpy()), 0.05),
-                             crs="EPSG:32615")
+    file_cfg = PlotsConfig(
+        polygons=tmp_path / "plots.gpkg", plant_spacing=0.25, field_book=tmp_path / "book.csv", figure_trait="chm_max"
+    )
+    polys = gpd.GeoDataFrame(
+        table[["plant_id"]],
+        geometry=shapely.buffer(shapely.points(table[["x", "y"]].to_numpy()), 0.05),
+        crs="EPSG:32615",
+    )
     written = run_plots(file_cfg, table, None, polys, tmp_path / "out")
     out = pd.read_csv(written["plots_csv"])
     assert dict(zip(out["plot_id"], out["stand_count"])) == truth
@@ -131,8 +151,9 @@ def test_plot_polygons_from_a_file_and_a_field_book(tmp_path):
 
 
 def test_serpentine_numbering_and_alleys():
-    cfg = PlotsConfig(corners=[[0, 0], [6, 0], [6, 8], [0, 8]], columns=3, ranges=2, plot_width=1.5,
-                      plot_length=3.0, serpentine=True)
+    cfg = PlotsConfig(
+        corners=[[0, 0], [6, 0], [6, 8], [0, 8]], columns=3, ranges=2, plot_width=1.5, plot_length=3.0, serpentine=True
+    )
     g = plot_grid(cfg)
     assert np.allclose(g.area, 4.5)
     assert list(g["column"]) == [1, 2, 3, 3, 2, 1]
@@ -144,12 +165,22 @@ def test_module_9_plots_on_the_synthetic_field(tiny_field, tmp_path):
     """Module 9 from the true plant boxes, with the plot grid of the field's truth: stand counts and gaps
     as the truth has them, the field book joined."""
     grid = json.loads(tiny_field.plots_json.read_text())
-    cfg = load_config(SpatialStatExtractorConfig, None, [
-        f"polygons={tiny_field.map_boxes}", f"polygons_crs={grid['crs']}", f"output_dir={tmp_path}",
-        f"rasters.dsm={tiny_field.dsm}", f"rasters.dtm={tiny_field.dtm}",
-        f"plots.corners={json.dumps(grid['corners'])}", f"plots.columns={grid['columns']}",
-        f"plots.ranges={grid['ranges']}", f"plots.plant_spacing={grid['plant_spacing']}",
-        f"plots.field_book={tiny_field.field_book}"])
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={tiny_field.map_boxes}",
+            f"polygons_crs={grid['crs']}",
+            f"output_dir={tmp_path}",
+            f"rasters.dsm={tiny_field.dsm}",
+            f"rasters.dtm={tiny_field.dtm}",
+            f"plots.corners={json.dumps(grid['corners'])}",
+            f"plots.columns={grid['columns']}",
+            f"plots.ranges={grid['ranges']}",
+            f"plots.plant_spacing={grid['plant_spacing']}",
+            f"plots.field_book={tiny_field.field_book}",
+        ],
+    )
     _, _, _, written = extract_and_write(cfg)
     plots = pd.read_csv(written["plots_csv"])
     s = plot_scores(plots, pd.read_csv(written["plot_gaps_csv"]), tiny_field, grid["plant_spacing"])
@@ -166,8 +197,20 @@ def test_module_9_plots_on_the_synthetic_field(tiny_field, tmp_path):
 # field books; plot statistics over the plot polygons; the figure
 
 
-def sown(rng, *, cols=3, ranges=4, nrow=2, seeds=12, sp=0.25, rs=0.75, angle=0.0, skew=0.0, miss=0.12,
-         origin=(500000.0, 4000000.0)):
+def sown(
+    rng,
+    *,
+    cols=3,
+    ranges=4,
+    nrow=2,
+    seeds=12,
+    sp=0.25,
+    rs=0.75,
+    angle=0.0,
+    skew=0.0,
+    miss=0.12,
+    origin=(500000.0, 4000000.0),
+):
     """A field sown row by row: rows along v (bearing ``angle`` from the x axis rotated), plots side by side
     along the across axis, which leans ``skew`` degrees off the perpendicular (a parallelogram); each row's
     seeds start 0.3 spacing after the plot's (slanted) edge. Returns the grid config, the plant table, the
@@ -195,17 +238,26 @@ def sown(rng, *, cols=3, ranges=4, nrow=2, seeds=12, sp=0.25, rs=0.75, angle=0.0
                     truth[pid] += 1
     across = cols * nrow * step * ua
     corners = [o, o + across, o + across + ranges * length * v, o + ranges * length * v]
-    cfg = PlotsConfig(corners=[list(c) for c in corners], columns=cols, ranges=ranges, rows_per_plot=nrow,
-                      plant_spacing=sp)
+    cfg = PlotsConfig(
+        corners=[list(c) for c in corners], columns=cols, ranges=ranges, rows_per_plot=nrow, plant_spacing=sp
+    )
     xy = np.array(xs)
-    table = pd.DataFrame({"plant_id": np.arange(1, len(xy) + 1), "x": xy[:, 0], "y": xy[:, 1],
-                          "chm_max": rng.uniform(0.2, 0.6, len(xy)), "_plot": plot_of})
+    table = pd.DataFrame(
+        {
+            "plant_id": np.arange(1, len(xy) + 1),
+            "x": xy[:, 0],
+            "y": xy[:, 1],
+            "chm_max": rng.uniform(0.2, 0.6, len(xy)),
+            "_plot": plot_of,
+        }
+    )
     return cfg, table, truth, pd.DataFrame(gaps, columns=["plot_id", "x", "y"])
 
 
 def boxes(table, crs="EPSG:32615"):
-    return gpd.GeoDataFrame(table[["plant_id"]], crs=crs,
-                            geometry=shapely.buffer(shapely.points(table[["x", "y"]].to_numpy()), 0.05))
+    return gpd.GeoDataFrame(
+        table[["plant_id"]], crs=crs, geometry=shapely.buffer(shapely.points(table[["x", "y"]].to_numpy()), 0.05)
+    )
 
 
 def test_plot_file_read_back_gives_the_grids_rows(tmp_path):
@@ -222,18 +274,26 @@ def test_plot_file_read_back_gives_the_grids_rows(tmp_path):
     assert {"row_dir_x", "row_dir_y"} <= set(own.columns)
     own.drop(columns=["row_dir_x", "row_dir_y"]).to_file(tmp_path / "bare.gpkg", driver="GPKG")
     bearing = float(np.degrees(np.arctan2(*own[["row_dir_x", "row_dir_y"]].to_numpy()[0])))
-    runs = {"own file": PlotsConfig(polygons=tmp_path / "grid" / "plots.gpkg", rows_per_plot=6, plant_spacing=0.3),
-            "from plants": PlotsConfig(polygons=tmp_path / "bare.gpkg", rows_per_plot=6, plant_spacing=0.3),
-            "row_direction": PlotsConfig(polygons=tmp_path / "bare.gpkg", rows_per_plot=6, plant_spacing=0.3,
-                                         row_direction=bearing)}
+    runs = {
+        "own file": PlotsConfig(polygons=tmp_path / "grid" / "plots.gpkg", rows_per_plot=6, plant_spacing=0.3),
+        "from plants": PlotsConfig(polygons=tmp_path / "bare.gpkg", rows_per_plot=6, plant_spacing=0.3),
+        "row_direction": PlotsConfig(
+            polygons=tmp_path / "bare.gpkg", rows_per_plot=6, plant_spacing=0.3, row_direction=bearing
+        ),
+    }
     for name, c in runs.items():
         got, gaps, _ = plot_table(read_plots(c, polys.crs), table, c)  # (what run_plots writes, without the figure)
         assert np.allclose(got["expected"], ref["expected"], rtol=0.02), name
         assert abs(got["gaps"].sum() - ref["gaps"].sum()) <= 0.02 * ref["expected"].sum(), name
-        d = np.hypot(*(gaps[["x", "y"]].to_numpy()[:, None] - true_gaps[["x", "y"]].to_numpy()[None]).transpose(2, 0, 1))
+        d = np.hypot(
+            *(gaps[["x", "y"]].to_numpy()[:, None] - true_gaps[["x", "y"]].to_numpy()[None]).transpose(2, 0, 1)
+        )
         assert (d.min(axis=1) < 0.06).mean() >= 0.98, name
-    wrong = plot_table(read_plots(replace(runs["row_direction"], row_direction=bearing + 90)), table,
-                       replace(runs["row_direction"], row_direction=bearing + 90))[0]
+    wrong = plot_table(
+        read_plots(replace(runs["row_direction"], row_direction=bearing + 90)),
+        table,
+        replace(runs["row_direction"], row_direction=bearing + 90),
+    )[0]
     assert abs(wrong["expected"].sum() / ref["expected"].sum() - 1) > 0.1  # the long side: not the rows
 
 
@@ -245,6 +305,7 @@ def test_row_direction_from_the_plants_is_accurate():
 
     from matchplant.spatial_stat_extractor.plots.layout import join_plants
     from matchplant.spatial_stat_extractor.plots.table import row_directions
+
     plant_i, plot_i = join_plants(plots, pts)
     v = row_directions(plots, pts, plant_i, plot_i, cfg)
     truth = np.array([-np.sin(np.radians(-33.0)), np.cos(np.radians(-33.0))])
@@ -286,6 +347,7 @@ def test_identical_plots_refused_and_overlapping_plots_count_each_plant_once(tmp
 
 def test_corners_in_degrees_and_last_years_corners():
     from pyproj import Transformer
+
     rng = np.random.default_rng(6)
     cfg, table, truth, _ = sown(rng, angle=15.0, origin=(566000.0, 5705000.0))
     to_ll = Transformer.from_crs("EPSG:32632", "EPSG:4326", always_xy=True)
@@ -318,7 +380,9 @@ def test_field_books_as_breeders_keep_them(tmp_path):
     assert len(got) == 12 and list(got["genotype"]) == [f"G{i % 4}" for i in range(1, 13)]
     assert got.loc[got["plot_id"] == 3, "note"].item() == "sown late, re-sown"
     # P1, P2 ... against a grid numbered 1, 2 ...: matched by the numbers
-    prefixed = excel_csv(tmp_path / "p.csv", [f"P{i},G{i % 4},ok" for i in range(1, 11)] + ["X99,G0,ok"], "Plot,genotype,note")
+    prefixed = excel_csv(
+        tmp_path / "p.csv", [f"P{i},G{i % 4},ok" for i in range(1, 11)] + ["X99,G0,ok"], "Plot,genotype,note"
+    )
     got = join_field_book(per_plot, prefixed, "plot_id")
     assert list(got["genotype"][:10]) == [f"G{i % 4}" for i in range(1, 11)] and got["genotype"][10:].isna().all()
     with pytest.raises(InputError, match="none of the 3 field-book rows"):
@@ -338,7 +402,9 @@ def test_field_books_as_breeders_keep_them(tmp_path):
     ws.append([None, None, None])
     wb.save(tmp_path / "book.xlsx")
     got = join_field_book(per_plot, tmp_path / "book.xlsx", "plot_id")
-    assert list(got["genotype"]) == [f"G{i % 4}" for i in range(1, 13)] and list(got["rep"]) == [1] * 4 + [2] * 4 + [3] * 4
+    assert (
+        list(got["genotype"]) == [f"G{i % 4}" for i in range(1, 13)] and list(got["rep"]) == [1] * 4 + [2] * 4 + [3] * 4
+    )
 
 
 LAI = Path(__file__).parent / "data" / "cercospora-lai-plots"
@@ -349,8 +415,13 @@ def lai_plots():
     with rasterio.open(LAI / "lai_2022_06_14.tif") as ds:
         b = rasterio.warp.transform_bounds(ds.crs, "EPSG:32632", *ds.bounds)
     x0, y0 = b[0] + 5.0, b[1] + 5.0
-    return PlotsConfig(corners=[[x0, y0], [x0 + 32, y0], [x0 + 32, y0 + 18], [x0, y0 + 18]], columns=4, ranges=3,
-                       plant_spacing=0.5, rows_per_plot=8)
+    return PlotsConfig(
+        corners=[[x0, y0], [x0 + 32, y0], [x0 + 32, y0 + 18], [x0, y0 + 18]],
+        columns=4,
+        ranges=3,
+        plant_spacing=0.5,
+        rows_per_plot=8,
+    )
 
 
 def numpy_plot_means(plots, path):
@@ -366,9 +437,12 @@ def numpy_plot_means(plots, path):
 
 def test_plot_statistics_over_plot_polygons_on_real_lai_in_another_crs(tmp_path):
     from matchplant.spatial_stat_extractor.plots.table import plot_raster_stats
+
     cfg = lai_plots()
     plots = plot_grid(cfg, "EPSG:32632")
-    sets = [RasterSet(date=d, bands=[BandFile(name="lai", path=LAI / f"lai_{d}.tif")]) for d in ("2022_06_14", "2022_06_28")]
+    sets = [
+        RasterSet(date=d, bands=[BandFile(name="lai", path=LAI / f"lai_{d}.tif")]) for d in ("2022_06_14", "2022_06_28")
+    ]
     got = plot_raster_stats(plots, sets, ["mean", "count"])
     for d in ("2022_06_14", "2022_06_28"):
         want = numpy_plot_means(plots, LAI / f"lai_{d}.tif")
@@ -378,15 +452,28 @@ def test_plot_statistics_over_plot_polygons_on_real_lai_in_another_crs(tmp_path)
     x0, y0 = cfg.corners[0]
     gx, gy = np.meshgrid(x0 + 0.5 + 1.0 * np.arange(32), y0 + 0.25 + 0.5 * np.arange(36))
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    plants = gpd.GeoDataFrame({"plant_id": np.arange(1, len(pts) + 1)}, crs="EPSG:32632",
-                              geometry=shapely.buffer(shapely.points(pts), 0.15))
+    plants = gpd.GeoDataFrame(
+        {"plant_id": np.arange(1, len(pts) + 1)}, crs="EPSG:32632", geometry=shapely.buffer(shapely.points(pts), 0.15)
+    )
     plants.to_file(tmp_path / "plants.gpkg", driver="GPKG")
-    (tmp_path / "c.yaml").write_text(yaml.safe_dump({
-        "polygons": str(tmp_path / "plants.gpkg"), "output_dir": str(tmp_path / "out"),
-        "rasters": {"date": "d1", "bands": [{"name": "lai", "path": str(LAI / "lai_2022_06_14.tif")}]},
-        "more_dates": [{"date": "d2", "bands": [{"name": "lai", "path": str(LAI / "lai_2022_06_28.tif")}]}],
-        "plots": {"corners": cfg.corners, "columns": 4, "ranges": 3, "rows_per_plot": 8, "plant_spacing": 0.5,
-                  "row_direction": 0}}))
+    (tmp_path / "c.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "polygons": str(tmp_path / "plants.gpkg"),
+                "output_dir": str(tmp_path / "out"),
+                "rasters": {"date": "d1", "bands": [{"name": "lai", "path": str(LAI / "lai_2022_06_14.tif")}]},
+                "more_dates": [{"date": "d2", "bands": [{"name": "lai", "path": str(LAI / "lai_2022_06_28.tif")}]}],
+                "plots": {
+                    "corners": cfg.corners,
+                    "columns": 4,
+                    "ranges": 3,
+                    "rows_per_plot": 8,
+                    "plant_spacing": 0.5,
+                    "row_direction": 0,
+                },
+            }
+        )
+    )
     _, table, _, written = extract_and_write(load_config(SpatialStatExtractorConfig, tmp_path / "c.yaml"))
     out = pd.read_csv(written["plots_csv"])
     assert (out["expected"] == 8 * 12).all() and (out["stand_count"] == 96).all() and (out["gaps"] == 0).all()
@@ -409,8 +496,12 @@ def test_field_figure_readable_on_one_small_plot(tmp_path):
         draw_field,
         unit_of,
     )
-    plot = gpd.GeoDataFrame({"plot_id": [1], "chm_max_mean": [0.42]}, crs="EPSG:32632",
-                            geometry=[shapely.box(566001.0, 5705001.0, 566002.5, 5705004.0)])
+
+    plot = gpd.GeoDataFrame(
+        {"plot_id": [1], "chm_max_mean": [0.42]},
+        crs="EPSG:32632",
+        geometry=[shapely.box(566001.0, 5705001.0, 566002.5, 5705004.0)],
+    )
     norm = colour_norm(plot["chm_max_mean"])
     assert 0.4 < norm(0.42) < 0.6  # a single plot in the middle of the scale, not at its minimum
     gaps = pd.DataFrame({"x": [566001.4, 566001.4], "y": [5705001.5, 5705002.0]})

@@ -16,14 +16,14 @@ from affine import Affine
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError
 from matchplant.spatial_stat_extractor.canopy import strips
+from matchplant.spatial_stat_extractor.canopy.memory import memory_stage, parse_memory
+from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
 from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats
 from matchplant.spatial_stat_extractor.config import (
     Layer,
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.canopy.memory import memory_stage, parse_memory
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
 from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.run import run
 
@@ -48,7 +48,15 @@ def field(tmp_path_factory):
     for k in range(cy.size):
         chm = np.maximum(chm, h[k] * (1 - ((yy - cy[k]) ** 2 + (xx - cx[k]) ** 2) / r[k] ** 2))
     other = np.sin(xx / 7) * np.cos(yy / 5)
-    prof = {"driver": "GTiff", "width": W, "height": H, "count": 1, "dtype": "float32", "crs": "EPSG:32615", "transform": T}
+    prof = {
+        "driver": "GTiff",
+        "width": W,
+        "height": H,
+        "count": 1,
+        "dtype": "float32",
+        "crs": "EPSG:32615",
+        "transform": T,
+    }
     for name, a in (("chm.tif", chm), ("other.tif", other)):
         with rasterio.open(root / name, "w", **prof) as ds:
             ds.write(a.astype(np.float32), 1)
@@ -58,16 +66,19 @@ def field(tmp_path_factory):
     dup = np.arange(0, cy.size, 6)
     boxes += list(shapely.box(x0[dup], y1[dup] - r[dup] * RES, x1[dup], y0[dup] - r[dup] * RES))
     geoms = np.array(boxes, dtype=object)
-    pd.DataFrame({"plant_id": np.arange(1, len(geoms) + 1), "geometry": shapely.to_wkt(geoms),
-                  "crs": "EPSG:32615"}).to_csv(root / "plants.csv", index=False)
+    pd.DataFrame(
+        {"plant_id": np.arange(1, len(geoms) + 1), "geometry": shapely.to_wkt(geoms), "crs": "EPSG:32615"}
+    ).to_csv(root / "plants.csv", index=False)
     return root, geoms
 
 
 def measures(root):
     chm = Layer("chm", "band", (root / "chm.tif",), elevation=True)
     other = Layer("other", "band", (root / "other.tif",))
-    return chm, [strips.Measure("chm_canopy", chm, ("max", "mean"), (50.0, 95.0)),
-                 strips.Measure("other_canopy", other, ("count", "mean", "std", "median"), (10.0,))]
+    return chm, [
+        strips.Measure("chm_canopy", chm, ("max", "mean"), (50.0, 95.0)),
+        strips.Measure("other_canopy", other, ("count", "mean", "std", "median"), (10.0,)),
+    ]
 
 
 def one_pass(root, geoms, rows: int):
@@ -78,7 +89,9 @@ def one_pass(root, geoms, rows: int):
         cols = {}
         for m in ms:
             src = open_layer(m.layer, stack)
-            cols.update({f"{m.prefix}_{k}": v for k, v in canopy_stats(o, src, list(m.stats), list(m.percentiles)).items()})
+            cols.update(
+                {f"{m.prefix}_{k}": v for k, v in canopy_stats(o, src, list(m.stats), list(m.percentiles)).items()}
+            )
     return o, cols
 
 
@@ -98,8 +111,13 @@ def assert_same(o, cols, ref, ref_cols):
     assert list(o.flag) == list(ref.flag)
     assert (o.flag == "duplicate").sum() >= 5 and (o.flag == "").sum() > 100
     assert shapely.equals(o.geometry, ref.geometry).all()
-    for a, b in ((o.pixels, ref.pixels), (o.area, ref.area), (o.volume, ref.volume), (o.top, ref.top),
-                 (o.tight_box, ref.tight_box)):
+    for a, b in (
+        (o.pixels, ref.pixels),
+        (o.area, ref.area),
+        (o.volume, ref.volume),
+        (o.top, ref.top),
+        (o.tight_box, ref.tight_box),
+    ):
         np.testing.assert_allclose(a, b, rtol=1e-12, equal_nan=True)
     assert sorted(cols) == sorted(ref_cols)
     for k in ref_cols:
@@ -110,8 +128,9 @@ def assert_same(o, cols, ref, ref_cols):
 def test_strip_by_strip_equals_one_pass(field, thin_strips):
     root, geoms = field
     chm_l, ms = measures(root)
-    o, cols = strips.outline_field(geoms, chm_l, None, ms, SegmentSettings(), nodata=None, seeds=None,
-                                   max_memory=parse_memory("1GB"), workers=1)
+    o, cols = strips.outline_field(
+        geoms, chm_l, None, ms, SegmentSettings(), nodata=None, seeds=None, max_memory=parse_memory("1GB"), workers=1
+    )
     ref, ref_cols = one_pass(root, geoms, 64)
     # duplicates whose first box is homed in another strip are among them (the merge's own case)
     centre = (shapely.bounds(geoms)[:, 1] + shapely.bounds(geoms)[:, 3]) / 2
@@ -131,8 +150,9 @@ def test_each_strip_handles_only_its_plants_with_the_same_results(field, thin_st
     b = shapely.bounds(geoms)
     seeds = np.column_stack([b[:, 0] + b[:, 2], b[:, 1] + b[:, 3]]) / 2 + 0.01  # a centimetre off each box centre
     s = SegmentSettings(max_shift=0.04)
-    o, cols = strips.outline_field(geoms, chm_l, None, ms, s, nodata=None, seeds=seeds,
-                                   max_memory=parse_memory("1GB"), workers=1)
+    o, cols = strips.outline_field(
+        geoms, chm_l, None, ms, s, nodata=None, seeds=seeds, max_memory=parse_memory("1GB"), workers=1
+    )
     with contextlib.ExitStack() as stack:
         ref = segment(geoms, open_layer(chm_l, stack), s, seeds=seeds, strip_rows=64)
     assert list(o.flag[-3:]) == ["outside"] * 3 and list(o.flag) == list(ref.flag)
@@ -147,8 +167,9 @@ def test_a_process_pool_gives_the_same_results(field, thin_strips):
     root, geoms = field
     chm_l, ms = measures(root)
     monkey_rows = 64
-    o, cols = strips.outline_field(geoms, chm_l, None, ms, SegmentSettings(), nodata=None, seeds=None,
-                                   max_memory=parse_memory("1GB"), workers=2)
+    o, cols = strips.outline_field(
+        geoms, chm_l, None, ms, SegmentSettings(), nodata=None, seeds=None, max_memory=parse_memory("1GB"), workers=2
+    )
     ref, ref_cols = one_pass(root, geoms, monkey_rows)
     assert_same(o, cols, ref, ref_cols)
 
@@ -168,8 +189,8 @@ def test_strip_height_follows_max_memory(field):
 
 
 def test_max_memory_is_checked():
-    assert parse_memory("3GB") == 3 * 1024 ** 3 and parse_memory("512mb") == 512 * 1024 ** 2
-    assert parse_memory("1.5g") == int(1.5 * 1024 ** 3)
+    assert parse_memory("3GB") == 3 * 1024**3 and parse_memory("512mb") == 512 * 1024**2
+    assert parse_memory("1.5g") == int(1.5 * 1024**3)
     for bad in ("lots", "3 parsecs", "100MB"):
         with pytest.raises(ConfigError, match="max_memory"):
             parse_memory(bad)
@@ -186,9 +207,14 @@ def test_a_memory_shortage_names_the_stage_and_the_setting():
 
 def test_run_reports_peak_memory_and_strips(field, tmp_path, thin_strips, caplog):
     root, _ = field
-    cfg = SpatialStatExtractorConfig(polygons=root / "plants.csv", rasters=RasterSet(chm=root / "chm.tif"),
-                                     output_dir=tmp_path / "out", max_memory="1GB", workers=1,
-                                     vector_formats=[])
+    cfg = SpatialStatExtractorConfig(
+        polygons=root / "plants.csv",
+        rasters=RasterSet(chm=root / "chm.tif"),
+        output_dir=tmp_path / "out",
+        max_memory="1GB",
+        workers=1,
+        vector_formats=[],
+    )
     caplog.set_level("INFO")
     run(cfg)
     report = json.loads((tmp_path / "out" / "stats_report.json").read_text())

@@ -17,23 +17,24 @@ from rasterio.features import geometry_mask, rasterize
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.simfield import generate_field
 from matchplant.simfield.scoring import growth_scores, outline_ious, trait_scores
+from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
 from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats, grouped_stats
 from matchplant.spatial_stat_extractor.config import CanopyConfig, Formula, RasterSet
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats
 from matchplant.spatial_stat_extractor.inputs.indices import parse_formula
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
+from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats
 
 
 @pytest.fixture(scope="module")
 def field(tmp_path_factory):
     """The tiny field with per-plant vigour and a second date with grown, shifted plants."""
-    return generate_field(preset="tiny", seed=0, out=tmp_path_factory.mktemp("tiny_traits"), vigour=True,
-                          second_date=True)
+    return generate_field(
+        preset="tiny", seed=0, out=tmp_path_factory.mktemp("tiny_traits"), vigour=True, second_date=True
+    )
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +47,10 @@ def chm_layer(root) -> Layer:
 
 
 def run_canopy(field, plants, **canopy):
-    sets = [RasterSet(date="d1", dsm=field.dsm, dtm=field.dtm, multispectral=field.multispectral,
-                      rgb=field.orthophoto),
-            RasterSet(date="d2", dsm=field.later.dsm, dtm=field.later.dtm)]
+    sets = [
+        RasterSet(date="d1", dsm=field.dsm, dtm=field.dtm, multispectral=field.multispectral, rgb=field.orthophoto),
+        RasterSet(date="d2", dsm=field.later.dsm, dtm=field.later.dtm),
+    ]
     table, _ = extract_stats(plants, sets, ["mean", "max"], [95])
     per_date, outlines, unclaimed, report = canopy_traits(plants, sets, CanopyConfig(**canopy), ["mean", "max"], [95])
     assert len(unclaimed) == 0  # every plant has its box
@@ -86,10 +88,13 @@ def test_outlines_match_the_true_canopy(field, result):
     m = CanopyConfig().margin + 1e-9
     assert np.all((d1["tight_xmin"].to_numpy() >= boxes.xmin - m) & (d1["tight_xmax"].to_numpy() <= boxes.xmax + m))
     assert np.all((d1["tight_ymin"].to_numpy() >= boxes.ymin - m) & (d1["tight_ymax"].to_numpy() <= boxes.ymax + m))
-    assert np.all(shapely.area(shapely.box(d1.tight_xmin, d1.tight_ymin, d1.tight_xmax, d1.tight_ymax))
-                  < shapely.area(shapely.box(boxes.xmin - m, boxes.ymin - m, boxes.xmax + m, boxes.ymax + m)))
-    assert np.all(shapely.contains_xy(shapely.box(boxes.xmin, boxes.ymin, boxes.xmax, boxes.ymax),
-                                      d1["top_x"], d1["top_y"]))
+    assert np.all(
+        shapely.area(shapely.box(d1.tight_xmin, d1.tight_ymin, d1.tight_xmax, d1.tight_ymax))
+        < shapely.area(shapely.box(boxes.xmin - m, boxes.ymin - m, boxes.xmax + m, boxes.ymax + m))
+    )
+    assert np.all(
+        shapely.contains_xy(shapely.box(boxes.xmin, boxes.ymin, boxes.xmax, boxes.ymax), d1["top_x"], d1["top_y"])
+    )
     true_area = pd.read_csv(field.traits_csv)["canopy_area_m2"].to_numpy()
     assert np.median(d1["canopy_area_m2"].to_numpy() / true_area) == pytest.approx(0.9, abs=0.08)
 
@@ -118,19 +123,33 @@ def test_canopy_stats_equal_a_numpy_reference(field, plants):
             red, nir = ds.read(1).astype(float), ds.read(2).astype(float)
         full = ((nir - red) / (nir + red)).ravel()
         for k in range(len(plants)):
-            v = full[o.pix[o.start[k]:o.start[k + 1]]]
-            ref = {"count": v.size, "min": v.min(), "max": v.max(), "mean": v.mean(), "median": np.median(v),
-                   "std": v.std(), "sum": v.sum(), "p10": np.percentile(v, 10), "p95": np.percentile(v, 95)}
+            v = full[o.pix[o.start[k] : o.start[k + 1]]]
+            ref = {
+                "count": v.size,
+                "min": v.min(),
+                "max": v.max(),
+                "mean": v.mean(),
+                "median": np.median(v),
+                "std": v.std(),
+                "sum": v.sum(),
+                "p10": np.percentile(v, 10),
+                "p95": np.percentile(v, 95),
+            }
             for key, r in ref.items():
                 assert got[key][k] == pytest.approx(r, rel=1e-9, abs=1e-12), key
         # the same raster on a coarser grid: measured over the outline polygons (pixel centres inside);
         # the coarse pixels on the outline mix leaves and soil, but the plants keep their order
         # (shifted by half a fine pixel, so that no coarse pixel centre lies exactly on an outline edge)
-        coarse = ArraySource(full.reshape(red.shape)[::2, ::2],
-                             chm.transform @ Affine.translation(0.5, 0.5) @ Affine.scale(2))
+        coarse = ArraySource(
+            full.reshape(red.shape)[::2, ::2], chm.transform @ Affine.translation(0.5, 0.5) @ Affine.scale(2)
+        )
         got2 = canopy_stats(o, coarse, ["mean"], [])
-        lab = rasterize(((g, k + 1) for k, g in enumerate(o.geometry)), out_shape=coarse.data.shape,
-                        transform=coarse.transform, dtype="int32")
+        lab = rasterize(
+            ((g, k + 1) for k, g in enumerate(o.geometry)),
+            out_shape=coarse.data.shape,
+            transform=coarse.transform,
+            dtype="int32",
+        )
         for k in range(len(plants)):
             assert got2["mean"][k] == pytest.approx(np.nanmean(coarse.data[lab == k + 1]), rel=1e-9)
         assert np.corrcoef(got2["mean"], got["mean"])[0, 1] > 0.9
@@ -155,14 +174,20 @@ def test_touching_plants_are_split_and_small_ones_flagged():
     def box(c0, r0, c1, r1):
         return shapely.box(*(t @ (c0, r1)), *(t @ (c1, r0)))
 
-    geoms = [box(12, 32, 50, 68), box(38, 36, 70, 64), box(77, 77, 84, 84), box(76, 12, 86, 22),
-             box(20, 40, 40, 60), box(62, 45, 67, 55)]
+    geoms = [
+        box(12, 32, 50, 68),
+        box(38, 36, 70, 64),
+        box(77, 77, 84, 84),
+        box(76, 12, 86, 22),
+        box(20, 40, 40, 60),
+        box(62, 45, 67, 55),
+    ]
     o = segment(geoms, src, SegmentSettings(margin=0.03))
     assert list(o.flag) == ["", "", "small", "low", "duplicate", "no_peak"]
     assert len(o.unclaimed) == 1
     assert o.unclaimed[0, :3] == pytest.approx([0.205, 1 - 0.855, 0.25], abs=0.011)
     for k, label in ((0, 1), (1, 2)):
-        pix = o.pix[o.start[k]:o.start[k + 1]]
+        pix = o.pix[o.start[k] : o.start[k + 1]]
         mine = truth.ravel()[pix] == label
         assert mine.mean() > 0.97 and mine.sum() > 0.85 * (truth == label).sum()
     assert o.top[0, 2] == pytest.approx(0.5, abs=0.01) and o.top[1, 2] == pytest.approx(0.3, abs=0.01)
@@ -186,10 +211,16 @@ def test_rgb_indices_per_plant_equal_a_numpy_reference(field, plants, result):
     with np.errstate(invalid="ignore", divide="ignore"):
         s = R + G + B
         r, g, b = R / s, G / s, B / s
-        ref = {"exg": 2 * g - r - b, "exgr": (2 * g - r - b) - (1.4 * r - g), "vari": (G - R) / (G + R - B),
-               "gli": (2 * G - R - B) / (2 * G + R + B), "ngrdi": (G - R) / (G + R)}
-    inside = [geometry_mask([geom], out_shape=shape, transform=transform, invert=True)
-              for geom in boxes.geometry.values]  # one box at a time: boxes overlap
+        ref = {
+            "exg": 2 * g - r - b,
+            "exgr": (2 * g - r - b) - (1.4 * r - g),
+            "vari": (G - R) / (G + R - B),
+            "gli": (2 * G - R - B) / (2 * G + R + B),
+            "ngrdi": (G - R) / (G + R),
+        }
+    inside = [
+        geometry_mask([geom], out_shape=shape, transform=transform, invert=True) for geom in boxes.geometry.values
+    ]  # one box at a time: boxes overlap
     for name in names:
         v = np.where(np.isfinite(ref[name]), ref[name], np.nan)
         for k in range(len(plants)):
@@ -198,19 +229,30 @@ def test_rgb_indices_per_plant_equal_a_numpy_reference(field, plants, result):
     # canopy means (indices are measured over the canopy by default)
     full, outlines, _ = result
     d1 = outlines[outlines["date"] == "d1"]
-    lab2 = rasterize(((geom, k + 1) for k, geom in enumerate(d1.geometry.values)), out_shape=shape,
-                     transform=transform, dtype="int32")
+    lab2 = rasterize(
+        ((geom, k + 1) for k, geom in enumerate(d1.geometry.values)),
+        out_shape=shape,
+        transform=transform,
+        dtype="int32",
+    )
     for name in ("exg", "vari", "gli"):
         for k in range(len(plants)):
-            assert full[f"{name}_canopy_mean_d1"][k] == pytest.approx(np.nanmean(ref[name][lab2 == k + 1]),
-                                                                        rel=1e-9)
+            assert full[f"{name}_canopy_mean_d1"][k] == pytest.approx(np.nanmean(ref[name][lab2 == k + 1]), rel=1e-9)
 
 
 def test_band_formulas_and_band_checks(field, plants):
     # a formula equal to NDVI (band 1 red, band 2 NIR)
-    t, _ = extract_stats(plants, [RasterSet(multispectral=field.multispectral,
-                                            formulas=[Formula("nd", field.multispectral, "(b2 - b1) / (b2 + b1)")])],
-                         ["mean", "max"], [])
+    t, _ = extract_stats(
+        plants,
+        [
+            RasterSet(
+                multispectral=field.multispectral,
+                formulas=[Formula("nd", field.multispectral, "(b2 - b1) / (b2 + b1)")],
+            )
+        ],
+        ["mean", "max"],
+        [],
+    )
     assert np.allclose(t["nd_mean"], t["ndvi_mean"]) and np.allclose(t["nd_max"], t["ndvi_max"])
     # the raster names its bands: swapped numbers are refused with the right ones
     with pytest.raises(ConfigError, match="(?s)red_band = 2.*'nir'.*set red_band: 1"):
@@ -253,13 +295,18 @@ def test_vigour_and_second_date_truth(field, tiny_field):
 
 
 def test_long_layout_and_a_date_without_chm(field, plants):
-    sets = [RasterSet(date="d1", dsm=field.dsm, dtm=field.dtm),
-            RasterSet(date="d2", dsm=field.later.dsm, dtm=field.later.dtm),
-            RasterSet(date="d3", multispectral=field.later.multispectral)]
+    sets = [
+        RasterSet(date="d1", dsm=field.dsm, dtm=field.dtm),
+        RasterSet(date="d2", dsm=field.later.dsm, dtm=field.later.dtm),
+        RasterSet(date="d3", multispectral=field.later.multispectral),
+    ]
     table, _ = extract_stats(plants, sets, ["max"], [], layout="long")
     per_date, outlines, _, report = canopy_traits(plants, sets, CanopyConfig(), ["max"], [])
     t = merge_columns(table, per_date, "long", 3)
     assert len(t) == 3 * len(plants) and set(per_date) == {"d1", "d2"}
-    assert t.loc[t["date"] != "d3", "canopy_pixels"].notna().all() and t.loc[t["date"] == "d3", "canopy_pixels"].isna().all()
+    assert (
+        t.loc[t["date"] != "d3", "canopy_pixels"].notna().all()
+        and t.loc[t["date"] == "d3", "canopy_pixels"].isna().all()
+    )
     assert t.loc[t["date"] == "d2", "shift_m"].notna().all()
     assert list(outlines["date"].unique()) == ["d1", "d2"] and len(report["dates"]) == 2

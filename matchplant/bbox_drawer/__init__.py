@@ -6,4 +6,4 @@ config_path)``, is imported only for ``--gui`` (a plain run needs none of matplo
 from matchplant.bbox_drawer.config import BboxDrawerConfig
 from matchplant.bbox_drawer.run import run
 
-__all__ = ['BboxDrawerConfig', 'run']
+__all__ = ["BboxDrawerConfig", "run"]

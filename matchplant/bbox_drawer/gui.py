@@ -35,14 +35,14 @@ from matchplant.core.formats.owned_areas import read_owned_areas
 from matchplant.core.runtime.config import validate
 from matchplant.core.runtime.guard import check_outputs
 from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
-from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.widgets import SetupField, SetupScreen
 
 log = get_logger("bbox_drawer")
 
 COLORS = ["#ffd400", "#00e5ff", "#ff3df2", "#7cff4d", "#ff8c1a"]  # category 1..5, visible on green and soil
-HANDLE_PX = 8       # how near (screen pixels) an edge must be to grab it
-CLICK_PX = 3        # a press and release closer than this (screen pixels) is a click, not a drag
+HANDLE_PX = 8  # how near (screen pixels) an edge must be to grab it
+CLICK_PX = 3  # a press and release closer than this (screen pixels) is a click, not a drag
 ZOOM_STEP = 1.25
 
 HELP = """MOUSE
@@ -78,9 +78,16 @@ reopen to resume."""
 class BboxDrawerGUI:
     """The annotation window over ``store``. ``headless=True`` (tests) draws on a figure of its own, outside pyplot."""
 
-    def __init__(self, store: AnnotationStore, owned_areas: dict[str, np.ndarray] | None = None,
-                 headless: bool | None = None, export_yolo: bool = True, include_unseen: bool = False,
-                 dpi: float | None = None, regions: dict[str, np.ndarray] | None = None):
+    def __init__(
+        self,
+        store: AnnotationStore,
+        owned_areas: dict[str, np.ndarray] | None = None,
+        headless: bool | None = None,
+        export_yolo: bool = True,
+        include_unseen: bool = False,
+        dpi: float | None = None,
+        regions: dict[str, np.ndarray] | None = None,
+    ):
         self.store = store
         # owned-area polygons keyed by this folder's image names (module 3 may name the shot, not the .tif)
         self.owned = {match_name(k, store.files): v for k, v in (owned_areas or {}).items()}
@@ -93,19 +100,24 @@ class BboxDrawerGUI:
         self.status = self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace")
         self.category = 1
         self.selected: int | None = None
-        self.picked = False      # the selected box was clicked by the user (category keys relabel it)
+        self.picked = False  # the selected box was clicked by the user (category keys relabel it)
         self.closed = False
         self.drag: dict | None = None
         self.layer: BoxLayer | None = None
         self.sel_rect = self.sel_dots = None
         self.preview = None
-        self.background = None   # the axes without the dragged box, saved at the press (blitting)
+        self.background = None  # the axes without the dragged box, saved at the press (blitting)
         self.image_artist = None
         self.message = ""
         self._draw_help()
-        for event, handler in (("button_press_event", self.on_press), ("motion_notify_event", self.on_motion),
-                               ("button_release_event", self.on_release), ("key_press_event", self.on_key),
-                               ("scroll_event", self.on_scroll), ("close_event", self.on_close)):
+        for event, handler in (
+            ("button_press_event", self.on_press),
+            ("motion_notify_event", self.on_motion),
+            ("button_release_event", self.on_release),
+            ("key_press_event", self.on_key),
+            ("scroll_event", self.on_scroll),
+            ("close_event", self.on_close),
+        ):
             self.fig.canvas.mpl_connect(event, handler)
         self.show_image(store.current)
 
@@ -123,15 +135,31 @@ class BboxDrawerGUI:
         w, h = self.fig.get_size_inches()
         panel = figure(True, figsize=(pos.width * w, pos.height * h), dpi=self.fig.dpi, facecolor="white")
         cats = "\n".join(f"     {i + 1}  {name}" for i, name in enumerate(self.store.categories))
-        text = panel.text(0.02, 0.99, "CATEGORIES\n" + cats + "\n\n" + HELP, va="top", ha="left",
-                          family="monospace", fontsize=8.5, linespacing=1.25)
+        text = panel.text(
+            0.02,
+            0.99,
+            "CATEGORIES\n" + cats + "\n\n" + HELP,
+            va="top",
+            ha="left",
+            family="monospace",
+            fontsize=8.5,
+            linespacing=1.25,
+        )
         panel.canvas.draw()
         # colour swatches in front of the category lines (line height from the rendered text)
         box = text.get_window_extent()
         line = box.height / (text.get_text().count("\n") + 1) / (pos.height * h * self.fig.dpi)
         for i in range(len(self.store.categories)):
-            panel.patches.append(Rectangle((0.03, 0.99 - line * (i + 1.95)), 0.06, line * 0.7,
-                                               transform=panel.transFigure, figure=panel, color=COLORS[i]))
+            panel.patches.append(
+                Rectangle(
+                    (0.03, 0.99 - line * (i + 1.95)),
+                    0.06,
+                    line * 0.7,
+                    transform=panel.transFigure,
+                    figure=panel,
+                    color=COLORS[i],
+                )
+            )
         panel.canvas.draw()
         self.help_ax.clear()
         self.help_ax.axis("off")
@@ -163,8 +191,9 @@ class BboxDrawerGUI:
         self.sel_rect = Rectangle((0, 0), 0, 0, fill=False, lw=2.6, visible=False, zorder=4)
         self.ax.add_patch(self.sel_rect)
         (self.sel_dots,) = self.ax.plot([], [], "s", ms=6, mfc="white", visible=False, zorder=5)
-        self.preview = Rectangle((0, 0), 0, 0, fill=False, ec="white", lw=1.2, ls=":", animated=True,
-                                 visible=False, zorder=6)
+        self.preview = Rectangle(
+            (0, 0), 0, 0, fill=False, ec="white", lw=1.2, ls=":", animated=True, visible=False, zorder=6
+        )
         self.ax.add_patch(self.preview)
         self.background = None
         self.reset_view()
@@ -194,10 +223,15 @@ class BboxDrawerGUI:
         self.ax.set_title(self.name, fontsize=10)
         i = self.store.images.index(self.name) + 1
         cat = self.store.categories[self.category - 1]
-        picked = (f"   selected: {self.store.categories[sel['category_id'] - 1]} (keys relabel it)"
-                  if sel is not None and self.picked else "")
-        self.status.set_text(f"image {i}/{len(self.store.images)}   boxes {len(boxes)}   next box: "
-                             f"{self.category}={cat}{picked}   {self.message}")
+        picked = (
+            f"   selected: {self.store.categories[sel['category_id'] - 1]} (keys relabel it)"
+            if sel is not None and self.picked
+            else ""
+        )
+        self.status.set_text(
+            f"image {i}/{len(self.store.images)}   boxes {len(boxes)}   next box: "
+            f"{self.category}={cat}{picked}   {self.message}"
+        )
         if draw:
             self.fig.canvas.draw_idle()
 
@@ -219,18 +253,21 @@ class BboxDrawerGUI:
         if not boxes:
             return None, ""
         xyxy = np.array([b["xyxy"] for b in boxes], float)
-        near = np.flatnonzero((xyxy[:, 0] - tol <= x) & (x <= xyxy[:, 2] + tol) &
-                              (xyxy[:, 1] - tol <= y) & (y <= xyxy[:, 3] + tol))  # vectorised pre-filter
-        order = sorted((boxes[i] for i in near),
-                       key=lambda b: (b["id"] != self.selected,
-                                      (b["xyxy"][2] - b["xyxy"][0]) * (b["xyxy"][3] - b["xyxy"][1])))
+        near = np.flatnonzero(
+            (xyxy[:, 0] - tol <= x) & (x <= xyxy[:, 2] + tol) & (xyxy[:, 1] - tol <= y) & (y <= xyxy[:, 3] + tol)
+        )  # vectorised pre-filter
+        order = sorted(
+            (boxes[i] for i in near),
+            key=lambda b: (b["id"] != self.selected, (b["xyxy"][2] - b["xyxy"][0]) * (b["xyxy"][3] - b["xyxy"][1])),
+        )
         for b in order:
             x1, y1, x2, y2 = b["xyxy"]
             if not (x1 - tol <= x <= x2 + tol and y1 - tol <= y <= y2 + tol):
                 continue
             if b["id"] == self.selected:
-                edges = ("l" if abs(x - x1) <= tol else "r" if abs(x - x2) <= tol else "") + \
-                        ("t" if abs(y - y1) <= tol else "b" if abs(y - y2) <= tol else "")
+                edges = ("l" if abs(x - x1) <= tol else "r" if abs(x - x2) <= tol else "") + (
+                    "t" if abs(y - y1) <= tol else "b" if abs(y - y2) <= tol else ""
+                )
                 if edges:
                     return b["id"], edges
             if x1 <= x <= x2 and y1 <= y <= y2:
@@ -244,8 +281,12 @@ class BboxDrawerGUI:
         x, y = self.data_xy(event)
         start = self.data_xy(event, snap=True)
         if event.button in (2, 3):
-            self.drag = {"mode": "pan", "px": (event.x, event.y), "xlim": self.ax.get_xlim(),
-                         "ylim": self.ax.get_ylim()}
+            self.drag = {
+                "mode": "pan",
+                "px": (event.x, event.y),
+                "xlim": self.ax.get_xlim(),
+                "ylim": self.ax.get_ylim(),
+            }
             return
         if event.button != 1:
             return
@@ -258,8 +299,13 @@ class BboxDrawerGUI:
             # pressing another box picks it; dragging the box just drawn (to fix it) does not
             self.picked = self.picked or box_id != self.selected
             self.selected = box_id
-            self.drag = {"mode": "resize" if part != "in" else "move", "edges": part, "start": start,
-                         "px": (event.x, event.y), "box": self.store.box(self.name, box_id)}
+            self.drag = {
+                "mode": "resize" if part != "in" else "move",
+                "edges": part,
+                "start": start,
+                "px": (event.x, event.y),
+                "box": self.store.box(self.name, box_id),
+            }
         self._start_blit(box_id)
 
     def _start_blit(self, dragged: int | None) -> None:
@@ -291,8 +337,12 @@ class BboxDrawerGUI:
         if d["mode"] == "move":
             return [x1 + dx, y1 + dy, x2 + dx, y2 + dy]
         e = d["edges"]
-        return [x1 + dx if "l" in e else x1, y1 + dy if "t" in e else y1,
-                x2 + dx if "r" in e else x2, y2 + dy if "b" in e else y2]
+        return [
+            x1 + dx if "l" in e else x1,
+            y1 + dy if "t" in e else y1,
+            x2 + dx if "r" in e else x2,
+            y2 + dy if "b" in e else y2,
+        ]
 
     @staticmethod
     def _is_click(d: dict, event) -> bool:
@@ -323,7 +373,7 @@ class BboxDrawerGUI:
         click = self._is_click(d, event)
         box = self._dragged_box(d, *self.data_xy(event, snap=True))
         if click:
-            self.picked = d["mode"] != "draw"   # a click on a box picks it
+            self.picked = d["mode"] != "draw"  # a click on a box picks it
             self.message = "" if d["mode"] == "draw" else "selected"
         elif d["mode"] == "draw":
             new = self.store.add(self.name, box, self.category)
@@ -341,8 +391,7 @@ class BboxDrawerGUI:
     def on_scroll(self, event) -> None:
         if event.inaxes is not self.ax:
             return
-        self.zoom(ZOOM_STEP ** (event.step if event.step else (1 if event.button == "up" else -1)),
-                  self.data_xy(event))
+        self.zoom(ZOOM_STEP ** (event.step if event.step else (1 if event.button == "up" else -1)), self.data_xy(event))
 
     def zoom(self, factor: float, center: tuple[float, float] | None = None) -> None:
         (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
@@ -441,15 +490,24 @@ def open_window(cfg: BboxDrawerConfig, headless: bool | None = None, dpi: float 
     validate(cfg, source="GUI")
     check_outputs(cfg, source="GUI")
     store = open_session(cfg)
-    return BboxDrawerGUI(store, read_owned_areas(cfg.owned_areas), headless=headless, dpi=dpi,
-                        export_yolo=cfg.export_yolo, include_unseen=cfg.include_unseen,
-                        regions=annotated_regions(cfg, store))
+    return BboxDrawerGUI(
+        store,
+        read_owned_areas(cfg.owned_areas),
+        headless=headless,
+        dpi=dpi,
+        export_yolo=cfg.export_yolo,
+        include_unseen=cfg.include_unseen,
+        regions=annotated_regions(cfg, store),
+    )
 
 
-SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("output_dir", "Output folder", "folder"),
-                SetupField("owned_areas", "Owned areas (optional)", "file"),
-                SetupField("import_coco", "Boxes to fix (COCO, opt.)", "file"),
-                SetupField("import_predictions", "Predictions (module 7, opt.)", "file")]
+SETUP_FIELDS = [
+    SetupField("images", "Images folder", "folder"),
+    SetupField("output_dir", "Output folder", "folder"),
+    SetupField("owned_areas", "Owned areas (optional)", "file"),
+    SetupField("import_coco", "Boxes to fix (COCO, opt.)", "file"),
+    SetupField("import_predictions", "Predictions (module 7, opt.)", "file"),
+]
 
 
 def owned_areas_beside(texts: dict[str, str]) -> dict[str, str]:
@@ -467,9 +525,16 @@ class BboxDrawerSetup:
     def __init__(self, cfg: BboxDrawerConfig, headless: bool | None = None, chooser=None, dpi: float | None = None):
         self.headless, self.dpi = headless, dpi
         self.window: BboxDrawerGUI | None = None
-        self.screen = SetupScreen("Box drawer: choose the images to annotate", cfg, SETUP_FIELDS, self._run,
-                                  headless=headless, chooser=chooser, run_label="Open images",
-                                  prefill=owned_areas_beside)
+        self.screen = SetupScreen(
+            "Box drawer: choose the images to annotate",
+            cfg,
+            SETUP_FIELDS,
+            self._run,
+            headless=headless,
+            chooser=chooser,
+            run_label="Open images",
+            prefill=owned_areas_beside,
+        )
 
     def _run(self, cfg: BboxDrawerConfig) -> str:
         if self.window is not None:
@@ -477,8 +542,10 @@ class BboxDrawerSetup:
         self.window = open_window(cfg, self.headless, self.dpi)
         reveal(self.window.fig)
         store = self.window.store
-        return (f"{len(store.images)} images, {store.count()} boxes; drawing window open; every edit is saved "
-                f"to {store.path}")
+        return (
+            f"{len(store.images)} images, {store.count()} boxes; drawing window open; every edit is saved "
+            f"to {store.path}"
+        )
 
 
 def launch(cfg: BboxDrawerConfig, config_path=None, chooser=None) -> BboxDrawerSetup:

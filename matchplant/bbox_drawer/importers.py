@@ -51,12 +51,14 @@ def read_yolo_boxes(labels_dir: str | Path, sizes: dict[str, tuple[int, int]]) -
     """Boxes of YOLO labels by image name; ``sizes`` (name -> (width, height)) are the session's images."""
     drops = DropLog()
     _, boxes = read_yolo(labels_dir, sizes, drops)
-    return ImportedBoxes({name: [ImportedBox(b.xyxy, b.category) for b in items] for name, items in boxes.items()},
-                         drops=drops)
+    return ImportedBoxes(
+        {name: [ImportedBox(b.xyxy, b.category) for b in items] for name, items in boxes.items()}, drops=drops
+    )
 
 
-def read_prediction_boxes(path: str | Path, min_score: float = 0.5, nms_iou: float = 0.5,
-                          images_from: str | Path | None = None) -> ImportedBoxes:
+def read_prediction_boxes(
+    path: str | Path, min_score: float = 0.5, nms_iou: float = 0.5, images_from: str | Path | None = None
+) -> ImportedBoxes:
     """Module 7 predictions above ``min_score``, in source-image pixels; duplicates from overlapping
     tiles are merged by non-maximum suppression (IoU ``nms_iou``)."""
     path = Path(path)
@@ -70,12 +72,15 @@ def read_prediction_boxes(path: str | Path, min_score: float = 0.5, nms_iou: flo
     preds = [p for p, s in zip(data["predictions"], scores) if s >= min_score]
     if data["predictions"] and not preds:
         best = max((s for s in scores if not np.isnan(s)), default=float("nan"))
-        raise InputError(f"none of the {len(scores)} predictions has a score >= min_score {min_score:g} "
-                         f"(the highest is {best:g})", path=path,
-                         fix=f"lower min_score (e.g. --set min_score={max(0.0, round(best, 2) - 0.05):g})")
+        raise InputError(
+            f"none of the {len(scores)} predictions has a score >= min_score {min_score:g} (the highest is {best:g})",
+            path=path,
+            fix=f"lower min_score (e.g. --set min_score={max(0.0, round(best, 2) - 0.05):g})",
+        )
     boxes = _collect(path, data["images"], data["categories"], preds, kind="prediction")
-    return ImportedBoxes({name: _nms(items, nms_iou) for name, items in boxes.items()}, sizes=boxes.sizes,
-                         drops=boxes.drops)
+    return ImportedBoxes(
+        {name: _nms(items, nms_iou) for name, items in boxes.items()}, sizes=boxes.sizes, drops=boxes.drops
+    )
 
 
 def read_deepforest_boxes(path: str | Path) -> ImportedBoxes:
@@ -93,9 +98,15 @@ def read_cvat_boxes(path: str | Path) -> ImportedBoxes:
     return _imported(*read_cvat_xml(path))
 
 
-def read_mask_boxes(masks_dir: str | Path, images: list[str], min_area: int = 20, category: str = "plant",
-                    sizes: dict[str, tuple[int, int]] | None = None, mode: str = "auto",
-                    threshold: float | None = None) -> ImportedBoxes:
+def read_mask_boxes(
+    masks_dir: str | Path,
+    images: list[str],
+    min_area: int = 20,
+    category: str = "plant",
+    sizes: dict[str, tuple[int, int]] | None = None,
+    mode: str = "auto",
+    threshold: float | None = None,
+) -> ImportedBoxes:
     """Boxes from label images: for each image, the mask named after it in ``masks_dir`` (``<stem>.<ext>`` in
     any image format, ``<image name>.png``, ``<stem>_mask.png``, Label Studio's upload prefix ignored).
 
@@ -114,12 +125,21 @@ def read_mask_boxes(masks_dir: str | Path, images: list[str], min_area: int = 20
     for name, path in found.items():
         mask = read_mask(path)
         if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
-            raise InputError(f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
-                             f"{sizes[name][0]}x{sizes[name][1]} px", path=path,
-                             fix="give masks of the same size as the photos (not resized)")
+            raise InputError(
+                f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
+                f"{sizes[name][0]}x{sizes[name][1]} px",
+                path=path,
+                fix="give masks of the same size as the photos (not resized)",
+            )
         objects = mask_objects(mask, min_area, category, mode, threshold)
-        log.debug("%s: read as %s (%s): %d object(s), %d under mask_min_area", path.name, objects.mode,
-                  objects.reason, len(objects.boxes), objects.dropped)
+        log.debug(
+            "%s: read as %s (%s): %d object(s), %d under mask_min_area",
+            path.name,
+            objects.mode,
+            objects.reason,
+            len(objects.boxes),
+            objects.dropped,
+        )
         modes[objects.mode] += 1
         reasons.setdefault(objects.mode, f"{path.name}: {objects.reason}")
         for warning in objects.warnings:
@@ -128,16 +148,27 @@ def read_mask_boxes(masks_dir: str | Path, images: list[str], min_area: int = 20
         total += objects.dropped + len(objects.boxes)
         out[name] = [ImportedBox(b.xyxy, b.category, where=path.name) for b in objects.boxes]
     for kind, n in sorted(modes.items()):
-        log.info("%d mask(s) read as %s (%s), e.g. %s", n, kind,
-                 "mask_mode" if mode != "auto" or threshold is not None else "decided from the pixels",
-                 reasons[kind])
+        log.info(
+            "%d mask(s) read as %s (%s), e.g. %s",
+            n,
+            kind,
+            "mask_mode" if mode != "auto" or threshold is not None else "decided from the pixels",
+            reasons[kind],
+        )
     if len(modes) > 1:
-        log.warning("the masks of %s were read as %s: %s; set mask_mode: binary or instance if they are all of one "
-                    "kind", masks_dir, " and ".join(f"{kind} ({n})" for kind, n in sorted(modes.items())),
-                    "; ".join(reasons.values()))
+        log.warning(
+            "the masks of %s were read as %s: %s; set mask_mode: binary or instance if they are all of one kind",
+            masks_dir,
+            " and ".join(f"{kind} ({n})" for kind, n in sorted(modes.items())),
+            "; ".join(reasons.values()),
+        )
     if dropped:
-        log.info("mask_min_area %d: %d of the %d mask object(s) were smaller and not imported (specks)", min_area,
-                 dropped, total)
+        log.info(
+            "mask_min_area %d: %d of the %d mask object(s) were smaller and not imported (specks)",
+            min_area,
+            dropped,
+            total,
+        )
     return out
 
 
@@ -171,60 +202,94 @@ def _mask_files(masks_dir: Path, images: list[str]) -> dict[str, Path]:
         masks = [p for p in cands if p.suffix.lower() in MASK_SUFFIXES]
         unread += [p for p in cands if p.suffix.lower() not in MASK_SUFFIXES]
         if len(masks) > 1:
-            raise InputError(f"{len(masks)} masks fit the photo {name}: {', '.join(p.name for p in masks)}",
-                             path=masks_dir, fix="keep one mask per photo in the folder (move the others away)")
+            raise InputError(
+                f"{len(masks)} masks fit the photo {name}: {', '.join(p.name for p in masks)}",
+                path=masks_dir,
+                fix="keep one mask per photo in the folder (move the others away)",
+            )
         if masks:
             found[name] = masks[0]
     if not found:
         kinds = "/".join(s.lstrip(".").upper() for s in MASK_SUFFIXES)
         if unread:
-            raise InputError(f"the masks named after the photos are {', '.join(sorted({p.suffix for p in unread}))} "
-                             f"files (e.g. {unread[0].name}), which are not read as images ({kinds} are)",
-                             path=masks_dir, fix="save the masks as PNG (grey ids, a binary mask or RGB colours)")
+            raise InputError(
+                f"the masks named after the photos are {', '.join(sorted({p.suffix for p in unread}))} "
+                f"files (e.g. {unread[0].name}), which are not read as images ({kinds} are)",
+                path=masks_dir,
+                fix="save the masks as PNG (grey ids, a binary mask or RGB colours)",
+            )
         files = sorted(p.name for p in masks_dir.iterdir() if p.is_file())
         example = f"; the folder holds e.g. {', '.join(files[:3])}" if files else "; the folder is empty"
-        raise InputError(f"no mask is named after any of the {len(images)} photos (e.g. {images[0] if images else '-'})"
-                         f"{example}", path=masks_dir,
-                         fix="name each mask after its photo, e.g. IMG_0001.png for IMG_0001.JPG")
+        raise InputError(
+            f"no mask is named after any of the {len(images)} photos (e.g. {images[0] if images else '-'}){example}",
+            path=masks_dir,
+            fix="name each mask after its photo, e.g. IMG_0001.png for IMG_0001.JPG",
+        )
     if unread:
-        log.warning("%d file(s) in %s named after a photo are not read as masks (e.g. %s): convert them to PNG",
-                    len(unread), masks_dir, unread[0].name)
+        log.warning(
+            "%d file(s) in %s named after a photo are not read as masks (e.g. %s): convert them to PNG",
+            len(unread),
+            masks_dir,
+            unread[0].name,
+        )
     missing = [n for n in images if n not in found]
     if missing:
-        log.info("%d of the %d photos have no mask in %s (e.g. %s): no boxes imported for them", len(missing),
-                 len(images), masks_dir, missing[0])
+        log.info(
+            "%d of the %d photos have no mask in %s (e.g. %s): no boxes imported for them",
+            len(missing),
+            len(images),
+            masks_dir,
+            missing[0],
+        )
     return found
 
 
 def _imported(boxes: dict[str, list[LabelledBox]], sizes: dict[str, tuple[int, int]] | None = None) -> ImportedBoxes:
-    return ImportedBoxes({name: [ImportedBox(list(b.xyxy), b.category, b.score, b.where) for b in items]
-                          for name, items in boxes.items()}, sizes=sizes)
+    return ImportedBoxes(
+        {
+            name: [ImportedBox(list(b.xyxy), b.category, b.score, b.where) for b in items]
+            for name, items in boxes.items()
+        },
+        sizes=sizes,
+    )
 
 
 def _unique_ids(items: list[dict], kind: str, path: Path) -> None:
     counts = Counter(item.get("id") for item in items)
     dup = sorted((i for i, c in counts.items() if c > 1), key=str)
     if dup:
-        raise InputError(f"{kind} id(s) {dup[:5]} are used by more than one {kind} entry, so the boxes "
-                         f"cannot be told apart", path=path,
-                         fix=f"give every {kind} its own id (re-export the file from the annotation tool)")
+        raise InputError(
+            f"{kind} id(s) {dup[:5]} are used by more than one {kind} entry, so the boxes cannot be told apart",
+            path=path,
+            fix=f"give every {kind} its own id (re-export the file from the annotation tool)",
+        )
 
 
-def _collect(path: Path, images: list[dict], categories: list[dict], anns: list[dict],
-             kind: str = "annotation") -> ImportedBoxes:
+def _collect(
+    path: Path, images: list[dict], categories: list[dict], anns: list[dict], kind: str = "annotation"
+) -> ImportedBoxes:
     _unique_ids(images, "image", path)
     _unique_ids(categories, "category", path)
     if anns and not categories:
-        raise InputError(f"the file defines no categories, but its {kind}s use category ids "
-                         f"{sorted({a.get('category_id') for a in anns}, key=str)[:5]}", path=path,
-                         fix="add the categories, e.g. \"categories\": [{\"id\": 1, \"name\": \"plant\"}]")
+        raise InputError(
+            f"the file defines no categories, but its {kind}s use category ids "
+            f"{sorted({a.get('category_id') for a in anns}, key=str)[:5]}",
+            path=path,
+            fix='add the categories, e.g. "categories": [{"id": 1, "name": "plant"}]',
+        )
     by_id = {im.get("id"): im for im in images}
     cat_names = {c.get("id"): str(c.get("name", c.get("id"))) for c in categories}
     known = ", ".join(f"{i}={n}" for i, n in cat_names.items())
     drops = DropLog()
-    out = ImportedBoxes({_name(im): [] for im in images if _name(im)}, drops=drops,
-                        sizes={im["file_name"]: (im.get("width"), im.get("height")) for im in images
-                               if im.get("file_name") and "source_image" not in im})
+    out = ImportedBoxes(
+        {_name(im): [] for im in images if _name(im)},
+        drops=drops,
+        sizes={
+            im["file_name"]: (im.get("width"), im.get("height"))
+            for im in images
+            if im.get("file_name") and "source_image" not in im
+        },
+    )
     seen: dict[tuple, str] = {}
     ids: set = set()
     repeated_ids = 0
@@ -233,17 +298,30 @@ def _collect(path: Path, images: list[dict], categories: list[dict], anns: list[
         im = by_id.get(a.get("image_id"))
         box = bbox_values(a.get("bbox"))
         if im is None or not _name(im):
-            drops.add(path, where, a.get("image_id"), box or repr(a.get("bbox")), "image id not in the file",
-                      f"image_id {a.get('image_id')!r} is not one of the file's images (with a file_name)")
+            drops.add(
+                path,
+                where,
+                a.get("image_id"),
+                box or repr(a.get("bbox")),
+                "image id not in the file",
+                f"image_id {a.get('image_id')!r} is not one of the file's images (with a file_name)",
+            )
             continue
         name = _name(im)
         if box is None:
-            drops.add(path, where, name, repr(a.get("bbox")), "bbox is not [x, y, w, h] numbers",
-                      f"bbox {a.get('bbox')!r}")
+            drops.add(
+                path, where, name, repr(a.get("bbox")), "bbox is not [x, y, w, h] numbers", f"bbox {a.get('bbox')!r}"
+            )
             continue
         if a.get("category_id") not in cat_names:
-            drops.add(path, where, name, box, "unknown category id",
-                      f"category_id {a.get('category_id')!r}; the file's categories: {known}")
+            drops.add(
+                path,
+                where,
+                name,
+                box,
+                "unknown category id",
+                f"category_id {a.get('category_id')!r}; the file's categories: {known}",
+            )
             continue
         x, y, w, h = to_source_pixels(box, im)
         if not (w > 0 and h > 0):
@@ -263,8 +341,12 @@ def _collect(path: Path, images: list[dict], categories: list[dict], anns: list[
         seen[key] = where
         out[name].append(ImportedBox([x, y, x + w, y + h], cat_names[a["category_id"]], score, where))
     if repeated_ids:
-        log.warning("%s: %d %s id(s) are used more than once (different boxes, all imported; module 4 numbers "
-                    "the boxes anew)", path.name, repeated_ids, kind)
+        log.warning(
+            "%s: %d %s id(s) are used more than once (different boxes, all imported; module 4 numbers the boxes anew)",
+            path.name,
+            repeated_ids,
+            kind,
+        )
     return out
 
 

@@ -45,8 +45,15 @@ log = get_logger("bbox_drawer")
 
 DROPPED_NAME = "import_dropped.csv"  # every imported box left out, where it came from and why
 NOT_SELECTED = "photo not in module 3's selection"  # expected: an import made for the whole flight
-IMPORT_KEYS = ("import_coco", "import_yolo", "import_predictions", "import_masks", "import_deepforest",
-               "import_voc", "import_cvat")
+IMPORT_KEYS = (
+    "import_coco",
+    "import_yolo",
+    "import_predictions",
+    "import_masks",
+    "import_deepforest",
+    "import_voc",
+    "import_cvat",
+)
 
 
 def open_session(cfg: BboxDrawerConfig, output_dir: Path | None = None) -> AnnotationStore:
@@ -57,8 +64,14 @@ def open_session(cfg: BboxDrawerConfig, output_dir: Path | None = None) -> Annot
     an import file of which no box can be used is an error (the CSV then goes to ``cfg.output_dir``).
     """
     out = Path(output_dir or cfg.output_dir)
-    store = AnnotationStore(cfg.images, out, cfg.categories, min_box_size=cfg.min_box_size,
-                            resume_from=Path(cfg.output_dir) / STATE_NAME, label_map=cfg.label_map)
+    store = AnnotationStore(
+        cfg.images,
+        out,
+        cfg.categories,
+        min_box_size=cfg.min_box_size,
+        resume_from=Path(cfg.output_dir) / STATE_NAME,
+        label_map=cfg.label_map,
+    )
     drops = DropLog()
     for key in IMPORT_KEYS:
         path = getattr(cfg, key)
@@ -80,13 +93,23 @@ def open_session(cfg: BboxDrawerConfig, output_dir: Path | None = None) -> Annot
         listed = Path(cfg.output_dir) / DROPPED_NAME
         if unselected:
             photos = len({r["image"] for r in unselected})
-            log.info("%d imported box(es) on %d photo(s) module 3 did not select were not added: those photos are "
-                     "not in the selection (%s; e.g. %s); listed in %s", len(unselected), photos, cfg.images,
-                     unselected[0]["image"], listed)
+            log.info(
+                "%d imported box(es) on %d photo(s) module 3 did not select were not added: those photos are "
+                "not in the selection (%s; e.g. %s); listed in %s",
+                len(unselected),
+                photos,
+                cfg.images,
+                unselected[0]["image"],
+                listed,
+            )
         others = DropLog([r for r in drops.rows if r["reason"] != NOT_SELECTED])
         if len(others):
-            log.warning("%d imported box(es) were not added (%s); each one, where it came from and why: %s",
-                        len(others), others.summary(), listed)
+            log.warning(
+                "%d imported box(es) were not added (%s); each one, where it came from and why: %s",
+                len(others),
+                others.summary(),
+                listed,
+            )
     return store
 
 
@@ -128,8 +151,9 @@ def _flight_images(project_dir) -> list[str]:
     if not project_dir or not Path(project_dir).is_dir():
         return []
     root = Path(project_dir)
-    folders = [root / "opensfm/undistorted/images", root / "images"] + \
-        sorted(root.glob("submodels/submodel_*/opensfm/undistorted/images"))
+    folders = [root / "opensfm/undistorted/images", root / "images"] + sorted(
+        root.glob("submodels/submodel_*/opensfm/undistorted/images")
+    )
     return sorted({p.name for f in folders if f.is_dir() for p in f.iterdir() if is_image_name(p)})
 
 
@@ -141,25 +165,39 @@ def _read_import(cfg: BboxDrawerConfig, key: str, path: Path, store: AnnotationS
     if key == "import_predictions":
         return read_prediction_boxes(path, cfg.min_score)
     if key == "import_masks":
-        return read_mask_boxes(path, store.images, cfg.mask_min_area, store.categories[0],
-                               {n: store.size(n) for n in store.images}, cfg.mask_mode, cfg.mask_threshold)
-    return {"import_deepforest": read_deepforest_boxes, "import_voc": read_voc_boxes,
-            "import_cvat": read_cvat_boxes}[key](path)
+        return read_mask_boxes(
+            path,
+            store.images,
+            cfg.mask_min_area,
+            store.categories[0],
+            {n: store.size(n) for n in store.images},
+            cfg.mask_mode,
+            cfg.mask_threshold,
+        )
+    return {"import_deepforest": read_deepforest_boxes, "import_voc": read_voc_boxes, "import_cvat": read_cvat_boxes}[
+        key
+    ](path)
 
 
 def _fail_import(cfg: BboxDrawerConfig, key: str, path: Path, drops: DropLog, faults: list[dict], before: int):
     """No box of an import file could be used: an error that says why (the list of boxes beside the log)."""
     if not faults:
-        raise InputError("the file holds no boxes", path=path,
-                         fix=f"check that this is the right file, or remove '{key}' from the config")
+        raise InputError(
+            "the file holds no boxes",
+            path=path,
+            fix=f"check that this is the right file, or remove '{key}' from the config",
+        )
     csv_path = DropLog(drops.rows[before:]).write_csv(Path(cfg.output_dir) / DROPPED_NAME)
     first = faults[0]
     hint = f" ({first['detail']})" if first["detail"] else ""
-    raise InputError(f"none of the {len(faults)} box(es) could be imported: {DropLog(faults).summary()}; first: "
-                     f"{first['where'] or 'a box'} for '{first['image']}': {first['reason']}{hint}; every box and "
-                     f"why: {csv_path}", path=path,
-                     fix=f"check that '{key}' was made on the photos in 'images' ({cfg.images}) and that its "
-                         "boxes and categories are valid")
+    raise InputError(
+        f"none of the {len(faults)} box(es) could be imported: {DropLog(faults).summary()}; first: "
+        f"{first['where'] or 'a box'} for '{first['image']}': {first['reason']}{hint}; every box and "
+        f"why: {csv_path}",
+        path=path,
+        fix=f"check that '{key}' was made on the photos in 'images' ({cfg.images}) and that its "
+        "boxes and categories are valid",
+    )
 
 
 def annotated_regions(cfg: BboxDrawerConfig, store: AnnotationStore) -> dict[str, np.ndarray]:
@@ -188,12 +226,19 @@ def run(cfg: BboxDrawerConfig) -> dict[str, Path]:
         store = open_session(cfg, stage)
         if store.count() == 0:
             imports = [k for k in IMPORT_KEYS if getattr(cfg, k) is not None]
-            raise InputError("there are no boxes to export: " + (
-                f"the session has none and {', '.join(imports)} added none" if imports else
-                "the session has none and nothing is imported"), path=final / STATE_NAME,
-                fix="draw boxes with --gui, or import them (import_coco, import_yolo, import_predictions, ...)")
-        out = store.export(coco=True, yolo=cfg.export_yolo, include_unseen=cfg.include_unseen,
-                           regions=annotated_regions(cfg, store))
+            raise InputError(
+                "there are no boxes to export: "
+                + (
+                    f"the session has none and {', '.join(imports)} added none"
+                    if imports
+                    else "the session has none and nothing is imported"
+                ),
+                path=final / STATE_NAME,
+                fix="draw boxes with --gui, or import them (import_coco, import_yolo, import_predictions, ...)",
+            )
+        out = store.export(
+            coco=True, yolo=cfg.export_yolo, include_unseen=cfg.include_unseen, regions=annotated_regions(cfg, store)
+        )
         n_images = len(read_json(out["coco"])["images"])
     out = {k: final / Path(v).relative_to(stage) for k, v in out.items()}
     log.info("%d box(es) on %d image(s) -> %s", store.count(), n_images, out["coco"])

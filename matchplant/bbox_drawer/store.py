@@ -42,7 +42,7 @@ MAX_CATEGORIES = 5
 STATE_NAME = "session.json"
 STATE_FORMAT = "matchplant-annotation-session"
 HISTORY = 500  # undo steps kept (and saved) per session
-DECIMALS = 2   # boxes are stored to 0.01 px
+DECIMALS = 2  # boxes are stored to 0.01 px
 
 
 # -- boxes ----------------------------------------------------------------------------------------------
@@ -64,8 +64,12 @@ def clip_box(xyxy: Iterable[float], width: float, height: float) -> list[float]:
     x1, y1, x2, y2 = (float(v) for v in xyxy)
     x1, x2 = sorted((x1, x2))
     y1, y2 = sorted((y1, y2))
-    return [round(min(max(x1, 0.0), width), DECIMALS), round(min(max(y1, 0.0), height), DECIMALS),
-            round(min(max(x2, 0.0), width), DECIMALS), round(min(max(y2, 0.0), height), DECIMALS)]
+    return [
+        round(min(max(x1, 0.0), width), DECIMALS),
+        round(min(max(y1, 0.0), height), DECIMALS),
+        round(min(max(x2, 0.0), width), DECIMALS),
+        round(min(max(y2, 0.0), height), DECIMALS),
+    ]
 
 
 @dataclass
@@ -99,9 +103,16 @@ class AnnotationStore:
     ``output_dir``. Edits name the image and the box id; each returns what changed and is undoable.
     """
 
-    def __init__(self, images_dir: str | Path, output_dir: str | Path, categories: Iterable[str] = ("plant",),
-                 *, min_box_size: float = 2.0, resume_from: str | Path | None = None,
-                 label_map: dict[str, str] | None = None):
+    def __init__(
+        self,
+        images_dir: str | Path,
+        output_dir: str | Path,
+        categories: Iterable[str] = ("plant",),
+        *,
+        min_box_size: float = 2.0,
+        resume_from: str | Path | None = None,
+        label_map: dict[str, str] | None = None,
+    ):
         self.images_dir = Path(images_dir)
         self.output_dir = Path(output_dir)
         self.path = self.output_dir / STATE_NAME
@@ -109,8 +120,11 @@ class AnnotationStore:
         self.label_map = {str(k): str(v) for k, v in (label_map or {}).items()}  # imported label -> category
         files = list_images(self.images_dir, min_count=0)
         if not files:
-            raise InputError("no images (.jpg, .png, .tif, ...) in the image folder", path=self.images_dir,
-                             fix="set 'images' to the folder that holds the photos to annotate")
+            raise InputError(
+                "no images (.jpg, .png, .tif, ...) in the image folder",
+                path=self.images_dir,
+                fix="set 'images' to the folder that holds the photos to annotate",
+            )
         for p in files:
             check_image_file(p)
         self.files = {p.name: p for p in files}
@@ -124,19 +138,34 @@ class AnnotationStore:
 
     # -- persistence
     def _load(self, path: Path) -> dict:
-        empty = {"format": STATE_FORMAT, "version": 1, "categories": [], "current": None, "next_id": 1,
-                 "images": {}, "undo": [], "redo": [], "imports": []}
+        empty = {
+            "format": STATE_FORMAT,
+            "version": 1,
+            "categories": [],
+            "current": None,
+            "next_id": 1,
+            "images": {},
+            "undo": [],
+            "redo": [],
+            "imports": [],
+        }
         if not path.is_file():
             return empty
         data = read_json(path)
         if not isinstance(data, dict) or data.get("format") != STATE_FORMAT:
-            raise InputError("this file is not a MatchPlant annotation session", path=path,
-                             fix="choose another output_dir, or move the file away")
+            raise InputError(
+                "this file is not a MatchPlant annotation session",
+                path=path,
+                fix="choose another output_dir, or move the file away",
+            )
         for key, value in empty.items():
             data.setdefault(key, value)
         if not isinstance(data["images"], dict) or not isinstance(data["categories"], list):
-            raise InputError("the annotation session is damaged ('images' or 'categories' of the wrong kind)",
-                             path=path, fix="move the file away (a new session starts), or restore a backup")
+            raise InputError(
+                "the annotation session is damaged ('images' or 'categories' of the wrong kind)",
+                path=path,
+                fix="move the file away (a new session starts), or restore a backup",
+            )
         log.info("resumed the annotation session in %s", path)
         return data
 
@@ -153,8 +182,10 @@ class AnnotationStore:
         if not cats:
             cats.append("plant")
         if len(cats) > MAX_CATEGORIES:
-            raise ConfigError(f"at most {MAX_CATEGORIES} categories are supported, this session has {cats}",
-                              fix="list at most 5 names under 'categories' (or start a new output_dir)")
+            raise ConfigError(
+                f"at most {MAX_CATEGORIES} categories are supported, this session has {cats}",
+                fix="list at most 5 names under 'categories' (or start a new output_dir)",
+            )
 
     # -- queries
     @property
@@ -248,9 +279,11 @@ class AnnotationStore:
     # -- internals
     def _check_category(self, category_id: int) -> None:
         if not 1 <= int(category_id) <= len(self.categories):
-            raise ConfigError(f"category {category_id} does not exist; categories are "
-                              f"{', '.join(f'{i + 1}={c}' for i, c in enumerate(self.categories))}",
-                              fix="add the category name to 'categories' in the config")
+            raise ConfigError(
+                f"category {category_id} does not exist; categories are "
+                f"{', '.join(f'{i + 1}={c}' for i, c in enumerate(self.categories))}",
+                fix="add the category name to 'categories' in the config",
+            )
 
     def _clipped(self, name: str, xyxy: Iterable[float], min_size: float | None = None) -> list[float] | None:
         w, h = self.size(name)
@@ -316,13 +349,25 @@ class AnnotationStore:
             name = matched.get(raw_name)
             if name is None:
                 for item in items:
-                    drops.add(source, item.where, raw_name, item.xyxy, NOT_IN_FOLDER,
-                              unmatched[raw_name] or f"no photo named like it in {self.images_dir}")
+                    drops.add(
+                        source,
+                        item.where,
+                        raw_name,
+                        item.xyxy,
+                        NOT_IN_FOLDER,
+                        unmatched[raw_name] or f"no photo named like it in {self.images_dir}",
+                    )
                 continue
             if self.state["images"][name]["boxes"]:
                 for item in items:
-                    drops.add(source, item.where, name, item.xyxy, NOT_A_FAULT,
-                              "delete them first (GUI), or import into a new output_dir")
+                    drops.add(
+                        source,
+                        item.where,
+                        name,
+                        item.xyxy,
+                        NOT_A_FAULT,
+                        "delete them first (GUI), or import into a new output_dir",
+                    )
                 continue
             for item in items:
                 box, why, was_clipped = self._import_box(name, item.xyxy)
@@ -330,16 +375,23 @@ class AnnotationStore:
                     drops.add(source, item.where, name, item.xyxy, why[0], why[1])
                     continue
                 clipped += was_clipped
-                new = {"id": int(self.state["next_id"]), "xyxy": box,
-                       "category_id": self.categories.index(labels[item.category]) + 1}
+                new = {
+                    "id": int(self.state["next_id"]),
+                    "xyxy": box,
+                    "category_id": self.categories.index(labels[item.category]) + 1,
+                }
                 if item.score is not None:
                     new["score"] = round(float(item.score), 4)
                 self.state["next_id"] += 1
                 self.state["images"][name]["boxes"].append(new)  # ids grow: the list stays sorted
                 added += 1
         if clipped:
-            log.warning("%d box(es) of %s reached more than %g px past their image's edge and were clipped to it",
-                        clipped, Path(source).name, EDGE_TOLERANCE)
+            log.warning(
+                "%d box(es) of %s reached more than %g px past their image's edge and were clipped to it",
+                clipped,
+                Path(source).name,
+                EDGE_TOLERANCE,
+            )
         self.state["imports"].append(key)
         self.save()
         log.info("imported %d box(es) from %s", added, source)
@@ -357,10 +409,13 @@ class AnnotationStore:
                 continue  # no size given (VOC writes 0 for unknown)
             if (w, h) != self.size(name):
                 W, H = self.size(name)
-                raise InputError(f"image '{raw}' is {w}x{h} px in the imported file but {name} is {W}x{H} px on "
-                                 f"disk: the boxes were drawn on another version of the photo", path=source,
-                                 fix="import boxes made on these same (not resized, not rotated) images, or point "
-                                     "'images' at the photos the boxes were drawn on")
+                raise InputError(
+                    f"image '{raw}' is {w}x{h} px in the imported file but {name} is {W}x{H} px on "
+                    f"disk: the boxes were drawn on another version of the photo",
+                    path=source,
+                    fix="import boxes made on these same (not resized, not rotated) images, or point "
+                    "'images' at the photos the boxes were drawn on",
+                )
 
     def _import_box(self, name: str, xyxy) -> tuple[list[float] | None, tuple[str, str], bool]:
         """(the box clipped to the image, or None; (reason, detail) when None; True when it was clipped)."""
@@ -389,25 +444,36 @@ class AnnotationStore:
         ambiguous = {raw: why for raw, why in unmatched.items() if why.startswith("ambiguous")}
         if ambiguous:
             raw, why = next(iter(ambiguous.items()))
-            raise InputError(f"{len(ambiguous)} image name(s) fit more than one photo, e.g. '{raw}' ({why})",
-                             path=source, fix="give the photos distinct names, or import a file whose image names "
-                                              "are the photos' file names")
+            raise InputError(
+                f"{len(ambiguous)} image name(s) fit more than one photo, e.g. '{raw}' ({why})",
+                path=source,
+                fix="give the photos distinct names, or import a file whose image names are the photos' file names",
+            )
         by_photo: dict[str, list[str]] = {}
         for raw, name in matched.items():
             by_photo.setdefault(name, []).append(raw)
         twice = {name: raws for name, raws in by_photo.items() if len(raws) > 1}
         if twice:
             name, raws = next(iter(twice.items()))
-            raise InputError(f"{len(twice)} photo(s) are named by more than one image of the file, e.g. {name} by "
-                             f"{', '.join(repr(r) for r in raws[:3])}: their boxes would be mixed", path=source,
-                             fix="import the boxes of each folder of photos on its own (photos with the same name "
-                                 "in different folders), or rename the photos")
+            raise InputError(
+                f"{len(twice)} photo(s) are named by more than one image of the file, e.g. {name} by "
+                f"{', '.join(repr(r) for r in raws[:3])}: their boxes would be mixed",
+                path=source,
+                fix="import the boxes of each folder of photos on its own (photos with the same name "
+                "in different folders), or rename the photos",
+            )
         used = Counter(rules.values())
         for rule, n in used.items():
             if rule != "exact":
                 example = next(raw for raw, r in rules.items() if r == rule)
-                log.info("%s: matched %d image name(s) %s (e.g. '%s' -> %s)", Path(source).name, n, RULES[rule],
-                         example, matched[example])
+                log.info(
+                    "%s: matched %d image name(s) %s (e.g. '%s' -> %s)",
+                    Path(source).name,
+                    n,
+                    RULES[rule],
+                    example,
+                    matched[example],
+                )
         return matched, unmatched
 
     def _resolve_labels(self, boxes: dict, source: str) -> dict[str, str]:
@@ -429,8 +495,11 @@ class AnnotationStore:
             else:
                 unknown[label] = n
         if by_case:
-            log.info("%s: label(s) %s taken as the categories of the same name up to case", Path(source).name,
-                     ", ".join(by_case))
+            log.info(
+                "%s: label(s) %s taken as the categories of the same name up to case",
+                Path(source).name,
+                ", ".join(by_case),
+            )
         mapped = [f"'{k}' -> {v}" for k, v in out.items() if k != v and k in self.label_map]
         if mapped:
             log.info("%s: label(s) %s mapped by label_map", Path(source).name, ", ".join(mapped))
@@ -439,9 +508,12 @@ class AnnotationStore:
             first = min(unknown)
             key = repr(first) if first.lstrip("-").isdigit() else first
             extended = ", ".join(cats + [k for k in sorted(unknown) if k not in cats])
-            raise InputError(f"the imported label(s) {names} are not among the categories [{', '.join(cats)}]",
-                             path=source, fix=f"map them onto a category (label_map: {{{key}: {cats[0]}}}) or add "
-                                              f"them to the categories (categories: [{extended}])")
+            raise InputError(
+                f"the imported label(s) {names} are not among the categories [{', '.join(cats)}]",
+                path=source,
+                fix=f"map them onto a category (label_map: {{{key}: {cats[0]}}}) or add "
+                f"them to the categories (categories: [{extended}])",
+            )
         return out
 
     # -- exports
@@ -452,8 +524,10 @@ class AnnotationStore:
         annotated (``annotated_region``, :mod:`matchplant.core.formats.coco`); images without one were annotated whole.
         """
         regions = regions or {}
-        ds = new_dataset(self.categories, info={"description": "MatchPlant annotations (module 4)",
-                                                "images_dir": str(self.images_dir)})
+        ds = new_dataset(
+            self.categories,
+            info={"description": "MatchPlant annotations (module 4)", "images_dir": str(self.images_dir)},
+        )
         ann_id = 1
         for image_id, name in enumerate(self.images, start=1):
             entry = self.state["images"][name]
@@ -466,14 +540,21 @@ class AnnotationStore:
             for b in entry["boxes"]:
                 x1, y1, x2, y2 = b["xyxy"]
                 extra = {"score": b["score"]} if "score" in b else {}
-                ds["annotations"].append(make_annotation(ann_id, image_id, [x1, y1, round(x2 - x1, DECIMALS),
-                                                                            round(y2 - y1, DECIMALS)],
-                                                         b["category_id"], **extra))
+                ds["annotations"].append(
+                    make_annotation(
+                        ann_id,
+                        image_id,
+                        [x1, y1, round(x2 - x1, DECIMALS), round(y2 - y1, DECIMALS)],
+                        b["category_id"],
+                        **extra,
+                    )
+                )
                 ann_id += 1
         return ds
 
-    def export(self, coco: bool = True, yolo: bool = False, include_unseen: bool = False,
-               regions: dict[str, Any] | None = None) -> dict[str, Path]:
+    def export(
+        self, coco: bool = True, yolo: bool = False, include_unseen: bool = False, regions: dict[str, Any] | None = None
+    ) -> dict[str, Path]:
         ds = self.to_coco(include_unseen, regions)
         out: dict[str, Path] = {}
         if coco:

@@ -18,7 +18,7 @@ from matplotlib.collections import PathCollection
 from matplotlib.image import AxesImage
 from matplotlib.path import Path
 
-MIN_LEVEL_SIDE = 256   # the pyramid stops when a level's long side would be shorter than this
+MIN_LEVEL_SIDE = 256  # the pyramid stops when a level's long side would be shorter than this
 
 
 def build_pyramid(img: np.ndarray) -> list[np.ndarray]:
@@ -48,7 +48,7 @@ class PyramidImage(AxesImage):
         self.levels = build_pyramid(img[:, :, :3])
         self.full_h, self.full_w = img.shape[:2]
         self.shown_level: int | None = None  # the level used by the last draw (tests, benchmark)
-        self.set_data(self.levels[-1])       # for Matplotlib's own queries (cursor data, limits)
+        self.set_data(self.levels[-1])  # for Matplotlib's own queries (cursor data, limits)
         # the extent is set directly: AxesImage.set_extent would also autoscale the axes' limits
         self._extent = (0, self.full_w, self.full_h, 0)
 
@@ -84,8 +84,12 @@ class PyramidImage(AxesImage):
         # output pixel (c, r) has its centre at display (L + (c + .5) / m, B + (r + .5) / m) (the renderer
         # takes row 0 at the bottom); level pixel i has its centre at data (i + .5) * s
         m = magnification
-        M = np.array([[kx / m / sx, 0.0, (dx0 + kx * (L + 0.5 / m)) / sx - 0.5],
-                      [0.0, ky / m / sy, (dy0 + ky * (B + 0.5 / m)) / sy - 0.5]])
+        M = np.array(
+            [
+                [kx / m / sx, 0.0, (dx0 + kx * (L + 0.5 / m)) / sx - 0.5],
+                [0.0, ky / m / sy, (dy0 + ky * (B + 0.5 / m)) / sy - 0.5],
+            ]
+        )
         flags = (cv2.INTER_NEAREST if px_per_screen < 1 else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
         rgb = cv2.warpAffine(arr, M, (out_w, out_h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         rgba = np.empty((out_h, out_w, 4), np.uint8)
@@ -120,8 +124,16 @@ def box_outlines(xyxy: np.ndarray) -> np.ndarray:
     """(N, 5, 2) closed outlines of boxes ``[x1, y1, x2, y2]``."""
     b = np.asarray(xyxy, float).reshape(-1, 4)
     x1, y1, x2, y2 = b.T
-    return np.stack([np.stack([x1, y1], 1), np.stack([x2, y1], 1), np.stack([x2, y2], 1),
-                     np.stack([x1, y2], 1), np.stack([x1, y1], 1)], axis=1)
+    return np.stack(
+        [
+            np.stack([x1, y1], 1),
+            np.stack([x2, y1], 1),
+            np.stack([x2, y2], 1),
+            np.stack([x1, y2], 1),
+            np.stack([x1, y1], 1),
+        ],
+        axis=1,
+    )
 
 
 class BoxLayer:
@@ -149,8 +161,9 @@ class BoxLayer:
 def compound_path(xyxy: list) -> Path:
     """One path made of the closed outlines of many boxes."""
     verts = box_outlines(xyxy).reshape(-1, 2)
-    codes = np.tile(np.array([Path.MOVETO, Path.LINETO, Path.LINETO, Path.LINETO, Path.CLOSEPOLY],
-                             dtype=Path.code_type), len(xyxy))
+    codes = np.tile(
+        np.array([Path.MOVETO, Path.LINETO, Path.LINETO, Path.LINETO, Path.CLOSEPOLY], dtype=Path.code_type), len(xyxy)
+    )
     return Path(verts, codes)
 
 

@@ -14,8 +14,9 @@ name its builders and weights as strings, so configs load without PyTorch.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.validate import did_you_mean
@@ -31,18 +32,20 @@ class AnchorRule:
     gives ``levels`` lists of the sizes ``small * 2**k`` for k < per_level.
     """
 
-    levels: int         # FPN levels the model has (and anchor_sizes must list)
-    per_level: int      # anchor sizes per level
+    levels: int  # FPN levels the model has (and anchor_sizes must list)
+    per_level: int  # anchor sizes per level
     same_sizes_everywhere: bool = False
 
     def sizes(self, small: float) -> list[list[int]]:
         """Anchor sizes (input pixels) for objects whose small ones are ``small`` pixels."""
         base = max(8.0, small)
         if self.same_sizes_everywhere:
-            sizes = [int(round(base * 2 ** k)) for k in range(self.per_level)]
+            sizes = [int(round(base * 2**k)) for k in range(self.per_level)]
             return [sizes for _ in range(self.levels)]
-        return [[int(round(base * 2 ** i * 2 ** (k / self.per_level))) for k in range(self.per_level)]
-                for i in range(self.levels)]
+        return [
+            [int(round(base * 2**i * 2 ** (k / self.per_level))) for k in range(self.per_level)]
+            for i in range(self.levels)
+        ]
 
 
 def _resnet_stages(body) -> list[list[Any]]:
@@ -63,8 +66,8 @@ class Backbone:
     """A feature extractor: its ImageNet weights (``pretrained: imagenet``) and its stages."""
 
     name: str
-    imagenet_weights: str               # torchvision.models weights, e.g. "ResNet50_Weights.IMAGENET1K_V1"
-    stage_count: int                    # stages as torchvision's trainable_backbone_layers counts them
+    imagenet_weights: str  # torchvision.models weights, e.g. "ResNet50_Weights.IMAGENET1K_V1"
+    stage_count: int  # stages as torchvision's trainable_backbone_layers counts them
     stages: Callable[[Any], list[list[Any]]]  # model.backbone.body -> its stages from the input on
 
 
@@ -77,14 +80,14 @@ MOBILENET_V3_LARGE = Backbone("mobilenet_v3_large", "MobileNet_V3_Large_Weights.
 class Architecture:
     """One torchvision detector and everything MatchPlant needs to build, train and time it."""
 
-    name: str                           # model.architecture
-    builder: str                        # the torchvision.models.detection function that builds it (or lite.py's)
-    coco_weights: str | None            # its torchvision COCO weights (``pretrained: coco``); None: there are none
+    name: str  # model.architecture
+    builder: str  # the torchvision.models.detection function that builds it (or lite.py's)
+    coco_weights: str | None  # its torchvision COCO weights (``pretrained: coco``); None: there are none
     backbone: Backbone
-    two_stage: bool                     # Faster R-CNN (rpn + roi_heads) or one-stage (head)
-    anchors: AnchorRule                 # anchor_sizes: auto
+    two_stage: bool  # Faster R-CNN (rpn + roi_heads) or one-stage (head)
+    anchors: AnchorRule  # anchor_sizes: auto
     default_anchors: tuple[tuple[int, ...], ...]  # torchvision's, one tuple per FPN level
-    anchor_free: bool = False           # FCOS: one size per level, which sets the object sizes it learns
+    anchor_free: bool = False  # FCOS: one size per level, which sets the object sizes it learns
     frozen_backbone_norms: bool = True  # torchvision freezes a pretrained backbone's batch norms (not v2)
     head_norm_groups: int | None = None  # GroupNorm groups of a rebuilt RetinaNet head (v2)
     cpu_seconds_per_megapixel: float | None = None  # measured (see ARCHITECTURES); None: not measured
@@ -104,29 +107,82 @@ _ONE_PER_LEVEL, _OCTAVES = AnchorRule(5, 1), AnchorRule(5, 3)
 # cpu_seconds_per_megapixel: one forward pass (detection), measured on this project's 2-core machine
 # (`python -m matchplant.detection.device --measure`, README "How long will it take?") while other jobs
 # shared it: pessimistic; an idle machine is faster. RetinaNet and FCOS were not measured.
-ARCHITECTURES: dict[str, Architecture] = {a.name: a for a in (
-    Architecture("fasterrcnn_resnet50_fpn", "fasterrcnn_resnet50_fpn", "FasterRCNN_ResNet50_FPN_Weights.COCO_V1",
-                 RESNET50, two_stage=True, anchors=_ONE_PER_LEVEL, default_anchors=_RESNET_LEVELS,
-                 cpu_seconds_per_megapixel=15.2),
-    Architecture("fasterrcnn_resnet50_fpn_v2", "fasterrcnn_resnet50_fpn_v2",
-                 "FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, two_stage=True, anchors=_ONE_PER_LEVEL,
-                 default_anchors=_RESNET_LEVELS, frozen_backbone_norms=False, cpu_seconds_per_megapixel=28.2),
-    Architecture("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_mobilenet_v3_large_fpn",
-                 "FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1", MOBILENET_V3_LARGE, two_stage=True,
-                 anchors=AnchorRule(3, 3, same_sizes_everywhere=True),
-                 default_anchors=((32, 64, 128, 256, 512),) * 3, cpu_seconds_per_megapixel=9.2),
-    # from random weights on a CPU (matchplant.detection.lite): ResNet-18 to stride 16, a 64-channel FPN
-    Architecture("fasterrcnn_resnet18_fpn_lite", "fasterrcnn_resnet18_fpn_lite", None, RESNET18_TO_LAYER3,
-                 two_stage=True, anchors=AnchorRule(3, 3), default_anchors=LITE_ANCHORS),
-    Architecture("retinanet_resnet50_fpn", "retinanet_resnet50_fpn", "RetinaNet_ResNet50_FPN_Weights.COCO_V1",
-                 RESNET50, two_stage=False, anchors=_OCTAVES, default_anchors=_RETINANET_ANCHORS),
-    Architecture("retinanet_resnet50_fpn_v2", "retinanet_resnet50_fpn_v2",
-                 "RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1", RESNET50, two_stage=False, anchors=_OCTAVES,
-                 default_anchors=_RETINANET_ANCHORS, frozen_backbone_norms=False, head_norm_groups=32),
-    Architecture("fcos_resnet50_fpn", "fcos_resnet50_fpn", "FCOS_ResNet50_FPN_Weights.COCO_V1", RESNET50,
-                 two_stage=False, anchors=_ONE_PER_LEVEL, default_anchors=((8,), (16,), (32,), (64,), (128,)),
-                 anchor_free=True),
-)}
+ARCHITECTURES: dict[str, Architecture] = {
+    a.name: a
+    for a in (
+        Architecture(
+            "fasterrcnn_resnet50_fpn",
+            "fasterrcnn_resnet50_fpn",
+            "FasterRCNN_ResNet50_FPN_Weights.COCO_V1",
+            RESNET50,
+            two_stage=True,
+            anchors=_ONE_PER_LEVEL,
+            default_anchors=_RESNET_LEVELS,
+            cpu_seconds_per_megapixel=15.2,
+        ),
+        Architecture(
+            "fasterrcnn_resnet50_fpn_v2",
+            "fasterrcnn_resnet50_fpn_v2",
+            "FasterRCNN_ResNet50_FPN_V2_Weights.COCO_V1",
+            RESNET50,
+            two_stage=True,
+            anchors=_ONE_PER_LEVEL,
+            default_anchors=_RESNET_LEVELS,
+            frozen_backbone_norms=False,
+            cpu_seconds_per_megapixel=28.2,
+        ),
+        Architecture(
+            "fasterrcnn_mobilenet_v3_large_fpn",
+            "fasterrcnn_mobilenet_v3_large_fpn",
+            "FasterRCNN_MobileNet_V3_Large_FPN_Weights.COCO_V1",
+            MOBILENET_V3_LARGE,
+            two_stage=True,
+            anchors=AnchorRule(3, 3, same_sizes_everywhere=True),
+            default_anchors=((32, 64, 128, 256, 512),) * 3,
+            cpu_seconds_per_megapixel=9.2,
+        ),
+        # from random weights on a CPU (matchplant.detection.lite): ResNet-18 to stride 16, a 64-channel FPN
+        Architecture(
+            "fasterrcnn_resnet18_fpn_lite",
+            "fasterrcnn_resnet18_fpn_lite",
+            None,
+            RESNET18_TO_LAYER3,
+            two_stage=True,
+            anchors=AnchorRule(3, 3),
+            default_anchors=LITE_ANCHORS,
+        ),
+        Architecture(
+            "retinanet_resnet50_fpn",
+            "retinanet_resnet50_fpn",
+            "RetinaNet_ResNet50_FPN_Weights.COCO_V1",
+            RESNET50,
+            two_stage=False,
+            anchors=_OCTAVES,
+            default_anchors=_RETINANET_ANCHORS,
+        ),
+        Architecture(
+            "retinanet_resnet50_fpn_v2",
+            "retinanet_resnet50_fpn_v2",
+            "RetinaNet_ResNet50_FPN_V2_Weights.COCO_V1",
+            RESNET50,
+            two_stage=False,
+            anchors=_OCTAVES,
+            default_anchors=_RETINANET_ANCHORS,
+            frozen_backbone_norms=False,
+            head_norm_groups=32,
+        ),
+        Architecture(
+            "fcos_resnet50_fpn",
+            "fcos_resnet50_fpn",
+            "FCOS_ResNet50_FPN_Weights.COCO_V1",
+            RESNET50,
+            two_stage=False,
+            anchors=_ONE_PER_LEVEL,
+            default_anchors=((8,), (16,), (32,), (64,), (128,)),
+            anchor_free=True,
+        ),
+    )
+}
 
 
 def get_architecture(name: str) -> Architecture:
@@ -135,8 +191,10 @@ def get_architecture(name: str) -> Architecture:
         return ARCHITECTURES[name]
     except KeyError:
         hint = did_you_mean(name, ARCHITECTURES)
-        raise ConfigError(f"unknown detector architecture {name!r}{f' ({hint})' if hint else ''}",
-                          fix=f"use one of {', '.join(ARCHITECTURES)}") from None
+        raise ConfigError(
+            f"unknown detector architecture {name!r}{f' ({hint})' if hint else ''}",
+            fix=f"use one of {', '.join(ARCHITECTURES)}",
+        ) from None
 
 
 __all__ = ["AnchorRule", "Architecture", "Backbone", "ARCHITECTURES", "get_architecture"]

@@ -19,16 +19,22 @@ CHECKPOINT_FORMAT = "matchplant-detector"
 CHECKPOINT_VERSION = 1
 
 
-def save_checkpoint(path: str | Path, model, model_cfg: ModelConfig, class_names: list[str],
-                    category_ids: list[int], **extra) -> Path:
+def save_checkpoint(
+    path: str | Path, model, model_cfg: ModelConfig, class_names: list[str], category_ids: list[int], **extra
+) -> Path:
     """Write a self-contained checkpoint atomically (``extra``: epoch, optimizer state, metrics, ...)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     model = getattr(model, "module", model)  # DistributedDataParallel
-    data = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION,
-            "model_config": to_dict(dataclasses.replace(model_cfg, checkpoint=None)),
-            "class_names": list(class_names), "category_ids": [int(c) for c in category_ids],
-            "model_state": model.state_dict(), **extra}
+    data = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "model_config": to_dict(dataclasses.replace(model_cfg, checkpoint=None)),
+        "class_names": list(class_names),
+        "category_ids": [int(c) for c in category_ids],
+        "model_state": model.state_dict(),
+        **extra,
+    }
     with atomic_path(path) as tmp:
         torch.save(data, tmp)
     return Path(path)
@@ -47,8 +53,11 @@ def read_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     data = load_checkpoint_file(path)
     if not isinstance(data, dict) or data.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(f"not a MatchPlant detector checkpoint: it holds {_describe_foreign(data, torch)}",
-                         path=path, fix=f"{CHECKPOINT_FIX}; to train from other weights, use model.pretrained")
+        raise InputError(
+            f"not a MatchPlant detector checkpoint: it holds {_describe_foreign(data, torch)}",
+            path=path,
+            fix=f"{CHECKPOINT_FIX}; to train from other weights, use model.pretrained",
+        )
     return check_checkpoint(data, path)
 
 
@@ -68,26 +77,35 @@ def load_checkpoint_file(path: str | Path) -> Any:
         head = fh.read(256)
     text = head.decode("ascii", "replace").strip()
     if text and head.isascii() and all(c.isprintable() or c in "\r\n\t" for c in text):
-        raise InputError(f"this is a text file, not a checkpoint (it starts with {text.splitlines()[0][:40]!r})",
-                         path=path, fix=fix)
+        raise InputError(
+            f"this is a text file, not a checkpoint (it starts with {text.splitlines()[0][:40]!r})", path=path, fix=fix
+        )
     try:
         data = torch.load(path, map_location="cpu", weights_only=False)
     except ModuleNotFoundError as exc:
-        raise InputError(f"not a MatchPlant checkpoint: another program wrote it (reading it needs the Python "
-                         f"module '{exc.name}')", path=path, fix=fix) from exc
+        raise InputError(
+            f"not a MatchPlant checkpoint: another program wrote it (reading it needs the Python module '{exc.name}')",
+            path=path,
+            fix=fix,
+        ) from exc
     except Exception as exc:  # noqa: BLE001 - any unpickling problem means the same to the user
         if head.startswith(b"PK") and not zipfile.is_zipfile(path):
-            raise InputError(f"the checkpoint is truncated ({size} bytes; the end of the archive is missing)",
-                             path=path, fix="the file was cut off (disk full, an interrupted copy or run): copy it "
-                                            "again, or use another checkpoint of the run (last.pt, epoch_NNN.pt)"
-                             ) from exc
-        raise InputError(f"cannot read this checkpoint: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}",
-                         path=path, fix=fix) from exc
+            raise InputError(
+                f"the checkpoint is truncated ({size} bytes; the end of the archive is missing)",
+                path=path,
+                fix="the file was cut off (disk full, an interrupted copy or run): copy it "
+                "again, or use another checkpoint of the run (last.pt, epoch_NNN.pt)",
+            ) from exc
+        raise InputError(
+            f"cannot read this checkpoint: {type(exc).__name__}: {str(exc).splitlines()[0][:200]}", path=path, fix=fix
+        ) from exc
     if isinstance(data, torch.nn.Module):
-        raise InputError(f"not a MatchPlant checkpoint: a whole pickled model ({type(data).__name__}, from "
-                         "torch.save(model)), without MatchPlant's settings and class names", path=path,
-                         fix=f"{fix}; or save its weights with torch.save(model.state_dict(), path) and set "
-                             "class_names")
+        raise InputError(
+            f"not a MatchPlant checkpoint: a whole pickled model ({type(data).__name__}, from "
+            "torch.save(model)), without MatchPlant's settings and class names",
+            path=path,
+            fix=f"{fix}; or save its weights with torch.save(model.state_dict(), path) and set class_names",
+        )
     return data
 
 
@@ -97,8 +115,11 @@ def check_checkpoint(data: dict, path: Path) -> dict:
     if not isinstance(data.get("version"), int):
         raise InputError("the checkpoint has no version number (damaged or edited)", path=path, fix=fix)
     if data["version"] > CHECKPOINT_VERSION:
-        raise InputError(f"checkpoint version {data['version']} is newer than this MatchPlant reads",
-                         path=path, fix="update MatchPlant")
+        raise InputError(
+            f"checkpoint version {data['version']} is newer than this MatchPlant reads",
+            path=path,
+            fix="update MatchPlant",
+        )
     _check_contents(data, path)
     return data
 
@@ -117,27 +138,39 @@ def _check_contents(data: dict, path: Path) -> None:
     """The keys a checkpoint needs, of the right kinds, and model settings this version can build."""
     fix = "the file is damaged or was edited; use the checkpoint as module 6 wrote it"
     names, ids = data.get("class_names"), data.get("category_ids")
-    for key, ok in (("model_config", isinstance(data.get("model_config"), dict)),
-                    ("model_state", isinstance(data.get("model_state"), dict)),
-                    ("class_names", isinstance(names, list) and bool(names) and all(isinstance(n, str) for n in names)),
-                    ("category_ids", isinstance(ids, list) and isinstance(names, list) and len(ids) == len(names))):
+    for key, ok in (
+        ("model_config", isinstance(data.get("model_config"), dict)),
+        ("model_state", isinstance(data.get("model_state"), dict)),
+        ("class_names", isinstance(names, list) and bool(names) and all(isinstance(n, str) for n in names)),
+        ("category_ids", isinstance(ids, list) and isinstance(names, list) and len(ids) == len(names)),
+    ):
         if not ok:
             raise InputError(f"the checkpoint's '{key}' is missing or not valid", path=path, fix=fix)
     arch = data["model_config"].get("architecture")
     if not isinstance(arch, str) or arch not in ARCHITECTURES:
-        raise InputError(f"the checkpoint is a '{arch}' model, which MatchPlant cannot build (it builds "
-                         f"{', '.join(ARCHITECTURES)})", path=path,
-                         fix="use a checkpoint trained by module 6, or update MatchPlant if a newer one wrote it")
+        raise InputError(
+            f"the checkpoint is a '{arch}' model, which MatchPlant cannot build (it builds {', '.join(ARCHITECTURES)})",
+            path=path,
+            fix="use a checkpoint trained by module 6, or update MatchPlant if a newer one wrote it",
+        )
     try:
         model_config_from_dict(data["model_config"])
     except ConfigError as exc:
-        raise InputError(f"the checkpoint's model settings cannot be used here: {exc.problem}", path=path,
-                         fix="it comes from another MatchPlant version or was edited: update MatchPlant, or use a "
-                             "checkpoint written by this version's module 6") from exc
+        raise InputError(
+            f"the checkpoint's model settings cannot be used here: {exc.problem}",
+            path=path,
+            fix="it comes from another MatchPlant version or was edited: update MatchPlant, or use a "
+            "checkpoint written by this version's module 6",
+        ) from exc
 
 
-def load_detector(path_or_data: str | Path | dict, device: Any = "cpu", *, overrides: dict | None = None,
-                  source: str | Path | None = None):
+def load_detector(
+    path_or_data: str | Path | dict,
+    device: Any = "cpu",
+    *,
+    overrides: dict | None = None,
+    source: str | Path | None = None,
+):
     """Rebuild a detector from a checkpoint; returns ``(model, checkpoint_dict)``.
 
     ``overrides`` replaces settings, e.g. ``{"roi": {"detections_per_img": 500}}``; the score threshold
@@ -158,11 +191,17 @@ def load_detector(path_or_data: str | Path | dict, device: Any = "cpu", *, overr
     missing = sorted(k for k in own if k not in state and not k.endswith(counter))
     extra = sorted(k for k in state if k not in own and not str(k).endswith(counter))
     if wrong or missing or extra:
-        parts = [f"{len(v)} {what} (e.g. {v[0]})" for v, what in ((missing, "missing"), (extra, "unexpected"),
-                                                                    (wrong, "of another shape")) if v]
-        raise InputError(f"the checkpoint's weights do not fit its model ({cfg.architecture}, "
-                         f"{len(data['class_names'])} class(es)): {'; '.join(parts)} tensors", path=source,
-                         fix="the file was edited or mixes two models; use the checkpoint as module 6 wrote it")
+        parts = [
+            f"{len(v)} {what} (e.g. {v[0]})"
+            for v, what in ((missing, "missing"), (extra, "unexpected"), (wrong, "of another shape"))
+            if v
+        ]
+        raise InputError(
+            f"the checkpoint's weights do not fit its model ({cfg.architecture}, "
+            f"{len(data['class_names'])} class(es)): {'; '.join(parts)} tensors",
+            path=source,
+            fix="the file was edited or mixes two models; use the checkpoint as module 6 wrote it",
+        )
     model.load_state_dict(state)
     model.to(device).eval()
     return model, data

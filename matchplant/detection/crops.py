@@ -45,7 +45,9 @@ def crop_steps(crop: int, min_size: int, max_size: int, on_plant: float = 0.0) -
             s = detector_scale(h, w, min_size, max_size)
             size = [max(round(h * s), 1), max(round(w * s), 1)]
             return T.functional.resize(image, size, antialias=True), {
-                **target, "boxes": T.functional.resize(target["boxes"], size)}
+                **target,
+                "boxes": T.functional.resize(target["boxes"], size),
+            }
 
     class Window(nn.Module):
         """The window, padded with black below and right where the tile is smaller; with probability ``on_plant``
@@ -55,17 +57,25 @@ def crop_steps(crop: int, min_size: int, max_size: int, on_plant: float = 0.0) -
             h, w = image.shape[-2:]
             if h < crop or w < crop:
                 pad = [0, 0, max(crop - w, 0), max(crop - h, 0)]
-                image, target = T.functional.pad(image, pad), {**target, "boxes": T.functional.pad(target["boxes"], pad)}
+                image, target = (
+                    T.functional.pad(image, pad),
+                    {**target, "boxes": T.functional.pad(target["boxes"], pad)},
+                )
                 h, w = image.shape[-2:]
             boxes = target["boxes"]
             if len(boxes) and float(torch.rand(())) < on_plant:
                 b = boxes[int(torch.randint(len(boxes), ()).item())]
                 cx, cy = int((b[0] + b[2]) / 2), int((b[1] + b[3]) / 2)
-                x0, y0 = uniform(max(cx - crop + 1, 0), min(cx, w - crop)), uniform(max(cy - crop + 1, 0), min(cy, h - crop))
+                x0, y0 = (
+                    uniform(max(cx - crop + 1, 0), min(cx, w - crop)),
+                    uniform(max(cy - crop + 1, 0), min(cy, h - crop)),
+                )
             else:
                 x0, y0 = uniform(0, w - crop), uniform(0, h - crop)
             return T.functional.crop(image, y0, x0, crop, crop), {
-                **target, "boxes": T.functional.crop(boxes, y0, x0, crop, crop)}
+                **target,
+                "boxes": T.functional.crop(boxes, y0, x0, crop, crop),
+            }
 
     return [DetectorScale(), Window(), T.SanitizeBoundingBoxes(min_size=MIN_BOX_PX)]
 
@@ -74,6 +84,7 @@ def skip_training_resize(model, skip: bool = True) -> None:
     """Make the model take training images as they come (already at its scale: :func:`crop_steps`)."""
     model = getattr(model, "module", model)  # DistributedDataParallel
     if not hasattr(model.transform, "_skip_resize"):  # torchvision >= 0.13 has it
-        raise RuntimeError("this torchvision's detection transform cannot skip its resize (augment.crop needs "
-                           "torchvision >= 0.13)")
+        raise RuntimeError(
+            "this torchvision's detection transform cannot skip its resize (augment.crop needs torchvision >= 0.13)"
+        )
     model.transform._skip_resize = skip

@@ -45,15 +45,25 @@ class AugmentConfig:
     brightness: float = param(0.2, "random brightness change, as a fraction", min=0, max=1)
     contrast: float = param(0.2, "random contrast change, as a fraction", min=0, max=1)
     saturation: float = param(0.2, "random saturation change, as a fraction", min=0, max=1)
-    hue: float = param(0.0, "random hue shift (0..0.5 of the colour circle); plant green matters, keep it "
-                            "small", min=0, max=0.5)
-    crop: int | None = param(None, "train on random crop x crop windows of each tile at the detector's scale "
-                             "(detector input pixels): a step then costs the crop, not the tile; 0 = whole tiles; "
-                             "null = auto (module 6: 256 with model.architecture auto from random weights on a CPU, see "
-                             "its README)", min=0)
-    crop_on_plant: float = param(0.0, "probability that a training crop holds a random plant of the tile (else it "
-                                 "lies anywhere; anywhere did as well or better on dense and on sparse plants, see "
-                                 "module 6's README)", min=0, max=1)
+    hue: float = param(
+        0.0, "random hue shift (0..0.5 of the colour circle); plant green matters, keep it small", min=0, max=0.5
+    )
+    crop: int | None = param(
+        None,
+        "train on random crop x crop windows of each tile at the detector's scale "
+        "(detector input pixels): a step then costs the crop, not the tile; 0 = whole tiles; "
+        "null = auto (module 6: 256 with model.architecture auto from random weights on a CPU, see "
+        "its README)",
+        min=0,
+    )
+    crop_on_plant: float = param(
+        0.0,
+        "probability that a training crop holds a random plant of the tile (else it "
+        "lies anywhere; anywhere did as well or better on dense and on sparse plants, see "
+        "module 6's README)",
+        min=0,
+        max=1,
+    )
 
 
 def build_augmentation(cfg: AugmentConfig | None):
@@ -68,8 +78,14 @@ def build_augmentation(cfg: AugmentConfig | None):
     if cfg.vflip > 0:
         steps.append(T.RandomVerticalFlip(cfg.vflip))
     if max(cfg.brightness, cfg.contrast, cfg.saturation, cfg.hue) > 0:
-        steps.append(T.ColorJitter(brightness=cfg.brightness or None, contrast=cfg.contrast or None,
-                                   saturation=cfg.saturation or None, hue=cfg.hue or None))
+        steps.append(
+            T.ColorJitter(
+                brightness=cfg.brightness or None,
+                contrast=cfg.contrast or None,
+                saturation=cfg.saturation or None,
+                hue=cfg.hue or None,
+            )
+        )
     return T.Compose(steps) if steps else None
 
 
@@ -166,16 +182,20 @@ def _looks_cut(im, path: Path, size: int) -> str:
 def _check_ids(data: dict, path: Path) -> None:
     """Every image, annotation and category id (and an annotation's image_id, category_id) an integer, as
     COCO and its tools have them."""
-    for kind, key, names in (("image", "images", ("id",)),
-                             ("annotation", "annotations", ("id", "image_id", "category_id")),
-                             ("category", "categories", ("id",))):
+    for kind, key, names in (
+        ("image", "images", ("id",)),
+        ("annotation", "annotations", ("id", "image_id", "category_id")),
+        ("category", "categories", ("id",)),
+    ):
         for i, item in enumerate(data[key]):
             for name in names:
                 value = item.get(name)
                 if not isinstance(value, int) or isinstance(value, bool):
-                    raise InputError(f"{kind} number {i + 1} of '{key}' has {name} = {value!r}, not an integer",
-                                     path=path, fix=f"give every {kind} its integer '{name}' (or regenerate the "
-                                                    "file with module 4 or 5)")
+                    raise InputError(
+                        f"{kind} number {i + 1} of '{key}' has {name} = {value!r}, not an integer",
+                        path=path,
+                        fix=f"give every {kind} its integer '{name}' (or regenerate the file with module 4 or 5)",
+                    )
 
 
 def _check_categories(data: dict, path: Path) -> None:
@@ -184,19 +204,28 @@ def _check_categories(data: dict, path: Path) -> None:
     example = '"categories": [{"id": 1, "name": "plant"}]'
     if not cats:
         if anns:
-            raise InputError(f"the COCO file has {len(anns)} annotation(s) but no 'categories'", path=path,
-                             fix=f"add the categories, e.g. {example} (modules 4 and 5 write them)")
+            raise InputError(
+                f"the COCO file has {len(anns)} annotation(s) but no 'categories'",
+                path=path,
+                fix=f"add the categories, e.g. {example} (modules 4 and 5 write them)",
+            )
         return
     for c in cats:
         if not isinstance(c.get("id"), int) or isinstance(c.get("id"), bool) or not str(c.get("name") or "").strip():
-            raise InputError(f"category {c!r} needs an integer 'id' and a 'name'", path=path,
-                             fix=f"write each category as in {example}")
+            raise InputError(
+                f"category {c!r} needs an integer 'id' and a 'name'",
+                path=path,
+                fix=f"write each category as in {example}",
+            )
     names = Counter(str(c["name"]) for c in cats)
     twice = [n for n, k in names.items() if k > 1]
     if twice:
-        raise InputError(f"category name '{twice[0]}' is used by {names[twice[0]]} categories (ids "
-                         f"{[c['id'] for c in cats if str(c['name']) == twice[0]]})", path=path,
-                         fix="give each category its own name, or merge them into one id")
+        raise InputError(
+            f"category name '{twice[0]}' is used by {names[twice[0]]} categories (ids "
+            f"{[c['id'] for c in cats if str(c['name']) == twice[0]]})",
+            path=path,
+            fix="give each category its own name, or merge them into one id",
+        )
     ids = {c["id"]: str(c["name"]) for c in cats}
     unknown = Counter(repr(a.get("category_id")) for a in anns if a.get("category_id") not in ids)
     if unknown:
@@ -205,34 +234,50 @@ def _check_categories(data: dict, path: Path) -> None:
         values = [a.get("category_id") for a in anns if a.get("category_id") not in ids]
         zero_based = all(isinstance(v, int) and v + 1 in ids for v in values)
         hint = "; numbered from 0? COCO category ids here start at " + str(min(ids)) if zero_based else ""
-        raise InputError(f"{n} of {len(anns)} annotations have a category_id that is not a category: {shown}; "
-                         f"the categories are {', '.join(f'{i} {nm!r}' for i, nm in sorted(ids.items()))}{hint}",
-                         path=path, fix="give each annotation the id of one of the 'categories' (or add the "
-                                        "missing categories)")
+        raise InputError(
+            f"{n} of {len(anns)} annotations have a category_id that is not a category: {shown}; "
+            f"the categories are {', '.join(f'{i} {nm!r}' for i, nm in sorted(ids.items()))}{hint}",
+            path=path,
+            fix="give each annotation the id of one of the 'categories' (or add the missing categories)",
+        )
 
 
 def _find_files(images: list[dict], json_path: Path, images_dir: Path) -> list[Path]:
     for im in images:
         if not isinstance(im.get("file_name"), str) or not im["file_name"].strip():
-            raise InputError(f"image id {im.get('id')!r} has no file_name", path=json_path,
-                             fix="give every image entry the name of its file")
+            raise InputError(
+                f"image id {im.get('id')!r} has no file_name",
+                path=json_path,
+                fix="give every image entry the name of its file",
+            )
     paths = [find_image(im["file_name"], images_dir, json_path.stem) for im in images]
     missing = [im["file_name"] for im, p in zip(images, paths) if p is None]
     if not missing:
         return paths  # type: ignore[return-value]
     looked = f"{images_dir}, {images_dir / 'images'}, {images_dir / json_path.stem / 'images'}"
-    folder = images_dir / json_path.stem / "images" if (images_dir / json_path.stem / "images").is_dir() else \
-        images_dir / "images" if (images_dir / "images").is_dir() else images_dir
+    folder = (
+        images_dir / json_path.stem / "images"
+        if (images_dir / json_path.stem / "images").is_dir()
+        else images_dir / "images"
+        if (images_dir / "images").is_dir()
+        else images_dir
+    )
     present = {name_key(p.name): p.name for p in folder.iterdir()} if folder.is_dir() else {}
     close = present.get(name_key(missing[0]))  # the same name but for case or extension; tiles all look alike
     hint = f"did you mean '{close}' (in {folder})?" if close else ""
-    what = f"none of the {len(images)} image files of {json_path.name} was found" if len(missing) == len(images) \
+    what = (
+        f"none of the {len(images)} image files of {json_path.name} was found"
+        if len(missing) == len(images)
         else f"{len(missing)} of the {len(images)} image files of {json_path.name} are missing"
-    raise InputError(f"{what} (looked in {looked}): "
-                     f"{', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}{'; ' + hint if hint else ''}",
-                     path=json_path, fix="set the images folder of this dataset (train_images, val_images or "
-                                         "evaluate.images), copy the missing files, or regenerate the tiles "
-                                         "with module 5")
+    )
+    raise InputError(
+        f"{what} (looked in {looked}): "
+        f"{', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}{'; ' + hint if hint else ''}",
+        path=json_path,
+        fix="set the images folder of this dataset (train_images, val_images or "
+        "evaluate.images), copy the missing files, or regenerate the tiles "
+        "with module 5",
+    )
 
 
 def check_image_files(paths: list[Path], source: str) -> list[tuple[int, int]]:
@@ -246,18 +291,19 @@ def check_image_files(paths: list[Path], source: str) -> list[tuple[int, int]]:
             bad.append((p, exc.problem))
             sizes.append((0, 0))
     if bad:
-        raise InputError(f"{len(bad)} image file(s) of {source} cannot be used: "
-                         f"{'; '.join(f'{p.name} ({why})' for p, why in bad[:5])}{' ...' if len(bad) > 5 else ''}",
-                         path=bad[0][0] if len(bad) == 1 else bad[0][0].parent,
-                         fix="copy those files again, regenerate them (module 5 for tiles), or remove them")
+        raise InputError(
+            f"{len(bad)} image file(s) of {source} cannot be used: "
+            f"{'; '.join(f'{p.name} ({why})' for p, why in bad[:5])}{' ...' if len(bad) > 5 else ''}",
+            path=bad[0][0] if len(bad) == 1 else bad[0][0].parent,
+            fix="copy those files again, regenerate them (module 5 for tiles), or remove them",
+        )
     return sizes
 
 
 def _use_file_sizes(data: dict, sizes: list[tuple[int, int]], json_path: Path, tolerance: float = 1.0) -> None:
     """Where the JSON's width/height differ from the file's: an error when boxes fall outside the real image,
     else a warning with counts; the files' sizes replace the JSON's (in memory)."""
-    differ = {im["id"]: (im, wh) for im, wh in zip(data["images"], sizes)
-              if (im.get("width"), im.get("height")) != wh}
+    differ = {im["id"]: (im, wh) for im, wh in zip(data["images"], sizes) if (im.get("width"), im.get("height")) != wh}
     if not differ:
         return
     outside = []
@@ -266,24 +312,40 @@ def _use_file_sizes(data: dict, sizes: list[tuple[int, int]], json_path: Path, t
             continue
         im, (w, h) = differ[a["image_id"]]
         box = bbox_values(a.get("bbox"))
-        if box and (box[0] < -tolerance or box[1] < -tolerance or box[0] + box[2] > w + tolerance
-                    or box[1] + box[3] > h + tolerance):
+        if box and (
+            box[0] < -tolerance
+            or box[1] < -tolerance
+            or box[0] + box[2] > w + tolerance
+            or box[1] + box[3] > h + tolerance
+        ):
             outside.append((a, im, (w, h)))
     named = [(im, wh) for im, wh in differ.values() if im.get("width") is not None or im.get("height") is not None]
     if outside:
         a, im, (w, h) = outside[0]
-        raise InputError(f"{len(outside)} box(es) fall outside their image files: the JSON gives "
-                         f"{im['file_name']} as {im.get('width')}x{im.get('height')} px but the file is {w}x{h} "
-                         f"(annotation {a.get('id')}, box {a.get('bbox')}); {len(differ)} of {len(sizes)} images "
-                         f"differ in size", path=json_path,
-                         fix="the boxes were drawn on other (larger) images: point the images folder at those, "
-                             "or annotate and tile again (modules 4 and 5)")
+        raise InputError(
+            f"{len(outside)} box(es) fall outside their image files: the JSON gives "
+            f"{im['file_name']} as {im.get('width')}x{im.get('height')} px but the file is {w}x{h} "
+            f"(annotation {a.get('id')}, box {a.get('bbox')}); {len(differ)} of {len(sizes)} images "
+            f"differ in size",
+            path=json_path,
+            fix="the boxes were drawn on other (larger) images: point the images folder at those, "
+            "or annotate and tile again (modules 4 and 5)",
+        )
     if named:
         im, (w, h) = named[0]
-        log.warning("%d of %d images of %s have another width/height in the JSON than on disk (e.g. %s: %sx%s in "
-                    "the JSON, %dx%d file); every box lies inside the real images, so the files' sizes are used "
-                    "(correct the JSON, or regenerate it with module 5, to silence this)", len(named), len(sizes),
-                    json_path, im["file_name"], im.get("width"), im.get("height"), w, h)
+        log.warning(
+            "%d of %d images of %s have another width/height in the JSON than on disk (e.g. %s: %sx%s in "
+            "the JSON, %dx%d file); every box lies inside the real images, so the files' sizes are used "
+            "(correct the JSON, or regenerate it with module 5, to silence this)",
+            len(named),
+            len(sizes),
+            json_path,
+            im["file_name"],
+            im.get("width"),
+            im.get("height"),
+            w,
+            h,
+        )
     for im, (w, h) in differ.values():
         im["width"], im["height"] = w, h
 
@@ -296,26 +358,38 @@ def check_dataset(data: dict, json_path: Path, images_dir: Path, *, require_boxe
     outside the real images; and everything :func:`~matchplant.core.formats.coco.validate_dataset` finds.
     """
     if not data["images"]:
-        raise InputError("the COCO file lists no images", path=json_path,
-                         fix="give the COCO JSON of the tiles (module 5 writes train.json, val.json, test.json)")
+        raise InputError(
+            "the COCO file lists no images",
+            path=json_path,
+            fix="give the COCO JSON of the tiles (module 5 writes train.json, val.json, test.json)",
+        )
     if "predictions" in data and not data["annotations"]:
-        raise InputError("this is a predictions file (module 7's output), not an annotated dataset", path=json_path,
-                         fix="give the COCO JSON with the true boxes (module 5's train/val/test.json)")
+        raise InputError(
+            "this is a predictions file (module 7's output), not an annotated dataset",
+            path=json_path,
+            fix="give the COCO JSON with the true boxes (module 5's train/val/test.json)",
+        )
     _check_ids(data, json_path)
     _check_categories(data, json_path)
     if require_boxes and not any(not a.get("iscrowd", 0) for a in data["annotations"]):
-        raise InputError(f"the COCO file has no annotations (0 boxes on {len(data['images'])} images): nothing to "
-                         "learn from or to score against", path=json_path,
-                         fix="tile the images together with their annotations (module 5's 'annotations' key), "
-                             "or point the config at the split that has the boxes")
+        raise InputError(
+            f"the COCO file has no annotations (0 boxes on {len(data['images'])} images): nothing to "
+            "learn from or to score against",
+            path=json_path,
+            fix="tile the images together with their annotations (module 5's 'annotations' key), "
+            "or point the config at the split that has the boxes",
+        )
     paths = _find_files(data["images"], json_path, images_dir)
     _use_file_sizes(data, check_image_files(paths, json_path.name), json_path)
     problems = validate_dataset(data)
     if problems:
         shown = "\n".join(f"  - {p}" for p in problems[:10])
         more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
-        raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=json_path,
-                         fix="correct the annotations (module 4 can open and fix them)")
+        raise InputError(
+            f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}",
+            path=json_path,
+            fix="correct the annotations (module 4 can open and fix them)",
+        )
     return paths
 
 
@@ -323,7 +397,7 @@ def _same_bytes(a: Path, b: Path) -> bool:
     return hashlib.sha1(a.read_bytes()).digest() == hashlib.sha1(b.read_bytes()).digest()
 
 
-def check_disjoint(train: "CocoDetection", val: "CocoDetection") -> None:
+def check_disjoint(train: CocoDetection, val: CocoDetection) -> None:
     """Refuse a validation split that is the training split's file, or shares tiles with it (the same files,
     or copies of them: same name, same bytes): its scores would measure memory, not detection. Tiles of
     photos that share a name (DJI_0001.JPG of two flights) are told apart by their bytes."""
@@ -332,22 +406,30 @@ def check_disjoint(train: "CocoDetection", val: "CocoDetection") -> None:
     except OSError:
         same = False
     if same:
-        raise ConfigError("val_json is the same file as train_json: validation would score the model on the tiles "
-                          "it learns from", path=val.json_path,
-                          fix="set val_json to the validation split (module 5 writes val.json beside train.json), "
-                              "or leave it empty (null) for no validation")
+        raise ConfigError(
+            "val_json is the same file as train_json: validation would score the model on the tiles it learns from",
+            path=val.json_path,
+            fix="set val_json to the validation split (module 5 writes val.json beside train.json), "
+            "or leave it empty (null) for no validation",
+        )
     by_key: dict[tuple[str, int], list[Path]] = {}
     for p in train.paths:
         by_key.setdefault((p.name, p.stat().st_size), []).append(p)
     train_real = {os.path.realpath(p) for p in train.paths}
-    shared = [im["file_name"] for im, p in zip(val.images, val.paths)
-              if os.path.realpath(p) in train_real
-              or any(_same_bytes(p, q) for q in by_key.get((p.name, p.stat().st_size), []))]
+    shared = [
+        im["file_name"]
+        for im, p in zip(val.images, val.paths)
+        if os.path.realpath(p) in train_real
+        or any(_same_bytes(p, q) for q in by_key.get((p.name, p.stat().st_size), []))
+    ]
     if shared:
-        raise InputError(f"{len(shared)} of the {len(val)} validation tiles are also training tiles (e.g. "
-                         f"{', '.join(shared[:3])}): validation would score the model on tiles it learns from",
-                         path=val.json_path, fix="split the tiles again with module 5 (it keeps each photo's tiles "
-                                                 "in one split), or give a val_json with other images")
+        raise InputError(
+            f"{len(shared)} of the {len(val)} validation tiles are also training tiles (e.g. "
+            f"{', '.join(shared[:3])}): validation would score the model on tiles it learns from",
+            path=val.json_path,
+            fix="split the tiles again with module 5 (it keeps each photo's tiles "
+            "in one split), or give a val_json with other images",
+        )
 
 
 class TileReadError(InputError):
@@ -357,16 +439,17 @@ class TileReadError(InputError):
 
     message = "a tile could not be read"
 
-    def __init__(self, problem: str = "", *, path: str | Path | None = None, fix: str | None = None,
-                 message: str | None = None):
+    def __init__(
+        self, problem: str = "", *, path: str | Path | None = None, fix: str | None = None, message: str | None = None
+    ):
         if message is not None:
             lines = message.rsplit(f"{type(self).__name__}: ", 1)[-1].strip("\n").split("\n")
             problem = lines[0] + " (in a data-loading worker)"
             for line in lines[1:]:
                 if line.startswith("  file: "):
-                    path = line[len("  file: "):]
+                    path = line[len("  file: ") :]
                 elif line.startswith("  fix:  "):
-                    fix = line[len("  fix:  "):]
+                    fix = line[len("  fix:  ") :]
         super().__init__(problem, path=path, fix=fix)
 
 
@@ -379,9 +462,16 @@ class CocoDetection:
     (:func:`check_dataset`; ``require_boxes``: at least one box).
     """
 
-    def __init__(self, json_path: str | Path, images_dir: str | Path | None = None, *,
-                 augment: AugmentConfig | None = None, class_names: list[str] | None = None,
-                 classes_from: str | None = None, require_boxes: bool = True):
+    def __init__(
+        self,
+        json_path: str | Path,
+        images_dir: str | Path | None = None,
+        *,
+        augment: AugmentConfig | None = None,
+        class_names: list[str] | None = None,
+        classes_from: str | None = None,
+        require_boxes: bool = True,
+    ):
         self.json_path = Path(json_path)
         self.data = read_dataset(self.json_path, validate=False)
         self.images_dir = Path(images_dir) if images_dir else self.json_path.parent
@@ -393,13 +483,17 @@ class CocoDetection:
         unknown = [n for n in names if n not in class_names]
         if unknown:
             hint = did_you_mean(unknown[0], class_names)
-            raise InputError(f"categories {unknown} of this dataset are not among the model's classes {class_names}"
-                             f"{f' (from {classes_from})' if classes_from else ''}{'; ' + hint if hint else ''}",
-                             path=self.json_path, fix="use the model's category names in this JSON (or a dataset of "
-                                                      "the same classes), or a model trained on these categories")
+            raise InputError(
+                f"categories {unknown} of this dataset are not among the model's classes {class_names}"
+                f"{f' (from {classes_from})' if classes_from else ''}{'; ' + hint if hint else ''}",
+                path=self.json_path,
+                fix="use the model's category names in this JSON (or a dataset of "
+                "the same classes), or a model trained on these categories",
+            )
         self.class_names = list(class_names)
-        self.category_ids = [next((c["id"] for c in cats if str(c["name"]) == n), i + 1)
-                             for i, n in enumerate(self.class_names)]
+        self.category_ids = [
+            next((c["id"] for c in cats if str(c["name"]) == n), i + 1) for i, n in enumerate(self.class_names)
+        ]
         self.label_of = {c["id"]: self.class_names.index(str(c["name"])) + 1 for c in cats}
         self.images = list(self.data["images"])
         self.anns = annotations_by_image(self.data)
@@ -417,7 +511,9 @@ class CocoDetection:
         (:mod:`matchplant.detection.crops`; the model must skip its own training resize)."""
         from torchvision.transforms import v2 as T  # lazy: PyTorch is heavy; configs load without it
 
-        steps = ([self.transform] if self.transform is not None else []) + crop_steps(crop, min_size, max_size, on_plant)
+        steps = ([self.transform] if self.transform is not None else []) + crop_steps(
+            crop, min_size, max_size, on_plant
+        )
         self.transform, self.crop = T.Compose(steps), crop
 
     def __len__(self) -> int:
@@ -440,8 +536,7 @@ class CocoDetection:
         else:  # a negative tile
             boxes = np.zeros((0, 4), dtype=np.float32)
         labels = np.asarray([self.label_of[a["category_id"]] for a in anns], dtype=np.int64)
-        return {"boxes": torch.from_numpy(boxes), "labels": torch.from_numpy(labels),
-                "image_id": int(im["id"])}
+        return {"boxes": torch.from_numpy(boxes), "labels": torch.from_numpy(labels), "image_id": int(im["id"])}
 
     def __getitem__(self, index: int):
         import torch  # lazy: PyTorch is heavy; configs load without it
@@ -490,10 +585,10 @@ class EpochSampler:
         perm = torch.randperm(self.n, generator=g).tolist()
         total = -(-self.n // self.world) * self.world
         perm = (perm * (total // max(self.n, 1) + 1))[:total]
-        return perm[self.rank::self.world]
+        return perm[self.rank :: self.world]
 
     def __iter__(self):
-        return iter(self.order()[self.start:])
+        return iter(self.order()[self.start :])
 
     def __len__(self) -> int:
         return max(-(-self.n // self.world) - self.start, 0)

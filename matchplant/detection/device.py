@@ -29,8 +29,10 @@ log = get_logger("device")
 def cuda_unusable_reason(torch) -> str:
     """Why ``torch.cuda`` cannot be used here, in words a user can act on."""
     if torch.version.cuda is None:
-        return ("this PyTorch build has no CUDA support (a CPU-only wheel); install a CUDA build from "
-                "https://pytorch.org/get-started/locally/ to use an NVIDIA GPU")
+        return (
+            "this PyTorch build has no CUDA support (a CPU-only wheel); install a CUDA build from "
+            "https://pytorch.org/get-started/locally/ to use an NVIDIA GPU"
+        )
     has_driver = shutil.which("nvidia-smi") is not None or os.path.exists("/proc/driver/nvidia/version")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -40,8 +42,10 @@ def cuda_unusable_reason(torch) -> str:
         return f"no NVIDIA GPU driver found (PyTorch is built for CUDA {torch.version.cuda})"
     if said:
         return f"PyTorch (CUDA {torch.version.cuda}) cannot use the GPU: {said}"
-    return (f"an NVIDIA driver is installed but PyTorch (CUDA {torch.version.cuda}) sees no usable GPU; "
-            "check `nvidia-smi` and CUDA_VISIBLE_DEVICES")
+    return (
+        f"an NVIDIA driver is installed but PyTorch (CUDA {torch.version.cuda}) sees no usable GPU; "
+        "check `nvidia-smi` and CUDA_VISIBLE_DEVICES"
+    )
 
 
 def _cuda_works(torch, dev) -> str | None:
@@ -56,8 +60,10 @@ def _cuda_works(torch, dev) -> str | None:
 def _describe_cuda(torch, dev) -> str:
     index = dev.index if dev.index is not None else torch.cuda.current_device()
     props = torch.cuda.get_device_properties(index)
-    return (f"{props.name}, {props.total_memory / 2**30:.0f} GiB, compute capability {props.major}.{props.minor}; "
-            f"PyTorch {torch.__version__} built for CUDA {torch.version.cuda}")
+    return (
+        f"{props.name}, {props.total_memory / 2**30:.0f} GiB, compute capability {props.major}.{props.minor}; "
+        f"PyTorch {torch.__version__} built for CUDA {torch.version.cuda}"
+    )
 
 
 def explain_device(preference: str = "auto"):
@@ -83,21 +89,28 @@ def explain_device(preference: str = "auto"):
         return torch.device("cpu"), f"no GPU: {why}"
     if pref.startswith("cuda"):
         if not torch.cuda.is_available():
-            raise ConfigError(f"device '{preference}' was asked for but CUDA cannot be used: "
-                              f"{cuda_unusable_reason(torch)}", fix="set device: auto (or cpu)")
+            raise ConfigError(
+                f"device '{preference}' was asked for but CUDA cannot be used: {cuda_unusable_reason(torch)}",
+                fix="set device: auto (or cpu)",
+            )
         dev = torch.device(pref)
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ConfigError(f"device '{preference}' does not exist: {torch.cuda.device_count()} GPU(s) found",
-                              fix="use cuda:0 .. cuda:N-1, or device: auto")
+            raise ConfigError(
+                f"device '{preference}' does not exist: {torch.cuda.device_count()} GPU(s) found",
+                fix="use cuda:0 .. cuda:N-1, or device: auto",
+            )
         broken = _cuda_works(torch, dev)
         if broken is not None:
-            raise ConfigError(f"device '{preference}' fails a test computation: {broken}",
-                              fix="install a PyTorch build for this GPU and driver, or set device: cpu")
+            raise ConfigError(
+                f"device '{preference}' fails a test computation: {broken}",
+                fix="install a PyTorch build for this GPU and driver, or set device: cpu",
+            )
         return dev, f"asked for: {_describe_cuda(torch, dev)}"
     if pref == "mps":
         if not mps_ok:
-            raise ConfigError("device 'mps' was asked for but Apple Metal is not available",
-                              fix="set device: auto (or cpu)")
+            raise ConfigError(
+                "device 'mps' was asked for but Apple Metal is not available", fix="set device: auto (or cpu)"
+            )
         return torch.device("mps"), "asked for: Apple Metal (MPS)"
     raise ConfigError(f"unknown device '{preference}'", fix="use auto, cuda, cuda:N, mps or cpu")
 
@@ -109,8 +122,9 @@ def select_device(preference: str = "auto"):
     return dev
 
 
-def choose_threads(requested: int | None = None, *, load: float | None = None,
-                   cores: int | None = None) -> tuple[int, str]:
+def choose_threads(
+    requested: int | None = None, *, load: float | None = None, cores: int | None = None
+) -> tuple[int, str]:
     """``(threads, reason)`` for torch on the CPU. ``requested`` (a ``threads`` key > 0) is used as given;
     otherwise the usable cores less the busy ones: the 1-minute load average (other processes' runnable
     work, ``os.getloadavg``) is subtracted, rounded, and at least one thread is kept. On a shared 2-core

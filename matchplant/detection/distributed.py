@@ -20,7 +20,7 @@ from matchplant.core.runtime.log import get_logger
 
 log = get_logger("distributed")
 
-TIMEOUT_VAR = "MATCHPLANT_JOIN_TIMEOUT"   # seconds a process waits for the others to join (and per collective)
+TIMEOUT_VAR = "MATCHPLANT_JOIN_TIMEOUT"  # seconds a process waits for the others to join (and per collective)
 DEFAULT_TIMEOUT_S = 600.0
 RENDEZVOUS = ("RANK", "MASTER_ADDR", "MASTER_PORT")  # what torchrun sets beside WORLD_SIZE
 UNSET = "unset WORLD_SIZE RANK LOCAL_RANK MASTER_ADDR MASTER_PORT"
@@ -63,9 +63,11 @@ def _int_var(name: str, default: str) -> int:
     try:
         return int(value)
     except ValueError:
-        raise InputError(f"the environment variable {name}={value!r} is not a whole number",
-                         fix=f"{UNSET} to run as one process, or start the command with torchrun "
-                             "--nproc_per_node N, which sets them") from None
+        raise InputError(
+            f"the environment variable {name}={value!r} is not a whole number",
+            fix=f"{UNSET} to run as one process, or start the command with torchrun "
+            "--nproc_per_node N, which sets them",
+        ) from None
 
 
 def world_size() -> int:
@@ -81,8 +83,10 @@ def join_timeout() -> float:
     except ValueError:
         seconds = -1.0
     if not seconds > 0:
-        raise InputError(f"the environment variable {TIMEOUT_VAR}={value!r} is not a positive number of seconds",
-                         fix=f"set {TIMEOUT_VAR}=600 (or unset it)")
+        raise InputError(
+            f"the environment variable {TIMEOUT_VAR}={value!r} is not a positive number of seconds",
+            fix=f"set {TIMEOUT_VAR}=600 (or unset it)",
+        )
     return seconds
 
 
@@ -95,15 +99,18 @@ def check_environment() -> int:
         return world
     missing = [v for v in RENDEZVOUS if not os.environ.get(v, "").strip()]
     if missing:
-        raise InputError(f"WORLD_SIZE={world} is set in the environment but {', '.join(missing)} "
-                         f"{'is' if len(missing) == 1 else 'are'} not: this is not a torchrun job (a variable left "
-                         "in the shell from an earlier job?)",
-                         fix=f"run as one process with `{UNSET}` first, or start the command with `torchrun "
-                             "--standalone --nproc_per_node N ...`, which sets them all")
+        raise InputError(
+            f"WORLD_SIZE={world} is set in the environment but {', '.join(missing)} "
+            f"{'is' if len(missing) == 1 else 'are'} not: this is not a torchrun job (a variable left "
+            "in the shell from an earlier job?)",
+            fix=f"run as one process with `{UNSET}` first, or start the command with `torchrun "
+            "--standalone --nproc_per_node N ...`, which sets them all",
+        )
     rank = _int_var("RANK", "0")
     if not 0 <= rank < world:
-        raise InputError(f"RANK={rank} is outside 0..{world - 1} (WORLD_SIZE={world})",
-                         fix=f"{UNSET}, or let torchrun set them")
+        raise InputError(
+            f"RANK={rank} is outside 0..{world - 1} (WORLD_SIZE={world})", fix=f"{UNSET}, or let torchrun set them"
+        )
     return world
 
 
@@ -116,12 +123,13 @@ def _wait_for_master(addr: str, port: int, seconds: float) -> None:
                 return
         except OSError as exc:
             if time.monotonic() >= end:
-                raise InputError(f"no process of the distributed job listens at MASTER_ADDR:MASTER_PORT = {addr}:"
-                                 f"{port} after {seconds:g} s ({exc.strerror or exc}); this process is RANK="
-                                 f"{os.environ.get('RANK')} of WORLD_SIZE={os.environ.get('WORLD_SIZE')}",
-                                 fix=f"start every process (torchrun --nproc_per_node N starts them together), or "
-                                     f"`{UNSET}` to run as one process; {TIMEOUT_VAR} sets the wait in seconds"
-                                 ) from None
+                raise InputError(
+                    f"no process of the distributed job listens at MASTER_ADDR:MASTER_PORT = {addr}:"
+                    f"{port} after {seconds:g} s ({exc.strerror or exc}); this process is RANK="
+                    f"{os.environ.get('RANK')} of WORLD_SIZE={os.environ.get('WORLD_SIZE')}",
+                    fix=f"start every process (torchrun --nproc_per_node N starts them together), or "
+                    f"`{UNSET}` to run as one process; {TIMEOUT_VAR} sets the wait in seconds",
+                ) from None
             time.sleep(0.5)
 
 
@@ -142,17 +150,19 @@ def join(device):
         if _int_var("RANK", "0") != 0:  # a plain wait first: c10d's own timeout prints pages of C++ frames
             _wait_for_master(os.environ["MASTER_ADDR"], _int_var("MASTER_PORT", "0"), seconds)
         try:  # nccl's gather: device set above
-            dist.init_process_group("nccl" if device.type == "cuda" else "gloo",
-                                    timeout=datetime.timedelta(seconds=seconds))
+            dist.init_process_group(
+                "nccl" if device.type == "cuda" else "gloo", timeout=datetime.timedelta(seconds=seconds)
+            )
         except (RuntimeError, TimeoutError, OSError, ValueError) as exc:  # DistStoreError is a RuntimeError
             env = ", ".join(f"{v}={os.environ.get(v)}" for v in ("WORLD_SIZE", *RENDEZVOUS))
-            raise InputError(f"could not join the distributed job ({env}) within {seconds:g} s: "
-                             f"{str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__} (are the "
-                             f"other {_int_var('WORLD_SIZE', '1') - 1} process(es) running and can they reach "
-                             f"MASTER_ADDR:MASTER_PORT?)",
-                             fix=f"start every process (torchrun --nproc_per_node N starts them together), or "
-                                 f"`{UNSET}` to run as one process; {TIMEOUT_VAR} sets the wait in seconds"
-                             ) from exc
+            raise InputError(
+                f"could not join the distributed job ({env}) within {seconds:g} s: "
+                f"{str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__} (are the "
+                f"other {_int_var('WORLD_SIZE', '1') - 1} process(es) running and can they reach "
+                f"MASTER_ADDR:MASTER_PORT?)",
+                fix=f"start every process (torchrun --nproc_per_node N starts them together), or "
+                f"`{UNSET}` to run as one process; {TIMEOUT_VAR} sets the wait in seconds",
+            ) from exc
     rank = dist.get_rank()
     log.info("joined the distributed job: rank %d of %d (%s)", rank, dist.get_world_size(), dist.get_backend())
     if rank != 0:  # one voice: the other processes report only warnings and errors

@@ -24,12 +24,25 @@ from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import collate
 
-STAT_NAMES = ("AP", "AP50", "AP75", "AP_small", "AP_medium", "AP_large",
-              "AR_1", "AR_10", "AR_max", "AR_small", "AR_medium", "AR_large")
+STAT_NAMES = (
+    "AP",
+    "AP50",
+    "AP75",
+    "AP_small",
+    "AP_medium",
+    "AP_large",
+    "AR_1",
+    "AR_10",
+    "AR_max",
+    "AR_small",
+    "AR_medium",
+    "AR_large",
+)
 
 
-def predict_dataset(model, dataset, device, *, batch_size: int = 4, num_workers: int = 0,
-                    amp: bool = False, desc: str = "detecting") -> list[dict]:
+def predict_dataset(
+    model, dataset, device, *, batch_size: int = 4, num_workers: int = 0, amp: bool = False, desc: str = "detecting"
+) -> list[dict]:
     """COCO results (``image_id, category_id, bbox [x,y,w,h], score``) of ``model`` on every image."""
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
@@ -48,9 +61,15 @@ def predict_dataset(model, dataset, device, *, batch_size: int = 4, num_workers:
                 scores = out["scores"].float().cpu().numpy()
                 cats = cat_of_label[out["labels"].cpu().numpy()]
                 xywh = np.concatenate([boxes[:, :2], boxes[:, 2:] - boxes[:, :2]], axis=1)
-                results.extend({"image_id": int(target["image_id"]), "category_id": int(c),
-                                "bbox": [round(float(v), 2) for v in b], "score": round(float(s), 5)}
-                               for b, s, c in zip(xywh, scores, cats))
+                results.extend(
+                    {
+                        "image_id": int(target["image_id"]),
+                        "category_id": int(c),
+                        "bbox": [round(float(v), 2) for v in b],
+                        "score": round(float(s), 5),
+                    }
+                    for b, s, c in zip(xywh, scores, cats)
+                )
     return results
 
 
@@ -126,8 +145,15 @@ def operating_point(scores: np.ndarray, hits: np.ndarray, n_gt: int, threshold: 
     precision = tp / (tp + fp) if tp + fp else 0.0
     recall = tp / n_gt if n_gt else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-    return {"threshold": float(threshold), "tp": tp, "fp": fp, "fn": fn, "precision": precision,
-            "recall": recall, "f1": f1}
+    return {
+        "threshold": float(threshold),
+        "tp": tp,
+        "fp": fp,
+        "fn": fn,
+        "precision": precision,
+        "recall": recall,
+        "f1": f1,
+    }
 
 
 # --------------------------------------------------------------------------------------------------
@@ -151,8 +177,7 @@ def plot_pr_curve(ev, path: Path, operating: dict | None = None, class_names: li
             p = ev.eval["precision"][t, :, k, 0, -1]
             ax.plot(rec[p > -1], p[p > -1], style, label=f"{name}, IoU {iou}")
     if operating:
-        ax.plot([operating["recall"]], [operating["precision"]], "ko",
-                label=f"score >= {operating['threshold']:.2f}")
+        ax.plot([operating["recall"]], [operating["precision"]], "ko", label=f"score >= {operating['threshold']:.2f}")
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.01), title="precision-recall")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower left")
@@ -165,8 +190,13 @@ def plot_score_histogram(scores: np.ndarray, hits: np.ndarray, path: Path, thres
     fig = figure(headless=True, figsize=(5.5, 4))
     ax = fig.add_subplot()
     bins = np.linspace(0, 1, 41)
-    ax.hist([scores[hits], scores[~hits]], bins=bins, stacked=True, label=["true positive", "false positive"],
-            color=["tab:green", "tab:red"])
+    ax.hist(
+        [scores[hits], scores[~hits]],
+        bins=bins,
+        stacked=True,
+        label=["true positive", "false positive"],
+        color=["tab:green", "tab:red"],
+    )
     if threshold is not None:
         ax.axvline(threshold, color="k", ls="--", label=f"threshold {threshold:.2f}")
     ax.set(xlabel="score", ylabel="detections", title="confidence of the detections")
@@ -175,8 +205,9 @@ def plot_score_histogram(scores: np.ndarray, hits: np.ndarray, path: Path, thres
     return _save(fig, path)
 
 
-def draw_boxes(image: np.ndarray, boxes_xyxy: np.ndarray, color: tuple[int, int, int],
-               scores: np.ndarray | None = None) -> np.ndarray:
+def draw_boxes(
+    image: np.ndarray, boxes_xyxy: np.ndarray, color: tuple[int, int, int], scores: np.ndarray | None = None
+) -> np.ndarray:
     """A copy of an RGB image with boxes (and their scores) drawn on it."""
     out = np.ascontiguousarray(image.copy())
     thick = max(1, int(round(max(image.shape[:2]) / 500)))
@@ -184,8 +215,16 @@ def draw_boxes(image: np.ndarray, boxes_xyxy: np.ndarray, color: tuple[int, int,
         x1, y1, x2, y2 = (int(round(v)) for v in b)
         cv2.rectangle(out, (x1, y1), (x2, y2), color, thick)
         if scores is not None:
-            cv2.putText(out, f"{scores[i]:.2f}", (x1, max(y1 - 3, 10)), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.35 * thick, color, 1, cv2.LINE_AA)
+            cv2.putText(
+                out,
+                f"{scores[i]:.2f}",
+                (x1, max(y1 - 3, 10)),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35 * thick,
+                color,
+                1,
+                cv2.LINE_AA,
+            )
     return out
 
 
@@ -201,4 +240,5 @@ def write_image(path: Path, rgb: np.ndarray) -> Path:
 def summarise_stats(stats: dict[str, Any]) -> str:
     def fmt(v):
         return "n/a" if v is None else f"{100 * v:.1f}%"
+
     return ", ".join(f"{k} {fmt(stats.get(k))}" for k in ("AP", "AP50", "AP75"))

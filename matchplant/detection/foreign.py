@@ -46,8 +46,9 @@ COUNTER = "num_batches_tracked"  # plain batch norms have it, frozen ones (a pre
 CLASSES_FIX = "set class_names (module 7) to the names of the classes the model was trained with, in order"
 
 
-def read_any_checkpoint(path: str | Path, *, class_names: list[str] | None = None, architecture: str | None = None,
-                        fit_classes: bool = True) -> dict:
+def read_any_checkpoint(
+    path: str | Path, *, class_names: list[str] | None = None, architecture: str | None = None, fit_classes: bool = True
+) -> dict:
     """A MatchPlant checkpoint dict from a MatchPlant checkpoint, a checkpoint in the paper's layout or a bare
     torchvision state_dict of an architecture MatchPlant builds.
 
@@ -63,17 +64,29 @@ def read_any_checkpoint(path: str | Path, *, class_names: list[str] | None = Non
         return check_checkpoint(data, path)
     state, layout, extra = _foreign_state(data, torch)
     if state is None:
-        raise InputError(f"not a detector checkpoint MatchPlant reads: it holds {_describe_foreign(data, torch)}",
-                         path=path, fix=f"{CHECKPOINT_FIX}, the paper's checkpoint ({{'epoch', 'model_state_dict', "
-                                        f"...}}) or a torchvision detector's state_dict")
-    return adopt_state_dict(state, path, layout=layout, class_names=class_names, architecture=architecture,
-                            fit_classes=fit_classes, extra=extra)
+        raise InputError(
+            f"not a detector checkpoint MatchPlant reads: it holds {_describe_foreign(data, torch)}",
+            path=path,
+            fix=f"{CHECKPOINT_FIX}, the paper's checkpoint ({{'epoch', 'model_state_dict', "
+            f"...}}) or a torchvision detector's state_dict",
+        )
+    return adopt_state_dict(
+        state,
+        path,
+        layout=layout,
+        class_names=class_names,
+        architecture=architecture,
+        fit_classes=fit_classes,
+        extra=extra,
+    )
 
 
 def _foreign_state(data: Any, torch) -> tuple[dict | None, str, dict]:
     """``(state_dict, layout, other entries)`` of a foreign file; a None state_dict when it holds none."""
+
     def is_state(d):
         return isinstance(d, dict) and bool(d) and all(torch.is_tensor(v) for v in d.values())
+
     if is_state(data):
         return _strip_wrapper(data), "a bare state_dict", {}
     if isinstance(data, dict):
@@ -87,7 +100,7 @@ def _foreign_state(data: Any, torch) -> tuple[dict | None, str, dict]:
 def _strip_wrapper(state: dict) -> dict:
     """Weights saved from ``nn.DataParallel`` / ``DistributedDataParallel`` carry a ``module.`` prefix."""
     if all(str(k).startswith("module.") for k in state):
-        return {str(k)[len("module."):]: v for k, v in state.items()}
+        return {str(k)[len("module.") :]: v for k, v in state.items()}
     return state
 
 
@@ -119,10 +132,13 @@ def _find_architecture(state: dict, path: Path, first: str | None) -> str:
             best = (arch, missing, extra)
     arch, missing, extra = best
     parts = [f"{len(v)} {what} (e.g. {v[0]})" for v, what in ((missing, "missing"), (extra, "unexpected")) if v]
-    raise InputError(f"these weights ({len(state)} tensors) are of no architecture MatchPlant builds; the closest "
-                     f"is {arch}, with {' and '.join(parts)} layer names", path=path,
-                     fix=f"use weights of one of {', '.join(ARCHITECTURES)} as torchvision builds them (default "
-                         f"anchors), or a checkpoint written by module 6")
+    raise InputError(
+        f"these weights ({len(state)} tensors) are of no architecture MatchPlant builds; the closest "
+        f"is {arch}, with {' and '.join(parts)} layer names",
+        path=path,
+        fix=f"use weights of one of {', '.join(ARCHITECTURES)} as torchvision builds them (default "
+        f"anchors), or a checkpoint written by module 6",
+    )
 
 
 def _class_count(state: dict, arch: str) -> tuple[int, str, tuple, int, int]:
@@ -136,22 +152,36 @@ def _class_count(state: dict, arch: str) -> tuple[int, str, tuple, int, int]:
     return (shape[dim] // step if shape[dim] % step == 0 else -1), key, shape, dim, step
 
 
-def adopt_state_dict(state: dict, path: Path, *, layout: str = "a bare state_dict", class_names: list[str] | None,
-                     architecture: str | None = None, fit_classes: bool = True, extra: dict | None = None) -> dict:
+def adopt_state_dict(
+    state: dict,
+    path: Path,
+    *,
+    layout: str = "a bare state_dict",
+    class_names: list[str] | None,
+    architecture: str | None = None,
+    fit_classes: bool = True,
+    extra: dict | None = None,
+) -> dict:
     """A MatchPlant checkpoint dict for the torchvision weights ``state`` read from ``path`` (see
     :func:`read_any_checkpoint`); the shapes are checked against the model it rebuilds."""
     arch = _find_architecture(state, path, architecture if architecture != "auto" else None)
     n, key, shape, dim, step = _class_count(state, arch)
     in_weights = f"{key} has shape {shape}: {n - 1} class(es) + background" if n > 0 else f"{key} has shape {shape}"
     if class_names is None and fit_classes:
-        raise InputError(f"{layout} of a {arch} without class names ({in_weights})", path=path,
-                         fix=f"{CLASSES_FIX} (a list of {max(n - 1, 1)}, e.g. class_names: [maize])")
+        raise InputError(
+            f"{layout} of a {arch} without class names ({in_weights})",
+            path=path,
+            fix=f"{CLASSES_FIX} (a list of {max(n - 1, 1)}, e.g. class_names: [maize])",
+        )
     names = list(class_names or [])
     if fit_classes and len(names) + 1 != n:
-        raise InputError(f"class_names lists {len(names)} class(es) ({', '.join(names)}) but the weights have "
-                         f"{in_weights}; a model for {len(names)} would need {key} of shape "
-                         f"{tuple((len(names) + 1) * step if d == dim else s for d, s in enumerate(shape))}",
-                         path=path, fix=CLASSES_FIX)
+        raise InputError(
+            f"class_names lists {len(names)} class(es) ({', '.join(names)}) but the weights have "
+            f"{in_weights}; a model for {len(names)} would need {key} of shape "
+            f"{tuple((len(names) + 1) * step if d == dim else s for d, s in enumerate(shape))}",
+            path=path,
+            fix=CLASSES_FIX,
+        )
     if not fit_classes and not names:
         names = [f"class_{i}" for i in range(1, max(n, 2))]
     frozen = not any(str(k).startswith("backbone.body.") and str(k).endswith(COUNTER) for k in state)
@@ -161,17 +191,34 @@ def adopt_state_dict(state: dict, path: Path, *, layout: str = "a bare state_dic
     wrong = [(k, tuple(state[k].shape), own[k]) for k in sorted(own) if k in state and tuple(state[k].shape) != own[k]]
     if wrong:
         shown = "; ".join(f"{k} {a} in the file, {b} in MatchPlant's {arch}" for k, a, b in wrong[:3])
-        raise InputError(f"{layout} of a {arch} whose weights do not fit the model MatchPlant builds: "
-                         f"{len(wrong)} tensor(s) of another shape ({shown})", path=path,
-                         fix="MatchPlant builds torchvision's default anchors (3 aspect ratios); use weights "
-                             "trained with those, or retrain with module 6")
+        raise InputError(
+            f"{layout} of a {arch} whose weights do not fit the model MatchPlant builds: "
+            f"{len(wrong)} tensor(s) of another shape ({shown})",
+            path=path,
+            fix="MatchPlant builds torchvision's default anchors (3 aspect ratios); use weights "
+            "trained with those, or retrain with module 6",
+        )
     mcfg = ModelConfig(architecture=arch, pretrained=pretrained)
-    log.info("checkpoint %s: %s of a %s (%d class(es): %s; input size %d..%d px, torchvision's default; %s)",
-             path.name, layout, arch, len(names), ", ".join(names), mcfg.min_size, mcfg.max_size,
-             "frozen backbone batch norms: a COCO-pretrained start" if pretrained == "coco" else "plain batch norms")
-    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "model_config": to_dict(mcfg),
-            "class_names": names, "category_ids": list(range(1, len(names) + 1)), "model_state": state,
-            "foreign": {"layout": layout, "file": str(path), "classes_in_weights": n - 1, **(extra or {})}}
+    log.info(
+        "checkpoint %s: %s of a %s (%d class(es): %s; input size %d..%d px, torchvision's default; %s)",
+        path.name,
+        layout,
+        arch,
+        len(names),
+        ", ".join(names),
+        mcfg.min_size,
+        mcfg.max_size,
+        "frozen backbone batch norms: a COCO-pretrained start" if pretrained == "coco" else "plain batch norms",
+    )
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "model_config": to_dict(mcfg),
+        "class_names": names,
+        "category_ids": list(range(1, len(names) + 1)),
+        "model_state": state,
+        "foreign": {"layout": layout, "file": str(path), "classes_in_weights": n - 1, **(extra or {})},
+    }
 
 
 __all__ = ["adopt_state_dict", "read_any_checkpoint"]

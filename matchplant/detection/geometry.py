@@ -28,8 +28,8 @@ from matchplant.detection.objects import box_sizes, input_scale, size_stats
 
 log = get_logger("geometry")
 
-SCALE_TOLERANCE = 2.0   # warn when plants are > 2x or < 0.5x their training size in the detector's input
-FALLBACK_TILE = 1024    # checkpoints written before the geometry was stored
+SCALE_TOLERANCE = 2.0  # warn when plants are > 2x or < 0.5x their training size in the detector's input
+FALLBACK_TILE = 1024  # checkpoints written before the geometry was stored
 
 
 def training_geometry(dataset: dict, min_size: int, max_size: int, class_names: list[str]) -> dict:
@@ -41,11 +41,16 @@ def training_geometry(dataset: dict, min_size: int, max_size: int, class_names: 
     scales = [input_scale(im["width"], im["height"], min_size, max_size) for im in images]
     w, h = box_sizes(dataset)
     wi, hi = box_sizes(dataset, min_size, max_size)
-    return {"tile_size": tile, "overlap": int(info["overlap"]) if info.get("overlap") is not None else None,
-            "min_size": int(min_size), "max_size": int(max_size),
-            "input_scale": round(float(np.median(scales)), 6) if scales else None,
-            "class_names": list(class_names), "objects_px": size_stats(w, h),
-            "objects_input_px": round(float(np.median(np.sqrt(wi * hi))), 2) if len(wi) else None}
+    return {
+        "tile_size": tile,
+        "overlap": int(info["overlap"]) if info.get("overlap") is not None else None,
+        "min_size": int(min_size),
+        "max_size": int(max_size),
+        "input_scale": round(float(np.median(scales)), 6) if scales else None,
+        "class_names": list(class_names),
+        "objects_px": size_stats(w, h),
+        "objects_input_px": round(float(np.median(np.sqrt(wi * hi))), 2) if len(wi) else None,
+    }
 
 
 def default_tiling(geometry: dict | None, model_config: dict) -> tuple[int, int, str]:
@@ -54,8 +59,14 @@ def default_tiling(geometry: dict | None, model_config: dict) -> tuple[int, int,
     (99th percentile of the longer side), at most half the tile."""
     if not geometry or not geometry.get("tile_size"):
         tile = FALLBACK_TILE
-        return tile, tile // 4, (f"the checkpoint does not record its training tile size (written by an older "
-                                 f"MatchPlant): tile_size {tile}, overlap {tile // 4}; set detect.tile_size")
+        return (
+            tile,
+            tile // 4,
+            (
+                f"the checkpoint does not record its training tile size (written by an older "
+                f"MatchPlant): tile_size {tile}, overlap {tile // 4}; set detect.tile_size"
+            ),
+        )
     tile = int(geometry["tile_size"])
     overlap = geometry.get("overlap")
     if overlap is None:
@@ -83,7 +94,13 @@ def check_scale(ratio: float | None, what: str, fix: str) -> bool:
     """Log a warning when ``ratio`` (from :func:`scale_ratio`) is off scale."""
     if not off_scale(ratio):
         return False
-    log.warning("%s: plants would be %.2fx their training size in the detector's input (the model learned one "
-                "scale; beyond %gx or 1/%gx it finds far fewer). %s", what, ratio, SCALE_TOLERANCE, SCALE_TOLERANCE,
-                fix)
+    log.warning(
+        "%s: plants would be %.2fx their training size in the detector's input (the model learned one "
+        "scale; beyond %gx or 1/%gx it finds far fewer). %s",
+        what,
+        ratio,
+        SCALE_TOLERANCE,
+        SCALE_TOLERANCE,
+        fix,
+    )
     return True

@@ -20,13 +20,19 @@ from matchplant.core.runtime.errors import ConfigError
 
 FPN_CHANNELS = 64
 HEAD_WIDTH = 256
-RETURNED_LAYERS = (2, 3)                         # ResNet stages kept: strides 8 and 16
+RETURNED_LAYERS = (2, 3)  # ResNet stages kept: strides 8 and 16
 LAYER_CHANNELS = {1: 64, 2: 128, 3: 256, 4: 512}  # ResNet-18's output channels per stage
 DEFAULT_ANCHORS = ((32, 40, 50), (64, 80, 101), (128, 161, 203))  # octaves at strides 8, 16, 32
 
 
-def fasterrcnn_resnet18_fpn_lite(*, weights=None, weights_backbone=None, num_classes: int | None = None,
-                                 trainable_backbone_layers: int | None = None, **kwargs):
+def fasterrcnn_resnet18_fpn_lite(
+    *,
+    weights=None,
+    weights_backbone=None,
+    num_classes: int | None = None,
+    trainable_backbone_layers: int | None = None,
+    **kwargs,
+):
     """The light detector (see the module's text); ``weights`` (COCO) do not exist for it."""
     from torch import nn  # lazy: PyTorch is heavy; configs load without it
     from torchvision.models import resnet18
@@ -40,17 +46,28 @@ def fasterrcnn_resnet18_fpn_lite(*, weights=None, weights_backbone=None, num_cla
     from torchvision.ops.misc import FrozenBatchNorm2d
 
     if weights is not None:
-        raise ConfigError("fasterrcnn_resnet18_fpn_lite has no COCO weights",
-                          fix="set model.pretrained: imagenet (its ResNet-18) or none")
+        raise ConfigError(
+            "fasterrcnn_resnet18_fpn_lite has no COCO weights",
+            fix="set model.pretrained: imagenet (its ResNet-18) or none",
+        )
     # as torchvision does: pretrained batch norms are frozen, random ones trained (module 6 freezes stages)
     body = resnet18(weights=weights_backbone, norm_layer=FrozenBatchNorm2d if weights_backbone else nn.BatchNorm2d)
-    backbone = BackboneWithFPN(body, {f"layer{k}": str(i) for i, k in enumerate(RETURNED_LAYERS)},
-                               [LAYER_CHANNELS[k] for k in RETURNED_LAYERS], FPN_CHANNELS,
-                               extra_blocks=LastLevelMaxPool())
+    backbone = BackboneWithFPN(
+        body,
+        {f"layer{k}": str(i) for i, k in enumerate(RETURNED_LAYERS)},
+        [LAYER_CHANNELS[k] for k in RETURNED_LAYERS],
+        FPN_CHANNELS,
+        extra_blocks=LastLevelMaxPool(),
+    )
     levels = len(RETURNED_LAYERS) + 1
     anchors = AnchorGenerator(DEFAULT_ANCHORS, ((0.5, 1.0, 2.0),) * levels)
-    return FasterRCNN(backbone, num_classes=None, rpn_anchor_generator=anchors,
-                      rpn_head=RPNHead(FPN_CHANNELS, anchors.num_anchors_per_location()[0]),
-                      box_roi_pool=MultiScaleRoIAlign([str(i) for i in range(len(RETURNED_LAYERS))], 7, 2),
-                      box_head=TwoMLPHead(FPN_CHANNELS * 7 * 7, HEAD_WIDTH),
-                      box_predictor=FastRCNNPredictor(HEAD_WIDTH, num_classes), **kwargs)
+    return FasterRCNN(
+        backbone,
+        num_classes=None,
+        rpn_anchor_generator=anchors,
+        rpn_head=RPNHead(FPN_CHANNELS, anchors.num_anchors_per_location()[0]),
+        box_roi_pool=MultiScaleRoIAlign([str(i) for i in range(len(RETURNED_LAYERS))], 7, 2),
+        box_head=TwoMLPHead(FPN_CHANNELS * 7 * 7, HEAD_WIDTH),
+        box_predictor=FastRCNNPredictor(HEAD_WIDTH, num_classes),
+        **kwargs,
+    )

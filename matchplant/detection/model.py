@@ -57,15 +57,17 @@ class RPNConfig:
     pre_nms_top_n_train: int = param(2000, "proposals per FPN level kept before NMS (training)", min=1)
     post_nms_top_n_train: int = param(2000, "proposals kept after NMS (training)", min=1)
     pre_nms_top_n_test: int = param(1000, "proposals per FPN level kept before NMS (inference)", min=1)
-    post_nms_top_n_test: int = param(1000, "proposals kept after NMS (inference); raise it for very dense "
-                                           "tiles", min=1)
+    post_nms_top_n_test: int = param(1000, "proposals kept after NMS (inference); raise it for very dense tiles", min=1)
     nms_thresh: float = param(0.7, "NMS IoU threshold between proposals", min=0, max=1)
     score_thresh: float = param(0.0, "drop proposals with an objectness below this", min=0, max=1)
 
     def check(self) -> None:
         if self.bg_iou_thresh > self.fg_iou_thresh:
-            raise ConfigError(f"model.rpn.bg_iou_thresh ({self.bg_iou_thresh}) is above model.rpn.fg_iou_thresh "
-                              f"({self.fg_iou_thresh})", fix="make bg_iou_thresh <= fg_iou_thresh (defaults 0.3, 0.7)")
+            raise ConfigError(
+                f"model.rpn.bg_iou_thresh ({self.bg_iou_thresh}) is above model.rpn.fg_iou_thresh "
+                f"({self.fg_iou_thresh})",
+                fix="make bg_iou_thresh <= fg_iou_thresh (defaults 0.3, 0.7)",
+            )
 
 
 @dataclass
@@ -77,58 +79,86 @@ class ROIConfig:
     batch_size_per_image: int = param(512, "proposals sampled per image for the box loss", min=1)
     positive_fraction: float = param(0.25, "largest share of positives among the sampled proposals", min=0, max=1)
     nms_thresh: float = param(0.5, "NMS IoU threshold between final boxes of one class", min=0, max=1)
-    detections_per_img: int = param(300, "most boxes returned per image (torchvision's 100 loses plants on "
-                                         "dense tiles)", min=1)
+    detections_per_img: int = param(
+        300, "most boxes returned per image (torchvision's 100 loses plants on dense tiles)", min=1
+    )
 
     def check(self) -> None:
         if self.bg_iou_thresh > self.fg_iou_thresh:
-            raise ConfigError(f"model.roi.bg_iou_thresh ({self.bg_iou_thresh}) is above model.roi.fg_iou_thresh "
-                              f"({self.fg_iou_thresh})", fix="make bg_iou_thresh <= fg_iou_thresh (defaults 0.5, 0.5)")
+            raise ConfigError(
+                f"model.roi.bg_iou_thresh ({self.bg_iou_thresh}) is above model.roi.fg_iou_thresh "
+                f"({self.fg_iou_thresh})",
+                fix="make bg_iou_thresh <= fg_iou_thresh (defaults 0.5, 0.5)",
+            )
 
 
 @dataclass
 class ModelConfig:
     """The detector: architecture, starting weights, input size, anchors, RPN and ROI settings."""
 
-    architecture: str = param(AUTO, "torchvision detector: auto (module 6: the paper's ResNet-50 FPN on a GPU; "
-                              "on a CPU from random weights the light ResNet-18 FPN, from pretrained ones what a "
-                              "measured probe shows can train in the time budget; logged with the reason), Faster "
-                              "R-CNN (the paper used ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the "
-                              "one-stage RetinaNet and FCOS", choices=(AUTO, *ARCHITECTURES))
-    pretrained: str = param("coco", "starting weights: coco (whole detector, downloaded once), imagenet "
-                            "(backbone only), none (random)", choices=PRETRAINED)
-    checkpoint: Path | None = param(None, "start from this MatchPlant checkpoint instead (transfer learning; "
-                                    "matching layers are loaded, a different class count is fine)", path="file")
+    architecture: str = param(
+        AUTO,
+        "torchvision detector: auto (module 6: the paper's ResNet-50 FPN on a GPU; "
+        "on a CPU from random weights the light ResNet-18 FPN, from pretrained ones what a "
+        "measured probe shows can train in the time budget; logged with the reason), Faster "
+        "R-CNN (the paper used ResNet-50 FPN; MobileNetV3 is much faster on a CPU), or the "
+        "one-stage RetinaNet and FCOS",
+        choices=(AUTO, *ARCHITECTURES),
+    )
+    pretrained: str = param(
+        "coco",
+        "starting weights: coco (whole detector, downloaded once), imagenet (backbone only), none (random)",
+        choices=PRETRAINED,
+    )
+    checkpoint: Path | None = param(
+        None,
+        "start from this MatchPlant checkpoint instead (transfer learning; "
+        "matching layers are loaded, a different class count is fine)",
+        path="file",
+    )
     min_size: int = param(800, "images are resized so their short side is this many pixels", min=32)
     max_size: int = param(1333, "... and their long side at most this many pixels", min=32)
     anchor_sizes: list[list[int]] | Literal["auto"] | None = param(
-        None, "anchor sizes in detector input pixels (after the min_size resize), one list per FPN level "
-              "(ResNet-50: 5 levels, MobileNetV3: 3; FCOS: one size per level); 'auto' = from the training "
-              "boxes (see 'matchplant inspect'); null = the architecture's default", min=1)
-    aspect_ratios: list[float] = param([0.5, 1.0, 2.0], "anchor height/width ratios (the same at every level)",
-                                       min=0.01)
+        None,
+        "anchor sizes in detector input pixels (after the min_size resize), one list per FPN level "
+        "(ResNet-50: 5 levels, MobileNetV3: 3; FCOS: one size per level); 'auto' = from the training "
+        "boxes (see 'matchplant inspect'); null = the architecture's default",
+        min=1,
+    )
+    aspect_ratios: list[float] = param(
+        [0.5, 1.0, 2.0], "anchor height/width ratios (the same at every level)", min=0.01
+    )
     rpn: RPNConfig = section(RPNConfig)
     roi: ROIConfig = section(ROIConfig)
 
     def check(self) -> None:
         if self.max_size < self.min_size:
-            raise ConfigError(f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
-                              fix="set max_size >= min_size")
+            raise ConfigError(
+                f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
+                fix="set max_size >= min_size",
+            )
         if isinstance(self.anchor_sizes, list) and self.architecture != AUTO:  # auto: module 6 picks a fitting one
             arch = get_architecture(self.architecture)
             levels = arch.anchors.levels
             if len(self.anchor_sizes) != levels:
-                raise ConfigError(f"model.anchor_sizes has {len(self.anchor_sizes)} level(s) but "
-                                  f"{self.architecture} has {levels} FPN levels",
-                                  fix=f"give {levels} lists, e.g. {[list(s) for s in arch.default_anchors]}")
+                raise ConfigError(
+                    f"model.anchor_sizes has {len(self.anchor_sizes)} level(s) but "
+                    f"{self.architecture} has {levels} FPN levels",
+                    fix=f"give {levels} lists, e.g. {[list(s) for s in arch.default_anchors]}",
+                )
             if any(s <= 0 for level in self.anchor_sizes for s in level):
                 raise ConfigError("model.anchor_sizes must be positive pixel sizes", fix="correct model.anchor_sizes")
             if len({len(s) for s in self.anchor_sizes}) != 1:
-                raise ConfigError("model.anchor_sizes: every level needs the same number of sizes (one RPN head "
-                                  "serves all levels)", fix="give each level's list the same length")
+                raise ConfigError(
+                    "model.anchor_sizes: every level needs the same number of sizes (one RPN head serves all levels)",
+                    fix="give each level's list the same length",
+                )
             if arch.anchor_free and any(len(level) != 1 for level in self.anchor_sizes):
-                raise ConfigError("model.anchor_sizes: FCOS is anchor-free and takes one size per level (it sets "
-                                  "the object sizes each level learns)", fix="e.g. [[8], [16], [32], [64], [128]]")
+                raise ConfigError(
+                    "model.anchor_sizes: FCOS is anchor-free and takes one size per level (it sets "
+                    "the object sizes each level learns)",
+                    fix="e.g. [[8], [16], [32], [64], [128]]",
+                )
 
 
 def model_config_from_dict(data: dict) -> ModelConfig:
@@ -147,8 +177,10 @@ def _weights(arch: Architecture, pretrained: str):
 
     if pretrained == "coco":
         if arch.coco_weights is None:
-            raise ConfigError(f"{arch.name} has no COCO weights (model.pretrained: coco)",
-                              fix="set model.pretrained: imagenet (its backbone's weights) or none")
+            raise ConfigError(
+                f"{arch.name} has no COCO weights (model.pretrained: coco)",
+                fix="set model.pretrained: imagenet (its backbone's weights) or none",
+            )
         return get_weight(arch.coco_weights), None
     if pretrained == "imagenet":
         return None, get_weight(arch.backbone.imagenet_weights)
@@ -174,32 +206,57 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
     if num_classes < 2:
         raise InputError("the dataset has no categories", fix="give a COCO dataset with at least one category")
     if cfg.anchor_sizes == "auto":
-        raise ConfigError("model.anchor_sizes is 'auto' but was not computed from the training boxes",
-                          fix="call resolve_auto_anchors(cfg, train_dataset) first (module 6 does)")
+        raise ConfigError(
+            "model.anchor_sizes is 'auto' but was not computed from the training boxes",
+            fix="call resolve_auto_anchors(cfg, train_dataset) first (module 6 does)",
+        )
     if cfg.architecture == AUTO:
-        raise ConfigError("model.architecture is 'auto', which module 6 resolves before it builds a model",
-                          fix="set model.architecture to one of " + ", ".join(ARCHITECTURES))
+        raise ConfigError(
+            "model.architecture is 'auto', which module 6 resolves before it builds a model",
+            fix="set model.architecture to one of " + ", ".join(ARCHITECTURES),
+        )
     arch = get_architecture(cfg.architecture)
     weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
-    kwargs = dict(min_size=cfg.min_size, max_size=cfg.max_size, nms_thresh=cfg.roi.nms_thresh,
-                  detections_per_img=cfg.roi.detections_per_img) if not arch.two_stage else dict(
-        min_size=cfg.min_size, max_size=cfg.max_size,
-        rpn_pre_nms_top_n_train=cfg.rpn.pre_nms_top_n_train, rpn_pre_nms_top_n_test=cfg.rpn.pre_nms_top_n_test,
-        rpn_post_nms_top_n_train=cfg.rpn.post_nms_top_n_train, rpn_post_nms_top_n_test=cfg.rpn.post_nms_top_n_test,
-        rpn_nms_thresh=cfg.rpn.nms_thresh, rpn_fg_iou_thresh=cfg.rpn.fg_iou_thresh,
-        rpn_bg_iou_thresh=cfg.rpn.bg_iou_thresh, rpn_batch_size_per_image=cfg.rpn.batch_size_per_image,
-        rpn_positive_fraction=cfg.rpn.positive_fraction, rpn_score_thresh=cfg.rpn.score_thresh,
-        box_nms_thresh=cfg.roi.nms_thresh,
-        box_detections_per_img=cfg.roi.detections_per_img, box_fg_iou_thresh=cfg.roi.fg_iou_thresh,
-        box_bg_iou_thresh=cfg.roi.bg_iou_thresh, box_batch_size_per_image=cfg.roi.batch_size_per_image,
-        box_positive_fraction=cfg.roi.positive_fraction)
+    kwargs = (
+        dict(
+            min_size=cfg.min_size,
+            max_size=cfg.max_size,
+            nms_thresh=cfg.roi.nms_thresh,
+            detections_per_img=cfg.roi.detections_per_img,
+        )
+        if not arch.two_stage
+        else dict(
+            min_size=cfg.min_size,
+            max_size=cfg.max_size,
+            rpn_pre_nms_top_n_train=cfg.rpn.pre_nms_top_n_train,
+            rpn_pre_nms_top_n_test=cfg.rpn.pre_nms_top_n_test,
+            rpn_post_nms_top_n_train=cfg.rpn.post_nms_top_n_train,
+            rpn_post_nms_top_n_test=cfg.rpn.post_nms_top_n_test,
+            rpn_nms_thresh=cfg.rpn.nms_thresh,
+            rpn_fg_iou_thresh=cfg.rpn.fg_iou_thresh,
+            rpn_bg_iou_thresh=cfg.rpn.bg_iou_thresh,
+            rpn_batch_size_per_image=cfg.rpn.batch_size_per_image,
+            rpn_positive_fraction=cfg.rpn.positive_fraction,
+            rpn_score_thresh=cfg.rpn.score_thresh,
+            box_nms_thresh=cfg.roi.nms_thresh,
+            box_detections_per_img=cfg.roi.detections_per_img,
+            box_fg_iou_thresh=cfg.roi.fg_iou_thresh,
+            box_bg_iou_thresh=cfg.roi.bg_iou_thresh,
+            box_batch_size_per_image=cfg.roi.batch_size_per_image,
+            box_positive_fraction=cfg.roi.positive_fraction,
+        )
+    )
     builder = getattr(lite, arch.builder, None) or getattr(d, arch.builder)
     # all stages trainable here; train.apply_freezing decides (the same on every rebuild)
     trainable = arch.backbone.stage_count
     try:
-        model = builder(weights=weights, weights_backbone=weights_backbone,
-                        num_classes=91 if weights is not None else num_classes,
-                        trainable_backbone_layers=trainable if (weights or weights_backbone) else None, **kwargs)
+        model = builder(
+            weights=weights,
+            weights_backbone=weights_backbone,
+            num_classes=91 if weights is not None else num_classes,
+            trainable_backbone_layers=trainable if (weights or weights_backbone) else None,
+            **kwargs,
+        )
     except (urllib.error.URLError, OSError, ConnectionError) as exc:
         _download_failed(cfg, weights or weights_backbone, exc)
     assert isinstance(model, nn.Module)
@@ -229,14 +286,17 @@ def _download_failed(cfg: ModelConfig, weights, exc: Exception):
     from torch.hub import get_dir  # lazy: PyTorch is heavy; configs load without it
 
     name = weights.url.rsplit("/", 1)[-1]
-    raise DependencyError(f"could not download the {cfg.pretrained.upper()} weights of {cfg.architecture} "
-                          f"({type(exc).__name__}: {exc})", path=Path(get_dir()) / "checkpoints" / name,
-                          fix="connect to the internet once (the file is then cached), or copy the file to "
-                              "that path, or set model.pretrained: none, or start from model.checkpoint") from exc
+    raise DependencyError(
+        f"could not download the {cfg.pretrained.upper()} weights of {cfg.architecture} ({type(exc).__name__}: {exc})",
+        path=Path(get_dir()) / "checkpoints" / name,
+        fix="connect to the internet once (the file is then cached), or copy the file to "
+        "that path, or set model.pretrained: none, or start from model.checkpoint",
+    ) from exc
 
 
-def _adapt_one_stage(model, cfg: ModelConfig, arch: Architecture, num_classes: int, *, coco_head: bool,
-                     load_weights: bool) -> None:
+def _adapt_one_stage(
+    model, cfg: ModelConfig, arch: Architecture, num_classes: int, *, coco_head: bool, load_weights: bool
+) -> None:
     """RetinaNet / FCOS: our classes, anchors, frozen norms and the score-threshold handle."""
     import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
     from torchvision.models.detection.anchor_utils import AnchorGenerator
@@ -246,8 +306,9 @@ def _adapt_one_stage(model, cfg: ModelConfig, arch: Architecture, num_classes: i
     if cfg.anchor_sizes is not None or (not arch.anchor_free and list(cfg.aspect_ratios) != [0.5, 1.0, 2.0]):
         sizes = cfg.anchor_sizes or arch.default_anchors
         ratios = (1.0,) if arch.anchor_free else tuple(float(r) for r in cfg.aspect_ratios)
-        model.anchor_generator = AnchorGenerator(tuple(tuple(int(s) for s in level) for level in sizes),
-                                                 (ratios,) * len(sizes))
+        model.anchor_generator = AnchorGenerator(
+            tuple(tuple(int(s) for s in level) for level in sizes), (ratios,) * len(sizes)
+        )
     n = model.anchor_generator.num_anchors_per_location()[0]
     channels = model.backbone.out_channels
     if not arch.anchor_free and n != model.head.classification_head.num_anchors:  # one output per anchor shape
@@ -318,11 +379,17 @@ def resolve_auto_anchors(cfg: ModelConfig, dataset: dict | str | Path) -> ModelC
     data = dataset if isinstance(dataset, dict) else read_dataset(dataset, validate=False)
     w, h = box_sizes(data, cfg.min_size, cfg.max_size)
     if not len(w):
-        raise InputError("model.anchor_sizes: auto needs boxes in the training set, and it has none",
-                         fix="give training tiles with boxes, or set model.anchor_sizes explicitly")
+        raise InputError(
+            "model.anchor_sizes: auto needs boxes in the training set, and it has none",
+            fix="give training tiles with boxes, or set model.anchor_sizes explicitly",
+        )
     sizes = auto_anchor_sizes(w, h, get_architecture(cfg.architecture).anchors)
-    log.info("anchor_sizes: auto -> %s (from %d training boxes, median %.0f px in the detector's input)",
-             sizes, len(w), float(np.median(np.sqrt(w * h))))
+    log.info(
+        "anchor_sizes: auto -> %s (from %d training boxes, median %.0f px in the detector's input)",
+        sizes,
+        len(w),
+        float(np.median(np.sqrt(w * h))),
+    )
     return dataclasses.replace(cfg, anchor_sizes=sizes)
 
 
@@ -351,10 +418,13 @@ def model_parts(model) -> dict[str, Any]:
     import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
 
     if not hasattr(model, "rpn"):
-        return {"backbone": model.backbone.body, "fpn": model.backbone.fpn, "rpn": nn.ModuleList(),
-                "roi_heads": model.head}
-    return {"backbone": model.backbone.body, "fpn": model.backbone.fpn, "rpn": model.rpn,
-            "roi_heads": model.roi_heads}
+        return {
+            "backbone": model.backbone.body,
+            "fpn": model.backbone.fpn,
+            "rpn": nn.ModuleList(),
+            "roi_heads": model.head,
+        }
+    return {"backbone": model.backbone.body, "fpn": model.backbone.fpn, "rpn": model.rpn, "roi_heads": model.roi_heads}
 
 
 def backbone_stages(model, arch: str) -> list[list[Any]]:
@@ -366,11 +436,14 @@ def apply_freezing(model, arch: str, trainable_backbone_layers: int, freeze: lis
     """Make everything trainable, then freeze the backbone's first stages and the named parts."""
     stages = backbone_stages(model, arch)
     if trainable_backbone_layers > len(stages):
-        raise ConfigError(f"trainable_backbone_layers = {trainable_backbone_layers} but {arch} has only "
-                          f"{len(stages)} backbone stages", fix=f"use 0 to {len(stages)}")
+        raise ConfigError(
+            f"trainable_backbone_layers = {trainable_backbone_layers} but {arch} has only "
+            f"{len(stages)} backbone stages",
+            fix=f"use 0 to {len(stages)}",
+        )
     for p in model.parameters():
         p.requires_grad_(True)
-    for stage in stages[:len(stages) - trainable_backbone_layers]:
+    for stage in stages[: len(stages) - trainable_backbone_layers]:
         for block in stage:
             for p in block.parameters():
                 p.requires_grad_(False)
@@ -398,6 +471,8 @@ def parameter_groups(model, lrs: dict[str, float]) -> list[dict]:
         if params:
             groups.append({"params": params, "lr": float(lrs[name]), "name": name})
     if not groups:
-        raise ConfigError("every part of the model is frozen: nothing to train",
-                          fix="remove a part from 'freeze' or raise 'trainable_backbone_layers'")
+        raise ConfigError(
+            "every part of the model is frozen: nothing to train",
+            fix="remove a part from 'freeze' or raise 'trainable_backbone_layers'",
+        )
     return groups

@@ -38,7 +38,7 @@ from matchplant.detection.tile_objects import distinct_objects
 
 log = get_logger("inspect")
 
-MIN_OBJECT_PX = 24      # objects smaller than this (in detector input pixels) are hard for FPN detectors
+MIN_OBJECT_PX = 24  # objects smaller than this (in detector input pixels) are hard for FPN detectors
 TILE_MIN, TILE_MAX, TILE_STEP = 256, 1024, 64
 PERCENTILES = (1, 5, 10, 25, 50, 75, 90, 95, 99)
 
@@ -51,7 +51,7 @@ def box_sizes(dataset: dict, min_size: int | None = None, max_size: int | None =
     b = np.array([a["bbox"] for a in anns], float).reshape(-1, 4)
     w, h = b[:, 2].copy(), b[:, 3].copy()
     if min_size is not None:
-        scale = np.array([input_scale(*sizes[a["image_id"]], min_size, max_size or 10 ** 9) for a in anns])
+        scale = np.array([input_scale(*sizes[a["image_id"]], min_size, max_size or 10**9) for a in anns])
         w, h = w * scale, h * scale
     return w, h
 
@@ -69,8 +69,13 @@ def size_stats(widths: Iterable[float], heights: Iterable[float]) -> dict:
     if not len(w):
         return {"boxes": 0}
     out = {"boxes": len(w)}
-    for name, v in (("width", w), ("height", h), ("sqrt_area", np.sqrt(w * h)), ("long_side", np.maximum(w, h)),
-                    ("aspect_h_over_w", h / w)):
+    for name, v in (
+        ("width", w),
+        ("height", h),
+        ("sqrt_area", np.sqrt(w * h)),
+        ("long_side", np.maximum(w, h)),
+        ("aspect_h_over_w", h / w),
+    ):
         out[name] = {f"p{p}": round(float(np.percentile(v, p)), 2) for p in PERCENTILES}
         out[name]["mean"] = round(float(v.mean()), 2)
     return out
@@ -110,8 +115,10 @@ def recommend(stats: dict, image_sizes: Iterable[tuple[int, int]] = ()) -> dict:
     small = smallest_anchor(stats) * scale
     ratios = sorted({round(float(stats["aspect_h_over_w"][p]), 2) for p in ("p10", "p50", "p90")})
     return {
-        "tile_size": int(tile), "overlap": int(overlap),
-        "min_size": int(min_size), "max_size": int(min_size),
+        "tile_size": int(tile),
+        "overlap": int(overlap),
+        "min_size": int(min_size),
+        "max_size": int(min_size),
         "min_size_floor": int(_round_to(tile * MIN_OBJECT_PX / median, 32)) if median > 0 else None,
         "input_scale": round(scale, 3),
         "median_object_px_in_detector": round(median * scale, 1),
@@ -119,14 +126,14 @@ def recommend(stats: dict, image_sizes: Iterable[tuple[int, int]] = ()) -> dict:
         "aspect_ratios": ratios if len(ratios) > 1 else [0.5, 1.0, 2.0],
         "why": {
             "overlap": f"the longest 1 % of boxes are {largest:.0f} px or more: neighbouring tiles share "
-                       f"{overlap} px so such a plant is whole in at least one tile",
+            f"{overlap} px so such a plant is whole in at least one tile",
             "tile_size": f"about 8x the overlap (overlap costs ~{100 * (1 - ((tile - overlap) / tile) ** 2):.0f} % "
-                         f"extra pixels), a multiple of {TILE_STEP} in {TILE_MIN}..{TILE_MAX}",
+            f"extra pixels), a multiple of {TILE_STEP} in {TILE_MIN}..{TILE_MAX}",
             "min_size": f"median object {median:.0f} px; the detector input is {scale:.2f}x the tile so the median "
-                        f"object is {median * scale:.0f} px (>= {MIN_OBJECT_PX} px); to save CPU time min_size may "
-                        f"go down to the floor, not below",
+            f"object is {median * scale:.0f} px (>= {MIN_OBJECT_PX} px); to save CPU time min_size may "
+            f"go down to the floor, not below",
             "anchor_sizes": f"smallest anchor ({small:.0f} px in detector pixels) at the small objects (5th "
-                            f"percentile of sqrt(area)) and below the median / sqrt(2), doubling per FPN level",
+            f"percentile of sqrt(area)) and below the median / sqrt(2), doubling per FPN level",
         },
     }
 
@@ -151,31 +158,46 @@ def auto_anchor_sizes(widths: np.ndarray, heights: np.ndarray, rule: AnchorRule)
 class InspectConfig:
     """Object sizes of a COCO dataset and the tile size, overlap, min_size and anchors they call for."""
 
-    annotations: Path | None = param(None, "COCO JSON to measure: module 4's annotations.json (source photos) "
-                                           "or a module 5 split (tiles)", path="file", required=True)
+    annotations: Path | None = param(
+        None,
+        "COCO JSON to measure: module 4's annotations.json (source photos) or a module 5 split (tiles)",
+        path="file",
+        required=True,
+    )
     report: Path | None = param(None, "optional JSON file for the statistics and recommendations", path="out")
 
 
 def check_structure(ds: dict, path: Path) -> None:
     """The parts of a COCO file that measuring needs: every image a positive width and height, every
     annotation a ``[x, y, w, h]`` bbox of numbers (an error naming the first ones and the count)."""
-    bad_images = [im for im in ds["images"] if not all(isinstance(im.get(k), (int, float)) and not
-                                                         isinstance(im.get(k), bool) and im[k] > 0
-                                                         for k in ("width", "height"))]
+    bad_images = [
+        im
+        for im in ds["images"]
+        if not all(
+            isinstance(im.get(k), (int, float)) and not isinstance(im.get(k), bool) and im[k] > 0
+            for k in ("width", "height")
+        )
+    ]
     if bad_images:
         shown = ", ".join(f"{im.get('id')} ({im.get('file_name')})" for im in bad_images[:3])
-        raise InputError(f"{len(bad_images)} of the {len(ds['images'])} image(s) have no valid 'width'/'height' "
-                         f"(e.g. image {shown}): box sizes cannot be put in proportion to the photos",
-                         path=path, fix="add each image's width and height in pixels (module 4's import writes "
-                                        "them), or give module 4's annotations.json")
+        raise InputError(
+            f"{len(bad_images)} of the {len(ds['images'])} image(s) have no valid 'width'/'height' "
+            f"(e.g. image {shown}): box sizes cannot be put in proportion to the photos",
+            path=path,
+            fix="add each image's width and height in pixels (module 4's import writes "
+            "them), or give module 4's annotations.json",
+        )
     bad = [a for a in ds["annotations"] if bbox_values(a.get("bbox")) is None]
     if bad:
         a = bad[0]
         got = "no 'bbox'" if "bbox" not in a else f"'bbox' = {a['bbox']!r} ({type(a['bbox']).__name__})"
-        raise InputError(f"{len(bad)} of the {len(ds['annotations'])} annotation(s) have no [x, y, w, h] 'bbox' "
-                         f"of numbers (e.g. annotation {a.get('id')}: {got})", path=path,
-                         fix="give each annotation 'bbox': [x, y, width, height] as a list of numbers, or import "
-                             "the file with module 4 (import_coco), which lists what it cannot use")
+        raise InputError(
+            f"{len(bad)} of the {len(ds['annotations'])} annotation(s) have no [x, y, w, h] 'bbox' "
+            f"of numbers (e.g. annotation {a.get('id')}: {got})",
+            path=path,
+            fix="give each annotation 'bbox': [x, y, width, height] as a list of numbers, or import "
+            "the file with module 4 (import_coco), which lists what it cannot use",
+        )
 
 
 def source_view(ds: dict) -> tuple[dict, list[tuple[int, int]], str]:
@@ -207,19 +229,28 @@ def source_view(ds: dict) -> tuple[dict, list[tuple[int, int]], str]:
             size = [float(im.get("x0", 0)) + im["width"], float(im.get("y0", 0)) + im["height"]]
         e = extent.setdefault(src, size)
         e[:] = [max(e[0], size[0]), max(e[1], size[1])]
-    photos = {"images": [{"id": i + 1, "width": w, "height": h} for i, (w, h) in enumerate(extent.values())],
-              "annotations": [{"id": k + 1, "image_id": 1, "bbox": [b[0], b[1], b[2] - b[0], b[3] - b[1]]}
-                              for k, b in enumerate(union.values())]}
-    how = ("recorded in the tiles (source_width/height)" if recorded
-           else "the extent of each photo's tiles (at least the photo; exact when its edge tiles are kept)")
+    photos = {
+        "images": [{"id": i + 1, "width": w, "height": h} for i, (w, h) in enumerate(extent.values())],
+        "annotations": [
+            {"id": k + 1, "image_id": 1, "bbox": [b[0], b[1], b[2] - b[0], b[3] - b[1]]}
+            for k, b in enumerate(union.values())
+        ],
+    }
+    how = (
+        "recorded in the tiles (source_width/height)"
+        if recorded
+        else "the extent of each photo's tiles (at least the photo; exact when its edge tiles are kept)"
+    )
     return photos, sorted({(round(w), round(h)) for w, h in extent.values()}), how
 
 
 def tiles_per_photo(size: tuple[int, int], tile: int, overlap: int) -> int:
     """How many tiles of ``tile`` px overlapping by ``overlap`` cover a photo (module 5's and module 7's grid:
     a step of tile - overlap, the last tile flush with the edge)."""
+
     def along(length: int) -> int:
         return 1 if length <= tile else math.ceil((length - tile) / (tile - overlap)) + 1
+
     return along(size[0]) * along(size[1])
 
 
@@ -231,9 +262,11 @@ def tiling_note(advice: dict, sizes: list[tuple[int, int]]) -> str | None:
     counts = sorted({tiles_per_photo(s, tile, overlap) for s in sizes})
     if counts == [1]:
         same = all(max(s) == tile for s in sizes)
-        return (f"tile_size {tile} {'equals' if same else 'covers'} the photos ({sizes[0][0]}x{sizes[0][1]}"
-                f"{' ...' if len(sizes) > 1 else ''}): no tiling, each photo is one whole tile (module 5 then "
-                f"keeps the photos whole; module 7 detects each photo in one pass)")
+        return (
+            f"tile_size {tile} {'equals' if same else 'covers'} the photos ({sizes[0][0]}x{sizes[0][1]}"
+            f"{' ...' if len(sizes) > 1 else ''}): no tiling, each photo is one whole tile (module 5 then "
+            f"keeps the photos whole; module 7 detects each photo in one pass)"
+        )
     shown = "-".join(str(c) for c in (counts[0], counts[-1])) if len(counts) > 1 else str(counts[0])
     return f"{shown} tiles per photo ({sizes[0][0]}x{sizes[0][1]}{' ...' if len(sizes) > 1 else ''})"
 
@@ -244,22 +277,37 @@ def inspect_dataset(cfg: InspectConfig) -> dict:
     ds = read_dataset(cfg.annotations, validate=False)
     check_structure(ds, Path(cfg.annotations))
     tiles = any("source_image" in im for im in ds["images"])
-    photos, sizes, how = source_view(ds) if tiles else (ds, sorted({(int(im["width"]), int(im["height"]))
-                                                                    for im in ds["images"]}), "")
+    photos, sizes, how = (
+        source_view(ds) if tiles else (ds, sorted({(int(im["width"]), int(im["height"])) for im in ds["images"]}), "")
+    )
     w, h = box_sizes(photos)
     stats = size_stats(w, h)
     if not stats["boxes"]:
-        raise InputError("the dataset has no boxes to measure", path=cfg.annotations,
-                         fix="give a COCO file with annotations (module 4's annotations.json)")
+        raise InputError(
+            "the dataset has no boxes to measure",
+            path=cfg.annotations,
+            fix="give a COCO file with annotations (module 4's annotations.json)",
+        )
     if tiles:
-        log.info("measured on tiles: %d tile boxes are %d distinct plants on %d photo(s); photo sizes from %s",
-                 len(ds["annotations"]), stats["boxes"], len(photos["images"]), how)
+        log.info(
+            "measured on tiles: %d tile boxes are %d distinct plants on %d photo(s); photo sizes from %s",
+            len(ds["annotations"]),
+            stats["boxes"],
+            len(photos["images"]),
+            how,
+        )
     advice = recommend(stats, sizes)
     note = tiling_note(advice, sizes)
     if note:
         advice["tiling"] = note
-    out = {"annotations": str(cfg.annotations), "images": len(ds["images"]), "image_sizes": sizes[:10],
-           "tiles": tiles, "objects_px": stats, "recommended": advice}
+    out = {
+        "annotations": str(cfg.annotations),
+        "images": len(ds["images"]),
+        "image_sizes": sizes[:10],
+        "tiles": tiles,
+        "objects_px": stats,
+        "recommended": advice,
+    }
     if tiles:
         out.update(photos=len(photos["images"]), tile_boxes=len(ds["annotations"]), photo_sizes_from=how)
     print(format_report(out))
@@ -272,26 +320,37 @@ def inspect_dataset(cfg: InspectConfig) -> dict:
 def format_report(r: dict) -> str:
     """The report as text for the terminal."""
     s, a = r["objects_px"], r["recommended"]
-    where = (f"{r['tile_boxes']} tile boxes on {r['images']} tiles = {s['boxes']} distinct plants on {r['photos']} "
-             f"photo(s)" if r["tiles"] else f"{s['boxes']} boxes on {r['images']} images")
-    rows = [f"{where} ({', '.join(f'{w}x{h}' for w, h in r['image_sizes'][:3])})",
-            "object size in pixels       p5     p25    p50    p75    p95    p99"]
+    where = (
+        f"{r['tile_boxes']} tile boxes on {r['images']} tiles = {s['boxes']} distinct plants on {r['photos']} photo(s)"
+        if r["tiles"]
+        else f"{s['boxes']} boxes on {r['images']} images"
+    )
+    rows = [
+        f"{where} ({', '.join(f'{w}x{h}' for w, h in r['image_sizes'][:3])})",
+        "object size in pixels       p5     p25    p50    p75    p95    p99",
+    ]
     for key in ("width", "height", "sqrt_area", "long_side"):
         rows.append(f"  {key:<24}" + "".join(f"{s[key][p]:7.1f}" for p in ("p5", "p25", "p50", "p75", "p95", "p99")))
-    rows.append(f"  height/width{'':<12}" + "".join(f"{s['aspect_h_over_w'][p]:7.2f}"
-                                                    for p in ("p5", "p25", "p50", "p75", "p95", "p99")))
-    rows += ["recommended (module 5 and module 6 settings):",
-             f"  tile_size: {a['tile_size']}    overlap: {a['overlap']}",
-             f"  model.min_size: {a['min_size']}    model.max_size: {a['max_size']}    "
-             f"(CPU: not below {a['min_size_floor']})",
-             f"  model.anchor_sizes: auto  (or, for these objects: {json.dumps(a['anchor_sizes'])})",
-             f"  model.aspect_ratios: {a['aspect_ratios']}"]
+    rows.append(
+        f"  height/width{'':<12}"
+        + "".join(f"{s['aspect_h_over_w'][p]:7.2f}" for p in ("p5", "p25", "p50", "p75", "p95", "p99"))
+    )
+    rows += [
+        "recommended (module 5 and module 6 settings):",
+        f"  tile_size: {a['tile_size']}    overlap: {a['overlap']}",
+        f"  model.min_size: {a['min_size']}    model.max_size: {a['max_size']}    "
+        f"(CPU: not below {a['min_size_floor']})",
+        f"  model.anchor_sizes: auto  (or, for these objects: {json.dumps(a['anchor_sizes'])})",
+        f"  model.aspect_ratios: {a['aspect_ratios']}",
+    ]
     if a.get("tiling"):
         rows.append(f"  tiling: {a['tiling']}")
     rows += [f"  why {k}: {v}" for k, v in a["why"].items()]
     if r["tiles"]:
-        rows.append("  (measured on tiles, as the photos they were cut from: the advice is the photos' own; photo "
-                    f"sizes from {r['photo_sizes_from']})")
+        rows.append(
+            "  (measured on tiles, as the photos they were cut from: the advice is the photos' own; photo "
+            f"sizes from {r['photo_sizes_from']})"
+        )
     return "\n".join(rows)
 
 

@@ -29,14 +29,25 @@ def draw_plants(img: np.ndarray, centers: np.ndarray, radii: np.ndarray, rng: np
         rx, ry = r * rng.uniform(0.8, 1.2), r * rng.uniform(0.8, 1.2)
         green = tuple(int(v) for v in (rng.uniform(30, 70), rng.uniform(140, 200), rng.uniform(30, 70)))
         # sub-pixel ellipse (shift=4) so the box is exact
-        cv2.ellipse(img, (int(round(cx * 16)), int(round(cy * 16))), (int(round(rx * 16)), int(round(ry * 16))),
-                    0, 0, 360, green, -1, cv2.LINE_AA, shift=4)
+        cv2.ellipse(
+            img,
+            (int(round(cx * 16)), int(round(cy * 16))),
+            (int(round(rx * 16)), int(round(ry * 16))),
+            0,
+            0,
+            360,
+            green,
+            -1,
+            cv2.LINE_AA,
+            shift=4,
+        )
         boxes.append([max(cx - rx, 0), max(cy - ry, 0), min(cx + rx, w), min(cy + ry, h)])
     return np.asarray(boxes, dtype=float).reshape(-1, 4)
 
 
-def place_plants(rng: np.random.Generator, n: int, height: int, width: int, radius: tuple[float, float],
-                 margin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def place_plants(
+    rng: np.random.Generator, n: int, height: int, width: int, radius: tuple[float, float], margin: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``n`` plant centres and radii that do not touch each other."""
     centers, radii = [], []
     for _ in range(n * 20):
@@ -50,9 +61,17 @@ def place_plants(rng: np.random.Generator, n: int, height: int, width: int, radi
     return np.asarray(centers).reshape(-1, 2), np.asarray(radii)
 
 
-def make_tiles(out: str | Path, n_images: int = 16, size: int = 128, plants: tuple[int, int] = (2, 6),
-               radius: tuple[float, float] = (6, 12), negatives: int = 2, seed: int = 0,
-               name: str = "tiles.json", source: str = "synthetic.tif") -> Path:
+def make_tiles(
+    out: str | Path,
+    n_images: int = 16,
+    size: int = 128,
+    plants: tuple[int, int] = (2, 6),
+    radius: tuple[float, float] = (6, 12),
+    negatives: int = 2,
+    seed: int = 0,
+    name: str = "tiles.json",
+    source: str = "synthetic.tif",
+) -> Path:
     """``n_images`` PNG tiles (the last ``negatives`` without plants) and their COCO JSON in ``out``.
 
     Tiles record a made-up source image and offset, like module 5's, so provenance can be checked.
@@ -69,16 +88,26 @@ def make_tiles(out: str | Path, n_images: int = 16, size: int = 128, plants: tup
         boxes = draw_plants(img, centers, radii, rng)
         file_name = f"images/{Path(name).stem}_{i:04d}.png"
         cv2.imwrite(str(out / file_name), img[:, :, ::-1])
-        ds["images"].append({"id": i + 1, "file_name": file_name, "width": size, "height": size,
-                             "source_image": source, "x0": i * size, "y0": 0})
+        ds["images"].append(
+            {
+                "id": i + 1,
+                "file_name": file_name,
+                "width": size,
+                "height": size,
+                "source_image": source,
+                "x0": i * size,
+                "y0": 0,
+            }
+        )
         for b in boxes:
             ds["annotations"].append(make_annotation(ann_id, i + 1, [b[0], b[1], b[2] - b[0], b[3] - b[1]]))
             ann_id += 1
     return write_dataset(out / name, ds)
 
 
-def make_photo(path: str | Path, width: int, height: int, n_plants: int, radius: tuple[float, float] = (8, 14),
-               seed: int = 0) -> np.ndarray:
+def make_photo(
+    path: str | Path, width: int, height: int, n_plants: int, radius: tuple[float, float] = (8, 14), seed: int = 0
+) -> np.ndarray:
     """A large synthetic photo with plants written to ``path``; returns the true boxes ``[x1, y1, x2, y2]``."""
     rng = np.random.default_rng(seed)
     img = soil(rng, height, width)

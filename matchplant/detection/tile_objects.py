@@ -48,12 +48,16 @@ def distinct_objects(dataset: dict, tol: float = 1.0) -> tuple[dict[int, int], i
         if len(idx) < 2 or len(set(image_of[idx].tolist())) < 2:
             continue
         for start in range(0, len(idx), CHUNK):
-            i = idx[start:start + CHUNK]
+            i = idx[start : start + CHUNK]
             # A ∩ Tb and B ∩ Ta for every pair (i in rows, j in columns)
-            a_in_tb = np.concatenate([np.maximum(box[i, None, :2], tile[None, idx, :2]),
-                                      np.minimum(box[i, None, 2:], tile[None, idx, 2:])], axis=2)
-            b_in_ta = np.concatenate([np.maximum(box[None, idx, :2], tile[i, None, :2]),
-                                      np.minimum(box[None, idx, 2:], tile[i, None, 2:])], axis=2)
+            a_in_tb = np.concatenate(
+                [np.maximum(box[i, None, :2], tile[None, idx, :2]), np.minimum(box[i, None, 2:], tile[None, idx, 2:])],
+                axis=2,
+            )
+            b_in_ta = np.concatenate(
+                [np.maximum(box[None, idx, :2], tile[i, None, :2]), np.minimum(box[None, idx, 2:], tile[i, None, 2:])],
+                axis=2,
+            )
             same = (np.abs(a_in_tb - b_in_ta) <= tol).all(axis=2)
             nonempty = ((a_in_tb[..., 2] - a_in_tb[..., 0]) > 0) & ((a_in_tb[..., 3] - a_in_tb[..., 1]) > 0)
             pairs = np.argwhere(same & nonempty & (image_of[i][:, None] != image_of[idx][None, :]))

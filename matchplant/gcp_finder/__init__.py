@@ -6,4 +6,4 @@ config_path)``, is imported only for ``--gui`` (a plain run needs none of matplo
 from matchplant.gcp_finder.config import GcpFinderConfig
 from matchplant.gcp_finder.run import run
 
-__all__ = ['GcpFinderConfig', 'run']
+__all__ = ["GcpFinderConfig", "run"]

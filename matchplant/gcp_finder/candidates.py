@@ -35,7 +35,7 @@ class Candidate:
 
     gcp: str
     image: str
-    u: float   # predicted pixel
+    u: float  # predicted pixel
     v: float
     center_distance: float  # 0 at the centre, 1 at a corner
     rank: int = 0
@@ -48,11 +48,11 @@ class Finder:
     gcps: dict[str, GCP]
     crs: object
     images: dict[str, ImageInfo]
-    candidates: dict[str, list[Candidate]]      # per GCP, best first
+    candidates: dict[str, list[Candidate]]  # per GCP, best first
     ratio: dict[str, float]
     yaw: dict[str, float]
     pitch: dict[str, float]
-    height: dict[tuple[str, str], float]        # (gcp, image) -> camera height above the GCP
+    height: dict[tuple[str, str], float]  # (gcp, image) -> camera height above the GCP
     flight: set[str] = field(default_factory=set)  # every image of the folder, with GPS or not
 
     def gsd(self, gcp: str, image: str) -> float:
@@ -65,8 +65,9 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
     """Read the survey and every image's metadata; predict each GCP's pixel in each image; rank."""
     gcps, crs = read_survey(cfg.survey, cfg.survey_crs, cfg.output_crs)
     infos, skipped, damaged = [], [], []
-    files = list_images(cfg.images, EXIF_SUFFIXES, key="images",
-                        fix="point 'images' at the folder of the flight's images")
+    files = list_images(
+        cfg.images, EXIF_SUFFIXES, key="images", fix="point 'images' at the folder of the flight's images"
+    )
     for p in progress(files, desc="reading EXIF", unit="img"):
         try:
             info = read_image_info(p)
@@ -76,17 +77,24 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
         (infos if info.lat is not None else skipped).append(info)
     if damaged:
         more = f" (and {len(damaged) - 5} more)" if len(damaged) > 5 else ""
-        raise InputError(f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
-                         path=cfg.images, fix="copy those images again from the camera's card, or move them out "
-                                              "of the folder")
+        raise InputError(
+            f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
+            path=cfg.images,
+            fix="copy those images again from the camera's card, or move them out of the folder",
+        )
     if not infos:
-        raise InputError(f"none of the {len(skipped)} images has a GPS position in its EXIF", path=cfg.images,
-                         fix="write the positions with module 0 (gps_embeder) first, and point 'images' at its "
-                             "output images/ folder")
+        raise InputError(
+            f"none of the {len(skipped)} images has a GPS position in its EXIF",
+            path=cfg.images,
+            fix="write the positions with module 0 (gps_embeder) first, and point 'images' at its "
+            "output images/ folder",
+        )
     notes = []  # warnings, printed once no error can follow
     if skipped:
-        notes.append(f"{len(skipped)} of {len(files)} images have no GPS position in EXIF and are skipped "
-                     f"(e.g. {skipped[0].name}); module 0 writes it")
+        notes.append(
+            f"{len(skipped)} of {len(files)} images have no GPS position in EXIF and are skipped "
+            f"(e.g. {skipped[0].name}); module 0 writes it"
+        )
     camera_positions(infos, crs)
     infos.sort(key=lambda i: (i.time if i.time is not None else 0.0, i.name))
     track = track_yaw(np.array([i.xyz[:2] for i in infos]))
@@ -102,37 +110,61 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
         for g, z in zip(gcps, cam_z):
             height[(g.id, info.name)] = float(z - g.z)
         if not 0 < float(np.median(cam_z - pts[:, 2])) < 2000:
-            notes.append(f"{info.name}: the camera is {float(np.median(cam_z - pts[:, 2])):.0f} m above the GCPs "
-                         f"({hs} height); check 'height_source' and 'altitude_offset_m'")
+            notes.append(
+                f"{info.name}: the camera is {float(np.median(cam_z - pts[:, 2])):.0f} m above the GCPs "
+                f"({hs} height); check 'height_source' and 'altitude_offset_m'"
+            )
         uv = predict_pixels(info, ratio[info.name], yaw[info.name], pitch[info.name], cam_z, pts)
         m = cfg.edge_margin_px
         cx, cy = (info.width - 1) / 2.0, (info.height - 1) / 2.0
         dist = np.hypot(uv[:, 0] - cx, uv[:, 1] - cy) / math.hypot(cx, cy)
-        ok = ((uv[:, 0] >= m) & (uv[:, 0] <= info.width - 1 - m) & (uv[:, 1] >= m) &
-              (uv[:, 1] <= info.height - 1 - m) & (dist <= cfg.max_center_distance) & (cam_z - pts[:, 2] > 0))
+        ok = (
+            (uv[:, 0] >= m)
+            & (uv[:, 0] <= info.width - 1 - m)
+            & (uv[:, 1] >= m)
+            & (uv[:, 1] <= info.height - 1 - m)
+            & (dist <= cfg.max_center_distance)
+            & (cam_z - pts[:, 2] > 0)
+        )
         for gi in np.flatnonzero(ok):
-            cands[gcps[gi].id].append(Candidate(gcps[gi].id, info.name, float(uv[gi, 0]), float(uv[gi, 1]),
-                                                float(dist[gi])))
+            cands[gcps[gi].id].append(
+                Candidate(gcps[gi].id, info.name, float(uv[gi, 0]), float(uv[gi, 1]), float(dist[gi]))
+            )
     for gid, lst in cands.items():
         lst.sort(key=lambda c: c.center_distance)
         if cfg.max_images_per_gcp:
-            del lst[cfg.max_images_per_gcp:]
+            del lst[cfg.max_images_per_gcp :]
         for r, c in enumerate(lst, start=1):
             c.rank = r
     unseen = [gid for gid, lst in cands.items() if not lst]
     if len(unseen) == len(gcps):
         heights = next((f"; {n}" for n in notes if "above the GCPs" in n), "")
-        raise InputError(f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images{heights}",
-                         path=cfg.survey,
-                         fix="check 'survey_crs' (x = easting/longitude, y = northing/latitude) and that the survey "
-                             "belongs to this flight; or raise 'max_center_distance'")
+        raise InputError(
+            f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images{heights}",
+            path=cfg.survey,
+            fix="check 'survey_crs' (x = easting/longitude, y = northing/latitude) and that the survey "
+            "belongs to this flight; or raise 'max_center_distance'",
+        )
     for note in notes:
         log.warning("%s", note)
     if unseen:
-        log.warning("%d of %d GCPs fall outside every image and get no candidates (check their coordinates): %s",
-                    len(unseen), len(gcps), ", ".join(unseen))
-    return Finder({g.id: g for g in gcps}, crs, {i.name: i for i in infos}, cands, ratio, yaw, pitch, height,
-                  {p.name for p in files})
+        log.warning(
+            "%d of %d GCPs fall outside every image and get no candidates (check their coordinates): %s",
+            len(unseen),
+            len(gcps),
+            ", ".join(unseen),
+        )
+    return Finder(
+        {g.id: g for g in gcps},
+        crs,
+        {i.name: i for i in infos},
+        cands,
+        ratio,
+        yaw,
+        pitch,
+        height,
+        {p.name for p in files},
+    )
 
 
 def write_candidates(path: Path, finder: Finder) -> Path:

@@ -14,8 +14,8 @@ import matplotlib
 import numpy as np
 from PIL import Image
 
-from matchplant.core.runtime.gui import figure, is_headless, require_display, reveal, show, status_text
 from matchplant.core.runtime.gui import close as close_figure
+from matchplant.core.runtime.gui import figure, is_headless, require_display, reveal, show, status_text
 from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.gcp_finder.candidates import Finder
 from matchplant.gcp_finder.config import MIN_IMAGES_PER_GCP, GcpFinderConfig
@@ -24,24 +24,33 @@ from matchplant.gcp_finder.run import run
 from matchplant.gcp_finder.target import load_gray, locate_target
 
 HELP = "click: mark | drag: move | right-drag: pan | scroll: zoom | n/p: image | ]/[: GCP | h: all keys | q: quit"
-KEYS = ("cyan +: predicted position, red o: your mark (saved at once)   click: mark   drag the mark: move it\n"
-        "right-drag: pan   scroll or +/-: zoom   f: whole image   c: back to the prediction   a: find the target\n"
-        "n/p or right/left: next/previous image   ]/[ or down/up: next/previous GCP   d: delete   u: undo   "
-        "q: quit")
-PICK_PX = 12      # a press this close (screen pixels) to the mark drags it
-CLICK_PX = 5      # a press-release that moves less than this is a click
+KEYS = (
+    "cyan +: predicted position, red o: your mark (saved at once)   click: mark   drag the mark: move it\n"
+    "right-drag: pan   scroll or +/-: zoom   f: whole image   c: back to the prediction   a: find the target\n"
+    "n/p or right/left: next/previous image   ]/[ or down/up: next/previous GCP   d: delete   u: undo   "
+    "q: quit"
+)
+PICK_PX = 12  # a press this close (screen pixels) to the mark drags it
+CLICK_PX = 5  # a press-release that moves less than this is a click
 
 
 class GcpFinderGUI:
-    def __init__(self, finder: Finder, store: MarkStore, zoom_px: int = 150, target_size_m: float = 0.5,
-                 target_pattern: str = "checker", headless: bool | None = None):
+    def __init__(
+        self,
+        finder: Finder,
+        store: MarkStore,
+        zoom_px: int = 150,
+        target_size_m: float = 0.5,
+        target_pattern: str = "checker",
+        headless: bool | None = None,
+    ):
         self.finder, self.store, self.zoom_px = finder, store, zoom_px
         self.target_size_m, self.target_pattern = target_size_m, target_pattern
         self.gcp_ids = list(finder.gcps)
         self.gi = next((i for i, g in enumerate(self.gcp_ids) if finder.candidates[g]), 0)
         self.ci = 0
         self._image_cache: tuple[str, np.ndarray] | None = None
-        self._press = None       # (kind, display xy, data xy, limits)
+        self._press = None  # (kind, display xy, data xy, limits)
         # tests: a coarser canvas draws faster
         offscreen = is_headless(headless) or matplotlib.get_backend().lower() == "agg"
         self.fig = figure(headless, figsize=(13, 8), dpi=50 if offscreen else None, title="1 GCP finder (marking)")
@@ -56,9 +65,14 @@ class GcpFinderGUI:
         self.status.axes.set_axis_off()
         self.mark_artist = None
         self.pred_artist = None
-        for name, handler in (("button_press_event", self.on_press), ("button_release_event", self.on_release),
-                              ("motion_notify_event", self.on_motion), ("scroll_event", self.on_scroll),
-                              ("key_press_event", self.on_key), ("pick_event", self.on_pick)):
+        for name, handler in (
+            ("button_press_event", self.on_press),
+            ("button_release_event", self.on_release),
+            ("motion_notify_event", self.on_motion),
+            ("scroll_event", self.on_scroll),
+            ("key_press_event", self.on_key),
+            ("pick_event", self.on_pick),
+        ):
             self.fig.canvas.mpl_connect(name, handler)
         self.open()
 
@@ -96,9 +110,9 @@ class GcpFinderGUI:
         else:
             img = self._image(c.image)
             ax.imshow(img, cmap="gray" if img.ndim == 2 else None, interpolation="nearest")
-            self.pred_artist, = ax.plot([c.u], [c.v], "+", color="cyan", ms=22, mew=1.2, label="predicted")
-            self.mark_artist, = ax.plot([], [], "o", mfc="none", mec="red", ms=16, mew=2, label="mark")
-            self.centre_artist, = ax.plot([], [], "+", color="red", ms=8, mew=1)
+            (self.pred_artist,) = ax.plot([c.u], [c.v], "+", color="cyan", ms=22, mew=1.2, label="predicted")
+            (self.mark_artist,) = ax.plot([], [], "o", mfc="none", mec="red", ms=16, mew=2, label="mark")
+            (self.centre_artist,) = ax.plot([], [], "+", color="red", ms=8, mew=1)
             mark = self.store.marks.get((self.gcp, c.image))
             if keep_view:
                 ax.set_xlim(*lims[0])
@@ -106,8 +120,11 @@ class GcpFinderGUI:
             else:
                 u, v = mark if mark else (c.u, c.v)
                 self.zoom_to(u, v, self.zoom_px)
-            ax.set_title(f"{self.gcp}: image {self.ci + 1} of {len(self.candidates)}  {c.image}  "
-                         f"(rank {c.rank}, {c.center_distance:.2f} from centre)", fontsize=10)
+            ax.set_title(
+                f"{self.gcp}: image {self.ci + 1} of {len(self.candidates)}  {c.image}  "
+                f"(rank {c.rank}, {c.center_distance:.2f} from centre)",
+                fontsize=10,
+            )
             ax.tick_params(labelsize=7, length=2)
             ax.locator_params(nbins=4)
         self.draw_mark()
@@ -146,9 +163,17 @@ class GcpFinderGUI:
             n, m = self.store.count(gid), len(self.finder.candidates[gid])
             ok = n >= MIN_IMAGES_PER_GCP
             text = f"{'>' if i == self.gi else ' '} {gid:<8} {n:>2} / {m:<3} {'ok' if ok else 'need 3' if m else 'not seen'}"
-            s.text(0, 0.95 - i * step, text, family="monospace", fontsize=9, va="top", picker=True,
-                   color="tab:green" if ok else "tab:red" if n else "black",
-                   weight="bold" if i == self.gi else "normal").gcp_index = i
+            s.text(
+                0,
+                0.95 - i * step,
+                text,
+                family="monospace",
+                fontsize=9,
+                va="top",
+                picker=True,
+                color="tab:green" if ok else "tab:red" if n else "black",
+                weight="bold" if i == self.gi else "normal",
+            ).gcp_index = i
         s.text(0, 0.02, f"saved to {Path(self.store.path).name} after every change", fontsize=8, color="0.4")
 
     def message(self, text: str) -> None:
@@ -163,8 +188,9 @@ class GcpFinderGUI:
         self.store.set(self.gcp, c.image, u, v)
         self.draw_mark()
         self.draw_side()
-        self.message(f"marked {self.gcp} in {c.image} at ({u:.1f}, {v:.1f}); "
-                     f"{self.store.count(self.gcp)} image(s) for this GCP")
+        self.message(
+            f"marked {self.gcp} in {c.image} at ({u:.1f}, {v:.1f}); {self.store.count(self.gcp)} image(s) for this GCP"
+        )
 
     def next_image(self, step: int = 1) -> None:
         if self.candidates:
@@ -208,8 +234,13 @@ class GcpFinderGUI:
             return
         centre = self.store.marks.get((self.gcp, c.image), (c.u, c.v))
         gray = load_gray(self.finder.images[c.image].path)
-        uv = locate_target(gray, centre[0], centre[1], self.target_size_m / self.finder.gsd(self.gcp, c.image),
-                           pattern=self.target_pattern)
+        uv = locate_target(
+            gray,
+            centre[0],
+            centre[1],
+            self.target_size_m / self.finder.gsd(self.gcp, c.image),
+            pattern=self.target_pattern,
+        )
         if uv is None:
             self.message("no target found here; click its centre")
             return
@@ -288,12 +319,31 @@ class GcpFinderGUI:
     def on_key(self, ev) -> None:
         k = ev.key
         actions = {
-            "right": self.next_image, "n": self.next_image, " ": self.next_image,
-            "left": lambda: self.next_image(-1), "p": lambda: self.next_image(-1),
-            "down": self.next_gcp, "]": self.next_gcp, "up": lambda: self.next_gcp(-1), "[": lambda: self.next_gcp(-1),
-            "u": self.undo, "ctrl+z": self.undo, "d": self.delete, "delete": self.delete, "backspace": self.delete,
-            "a": self.auto_find, "f": self.fit, "0": self.fit, "+": lambda: self.zoom(1.5), "=": lambda: self.zoom(1.5),
-            "-": lambda: self.zoom(1 / 1.5), "c": self.open, "s": self.save, "h": self.toggle_help, "q": self.close, "escape": self.close,
+            "right": self.next_image,
+            "n": self.next_image,
+            " ": self.next_image,
+            "left": lambda: self.next_image(-1),
+            "p": lambda: self.next_image(-1),
+            "down": self.next_gcp,
+            "]": self.next_gcp,
+            "up": lambda: self.next_gcp(-1),
+            "[": lambda: self.next_gcp(-1),
+            "u": self.undo,
+            "ctrl+z": self.undo,
+            "d": self.delete,
+            "delete": self.delete,
+            "backspace": self.delete,
+            "a": self.auto_find,
+            "f": self.fit,
+            "0": self.fit,
+            "+": lambda: self.zoom(1.5),
+            "=": lambda: self.zoom(1.5),
+            "-": lambda: self.zoom(1 / 1.5),
+            "c": self.open,
+            "s": self.save,
+            "h": self.toggle_help,
+            "q": self.close,
+            "escape": self.close,
         }
         if k in actions:
             actions[k]()
@@ -314,8 +364,12 @@ class GcpFinderGUI:
         show(self.fig)
 
 
-SETUP_FIELDS = [SetupField("images", "Images folder", "folder"), SetupField("survey", "GCP survey (id,x,y,z)", "file"),
-                SetupField("survey_crs", "Survey CRS", "text"), SetupField("output_dir", "Output folder", "folder")]
+SETUP_FIELDS = [
+    SetupField("images", "Images folder", "folder"),
+    SetupField("survey", "GCP survey (id,x,y,z)", "file"),
+    SetupField("survey_crs", "Survey CRS", "text"),
+    SetupField("output_dir", "Output folder", "folder"),
+]
 
 
 class GcpFinderSetup:
@@ -327,20 +381,35 @@ class GcpFinderSetup:
         self.finder: Finder | None = None
         self.store: MarkStore | None = None
         self.marking: GcpFinderGUI | None = None
-        self.screen = SetupScreen("GCP finder: choose the images and the GCP survey", cfg, SETUP_FIELDS,
-                                  self._run, headless=headless, chooser=chooser, run_label="Find GCPs")
+        self.screen = SetupScreen(
+            "GCP finder: choose the images and the GCP survey",
+            cfg,
+            SETUP_FIELDS,
+            self._run,
+            headless=headless,
+            chooser=chooser,
+            run_label="Find GCPs",
+        )
 
     def _run(self, cfg: GcpFinderConfig) -> str:
         self.finder = run(cfg)
         self.store = store_for(cfg, self.finder, autosave=True)
         if self.marking is not None:
             close_figure(self.marking.fig)
-        self.marking = GcpFinderGUI(self.finder, self.store, zoom_px=cfg.zoom_px, target_size_m=cfg.target_size_m,
-                                    target_pattern=cfg.target_pattern, headless=self.headless)
+        self.marking = GcpFinderGUI(
+            self.finder,
+            self.store,
+            zoom_px=cfg.zoom_px,
+            target_size_m=cfg.target_size_m,
+            target_pattern=cfg.target_pattern,
+            headless=self.headless,
+        )
         reveal(self.marking.fig)
         seen = sum(1 for c in self.finder.candidates.values() if c)
-        return (f"{seen} of {len(self.finder.gcps)} GCPs seen; candidates in {Path(cfg.output_dir) / 'candidates.csv'}"
-                f"; marks go to {Path(self.store.path).name} (marking window open)")
+        return (
+            f"{seen} of {len(self.finder.gcps)} GCPs seen; candidates in {Path(cfg.output_dir) / 'candidates.csv'}"
+            f"; marks go to {Path(self.store.path).name} (marking window open)"
+        )
 
 
 def launch(cfg: GcpFinderConfig, config_path: Path | None = None, chooser=None) -> GcpFinderSetup:

@@ -40,13 +40,21 @@ class MarkStore:
         flight = self.finder.flight or set(self.finder.images)
         foreign = sorted({m.image for m in marks if m.image not in flight})
         if foreign:
-            log.warning("%s: %d line(s) mark images that are not in this flight's folder and are dropped: %s",
-                        path, sum(m.image in foreign for m in marks), ", ".join(foreign))
+            log.warning(
+                "%s: %d line(s) mark images that are not in this flight's folder and are dropped: %s",
+                path,
+                sum(m.image in foreign for m in marks),
+                ", ".join(foreign),
+            )
         outside = [m for m in marks if m.image in self.finder.images and not self._inside(m)]
         dropped = {id(m) for m in outside}
         if outside:
-            log.warning("%s: %d mark(s) lie outside their image and are dropped: %s", path, len(outside),
-                        ", ".join(f"{m.gcp or 'unnamed'} in {m.image} at ({m.u:g}, {m.v:g})" for m in outside[:5]))
+            log.warning(
+                "%s: %d mark(s) lie outside their image and are dropped: %s",
+                path,
+                len(outside),
+                ", ".join(f"{m.gcp or 'unnamed'} in {m.image} at ({m.u:g}, {m.v:g})" for m in outside[:5]),
+            )
         n = 0
         for m in marks:
             if m.image in foreign or id(m) in dropped:
@@ -113,8 +121,11 @@ class MarkStore:
     def warn_few(self) -> list[str]:
         few = [gid for gid in self.finder.gcps if 0 < self.count(gid) < MIN_IMAGES_PER_GCP]
         if few:
-            log.warning("GCPs marked in fewer than %d images (ODM may ignore them): %s", MIN_IMAGES_PER_GCP,
-                        ", ".join(f"{g} ({self.count(g)})" for g in few))
+            log.warning(
+                "GCPs marked in fewer than %d images (ODM may ignore them): %s",
+                MIN_IMAGES_PER_GCP,
+                ", ".join(f"{g} ({self.count(g)})" for g in few),
+            )
         return few
 
 
@@ -123,8 +134,11 @@ def store_for(cfg: GcpFinderConfig, finder: Finder, autosave: bool) -> MarkStore
     out = Path(cfg.output_dir)
     store = MarkStore(finder, out / "gcp_list.txt", autosave=autosave)
     if cfg.gcp_list and not Path(cfg.gcp_list).is_file():
-        raise ConfigError("config key 'gcp_list': the list to continue is not found", path=cfg.gcp_list,
-                          fix="correct 'gcp_list', or leave it empty to start a new list")
+        raise ConfigError(
+            "config key 'gcp_list': the list to continue is not found",
+            path=cfg.gcp_list,
+            fix="correct 'gcp_list', or leave it empty to start a new list",
+        )
     existing = cfg.gcp_list or (out / "gcp_list.txt")
     if Path(existing).is_file():
         n = store.load(Path(existing))

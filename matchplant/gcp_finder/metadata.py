@@ -20,21 +20,52 @@ from matchplant.core.runtime.validate import check_jpeg
 
 # Sensor width in mm (the long side) of common drone cameras, keyed by lower-case EXIF Model.
 SENSOR_WIDTH_MM: dict[str, float] = {
-    "fc6310": 13.2, "fc6310s": 13.2, "fc6310r": 13.2,      # Phantom 4 Pro / V2.0 / RTK
-    "fc6360": 4.96,                                          # Phantom 4 Multispectral
-    "fc330": 6.17, "fc300x": 6.17, "fc300s": 6.17,          # Phantom 4, Phantom 3
-    "fc220": 6.17, "fc2103": 6.17, "fc2204": 6.3,           # Mavic Pro, Mavic Air, Mini
-    "fc3170": 6.4, "fc3411": 13.2, "fc3582": 9.7,           # Mavic Air 2, Air 2S, Mini 3 Pro
-    "fc7303": 6.3, "fc8482": 9.6,                            # Mini 2, Mini 4 Pro
-    "l1d-20c": 13.2, "l2d-20c": 17.3,                       # Mavic 2 Pro, Mavic 3
-    "m3e": 17.3, "m3m": 17.3, "m3t": 6.4,                   # Mavic 3 Enterprise / Multispectral / Thermal
-    "zenmusep1": 35.9, "zenmusex5s": 17.3, "zenmusex7": 23.5, "zh20": 7.6, "zenmuseh20": 7.6,
-    "fc6520": 17.3, "fc6540": 23.5,                          # Zenmuse X5S, X7 (Inspire 2)
-    "rededge-m": 4.8, "rededge-mx": 4.8, "rededge": 4.8, "altum": 7.12, "altum-pt": 7.12,
-    "sequoia": 4.8, "anafi": 6.17, "anafiusa": 6.4,
-    "ilce-6000": 23.5, "ilce-5100": 23.5, "ilce-6100": 23.5, "ilce-7rm2": 35.9, "ilce-7rm4": 35.7,
-    "dsc-rx1rm2": 35.9, "hero4 black": 6.17, "hero4 silver": 6.17, "gopro hero5 black": 6.17,
-    "canon eos digital rebel xsi": 22.2, "canon eos 450d": 22.2,
+    "fc6310": 13.2,
+    "fc6310s": 13.2,
+    "fc6310r": 13.2,  # Phantom 4 Pro / V2.0 / RTK
+    "fc6360": 4.96,  # Phantom 4 Multispectral
+    "fc330": 6.17,
+    "fc300x": 6.17,
+    "fc300s": 6.17,  # Phantom 4, Phantom 3
+    "fc220": 6.17,
+    "fc2103": 6.17,
+    "fc2204": 6.3,  # Mavic Pro, Mavic Air, Mini
+    "fc3170": 6.4,
+    "fc3411": 13.2,
+    "fc3582": 9.7,  # Mavic Air 2, Air 2S, Mini 3 Pro
+    "fc7303": 6.3,
+    "fc8482": 9.6,  # Mini 2, Mini 4 Pro
+    "l1d-20c": 13.2,
+    "l2d-20c": 17.3,  # Mavic 2 Pro, Mavic 3
+    "m3e": 17.3,
+    "m3m": 17.3,
+    "m3t": 6.4,  # Mavic 3 Enterprise / Multispectral / Thermal
+    "zenmusep1": 35.9,
+    "zenmusex5s": 17.3,
+    "zenmusex7": 23.5,
+    "zh20": 7.6,
+    "zenmuseh20": 7.6,
+    "fc6520": 17.3,
+    "fc6540": 23.5,  # Zenmuse X5S, X7 (Inspire 2)
+    "rededge-m": 4.8,
+    "rededge-mx": 4.8,
+    "rededge": 4.8,
+    "altum": 7.12,
+    "altum-pt": 7.12,
+    "sequoia": 4.8,
+    "anafi": 6.17,
+    "anafiusa": 6.4,
+    "ilce-6000": 23.5,
+    "ilce-5100": 23.5,
+    "ilce-6100": 23.5,
+    "ilce-7rm2": 35.9,
+    "ilce-7rm4": 35.7,
+    "dsc-rx1rm2": 35.9,
+    "hero4 black": 6.17,
+    "hero4 silver": 6.17,
+    "gopro hero5 black": 6.17,
+    "canon eos digital rebel xsi": 22.2,
+    "canon eos 450d": 22.2,
 }
 
 
@@ -54,22 +85,27 @@ class ImageInfo:
     make: str = ""
     model: str = ""
     time: float | None = None
-    yaw: float | None = None             # degrees clockwise from north of the image top (camera heading)
-    pitch: float | None = None           # gimbal pitch, degrees (-90 = straight down)
-    relative_alt: float | None = None    # DJI: metres above the take-off point
-    xyz: np.ndarray | None = None        # camera position in the output CRS (set by the finder)
+    yaw: float | None = None  # degrees clockwise from north of the image top (camera heading)
+    pitch: float | None = None  # gimbal pitch, degrees (-90 = straight down)
+    relative_alt: float | None = None  # DJI: metres above the take-off point
+    xyz: np.ndarray | None = None  # camera position in the output CRS (set by the finder)
 
 
-_XMP_KEYS = {"GimbalYawDegree": "gimbal_yaw", "FlightYawDegree": "flight_yaw",
-             "GimbalPitchDegree": "pitch", "RelativeAltitude": "relative_alt"}
+_XMP_KEYS = {
+    "GimbalYawDegree": "gimbal_yaw",
+    "FlightYawDegree": "flight_yaw",
+    "GimbalPitchDegree": "pitch",
+    "RelativeAltitude": "relative_alt",
+}
 
 
 def parse_dji_xmp(text: str) -> dict[str, float]:
     """DJI's drone-dji XMP values (attribute or element form) as floats."""
     out = {}
     for key, name in _XMP_KEYS.items():
-        m = re.search(rf'drone-dji:{key}\s*=\s*"([^"]+)"', text) or \
-            re.search(rf"<drone-dji:{key}>([^<]+)</drone-dji:{key}>", text)
+        m = re.search(rf'drone-dji:{key}\s*=\s*"([^"]+)"', text) or re.search(
+            rf"<drone-dji:{key}>([^<]+)</drone-dji:{key}>", text
+        )
         if m:
             try:
                 out[name] = float(m.group(1))
@@ -88,8 +124,11 @@ def read_image_info(path: str | Path) -> ImageInfo:
         with Image.open(path) as im:
             width, height = im.size
     except Exception as exc:  # noqa: BLE001
-        raise InputError(f"cannot open the image ({exc})", path=path,
-                         fix="check that it is a complete JPEG or TIFF; remove it from the folder if not") from exc
+        raise InputError(
+            f"cannot open the image ({exc})",
+            path=path,
+            fix="check that it is a complete JPEG or TIFF; remove it from the folder if not",
+        ) from exc
     info = ImageInfo(path.name, path, int(width), int(height))
     exif = load_exif(path)
     info.make, info.model, info.focal_mm, info.focal35_mm = exif_camera(exif)
@@ -123,6 +162,9 @@ def focal_ratio(info: ImageInfo, sensor_width: float | None = None, focal_mm: fl
         return f / sw
     if info.focal35_mm:
         return info.focal35_mm / 36.0
-    raise InputError(f"the camera '{info.make} {info.model}' is not in the built-in sensor table and the image "
-                     "has no 35 mm-equivalent focal length", path=info.path,
-                     fix="set 'sensor_width_mm' (the sensor's long side in mm) in the config")
+    raise InputError(
+        f"the camera '{info.make} {info.model}' is not in the built-in sensor table and the image "
+        "has no 35 mm-equivalent focal length",
+        path=info.path,
+        fix="set 'sensor_width_mm' (the sensor's long side in mm) in the config",
+    )

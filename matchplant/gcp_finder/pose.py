@@ -59,20 +59,28 @@ def track_yaw(positions: np.ndarray) -> np.ndarray:
     for i in range(n):
         arriving = run[i - 1] if i > 0 else None
         leaving = run[i] if i < n - 1 else None
-        use = [r for r in (arriving, leaving) if r is not None and is_line[r]] or \
-              [r for r in (arriving, leaving) if r is not None]
+        use = [r for r in (arriving, leaving) if r is not None and is_line[r]] or [
+            r for r in (arriving, leaving) if r is not None
+        ]
         out[i] = heading[use[0]] / max(np.linalg.norm(heading[use[0]]), 1e-9)
     return np.degrees(np.arctan2(out[:, 0], out[:, 1])) % 360.0
 
 
 def pinhole(info: ImageInfo, ratio: float) -> PinholeCamera:
     """The image's camera as a distortion-free pinhole (good enough to find a GCP within a zoomed view)."""
-    return PinholeCamera(id=info.model or "camera", projection_type="perspective", width=info.width,
-                         height=info.height, focal_x=ratio, focal_y=ratio)
+    return PinholeCamera(
+        id=info.model or "camera",
+        projection_type="perspective",
+        width=info.width,
+        height=info.height,
+        focal_x=ratio,
+        focal_y=ratio,
+    )
 
 
-def predict_pixels(info: ImageInfo, ratio: float, yaw: float, pitch: float, camera_z: np.ndarray,
-                   points: np.ndarray) -> np.ndarray:
+def predict_pixels(
+    info: ImageInfo, ratio: float, yaw: float, pitch: float, camera_z: np.ndarray, points: np.ndarray
+) -> np.ndarray:
     """Predicted pixels (N, 2) of map points (N, 3) in one image; ``camera_z`` (N,) is the camera height
     used for each point (so each point's own height above ground can be applied)."""
     R = camera_rotation(yaw, pitch)
@@ -84,8 +92,9 @@ def predict_pixels(info: ImageInfo, ratio: float, yaw: float, pitch: float, came
 def footprint(info: ImageInfo, ratio: float, yaw: float, pitch: float, height: float) -> np.ndarray:
     """The image's four corners on a level ground ``height`` metres below the camera (map x, y)."""
     cam = pinhole(info, ratio)
-    corners = np.array([[-0.5, -0.5], [info.width - 0.5, -0.5], [info.width - 0.5, info.height - 0.5],
-                        [-0.5, info.height - 0.5]])
+    corners = np.array(
+        [[-0.5, -0.5], [info.width - 0.5, -0.5], [info.width - 0.5, info.height - 0.5], [-0.5, info.height - 0.5]]
+    )
     rays = cam.bearings(corners) @ camera_rotation(yaw, pitch)
     s = height / np.maximum(-rays[:, 2], 1e-6)
     return info.xyz[:2] + rays[:, :2] * s[:, None]
@@ -106,16 +115,16 @@ def image_yaw(info: ImageInfo, cfg: GcpFinderConfig, track: float) -> float:
         src = "xmp" if info.yaw is not None else "track"
     if src == "xmp":
         if info.yaw is None:
-            raise InputError("the image has no DJI yaw in its XMP", path=info.path,
-                             fix="set 'yaw_source' to 'track' or 'fixed'")
+            raise InputError(
+                "the image has no DJI yaw in its XMP", path=info.path, fix="set 'yaw_source' to 'track' or 'fixed'"
+            )
         return info.yaw
     if src == "track":
         return (track + cfg.yaw_deg) % 360.0
     return cfg.yaw_deg
 
 
-def camera_heights(info: ImageInfo, cfg: GcpFinderConfig, pts: np.ndarray, ground: float
-                   ) -> tuple[np.ndarray, str]:
+def camera_heights(info: ImageInfo, cfg: GcpFinderConfig, pts: np.ndarray, ground: float) -> tuple[np.ndarray, str]:
     """The camera's height (z in the survey's datum) used for each GCP, and which source gave it."""
     hs = cfg.height_source
     if hs == "auto":
@@ -123,15 +132,22 @@ def camera_heights(info: ImageInfo, cfg: GcpFinderConfig, pts: np.ndarray, groun
         hs = "relative" if info.relative_alt is not None else "gps" if info.alt is not None else "fixed"
     if hs == "gps":
         if info.alt is None:
-            raise InputError("the image has no GPS altitude", path=info.path,
-                             fix="set 'height_source' to 'relative' or 'fixed' (with flight_height_m)")
+            raise InputError(
+                "the image has no GPS altitude",
+                path=info.path,
+                fix="set 'height_source' to 'relative' or 'fixed' (with flight_height_m)",
+            )
         return np.full(len(pts), info.alt + cfg.altitude_offset_m), hs
     if hs == "relative":
         if info.relative_alt is None:
-            raise InputError("the image has no DJI relative altitude", path=info.path,
-                             fix="set 'height_source' to 'gps' or 'fixed' (with flight_height_m)")
+            raise InputError(
+                "the image has no DJI relative altitude",
+                path=info.path,
+                fix="set 'height_source' to 'gps' or 'fixed' (with flight_height_m)",
+            )
         return np.full(len(pts), ground + info.relative_alt), hs  # take-off taken at the GCPs' median height
     if cfg.flight_height_m is None:
-        raise ConfigError("the images have no altitude; set the flight height",
-                          fix="set 'flight_height_m' (metres above ground)")
+        raise ConfigError(
+            "the images have no altitude; set the flight height", fix="set 'flight_height_m' (metres above ground)"
+        )
     return pts[:, 2] + cfg.flight_height_m, hs

@@ -45,8 +45,9 @@ def auto_mark(finder: Finder, store: MarkStore, cfg: GcpFinderConfig) -> int:
         info = finder.images[image]
         gray = load_gray(info.path)
         for c in cs:
-            uv = locate_target(gray, c.u, c.v, cfg.target_size_m / finder.gsd(c.gcp, image), cfg.search_radius_px,
-                               cfg.target_pattern)
+            uv = locate_target(
+                gray, c.u, c.v, cfg.target_size_m / finder.gsd(c.gcp, image), cfg.search_radius_px, cfg.target_pattern
+            )
             if uv is None:
                 log.info("%s: no target found near (%.0f, %.0f) in %s", c.gcp, c.u, c.v, image)
                 continue
@@ -69,10 +70,13 @@ def run(cfg: GcpFinderConfig) -> Finder:
     if cfg.auto:
         n = auto_mark(finder, store, cfg)
         if not store.marks:
-            raise InputError(f"auto: no GCP target was found in any of the {sum(map(len, finder.candidates.values()))}"
-                             " candidate images, so gcp_list.txt would be empty", path=cfg.images,
-                             fix="check 'target_pattern' and 'target_size_m' (the target's look and size), or mark "
-                                 "the GCPs by hand with --gui")
+            raise InputError(
+                f"auto: no GCP target was found in any of the {sum(map(len, finder.candidates.values()))}"
+                " candidate images, so gcp_list.txt would be empty",
+                path=cfg.images,
+                fix="check 'target_pattern' and 'target_size_m' (the target's look and size), or mark "
+                "the GCPs by hand with --gui",
+            )
     with staged_outputs(out) as stage:
         write_candidates(stage / "candidates.csv", finder)
         plot_candidates(stage / "candidates.png", finder)
@@ -85,6 +89,8 @@ def run(cfg: GcpFinderConfig) -> Finder:
         store.warn_few()
         log.info("found %d targets; wrote %s (review it with --gui)", n, store.path)
     else:
-        log.info("mark the GCPs with --gui (or run with --set auto=true)%s",
-                 f"; {store.path} continues {store.continued}" if store.continued else "")
+        log.info(
+            "mark the GCPs with --gui (or run with --set auto=true)%s",
+            f"; {store.path} continues {store.continued}" if store.continued else "",
+        )
     return finder

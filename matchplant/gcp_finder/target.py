@@ -13,8 +13,9 @@ import numpy as np
 from PIL import Image
 
 
-def symmetry_peaks(gray: np.ndarray, u0: float, v0: float, radius: int = 60, min_contrast: float = 40.0,
-                   n: int = 1) -> list[tuple[float, float]]:
+def symmetry_peaks(
+    gray: np.ndarray, u0: float, v0: float, radius: int = 60, min_contrast: float = 40.0, n: int = 1
+) -> list[tuple[float, float]]:
     """Up to ``n`` sub-pixel centres of point symmetry near (u0, v0), strongest first.
 
     A black-and-white square target (black and white quadrants, or a square of one tone on the other)
@@ -54,8 +55,9 @@ def symmetry_peaks(gray: np.ndarray, u0: float, v0: float, radius: int = 60, min
     return out
 
 
-def detect_target(gray: np.ndarray, u0: float, v0: float, radius: int = 60, min_contrast: float = 40.0
-                  ) -> tuple[float, float] | None:
+def detect_target(
+    gray: np.ndarray, u0: float, v0: float, radius: int = 60, min_contrast: float = 40.0
+) -> tuple[float, float] | None:
     """The strongest centre of symmetry near (u0, v0) (see :func:`symmetry_peaks`), or None."""
     peaks = symmetry_peaks(gray, u0, v0, radius, min_contrast, n=1)
     return peaks[0] if peaks else None
@@ -69,8 +71,9 @@ def symmetry_score(gray: np.ndarray, uv: tuple[float, float], r: int, pattern: s
     smaller of the two correlations (with the sign the pattern calls for), so the centre of one
     checker quadrant - a plain square of its own - does not pass for a checker's centre.
     """
-    patch = cv2.getRectSubPix(np.ascontiguousarray(gray, dtype=np.float32), (2 * r + 1, 2 * r + 1),
-                              (float(uv[0]), float(uv[1])))
+    patch = cv2.getRectSubPix(
+        np.ascontiguousarray(gray, dtype=np.float32), (2 * r + 1, 2 * r + 1), (float(uv[0]), float(uv[1]))
+    )
     a = patch - patch.mean()
     energy = max(float((a * a).sum()), 1e-6)
     c180 = float((a * a[::-1, ::-1]).sum()) / energy
@@ -78,8 +81,9 @@ def symmetry_score(gray: np.ndarray, uv: tuple[float, float], r: int, pattern: s
     return min(c180, -c90 if pattern == "checker" else c90)
 
 
-def symmetry_map(gray: np.ndarray, u: float, v: float, radius: int, r: int, pattern: str = "checker"
-                 ) -> tuple[np.ndarray, int, int] | None:
+def symmetry_map(
+    gray: np.ndarray, u: float, v: float, radius: int, r: int, pattern: str = "checker"
+) -> tuple[np.ndarray, int, int] | None:
     """:func:`symmetry_score` of the (2r+1)-pixel patch centred on every pixel within ``radius`` of
     (u, v) (patches inside the image only), vectorised: sums of products of shifted views.
 
@@ -90,11 +94,11 @@ def symmetry_map(gray: np.ndarray, u: float, v: float, radius: int, r: int, patt
     y0, y1 = max(r, int(round(v)) - radius), min(h - 1 - r, int(round(v)) + radius)
     if x1 < x0 or y1 < y0:
         return None
-    g = gray[y0 - r:y1 + r + 1, x0 - r:x1 + r + 1].astype(np.float64)
+    g = gray[y0 - r : y1 + r + 1, x0 - r : x1 + r + 1].astype(np.float64)
     ny, nx = y1 - y0 + 1, x1 - x0 + 1
 
     def view(dy: int, dx: int) -> np.ndarray:
-        return g[r + dy:r + dy + ny, r + dx:r + dx + nx]
+        return g[r + dy : r + dy + ny, r + dx : r + dx + nx]
 
     s180 = np.zeros((ny, nx))
     s90 = np.zeros((ny, nx))
@@ -105,8 +109,8 @@ def symmetry_map(gray: np.ndarray, u: float, v: float, radius: int, r: int, patt
             s90 += a * view(dx, -dy)
     n = (2 * r + 1) ** 2
     box = (2 * r + 1, 2 * r + 1)
-    mean = cv2.boxFilter(g, -1, box, normalize=True, borderType=cv2.BORDER_ISOLATED)[r:r + ny, r:r + nx]
-    sq = cv2.boxFilter(g * g, -1, box, normalize=True, borderType=cv2.BORDER_ISOLATED)[r:r + ny, r:r + nx]
+    mean = cv2.boxFilter(g, -1, box, normalize=True, borderType=cv2.BORDER_ISOLATED)[r : r + ny, r : r + nx]
+    sq = cv2.boxFilter(g * g, -1, box, normalize=True, borderType=cv2.BORDER_ISOLATED)[r : r + ny, r : r + nx]
     var = n * (sq - mean * mean)
     with np.errstate(divide="ignore", invalid="ignore"):
         c180 = (s180 - n * mean * mean) / var
@@ -116,9 +120,16 @@ def symmetry_map(gray: np.ndarray, u: float, v: float, radius: int, r: int, patt
     return score, x0, y0
 
 
-def locate_target(gray: np.ndarray, u: float, v: float, target_px: float, search_px: int = 0,
-                  pattern: str = "checker", min_symmetry: float = 0.6, tries: int = 5
-                  ) -> tuple[float, float] | None:
+def locate_target(
+    gray: np.ndarray,
+    u: float,
+    v: float,
+    target_px: float,
+    search_px: int = 0,
+    pattern: str = "checker",
+    min_symmetry: float = 0.6,
+    tries: int = 5,
+) -> tuple[float, float] | None:
     """Find a target of about ``target_px`` pixels near a predicted (u, v).
 
     Every pixel of the search window is scored by how much its neighbourhood looks like a target's

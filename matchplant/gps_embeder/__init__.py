@@ -5,4 +5,4 @@ The face of every step: ``config`` (its settings), ``run`` (``run(cfg)``)."""
 from matchplant.gps_embeder.config import GpsEmbederConfig
 from matchplant.gps_embeder.run import run
 
-__all__ = ['GpsEmbederConfig', 'run']
+__all__ = ["GpsEmbederConfig", "run"]

@@ -19,8 +19,21 @@ from matchplant.gps_embeder.gnss_log import GnssLog
 from matchplant.gps_embeder.matching import ImageRecord
 
 COPY_BATCH = 128  # copies per disk sync
-REPORT_FIELDS = ("image", "status", "event", "camera_time_utc", "event_time_utc", "dt_s", "x", "y", "z",
-                 "longitude", "latitude", "altitude", "reason")
+REPORT_FIELDS = (
+    "image",
+    "status",
+    "event",
+    "camera_time_utc",
+    "event_time_utc",
+    "dt_s",
+    "x",
+    "y",
+    "z",
+    "longitude",
+    "latitude",
+    "altitude",
+    "reason",
+)
 
 
 def iso_utc(t: float | None) -> str:
@@ -30,8 +43,14 @@ def iso_utc(t: float | None) -> str:
     return _dt.datetime.fromtimestamp(t, _dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3]
 
 
-def write_copies(records: list[ImageRecord], idx: np.ndarray, gnss: GnssLog, offset: float, out_images: Path,
-                 copy_unmatched: bool = False) -> tuple[list[dict], list[str]]:
+def write_copies(
+    records: list[ImageRecord],
+    idx: np.ndarray,
+    gnss: GnssLog,
+    offset: float,
+    out_images: Path,
+    copy_unmatched: bool = False,
+) -> tuple[list[dict], list[str]]:
     """Write each matched image's copy with its event's position; returns the report rows and geo.txt lines.
 
     ``idx`` is the event index per image (-1: none), ``offset`` the clock offset (log - camera). The
@@ -45,22 +64,40 @@ def write_copies(records: list[ImageRecord], idx: np.ndarray, gnss: GnssLog, off
     return rows, geo
 
 
-def _write_one(r: ImageRecord, j: int, gnss: GnssLog, lla: np.ndarray, offset: float, writer: BatchedWrites,
-               copy_unmatched: bool, geo: list[str]) -> dict:
+def _write_one(
+    r: ImageRecord,
+    j: int,
+    gnss: GnssLog,
+    lla: np.ndarray,
+    offset: float,
+    writer: BatchedWrites,
+    copy_unmatched: bool,
+    geo: list[str],
+) -> dict:
     """One image's copy (when matched, or asked for) and its report row; appends its geo.txt line."""
     row = dict.fromkeys(REPORT_FIELDS, "")
     row.update(image=r.name, camera_time_utc=iso_utc(r.time))
     if j >= 0:
         lon, lat, alt = lla[j]
         alt_val = float(alt) if np.isfinite(alt) else None
-        write_gps_copy(r.path, writer.folder / r.name, r.exif, float(lat), float(lon), alt_val, gnss.times[j],
-                       writer=writer)
-        row.update(status="matched", event=gnss.labels[j], event_time_utc=iso_utc(gnss.times[j]),
-                   dt_s=f"{gnss.times[j] - (r.time + offset):+.3f}",
-                   x=repr(float(gnss.xyz[j, 0])), y=repr(float(gnss.xyz[j, 1])), z=repr(float(gnss.xyz[j, 2])),
-                   longitude=f"{lon:.9f}", latitude=f"{lat:.9f}", altitude=f"{alt:.3f}")
-        geo.append(f"{r.name} {lon:.9f} {lat:.9f} {alt:.3f}" if alt_val is not None else
-                   f"{r.name} {lon:.9f} {lat:.9f}")
+        write_gps_copy(
+            r.path, writer.folder / r.name, r.exif, float(lat), float(lon), alt_val, gnss.times[j], writer=writer
+        )
+        row.update(
+            status="matched",
+            event=gnss.labels[j],
+            event_time_utc=iso_utc(gnss.times[j]),
+            dt_s=f"{gnss.times[j] - (r.time + offset):+.3f}",
+            x=repr(float(gnss.xyz[j, 0])),
+            y=repr(float(gnss.xyz[j, 1])),
+            z=repr(float(gnss.xyz[j, 2])),
+            longitude=f"{lon:.9f}",
+            latitude=f"{lat:.9f}",
+            altitude=f"{alt:.3f}",
+        )
+        geo.append(
+            f"{r.name} {lon:.9f} {lat:.9f} {alt:.3f}" if alt_val is not None else f"{r.name} {lon:.9f} {lat:.9f}"
+        )
     else:
         row.update(status="unmatched", reason=r.reason)
         if copy_unmatched:

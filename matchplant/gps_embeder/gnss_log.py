@@ -32,13 +32,13 @@ LOG_FORMATS = ("auto", "events", "csv", "pos", "mrk")
 class GnssLog:
     """Events of a GNSS log: UTC POSIX times and positions in the log's CRS (``crs``)."""
 
-    times: np.ndarray        # (M,) seconds, UTC
-    xyz: np.ndarray          # (M, 3) in ``crs`` (x = easting or longitude)
-    crs: object              # pyproj CRS
+    times: np.ndarray  # (M,) seconds, UTC
+    xyz: np.ndarray  # (M, 3) in ``crs`` (x = easting or longitude)
+    crs: object  # pyproj CRS
     path: Path
     format: str
     labels: list[str] = field(default_factory=list)  # event numbers as written in the log
-    lines: list[int] = field(default_factory=list)   # the log's line of each event, for messages
+    lines: list[int] = field(default_factory=list)  # the log's line of each event, for messages
 
     def wgs84(self) -> np.ndarray:
         """(M, 3) longitude, latitude (degrees, WGS84) and the height as logged."""
@@ -54,8 +54,9 @@ class GnssLog:
         return np.stack([lon, lat, self.xyz[:, 2]], axis=-1)
 
 
-def _epoch_seconds(epoch: str, values: np.ndarray | None = None, reference: float | None = None,
-                   leap: float = 18.0) -> float:
+def _epoch_seconds(
+    epoch: str, values: np.ndarray | None = None, reference: float | None = None, leap: float = 18.0
+) -> float:
     """POSIX seconds of a numeric timestamp's origin: 'unix', 'gps', a date 'YYYY-MM-DD', or 'auto'.
 
     'auto': values below one week are GPS seconds of the week (the paper's events.txt), the week being
@@ -74,9 +75,11 @@ def _epoch_seconds(epoch: str, values: np.ndarray | None = None, reference: floa
     try:
         d = _dt.date.fromisoformat(e)
     except ValueError:
-        raise ConfigError(f"config key 'timestamp_epoch' = {epoch!r} is not 'auto', 'unix', 'gps' or a date",
-                          fix="use 'unix' (seconds since 1970), 'gps' (since 1980-01-06) or a date like "
-                              "2024-06-03 (seconds since that day's 00:00)") from None
+        raise ConfigError(
+            f"config key 'timestamp_epoch' = {epoch!r} is not 'auto', 'unix', 'gps' or a date",
+            fix="use 'unix' (seconds since 1970), 'gps' (since 1980-01-06) or a date like "
+            "2024-06-03 (seconds since that day's 00:00)",
+        ) from None
     return float(calendar.timegm(d.timetuple()))
 
 
@@ -110,16 +113,21 @@ def _pick(header: list[str], key: str) -> int | None:
     return None
 
 
-def _read_table(path: Path, epoch: str, gps_base: bool, leap: float, reference: float | None = None,
-                unit: str = "s"):
+def _read_table(path: Path, epoch: str, gps_base: bool, leap: float, reference: float | None = None, unit: str = "s"):
     """events.txt (TAB, ``Timestamp X Y Z``) or a CSV with lat/lon (or x/y): times, (x, y, z), whether the
     columns are lat/lon, the line of each event and the numeric timestamps as read (for unit checks)."""
-    numbered = [(i, ln) for i, ln in enumerate(read_text(path, what="GNSS log").splitlines(),
-                                                start=1) if ln.strip() and not ln.lstrip().startswith("#")]
+    numbered = [
+        (i, ln)
+        for i, ln in enumerate(read_text(path, what="GNSS log").splitlines(), start=1)
+        if ln.strip() and not ln.lstrip().startswith("#")
+    ]
     if len(numbered) < 2:
         what = "is empty" if not numbered else "holds only a header line"
-        raise InputError(f"the GNSS log {what}: it has no events", path=path,
-                         fix="use the flight's complete log (a header line, then one line per camera event)")
+        raise InputError(
+            f"the GNSS log {what}: it has no events",
+            path=path,
+            fix="use the flight's complete log (a header line, then one line per camera event)",
+        )
     lines = [ln for _, ln in numbered]
     head = lines[0]
     delim = "," if "," in head else ";" if ";" in head else "\t" if "\t" in head else None
@@ -131,10 +139,12 @@ def _read_table(path: Path, epoch: str, gps_base: bool, leap: float, reference: 
     if not geographic:
         ilat = ilon = None
     if it is None or (not geographic and (ix is None or iy is None)):
-        raise InputError(f"the GNSS log's header (line {numbered[0][0]}: {header}) lacks a time column and "
-                         "position columns", path=path,
-                         fix="the header must name a time column (Timestamp) and either X Y Z "
-                             "(projected) or lat lon alt, e.g. 'Timestamp\tX\tY\tZ'")
+        raise InputError(
+            f"the GNSS log's header (line {numbered[0][0]}: {header}) lacks a time column and position columns",
+            path=path,
+            fix="the header must name a time column (Timestamp) and either X Y Z "
+            "(projected) or lat lon alt, e.g. 'Timestamp\tX\tY\tZ'",
+        )
     cx, cy = (ilon, ilat) if geographic else (ix, iy)
     times, xyz, numeric, where = [], [], [], []
     for (lineno, text), r in zip(numbered[1:], rows[1:]):
@@ -154,8 +164,9 @@ def _read_table(path: Path, epoch: str, gps_base: bool, leap: float, reference: 
             times.append(t)
             where.append(lineno)
         except (ValueError, IndexError) as exc:
-            raise InputError(f"GNSS log line {lineno} cannot be read ({exc}): {text!r}", path=path,
-                             fix="repair or delete that line") from None
+            raise InputError(
+                f"GNSS log line {lineno} cannot be read ({exc}): {text!r}", path=path, fix="repair or delete that line"
+            ) from None
     times = np.asarray(times, dtype=float)
     raw = times[numeric].copy()
     if numeric:
@@ -183,17 +194,22 @@ def _read_pos(path: Path, gps_base: bool, leap: float):
                 t = GPS_EPOCH + float(tok[0]) * 604800.0 + float(tok[1])
             vals = tok[2:]
             if "d'" in header or 'd"' in header or "dms" in header:  # latitude(d'") in degrees minutes seconds
+
                 def dms(a, b, c):
                     sign = -1 if a.strip().startswith("-") else 1
                     return sign * (abs(float(a)) + float(b) / 60 + float(c) / 3600)
+
                 p = (dms(*vals[3:6]), dms(*vals[0:3]), float(vals[6]))
             elif "x-ecef" in header:
                 p = (float(vals[0]), float(vals[1]), float(vals[2]))
             else:
                 p = (float(vals[1]), float(vals[0]), float(vals[2]))
         except (ValueError, IndexError):
-            raise InputError(f".pos line {lineno} cannot be read: {line!r}", path=path,
-                             fix="export the solution from RTKLIB/Emlid Studio with lat/lon/height output") from None
+            raise InputError(
+                f".pos line {lineno} cannot be read: {line!r}",
+                path=path,
+                fix="export the solution from RTKLIB/Emlid Studio with lat/lon/height output",
+            ) from None
         times.append(t)
         xyz.append(p)
         where.append(lineno)
@@ -208,8 +224,10 @@ def _read_pos(path: Path, gps_base: bool, leap: float):
     return np.asarray(times) - (leap if gps_base else 0.0), np.asarray(xyz, dtype=float), crs, where
 
 
-_MRK = re.compile(r"^\s*(\d+)\s+([\d.]+)\s+\[(\d+)\].*?([-\d.]+)\s*,\s*Lat\s+([-\d.]+)\s*,\s*Lon\s+([-\d.]+)\s*,\s*Ellh",
-                  re.IGNORECASE)
+_MRK = re.compile(
+    r"^\s*(\d+)\s+([\d.]+)\s+\[(\d+)\].*?([-\d.]+)\s*,\s*Lat\s+([-\d.]+)\s*,\s*Lon\s+([-\d.]+)\s*,\s*Ellh",
+    re.IGNORECASE,
+)
 
 
 def _read_mrk(path: Path, leap: float):
@@ -220,8 +238,11 @@ def _read_mrk(path: Path, leap: float):
             continue
         m = _MRK.match(line)
         if not m:
-            raise InputError(f"MRK line {lineno} is not a DJI timestamp record: {line!r}", path=path,
-                             fix="use the *_Timestamp.MRK file of the flight (not the PPK or .obs file)")
+            raise InputError(
+                f"MRK line {lineno} is not a DJI timestamp record: {line!r}",
+                path=path,
+                fix="use the *_Timestamp.MRK file of the flight (not the PPK or .obs file)",
+            )
         labels.append(m.group(1))
         times.append(GPS_EPOCH + int(m.group(3)) * 604800.0 + float(m.group(2)) - leap)
         xyz.append((float(m.group(5)), float(m.group(4)), float(m.group(6))))
@@ -254,15 +275,23 @@ def _log_crs(crs: str | None, default: int | None, own: bool, path: Path) -> CRS
     if own:
         stated = CRS.from_epsg(default)
         if (the_crs.is_geographic, the_crs.is_geocentric) != (stated.is_geographic, stated.is_geocentric):
-            log.warning("%s states its coordinates (%s): 'log_crs' (%s) is ignored", path.name, stated.name,
-                        the_crs.name)
+            log.warning(
+                "%s states its coordinates (%s): 'log_crs' (%s) is ignored", path.name, stated.name, the_crs.name
+            )
             return stated
     return the_crs
 
 
-def read_gnss_log(path: str | Path, fmt: str = "auto", crs: str | None = None, time_base: str = "gps",
-                  leap_seconds: float = 18.0, timestamp_epoch: str = "auto",
-                  reference_time: float | None = None, timestamp_unit: str = "s") -> GnssLog:
+def read_gnss_log(
+    path: str | Path,
+    fmt: str = "auto",
+    crs: str | None = None,
+    time_base: str = "gps",
+    leap_seconds: float = 18.0,
+    timestamp_epoch: str = "auto",
+    reference_time: float | None = None,
+    timestamp_unit: str = "s",
+) -> GnssLog:
     """Read a GNSS event log; times become UTC POSIX seconds, the CRS comes from ``crs`` or the format.
 
     ``reference_time`` (a capture time of the flight, UTC) dates GPS seconds-of-week timestamps;
@@ -272,8 +301,10 @@ def read_gnss_log(path: str | Path, fmt: str = "auto", crs: str | None = None, t
     if not path.is_file():
         raise InputError("GNSS log not found", path=path, fix="set 'gnss_log' to the events file of the flight")
     if timestamp_unit not in UNITS:
-        raise ConfigError(f"config key 'timestamp_unit' = {timestamp_unit!r} is not one of {', '.join(UNITS)}",
-                          fix="use s (seconds), ms, us or ns")
+        raise ConfigError(
+            f"config key 'timestamp_unit' = {timestamp_unit!r} is not one of {', '.join(UNITS)}",
+            fix="use s (seconds), ms, us or ns",
+        )
     fmt = detect_format(path) if fmt == "auto" else fmt
     gps_base = time_base == "gps"
     labels: list[str] = []
@@ -285,13 +316,17 @@ def read_gnss_log(path: str | Path, fmt: str = "auto", crs: str | None = None, t
     elif fmt == "pos":
         times, xyz, default_crs, where = _read_pos(path, gps_base, leap_seconds)
     else:
-        times, xyz, geographic, where, raw = _read_table(path, timestamp_epoch, gps_base, leap_seconds,
-                                                         reference_time, timestamp_unit)
+        times, xyz, geographic, where, raw = _read_table(
+            path, timestamp_epoch, gps_base, leap_seconds, reference_time, timestamp_unit
+        )
         if geographic:
             default_crs = 4326
         elif not crs:
-            raise ConfigError("the GNSS log has projected X Y coordinates but no CRS is set", path=path,
-                              fix="set 'log_crs' to the log's EPSG code, e.g. EPSG:32614 or 'WGS84 UTM 14N'")
+            raise ConfigError(
+                "the GNSS log has projected X Y coordinates but no CRS is set",
+                path=path,
+                fix="set 'log_crs' to the log's EPSG code, e.g. EPSG:32614 or 'WGS84 UTM 14N'",
+            )
         else:
             default_crs = None
     own = geographic or fmt in ("mrk", "pos")
@@ -301,5 +336,12 @@ def read_gnss_log(path: str | Path, fmt: str = "auto", crs: str | None = None, t
     check_positions(xyz, the_crs, where, path, by_header=own)
     labels = labels or [str(i + 1) for i in range(len(times))]
     keep = duplicate_events(times, xyz, where, path)
-    return GnssLog(times=times[keep], xyz=xyz[keep], crs=the_crs, path=path, format=fmt,
-                   labels=[labels[i] for i in keep], lines=[where[i] for i in keep])
+    return GnssLog(
+        times=times[keep],
+        xyz=xyz[keep],
+        crs=the_crs,
+        path=path,
+        format=fmt,
+        labels=[labels[i] for i in keep],
+        lines=[where[i] for i in keep],
+    )

@@ -23,8 +23,9 @@ from matchplant.gps_embeder.gnss_log import GnssLog
 log = get_logger("gps_embeder")
 
 
-def estimate_clock_offset(cam: np.ndarray, events: np.ndarray, tolerance: float,
-                          max_offset: float | None = None, max_pairs: int = 4_000_000) -> tuple[float, int]:
+def estimate_clock_offset(
+    cam: np.ndarray, events: np.ndarray, tolerance: float, max_offset: float | None = None, max_pairs: int = 4_000_000
+) -> tuple[float, int]:
     """The offset ``o`` (seconds) with ``event time ~ camera time + o`` on which most pairs agree.
 
     Every (image, event) difference is a candidate; the one with most differences within ``tolerance``
@@ -94,8 +95,9 @@ def read_images(folder: Path, utc_offset_h: float = 0.0) -> list[ImageRecord]:
     """Every JPEG of ``folder`` with its EXIF and capture time; an image without a time is kept with a
     reason. A damaged JPEG (empty, cut short, not a JPEG) stops the run: naming it beats losing it."""
     records, damaged = [], []
-    files = list_images(folder, JPEG_SUFFIXES, key="images",
-                        fix="point 'images' at the folder of the flight's .jpg files")
+    files = list_images(
+        folder, JPEG_SUFFIXES, key="images", fix="point 'images' at the folder of the flight's .jpg files"
+    )
     for p in progress(files, desc="reading EXIF", unit="img"):
         r = ImageRecord(p.name, p)
         try:
@@ -110,13 +112,19 @@ def read_images(folder: Path, utc_offset_h: float = 0.0) -> list[ImageRecord]:
         records.append(r)
     if damaged:
         more = f" (and {len(damaged) - 5} more)" if len(damaged) > 5 else ""
-        raise InputError(f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
-                         path=folder, fix="copy those images again from the camera's card, or move them out of "
-                                          "the folder; the originals are not modified")
+        raise InputError(
+            f"{len(damaged)} damaged image(s) in the flight's folder: {'; '.join(damaged[:5])}{more}",
+            path=folder,
+            fix="copy those images again from the camera's card, or move them out of "
+            "the folder; the originals are not modified",
+        )
     if not any(r.time is not None for r in records):
-        raise InputError(f"none of the {len(records)} images has a capture time in its EXIF (DateTimeOriginal)",
-                         path=folder, fix="use the camera's original JPEGs (some editors strip EXIF), or write the "
-                                          "positions another way (ODM's geo.txt)")
+        raise InputError(
+            f"none of the {len(records)} images has a capture time in its EXIF (DateTimeOriginal)",
+            path=folder,
+            fix="use the camera's original JPEGs (some editors strip EXIF), or write the "
+            "positions another way (ODM's geo.txt)",
+        )
     return records
 
 
@@ -141,8 +149,14 @@ def interval_hint(cam: np.ndarray, events: np.ndarray) -> str:
     return text
 
 
-def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, clock_offset: float | None = None,
-                 max_offset: float | None = None, source: Path | None = None) -> tuple[np.ndarray, float, int]:
+def match_images(
+    records: list[ImageRecord],
+    gnss: GnssLog,
+    tolerance: float,
+    clock_offset: float | None = None,
+    max_offset: float | None = None,
+    source: Path | None = None,
+) -> tuple[np.ndarray, float, int]:
     """Event index per image (-1 none), the clock offset and its support; fills each record's reason.
 
     ``clock_offset`` (seconds) is used as given when set (support -1), else estimated within
@@ -159,9 +173,12 @@ def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, cl
     else:
         offset, support = estimate_clock_offset(cam, gnss.times, tol, max_offset)
         if not np.isfinite(offset):
-            raise InputError("no clock offset can be estimated: no image has a capture time, or no event lies "
-                             "within 'max_clock_offset_s'", path=source,
-                             fix="check the images' EXIF times and the log, or set 'clock_offset_s'")
+            raise InputError(
+                "no clock offset can be estimated: no image has a capture time, or no event lies "
+                "within 'max_clock_offset_s'",
+                path=source,
+                fix="check the images' EXIF times and the log, or set 'clock_offset_s'",
+            )
         check_support(support, offset, cam, gnss, tol, max_offset)
     aligned = cam + offset
     idx = assign_events(aligned, gnss.times, tol)
@@ -179,15 +196,17 @@ def match_images(records: list[ImageRecord], gnss: GnssLog, tolerance: float, cl
             j = int(np.argmin(np.abs(gnss.times - t)))
             dt = gnss.times[j] - t
             if abs(dt) <= tol and j in owner:
-                r.reason = f"its event {gnss.labels[j]} (dt {dt:+.3f} s) went to {records[owner[j]].name}, which is closer"
+                r.reason = (
+                    f"its event {gnss.labels[j]} (dt {dt:+.3f} s) went to {records[owner[j]].name}, which is closer"
+                )
             else:
                 r.reason = f"no GNSS event within {tol:g} s (nearest {dt:+.2f} s away): a gap in the log?"
     return idx, offset, support
 
 
-
-def rival_offset(offset: float, support: int, cam: np.ndarray, events: np.ndarray, tol: float,
-                 max_offset: float | None = None) -> float | None:
+def rival_offset(
+    offset: float, support: int, cam: np.ndarray, events: np.ndarray, tol: float, max_offset: float | None = None
+) -> float | None:
     """Another offset, well apart from ``offset``, that as many images agree on (None when there is none).
 
     With few images or events (one event and nine images: any image fits), the best offset is a tie
@@ -203,27 +222,38 @@ def rival_offset(offset: float, support: int, cam: np.ndarray, events: np.ndarra
     return float(rivals[0]) if rivals.size else None
 
 
-def check_support(support: int, offset: float, cam: np.ndarray, gnss: GnssLog, tol: float,
-                  max_offset: float | None = None) -> None:
+def check_support(
+    support: int, offset: float, cam: np.ndarray, gnss: GnssLog, tol: float, max_offset: float | None = None
+) -> None:
     """An offset on which fewer than half the images (or events) agree is chance, not the camera's clock:
     geotagging with it would put the images at wrong positions. So is one that ties with another."""
     timed = int(np.isfinite(cam).sum())
     base = min(timed, len(gnss.times))
     needed = max(1, int(np.ceil(base / 2)))
-    fix = ("check that the log belongs to this flight and its time unit ('timestamp_unit'), epoch "
-           "('timestamp_epoch') and clock ('time_base'); or raise 'tolerance_s', or set 'clock_offset_s' if you "
-           "know the offset")
+    fix = (
+        "check that the log belongs to this flight and its time unit ('timestamp_unit'), epoch "
+        "('timestamp_epoch') and clock ('time_base'); or raise 'tolerance_s', or set 'clock_offset_s' if you "
+        "know the offset"
+    )
     if support < needed:
-        raise InputError(f"the images' times and the GNSS log do not agree: the best clock offset ({offset:+.1f} s) "
-                         f"is supported by only {support} of {timed} images (within {tol:g} s; at least {needed} "
-                         f"needed){interval_hint(cam, gnss.times)}", path=gnss.path, fix=fix)
+        raise InputError(
+            f"the images' times and the GNSS log do not agree: the best clock offset ({offset:+.1f} s) "
+            f"is supported by only {support} of {timed} images (within {tol:g} s; at least {needed} "
+            f"needed){interval_hint(cam, gnss.times)}",
+            path=gnss.path,
+            fix=fix,
+        )
     rival = rival_offset(offset, support, cam, np.asarray(gnss.times, dtype=float), tol, max_offset)
     if rival is not None:
-        raise InputError(f"the clock offset between the images and the GNSS log is ambiguous: {offset:+.1f} s and "
-                         f"{rival:+.1f} s fit equally well ({support} of {timed} images each, {len(gnss.times)} "
-                         "events)", path=gnss.path, fix="set 'clock_offset_s' (seconds to add to the camera's times "
-                                                        "to get the log's) or a small 'max_clock_offset_s', or use "
-                                                        "the flight's complete log")
+        raise InputError(
+            f"the clock offset between the images and the GNSS log is ambiguous: {offset:+.1f} s and "
+            f"{rival:+.1f} s fit equally well ({support} of {timed} images each, {len(gnss.times)} "
+            "events)",
+            path=gnss.path,
+            fix="set 'clock_offset_s' (seconds to add to the camera's times "
+            "to get the log's) or a small 'max_clock_offset_s', or use "
+            "the flight's complete log",
+        )
 
 
 MAX_EXIF_DISTANCE_M = 1000.0  # a camera's own GPS is off by metres, a wrong CRS or log by kilometres
@@ -249,8 +279,11 @@ def check_against_exif_gps(records: list[ImageRecord], idx: np.ndarray, gnss: Gn
     k = int(np.argsort(dist)[len(dist) // 2])
     name, j = pairs[k][4], pairs[k][5]
     line = f" (line {gnss.lines[j]})" if gnss.lines else ""
-    raise InputError(f"the GNSS log's positions lie {np.median(dist) / 1000:.1f} km (median of {len(dist)} images) "
-                     f"from the GPS the images already carry: e.g. {name} is at {pairs[k][0]:.6f}, "
-                     f"{pairs[k][1]:.6f} (lat, lon), its event{line} at {pairs[k][2]:.6f}, {pairs[k][3]:.6f}",
-                     path=gnss.path, fix=f"check 'log_crs' (now {gnss.crs.name}: the UTM zone and hemisphere) and "
-                                         "that the log belongs to this flight")
+    raise InputError(
+        f"the GNSS log's positions lie {np.median(dist) / 1000:.1f} km (median of {len(dist)} images) "
+        f"from the GPS the images already carry: e.g. {name} is at {pairs[k][0]:.6f}, "
+        f"{pairs[k][1]:.6f} (lat, lon), its event{line} at {pairs[k][2]:.6f}, {pairs[k][3]:.6f}",
+        path=gnss.path,
+        fix=f"check 'log_crs' (now {gnss.crs.name}: the UTM zone and hemisphere) and "
+        "that the log belongs to this flight",
+    )

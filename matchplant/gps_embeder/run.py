@@ -87,16 +87,28 @@ def _run(cfg: GpsEmbederConfig) -> list[dict]:
     images = Path(cfg.images)
     out = Path(cfg.output_dir)
     if (out / "images").resolve() == images.resolve():
-        raise ConfigError("the output image folder is the input folder; the originals must not be modified",
-                          path=images, fix="set 'output_dir' to another folder")
+        raise ConfigError(
+            "the output image folder is the input folder; the originals must not be modified",
+            path=images,
+            fix="set 'output_dir' to another folder",
+        )
     check_outputs(cfg)
     records = read_images(images, cfg.camera_utc_offset_h)
     timed = [r.time for r in records if r.time is not None]
-    gnss = read_gnss_log(cfg.gnss_log, cfg.log_format, cfg.log_crs, cfg.time_base, cfg.leap_seconds,
-                         cfg.timestamp_epoch, float(np.median(timed)) if timed else None, cfg.timestamp_unit)
+    gnss = read_gnss_log(
+        cfg.gnss_log,
+        cfg.log_format,
+        cfg.log_crs,
+        cfg.time_base,
+        cfg.leap_seconds,
+        cfg.timestamp_epoch,
+        float(np.median(timed)) if timed else None,
+        cfg.timestamp_unit,
+    )
     log.info("GNSS log: %d events (%s, %s)", len(gnss.times), gnss.format, gnss.crs.name)
-    idx, offset, support = match_images(records, gnss, cfg.tolerance_s, cfg.clock_offset_s, cfg.max_clock_offset_s,
-                                        source=cfg.images)
+    idx, offset, support = match_images(
+        records, gnss, cfg.tolerance_s, cfg.clock_offset_s, cfg.max_clock_offset_s, source=cfg.images
+    )
     if support >= 0:
         log.info("clock offset (log - camera): %.3f s, supported by %d of %d images", offset, support, len(timed))
     check_against_exif_gps(records, idx, gnss)
@@ -107,21 +119,42 @@ def _run(cfg: GpsEmbederConfig) -> list[dict]:
         if n_ok:
             if cfg.write_geo_txt:
                 write_geo_txt(stage / "geo.txt", geo)
-            write_json(stage / "match_summary.json", {
-                "images": len(rows), "matched": n_ok, "events": len(gnss.times),
-                "events_without_image": len(gnss.times) - n_ok, "clock_offset_s": offset,
-                "clock_offset_estimated": support >= 0, "offset_support": support, "log_format": gnss.format,
-                "log_crs": gnss.crs.to_string()})
+            write_json(
+                stage / "match_summary.json",
+                {
+                    "images": len(rows),
+                    "matched": n_ok,
+                    "events": len(gnss.times),
+                    "events_without_image": len(gnss.times) - n_ok,
+                    "clock_offset_s": offset,
+                    "clock_offset_estimated": support >= 0,
+                    "offset_support": support,
+                    "log_format": gnss.format,
+                    "log_crs": gnss.crs.to_string(),
+                },
+            )
     if n_ok == 0:
-        raise InputError(f"no image could be matched to a GNSS event (clock offset {offset:+.3f} s)",
-                         path=cfg.gnss_log, fix="check that the log belongs to this flight and 'clock_offset_s'; "
-                                                f"{out / 'match_report.csv'} says why for each image")
+        raise InputError(
+            f"no image could be matched to a GNSS event (clock offset {offset:+.3f} s)",
+            path=cfg.gnss_log,
+            fix="check that the log belongs to this flight and 'clock_offset_s'; "
+            f"{out / 'match_report.csv'} says why for each image",
+        )
     unmatched = [row for row in rows if row["status"] != "matched"]
-    log.info("%d of %d images matched; %d events without an image; report: %s", n_ok, len(rows),
-             len(gnss.times) - n_ok, out / "match_report.csv")
+    log.info(
+        "%d of %d images matched; %d events without an image; report: %s",
+        n_ok,
+        len(rows),
+        len(gnss.times) - n_ok,
+        out / "match_report.csv",
+    )
     if unmatched:
-        log.warning("%d of %d images have no GNSS event and get no GPS (ODM will not place them without it); "
-                    "reasons in %s:", len(unmatched), len(rows), out / "match_report.csv")
+        log.warning(
+            "%d of %d images have no GNSS event and get no GPS (ODM will not place them without it); reasons in %s:",
+            len(unmatched),
+            len(rows),
+            out / "match_report.csv",
+        )
         for row in unmatched:
             log.warning("  %s: %s", row["image"], row["reason"])
     return rows

@@ -6,4 +6,4 @@ config_path)``, is imported only for ``--gui`` (a plain run needs none of matplo
 from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.run import run
 
-__all__ = ['ImgSplitterConfig', 'run']
+__all__ = ["ImgSplitterConfig", "run"]

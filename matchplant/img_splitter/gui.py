@@ -21,8 +21,20 @@ from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScree
 from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.run import load_sources, plan_all, run
 
-FIELDS = ["images", "annotations", "output_dir", "tile_size", "overlap", "min_visible", "min_box_side",
-          "split", "seed", "split_mode", "negative_share", "yolo"]
+FIELDS = [
+    "images",
+    "annotations",
+    "output_dir",
+    "tile_size",
+    "overlap",
+    "min_visible",
+    "min_box_side",
+    "split",
+    "seed",
+    "split_mode",
+    "negative_share",
+    "yolo",
+]
 KEPT, LOST = "#39ff14", "#ff2a2a"
 TILE_COLORS = ["white", "#ffd400", "#00e5ff", "#ff3df2"]  # neighbouring tiles in different colours
 
@@ -31,8 +43,13 @@ class ImgSplitterGUI:
     """The settings, the preview of one image and Run. ``headless=True`` (tests) draws on a figure of its
     own, outside pyplot."""
 
-    def __init__(self, cfg: ImgSplitterConfig, config_path: Path | None = None, headless: bool | None = None,
-                 dpi: float | None = None):
+    def __init__(
+        self,
+        cfg: ImgSplitterConfig,
+        config_path: Path | None = None,
+        headless: bool | None = None,
+        dpi: float | None = None,
+    ):
         self.cfg = cfg
         self.config_path = config_path
         self.fig = figure(headless, figsize=(14, 8.5), dpi=dpi, title="5 Image splitter")
@@ -46,9 +63,15 @@ class ImgSplitterGUI:
             self.boxes[key].label.set_fontsize(9)
         row = 0.90 - len(FIELDS) * 0.05
         self.buttons = {}
-        for j, (label, action) in enumerate([("Preview", self.refresh), ("< image", lambda: self.step(-1)),
-                                             ("image >", lambda: self.step(1)), ("Run", self.run),
-                                             ("Save config", self.save)]):
+        for j, (label, action) in enumerate(
+            [
+                ("Preview", self.refresh),
+                ("< image", lambda: self.step(-1)),
+                ("image >", lambda: self.step(1)),
+                ("Run", self.run),
+                ("Save config", self.save),
+            ]
+        ):
             ax = self.fig.add_axes([0.02 + (j % 3) * 0.105, row - (j // 3) * 0.055, 0.095, 0.04])
             button = Button(ax, label)
             button.on_clicked(lambda _event, a=action: self._guarded(a))
@@ -128,9 +151,17 @@ class ImgSplitterGUI:
         written = set(np.flatnonzero(plan.positive).tolist()) | set(s.negatives)
         for t, (x0, y0, x1, y1) in enumerate(plan.tiles):
             kept = t in written
-            ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, lw=1.4 if kept else 0.8,
-                                   ec=TILE_COLORS[t % len(TILE_COLORS)] if kept else "0.55",
-                                   ls="-" if kept else ":"))
+            ax.add_patch(
+                Rectangle(
+                    (x0, y0),
+                    x1 - x0,
+                    y1 - y0,
+                    fill=False,
+                    lw=1.4 if kept else 0.8,
+                    ec=TILE_COLORS[t % len(TILE_COLORS)] if kept else "0.55",
+                    ls="-" if kept else ":",
+                )
+            )
         if s.region is not None:  # only this part was annotated: the rest of each tile is masked
             ax.add_patch(Polygon(s.region, closed=True, fill=False, lw=1.6, ls="--", ec="white"))
         anywhere = plan.kept_anywhere
@@ -138,8 +169,11 @@ class ImgSplitterGUI:
             ax.add_patch(Rectangle((x1, y1), x2 - x1, y2 - y1, fill=False, lw=1.2, ec=KEPT if ok else LOST))
         ax.set_xlim(0, s.width)
         ax.set_ylim(s.height, 0)
-        ax.set_title(f"{s.name}  ({self.index + 1}/{len(self.sources)}, {s.split})  -  coloured: tiles written, "
-                     f"dotted: empty tiles dropped, green: boxes kept, red: boxes lost", fontsize=9)
+        ax.set_title(
+            f"{s.name}  ({self.index + 1}/{len(self.sources)}, {s.split})  -  coloured: tiles written, "
+            f"dotted: empty tiles dropped, green: boxes kept, red: boxes lost",
+            fontsize=9,
+        )
         ax.set_xticks([])
         ax.set_yticks([])
         self.summary.set_text(self.summary_text())
@@ -148,22 +182,28 @@ class ImgSplitterGUI:
         s = self.sources[self.index]
         plan = s.plan
         n_pos = int(plan.positive.sum())
-        lines = [f"this image: {len(plan.tiles)} tiles ({n_pos} with plants, {len(s.negatives)} negatives kept, "
-                 f"{len(plan.tiles) - n_pos - len(s.negatives)} empty dropped); {len(plan.boxes)} boxes, "
-                 f"{int((~plan.kept_anywhere).sum())} lost in every tile"]
+        lines = [
+            f"this image: {len(plan.tiles)} tiles ({n_pos} with plants, {len(s.negatives)} negatives kept, "
+            f"{len(plan.tiles) - n_pos - len(s.negatives)} empty dropped); {len(plan.boxes)} boxes, "
+            f"{int((~plan.kept_anywhere).sum())} lost in every tile"
+        ]
         per = {k: [x for x in self.sources if x.split == k] for k in ("train", "val", "test")}
         tiles = {k: sum(int(x.plan.positive.sum()) + len(x.negatives) for x in v) for k, v in per.items()}
         lines.append("all images: " + ", ".join(f"{k} {len(v)} images / {tiles[k]} tiles" for k, v in per.items()))
         lost = sum(int((~x.plan.kept_anywhere).sum()) for x in self.sources)
         total = sum(len(x.boxes) for x in self.sources)
-        lines.append(f"boxes: {total - lost} of {total} kept in at least one tile; "
-                     f"{len(self.missing)} annotated image(s) missing on disk")
+        lines.append(
+            f"boxes: {total - lost} of {total} kept in at least one tile; "
+            f"{len(self.missing)} annotated image(s) missing on disk"
+        )
         return "\n".join(lines)
 
 
-SETUP_FIELDS = [SetupField("images", "Images folder", "folder"),
-                SetupField("annotations", "Annotations (COCO JSON)", "file"),
-                SetupField("output_dir", "Output folder", "folder")]
+SETUP_FIELDS = [
+    SetupField("images", "Images folder", "folder"),
+    SetupField("annotations", "Annotations (COCO JSON)", "file"),
+    SetupField("output_dir", "Output folder", "folder"),
+]
 
 
 class ImgSplitterSetup:
@@ -171,12 +211,25 @@ class ImgSplitterSetup:
     labels folder can be typed) and the output folder, with file pickers; **Preview** opens the tiling
     window (settings, preview, Run) on them."""
 
-    def __init__(self, cfg: ImgSplitterConfig, config_path: Path | None = None, headless: bool | None = None,
-                 chooser=None, dpi: float | None = None):
+    def __init__(
+        self,
+        cfg: ImgSplitterConfig,
+        config_path: Path | None = None,
+        headless: bool | None = None,
+        chooser=None,
+        dpi: float | None = None,
+    ):
         self.config_path, self.headless, self.dpi = config_path, headless, dpi
         self.preview: ImgSplitterGUI | None = None
-        self.screen = SetupScreen("Image splitter: choose the annotated images", cfg, SETUP_FIELDS, self._run,
-                                  headless=headless, chooser=chooser, run_label="Preview")
+        self.screen = SetupScreen(
+            "Image splitter: choose the annotated images",
+            cfg,
+            SETUP_FIELDS,
+            self._run,
+            headless=headless,
+            chooser=chooser,
+            run_label="Preview",
+        )
 
     def _run(self, cfg: ImgSplitterConfig) -> str:
         if self.preview is not None:
@@ -188,14 +241,16 @@ class ImgSplitterSetup:
             self.preview = None
             raise InputError(message, path=cfg.annotations)
         reveal(self.preview.fig)  # made inside this window's event loop: pyplot keeps it hidden until shown
-        return (f"{len(self.preview.sources)} annotated images; preview window open: check the tiles, then "
-                "press Run there")
+        return (
+            f"{len(self.preview.sources)} annotated images; preview window open: check the tiles, then press Run there"
+        )
 
 
 def launch(cfg: ImgSplitterConfig, config_path: Path | None = None, chooser=None) -> ImgSplitterSetup:
     """The setup screen, then the preview window; blocks until the windows are closed."""
-    require_display("python 5_img_splitter/img_splitter.py --set images=FOLDER --set annotations=FILE "
-                    "--set output_dir=FOLDER")
+    require_display(
+        "python 5_img_splitter/img_splitter.py --set images=FOLDER --set annotations=FILE --set output_dir=FOLDER"
+    )
     setup = ImgSplitterSetup(cfg, config_path, chooser=chooser)
     show(setup.screen.fig)
     return setup

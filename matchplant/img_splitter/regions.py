@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import shapely
 
-MASK_VALUE = 0          # pixels outside the annotated region
-SUBPIXEL_BITS = 4       # polygon vertices are rasterised to 1/16 px
+MASK_VALUE = 0  # pixels outside the annotated region
+SUBPIXEL_BITS = 4  # polygon vertices are rasterised to 1/16 px
 
 
 def clip_boxes(boxes_xyxy: np.ndarray, polygon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -42,7 +42,7 @@ from matchplant.core.formats.coco import (
 )
 from matchplant.core.formats.images import list_images, whole_image_size
 from matchplant.core.formats.yolo import coco_to_yolo, label_files, yolo_to_coco
-from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.guard import check_outputs, staged_outputs
 from matchplant.core.runtime.io import atomic_path, read_json, write_json, write_text
 from matchplant.core.runtime.log import get_logger
@@ -81,11 +81,11 @@ def tile_grid(width: int, height: int, tile: int, overlap: int) -> np.ndarray:
 class ImagePlan:
     """Which box goes into which tile, for one source image."""
 
-    tiles: np.ndarray      # (T, 4) x0 y0 x1 y1
-    boxes: np.ndarray      # (N, 4) source boxes x1 y1 x2 y2
-    keep: np.ndarray       # (T, N) bool: box n kept in tile t
-    clipped: np.ndarray    # (T, N, 4) box n clipped to tile t, in tile pixels
-    visible: np.ndarray    # (T, N) fraction of box n's area inside tile t
+    tiles: np.ndarray  # (T, 4) x0 y0 x1 y1
+    boxes: np.ndarray  # (N, 4) source boxes x1 y1 x2 y2
+    keep: np.ndarray  # (T, N) bool: box n kept in tile t
+    clipped: np.ndarray  # (T, N, 4) box n clipped to tile t, in tile pixels
+    visible: np.ndarray  # (T, N) fraction of box n's area inside tile t
 
     @property
     def kept_anywhere(self) -> np.ndarray:
@@ -96,8 +96,9 @@ class ImagePlan:
         return self.keep.any(axis=1) if self.keep.size else np.zeros(len(self.tiles), bool)
 
 
-def plan_image(boxes_xyxy: np.ndarray, width: int, height: int, tile: int, overlap: int,
-               min_visible: float, min_box_side: float) -> ImagePlan:
+def plan_image(
+    boxes_xyxy: np.ndarray, width: int, height: int, tile: int, overlap: int, min_visible: float, min_box_side: float
+) -> ImagePlan:
     """Tile one image and decide, for every tile and box at once, what is kept (vectorised)."""
     tiles = tile_grid(width, height, tile, overlap)
     b = np.asarray(boxes_xyxy, dtype=float).reshape(-1, 4)
@@ -120,8 +121,7 @@ def drop_reason(plan: ImagePlan, n: int, cfg: ImgSplitterConfig) -> str:
         return f"the box is {x2 - x1:.0f}x{y2 - y1:.0f} px, under min_box_side {cfg.min_box_side:g} px"
     if best < cfg.threshold:
         return f"at most {best:.0%} of it is visible in a tile (min_visible {cfg.threshold:g})"
-    return (f"where {best:.0%} of it is visible, the part in the tile is under min_box_side "
-            f"{cfg.min_box_side:g} px")
+    return f"where {best:.0%} of it is visible, the part in the tile is under min_box_side {cfg.min_box_side:g} px"
 
 
 # -- image files --------------------------------------------------------------------------------------
@@ -139,8 +139,9 @@ def write_lossless(path: Path, pixels: np.ndarray) -> None:
     params = [cv2.IMWRITE_PNG_COMPRESSION, 1] if path.suffix == ".png" else []
     ok, buf = cv2.imencode(path.suffix, np.ascontiguousarray(pixels), params)
     if not ok:
-        raise InputError(f"could not encode a {path.suffix} tile of type {pixels.dtype}", path=path,
-                         fix="use tile_format: tif")
+        raise InputError(
+            f"could not encode a {path.suffix} tile of type {pixels.dtype}", path=path, fix="use tile_format: tif"
+        )
     with atomic_path(path) as tmp:
         buf.tofile(tmp)
 
@@ -164,8 +165,8 @@ class Source:
     path: Path
     width: int
     height: int
-    boxes: np.ndarray                # (N, 4) xyxy
-    categories: np.ndarray           # (N,)
+    boxes: np.ndarray  # (N, 4) xyxy
+    categories: np.ndarray  # (N,)
     region: np.ndarray | None = None  # the annotated polygon; None = the whole image
     plan: ImagePlan | None = None
     usable: np.ndarray | None = None  # (T,) tiles enough inside the annotated region
@@ -185,18 +186,26 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
     files = {p.name: p for p in list_images(cfg.images, min_count=0)}
     if cfg.annotations.is_dir():
         stems = {p.stem for p in label_files(cfg.annotations)}
-        ds = yolo_to_coco(cfg.annotations, {n: whole_image_size(p) for n, p in files.items() if Path(n).stem in stems}, drops)
+        ds = yolo_to_coco(
+            cfg.annotations, {n: whole_image_size(p) for n, p in files.items() if Path(n).stem in stems}, drops
+        )
     else:
         ds = read_dataset(cfg.annotations)
     if not ds["images"]:
-        raise InputError("the annotations list no images", path=cfg.annotations,
-                         fix="give module 4's annotations.json (or a YOLO labels folder) of the photos in 'images'")
+        raise InputError(
+            "the annotations list no images",
+            path=cfg.annotations,
+            fix="give module 4's annotations.json (or a YOLO labels folder) of the photos in 'images'",
+        )
     if not ds["annotations"]:
         what = " (this looks like module 7's predictions)" if "predictions" in ds else ""
-        raise InputError(f"the annotations hold no box (on {len(ds['images'])} image(s)){what}: every tile would be "
-                         "a negative and the detector would learn nothing", path=cfg.annotations,
-                         fix="draw or import the plant boxes with module 4 first (or point 'annotations' at the "
-                             "file that holds them)")
+        raise InputError(
+            f"the annotations hold no box (on {len(ds['images'])} image(s)){what}: every tile would be "
+            "a negative and the detector would learn nothing",
+            path=cfg.annotations,
+            fix="draw or import the plant boxes with module 4 first (or point 'annotations' at the "
+            "file that holds them)",
+        )
     by_image: dict[int, list[dict]] = {im["id"]: [] for im in ds["images"]}
     for a in ds["annotations"]:
         by_image[a["image_id"]].append(a)
@@ -207,13 +216,22 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
         if name is None:
             missing.append(im["file_name"])
             for a in by_image[im["id"]]:
-                drops.add(cfg.annotations, f"annotation {a.get('id')}", im["file_name"], a["bbox"],
-                          "image not in the image folder", unmatched[im["file_name"]])
+                drops.add(
+                    cfg.annotations,
+                    f"annotation {a.get('id')}",
+                    im["file_name"],
+                    a["bbox"],
+                    "image not in the image folder",
+                    unmatched[im["file_name"]],
+                )
             continue
         w, h = whole_image_size(files[name])
         if (w, h) != (im["width"], im["height"]):
-            raise InputError(f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
-                             path=cfg.annotations, fix="annotate the same (unresized) images that you tile")
+            raise InputError(
+                f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
+                path=cfg.annotations,
+                fix="annotate the same (unresized) images that you tile",
+            )
         anns = by_image[im["id"]]
         b = np.array([a["bbox"] for a in anns], float).reshape(-1, 4)
         b[:, 2:] += b[:, :2]
@@ -224,25 +242,51 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
             b, inside = clip_boxes(b, region)
             outside = int((~inside).sum())
             for i in np.flatnonzero(~inside):
-                drops.add(cfg.annotations, f"annotation {anns[i].get('id')}", name, anns[i]["bbox"],
-                          "outside the annotated region", "module 4 recorded only part of this image as annotated")
+                drops.add(
+                    cfg.annotations,
+                    f"annotation {anns[i].get('id')}",
+                    name,
+                    anns[i]["bbox"],
+                    "outside the annotated region",
+                    "module 4 recorded only part of this image as annotated",
+                )
             b, cats = b[inside], cats[inside]
-        sources.append(Source(name, files[name], w, h, b, cats, region, boxes_outside=outside,
-                              ids=[a.get("id") for a, k in zip(anns, inside if region is not None else
-                                                               [True] * len(anns)) if k]))
+        sources.append(
+            Source(
+                name,
+                files[name],
+                w,
+                h,
+                b,
+                cats,
+                region,
+                boxes_outside=outside,
+                ids=[a.get("id") for a, k in zip(anns, inside if region is not None else [True] * len(anns)) if k],
+            )
+        )
     if missing and sources:
         example = missing[0] + (f" ({unmatched[missing[0]]})" if unmatched[missing[0]] else "")
-        log.warning("%d annotated image(s) not found in %s and skipped, with their boxes (e.g. %s)", len(missing),
-                    cfg.images, example)
+        log.warning(
+            "%d annotated image(s) not found in %s and skipped, with their boxes (e.g. %s)",
+            len(missing),
+            cfg.images,
+            example,
+        )
     if not sources:
         hint = next((v for v in unmatched.values() if v), "")
-        raise InputError(f"none of the {len(ds['images'])} annotated images is in the image folder (e.g. "
-                         f"'{missing[0]}'{'; ' + hint if hint else ''})", path=cfg.images,
-                         fix="set 'images' to the folder the annotations were made on")
+        raise InputError(
+            f"none of the {len(ds['images'])} annotated images is in the image folder (e.g. "
+            f"'{missing[0]}'{'; ' + hint if hint else ''})",
+            path=cfg.images,
+            fix="set 'images' to the folder the annotations were made on",
+        )
     stems = [Path(s.name).stem for s in sources]
     if len(set(stems)) != len(stems):
-        raise InputError("two annotated images differ only in their extension; tile names would clash",
-                         path=cfg.images, fix="rename one of them")
+        raise InputError(
+            "two annotated images differ only in their extension; tile names would clash",
+            path=cfg.images,
+            fix="rename one of them",
+        )
     return sources, ds["categories"], missing
 
 
@@ -254,29 +298,46 @@ def check_tile_size(cfg: ImgSplitterConfig, sources: list[Source]) -> None:
     if not small:
         return
     if all(cfg.tile_size >= max(s.width, s.height) for s in sources):
-        log.info("'tile_size' (%d px) is at least the size of every image (largest %d px): no tiling, each "
-                 "image is one tile (set tile_size below the image size to cut them)", cfg.tile_size,
-                 max(max(s.width, s.height) for s in sources))
+        log.info(
+            "'tile_size' (%d px) is at least the size of every image (largest %d px): no tiling, each "
+            "image is one tile (set tile_size below the image size to cut them)",
+            cfg.tile_size,
+            max(max(s.width, s.height) for s in sources),
+        )
         return
-    log.warning("'tile_size' (%d px) is larger than %d of %d image(s) in width or height (e.g. %s: %dx%d px): their "
-                "tiles are cut to the image", cfg.tile_size, len(small), len(sources), small[0].name,
-                small[0].width, small[0].height)
+    log.warning(
+        "'tile_size' (%d px) is larger than %d of %d image(s) in width or height (e.g. %s: %dx%d px): their "
+        "tiles are cut to the image",
+        cfg.tile_size,
+        len(small),
+        len(sources),
+        small[0].name,
+        small[0].width,
+        small[0].height,
+    )
 
 
 def plan_all(cfg: ImgSplitterConfig, sources: list[Source]) -> None:
     """Tile plans, the split, and the (seeded) choice of negatives kept - all before any pixel is read."""
-    positions = read_positions(cfg.positions, {s.name: s.path for s in sources}) \
-        if cfg.split_mode == "spatial" else None
+    positions = (
+        read_positions(cfg.positions, {s.name: s.path for s in sources}) if cfg.split_mode == "spatial" else None
+    )
     splits = split_images([s.name for s in sources], cfg.split, cfg.seed, positions)
     empty = [k for k, share in zip(SPLITS, cfg.split) if share > 0 and k not in splits.values()]
     if empty:
-        log.warning("only %d annotated image(s): the %s split is empty; annotate more images for a fair "
-                    "evaluation", len(sources), " and ".join(empty))
+        log.warning(
+            "only %d annotated image(s): the %s split is empty; annotate more images for a fair evaluation",
+            len(sources),
+            " and ".join(empty),
+        )
     negatives = []
     for s in sources:
         s.plan = plan_image(s.boxes, s.width, s.height, cfg.tile_size, cfg.overlap, cfg.threshold, cfg.min_box_side)
-        s.usable = (np.ones(len(s.plan.tiles), bool) if s.region is None
-                    else region_share(s.plan.tiles, s.region) >= max(cfg.min_region_share, 1e-9))
+        s.usable = (
+            np.ones(len(s.plan.tiles), bool)
+            if s.region is None
+            else region_share(s.plan.tiles, s.region) >= max(cfg.min_region_share, 1e-9)
+        )
         s.plan.keep &= s.usable[:, None]  # boxes count only in tiles that are written
         s.split = splits[s.name]
         negatives += [(s, int(t)) for t in np.flatnonzero(~s.plan.positive & s.usable)]
@@ -321,10 +382,13 @@ def run(cfg: ImgSplitterConfig) -> dict:
     check_tile_size(cfg, sources)
     plan_all(cfg, sources)
     if not any(s.plan.positive.any() for s in sources):
-        raise InputError(f"no box of the {sum(len(s.boxes) for s in sources)} is kept in any tile (each needs "
-                         f"min_visible {cfg.threshold:g} of its area in a tile and sides of min_box_side "
-                         f"{cfg.min_box_side:g} px there)", path=cfg.annotations,
-                         fix="lower min_box_side or min_visible, or check the boxes' sizes in the annotations")
+        raise InputError(
+            f"no box of the {sum(len(s.boxes) for s in sources)} is kept in any tile (each needs "
+            f"min_visible {cfg.threshold:g} of its area in a tile and sides of min_box_side "
+            f"{cfg.min_box_side:g} px there)",
+            path=cfg.annotations,
+            fix="lower min_box_side or min_visible, or check the boxes' sizes in the annotations",
+        )
     out = Path(cfg.output_dir)
     old = _previous_tiles(out)
     with staged_outputs(out) as stage:
@@ -332,20 +396,43 @@ def run(cfg: ImgSplitterConfig) -> dict:
     for path in old - {out / p for p in summary.pop("_written")} - ({out / DROPPED_NAME} if len(drops) else set()):
         path.unlink(missing_ok=True)
     if len(drops):
-        log.warning("%d box(es) are not in any tile (%s); each one and why: %s", len(drops), drops.summary(),
-                    out / DROPPED_NAME)
-    log.info("%d tiles from %d images: %s; %d of %d boxes kept in at least one tile -> %s",
-             summary["tiles"], len(sources), ", ".join(f"{k} {v['tiles']}" for k, v in summary["splits"].items()),
-             summary["boxes_kept"], summary["boxes"], out)
+        log.warning(
+            "%d box(es) are not in any tile (%s); each one and why: %s", len(drops), drops.summary(), out / DROPPED_NAME
+        )
+    log.info(
+        "%d tiles from %d images: %s; %d of %d boxes kept in at least one tile -> %s",
+        summary["tiles"],
+        len(sources),
+        ", ".join(f"{k} {v['tiles']}" for k, v in summary["splits"].items()),
+        summary["boxes_kept"],
+        summary["boxes"],
+        out,
+    )
     return summary
 
 
-def _write(cfg: ImgSplitterConfig, sources: list[Source], categories: list[dict], missing: list[str], stage: Path,
-           out: Path, drops: DropLog) -> dict:
+def _write(
+    cfg: ImgSplitterConfig,
+    sources: list[Source],
+    categories: list[dict],
+    missing: list[str],
+    stage: Path,
+    out: Path,
+    drops: DropLog,
+) -> dict:
     """Write the tiles, the split datasets, YOLO files, summary.json and dropped.csv into ``stage``."""
-    datasets = {k: new_dataset([c["name"] for c in sorted(categories, key=lambda c: c["id"])],
-                               info={"description": f"MatchPlant tiles ({k})", "images_dir": f"{k}/images",
-                                     "tile_size": cfg.tile_size, "overlap": cfg.overlap}) for k in SPLITS}
+    datasets = {
+        k: new_dataset(
+            [c["name"] for c in sorted(categories, key=lambda c: c["id"])],
+            info={
+                "description": f"MatchPlant tiles ({k})",
+                "images_dir": f"{k}/images",
+                "tile_size": cfg.tile_size,
+                "overlap": cfg.overlap,
+            },
+        )
+        for k in SPLITS
+    }
     cat_map = {c["id"]: i + 1 for i, c in enumerate(sorted(categories, key=lambda c: c["id"]))}
     jobs = []
     ann_id = {k: 1 for k in SPLITS}
@@ -358,22 +445,41 @@ def _write(cfg: ImgSplitterConfig, sources: list[Source], categories: list[dict]
             x0, y0, x1, y1 = (int(v) for v in s.plan.tiles[t])
             file_name = f"{Path(s.name).stem}_{x0}_{y0}{tile_suffix(cfg, s.path)}"
             image_id = len(ds["images"]) + 1
-            ds["images"].append({"id": image_id, "file_name": file_name, "width": x1 - x0, "height": y1 - y0,
-                                 "source_image": s.name, "x0": x0, "y0": y0, "source_width": s.width,
-                                 "source_height": s.height,
-                                 **({} if s.region is None else {"masked_outside_region": True})})
+            ds["images"].append(
+                {
+                    "id": image_id,
+                    "file_name": file_name,
+                    "width": x1 - x0,
+                    "height": y1 - y0,
+                    "source_image": s.name,
+                    "x0": x0,
+                    "y0": y0,
+                    "source_width": s.width,
+                    "source_height": s.height,
+                    **({} if s.region is None else {"masked_outside_region": True}),
+                }
+            )
             for n in np.flatnonzero(s.plan.keep[t]):
                 cx1, cy1, cx2, cy2 = s.plan.clipped[t, n]
-                ds["annotations"].append(make_annotation(ann_id[s.split], image_id, [cx1, cy1, cx2 - cx1, cy2 - cy1],
-                                                         cat_map[int(s.categories[n])]))
+                ds["annotations"].append(
+                    make_annotation(
+                        ann_id[s.split], image_id, [cx1, cy1, cx2 - cx1, cy2 - cy1], cat_map[int(s.categories[n])]
+                    )
+                )
                 ann_id[s.split] += 1
             tiles.append((x0, y0, x1, y1, str(stage / s.split / "images" / file_name)))
             written += [f"{s.split}/images/{file_name}", f"{s.split}/labels/{Path(file_name).stem}.txt"]
         jobs.append((str(s.path), tiles, s.region))
         for n in np.flatnonzero(~s.plan.kept_anywhere):
             x1, y1, x2, y2 = s.boxes[n]
-            drops.add(cfg.annotations, f"annotation {s.ids[n] if n < len(s.ids) else '?'}", s.name,
-                      [x1, y1, x2 - x1, y2 - y1], "in no tile", drop_reason(s.plan, n, cfg))
+            drops.add(
+                cfg.annotations,
+                f"annotation {s.ids[n] if n < len(s.ids) else '?'}",
+                s.name,
+                [x1, y1, x2 - x1, y2 - y1],
+                "in no tile",
+                drop_reason(s.plan, n, cfg),
+            )
     _run_jobs(jobs, cfg.workers)
     summary = _summary(cfg, sources, datasets, missing)
     for split, ds in datasets.items():
@@ -384,8 +490,11 @@ def _write(cfg: ImgSplitterConfig, sources: list[Source], categories: list[dict]
     if cfg.yolo:
         names = [c["name"] for c in datasets["train"]["categories"]]
         write_text(stage / "classes.txt", "".join(n + "\n" for n in names))
-        write_text(stage / "data.yaml", f"path: {out.resolve().as_posix()}\ntrain: train/images\nval: val/images\n"
-                                        f"test: test/images\nnames: {names}\n")
+        write_text(
+            stage / "data.yaml",
+            f"path: {out.resolve().as_posix()}\ntrain: train/images\nval: val/images\n"
+            f"test: test/images\nnames: {names}\n",
+        )
     summary["dropped"] = {"boxes": len(drops), "reasons": drops.summary(), "list": DROPPED_NAME if len(drops) else None}
     if len(drops):
         drops.write_csv(stage / DROPPED_NAME)
@@ -411,22 +520,49 @@ def _summary(cfg: ImgSplitterConfig, sources: list[Source], datasets: dict, miss
     splits = {}
     for k in SPLITS:
         mine = [s for s in sources if s.split == k]
-        splits[k] = {"images": len(mine), "tiles": len(datasets[k]["images"]),
-                     "boxes": len(datasets[k]["annotations"]), "negative_tiles": sum(len(s.negatives) for s in mine),
-                     "source_images": sorted(s.name for s in mine)}
+        splits[k] = {
+            "images": len(mine),
+            "tiles": len(datasets[k]["images"]),
+            "boxes": len(datasets[k]["annotations"]),
+            "negative_tiles": sum(len(s.negatives) for s in mine),
+            "source_images": sorted(s.name for s in mine),
+        }
     lost = {s.name: int((~s.plan.kept_anywhere).sum()) for s in sources if (~s.plan.kept_anywhere).any()}
-    return {"tiles": sum(v["tiles"] for v in splits.values()), "boxes": int(sum(len(s.boxes) for s in sources)),
-            "boxes_kept": int(sum(s.plan.kept_anywhere.sum() for s in sources)), "boxes_lost_by_image": lost,
-            "negative_tiles_available": int(sum((~s.plan.positive & s.usable).sum() for s in sources)),
-            "annotated_regions": {"images": sum(s.region is not None for s in sources),
-                                  "boxes_outside_region": int(sum(s.boxes_outside for s in sources)),
-                                  "tiles_outside_region": int(sum((~s.usable).sum() for s in sources))},
-            "missing_images": missing, "splits": splits,
-            "settings": {"tile_size": cfg.tile_size, "overlap": cfg.overlap, "min_visible": cfg.threshold,
-                         "min_box_side": cfg.min_box_side, "split": list(cfg.split), "seed": cfg.seed,
-                         "split_mode": cfg.split_mode, "negative_share": cfg.negative_share,
-                         "min_region_share": cfg.min_region_share}}
+    return {
+        "tiles": sum(v["tiles"] for v in splits.values()),
+        "boxes": int(sum(len(s.boxes) for s in sources)),
+        "boxes_kept": int(sum(s.plan.kept_anywhere.sum() for s in sources)),
+        "boxes_lost_by_image": lost,
+        "negative_tiles_available": int(sum((~s.plan.positive & s.usable).sum() for s in sources)),
+        "annotated_regions": {
+            "images": sum(s.region is not None for s in sources),
+            "boxes_outside_region": int(sum(s.boxes_outside for s in sources)),
+            "tiles_outside_region": int(sum((~s.usable).sum() for s in sources)),
+        },
+        "missing_images": missing,
+        "splits": splits,
+        "settings": {
+            "tile_size": cfg.tile_size,
+            "overlap": cfg.overlap,
+            "min_visible": cfg.threshold,
+            "min_box_side": cfg.min_box_side,
+            "split": list(cfg.split),
+            "seed": cfg.seed,
+            "split_mode": cfg.split_mode,
+            "negative_share": cfg.negative_share,
+            "min_region_share": cfg.min_region_share,
+        },
+    }
 
 
-__all__ = ["ImgSplitterConfig", "tile_origins", "tile_grid", "plan_image", "ImagePlan", "split_images",
-           "load_sources", "plan_all", "run"]
+__all__ = [
+    "ImgSplitterConfig",
+    "tile_origins",
+    "tile_grid",
+    "plan_image",
+    "ImagePlan",
+    "split_images",
+    "load_sources",
+    "plan_all",
+    "run",
+]

@@ -30,8 +30,9 @@ def split_counts(n: int, ratios: list[float]) -> list[int]:
     return counts.tolist()
 
 
-def split_images(names: list[str], ratios: list[float], seed: int = 0,
-                 positions: dict[str, tuple[float, float]] | None = None) -> dict[str, str]:
+def split_images(
+    names: list[str], ratios: list[float], seed: int = 0, positions: dict[str, tuple[float, float]] | None = None
+) -> dict[str, str]:
     """``{image: split}``; random with ``seed``, or with ``positions`` in blocks along the main axis."""
     names = sorted(names)
     if positions is not None:
@@ -64,8 +65,11 @@ def read_positions(path: Path | None, files: dict[str, Path]) -> dict[str, tuple
                 out[name] = (lon * 111320.0 * np.cos(np.radians(lat)), lat * 110540.0)  # metres, for ordering
     missing = sorted(set(files) - set(out))
     if missing:
-        raise InputError(f"no position for {len(missing)} image(s) (e.g. {missing[0]}) for the spatial split",
-                         path=path, fix="give 'positions' (a CSV image,x,y) or use split_mode: random")
+        raise InputError(
+            f"no position for {len(missing)} image(s) (e.g. {missing[0]}) for the spatial split",
+            path=path,
+            fix="give 'positions' (a CSV image,x,y) or use split_mode: random",
+        )
     return out
 
 

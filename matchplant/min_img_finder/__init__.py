@@ -6,4 +6,4 @@ config_path)``, is imported only for ``--gui`` (a plain run needs none of matplo
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.run import run
 
-__all__ = ['MinImgFinderConfig', 'run']
+__all__ = ["MinImgFinderConfig", "run"]

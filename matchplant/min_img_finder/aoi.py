@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import geopandas as gpd
 import numpy as np
@@ -54,11 +54,15 @@ def orthophoto_preview(path: Path, max_size: int = 1500) -> tuple[np.ndarray, np
 
 def aoi_from_mask(mask: np.ndarray, transform, path: Path | None = None) -> Polygon | MultiPolygon:
     """Polygonise a valid-data mask (``rasterio.features.shapes``) into one (multi)polygon."""
-    geoms = [shapely.geometry.shape(g) for g, v in shapes(mask.astype(np.uint8), mask=mask, transform=transform)
-             if v == 1]
+    geoms = [
+        shapely.geometry.shape(g) for g, v in shapes(mask.astype(np.uint8), mask=mask, transform=transform) if v == 1
+    ]
     if not geoms:
-        raise InputError("the orthophoto has no valid pixels, so it gives no area of interest", path=path,
-                         fix="set aoi_file to a polygon file of the field, or re-run ODM (module 2)")
+        raise InputError(
+            "the orthophoto has no valid pixels, so it gives no area of interest",
+            path=path,
+            fix="set aoi_file to a polygon file of the field, or re-run ODM (module 2)",
+        )
     aoi = shapely.union_all(geoms)
     return aoi.simplify(abs(transform.a) * 0.5)
 
@@ -72,51 +76,74 @@ def read_aoi_file(path: Path, crs) -> Polygon | MultiPolygon:
         layers = [(str(name), str(kind)) for name, kind in pyogrio.list_layers(path)]
         polygonal = [name for name, kind in layers if "polygon" in kind.lower()]
         if len(polygonal) > 1:
-            raise InputError(f"the area-of-interest file (aoi_file) has {len(polygonal)} polygon layers "
-                             f"({', '.join(polygonal)}); which one is the area?", path=path,
-                             fix="save the field boundary alone in its own file (e.g. QGIS: Export > Save "
-                                 "Features As)")
+            raise InputError(
+                f"the area-of-interest file (aoi_file) has {len(polygonal)} polygon layers "
+                f"({', '.join(polygonal)}); which one is the area?",
+                path=path,
+                fix="save the field boundary alone in its own file (e.g. QGIS: Export > Save Features As)",
+            )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # odd fields: what matters is checked below
             gdf = gpd.read_file(path, layer=polygonal[0] if polygonal else None)
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any driver error means the file cannot be used
-        raise InputError(f"cannot read the area-of-interest file (aoi_file): {exc}", path=path,
-                         fix="use a GeoPackage, Shapefile or GeoJSON with polygons (a truncated copy must be "
-                             "copied again)") from exc
+        raise InputError(
+            f"cannot read the area-of-interest file (aoi_file): {exc}",
+            path=path,
+            fix="use a GeoPackage, Shapefile or GeoJSON with polygons (a truncated copy must be copied again)",
+        ) from exc
     kinds = sorted(set(gdf.geometry.dropna().geom_type)) if len(gdf) else []
     gdf = gdf[gdf.geometry.notna() & gdf.geometry.geom_type.isin(["Polygon", "MultiPolygon"])]
     gdf = gdf[~gdf.geometry.is_empty]
     if gdf.empty:
         holds = f"only {', '.join(kinds)}" if kinds else "no features"
-        raise InputError(f"the area-of-interest file (aoi_file) holds no polygon ({holds})", path=path,
-                         fix="draw the field boundary as a polygon (e.g. in QGIS) and save it")
+        raise InputError(
+            f"the area-of-interest file (aoi_file) holds no polygon ({holds})",
+            path=path,
+            fix="draw the field boundary as a polygon (e.g. in QGIS) and save it",
+        )
     x0, y0, x1, y1 = (float(v) for v in gdf.total_bounds)
     if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
-        raise InputError("the area-of-interest file (aoi_file) has coordinates that are not numbers", path=path,
-                         fix="redraw the polygon")
+        raise InputError(
+            "the area-of-interest file (aoi_file) has coordinates that are not numbers",
+            path=path,
+            fix="redraw the polygon",
+        )
     target = parse_crs(crs) if crs is not None else None
     if gdf.crs is None:
-        guess = f" (its coordinates look like {target.name})" if target is not None and not target.is_geographic \
-            and max(abs(x0), abs(x1)) > 180 else ""
-        raise InputError(f"the area-of-interest file (aoi_file) has no coordinate system{guess}", path=path,
-                         fix="set its CRS (in QGIS: Layer > Set CRS, or ogr2ogr -a_srs EPSG:xxxx) and save it again")
+        guess = (
+            f" (its coordinates look like {target.name})"
+            if target is not None and not target.is_geographic and max(abs(x0), abs(x1)) > 180
+            else ""
+        )
+        raise InputError(
+            f"the area-of-interest file (aoi_file) has no coordinate system{guess}",
+            path=path,
+            fix="set its CRS (in QGIS: Layer > Set CRS, or ogr2ogr -a_srs EPSG:xxxx) and save it again",
+        )
     if gdf.crs.is_geographic and (max(abs(x0), abs(x1)) > 180 or max(abs(y0), abs(y1)) > 90):
-        said = "GeoJSON means WGS84 lat/lon" if path.suffix.lower() in (".geojson", ".json") else \
-            f"the file says {gdf.crs.name}"
-        raise InputError(f"the area-of-interest file (aoi_file) holds coordinates like ({x0:.0f}, {y0:.0f}), "
-                         f"which are not degrees, but {said}", path=path,
-                         fix="save it with its true (projected) CRS, e.g. as a GeoPackage, or convert it to "
-                             "WGS84 lat/lon")
+        said = (
+            "GeoJSON means WGS84 lat/lon"
+            if path.suffix.lower() in (".geojson", ".json")
+            else f"the file says {gdf.crs.name}"
+        )
+        raise InputError(
+            f"the area-of-interest file (aoi_file) holds coordinates like ({x0:.0f}, {y0:.0f}), "
+            f"which are not degrees, but {said}",
+            path=path,
+            fix="save it with its true (projected) CRS, e.g. as a GeoPackage, or convert it to WGS84 lat/lon",
+        )
     if target is not None and not parse_crs(gdf.crs).equals(target):
-        log.info("area of interest %s is in %s: reprojected to the project's %s", path.name, gdf.crs.name,
-                 target.name)
+        log.info("area of interest %s is in %s: reprojected to the project's %s", path.name, gdf.crs.name, target.name)
         gdf = gdf.to_crs(target)
     aoi = shapely.make_valid(shapely.union_all(gdf.geometry.values))
     if aoi.is_empty or aoi.area <= 0:
-        raise InputError("the area-of-interest file (aoi_file) holds only empty or zero-area polygons", path=path,
-                         fix="redraw the field boundary as a polygon")
+        raise InputError(
+            "the area-of-interest file (aoi_file) holds only empty or zero-area polygons",
+            path=path,
+            fix="redraw the field boundary as a polygon",
+        )
     return aoi
 
 

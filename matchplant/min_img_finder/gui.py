@@ -22,16 +22,19 @@ from matplotlib.widgets import Button, RadioButtons, TextBox
 from matchplant.core.runtime.config import save_config, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
 from matchplant.core.runtime.gui import close, figure, require_display, reveal, show, status_text
-from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.widgets import SetupField, SetupScreen
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.output import draw_coverage, save_selection
 from matchplant.min_img_finder.run import MinImageFinder, Result
 
 log = get_logger("min_img_finder.gui")
 
-FIELDS = [("uncovered_threshold", "uncovered %"), ("max_overlap", "max overlap %"),
-          ("overlap_penalty", "overlap penalty")]
+FIELDS = [
+    ("uncovered_threshold", "uncovered %"),
+    ("max_overlap", "max overlap %"),
+    ("overlap_penalty", "overlap penalty"),
+]
 
 
 class MinImgFinderGUI:
@@ -101,8 +104,10 @@ class MinImgFinderGUI:
             self.say(str(exc).replace("\n", " | "), error=True)
             return
         self.show_result(self.finder.evaluate(sel))
-        self.say(f"{sel.method}: {len(sel.indices)} images in {sel.seconds:.2f} s"
-                 + (" - overlap cap relaxed to reach the coverage" if sel.relaxed else ""))
+        self.say(
+            f"{sel.method}: {len(sel.indices)} images in {sel.seconds:.2f} s"
+            + (" - overlap cap relaxed to reach the coverage" if sel.relaxed else "")
+        )
 
     def toggle(self, index: int) -> None:
         """Add or remove one image and re-evaluate (coverage, owned areas)."""
@@ -128,20 +133,25 @@ class MinImgFinderGUI:
                 if self.result.owned[self.finder.footprints[i].name].contains(p):
                     return i
         chosen = set(self.result.selection.indices) if self.result else set()
-        hits = [(f.polygon.area, i) for i, f in enumerate(self.finder.footprints)
-                if i not in chosen and f.polygon.contains(p)]
+        hits = [
+            (f.polygon.area, i)
+            for i, f in enumerate(self.finder.footprints)
+            if i not in chosen and f.polygon.contains(p)
+        ]
         return min(hits)[1] if hits else None
 
     def show_result(self, result: Result) -> None:
         self.result = result
         draw_coverage(self.ax, self.finder, result)
         s = result.selection
-        self.info.set_text(f"images       {len(s.indices)} of {len(self.finder.footprints)}\n"
-                           f"coverage     {100 * result.exact_coverage:.1f} %\n"
-                           f"asked        {100 * s.target:.1f} %\n"
-                           f"uncovered    {result.uncovered.area:.2f} m2\n"
-                           f"area         {self.finder.aoi.area:.1f} m2\n"
-                           f"method       {s.method}")
+        self.info.set_text(
+            f"images       {len(s.indices)} of {len(self.finder.footprints)}\n"
+            f"coverage     {100 * result.exact_coverage:.1f} %\n"
+            f"asked        {100 * s.target:.1f} %\n"
+            f"uncovered    {result.uncovered.area:.2f} m2\n"
+            f"area         {self.finder.aoi.area:.1f} m2\n"
+            f"method       {s.method}"
+        )
         self.fig.canvas.draw_idle()
 
     def save(self) -> dict | None:
@@ -160,21 +170,31 @@ class MinImgFinderGUI:
         return paths
 
 
-SETUP_FIELDS = [SetupField("project_dir", "ODM project folder", "folder"),
-                SetupField("aoi_file", "Area to cover (optional)", "file"),
-                SetupField("output_dir", "Output folder", "folder")]
+SETUP_FIELDS = [
+    SetupField("project_dir", "ODM project folder", "folder"),
+    SetupField("aoi_file", "Area to cover (optional)", "file"),
+    SetupField("output_dir", "Output folder", "folder"),
+]
 
 
 class MinImgFinderSetup:
     """Module 3's setup screen: the ODM project, the area to cover and the output folder with file pickers;
     **Select images** runs the selection, writes every output and opens the map to edit the choice."""
 
-    def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None,
-                 chooser=None):
+    def __init__(
+        self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None, chooser=None
+    ):
         self.config_path, self.headless = config_path, headless
         self.editor: MinImgFinderGUI | None = None
-        self.screen = SetupScreen("Minimum image finder: choose the ODM project", cfg, SETUP_FIELDS, self._run,
-                                  headless=headless, chooser=chooser, run_label="Select images")
+        self.screen = SetupScreen(
+            "Minimum image finder: choose the ODM project",
+            cfg,
+            SETUP_FIELDS,
+            self._run,
+            headless=headless,
+            chooser=chooser,
+            run_label="Select images",
+        )
 
     def _run(self, cfg: MinImgFinderConfig) -> str:
         if self.editor is not None:
@@ -185,8 +205,10 @@ class MinImgFinderSetup:
             raise InputError(self.editor.status.get_text(), path=cfg.project_dir)
         if self.editor.save() is None:
             raise InputError(self.editor.status.get_text(), path=cfg.output_dir)
-        return (f"{len(self.editor.result.selection.indices)} images selected and saved to {cfg.output_dir}; "
-                "click footprints on the map to change the choice, then Save")
+        return (
+            f"{len(self.editor.result.selection.indices)} images selected and saved to {cfg.output_dir}; "
+            "click footprints on the map to change the choice, then Save"
+        )
 
 
 def launch(cfg: MinImgFinderConfig, config_path: Path | None = None, chooser=None) -> MinImgFinderSetup:

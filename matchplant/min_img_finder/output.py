@@ -70,8 +70,21 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
     covered = np.zeros(finder.grid.A.shape[1], bool)
     with atomic_open(out / "selected_images.csv", "w") as fh:
         wr = csv.writer(fh)
-        wr.writerow(["order", "image", "file", "footprint_area_m2", "owned_area_m2", "new_area_m2",
-                     "cumulative_coverage_pct", "centroid_x", "centroid_y", "max_overlap_pct", "map_number"])
+        wr.writerow(
+            [
+                "order",
+                "image",
+                "file",
+                "footprint_area_m2",
+                "owned_area_m2",
+                "new_area_m2",
+                "cumulative_coverage_pct",
+                "centroid_x",
+                "centroid_y",
+                "max_overlap_pct",
+                "map_number",
+            ]
+        )
         for k, (i, fp) in enumerate(zip(idx, sel), start=1):
             cells = finder.grid.A[i].indices
             new = float(finder.grid.weights[cells[~covered[cells]]].sum())
@@ -79,25 +92,51 @@ def write_outputs(finder, result, output_dir: Path | None = None) -> dict[str, P
             row = frac[i]
             others = [row[0, j] for j in idx if j != i]
             cx, cy = fp.centroid
-            wr.writerow([k, fp.name, fp.file.name, f"{fp.polygon.intersection(finder.aoi).area:.4f}",
-                         f"{result.owned[fp.name].area:.4f}", f"{new:.4f}",
-                         f"{100 * finder.grid.weights[covered].sum() / finder.grid.total:.3f}",
-                         f"{cx:.3f}", f"{cy:.3f}", f"{100 * max(others, default=0.0):.2f}", i + 1])
+            wr.writerow(
+                [
+                    k,
+                    fp.name,
+                    fp.file.name,
+                    f"{fp.polygon.intersection(finder.aoi).area:.4f}",
+                    f"{result.owned[fp.name].area:.4f}",
+                    f"{new:.4f}",
+                    f"{100 * finder.grid.weights[covered].sum() / finder.grid.total:.3f}",
+                    f"{cx:.3f}",
+                    f"{cy:.3f}",
+                    f"{100 * max(others, default=0.0):.2f}",
+                    i + 1,
+                ]
+            )
     paths["csv"] = out / "selected_images.csv"
     write_owned_areas(out / "owned_areas.json", {fp.file.name: result.owned_pixels[fp.name] for fp in sel})
     paths["owned_areas"] = out / "owned_areas.json"
     paths.update(write_vectors(finder, result, out / "footprints", cfg.vector_formats))
     paths["figure"] = coverage_figure(finder, result, out / "coverage.png")
     s = result.selection
-    write_json(out / "selection.json", {
-        "project_dir": str(cfg.project_dir), "images_total": len(finder.footprints), "images_selected": len(idx),
-        "selected": [fp.name for fp in sel], "method": s.method, "optimal": s.optimal,
-        "overlap_cap_relaxed": s.relaxed, "requested_coverage_pct": 100 * s.target,
-        "coverage_pct": 100 * result.exact_coverage, "grid_coverage_pct": 100 * s.coverage,
-        "aoi_area_m2": finder.aoi.area, "cell_size_m": finder.grid.cell, "crs": finder.frame.crs.to_string(),
-        "settings": {k: getattr(cfg, k) for k in ("uncovered_threshold", "max_overlap", "overlap_penalty",
-                                                   "border_samples", "dsm_resolution")},
-        "selection_seconds": round(s.seconds, 4), "footprint_seconds": round(finder.footprint_seconds, 3)})
+    write_json(
+        out / "selection.json",
+        {
+            "project_dir": str(cfg.project_dir),
+            "images_total": len(finder.footprints),
+            "images_selected": len(idx),
+            "selected": [fp.name for fp in sel],
+            "method": s.method,
+            "optimal": s.optimal,
+            "overlap_cap_relaxed": s.relaxed,
+            "requested_coverage_pct": 100 * s.target,
+            "coverage_pct": 100 * result.exact_coverage,
+            "grid_coverage_pct": 100 * s.coverage,
+            "aoi_area_m2": finder.aoi.area,
+            "cell_size_m": finder.grid.cell,
+            "crs": finder.frame.crs.to_string(),
+            "settings": {
+                k: getattr(cfg, k)
+                for k in ("uncovered_threshold", "max_overlap", "overlap_penalty", "border_samples", "dsm_resolution")
+            },
+            "selection_seconds": round(s.seconds, 4),
+            "footprint_seconds": round(finder.footprint_seconds, 3),
+        },
+    )
     paths["summary"] = out / "selection.json"
     return paths
 
@@ -122,8 +161,12 @@ def remove_stale(out: Path, previous: set[str], kept: set[str]) -> None:
     for name in stale:
         (out / "images" / name).unlink()
     if stale:
-        log.info("removed %d image(s) of the previous selection from %s: %s", len(stale), out / "images",
-                 ", ".join(stale[:5]) + (" ..." if len(stale) > 5 else ""))
+        log.info(
+            "removed %d image(s) of the previous selection from %s: %s",
+            len(stale),
+            out / "images",
+            ", ".join(stale[:5]) + (" ..." if len(stale) > 5 else ""),
+        )
 
 
 def write_rows(path: Path, rows: list[dict]) -> Path:
@@ -158,16 +201,27 @@ def write_vectors(finder, result, base: Path, formats) -> dict[str, Path]:
     to check a selection in a GIS."""
     crs = finder.frame.crs
     order = {i: k for k, i in enumerate(result.selection.indices, start=1)}
-    fps = gpd.GeoDataFrame({"image": finder.names,
-                            "selected": [i in order for i in range(len(finder.footprints))],
-                            "order": [order.get(i, 0) for i in range(len(finder.footprints))],
-                            "area_m2": [f.polygon.area for f in finder.footprints]},
-                           geometry=[f.polygon for f in finder.footprints], crs=crs)
+    fps = gpd.GeoDataFrame(
+        {
+            "image": finder.names,
+            "selected": [i in order for i in range(len(finder.footprints))],
+            "order": [order.get(i, 0) for i in range(len(finder.footprints))],
+            "area_m2": [f.polygon.area for f in finder.footprints],
+        },
+        geometry=[f.polygon for f in finder.footprints],
+        crs=crs,
+    )
     sel = result.selected
-    owned = gpd.GeoDataFrame({"image": [f.name for f in sel], "file": [f.file.name for f in sel],
-                              "order": list(range(1, len(sel) + 1)),
-                              "area_m2": [result.owned[f.name].area for f in sel]},
-                             geometry=[_multi(result.owned[f.name]) for f in sel], crs=crs)
+    owned = gpd.GeoDataFrame(
+        {
+            "image": [f.name for f in sel],
+            "file": [f.file.name for f in sel],
+            "order": list(range(1, len(sel) + 1)),
+            "area_m2": [result.owned[f.name].area for f in sel],
+        },
+        geometry=[_multi(result.owned[f.name]) for f in sel],
+        crs=crs,
+    )
     aoi = gpd.GeoDataFrame({"area_m2": [finder.aoi.area]}, geometry=[_multi(finder.aoi)], crs=crs)
     unc = gpd.GeoDataFrame({"area_m2": [result.uncovered.area]}, geometry=[_multi(result.uncovered)], crs=crs)
     return write_formats({"footprints": fps, "owned": owned, "aoi": aoi, "uncovered": unc}, base, formats)
@@ -205,8 +259,17 @@ def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
         ax.plot(x, y, color=colors[k], lw=1.6)
         if numbers:
             cx, cy = fp.centroid
-            ax.text(cx, cy, str(numbers_of[k]), ha="center", va="center", fontsize=10, weight="bold", color="black",
-                    bbox=dict(boxstyle="circle,pad=0.2", fc="white", ec=colors[k], alpha=0.85))
+            ax.text(
+                cx,
+                cy,
+                str(numbers_of[k]),
+                ha="center",
+                va="center",
+                fontsize=10,
+                weight="bold",
+                color="black",
+                bbox=dict(boxstyle="circle,pad=0.2", fc="white", ec=colors[k], alpha=0.85),
+            )
     for part in shapely.get_parts(result.uncovered):
         if isinstance(part, Polygon) and part.area > 0:
             ax.add_patch(PathPatch(_mpl_path(part), facecolor="red", alpha=0.45, lw=0, hatch="//"))
@@ -222,21 +285,33 @@ def draw_coverage(ax, finder, result, *, numbers: bool = True) -> None:
     ax.set_xlabel("easting (m)")
     ax.set_ylabel("northing (m)")
     s = result.selection
-    ax.set_title(f"{len(s.indices)} of {len(finder.footprints)} images cover {100 * result.exact_coverage:.1f}% "
-                 f"of the area (asked {100 * s.target:.0f}%)", fontsize=11)
+    ax.set_title(
+        f"{len(s.indices)} of {len(finder.footprints)} images cover {100 * result.exact_coverage:.1f}% "
+        f"of the area (asked {100 * s.target:.0f}%)",
+        fontsize=11,
+    )
     ax.ticklabel_format(useOffset=False, style="plain")
     _legend(ax, colors[0] if colors else "tab:blue", numbers)
 
 
 def _legend(ax, colour, numbers: bool) -> None:
     """What each mark on the coverage map means (proxies, so the legend does not depend on the data)."""
-    handles = [Line2D([], [], color="0.55", lw=0.8, label="footprint of an image (all images)"),
-               Line2D([], [], color=colour, lw=1.6, marker="o" if numbers else None, mfc="white", mec=colour,
-                      label="selected image (number: its map_number in selected_images.csv)" if numbers
-                      else "selected image"),
-               Patch(facecolor=colour, alpha=0.28, lw=0, label="area that image owns (its plants)"),
-               Patch(facecolor="red", alpha=0.45, hatch="//", lw=0, label="not covered by the selection"),
-               Line2D([], [], color="yellow", lw=1.2, ls="--", label="area to cover (AOI)")]
+    handles = [
+        Line2D([], [], color="0.55", lw=0.8, label="footprint of an image (all images)"),
+        Line2D(
+            [],
+            [],
+            color=colour,
+            lw=1.6,
+            marker="o" if numbers else None,
+            mfc="white",
+            mec=colour,
+            label="selected image (number: its map_number in selected_images.csv)" if numbers else "selected image",
+        ),
+        Patch(facecolor=colour, alpha=0.28, lw=0, label="area that image owns (its plants)"),
+        Patch(facecolor="red", alpha=0.45, hatch="//", lw=0, label="not covered by the selection"),
+        Line2D([], [], color="yellow", lw=1.2, ls="--", label="area to cover (AOI)"),
+    ]
     ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
 
 

@@ -40,9 +40,9 @@ from __future__ import annotations
 
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import shapely
@@ -70,9 +70,9 @@ class Result:
 
     selection: Selection
     footprints: list[Footprint]
-    owned: dict[str, Polygon | MultiPolygon]   # shot id -> owned ground area
-    owned_pixels: dict[str, np.ndarray]        # shot id -> (N, 2) pixels in its undistorted image
-    exact_coverage: float                      # union of the selected footprints / AOI area (polygons)
+    owned: dict[str, Polygon | MultiPolygon]  # shot id -> owned ground area
+    owned_pixels: dict[str, np.ndarray]  # shot id -> (N, 2) pixels in its undistorted image
+    exact_coverage: float  # union of the selected footprints / AOI area (polygons)
     uncovered: Polygon | MultiPolygon
 
     @property
@@ -92,11 +92,16 @@ class MinImageFinder:
         self.frame = self.project.frame()
         check_raster(self.project.path("dsm"), bands=1, what="DSM")
         self.surface = open_dsm(self.project.path("dsm"), cfg.dsm_resolution)
-        if self.surface.crs is not None and getattr(self.frame, "crs", None) is not None \
-                and not _same_crs(self.surface.crs, self.frame.crs):
-            raise InputError(f"the DSM's CRS ({self.surface.crs}) differs from the reconstruction's "
-                             f"({self.frame.crs.to_string()})", path=self.project.path("dsm"),
-                             fix="use the DSM of this ODM run, or reproject it to the reconstruction's CRS")
+        if (
+            self.surface.crs is not None
+            and getattr(self.frame, "crs", None) is not None
+            and not _same_crs(self.surface.crs, self.frame.crs)
+        ):
+            raise InputError(
+                f"the DSM's CRS ({self.surface.crs}) differs from the reconstruction's ({self.frame.crs.to_string()})",
+                path=self.project.path("dsm"),
+                fix="use the DSM of this ODM run, or reproject it to the reconstruction's CRS",
+            )
         self.preview = None
         if self.project.has("orthophoto"):
             ortho = self.project.path("orthophoto")
@@ -107,32 +112,46 @@ class MinImageFinder:
         elif self.preview is not None:
             self.aoi = aoi_from_mask(self.preview[1], self.preview[2], self.project.path("orthophoto"))
         else:
-            raise InputError("no area of interest: the orthophoto is missing and no aoi_file is set",
-                             path=self.project.path("orthophoto"),
-                             fix="set aoi_file to a polygon file, or run ODM with the orthophoto step")
+            raise InputError(
+                "no area of interest: the orthophoto is missing and no aoi_file is set",
+                path=self.project.path("orthophoto"),
+                fix="set aoi_file to a polygon file, or run ODM with the orthophoto step",
+            )
         self.footprints = compute_footprints(self.project, self.frame, self.surface, cfg.border_samples)
         self.skipped = skipped_images(self.project, self.footprints)
         self.footprint_seconds = time.perf_counter() - t0
         self.grid = build_grid(self.aoi, [f.polygon for f in self.footprints], cfg.cell_size)
         if reachable_coverage(self.grid) <= 0:
             raise self._aoi_misses()
-        log.info("%d footprints on the DSM; area of interest %.1f m^2 in %d cells of %.3f m",
-                 len(self.footprints), self.aoi.area, self.grid.A.shape[1], self.grid.cell)
+        log.info(
+            "%d footprints on the DSM; area of interest %.1f m^2 in %d cells of %.3f m",
+            len(self.footprints),
+            self.aoi.area,
+            self.grid.A.shape[1],
+            self.grid.cell,
+        )
 
     def _aoi_misses(self) -> InputError:
         """The error for an area of interest that no image sees: where each lies, and what to change."""
         fps = shapely.union_all([f.polygon for f in self.footprints])
         gap = self.aoi.distance(fps)
         a, b = self.aoi.bounds, fps.bounds
-        where = f"the area of interest ({a[0]:.0f}..{a[2]:.0f} E, {a[1]:.0f}..{a[3]:.0f} N) lies {gap:.0f} m from " \
-                f"the images' footprints ({b[0]:.0f}..{b[2]:.0f} E, {b[1]:.0f}..{b[3]:.0f} N, {self.frame.crs.name})"
+        where = (
+            f"the area of interest ({a[0]:.0f}..{a[2]:.0f} E, {a[1]:.0f}..{a[3]:.0f} N) lies {gap:.0f} m from "
+            f"the images' footprints ({b[0]:.0f}..{b[2]:.0f} E, {b[1]:.0f}..{b[3]:.0f} N, {self.frame.crs.name})"
+        )
         if self.cfg.aoi_file is not None:
-            return InputError(f"no image covers any of the area of interest: {where}; 0 images would be selected",
-                              path=self.cfg.aoi_file, fix="draw the AOI over this field, check its CRS, or leave "
-                                                          "aoi_file empty to cover the orthophoto's area")
-        return InputError(f"no image covers any of the orthophoto's valid area: {where}",
-                          path=self.project.path("orthophoto"),
-                          fix="use the orthophoto of this ODM run, or set aoi_file to the field's boundary")
+            return InputError(
+                f"no image covers any of the area of interest: {where}; 0 images would be selected",
+                path=self.cfg.aoi_file,
+                fix="draw the AOI over this field, check its CRS, or leave "
+                "aoi_file empty to cover the orthophoto's area",
+            )
+        return InputError(
+            f"no image covers any of the orthophoto's valid area: {where}",
+            path=self.project.path("orthophoto"),
+            fix="use the orthophoto of this ODM run, or set aoi_file to the field's boundary",
+        )
 
     @property
     def names(self) -> list[str]:
@@ -159,13 +178,17 @@ class MinImageFinder:
             sel.indices.append(extra)
             sel.coverage = self.grid.coverage(sel.indices)
         if sel.relaxed:
-            log.warning("max_overlap %.0f%% could not reach the coverage; some selected images overlap more",
-                        cfg.max_overlap)
+            log.warning(
+                "max_overlap %.0f%% could not reach the coverage; some selected images overlap more", cfg.max_overlap
+            )
         return sel
 
     def _best_addition(self, chosen: Sequence[int]) -> int | None:
-        covered = np.asarray(self.grid.A[list(chosen)].sum(axis=0)).ravel() > 0 if chosen else \
-            np.zeros(self.grid.A.shape[1], bool)
+        covered = (
+            np.asarray(self.grid.A[list(chosen)].sum(axis=0)).ravel() > 0
+            if chosen
+            else np.zeros(self.grid.A.shape[1], bool)
+        )
         gain = self.grid.A.astype(float) @ np.where(covered, 0.0, self.grid.weights)
         gain[list(chosen)] = -1
         return int(np.argmax(gain)) if gain.max() > 0 else None
@@ -185,15 +208,23 @@ class MinImageFinder:
         for fp, area in zip(chosen, owned):
             main = largest_polygon(area)
             if area.area - main.area > 0.01 * max(area.area, 1e-9):
-                log.warning("%s owns %d separate pieces; owned_areas.json holds its largest", fp.name,
-                            len(getattr(area, "geoms", [area])))
+                log.warning(
+                    "%s owns %d separate pieces; owned_areas.json holds its largest",
+                    fp.name,
+                    len(getattr(area, "geoms", [area])),
+                )
             pix[fp.name] = polygon_to_pixels(main, fp.shot, fp.frame or self.frame, self.surface, step)
         union = shapely.union_all([f.polygon for f in chosen]) if chosen else Polygon()
         uncovered = self.aoi.difference(union)
         exact = float(self.aoi.intersection(union).area / self.aoi.area) if chosen else 0.0
-        return Result(selection=selection, footprints=self.footprints,
-                      owned={f.name: a for f, a in zip(chosen, owned)}, owned_pixels=pix, exact_coverage=exact,
-                      uncovered=uncovered)
+        return Result(
+            selection=selection,
+            footprints=self.footprints,
+            owned={f.name: a for f, a in zip(chosen, owned)},
+            owned_pixels=pix,
+            exact_coverage=exact,
+            uncovered=uncovered,
+        )
 
     def with_indices(self, indices: Sequence[int], method: str = "manual") -> Selection:
         target = 1.0 - self.cfg.uncovered_threshold / 100.0
@@ -211,10 +242,15 @@ def skipped_images(project: ODMProject, footprints: Sequence[Footprint]) -> list
     """The reconstructed images that got no footprint, each with the reason (for ``skipped_images.csv``)."""
     placed = {f.name for f in footprints}
     files = project.undistorted_images()
-    return [{"image": sid, "reason": "no undistorted image file (expected "
-                                     f"{sid}.tif in opensfm/undistorted/images)" if sid not in files else
-             "its border rays miss the DSM (it does not look at the mapped ground)"}
-            for sid in sorted(project.shot_ids(undistorted=True) - placed)]
+    return [
+        {
+            "image": sid,
+            "reason": f"no undistorted image file (expected {sid}.tif in opensfm/undistorted/images)"
+            if sid not in files
+            else "its border rays miss the DSM (it does not look at the mapped ground)",
+        }
+        for sid in sorted(project.shot_ids(undistorted=True) - placed)
+    ]
 
 
 def run(cfg: MinImgFinderConfig) -> Result:
@@ -223,18 +259,29 @@ def run(cfg: MinImgFinderConfig) -> Result:
     finder = MinImageFinder(cfg)
     selection = finder.select()
     if not selection.indices:
-        raise InputError(f"0 of {len(finder.footprints)} images selected: none covers the area of interest",
-                         path=cfg.aoi_file or cfg.project_dir,
-                         fix="check the area of interest (aoi_file) and uncovered_threshold")
+        raise InputError(
+            f"0 of {len(finder.footprints)} images selected: none covers the area of interest",
+            path=cfg.aoi_file or cfg.project_dir,
+            fix="check the area of interest (aoi_file) and uncovered_threshold",
+        )
     result = finder.evaluate(selection)
     out = Path(cfg.output_dir)
     save_selection(finder, result, finder.skipped)
     if finder.skipped:
-        log.warning("%d of %d reconstructed images could not be used (%s); see %s", len(finder.skipped),
-                    len(finder.skipped) + len(finder.footprints),
-                    "; ".join(f"{n} x {r}" for r, n in Counter(s["reason"] for s in finder.skipped).items()),
-                    out / "skipped_images.csv")
-    log.info("selected %d of %d images (%s, %.3f s) covering %.1f%% of the area; outputs in %s",
-             len(selection.indices), len(finder.footprints), selection.method, selection.seconds,
-             100 * result.exact_coverage, out)
+        log.warning(
+            "%d of %d reconstructed images could not be used (%s); see %s",
+            len(finder.skipped),
+            len(finder.skipped) + len(finder.footprints),
+            "; ".join(f"{n} x {r}" for r, n in Counter(s["reason"] for s in finder.skipped).items()),
+            out / "skipped_images.csv",
+        )
+    log.info(
+        "selected %d of %d images (%s, %.3f s) covering %.1f%% of the area; outputs in %s",
+        len(selection.indices),
+        len(finder.footprints),
+        selection.method,
+        selection.seconds,
+        100 * result.exact_coverage,
+        out,
+    )
     return result

@@ -13,8 +13,8 @@ program, scipy's HiGHS, for small flights and for measuring how far greedy is fr
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from scipy import sparse
@@ -30,11 +30,11 @@ log = get_logger("min_img_finder")
 class CoverageGrid:
     """AOI cells (centres inside the AOI) and which image sees each: ``A[i, c]`` is True when image i covers c."""
 
-    x: np.ndarray          # (m,) cell centres
+    x: np.ndarray  # (m,) cell centres
     y: np.ndarray
-    cell: float            # cell side, m
-    A: sparse.csr_matrix   # (n_images, m) bool
-    weights: np.ndarray    # (m,) area of each cell, m^2
+    cell: float  # cell side, m
+    A: sparse.csr_matrix  # (n_images, m) bool
+    weights: np.ndarray  # (m,) area of each cell, m^2
 
     @property
     def total(self) -> float:
@@ -62,12 +62,12 @@ class CoverageGrid:
 class Selection:
     """What a solver chose, and what a report must say about it (relaxed cap, proven optimum)."""
 
-    indices: list[int]                 # into the footprint list, in order of selection
-    coverage: float                    # share of the AOI covered (grid)
-    target: float                      # the requested share
+    indices: list[int]  # into the footprint list, in order of selection
+    coverage: float  # share of the AOI covered (grid)
+    target: float  # the requested share
     method: str
-    relaxed: bool = False              # the overlap cap had to be relaxed
-    optimal: bool | None = None        # milp: proven optimal
+    relaxed: bool = False  # the overlap cap had to be relaxed
+    optimal: bool | None = None  # milp: proven optimal
     seconds: float = 0.0
     gains: list[float] = field(default_factory=list)  # new area each image added, m^2 (greedy order)
 
@@ -77,8 +77,14 @@ def reachable_coverage(grid: CoverageGrid) -> float:
     return float(grid.weights[covered].sum() / grid.total)
 
 
-def select_greedy(grid: CoverageGrid, target: float, max_overlap: float = 1.0, overlap_penalty: float = 0.2,
-                  restarts: bool = True, all_starts_below: int = 150) -> Selection:
+def select_greedy(
+    grid: CoverageGrid,
+    target: float,
+    max_overlap: float = 1.0,
+    overlap_penalty: float = 0.2,
+    restarts: bool = True,
+    all_starts_below: int = 150,
+) -> Selection:
     """Greedy weighted set cover with an overlap penalty and a pairwise overlap cap, then local improvement.
 
     ``target`` and ``max_overlap`` are fractions (0..1). Plain greedy grabs the image in the middle first and
@@ -107,8 +113,15 @@ def select_greedy(grid: CoverageGrid, target: float, max_overlap: float = 1.0, o
         if best is None or key < best[0]:
             best = (key, chosen, gains, relaxed)
     _, chosen, gains, relaxed = best
-    return Selection(indices=chosen, coverage=grid.coverage(chosen), target=target, method="greedy",
-                     relaxed=relaxed, seconds=time.perf_counter() - t0, gains=gains)
+    return Selection(
+        indices=chosen,
+        coverage=grid.coverage(chosen),
+        target=target,
+        method="greedy",
+        relaxed=relaxed,
+        seconds=time.perf_counter() - t0,
+        gains=gains,
+    )
 
 
 def compress(grid: CoverageGrid) -> CoverageGrid:
@@ -128,7 +141,7 @@ def corner_images(grid: CoverageGrid) -> list[int]:
         if not seen.any():
             break
         c = int(np.flatnonzero(seen)[np.argmin(score[seen])])
-        imgs = At.indices[At.indptr[c]:At.indptr[c + 1]]
+        imgs = At.indices[At.indptr[c] : At.indptr[c + 1]]
         out.append(int(imgs[np.argmax(area[imgs])]))
     return out
 
@@ -140,7 +153,7 @@ class _Cover:
         self.A = grid.A.astype(float).tocsr()
         self.w = grid.weights
         ptr, idx = self.A.indptr, self.A.indices
-        self.rows = [idx[ptr[i]:ptr[i + 1]] for i in range(self.A.shape[0])]
+        self.rows = [idx[ptr[i] : ptr[i + 1]] for i in range(self.A.shape[0])]
 
     def counts(self, chosen: Sequence[int]) -> np.ndarray:
         c = np.zeros(self.A.shape[1], dtype=np.int32)
@@ -159,8 +172,9 @@ class _Cover:
         return np.asarray((frac[list(others)] > max_overlap + 1e-9).sum(axis=0)).ravel() > 0
 
 
-def _greedy_run(cov: _Cover, need: float, frac, max_overlap: float, overlap_penalty: float,
-                first: int | None) -> tuple[list[int], list[float], bool]:
+def _greedy_run(
+    cov: _Cover, need: float, frac, max_overlap: float, overlap_penalty: float, first: int | None
+) -> tuple[list[int], list[float], bool]:
     n = cov.A.shape[0]
     w = cov.w
     covered = np.zeros(cov.A.shape[1], dtype=bool)
@@ -210,7 +224,7 @@ def swap_one_for_better(cov: _Cover, chosen: list[int], frac, max_overlap: float
             lost[mine[count[mine] == 1]] = True
             gain = cov.gains((count == 0) | lost)
             gain[chosen] = -1.0
-            bad = cov.blocked(frac, chosen[:pos] + chosen[pos + 1:], max_overlap)
+            bad = cov.blocked(frac, chosen[:pos] + chosen[pos + 1 :], max_overlap)
             if bad is not None:
                 gain[bad] = -1.0
             k = int(np.argmax(gain))
@@ -310,8 +324,10 @@ def select_milp(grid: CoverageGrid, target: float, max_overlap: float = 1.0, tim
     need = min(target, reachable_coverage(grid)) * (1 - 1e-7)
     # y_a - sum_i B[i, a] x_i <= 0
     link = sparse.hstack([-B.T.astype(float), sparse.identity(k, format="csr")]).tocsr()
-    cons = [LinearConstraint(link, -np.inf, 0.0),
-            LinearConstraint(sparse.hstack([sparse.csr_matrix((1, n)), sparse.csr_matrix(wa[None, :])]), need, np.inf)]
+    cons = [
+        LinearConstraint(link, -np.inf, 0.0),
+        LinearConstraint(sparse.hstack([sparse.csr_matrix((1, n)), sparse.csr_matrix(wa[None, :])]), need, np.inf),
+    ]
     relaxed = False
     if max_overlap < 1.0:
         frac = sparse.triu(grid.overlap_fraction(), k=1).tocoo()
@@ -324,21 +340,36 @@ def select_milp(grid: CoverageGrid, target: float, max_overlap: float = 1.0, tim
     c = np.concatenate([np.ones(n), np.zeros(k)])
     integrality = np.concatenate([np.ones(n), np.zeros(k)])
     bounds = Bounds(np.zeros(n + k), np.ones(n + k))
-    res = milp(c, constraints=cons, integrality=integrality, bounds=bounds,
-               options={"time_limit": time_limit, "disp": False})
+    res = milp(
+        c, constraints=cons, integrality=integrality, bounds=bounds, options={"time_limit": time_limit, "disp": False}
+    )
     if res.x is None and len(cons) > 2:
         log.warning("no selection satisfies max_overlap; solving again without the overlap cap")
         relaxed = True
-        res = milp(c, constraints=cons[:2], integrality=integrality, bounds=bounds,
-                   options={"time_limit": time_limit, "disp": False})
+        res = milp(
+            c,
+            constraints=cons[:2],
+            integrality=integrality,
+            bounds=bounds,
+            options={"time_limit": time_limit, "disp": False},
+        )
     if res.x is None:
-        raise InputError(f"the integer program found no selection ({res.message})",
-                         fix="use method: greedy, or raise milp_time_limit")
+        raise InputError(
+            f"the integer program found no selection ({res.message})",
+            fix="use method: greedy, or raise milp_time_limit",
+        )
     chosen = [int(i) for i in np.flatnonzero(res.x[:n] > 0.5)]
     # order as a greedy pass would (largest new area first) so the CSV reads naturally
     chosen = _order_by_gain(grid, chosen)
-    return Selection(indices=chosen, coverage=grid.coverage(chosen), target=target, method="milp", relaxed=relaxed,
-                     optimal=res.status == 0, seconds=time.perf_counter() - t0)
+    return Selection(
+        indices=chosen,
+        coverage=grid.coverage(chosen),
+        target=target,
+        method="milp",
+        relaxed=relaxed,
+        optimal=res.status == 0,
+        seconds=time.perf_counter() - t0,
+    )
 
 
 def _order_by_gain(grid: CoverageGrid, chosen: Sequence[int]) -> list[int]:

@@ -5,4 +5,4 @@ The face of every step: ``config`` (its settings), ``run`` (``run(cfg)``)."""
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import run
 
-__all__ = ['ModelTestConfig', 'run']
+__all__ = ["ModelTestConfig", "run"]

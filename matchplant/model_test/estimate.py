@@ -47,9 +47,14 @@ def plan(sizes: list[tuple[int, int]], tile: int, overlap: int, model_config: di
         tiles.append(n)
         mpx.append(n * input_pixels(min(tile, w), min(tile, h), lo, hi) / 1e6)
     photo_mpx = sum(w * h for w, h in sizes) / 1e6
-    return {"photos": len(sizes), "tiles": int(sum(tiles)), "input_megapixels": float(sum(mpx)),
-            "photo_megapixels": photo_mpx, "tiles_per_photo": [int(min(tiles)), int(max(tiles))],
-            "input_per_photo_pixel": float(sum(mpx) / photo_mpx) if photo_mpx else 0.0}
+    return {
+        "photos": len(sizes),
+        "tiles": int(sum(tiles)),
+        "input_megapixels": float(sum(mpx)),
+        "photo_megapixels": photo_mpx,
+        "tiles_per_photo": [int(min(tiles)), int(max(tiles))],
+        "input_per_photo_pixel": float(sum(mpx) / photo_mpx) if photo_mpx else 0.0,
+    }
 
 
 def probe(predictor, image: np.ndarray, tile: int, model_config: dict) -> float:
@@ -58,12 +63,22 @@ def probe(predictor, image: np.ndarray, tile: int, model_config: dict) -> float:
     t0 = time.perf_counter()
     predictor([np.ascontiguousarray(image[:th, :tw])])
     seconds = time.perf_counter() - t0
-    return seconds / (input_pixels(tw, th, int(model_config.get("min_size", 800)),
-                                   int(model_config.get("max_size", 1333))) / 1e6)
+    return seconds / (
+        input_pixels(tw, th, int(model_config.get("min_size", 800)), int(model_config.get("max_size", 1333))) / 1e6
+    )
 
 
-def estimate(predictor, first_image: np.ndarray, sizes: list[tuple[int, int]], tile: int, overlap: int,
-             model_config: dict, device, processes: int = 1, warn_after_s: float = WARN_AFTER_S) -> dict:
+def estimate(
+    predictor,
+    first_image: np.ndarray,
+    sizes: list[tuple[int, int]],
+    tile: int,
+    overlap: int,
+    model_config: dict,
+    device,
+    processes: int = 1,
+    warn_after_s: float = WARN_AFTER_S,
+) -> dict:
     """The plan, the probe and the estimated seconds (``processes``: a torchrun job shares the photos); logged,
     and a warning before a run longer than ``warn_after_s``."""
     p = plan(sizes, tile, overlap, model_config)
@@ -71,14 +86,19 @@ def estimate(predictor, first_image: np.ndarray, sizes: list[tuple[int, int]], t
     seconds = rate * p["input_megapixels"] / max(processes, 1)
     p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(device))
     lo = int(model_config.get("min_size", 800))
-    what = (f"{p['photos']} photo(s), {p['tiles']} tiles of {tile} px ({p['tiles_per_photo'][0]}"
-            f"{'-' + str(p['tiles_per_photo'][1]) if p['tiles_per_photo'][1] != p['tiles_per_photo'][0] else ''} "
-            f"per photo), each resized to the network's {lo} px input: {p['input_megapixels']:.1f} MP for the network, "
-            f"{p['input_per_photo_pixel']:.1f}x the photos' own pixels; {rate:.2f} s per MP measured on {device}")
+    what = (
+        f"{p['photos']} photo(s), {p['tiles']} tiles of {tile} px ({p['tiles_per_photo'][0]}"
+        f"{'-' + str(p['tiles_per_photo'][1]) if p['tiles_per_photo'][1] != p['tiles_per_photo'][0] else ''} "
+        f"per photo), each resized to the network's {lo} px input: {p['input_megapixels']:.1f} MP for the network, "
+        f"{p['input_per_photo_pixel']:.1f}x the photos' own pixels; {rate:.2f} s per MP measured on {device}"
+    )
     if seconds >= warn_after_s:
-        hint = (" Larger tiles cost less: the enlargement of small tiles is paid quadratically (module 7 detects at "
-                "the training scale; train on larger tiles, or a lower model.min_size, to detect faster)."
-                if p["input_per_photo_pixel"] > 4 else "")
+        hint = (
+            " Larger tiles cost less: the enlargement of small tiles is paid quadratically (module 7 detects at "
+            "the training scale; train on larger tiles, or a lower model.min_size, to detect faster)."
+            if p["input_per_photo_pixel"] > 4
+            else ""
+        )
         gpu = " A CUDA GPU (device: auto picks it) is much faster." if getattr(device, "type", "") == "cpu" else ""
         log.warning("detection will take about %s: %s.%s%s", duration(seconds), what, hint, gpu)
     else:

@@ -24,15 +24,22 @@ def list_images(path: Path) -> list[Path]:
     (of every submodel of a split-merge project, each image once)."""
     if path.is_file():
         if not is_image_name(path):
-            raise InputError(f"detect.images is a {path.suffix or 'extension-less'} file, not an image (JPEG, PNG, "
-                             "TIFF)", path=path, fix="point detect.images at an image or a folder of images")
+            raise InputError(
+                f"detect.images is a {path.suffix or 'extension-less'} file, not an image (JPEG, PNG, TIFF)",
+                path=path,
+                fix="point detect.images at an image or a folder of images",
+            )
         return [path]
     if (path / "opensfm").is_dir() or (path / SUBMODELS_DIR).is_dir():
         project = ODMProject(path)
         project.require("undistorted_images")
         files = list(project.undistorted_images().values())
-        log.info("%d undistorted images in the ODM project %s%s", len(files), path,
-                 f" ({len(project.submodels)} submodels)" if project.is_split else "")
+        log.info(
+            "%d undistorted images in the ODM project %s%s",
+            len(files),
+            path,
+            f" ({len(project.submodels)} submodels)" if project.is_split else "",
+        )
         return files
     fix = "point detect.images at the undistorted images (opensfm/undistorted/images)"
     files = list_image_files(path, key="detect.images", fix=fix, min_count=0)
@@ -51,8 +58,7 @@ def _no_images(path: Path, fix: str) -> InputError:
     if junk:
         parts.append(f"{len(junk)} system or hidden file(s), skipped: {', '.join(junk[:5])}")
     held = f"; it holds {' and '.join(parts)}" if parts else "; the folder is empty"
-    sub = next((d for d in entries if d.is_dir() and any(is_image_name(p) for p in d.iterdir() if p.is_file())),
-               None)
+    sub = next((d for d in entries if d.is_dir() and any(is_image_name(p) for p in d.iterdir() if p.is_file())), None)
     hint = f"; did you mean its subfolder '{sub.name}' ({sub})?" if sub is not None else ""
     return InputError(f"no images (JPEG, PNG, TIFF) in this folder{held}{hint}", path=path, fix=fix)
 
@@ -64,8 +70,16 @@ def check_images(files: list[Path], tile_size: int) -> list[tuple[int, int]]:
     small = [(f, wh) for f, wh in zip(files, sizes) if wh[0] < tile_size or wh[1] < tile_size]
     if small:
         f, (w, h) = small[0]
-        log.warning("detect.tile_size = %d px is larger than %d of the %d image(s) (e.g. %s: %dx%d px): each of those "
-                    "is detected whole, as one tile of its own size", tile_size, len(small), len(files), f.name, w, h)
+        log.warning(
+            "detect.tile_size = %d px is larger than %d of the %d image(s) (e.g. %s: %dx%d px): each of those "
+            "is detected whole, as one tile of its own size",
+            tile_size,
+            len(small),
+            len(files),
+            f.name,
+            w,
+            h,
+        )
     return sizes
 
 
@@ -74,8 +88,15 @@ def check_device(device: str) -> None:
         raise ConfigError(f"device '{device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto")
 
 
-def nothing_found(n_images: int, probe: Path, best: float | None, threshold: float, tile_size: int,
-                  model_config: dict, checkpoint: Path) -> InputError:
+def nothing_found(
+    n_images: int,
+    probe: Path,
+    best: float | None,
+    threshold: float,
+    tile_size: int,
+    model_config: dict,
+    checkpoint: Path,
+) -> InputError:
     """The error for a detection run without a single box: the best score the model gives on ``probe`` (at any
     score), and the scale it sees the plants at."""
     w, h = image_size(probe)
@@ -85,18 +106,29 @@ def nothing_found(n_images: int, probe: Path, best: float | None, threshold: flo
     seen = f"its {tw}x{th}-px tiles are resized by {scale:.2f} for the model (model.min_size {lo:g})"
     if best is None:
         why = f"the model finds no box at all on {probe.name}, even at score 0; {seen}"
-        fix = (f"{CHECKPOINT_FIX}, and set detect.tile_size to the size of the training tiles so that plants look "
-               "as large as the model learned them")
+        fix = (
+            f"{CHECKPOINT_FIX}, and set detect.tile_size to the size of the training tiles so that plants look "
+            "as large as the model learned them"
+        )
     else:
         why = f"the best box on {probe.name} scores {best:.3f}; {seen}"
-        fix = (f"lower detect.score_threshold below {best:.2f} and check the drawn boxes; if they are not plants, "
-               f"{CHECKPOINT_FIX} and set detect.tile_size to the size of the training tiles")
-    return InputError(f"no plant found on any of the {n_images} image(s) at detect.score_threshold = {threshold:g}: "
-                      f"{why} (checkpoint {checkpoint.name})", path=probe, fix=fix)
+        fix = (
+            f"lower detect.score_threshold below {best:.2f} and check the drawn boxes; if they are not plants, "
+            f"{CHECKPOINT_FIX} and set detect.tile_size to the size of the training tiles"
+        )
+    return InputError(
+        f"no plant found on any of the {n_images} image(s) at detect.score_threshold = {threshold:g}: "
+        f"{why} (checkpoint {checkpoint.name})",
+        path=probe,
+        fix=fix,
+    )
 
 
 def nothing_in_test(n_tiles: int, dataset_json: Path, checkpoint: Path) -> InputError:
     """The error for an evaluation in which the model gives no box at all (every box is kept, at any score)."""
-    return InputError(f"the model finds no box at all on the {n_tiles} test tile(s), even at score 0: its metrics "
-                      f"would all be 0 (checkpoint {checkpoint})", path=dataset_json,
-                      fix=f"{CHECKPOINT_FIX}; test on tiles cut like the training tiles (module 5, same tile size)")
+    return InputError(
+        f"the model finds no box at all on the {n_tiles} test tile(s), even at score 0: its metrics "
+        f"would all be 0 (checkpoint {checkpoint})",
+        path=dataset_json,
+        fix=f"{CHECKPOINT_FIX}; test on tiles cut like the training tiles (module 5, same tile size)",
+    )

@@ -14,15 +14,15 @@ image's name.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import shapely
 
-from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.formats.images import image_size, read_rgb8
 from matchplant.core.formats.odm import SUBMODELS_DIR
+from matchplant.core.formats.predictions import write_predictions
 from matchplant.core.geometry.boxes import nms
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.guard import staged_outputs
@@ -30,6 +30,7 @@ from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
 from matchplant.core.runtime.progress import progress
+from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import join
@@ -46,7 +47,6 @@ from matchplant.detection.evaluate import (
 )
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import set_score_threshold
-from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.estimate import estimate
@@ -60,14 +60,22 @@ log = get_logger("model_test")
 # evaluation
 
 
-METRIC_UNITS = ("fractions 0..1 for every AP, AR, precision, recall, F1 and threshold (no percents); 'images' "
-                "counts test tiles, 'tile_boxes' annotated boxes in them, 'plants' distinct plants (one seen in two "
-                "overlapping tiles counts once); 'coco' and 'at_threshold' score tile boxes, 'plants_found' "
-                "distinct plants (found when any of their tile boxes is matched at IoU 0.5)")
+METRIC_UNITS = (
+    "fractions 0..1 for every AP, AR, precision, recall, F1 and threshold (no percents); 'images' "
+    "counts test tiles, 'tile_boxes' annotated boxes in them, 'plants' distinct plants (one seen in two "
+    "overlapping tiles counts once); 'coco' and 'at_threshold' score tile boxes, 'plants_found' "
+    "distinct plants (found when any of their tile boxes is matched at IoU 0.5)"
+)
 
 
-def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
-             ds: CocoDetection | None = None) -> dict:
+def evaluate(
+    cfg: ModelTestConfig,
+    device=None,
+    out: Path | None = None,
+    *,
+    ck: dict | None = None,
+    ds: CocoDetection | None = None,
+) -> dict:
     """COCO evaluation of the checkpoint on ``evaluate.dataset_json``; writes metrics, figures and predictions
     into ``out`` (by default ``output_dir``; :func:`run` gives a staging folder moved into place at the end).
     ``ck``, ``ds``: the checkpoint and test tiles, when :func:`run` has read and checked them already."""
@@ -79,36 +87,63 @@ def evaluate(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: 
     ck = ck or read_model(cfg)
     ds = ds or test_tiles(cfg, ck)
     # no score threshold before COCOeval, and as many boxes as maxDets
-    model, ck = load_detector(ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}},
-                              source=cfg.checkpoint)
+    model, ck = load_detector(
+        ck, device, overrides={"roi": {"detections_per_img": ecfg.max_detections}}, source=cfg.checkpoint
+    )
     set_score_threshold(model, 0.0)
-    results = predict_dataset(model, ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers, amp=amp,
-                              desc="evaluating")
+    results = predict_dataset(
+        model, ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers, amp=amp, desc="evaluating"
+    )
     if not results:
         raise nothing_in_test(len(ds), Path(ecfg.dataset_json), Path(cfg.checkpoint))
     stats, ev = coco_evaluate(ds.data, results, max_dets=ecfg.max_detections)
     object_of, n_plants = distinct_objects(ds.data)  # a plant in two overlapping tiles is one plant
-    metrics = {"checkpoint": str(cfg.checkpoint), "dataset": str(ecfg.dataset_json), "units": METRIC_UNITS,
-               "images": len(ds), "plants": n_plants, "tile_boxes": len(ds.data["annotations"]),
-               "detections": len(results), "max_detections": ecfg.max_detections, "coco": stats,
-               "plant_scale_vs_training": check_test_scale(ds.data, ck)}
+    metrics = {
+        "checkpoint": str(cfg.checkpoint),
+        "dataset": str(ecfg.dataset_json),
+        "units": METRIC_UNITS,
+        "images": len(ds),
+        "plants": n_plants,
+        "tile_boxes": len(ds.data["annotations"]),
+        "detections": len(results),
+        "max_detections": ecfg.max_detections,
+        "coco": stats,
+        "plant_scale_vs_training": check_test_scale(ds.data, ck),
+    }
     scores, hits, n_gt = matches_at_iou50(ev)
     metrics["at_threshold"] = operating_point(scores, hits, n_gt, ecfg.operating_threshold)
     found = found_objects(ev, object_of, ecfg.operating_threshold)
-    metrics["plants_found"] = {"threshold": ecfg.operating_threshold, "plants": n_plants, "found": found,
-                               "recall": found / n_plants if n_plants else 0.0}
+    metrics["plants_found"] = {
+        "threshold": ecfg.operating_threshold,
+        "plants": n_plants,
+        "found": found,
+        "recall": found / n_plants if n_plants else 0.0,
+    }
     plot_pr_curve(ev, out / "pr_curve.png", metrics["at_threshold"], ck["class_names"])
     plot_score_histogram(scores, hits, out / "score_histogram.png", ecfg.operating_threshold)
-    write_predictions(out / "test_predictions.json", [dict(im) for im in ds.images], ds.data["categories"],
-                      [dict(r, id=i + 1) for i, r in enumerate(results)],
-                      info={"description": "MatchPlant module 7 predictions on test tiles (no threshold)",
-                            "checkpoint": str(cfg.checkpoint)})
+    write_predictions(
+        out / "test_predictions.json",
+        [dict(im) for im in ds.images],
+        ds.data["categories"],
+        [dict(r, id=i + 1) for i, r in enumerate(results)],
+        info={
+            "description": "MatchPlant module 7 predictions on test tiles (no threshold)",
+            "checkpoint": str(cfg.checkpoint),
+        },
+    )
     _draw_eval_images(ds, results, ecfg, out / "drawn")
     metrics["config"] = to_dict(cfg)
     write_json(out / "metrics.json", metrics)
     op = metrics["at_threshold"]
-    log.info("test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)", summarise_stats(stats),
-             op["threshold"], 100 * op["precision"], 100 * op["recall"], 100 * op["f1"], final / "metrics.json")
+    log.info(
+        "test: %s; at score >= %.2f: precision %.1f%%, recall %.1f%%, F1 %.1f%% (%s)",
+        summarise_stats(stats),
+        op["threshold"],
+        100 * op["precision"],
+        100 * op["recall"],
+        100 * op["f1"],
+        final / "metrics.json",
+    )
     return metrics
 
 
@@ -117,15 +152,23 @@ def read_model(cfg: ModelTestConfig) -> dict:
     ``class_names``)."""
     ck = read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
     if cfg.class_names and "foreign" not in ck and list(cfg.class_names) != ck["class_names"]:
-        log.warning("class_names %s ignored: the module 6 checkpoint %s holds its own classes %s",
-                    list(cfg.class_names), cfg.checkpoint, ck["class_names"])
+        log.warning(
+            "class_names %s ignored: the module 6 checkpoint %s holds its own classes %s",
+            list(cfg.class_names),
+            cfg.checkpoint,
+            ck["class_names"],
+        )
     return ck
 
 
 def test_tiles(cfg: ModelTestConfig, ck: dict) -> CocoDetection:
     """The test tiles, checked against their files and the checkpoint's classes."""
-    return CocoDetection(cfg.evaluate.dataset_json, cfg.evaluate.images, class_names=ck["class_names"],
-                         classes_from=f"the checkpoint {cfg.checkpoint}")
+    return CocoDetection(
+        cfg.evaluate.dataset_json,
+        cfg.evaluate.images,
+        class_names=ck["class_names"],
+        classes_from=f"the checkpoint {cfg.checkpoint}",
+    )
 
 
 def _draw_eval_images(ds: CocoDetection, results: list[dict], ecfg: EvalConfig, folder: Path) -> None:
@@ -179,8 +222,15 @@ def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return i[ok], j[ok], inter[ok]
 
 
-def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, cut: np.ndarray,
-                     iou: float = 0.5, tiles: np.ndarray | None = None, containment: float = 0.8) -> np.ndarray:
+def merge_tile_boxes(
+    boxes: np.ndarray,
+    scores: np.ndarray,
+    labels: np.ndarray,
+    cut: np.ndarray,
+    iou: float = 0.5,
+    tiles: np.ndarray | None = None,
+    containment: float = 0.8,
+) -> np.ndarray:
     """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
 
     Whole boxes: class-wise NMS at ``iou`` (the same plant seen whole in two tiles). A ``cut`` box (it
@@ -211,8 +261,9 @@ def merge_tile_boxes(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, 
     return kept[np.argsort(-scores[kept], kind="stable")]
 
 
-def _nested(boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float,
-            iou: float) -> np.ndarray:
+def _nested(
+    boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float, iou: float
+) -> np.ndarray:
     """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
     of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
     >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
@@ -279,14 +330,27 @@ def model_predictor(model, device, amp: bool = False) -> Predictor:
         batch = [torch.from_numpy(t).to(device).permute(2, 0, 1).float().div_(255.0) for t in tiles]
         with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp and device.type == "cuda"):
             outputs = model(batch)
-        return [(o["boxes"].float().cpu().numpy(), o["scores"].float().cpu().numpy(), o["labels"].cpu().numpy())
-                for o in outputs]
+        return [
+            (o["boxes"].float().cpu().numpy(), o["scores"].float().cpu().numpy(), o["labels"].cpu().numpy())
+            for o in outputs
+        ]
+
     return predict
 
 
-def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, overlap: int, batch_size: int = 4,
-                 score_threshold: float = 0.5, merge_iou: float = 0.5, edge_margin: float = 2.0,
-                 merge_containment: float = 0.8, counts: dict | None = None):
+def detect_image(
+    image: np.ndarray,
+    predictor: Predictor,
+    *,
+    tile_size: int,
+    overlap: int,
+    batch_size: int = 4,
+    score_threshold: float = 0.5,
+    merge_iou: float = 0.5,
+    edge_margin: float = 2.0,
+    merge_containment: float = 0.8,
+    counts: dict | None = None,
+):
     """Plants on one whole image: ``(boxes xyxy, scores, labels)`` in image pixels, merged across tiles, then
     nested duplicates on the photo merged (:func:`merge_nested`). ``counts`` (a dict) adds up the tiles run, the
     boxes found in them and the nested boxes merged."""
@@ -294,15 +358,19 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
     origins = [(x0, y0) for y0 in tile_starts(h, tile_size, overlap) for x0 in tile_starts(w, tile_size, overlap)]
     all_b, all_s, all_l, all_cut, all_t = [], [], [], [], []
     for start in range(0, len(origins), batch_size):
-        chunk = origins[start:start + batch_size]
-        tiles = [image[y0:y0 + tile_size, x0:x0 + tile_size] for x0, y0 in chunk]
+        chunk = origins[start : start + batch_size]
+        tiles = [image[y0 : y0 + tile_size, x0 : x0 + tile_size] for x0, y0 in chunk]
         for (x0, y0), tile, (b, s, lab) in zip(chunk, tiles, predictor(tiles)):
             sel = s >= score_threshold
             b, s, lab = b[sel].astype(float), s[sel], lab[sel]
             th, tw = tile.shape[:2]
             # a border of the tile that is not a border of the image cuts plants
-            cut = (((b[:, 0] <= edge_margin) & (x0 > 0)) | ((b[:, 1] <= edge_margin) & (y0 > 0))
-                   | ((b[:, 2] >= tw - edge_margin) & (x0 + tw < w)) | ((b[:, 3] >= th - edge_margin) & (y0 + th < h)))
+            cut = (
+                ((b[:, 0] <= edge_margin) & (x0 > 0))
+                | ((b[:, 1] <= edge_margin) & (y0 > 0))
+                | ((b[:, 2] >= tw - edge_margin) & (x0 + tw < w))
+                | ((b[:, 3] >= th - edge_margin) & (y0 + th < h))
+            )
             all_b.append(b + [x0, y0, x0, y0])
             all_s.append(s)
             all_l.append(lab)
@@ -319,8 +387,15 @@ def detect_image(image: np.ndarray, predictor: Predictor, *, tile_size: int, ove
     return boxes[keep], scores[keep], labels[keep]
 
 
-def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: dict | None = None,
-           files: list[Path] | None = None, listed: list[str] | None = None) -> Path:
+def detect(
+    cfg: ModelTestConfig,
+    device=None,
+    out: Path | None = None,
+    *,
+    ck: dict | None = None,
+    files: list[Path] | None = None,
+    listed: list[str] | None = None,
+) -> Path:
     """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
     ``out`` (by default ``output_dir``). A run that finds no plant at all is an error that says why.
     ``ck``, ``files``: the checkpoint and the checked images, when :func:`run` has read them already;
@@ -337,31 +412,68 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     set_score_threshold(model, dcfg.score_threshold)
     predictor = model_predictor(model, device, cfg.amp)
     # before hours of work: the actual tiles and network input of every photo, timed on this device
-    plan = estimate(predictor, read_rgb8(files[0]), [image_size(f) for f in files], dcfg.tile_size, dcfg.overlap,
-                    ck["model_config"], device, processes=shard.world)
+    plan = estimate(
+        predictor,
+        read_rgb8(files[0]),
+        [image_size(f) for f in files],
+        dcfg.tile_size,
+        dcfg.overlap,
+        ck["model_config"],
+        device,
+        processes=shard.world,
+    )
     started = time.perf_counter()
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
     cat_ids = [int(c) for c in ck["category_ids"]]
     categories = [{"id": cid, "name": name, "supercategory": "plant"} for cid, name in zip(cat_ids, ck["class_names"])]
     draw_every = max(1, int(np.ceil(len(files) / dcfg.drawn_images))) if dcfg.drawn_images else 0
-    tiling = dict(tile_size=dcfg.tile_size, overlap=dcfg.overlap, batch_size=cfg.batch_size,
-                  merge_iou=dcfg.merge_iou, edge_margin=dcfg.edge_margin, merge_containment=dcfg.merge_containment)
+    tiling = dict(
+        tile_size=dcfg.tile_size,
+        overlap=dcfg.overlap,
+        batch_size=cfg.batch_size,
+        merge_iou=dcfg.merge_iou,
+        edge_margin=dcfg.edge_margin,
+        merge_containment=dcfg.merge_containment,
+    )
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
     counts: dict = {}
     drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
     for i in progress(shard.take(files), desc="detecting", unit="image"):
         path = files[i]
         img = read_rgb8(path)
-        boxes, scores, labels = detect_image(img, predictor, score_threshold=dcfg.score_threshold, counts=counts,
-                                             **tiling)
+        boxes, scores, labels = detect_image(
+            img, predictor, score_threshold=dcfg.score_threshold, counts=counts, **tiling
+        )
         name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
         if (root / SUBMODELS_DIR).is_dir():
             name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
-        mine.append((i, {"id": i + 1, "file_name": name, "width": int(img.shape[1]), "height": int(img.shape[0]),
-                         "source_image": name, "x0": 0, "y0": 0},
-                     [(cat_ids[int(lab) - 1], [round(float(b[0]), 2), round(float(b[1]), 2),
-                                               round(float(b[2] - b[0]), 2), round(float(b[3] - b[1]), 2)],
-                       round(float(s), 5)) for b, s, lab in zip(boxes, scores, labels)]))
+        mine.append(
+            (
+                i,
+                {
+                    "id": i + 1,
+                    "file_name": name,
+                    "width": int(img.shape[1]),
+                    "height": int(img.shape[0]),
+                    "source_image": name,
+                    "x0": 0,
+                    "y0": 0,
+                },
+                [
+                    (
+                        cat_ids[int(lab) - 1],
+                        [
+                            round(float(b[0]), 2),
+                            round(float(b[1]), 2),
+                            round(float(b[2] - b[0]), 2),
+                            round(float(b[3] - b[1]), 2),
+                        ],
+                        round(float(s), 5),
+                    )
+                    for b, s, lab in zip(boxes, scores, labels)
+                ],
+            )
+        )
         if draw_every and i % draw_every == 0:
             write_image(out / "detections" / (path.stem + ".png"), draw_boxes(img, boxes, (230, 30, 30), scores))
             drawn.append(f"detections/{path.stem}.png")
@@ -372,34 +484,75 @@ def detect(cfg: ModelTestConfig, device=None, out: Path | None = None, *, ck: di
     if not shard.main:
         shard.barrier()
         return final / "predictions.json"
-    log.info("%d nested box(es) merged: each lay >= %.0f %% inside a larger box of its class on the same photo "
-             "(detect.merge_containment)", merged, 100 * dcfg.merge_containment)
-    check_found_scale(ck, [(np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
-                            entry["width"], entry["height"]) for _, entry, found in gathered], dcfg.tile_size)
+    log.info(
+        "%d nested box(es) merged: each lay >= %.0f %% inside a larger box of its class on the same photo "
+        "(detect.merge_containment)",
+        merged,
+        100 * dcfg.merge_containment,
+    )
+    check_found_scale(
+        ck,
+        [
+            (
+                np.asarray([[x, y, x + w, y + h] for _, (x, y, w, h), _ in found], float).reshape(-1, 4),
+                entry["width"],
+                entry["height"],
+            )
+            for _, entry, found in gathered
+        ],
+        dcfg.tile_size,
+    )
     images, predictions = [], []
     for i, entry, found in gathered:
         images.append(entry)
-        predictions += [{"id": len(predictions) + k + 1, "image_id": i + 1, "category_id": c, "bbox": b, "score": s}
-                        for k, (c, b, s) in enumerate(found)]
+        predictions += [
+            {"id": len(predictions) + k + 1, "image_id": i + 1, "category_id": c, "bbox": b, "score": s}
+            for k, (c, b, s) in enumerate(found)
+        ]
     if not predictions:  # say why (the best score at any threshold, the scale), rather than write an empty file
         set_score_threshold(model, 0.0)
         _, scores, _ = detect_image(read_rgb8(files[0]), predictor, score_threshold=0.0, **tiling)
-        error = nothing_found(len(files), files[0], float(scores.max()) if len(scores) else None,
-                              dcfg.score_threshold, dcfg.tile_size, ck["model_config"], Path(cfg.checkpoint))
+        error = nothing_found(
+            len(files),
+            files[0],
+            float(scores.max()) if len(scores) else None,
+            dcfg.score_threshold,
+            dcfg.tile_size,
+            ck["model_config"],
+            Path(cfg.checkpoint),
+        )
         shard.barrier()
         raise error
-    write_predictions(out / "predictions.json", images, categories, predictions,
-                      info={"description": "MatchPlant module 7 detections (source-image pixels)",
-                            "checkpoint": str(cfg.checkpoint), "tile_size": dcfg.tile_size,
-                            "overlap": dcfg.overlap, "score_threshold": dcfg.score_threshold,
-                            "timing": {"estimated_s": round(plan["seconds"], 3), "detection_s": round(seconds, 3),
-                                       "tiles": plan["tiles"], "input_megapixels": round(plan["input_megapixels"], 3),
-                                       "device": plan["device"]}})
+    write_predictions(
+        out / "predictions.json",
+        images,
+        categories,
+        predictions,
+        info={
+            "description": "MatchPlant module 7 detections (source-image pixels)",
+            "checkpoint": str(cfg.checkpoint),
+            "tile_size": dcfg.tile_size,
+            "overlap": dcfg.overlap,
+            "score_threshold": dcfg.score_threshold,
+            "timing": {
+                "estimated_s": round(plan["seconds"], 3),
+                "detection_s": round(seconds, 3),
+                "tiles": plan["tiles"],
+                "input_megapixels": round(plan["input_megapixels"], 3),
+                "device": plan["device"],
+            },
+        },
+    )
     path = final / "predictions.json"
     if listed is not None:
         listed += drawn_by_all
-    log.info("%d plants found on %d image(s)%s: %s", len(predictions), len(files),
-             f" by {shard.world} processes" if shard.world > 1 else "", path)
+    log.info(
+        "%d plants found on %d image(s)%s: %s",
+        len(predictions),
+        len(files),
+        f" by {shard.world} processes" if shard.world > 1 else "",
+        path,
+    )
     shard.barrier()
     return path
 
@@ -435,4 +588,3 @@ def run(cfg: ModelTestConfig) -> dict:
     if shard.main:  # only once the new outputs are in place; the other processes' drawn images are in `now`
         remove_stale(Path(cfg.output_dir), before, now)
     return result
-

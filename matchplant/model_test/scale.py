@@ -31,8 +31,10 @@ def detect_settings(dcfg, ck: dict):
         tile, where = dcfg.tile_size, f"overlap {min(overlap, dcfg.tile_size // 2)} from the checkpoint"
     overlap = dcfg.overlap if dcfg.overlap is not None else min(overlap, tile // 2)
     if overlap >= tile:
-        raise ConfigError(f"detect.overlap ({overlap}) must be smaller than the tile size ({tile}, from the "
-                          f"checkpoint)", fix="lower detect.overlap, or set detect.tile_size")
+        raise ConfigError(
+            f"detect.overlap ({overlap}) must be smaller than the tile size ({tile}, from the checkpoint)",
+            fix="lower detect.overlap, or set detect.tile_size",
+        )
     known = bool((ck.get("training_geometry") or {}).get("tile_size")) or dcfg.tile_size is not None
     (log.info if known else log.warning)("detect: %s", where)
     return dataclasses.replace(dcfg, tile_size=int(tile), overlap=int(overlap))
@@ -55,8 +57,11 @@ def check_detect_scale(dcfg, ck: dict) -> bool:
     input (for photos of the training's ground resolution); images smaller than a tile are detected whole
     (module 7 warns about those separately)."""
     ratio = scale_ratio(ck.get("training_geometry"), dcfg.tile_size, dcfg.tile_size, ck["model_config"])
-    return check_scale(ratio, f"detect.tile_size {dcfg.tile_size} (the model was trained on {_training_tile(ck)} "
-                              f"tiles)", "Set detect.tile_size to the training tile size (or null: from the checkpoint)")
+    return check_scale(
+        ratio,
+        f"detect.tile_size {dcfg.tile_size} (the model was trained on {_training_tile(ck)} tiles)",
+        "Set detect.tile_size to the training tile size (or null: from the checkpoint)",
+    )
 
 
 def check_found_scale(ck: dict, found: list[tuple[np.ndarray, int, int]], tile_size: int) -> float | None:
@@ -65,15 +70,22 @@ def check_found_scale(ck: dict, found: list[tuple[np.ndarray, int, int]], tile_s
     geometry = ck.get("training_geometry") or {}
     ref = geometry.get("objects_input_px")
     mc = ck["model_config"]
-    sides = [np.sqrt(np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None))
-             * input_scale(min(tile_size, w), min(tile_size, h), mc["min_size"], mc["max_size"])
-             for b, w, h in found if len(b)]
+    sides = [
+        np.sqrt(np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None))
+        * input_scale(min(tile_size, w), min(tile_size, h), mc["min_size"], mc["max_size"])
+        for b, w, h in found
+        if len(b)
+    ]
     if not ref or not sides:
         return None
     ratio = float(np.median(np.concatenate(sides))) / float(ref)
-    check_scale(ratio, "the plants found", f"The photos may have another ground resolution than the training "
-                f"photos (flight height, camera): try detect.tile_size about {int(round(tile_size * ratio))}, "
-                f"which shows them at their training size")
+    check_scale(
+        ratio,
+        "the plants found",
+        f"The photos may have another ground resolution than the training "
+        f"photos (flight height, camera): try detect.tile_size about {int(round(tile_size * ratio))}, "
+        f"which shows them at their training size",
+    )
     return ratio
 
 
@@ -84,6 +96,10 @@ def check_test_scale(dataset: dict, ck: dict) -> float | None:
     if not ref or not len(w):
         return None
     ratio = float(np.median(np.sqrt(w * h))) / float(ref)
-    check_scale(ratio, "the test tiles' plants", "Evaluate on tiles cut like the training tiles (module 5, same "
-                "tile_size, photos of the same ground resolution)")
+    check_scale(
+        ratio,
+        "the test tiles' plants",
+        "Evaluate on tiles cut like the training tiles (module 5, same "
+        "tile_size, photos of the same ground resolution)",
+    )
     return ratio

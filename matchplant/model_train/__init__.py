@@ -5,4 +5,4 @@ The face of every step: ``config`` (its settings), ``run`` (``run(cfg)``)."""
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import run
 
-__all__ = ['ModelTrainConfig', 'run']
+__all__ = ["ModelTrainConfig", "run"]

@@ -56,8 +56,8 @@ class Plan:
 
     iters: int
     iters_per_epoch: int
-    fitted: bool = False          # refitted from the real iterations' speed (once per run)
-    source: str = "configured"    # configured, probe, measured
+    fitted: bool = False  # refitted from the real iterations' speed (once per run)
+    source: str = "configured"  # configured, probe, measured
 
     @property
     def epochs(self) -> int:
@@ -73,12 +73,17 @@ def run_seconds(n: int, iters_per_epoch: int, costs: Costs, val_every: int, vali
     return n * costs.iteration + vals * costs.validation + saves * costs.checkpoint
 
 
-def plan_iterations(total: int, done: int, iters_per_epoch: int, costs: Costs, budget_s: float, val_every: int,
-                    validated: bool) -> int:
+def plan_iterations(
+    total: int, done: int, iters_per_epoch: int, costs: Costs, budget_s: float, val_every: int, validated: bool
+) -> int:
     """The most iterations (at least ``done``, at most ``total``) whose remaining work fits ``budget_s``."""
+
     def fits(n: int) -> bool:
-        return run_seconds(n, iters_per_epoch, costs, val_every, validated) - \
-            run_seconds(done, iters_per_epoch, costs, val_every, validated) <= budget_s
+        return (
+            run_seconds(n, iters_per_epoch, costs, val_every, validated)
+            - run_seconds(done, iters_per_epoch, costs, val_every, validated)
+            <= budget_s
+        )
 
     lo, hi = done, total
     if fits(hi):
@@ -97,12 +102,13 @@ def validation_report(val_data: dict | None) -> dict:
         log.warning(msg)
         return {"tiles": 0, "boxes": 0, "plants": 0, "warning": msg}
     _, plants = distinct_objects(val_data)
-    report = {"tiles": len(val_data.get("images", [])), "boxes": len(val_data.get("annotations", [])),
-              "plants": plants}
+    report = {"tiles": len(val_data.get("images", [])), "boxes": len(val_data.get("annotations", [])), "plants": plants}
     if plants < MIN_VAL_OBJECTS:
-        report["warning"] = (f"the validation set holds only {plants} distinct plant(s) (fewer than "
-                             f"{MIN_VAL_OBJECTS}): best.pt is chosen on a noisy metric (one plant moves AP50 by "
-                             f"{1 / max(plants, 1):.2f}); give module 5 a larger val share or more annotated images")
+        report["warning"] = (
+            f"the validation set holds only {plants} distinct plant(s) (fewer than "
+            f"{MIN_VAL_OBJECTS}): best.pt is chosen on a noisy metric (one plant moves AP50 by "
+            f"{1 / max(plants, 1):.2f}); give module 5 a larger val share or more annotated images"
+        )
         log.warning(report["warning"])
     return report
 
@@ -132,7 +138,7 @@ class Budget:
     costs: Costs | None = None
     val_every: int = 1
     validated: bool = False
-    stop_flag: Any = None          # resume.StopOnInterrupt: Ctrl-C asks to stop
+    stop_flag: Any = None  # resume.StopOnInterrupt: Ctrl-C asks to stop
     dist_info: Any = None
     device: Any = None
     step_times: list[float] = field(default_factory=list)
@@ -192,35 +198,50 @@ class Budget:
         configured."""
         plan, total = self.plan, self.total
         before = plan.iters
-        plan.iters = max(plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, self.val_every,
-                                         self.validated), done, 1)
+        plan.iters = max(
+            plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, self.val_every, self.validated), done, 1
+        )
         plan.source = source
         if plan.iters < total and plan.iters != before:
-            log.warning("max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
-                        "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
-                        "epochs, to train as set)", self.minutes, costs.iteration, source, plan.iters, total,
-                        plan.iters / plan.iters_per_epoch, math.ceil(total / plan.iters_per_epoch), plan.iters)
+            log.warning(
+                "max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
+                "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
+                "epochs, to train as set)",
+                self.minutes,
+                costs.iteration,
+                source,
+                plan.iters,
+                total,
+                plan.iters / plan.iters_per_epoch,
+                math.ceil(total / plan.iters_per_epoch),
+                plan.iters,
+            )
 
     # -- the stop decision -----------------------------------------------------------------------------------------
     def after_step(self, done: int, step_s: float) -> str | None:
         """After an iteration: refit the plan once from the real speed; then why to stop (None: go on)."""
         self.step_times.append(step_s)
         plan = self.plan
-        if self.limited and not plan.fitted and len(self.step_times) >= max(3, min(plan.iters_per_epoch,
-                                                                                   plan.iters // 10)):
+        if (
+            self.limited
+            and not plan.fitted
+            and len(self.step_times) >= max(3, min(plan.iters_per_epoch, plan.iters // 10))
+        ):
             plan.fitted = True
             measured = dataclasses.replace(self.costs, iteration=self.iteration_s())
             self.fit(done, measured, self.left(), "measured on the first iterations")
             plan.iters = int(self._agree(plan.iters))
             self.fitted_at = (self.elapsed(), done)
-        elif self.limited and self.fitted_at is not None and \
-                done - self.fitted_at[1] >= max(3, (plan.iters - self.fitted_at[1]) // 2):
+        elif (
+            self.limited
+            and self.fitted_at is not None
+            and done - self.fitted_at[1] >= max(3, (plan.iters - self.fitted_at[1]) // 2)
+        ):
             self.refit_from_pace(done)
         reason = 0.0
         if self.stop_flag.requested:
             reason = 2.0
-        elif self.limited and done < plan.iters and \
-                self.elapsed() + self.iteration_s() + self.reserve() > self.seconds:
+        elif self.limited and done < plan.iters and self.elapsed() + self.iteration_s() + self.reserve() > self.seconds:
             reason = 1.0
         reason = self._agree(reason)
         return {0.0: None, 1.0: "budget", 2.0: "interrupt"}[reason]
@@ -235,9 +256,15 @@ class Budget:
         left = self.left() - self.reserve()
         iters = int(self._agree(min(self.total, done + max(int(left / pace), 0))))
         if iters != self.plan.iters:
-            log.info("max_minutes = %g: at the pace of the last %d iterations (%.2f s each, validations and "
-                     "checkpoints included) %d iterations fit, not %d; the schedule is laid over them",
-                     self.minutes, done - n0, pace, iters, self.plan.iters)
+            log.info(
+                "max_minutes = %g: at the pace of the last %d iterations (%.2f s each, validations and "
+                "checkpoints included) %d iterations fit, not %d; the schedule is laid over them",
+                self.minutes,
+                done - n0,
+                pace,
+                iters,
+                self.plan.iters,
+            )
             self.plan.iters = max(iters, done)
 
     def out_of_time_for(self, seconds: float) -> bool:
@@ -258,7 +285,16 @@ class Budget:
         if done_iters >= total:
             return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
         if done_iters >= planned:
-            return ("stopped_by_max_minutes", (f"stopped by max_minutes ({self.minutes:g}) {where}, the end of the "
-                                               "plan fitted to the budget (the learning-rate schedule ran its course)"))
-        return ("stopped_by_max_minutes", f"stopped by max_minutes ({self.minutes:g}) {where}; --resume continues "
-                f"the planned {planned} iterations" if planned else f"stopped by max_minutes {where}")
+            return (
+                "stopped_by_max_minutes",
+                (
+                    f"stopped by max_minutes ({self.minutes:g}) {where}, the end of the "
+                    "plan fitted to the budget (the learning-rate schedule ran its course)"
+                ),
+            )
+        return (
+            "stopped_by_max_minutes",
+            f"stopped by max_minutes ({self.minutes:g}) {where}; --resume continues the planned {planned} iterations"
+            if planned
+            else f"stopped by max_minutes {where}",
+        )

@@ -15,12 +15,22 @@ log = get_logger("model_train")
 
 def save(job: Job, state: TrainState, name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
     """``checkpoints/<name>`` after ``epoch_done`` whole epochs; ``partial``: the stopped epoch's progress."""
-    content = dict(epoch=epoch_done, iteration=state.done, optimizer_state=job.optimizer.state_dict(),
-                   scheduler_state=job.scheduler.state_dict(), scaler_state=job.scaler.state_dict() if job.amp else None,
-                   history=state.history, best=state.best, metrics=(record or {}).get("val"),
-                   train_config=to_dict(job.cfg), iters_per_epoch=job.iters, training_geometry=job.geometry,
-                   planned_iters=job.budget.plan.iters, epoch_progress=partial,
-                   random_state=state.stop_rng if partial else None)
+    content = dict(
+        epoch=epoch_done,
+        iteration=state.done,
+        optimizer_state=job.optimizer.state_dict(),
+        scheduler_state=job.scheduler.state_dict(),
+        scaler_state=job.scaler.state_dict() if job.amp else None,
+        history=state.history,
+        best=state.best,
+        metrics=(record or {}).get("val"),
+        train_config=to_dict(job.cfg),
+        iters_per_epoch=job.iters,
+        training_geometry=job.geometry,
+        planned_iters=job.budget.plan.iters,
+        epoch_progress=partial,
+        random_state=state.stop_rng if partial else None,
+    )
     save_checkpoint(job.ck_dir / name, job.core, job.model_cfg, job.class_names, job.train_ds.category_ids, **content)
 
 
@@ -31,10 +41,13 @@ def restore(job: Job, resume: dict | None) -> TrainState:
         return state
     iters = job.iters
     if resume.get("iters_per_epoch", iters) != iters and resume.get("epoch_progress"):
-        raise ConfigError(f"cannot resume inside epoch {resume['epoch'] + 1}: the run had "
-                          f"{resume['iters_per_epoch']} iterations per epoch, this config gives {iters} "
-                          "(batch_size or the training set changed)", path=job.ck_dir / "last.pt",
-                          fix="resume with the run's batch_size and training set, or start with --fresh")
+        raise ConfigError(
+            f"cannot resume inside epoch {resume['epoch'] + 1}: the run had "
+            f"{resume['iters_per_epoch']} iterations per epoch, this config gives {iters} "
+            "(batch_size or the training set changed)",
+            path=job.ck_dir / "last.pt",
+            fix="resume with the run's batch_size and training set, or start with --fresh",
+        )
     job.optimizer.load_state_dict(resume["optimizer_state"])
     job.scheduler.load_state_dict(resume["scheduler_state"])
     if resume.get("scaler_state"):
@@ -57,7 +70,12 @@ def restore_plan(budget, resume: dict, done: int) -> None:
     if not resume.get("planned_iters") and not budget.limited:
         plan.fitted = True
     if plan.iters <= done < total:  # the budget's plan is done: this session plans the rest with its budget
-        log.info("the run's plan of %d iterations (fitted to its max_minutes) is done; the remaining %d of %d "
-                 "are planned now%s (the learning-rate schedule is laid over the longer run)", plan.iters,
-                 total - done, total, f" with max_minutes = {budget.minutes:g}" if budget.limited else "")
+        log.info(
+            "the run's plan of %d iterations (fitted to its max_minutes) is done; the remaining %d of %d "
+            "are planned now%s (the learning-rate schedule is laid over the longer run)",
+            plan.iters,
+            total - done,
+            total,
+            f" with max_minutes = {budget.minutes:g}" if budget.limited else "",
+        )
         plan.iters, plan.fitted, plan.source = total, False, "configured"

@@ -55,9 +55,9 @@ RESNET_TRAIN_COST = 9.0
 # Box-head samples and proposals on a CPU. MobileNetV3 FPN at 448 px, batch 4 of 400 px photos with ~20 plants:
 # 7.0 s of CPU per training step with torchvision's counts, 3.6 s with these (192 samples for those photos), and
 # 0.82 against 0.35 s per photo to detect (python -m bench.bench_model_train_step)
-CPU_ROI_SAMPLES = 128       # per image; 32 positives at positive_fraction 0.25
-CPU_PROPOSALS_TRAIN = 500   # after NMS (1000 before)
-CPU_PROPOSALS_TEST = 300    # after NMS (500 before), = detections_per_img's default
+CPU_ROI_SAMPLES = 128  # per image; 32 positives at positive_fraction 0.25
+CPU_PROPOSALS_TRAIN = 500  # after NMS (1000 before)
+CPU_PROPOSALS_TEST = 300  # after NMS (500 before), = detections_per_img's default
 
 
 # From random weights on a CPU: AdamW at 1e-3 for every part, cosine decay over the planned iterations. On the
@@ -65,18 +65,24 @@ CPU_PROPOSALS_TEST = 300    # after NMS (500 before), = detections_per_img's def
 # 448 px, 27 iterations) the RPN objectness loss was 0.46 against 0.56 (SGD 0.02, cosine) and 0.62 (the paper's
 # SGD rates, decays at 1/3 and 2/3); validation AP50 stayed below 2 % in all three (SGD 0.02: 1.3 % at 90)
 SCRATCH = {"optimizer": "adamw", "lr": 0.001, "schedule": "cosine"}
-CPU_CROP = 256          # augment.crop from random weights on a CPU (detector input pixels)
-SCRATCH_EPOCHS = 1000   # with max_minutes, from random weights on a CPU: the budget ends the run
-VAL_SHARE = 0.1         # ... and validation takes about this share of the training time
-LITE_WHY = ("random weights on a CPU: the light ResNet-18 FPN (matchplant/detection/lite.py) learns from scratch "
-            "in the iterations a CPU budget allows, where MobileNetV3-Large FPN does not")
+CPU_CROP = 256  # augment.crop from random weights on a CPU (detector input pixels)
+SCRATCH_EPOCHS = 1000  # with max_minutes, from random weights on a CPU: the budget ends the run
+VAL_SHARE = 0.1  # ... and validation takes about this share of the training time
+LITE_WHY = (
+    "random weights on a CPU: the light ResNet-18 FPN (matchplant/detection/lite.py) learns from scratch "
+    "in the iterations a CPU budget allows, where MobileNetV3-Large FPN does not"
+)
 
 
 def from_scratch_on_cpu(cfg, device) -> bool:
     """``model.architecture: auto`` from random weights (no checkpoint) on a CPU: the case the CPU recipe is for (a
     config naming its architecture, as the demo's, keeps its own training as set)."""
-    return (device.type == "cpu" and cfg.model.architecture == AUTO and cfg.model.pretrained == "none" and
-            cfg.model.checkpoint is None)
+    return (
+        device.type == "cpu"
+        and cfg.model.architecture == AUTO
+        and cfg.model.pretrained == "none"
+        and cfg.model.checkpoint is None
+    )
 
 
 def cpu_crop(cfg, device) -> tuple[object, str | None]:
@@ -88,9 +94,11 @@ def cpu_crop(cfg, device) -> tuple[object, str | None]:
     cfg = dataclasses.replace(cfg, augment=dataclasses.replace(cfg.augment, crop=crop))
     if not crop:
         return cfg, None
-    return cfg, (f"augment.crop: {crop} (random weights on a CPU: training steps on {crop} px windows of the "
-                 f"{cfg.model.min_size} px detector input cost a fraction of whole tiles, so many more fit the "
-                 "budget; detection still sees whole tiles)")
+    return cfg, (
+        f"augment.crop: {crop} (random weights on a CPU: training steps on {crop} px windows of the "
+        f"{cfg.model.min_size} px detector input cost a fraction of whole tiles, so many more fit the "
+        "budget; detection still sees whole tiles)"
+    )
 
 
 def scratch_budget(cfg, device, budget: Budget) -> tuple[object, bool, str | None]:
@@ -98,14 +106,24 @@ def scratch_budget(cfg, device, budget: Budget) -> tuple[object, bool, str | Non
     not the 30 epochs, ends the run (``SCRATCH_EPOCHS``), and the validation interval is sized after the probe
     (:func:`validation_interval`). Returns ``(cfg, whether to size val_every, the reason or None)``."""
     defaults = type(cfg)(train_json=cfg.train_json)
-    if not (from_scratch_on_cpu(cfg, device) and budget.limited and cfg.epochs == defaults.epochs and
-            cfg.val_every == defaults.val_every):
+    if not (
+        from_scratch_on_cpu(cfg, device)
+        and budget.limited
+        and cfg.epochs == defaults.epochs
+        and cfg.val_every == defaults.val_every
+    ):
         return cfg, False, None
     cfg = dataclasses.replace(cfg, epochs=SCRATCH_EPOCHS)
-    return cfg, True, (f"epochs: {SCRATCH_EPOCHS} (random weights on a CPU: a detector learning from scratch "
-                       f"gains from every iteration max_minutes = {budget.minutes:g} allows, and 30 epochs of a "
-                       "small dataset end long before it); val_every: sized so that validation takes about "
-                       f"{100 * VAL_SHARE:.0f} % of the time")
+    return (
+        cfg,
+        True,
+        (
+            f"epochs: {SCRATCH_EPOCHS} (random weights on a CPU: a detector learning from scratch "
+            f"gains from every iteration max_minutes = {budget.minutes:g} allows, and 30 epochs of a "
+            "small dataset end long before it); val_every: sized so that validation takes about "
+            f"{100 * VAL_SHARE:.0f} % of the time"
+        ),
+    )
 
 
 def validation_interval(validation_s: float, epoch_s: float) -> int:
@@ -118,8 +136,13 @@ def sized_validation(cfg, validation_s: float, epoch_s: float):
     every = validation_interval(validation_s, epoch_s)
     if every == cfg.val_every:
         return cfg
-    log.info("val_every: %d (validation %.1f s, an epoch %.1f s of training: validating takes about %.0f %% of the "
-             "time)", every, validation_s, epoch_s, 100 * VAL_SHARE)
+    log.info(
+        "val_every: %d (validation %.1f s, an epoch %.1f s of training: validating takes about %.0f %% of the time)",
+        every,
+        validation_s,
+        epoch_s,
+        100 * VAL_SHARE,
+    )
     return dataclasses.replace(cfg, val_every=every)
 
 
@@ -142,11 +165,17 @@ def scratch_recipe(cfg) -> tuple[object, str | None]:
     if (cfg.optimizer, cfg.lr, cfg.schedule) != (defaults.optimizer, defaults.lr, defaults.schedule):
         return cfg, None
     lr = SCRATCH["lr"]
-    cfg = dataclasses.replace(cfg, optimizer=SCRATCH["optimizer"], schedule=SCRATCH["schedule"],
-                              lr=LearningRates(backbone=lr, fpn=lr, rpn=lr, roi_heads=lr))
-    return cfg, (f"optimizer: {cfg.optimizer}, lr.*: {lr:g}, schedule: {cfg.schedule} (random weights on a CPU: "
-                 "the paper's SGD rates, made for fine-tuning pretrained weights, learn too slowly in the few "
-                 "hundred iterations a budget of minutes allows)")
+    cfg = dataclasses.replace(
+        cfg,
+        optimizer=SCRATCH["optimizer"],
+        schedule=SCRATCH["schedule"],
+        lr=LearningRates(backbone=lr, fpn=lr, rpn=lr, roi_heads=lr),
+    )
+    return cfg, (
+        f"optimizer: {cfg.optimizer}, lr.*: {lr:g}, schedule: {cfg.schedule} (random weights on a CPU: "
+        "the paper's SGD rates, made for fine-tuning pretrained weights, learn too slowly in the few "
+        "hundred iterations a budget of minutes allows)"
+    )
 
 
 def resumed_recipe(cfg, saved: dict) -> object:
@@ -156,15 +185,23 @@ def resumed_recipe(cfg, saved: dict) -> object:
     defaults = type(cfg)(train_json=cfg.train_json)
     if cfg.augment.crop is None and isinstance(saved.get("augment", {}).get("crop"), int):
         cfg = dataclasses.replace(cfg, augment=dataclasses.replace(cfg.augment, crop=saved["augment"]["crop"]))
-    if (cfg.epochs, cfg.val_every) == (defaults.epochs, defaults.val_every) and \
-            isinstance(saved.get("epochs"), int) and isinstance(saved.get("val_every"), int) and \
-            (saved["epochs"], saved["val_every"]) != (cfg.epochs, cfg.val_every):
+    if (
+        (cfg.epochs, cfg.val_every) == (defaults.epochs, defaults.val_every)
+        and isinstance(saved.get("epochs"), int)
+        and isinstance(saved.get("val_every"), int)
+        and (saved["epochs"], saved["val_every"]) != (cfg.epochs, cfg.val_every)
+    ):
         cfg = dataclasses.replace(cfg, epochs=saved["epochs"], val_every=saved["val_every"])
-    if (cfg.optimizer, cfg.lr, cfg.schedule) != (defaults.optimizer, defaults.lr, defaults.schedule) or \
-            not isinstance(saved.get("lr"), dict):
+    if (cfg.optimizer, cfg.lr, cfg.schedule) != (defaults.optimizer, defaults.lr, defaults.schedule) or not isinstance(
+        saved.get("lr"), dict
+    ):
         return cfg
-    return dataclasses.replace(cfg, optimizer=saved.get("optimizer", cfg.optimizer),
-                               schedule=saved.get("schedule", cfg.schedule), lr=LearningRates(**saved["lr"]))
+    return dataclasses.replace(
+        cfg,
+        optimizer=saved.get("optimizer", cfg.optimizer),
+        schedule=saved.get("schedule", cfg.schedule),
+        lr=LearningRates(**saved["lr"]),
+    )
 
 
 def cpu_proposals(model_cfg, objects_per_image: list[int]) -> tuple[object, str | None]:
@@ -176,9 +213,13 @@ def cpu_proposals(model_cfg, objects_per_image: list[int]) -> tuple[object, str 
     dense = float(np.percentile(objects_per_image, 90)) if objects_per_image else 0.0
     samples = max(CPU_ROI_SAMPLES, 64 * math.ceil(dense / model_cfg.roi.positive_fraction / 64))
     train, test = max(CPU_PROPOSALS_TRAIN, 4 * most), max(CPU_PROPOSALS_TEST, 3 * most)
-    want = {("roi", "batch_size_per_image"): samples, ("rpn", "pre_nms_top_n_train"): 2 * train,
-            ("rpn", "post_nms_top_n_train"): train, ("rpn", "pre_nms_top_n_test"): 2 * test,
-            ("rpn", "post_nms_top_n_test"): test}
+    want = {
+        ("roi", "batch_size_per_image"): samples,
+        ("rpn", "pre_nms_top_n_train"): 2 * train,
+        ("rpn", "post_nms_top_n_train"): train,
+        ("rpn", "pre_nms_top_n_test"): 2 * test,
+        ("rpn", "post_nms_top_n_test"): test,
+    }
     defaults = {"roi": ROIConfig(), "rpn": RPNConfig()}
     parts = {"roi": model_cfg.roi, "rpn": model_cfg.rpn}
     changed = {}
@@ -189,13 +230,16 @@ def cpu_proposals(model_cfg, objects_per_image: list[int]) -> tuple[object, str 
             parts[part] = dataclasses.replace(parts[part], **{key: value})
     if not changed:
         return model_cfg, None
-    why = (", ".join(f"{k}: {v}" for k, v in changed.items()) + f" (on a CPU the box head's samples dominate a "
-           f"training step; the training tiles hold at most {most} plants, 90 % of them at most {dense:.0f})")
+    why = (
+        ", ".join(f"{k}: {v}" for k, v in changed.items()) + f" (on a CPU the box head's samples dominate a "
+        f"training step; the training tiles hold at most {most} plants, 90 % of them at most {dense:.0f})"
+    )
     return dataclasses.replace(model_cfg, roi=parts["roi"], rpn=parts["rpn"]), why
 
 
-def choose_architecture(cfg, model_cfg, device, train_ds, n_classes: int, total_iters: int,
-                        train_json, budget: Budget) -> tuple[str, str, Probe | None]:
+def choose_architecture(
+    cfg, model_cfg, device, train_ds, n_classes: int, total_iters: int, train_json, budget: Budget
+) -> tuple[str, str, Probe | None]:
     """``(architecture, reason, probe of MobileNetV3 or None)`` for ``model.architecture: auto``."""
     levels = len(model_cfg.anchor_sizes) if isinstance(model_cfg.anchor_sizes, list) else None
     candidates = [a for a in (PAPER, MOBILE, LITE) if levels is None or get_architecture(a).anchors.levels == levels]
@@ -218,14 +262,23 @@ def choose_architecture(cfg, model_cfg, device, train_ds, n_classes: int, total_
         skip_training_resize(model)
     log.info("model.architecture: auto on the CPU: timing %s at the config's input size and batch", MOBILE)
     with heartbeat("timing MobileNetV3 for model.architecture: auto"):
-        probe = probe_speed(model, train_ds, cfg.batch_size, device, amp=False, num_workers=cfg.num_workers,
-                            run_iters=total_iters)
+        probe = probe_speed(
+            model, train_ds, cfg.batch_size, device, amp=False, num_workers=cfg.num_workers, run_iters=total_iters
+        )
     mobile_s = total_iters * probe.iteration_s
     resnet_s = mobile_s * RESNET_TRAIN_COST
     limit, what = budget.horizon_s, budget.horizon_words()
-    measured = (f"{total_iters} iterations at {probe.iteration_s:.2f} s ({MOBILE}, measured) or about "
-                f"{probe.iteration_s * RESNET_TRAIN_COST:.2f} s ({PAPER}, {RESNET_TRAIN_COST:g}x)")
+    measured = (
+        f"{total_iters} iterations at {probe.iteration_s:.2f} s ({MOBILE}, measured) or about "
+        f"{probe.iteration_s * RESNET_TRAIN_COST:.2f} s ({PAPER}, {RESNET_TRAIN_COST:g}x)"
+    )
     if resnet_s <= limit:
         return PAPER, f"the paper's detector fits the CPU budget: {measured} take {duration(resnet_s)} <= {what}", None
-    return MOBILE, (f"on this CPU {PAPER} would take about {duration(resnet_s)} ({measured}), more than {what}; "
-                    f"{MOBILE} takes about {duration(mobile_s)}"), probe
+    return (
+        MOBILE,
+        (
+            f"on this CPU {PAPER} would take about {duration(resnet_s)} ({measured}), more than {what}; "
+            f"{MOBILE} takes about {duration(mobile_s)}"
+        ),
+        probe,
+    )

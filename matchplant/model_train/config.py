@@ -31,61 +31,100 @@ class ModelTrainConfig:
 
     train_json: Path = param(None, "COCO JSON of the training tiles (module 5)", path="file", required=True)
     train_images: Path | None = param(None, "folder of the training tiles; null = the JSON's folder", path="dir")
-    val_json: Path | None = param(None, "COCO JSON of the validation tiles; null = no validation (then the "
-                                  "last epoch counts as best)", path="file")
+    val_json: Path | None = param(
+        None,
+        "COCO JSON of the validation tiles; null = no validation (then the last epoch counts as best)",
+        path="file",
+    )
     val_images: Path | None = param(None, "folder of the validation tiles; null = the JSON's folder", path="dir")
     output_dir: Path = param(Path("runs/train"), "where checkpoints, curves and the summary go", path="out")
-    resume: bool | Literal["fresh"] = param(False, "true: continue the run in output_dir from checkpoints/last.pt "
-                                            "(after a crash, Ctrl-C or max_minutes; exactly where it stopped, "
-                                            "mid-epoch too), the --resume flag; fresh: start a new run there "
-                                            "(the --fresh flag), replacing its checkpoints")
+    resume: bool | Literal["fresh"] = param(
+        False,
+        "true: continue the run in output_dir from checkpoints/last.pt "
+        "(after a crash, Ctrl-C or max_minutes; exactly where it stopped, "
+        "mid-epoch too), the --resume flag; fresh: start a new run there "
+        "(the --fresh flag), replacing its checkpoints",
+    )
     model: ModelConfig = section(ModelConfig)
-    trainable_backbone_layers: int = param(3, "backbone stages trained, counted from the top (0 = backbone "
-                                           "frozen; ResNet-50 has 5, MobileNetV3 6)", min=0, max=6)
-    freeze: list[str] = param([], "whole parts kept fixed (transfer learning): any of backbone, fpn, rpn, "
-                              "roi_heads", choices=PARTS)
+    trainable_backbone_layers: int = param(
+        3,
+        "backbone stages trained, counted from the top (0 = backbone frozen; ResNet-50 has 5, MobileNetV3 6)",
+        min=0,
+        max=6,
+    )
+    freeze: list[str] = param(
+        [], "whole parts kept fixed (transfer learning): any of backbone, fpn, rpn, roi_heads", choices=PARTS
+    )
     lr: LearningRates = section(LearningRates)
-    optimizer: str = param("sgd", "sgd (the paper) or adamw (use about 10x smaller learning rates)",
-                           choices=("sgd", "adamw"))
+    optimizer: str = param(
+        "sgd", "sgd (the paper) or adamw (use about 10x smaller learning rates)", choices=("sgd", "adamw")
+    )
     momentum: float = param(0.9, "SGD momentum", min=0, max=1)
     weight_decay: float = param(5e-4, "L2 weight decay", min=0)
-    schedule: str = param("step", "learning-rate schedule after warm-up: step (x gamma every step_size "
-                          "epochs), multistep (x gamma at each milestone), cosine, constant", choices=SCHEDULES)
+    schedule: str = param(
+        "step",
+        "learning-rate schedule after warm-up: step (x gamma every step_size "
+        "epochs), multistep (x gamma at each milestone), cosine, constant",
+        choices=SCHEDULES,
+    )
     step_size: int = param(10, "epochs between decays (schedule: step)", min=1)
     gamma: float = param(0.1, "decay factor (step, multistep)", min=0, max=1)
-    milestones: list[int] = param([20, 27], "epochs at which to decay (schedule: multistep), of the 'epochs' "
-                                  "configured; a shorter planned run (max_minutes) moves them in proportion", min=1)
-    milestone_fractions: list[float] | None = param(None, "decay points as fractions of the planned iterations, "
-                                                    "e.g. [0.67, 0.9] (schedule: multistep); null = milestones",
-                                                    min=0, max=1)
+    milestones: list[int] = param(
+        [20, 27],
+        "epochs at which to decay (schedule: multistep), of the 'epochs' "
+        "configured; a shorter planned run (max_minutes) moves them in proportion",
+        min=1,
+    )
+    milestone_fractions: list[float] | None = param(
+        None,
+        "decay points as fractions of the planned iterations, "
+        "e.g. [0.67, 0.9] (schedule: multistep); null = milestones",
+        min=0,
+        max=1,
+    )
     min_lr_factor: float = param(0.0, "final fraction of the learning rate (schedule: cosine)", min=0, max=1)
-    warmup_iters: int | None = param(None, "iterations of linear warm-up at the start (0 = none); null = "
-                                     "warmup_fraction of the planned iterations", min=0)
-    warmup_fraction: float = param(0.05, "warm-up as a fraction of the planned iterations (scales with the "
-                                   "dataset and the budget; used when warmup_iters is null)", min=0, max=0.5)
-    warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up",
-                                 min=0, max=1)
+    warmup_iters: int | None = param(
+        None,
+        "iterations of linear warm-up at the start (0 = none); null = warmup_fraction of the planned iterations",
+        min=0,
+    )
+    warmup_fraction: float = param(
+        0.05,
+        "warm-up as a fraction of the planned iterations (scales with the "
+        "dataset and the budget; used when warmup_iters is null)",
+        min=0,
+        max=0.5,
+    )
+    warmup_factor: float = param(0.001, "learning-rate fraction at the first iteration of the warm-up", min=0, max=1)
     epochs: int = param(30, "training epochs", min=1)
-    max_minutes: float = param(0.0, "time budget in minutes for the whole run (0 = none): a short probe "
-                               "measures the speed, the iterations that fit are planned and the learning-rate "
-                               "schedule fitted to them; training stops inside an epoch when the budget ends, "
-                               "validates and writes a checkpoint that --resume continues from", min=0)
-    threads: int = param(0, "CPU threads for torch (0 = auto: the cores this process may use less those busy "
-                         "with other work, logged)", min=0)
+    max_minutes: float = param(
+        0.0,
+        "time budget in minutes for the whole run (0 = none): a short probe "
+        "measures the speed, the iterations that fit are planned and the learning-rate "
+        "schedule fitted to them; training stops inside an epoch when the budget ends, "
+        "validates and writes a checkpoint that --resume continues from",
+        min=0,
+    )
+    threads: int = param(
+        0,
+        "CPU threads for torch (0 = auto: the cores this process may use less those busy with other work, logged)",
+        min=0,
+    )
     batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
     num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
     augment: AugmentConfig = section(AugmentConfig)
-    val_score_threshold: float = param(0.05, "boxes below this score are dropped during validation (the "
-                                       "paper's 0.05)", min=0, max=1)
+    val_score_threshold: float = param(
+        0.05, "boxes below this score are dropped during validation (the paper's 0.05)", min=0, max=1
+    )
     val_every: int = param(1, "validate every N epochs (and always after the last)", min=1)
     best_metric: str = param("AP50", "validation metric that picks best.pt", choices=("AP50", "AP"))
-    save_every: int = param(5, "also keep checkpoints/epoch_NNN.pt every N epochs (0 = only last and best)",
-                            min=0)
+    save_every: int = param(5, "also keep checkpoints/epoch_NNN.pt every N epochs (0 = only last and best)", min=0)
     device: str = param("auto", "auto picks CUDA, then Apple MPS, then CPU; or cpu, cuda, cuda:N, mps")
     amp: bool = param(True, "mixed precision on CUDA GPUs (faster, less memory); ignored elsewhere")
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
 
     def check(self) -> None:
         if self.device.split(":")[0] not in DEVICE_CHOICES:
-            raise ConfigError(f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps",
-                              fix="set device: auto")
+            raise ConfigError(
+                f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto"
+            )

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from contextlib import nullcontext
-from typing import Callable
 
 from matchplant.core.runtime.errors import MatchPlantError
 from matchplant.core.runtime.log import get_logger
@@ -48,8 +48,10 @@ def train_step(model, images, targets, optimizer, scheduler, scaler, device, amp
     # every loss to the host in one transfer: one device sync per step, not one per value
     values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()]).tolist()
     if not math.isfinite(values[-1]):
-        raise MatchPlantError(f"the training loss became {values[-1]} ({desc})",
-                              fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes")
+        raise MatchPlantError(
+            f"the training loss became {values[-1]} ({desc})",
+            fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes",
+        )
     optimizer.zero_grad(set_to_none=True)
     scaler.scale(loss).backward()
     scaler.step(optimizer)
@@ -58,9 +60,22 @@ def train_step(model, images, targets, optimizer, scheduler, scaler, device, amp
     return (*loss_dict, "loss"), values
 
 
-def train_one_epoch(model, loader, optimizer, scheduler, scaler, device, amp: bool, desc: str, sums: dict[str, float],
-                    batches: int, after: Callable[[float], str | None], *, slow: bool,
-                    limit: int) -> tuple[str | None, int]:
+def train_one_epoch(
+    model,
+    loader,
+    optimizer,
+    scheduler,
+    scaler,
+    device,
+    amp: bool,
+    desc: str,
+    sums: dict[str, float],
+    batches: int,
+    after: Callable[[float], str | None],
+    *,
+    slow: bool,
+    limit: int,
+) -> tuple[str | None, int]:
     """Train on the loader's batches (at most ``limit``), adding the losses into ``sums``; ``after(step_s)`` after
     each iteration says whether to stop. Returns ``(why it stopped or None, batches done in this epoch)``. A
     heartbeat line shows life during slow iterations (the first one, or all when the probe found them slow)."""
@@ -100,8 +115,9 @@ def evaluate(model, val_ds: CocoDetection, model_cfg: ModelConfig, cfg: ModelTra
     saved = heads.score_thresh
     heads.score_thresh = cfg.val_score_threshold
     try:
-        results = predict_dataset(model, val_ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers,
-                                  amp=amp, desc="validating")
+        results = predict_dataset(
+            model, val_ds, device, batch_size=cfg.batch_size, num_workers=cfg.num_workers, amp=amp, desc="validating"
+        )
     finally:
         heads.score_thresh = saved
     stats, _ = coco_evaluate(val_ds.data, results, max_dets=model_cfg.roi.detections_per_img)
@@ -131,8 +147,9 @@ def begin_epoch(job: Job, state: TrainState, epoch: int, start: int) -> tuple[di
     return sums, batches
 
 
-def epoch_record(job: Job, state: TrainState, epoch: int, start: int, sums: dict, batches: int,
-                 train_time: float) -> dict:
+def epoch_record(
+    job: Job, state: TrainState, epoch: int, start: int, sums: dict, batches: int, train_time: float
+) -> dict:
     """The epoch's line of the history: iterations, learning rates, mean losses (over every process), speed."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
@@ -143,11 +160,16 @@ def epoch_record(job: Job, state: TrainState, epoch: int, start: int, sums: dict
         t = torch.tensor([means[k] for k in keys], device=job.device)
         torch.distributed.all_reduce(t)
         means = dict(zip(keys, (t / dist_info.world).tolist()))
-    record = {"epoch": epoch + 1, "iterations": state.done,
-              "lr": {g["name"]: g["lr"] for g in job.optimizer.param_groups}, "losses": means,
-              "train_time_s": round(train_time, 3),
-              "train_images_per_s": round((state.done - epoch * iters - start) * job.cfg.batch_size * dist_info.world
-                                          / max(train_time, 1e-9), 3)}
+    record = {
+        "epoch": epoch + 1,
+        "iterations": state.done,
+        "lr": {g["name"]: g["lr"] for g in job.optimizer.param_groups},
+        "losses": means,
+        "train_time_s": round(train_time, 3),
+        "train_images_per_s": round(
+            (state.done - epoch * iters - start) * job.cfg.batch_size * dist_info.world / max(train_time, 1e-9), 3
+        ),
+    }
     if batches < iters:
         record.update(partial=True, batches=batches)
     return record
@@ -157,11 +179,25 @@ def stop_interrupted(job: Job, state: TrainState, epoch: int, record: dict, sums
     """Ctrl-C: no validation (the user wants out); the checkpoint continues exactly here."""
     if job.dist_info.main:
         save(job, state, "last.pt", epoch, record, {"batches": batches, "sums": sums})
-        write_summary(job.out, job.cfg, state.history + [record], state.best, job.class_names, job.device,
-                      "interrupted", job.budget, validation=job.validation, extras=job.extras,
-                      message=job.budget.status(state.done, interrupted=True)[1])
-    log.warning("interrupted after %d of %d planned iterations: %s written; --resume continues there",
-                state.done, job.budget.plan.iters, job.ck_dir / "last.pt")
+        write_summary(
+            job.out,
+            job.cfg,
+            state.history + [record],
+            state.best,
+            job.class_names,
+            job.device,
+            "interrupted",
+            job.budget,
+            validation=job.validation,
+            extras=job.extras,
+            message=job.budget.status(state.done, interrupted=True)[1],
+        )
+    log.warning(
+        "interrupted after %d of %d planned iterations: %s written; --resume continues there",
+        state.done,
+        job.budget.plan.iters,
+        job.ck_dir / "last.pt",
+    )
     raise KeyboardInterrupt
 
 
@@ -173,25 +209,41 @@ def run_epoch(job: Job, state: TrainState) -> str | None:
     sums, batches = begin_epoch(job, state, epoch, start)
     t0 = time.perf_counter()
     reason, batches = train_one_epoch(
-        job.model, job.loader, job.optimizer, job.scheduler, job.scaler, job.device, job.amp,
-        f"epoch {epoch + 1}/{plan.epochs}", sums, batches, lambda step_s: after_iteration(job, state, step_s),
+        job.model,
+        job.loader,
+        job.optimizer,
+        job.scheduler,
+        job.scaler,
+        job.device,
+        job.amp,
+        f"epoch {epoch + 1}/{plan.epochs}",
+        sums,
+        batches,
+        lambda step_s: after_iteration(job, state, step_s),
         slow=budget.costs.iteration >= HEARTBEAT_S / 2 or not budget.step_times,
-        limit=min(iters, plan.iters - epoch * iters) - start)
+        limit=min(iters, plan.iters - epoch * iters) - start,
+    )
     train_time = time.perf_counter() - t0
     # the random state where training stopped (validation draws from it too; a resumed run starts here)
     state.stop_rng = random_state(job.device) if batches < iters else None
     record = epoch_record(job, state, epoch, start, sums, batches, train_time)
     if reason == "interrupt":
         stop_interrupted(job, state, epoch, record, sums, batches)
-    if reason is None and state.done < plan.iters and budget.out_of_time_for(
-            budget.costs.validation if (epoch + 1) % cfg.val_every == 0 and job.val_ds is not None else 0.0):
+    if (
+        reason is None
+        and state.done < plan.iters
+        and budget.out_of_time_for(
+            budget.costs.validation if (epoch + 1) % cfg.val_every == 0 and job.val_ds is not None else 0.0
+        )
+    ):
         reason = "budget"
     end_epoch(job, state, record, sums, batches, train_time, last=state.done >= plan.iters or reason is not None)
     return reason
 
 
-def end_epoch(job: Job, state: TrainState, record: dict, sums: dict, batches: int, train_time: float, *,
-              last: bool) -> None:
+def end_epoch(
+    job: Job, state: TrainState, record: dict, sums: dict, batches: int, train_time: float, *, last: bool
+) -> None:
     """Validate (every ``val_every`` epochs and at the end), keep the best, log the epoch, write its checkpoints
     and the summary, then tell the caller."""
     cfg, epoch, complete = job.cfg, record["epoch"] - 1, batches >= job.iters
@@ -201,12 +253,21 @@ def end_epoch(job: Job, state: TrainState, record: dict, sums: dict, batches: in
     value = record.get("val", {}).get(cfg.best_metric) if job.val_ds is not None else float(state.done)
     improved = value is not None and (state.best["value"] is None or value > state.best["value"])
     if improved:
-        state.best = {"epoch": epoch + 1, "iterations": state.done, "value": value,
-                      "metric": cfg.best_metric if job.val_ds else "last epoch"}
-    log.info("epoch %d/%d%s: loss %.4f%s (%.1f s)", epoch + 1, job.budget.plan.epochs,
-             "" if complete else f" (stopped after {batches} of {job.iters} batches)",
-             record["losses"].get("loss", math.nan),
-             f"; validation {summarise_stats(record['val'])}" if "val" in record else "", train_time)
+        state.best = {
+            "epoch": epoch + 1,
+            "iterations": state.done,
+            "value": value,
+            "metric": cfg.best_metric if job.val_ds else "last epoch",
+        }
+    log.info(
+        "epoch %d/%d%s: loss %.4f%s (%.1f s)",
+        epoch + 1,
+        job.budget.plan.epochs,
+        "" if complete else f" (stopped after {batches} of {job.iters} batches)",
+        record["losses"].get("loss", math.nan),
+        f"; validation {summarise_stats(record['val'])}" if "val" in record else "",
+        train_time,
+    )
     if job.dist_info.main:
         save_epoch(job, state, record, None if complete else {"batches": batches, "sums": sums}, improved)
     job.dist_info.barrier()
@@ -222,8 +283,18 @@ def save_epoch(job: Job, state: TrainState, record: dict, partial: dict | None, 
         save(job, state, "best.pt", epoch + complete, record, partial)
     if complete and job.cfg.save_every and (epoch + 1) % job.cfg.save_every == 0:
         save(job, state, f"epoch_{epoch + 1:03d}.pt", epoch + 1, record, None)
-    write_summary(job.out, job.cfg, state.history, state.best, job.class_names, job.device, "running", job.budget,
-                  validation=job.validation, extras=job.extras)
+    write_summary(
+        job.out,
+        job.cfg,
+        state.history,
+        state.best,
+        job.class_names,
+        job.device,
+        "running",
+        job.budget,
+        validation=job.validation,
+        extras=job.extras,
+    )
     plot_curves(state.history, job.out / "training_curves.png")
 
 
@@ -246,12 +317,28 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
     summary = {}
     if main:
         status, message = budget.status(done)
-        summary = write_summary(job.out, job.cfg, state.history, state.best, job.class_names, job.device, status,
-                                budget, validation=job.validation, message=message, extras=job.extras)
+        summary = write_summary(
+            job.out,
+            job.cfg,
+            state.history,
+            state.best,
+            job.class_names,
+            job.device,
+            status,
+            budget,
+            validation=job.validation,
+            message=message,
+            extras=job.extras,
+        )
         log.info("training %s (%s)", message, clock_words(budget.elapsed()))
     if main and state.best["epoch"] is not None:
-        log.info("best epoch %d (%s %.4f); model: %s", state.best["epoch"], state.best.get("metric"),
-                 state.best["value"], job.ck_dir / "best.pt")
+        log.info(
+            "best epoch %d (%s %.4f); model: %s",
+            state.best["epoch"],
+            state.best.get("metric"),
+            state.best["value"],
+            job.ck_dir / "best.pt",
+        )
     if job.dist_info.world > 1:
         torch.distributed.destroy_process_group()
     return summary

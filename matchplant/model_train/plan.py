@@ -8,7 +8,14 @@ from matchplant.core.runtime.progress import duration
 from matchplant.model_train.budget import run_seconds
 from matchplant.model_train.choose import sized_validation
 from matchplant.model_train.probe import (
-    PROBE_CAP_S, advice, costs_from_probe, estimate_lines, heartbeat, log_estimate, probe_speed)
+    PROBE_CAP_S,
+    advice,
+    costs_from_probe,
+    estimate_lines,
+    heartbeat,
+    log_estimate,
+    probe_speed,
+)
 from matchplant.model_train.schedule import schedule_warning, warmup_length
 from matchplant.model_train.state import Job, TrainState
 
@@ -20,11 +27,22 @@ def measure(job: Job, state: TrainState, probe=None):
     budget, cfg = job.budget, job.cfg
     cap = min(PROBE_CAP_S, 0.05 * budget.seconds) if budget.limited else PROBE_CAP_S
     if probe is None:
-        log.info("measuring the training speed: %d tile(s) per batch at the config's input size on %s", cfg.batch_size,
-                 job.device)
+        log.info(
+            "measuring the training speed: %d tile(s) per batch at the config's input size on %s",
+            cfg.batch_size,
+            job.device,
+        )
         with heartbeat("measuring the training speed (the first batch on a CPU can take minutes)"):
-            probe = probe_speed(job.core, job.train_ds, cfg.batch_size, job.device, job.amp, cap_s=cap,
-                                num_workers=cfg.num_workers, run_iters=budget.total - state.done)
+            probe = probe_speed(
+                job.core,
+                job.train_ds,
+                cfg.batch_size,
+                job.device,
+                job.amp,
+                cap_s=cap,
+                num_workers=cfg.num_workers,
+                run_iters=budget.total - state.done,
+            )
     return probe
 
 
@@ -41,25 +59,42 @@ def probe_and_plan(job: Job, state: TrainState, resumed_plan: bool, probe=None, 
         job.cfg = sized_validation(job.cfg, costs.validation, plan.iters_per_epoch * costs.iteration)
     cfg = job.cfg
     budget.val_every = cfg.val_every
-    lines, total_s = estimate_lines(probe, costs, iters_per_epoch=plan.iters_per_epoch, epochs=cfg.epochs,
-                                    architecture=job.model_cfg.architecture, device=job.device,
-                                    val_every=cfg.val_every, validated=budget.validated)
+    lines, total_s = estimate_lines(
+        probe,
+        costs,
+        iters_per_epoch=plan.iters_per_epoch,
+        epochs=cfg.epochs,
+        architecture=job.model_cfg.architecture,
+        device=job.device,
+        val_every=cfg.val_every,
+        validated=budget.validated,
+    )
     spent = budget.elapsed()
     if budget.limited and not resumed_plan:  # set-up and probe count too
         budget.fit(done, costs, budget.seconds - spent - 2.0, "measured by the probe")
     # a from-scratch CPU run's epochs are set for the budget to end it (choose.scratch_budget): no advice then
-    hint = None if size_validation else advice(total_s, budget, job.device, job.model_cfg.architecture, plan.iters,
-                                               total)
-    planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, budget.validated) - \
-        run_seconds(done, plan.iters_per_epoch, costs, cfg.val_every, budget.validated)
+    hint = (
+        None if size_validation else advice(total_s, budget, job.device, job.model_cfg.architecture, plan.iters, total)
+    )
+    planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, budget.validated) - run_seconds(
+        done, plan.iters_per_epoch, costs, cfg.val_every, budget.validated
+    )
     if plan.iters < total:
-        lines.append(f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
-                     f"{cfg.epochs} epochs) in max_minutes = {budget.minutes:g}: about {duration(planned_s)} of "
-                     f"training and validation from here, {duration(spent + planned_s)} in all")
+        lines.append(
+            f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
+            f"{cfg.epochs} epochs) in max_minutes = {budget.minutes:g}: about {duration(planned_s)} of "
+            f"training and validation from here, {duration(spent + planned_s)} in all"
+        )
     log_estimate(lines, hint)
-    return {"probe": probe.as_dict(), "seconds_per_iteration": round(costs.iteration, 4),
-            "validation_s": round(costs.validation, 2), "checkpoint_s": round(costs.checkpoint, 2),
-            "run_as_configured_s": round(total_s, 1), "planned_s": round(spent + planned_s, 1), "advice": hint}
+    return {
+        "probe": probe.as_dict(),
+        "seconds_per_iteration": round(costs.iteration, 4),
+        "validation_s": round(costs.validation, 2),
+        "checkpoint_s": round(costs.checkpoint, 2),
+        "run_as_configured_s": round(total_s, 1),
+        "planned_s": round(spent + planned_s, 1),
+        "advice": hint,
+    }
 
 
 def describe(job: Job, estimate: dict, reason: str | None) -> None:
@@ -68,9 +103,18 @@ def describe(job: Job, estimate: dict, reason: str | None) -> None:
     warning = schedule_warning(cfg, job.iters, plan.iters)
     if warning:
         log.warning(warning)
-    log.info("device %s%s, %s, %d trainable parameters, %d iterations per epoch, %d planned (warm-up %d)", job.device,
-             " (mixed precision)" if job.amp else "", job.model_cfg.architecture,
-             sum(p.numel() for p in job.core.parameters() if p.requires_grad), job.iters, plan.iters,
-             warmup_length(cfg, plan.iters))
-    job.extras.update(estimate=estimate, schedule_warning=warning,
-                      architecture={"chosen": job.model_cfg.architecture, "reason": reason or "as set"})
+    log.info(
+        "device %s%s, %s, %d trainable parameters, %d iterations per epoch, %d planned (warm-up %d)",
+        job.device,
+        " (mixed precision)" if job.amp else "",
+        job.model_cfg.architecture,
+        sum(p.numel() for p in job.core.parameters() if p.requires_grad),
+        job.iters,
+        plan.iters,
+        warmup_length(cfg, plan.iters),
+    )
+    job.extras.update(
+        estimate=estimate,
+        schedule_warning=warning,
+        architecture={"chosen": job.model_cfg.architecture, "reason": reason or "as set"},
+    )

@@ -19,24 +19,24 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.progress import duration
 from matchplant.detection.data import collate
 from matchplant.detection.model import keep_frozen_norms_fixed
-from matchplant.core.runtime.progress import duration
 from matchplant.model_train.budget import Budget, Costs
 
 log = get_logger("model_train")
 
-MORE = 3               # iterations timed after the first
-PROBE_CAP_S = 60.0     # the probe stops adding iterations after this long (or 5 % of the budget)
+MORE = 3  # iterations timed after the first
+PROBE_CAP_S = 60.0  # the probe stops adding iterations after this long (or 5 % of the budget)
 HEARTBEAT_S = 10.0
 
 
 @dataclass
 class Probe:
-    first_s: float             # the first iteration (allocation, warm-up)
-    iteration_s: float         # a steady iteration (median of the later ones; the first when it was alone)
-    iterations: int            # timed
-    load_s: float              # reading and augmenting one batch (main process)
+    first_s: float  # the first iteration (allocation, warm-up)
+    iteration_s: float  # a steady iteration (median of the later ones; the first when it was alone)
+    iterations: int  # timed
+    load_s: float  # reading and augmenting one batch (main process)
     inference_s_per_image: float
     peak_memory_mb: float
     batch: int
@@ -74,8 +74,17 @@ def _peak_memory_mb(device) -> float:
     return peak / 2**20 if sys.platform == "darwin" else peak / 2**10
 
 
-def probe_speed(model, dataset, batch_size: int, device, amp: bool, *, cap_s: float = PROBE_CAP_S,
-                num_workers: int = 0, run_iters: int | None = None) -> Probe:
+def probe_speed(
+    model,
+    dataset,
+    batch_size: int,
+    device,
+    amp: bool,
+    *,
+    cap_s: float = PROBE_CAP_S,
+    num_workers: int = 0,
+    run_iters: int | None = None,
+) -> Probe:
     """Time training iterations of a copy of ``model`` on the first ``batch_size`` tiles of ``dataset``: the
     first, a second (the steady speed; not when the first took over ``cap_s``), then up to ``MORE`` in all while
     the probe stays under ``cap_s`` and 5 % of the run (``run_iters`` iterations as long as the first)."""
@@ -98,9 +107,11 @@ def probe_speed(model, dataset, batch_size: int, device, amp: bool, *, cap_s: fl
         started = time.perf_counter()
         # a second iteration always, unless the first took longer than the cap: the first pays the warm-up, and
         # taken as the steady speed it made a 30-iteration run's estimate 1.5x the run (1.7x for 6 iterations)
-        while len(times) < 1 + MORE and (len(times) < 1 or (len(times) < 2 and times[0] <= cap_s) or
-                                         time.perf_counter() - started + times[-1] <= min(
-                                             cap_s, 0.05 * times[0] * (run_iters or 10**9))):
+        while len(times) < 1 + MORE and (
+            len(times) < 1
+            or (len(times) < 2 and times[0] <= cap_s)
+            or time.perf_counter() - started + times[-1] <= min(cap_s, 0.05 * times[0] * (run_iters or 10**9))
+        ):
             t = time.perf_counter()
             with torch.autocast(device_type=device.type, enabled=amp):
                 loss = sum(twin(images, targets).values())
@@ -125,9 +136,16 @@ def probe_speed(model, dataset, batch_size: int, device, amp: bool, *, cap_s: fl
         steady += load_s
     peak = _peak_memory_mb(device)
     del twin, opt
-    return Probe(first_s=times[0], iteration_s=steady, iterations=len(times), load_s=load_s,
-                 inference_s_per_image=inference, peak_memory_mb=peak, batch=batch_size,
-                 input_px=(int(input_px[1]), int(input_px[0])))
+    return Probe(
+        first_s=times[0],
+        iteration_s=steady,
+        iterations=len(times),
+        load_s=load_s,
+        inference_s_per_image=inference,
+        peak_memory_mb=peak,
+        batch=batch_size,
+        input_px=(int(input_px[1]), int(input_px[0])),
+    )
 
 
 def costs_from_probe(probe: Probe, n_val_images: int, n_params: int) -> Costs:
@@ -139,18 +157,30 @@ def costs_from_probe(probe: Probe, n_val_images: int, n_params: int) -> Costs:
     return Costs(iteration=probe.iteration_s, validation=validation, checkpoint=checkpoint)
 
 
-def estimate_lines(probe: Probe, costs: Costs, *, iters_per_epoch: int, epochs: int, architecture: str, device,
-                   val_every: int, validated: bool) -> tuple[list[str], float]:
+def estimate_lines(
+    probe: Probe,
+    costs: Costs,
+    *,
+    iters_per_epoch: int,
+    epochs: int,
+    architecture: str,
+    device,
+    val_every: int,
+    validated: bool,
+) -> tuple[list[str], float]:
     """The estimate logged before training, and the whole run's seconds as configured."""
     epoch_s = iters_per_epoch * costs.iteration + costs.checkpoint
     val_s = costs.validation if validated else 0.0
     total = epochs * epoch_s + (epochs // val_every + (epochs % val_every != 0)) * val_s
-    lines = [(
-        f"estimate ({architecture} on {device}, batch {probe.batch}, network input {probe.input_px[0]} x "
-        f"{probe.input_px[1]} px): first iteration {probe.first_s:.2f} s, then {costs.iteration:.2f} s per "
-        f"iteration ({probe.iterations} timed); {iters_per_epoch} iterations per epoch = {duration(epoch_s)} per "
-        f"epoch{f' + {duration(val_s)} validation' if validated else ''}; {epochs} epochs = {duration(total)}; peak "
-        f"memory {probe.peak_memory_mb / 1024:.1f} GiB")]
+    lines = [
+        (
+            f"estimate ({architecture} on {device}, batch {probe.batch}, network input {probe.input_px[0]} x "
+            f"{probe.input_px[1]} px): first iteration {probe.first_s:.2f} s, then {costs.iteration:.2f} s per "
+            f"iteration ({probe.iterations} timed); {iters_per_epoch} iterations per epoch = {duration(epoch_s)} per "
+            f"epoch{f' + {duration(val_s)} validation' if validated else ''}; {epochs} epochs = {duration(total)}; peak "
+            f"memory {probe.peak_memory_mb / 1024:.1f} GiB"
+        )
+    ]
     return lines, total
 
 
@@ -162,13 +192,20 @@ def advice(total_s: float, budget: Budget, device, architecture: str, fits_iters
     if device.type == "cpu":
         ways.append("use a CUDA GPU (device: auto picks it; often 20-50x faster)")
         if architecture not in ("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_resnet18_fpn_lite"):
-            ways.append("model.architecture: fasterrcnn_mobilenet_v3_large_fpn (or auto), several times faster on a CPU")
-        ways.append("a smaller model.min_size/max_size (time grows with the input's area; keep plants >= 24 px, "
-                    "see 'matchplant inspect')")
+            ways.append(
+                "model.architecture: fasterrcnn_mobilenet_v3_large_fpn (or auto), several times faster on a CPU"
+            )
+        ways.append(
+            "a smaller model.min_size/max_size (time grows with the input's area; keep plants >= 24 px, "
+            "see 'matchplant inspect')"
+        )
     ways.append("fewer epochs")
-    over = (f"the run as set takes about {duration(total_s)}, more than max_minutes = {budget.minutes:g}: only "
-            f"{fits_iters} of {total_iters} iterations fit (the schedule is fitted to them)" if budget.limited else
-            f"the run as set takes about {duration(total_s)} (no max_minutes set)")
+    over = (
+        f"the run as set takes about {duration(total_s)}, more than max_minutes = {budget.minutes:g}: only "
+        f"{fits_iters} of {total_iters} iterations fit (the schedule is fitted to them)"
+        if budget.limited
+        else f"the run as set takes about {duration(total_s)} (no max_minutes set)"
+    )
     return f"{over}; to train more in less time: {'; '.join(ways)}"
 
 

@@ -23,8 +23,8 @@ import numpy as np
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.detection.model import AUTO
 from matchplant.detection.checkpoint import read_checkpoint
+from matchplant.detection.model import AUTO
 
 log = get_logger("model_train")
 
@@ -39,17 +39,25 @@ def open_resume(cfg, ck_dir: Path, class_names: list[str]) -> dict | None:
         for p in old:
             p.unlink()
         if old:
-            log.info("resume: fresh: a new run in %s; the earlier run's %d checkpoint(s) were removed",
-                     cfg.output_dir, len(old))
+            log.info(
+                "resume: fresh: a new run in %s; the earlier run's %d checkpoint(s) were removed",
+                cfg.output_dir,
+                len(old),
+            )
         return None
     if not cfg.resume:
         if last.is_file():
-            log.info("%s holds an earlier run's checkpoints; this new run replaces them (resume: true would "
-                     "continue it)", ck_dir)
+            log.info(
+                "%s holds an earlier run's checkpoints; this new run replaces them (resume: true would continue it)",
+                ck_dir,
+            )
         return None
     if not last.is_file():
-        raise InputError("nothing to resume: no checkpoint of an earlier run here", path=last,
-                         fix="set output_dir to the crashed run's folder, or start without --resume")
+        raise InputError(
+            "nothing to resume: no checkpoint of an earlier run here",
+            path=last,
+            fix="set output_dir to the crashed run's folder, or start without --resume",
+        )
     ck = read_checkpoint(last)
     check_resumable(cfg, ck, class_names, last)
     return ck
@@ -57,12 +65,17 @@ def open_resume(cfg, ck_dir: Path, class_names: list[str]) -> dict | None:
 
 def check_resumable(cfg, ck: dict, class_names: list[str], path: Path) -> None:
     """Refuse to resume a run whose classes or model settings differ from the config's."""
-    ways = ("start a new run with --fresh (resume: fresh; it replaces the checkpoints in output_dir), or set "
-            "another output_dir")
+    ways = (
+        "start a new run with --fresh (resume: fresh; it replaces the checkpoints in output_dir), or set "
+        "another output_dir"
+    )
     if ck.get("class_names") != class_names:
-        raise ConfigError(f"cannot resume: the checkpoint's classes {ck.get('class_names')} differ from the "
-                          f"training set's {class_names}", path=path,
-                          fix=f"resume with the same dataset, or {ways}")
+        raise ConfigError(
+            f"cannot resume: the checkpoint's classes {ck.get('class_names')} differ from the "
+            f"training set's {class_names}",
+            path=path,
+            fix=f"resume with the same dataset, or {ways}",
+        )
     saved = ck.get("model_config") or {}
     for key in CHECKED:
         now = getattr(cfg.model, key)
@@ -70,12 +83,15 @@ def check_resumable(cfg, ck: dict, class_names: list[str], path: Path) -> None:
             log.info("model.architecture: auto; the resumed run keeps its %s", saved.get(key))
             continue
         if saved.get(key) is not None and saved.get(key) != now:
-            raise ConfigError(f"cannot resume: model.{key} is {now} but the run in this folder was trained with "
-                              f"{saved.get(key)}", path=path,
-                              fix=f"set model.{key}: {saved.get(key)} to continue it, or {ways}")
+            raise ConfigError(
+                f"cannot resume: model.{key} is {now} but the run in this folder was trained with {saved.get(key)}",
+                path=path,
+                fix=f"set model.{key}: {saved.get(key)} to continue it, or {ways}",
+            )
     if ck.get("epoch", 0) >= cfg.epochs and not ck.get("epoch_progress"):
-        log.warning("the run in %s already finished its %d epochs; raise 'epochs' to train longer",
-                    cfg.output_dir, ck["epoch"])
+        log.warning(
+            "the run in %s already finished its %d epochs; raise 'epochs' to train longer", cfg.output_dir, ck["epoch"]
+        )
 
 
 def random_state(device) -> dict:
@@ -115,8 +131,10 @@ class StopOnInterrupt:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        log.warning("Ctrl-C: stopping after this iteration and writing a checkpoint that --resume continues "
-                    "from (Ctrl-C again stops at once, without it)")
+        log.warning(
+            "Ctrl-C: stopping after this iteration and writing a checkpoint that --resume continues "
+            "from (Ctrl-C again stops at once, without it)"
+        )
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():

@@ -32,7 +32,8 @@ classes is fine), ``freeze`` and ``trainable_backbone_layers`` freeze parts, ``l
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from matchplant.model_train.budget import Budget
 from matchplant.model_train.checkpoint import restore
@@ -46,8 +47,12 @@ from matchplant.model_train.setup import build_optimizer, build_scheduler, set_u
 __all__ = ["build_optimizer", "build_scheduler", "lr_factor", "run", "train"]
 
 
-def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | None = None,
-          on_iteration: Callable[[int], Any] | None = None) -> dict:
+def train(
+    cfg: ModelTrainConfig,
+    *,
+    on_epoch_end: Callable[[int, dict], Any] | None = None,
+    on_iteration: Callable[[int], Any] | None = None,
+) -> dict:
     """Train as configured; returns the training summary (also written as training_summary.json).
 
     ``on_epoch_end(epoch, record)`` is called after each epoch's checkpoints are written,
@@ -57,8 +62,13 @@ def train(cfg: ModelTrainConfig, *, on_epoch_end: Callable[[int, dict], Any] | N
     job, resume, chosen = set_up(cfg, budget)
     job.on_epoch_end, job.on_iteration = on_epoch_end, on_iteration
     state = restore(job, resume)
-    estimate = probe_and_plan(job, state, resume is not None and budget.plan.fitted, probe=chosen["probe"],
-                              size_validation=chosen["size_validation"])
+    estimate = probe_and_plan(
+        job,
+        state,
+        resume is not None and budget.plan.fitted,
+        probe=chosen["probe"],
+        size_validation=chosen["size_validation"],
+    )
     describe(job, estimate, chosen["reason"])
     budget.stop_flag = StopOnInterrupt()
     reason = loop(job, state)

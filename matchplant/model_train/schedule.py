@@ -37,8 +37,8 @@ def lr_factor(cfg, iteration: int, iters_per_epoch: int, planned: int | None = N
     """The learning-rate multiplier at a (0-based) iteration of a run planned for ``planned`` iterations
     (default: ``epochs`` x ``iters_per_epoch``): warm-up times the schedule."""
     planned = planned_iterations(cfg, iters_per_epoch, planned)
-    p = iteration / planned                   # the fraction of the plan done
-    epoch = p * cfg.epochs                    # ... as an epoch of the configured run
+    p = iteration / planned  # the fraction of the plan done
+    epoch = p * cfg.epochs  # ... as an epoch of the configured run
     if cfg.schedule == "step":
         f = cfg.gamma ** math.floor(epoch / cfg.step_size + 1e-9)
     elif cfg.schedule == "multistep":
@@ -73,7 +73,9 @@ def schedule_warning(cfg, iters_per_epoch: int, planned: int | None = None) -> s
     if peak >= 0.99:
         return None
     warmup = warmup_length(cfg, planned)
-    return (f"the learning rate never reaches its nominal value: it peaks at {100 * peak:.1f} % of lr.* over the "
-            f"{planned} planned iterations ({iters_per_epoch} per epoch; warm-up {warmup} iterations"
-            f"{', longer than the run' if warmup >= planned else ''}); set warmup_iters: null to scale the "
-            f"warm-up with the run (warmup_fraction {cfg.warmup_fraction:g}), or lower warmup_iters")
+    return (
+        f"the learning rate never reaches its nominal value: it peaks at {100 * peak:.1f} % of lr.* over the "
+        f"{planned} planned iterations ({iters_per_epoch} per epoch; warm-up {warmup} iterations"
+        f"{', longer than the run' if warmup >= planned else ''}); set warmup_iters: null to scale the "
+        f"warm-up with the run (warmup_fraction {cfg.warmup_fraction:g}), or lower warmup_iters"
+    )

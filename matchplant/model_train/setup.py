@@ -12,17 +12,30 @@ import numpy as np
 
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection.checkpoint import load_matching_weights
 from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.data import CocoDetection, EpochSampler, check_disjoint, collate
 from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import Shard, join, world_size
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.geometry import training_geometry
-from matchplant.detection.model import AUTO, apply_freezing, backbone_stages, build_detector, model_config_from_dict, parameter_groups, resolve_auto_anchors
-from matchplant.detection.checkpoint import load_matching_weights
+from matchplant.detection.model import (
+    AUTO,
+    apply_freezing,
+    backbone_stages,
+    build_detector,
+    model_config_from_dict,
+    parameter_groups,
+    resolve_auto_anchors,
+)
 from matchplant.model_train.budget import Budget, Plan, validation_report
 from matchplant.model_train.choose import (
-    choose_architecture, cpu_proposals, resumed_recipe, scratch_recipe, scratch_settings)
+    choose_architecture,
+    cpu_proposals,
+    resumed_recipe,
+    scratch_recipe,
+    scratch_settings,
+)
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.resume import ignore_sigint, open_resume
 from matchplant.model_train.schedule import lr_factor
@@ -46,7 +59,8 @@ def build_scheduler(cfg: ModelTrainConfig, optimizer, iters_per_epoch: int, plan
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     return torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch, plan.iters if plan else None))
+        optimizer, lambda it: lr_factor(cfg, it, iters_per_epoch, plan.iters if plan else None)
+    )
 
 
 def init_distributed(cfg: ModelTrainConfig):
@@ -72,13 +86,23 @@ def load_data(cfg: ModelTrainConfig):
     """``(training set, validation set or None, the validation set's report)``, logged."""
     train_ds = CocoDetection(cfg.train_json, cfg.train_images, augment=cfg.augment)
     class_names = train_ds.class_names
-    val_ds = CocoDetection(cfg.val_json, cfg.val_images, class_names=class_names,
-                           classes_from=f"the training set {cfg.train_json}") if cfg.val_json else None
+    val_ds = (
+        CocoDetection(
+            cfg.val_json, cfg.val_images, class_names=class_names, classes_from=f"the training set {cfg.train_json}"
+        )
+        if cfg.val_json
+        else None
+    )
     if val_ds is not None:
         check_disjoint(train_ds, val_ds)  # validation on training tiles would measure memory, not skill
     n_neg = sum(1 for im in train_ds.images if not train_ds.anns.get(im["id"]))
-    log.info("training tiles: %d (%d without plants, kept as negatives); validation tiles: %s; classes: %s",
-             len(train_ds), n_neg, len(val_ds) if val_ds else "none", ", ".join(class_names))
+    log.info(
+        "training tiles: %d (%d without plants, kept as negatives); validation tiles: %s; classes: %s",
+        len(train_ds),
+        n_neg,
+        len(val_ds) if val_ds else "none",
+        ", ".join(class_names),
+    )
     return train_ds, val_ds, validation_report(val_ds.data if val_ds is not None else None)
 
 
@@ -86,10 +110,15 @@ def open_run(cfg: ModelTrainConfig, ck_dir: Path, class_names: list[str], iters:
     """The checkpoint to resume from (logged), or None for a new run."""
     resume = open_resume(cfg, ck_dir, class_names)
     if resume is not None:
-        log.info("resuming %s after %d iteration(s) (epoch %d%s)", ck_dir / "last.pt",
-                 resume.get("iteration", resume["epoch"] * iters), resume["epoch"],
-                 f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
-                 if resume.get("epoch_progress") else " done")
+        log.info(
+            "resuming %s after %d iteration(s) (epoch %d%s)",
+            ck_dir / "last.pt",
+            resume.get("iteration", resume["epoch"] * iters),
+            resume["epoch"],
+            f", {resume['epoch_progress']['batches']} batch(es) into epoch {resume['epoch'] + 1}"
+            if resume.get("epoch_progress")
+            else " done",
+        )
     return resume
 
 
@@ -120,8 +149,9 @@ def choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int, bud
         sized = "; ".join(filter(None, (sized, recipe))) or None
         if sized:
             log.info("model.architecture: auto on the CPU -> %s", sized)
-    arch, why, probe = choose_architecture(cfg, model_cfg, device, train_ds, len(train_ds.class_names), total,
-                                           cfg.train_json, budget)
+    arch, why, probe = choose_architecture(
+        cfg, model_cfg, device, train_ds, len(train_ds.class_names), total, cfg.train_json, budget
+    )
     log.info("model.architecture: auto -> %s (%s)", arch, why)
     why = f"{why}; {sized}" if sized else why
     return dataclasses.replace(cfg, model=dataclasses.replace(model_cfg, architecture=arch)), probe, why
@@ -141,16 +171,24 @@ def initial_model(cfg: ModelTrainConfig, class_names: list[str], resume: dict | 
         if cfg.model.architecture == AUTO:
             log.info("model.architecture: auto -> %s, the architecture of model.checkpoint", src_cfg["architecture"])
         elif src_cfg["architecture"] != cfg.model.architecture:
-            raise ConfigError(f"model.checkpoint is a {src_cfg['architecture']} but model.architecture is "
-                              f"{cfg.model.architecture}", path=cfg.model.checkpoint,
-                              fix=f"set model.architecture: {src_cfg['architecture']} (or auto)")
-        mcfg = dataclasses.replace(cfg.model, architecture=src_cfg["architecture"], pretrained=src_cfg["pretrained"],
-                                   checkpoint=None)
+            raise ConfigError(
+                f"model.checkpoint is a {src_cfg['architecture']} but model.architecture is {cfg.model.architecture}",
+                path=cfg.model.checkpoint,
+                fix=f"set model.architecture: {src_cfg['architecture']} (or auto)",
+            )
+        mcfg = dataclasses.replace(
+            cfg.model, architecture=src_cfg["architecture"], pretrained=src_cfg["pretrained"], checkpoint=None
+        )
         mcfg = resolve_auto_anchors(mcfg, cfg.train_json)  # anchor_sizes: auto -> from the training boxes
         model = build_detector(mcfg, len(class_names) + 1, load_weights=False)
         loaded, skipped = load_matching_weights(model, src["model_state"])
-        log.info("transfer learning from %s: %d tensors loaded, %d new (%s)", cfg.model.checkpoint, len(loaded),
-                 len(skipped), ", ".join(sorted({k.rsplit(".", 2)[0] for k in skipped})) or "none")
+        log.info(
+            "transfer learning from %s: %d tensors loaded, %d new (%s)",
+            cfg.model.checkpoint,
+            len(loaded),
+            len(skipped),
+            ", ".join(sorted({k.rsplit(".", 2)[0] for k in skipped})) or "none",
+        )
         return model, mcfg
     mcfg = resolve_auto_anchors(dataclasses.replace(cfg.model, checkpoint=None), cfg.train_json)
     return build_detector(mcfg, len(class_names) + 1), mcfg
@@ -166,21 +204,29 @@ def build_model(cfg: ModelTrainConfig, train_ds, resume: dict | None, device, di
         skip_training_resize(model)
     # what module 7 needs to detect as trained: tile size, input scale, classes, plant sizes
     geometry = training_geometry(train_ds.data, model_cfg.min_size, model_cfg.max_size, train_ds.class_names)
-    log.info("training geometry: %s px tiles, detector input x%s, median plant %s px in the detector's input",
-             geometry["tile_size"], geometry["input_scale"], geometry["objects_input_px"])
+    log.info(
+        "training geometry: %s px tiles, detector input x%s, median plant %s px in the detector's input",
+        geometry["tile_size"],
+        geometry["input_scale"],
+        geometry["objects_input_px"],
+    )
     trainable = cfg.trainable_backbone_layers
     n_stages = len(backbone_stages(model, model_cfg.architecture))
     if model_cfg.pretrained == "none" and cfg.model.checkpoint is None and trainable < n_stages:
         # as torchvision does: freezing random weights makes no sense
-        log.warning("model.pretrained is none: all %d backbone stages are trained (trainable_backbone_layers "
-                    "applies to pretrained weights)", n_stages)
+        log.warning(
+            "model.pretrained is none: all %d backbone stages are trained (trainable_backbone_layers "
+            "applies to pretrained weights)",
+            n_stages,
+        )
         trainable = n_stages
     apply_freezing(model, model_cfg.architecture, trainable, cfg.freeze)
     model.to(device)
     core = model
     if dist_info.world > 1:
         model = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None)
+            model, device_ids=[device.index] if device.type == "cuda" else None
+        )
     return model, core, model_cfg, geometry
 
 
@@ -191,9 +237,16 @@ def build_loader(cfg: ModelTrainConfig, train_ds, sampler, device):
     # the loader's own generator: the workers' seeds do not draw from the process's random state
     generator = torch.Generator()
     generator.manual_seed(cfg.seed)
-    return DataLoader(train_ds, batch_size=cfg.batch_size, sampler=sampler, num_workers=cfg.num_workers,
-                      collate_fn=collate, generator=generator, pin_memory=device.type == "cuda",
-                      worker_init_fn=ignore_sigint if cfg.num_workers else None)
+    return DataLoader(
+        train_ds,
+        batch_size=cfg.batch_size,
+        sampler=sampler,
+        num_workers=cfg.num_workers,
+        collate_fn=collate,
+        generator=generator,
+        pin_memory=device.type == "cuda",
+        worker_init_fn=ignore_sigint if cfg.num_workers else None,
+    )
 
 
 def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dict]:
@@ -213,9 +266,24 @@ def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dic
     resume = open_run(cfg, out / "checkpoints", train_ds.class_names, iters)
     cfg, probe, reason, size_validation = settle_config(cfg, device, train_ds, iters, resume, budget)
     model, core, model_cfg, geometry = build_model(cfg, train_ds, resume, device, dist_info)
-    job = Job(cfg=cfg, budget=budget, out=out, device=device, dist_info=dist_info, train_ds=train_ds, val_ds=val_ds,
-              class_names=train_ds.class_names, validation=validation, model=model, core=core, model_cfg=model_cfg,
-              geometry=geometry, sampler=sampler, loader=build_loader(cfg, train_ds, sampler, device), iters=iters)
+    job = Job(
+        cfg=cfg,
+        budget=budget,
+        out=out,
+        device=device,
+        dist_info=dist_info,
+        train_ds=train_ds,
+        val_ds=val_ds,
+        class_names=train_ds.class_names,
+        validation=validation,
+        model=model,
+        core=core,
+        model_cfg=model_cfg,
+        geometry=geometry,
+        sampler=sampler,
+        loader=build_loader(cfg, train_ds, sampler, device),
+        iters=iters,
+    )
     job.optimizer = build_optimizer(cfg, core)
     plan = budget.plan_for(cfg.epochs * iters, iters)
     job.scheduler = build_scheduler(cfg, job.optimizer, iters, plan)

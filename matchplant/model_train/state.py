@@ -5,9 +5,10 @@ instead of two dozen arguments; a GPU variant of a part reads the same records."
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from matchplant.model_train.budget import Budget
 from matchplant.model_train.config import ModelTrainConfig
@@ -26,13 +27,13 @@ class Job:
     val_ds: Any
     class_names: list[str]
     validation: dict
-    model: Any                 # what trains (DistributedDataParallel under torchrun)
-    core: Any                  # the detector itself (saved, validated)
+    model: Any  # what trains (DistributedDataParallel under torchrun)
+    core: Any  # the detector itself (saved, validated)
     model_cfg: Any
     geometry: dict
     sampler: Any
     loader: Any
-    iters: int                 # iterations per epoch
+    iters: int  # iterations per epoch
     optimizer: Any = None
     scheduler: Any = None
     scaler: Any = None
@@ -50,9 +51,9 @@ class Job:
 class TrainState:
     """What training has done so far (saved in every checkpoint, restored on resume)."""
 
-    done: int = 0                                  # iterations
+    done: int = 0  # iterations
     history: list[dict] = field(default_factory=list)
     best: dict = field(default_factory=lambda: {"epoch": None, "value": None})
-    progress: dict | None = None                   # resumed mid-epoch: {"batches", "sums"} of that epoch
-    rng: dict | None = None                        # ... and the random state it stopped with
-    stop_rng: dict | None = None                   # the random state where the last epoch stopped (partial epochs)
+    progress: dict | None = None  # resumed mid-epoch: {"batches", "sums"} of that epoch
+    rng: dict | None = None  # ... and the random state it stopped with
+    stop_rng: dict | None = None  # the random state where the last epoch stopped (partial epochs)

@@ -5,4 +5,4 @@ The face of every step: ``config`` (its settings), ``run`` (``run(cfg)``)."""
 from matchplant.odm_runner.config import OdmRunnerConfig
 from matchplant.odm_runner.run import run
 
-__all__ = ['OdmRunnerConfig', 'run']
+__all__ = ["OdmRunnerConfig", "run"]

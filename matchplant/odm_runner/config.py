@@ -32,13 +32,20 @@ class ODMOptions:
 
     dsm: bool = param(True, "build odm_dem/dsm.tif (--dsm); modules 3 and 8 need it")
     dtm: bool = param(True, "build odm_dem/dtm.tif (--dtm); plant height in module 9 needs it")
-    orthophoto_resolution: float = param(0.5, "orthophoto resolution in cm/pixel (--orthophoto-resolution); "
-                                              "ODM never goes finer than the images' ground sampling distance",
-                                         min=0.01)
-    dem_resolution: float | None = param(None, "DSM/DTM resolution in cm/pixel (--dem-resolution); "
-                                               "empty: ODM's default", min=0.01)
-    extra: dict = param({}, "more ODM options as 'name: value' (true for a flag), e.g. "
-                            "{feature-quality: high, pc-quality: medium}; see docs.opendronemap.org/arguments")
+    orthophoto_resolution: float = param(
+        0.5,
+        "orthophoto resolution in cm/pixel (--orthophoto-resolution); "
+        "ODM never goes finer than the images' ground sampling distance",
+        min=0.01,
+    )
+    dem_resolution: float | None = param(
+        None, "DSM/DTM resolution in cm/pixel (--dem-resolution); empty: ODM's default", min=0.01
+    )
+    extra: dict = param(
+        {},
+        "more ODM options as 'name: value' (true for a flag), e.g. "
+        "{feature-quality: high, pc-quality: medium}; see docs.opendronemap.org/arguments",
+    )
 
 
 @dataclass
@@ -70,27 +77,38 @@ class OdmRunnerConfig:
 
     writes_into_inputs = ("output_dir",)  # a user may still keep the manifest in the project folder, as before
 
-    project_dir: Path = param(None, "ODM project folder; the images go in its images/ subfolder",
-                              path="dir", required=True)
-    images_dir: Path | None = param(None, "folder of the images if not <project_dir>/images "
-                                          "(mounted or uploaded as the project's images)", path="dir")
-    gcp_file: Path | None = param(None, "gcp_list.txt to use; empty: gcp_list.txt in the images folder or "
-                                        "the project folder when present", path="file")
+    project_dir: Path = param(
+        None, "ODM project folder; the images go in its images/ subfolder", path="dir", required=True
+    )
+    images_dir: Path | None = param(
+        None,
+        "folder of the images if not <project_dir>/images (mounted or uploaded as the project's images)",
+        path="dir",
+    )
+    gcp_file: Path | None = param(
+        None,
+        "gcp_list.txt to use; empty: gcp_list.txt in the images folder or the project folder when present",
+        path="file",
+    )
     use_gcp: bool = param(True, "use the GCP file (false: georeference from the images' GPS only)")
-    backend: Literal["docker", "nodeodm"] = param("docker", "where ODM runs",
-                                                  choices=["docker", "nodeodm"])
+    backend: Literal["docker", "nodeodm"] = param("docker", "where ODM runs", choices=["docker", "nodeodm"])
     check_only: bool = param(False, "do not run ODM; only check an existing project and write the manifest")
     odm: ODMOptions = section(ODMOptions)
     docker: DockerSettings = section(DockerSettings)
     nodeodm: NodeODMSettings = section(NodeODMSettings)
     # ODM's own outputs always land in project_dir (that is what ODM does); MatchPlant's files go here, like
     # every other step's, so that the ODM project holds only ODM's files
-    output_dir: Path = param(Path("runs/odm_runner"), "where the manifest, logs and NodeODM task state go "
-                                                      "(ODM's own outputs are written into project_dir)", path="out")
+    output_dir: Path = param(
+        Path("runs/odm_runner"),
+        "where the manifest, logs and NodeODM task state go (ODM's own outputs are written into project_dir)",
+        path="out",
+    )
 
     def check(self) -> None:
         for name in self.odm.extra:
             key = str(name).lstrip("-")
             if key in FORBIDDEN_OPTIONS:
-                raise ConfigError(f"config key 'odm.extra' must not set '{key}': {FORBIDDEN_OPTIONS[key]}",
-                                  fix=f"remove '{key}' from odm.extra")
+                raise ConfigError(
+                    f"config key 'odm.extra' must not set '{key}': {FORBIDDEN_OPTIONS[key]}",
+                    fix=f"remove '{key}' from odm.extra",
+                )

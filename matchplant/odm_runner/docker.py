@@ -15,8 +15,8 @@ import subprocess
 import sys
 import time
 from collections import deque
+from collections.abc import Sequence
 from pathlib import Path, PurePath, PurePosixPath, PureWindowsPath
-from typing import Sequence
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError
 from matchplant.core.runtime.log import get_logger
@@ -25,12 +25,18 @@ from matchplant.odm_runner.inputs import find_gcp_file, odm_arguments, odm_image
 
 log = get_logger("odm_runner")
 
-CONTAINER_ROOT = "/datasets"           # ODM's --project-path inside the container
-CONTAINER_PROJECT = "/datasets/code"   # the project folder as ODM sees it ("code" is ODM's default name)
+CONTAINER_ROOT = "/datasets"  # ODM's --project-path inside the container
+CONTAINER_PROJECT = "/datasets/code"  # the project folder as ODM sees it ("code" is ODM's default name)
 
 
-def docker_command(cfg: OdmRunnerConfig, *, platform: str | None = None, uid: int | None = None,
-                   gid: int | None = None, gcp_file: str | PurePath | None = None) -> list[str]:
+def docker_command(
+    cfg: OdmRunnerConfig,
+    *,
+    platform: str | None = None,
+    uid: int | None = None,
+    gid: int | None = None,
+    gcp_file: str | PurePath | None = None,
+) -> list[str]:
     """The ``docker run`` argument list for this configuration (pure: no file or process is touched).
 
     ``platform`` is ``sys.platform`` by default (``win32`` formats Windows host paths); ``uid``/``gid``
@@ -44,8 +50,7 @@ def docker_command(cfg: OdmRunnerConfig, *, platform: str | None = None, uid: in
     def host_path(p: str | PurePath) -> str:
         text = str(host(str(p)))
         if not windows and ":" in text:
-            raise ConfigError(f"Docker cannot mount a path containing ':': {text}",
-                              fix="rename the folder without ':'")
+            raise ConfigError(f"Docker cannot mount a path containing ':': {text}", fix="rename the folder without ':'")
         return text
 
     def inside(p: str | PurePath, root: str | PurePath) -> str | None:
@@ -83,20 +88,24 @@ def check_docker(command: str = "docker") -> str:
     """Raise DependencyError unless Docker is installed and its engine answers; return the program path."""
     exe = shutil.which(command)
     if exe is None:
-        raise DependencyError(f"Docker was not found ('{command}' is not on PATH)",
-                              fix="install Docker Desktop (Windows, macOS) or Docker Engine (Linux), "
-                                  "or use backend: nodeodm with a NodeODM server")
+        raise DependencyError(
+            f"Docker was not found ('{command}' is not on PATH)",
+            fix="install Docker Desktop (Windows, macOS) or Docker Engine (Linux), "
+            "or use backend: nodeodm with a NodeODM server",
+        )
     try:
-        res = subprocess.run([exe, "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True,
-                             timeout=60)
+        res = subprocess.run(
+            [exe, "info", "--format", "{{.ServerVersion}}"], capture_output=True, text=True, timeout=60
+        )
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise DependencyError(f"cannot run '{exe} info': {exc}", fix="check the Docker installation") from exc
     if res.returncode != 0:
         detail = (res.stderr or res.stdout).strip().splitlines()
-        raise DependencyError("Docker is installed but its engine is not running"
-                              + (f" ({detail[-1]})" if detail else ""),
-                              fix="start Docker Desktop, or on Linux 'sudo systemctl start docker' "
-                                  "(and add yourself to the 'docker' group)")
+        raise DependencyError(
+            "Docker is installed but its engine is not running" + (f" ({detail[-1]})" if detail else ""),
+            fix="start Docker Desktop, or on Linux 'sudo systemctl start docker' "
+            "(and add yourself to the 'docker' group)",
+        )
     return exe
 
 
@@ -111,8 +120,15 @@ def run_streaming(argv: Sequence[str], log_path: Path, *, tail: int = 30) -> tup
     with open(log_path, "a", encoding="utf-8") as fh:
         fh.write(f"# {_dt.datetime.now().isoformat(timespec='seconds')} {subprocess.list2cmdline(argv)}\n")
         try:
-            proc = subprocess.Popen(list(argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, text=True, errors="replace", bufsize=1)
+            proc = subprocess.Popen(
+                list(argv),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                text=True,
+                errors="replace",
+                bufsize=1,
+            )
         except OSError as exc:
             raise DependencyError(f"cannot start '{argv[0]}': {exc}", fix="check the docker.command setting") from exc
         try:
@@ -143,8 +159,17 @@ def run_docker(cfg: OdmRunnerConfig) -> dict:
     code, last = run_streaming(argv, log_path)
     if code != 0:
         tail = "\n".join("    " + ln for ln in last[-15:])
-        raise ODMRunError(f"OpenDroneMap stopped with exit code {code}; the end of its log:\n{tail}",
-                          path=log_path, fix="read the log above; common causes: too little memory "
-                                             "(give Docker more), too few matching images, a bad gcp_list.txt")
-    return {"backend": "docker", "command": argv, "exit_code": code, "gcp_file": str(gcp) if gcp else None,
-            "seconds": round(time.time() - start, 1), "log": str(log_path)}
+        raise ODMRunError(
+            f"OpenDroneMap stopped with exit code {code}; the end of its log:\n{tail}",
+            path=log_path,
+            fix="read the log above; common causes: too little memory "
+            "(give Docker more), too few matching images, a bad gcp_list.txt",
+        )
+    return {
+        "backend": "docker",
+        "command": argv,
+        "exit_code": code,
+        "gcp_file": str(gcp) if gcp else None,
+        "seconds": round(time.time() - start, 1),
+        "log": str(log_path),
+    }

@@ -19,8 +19,13 @@ def images_folder(cfg: OdmRunnerConfig) -> Path:
 
 def odm_images(cfg: OdmRunnerConfig) -> list[Path]:
     """The images ODM will get; fewer than 2 is an error now rather than after ODM has started."""
-    return list_images(images_folder(cfg), ODM_SUFFIXES, key="images_dir", min_count=2,
-                       fix="put the flight's overlapping images (JPG/TIF) in <project_dir>/images, or set images_dir")
+    return list_images(
+        images_folder(cfg),
+        ODM_SUFFIXES,
+        key="images_dir",
+        min_count=2,
+        fix="put the flight's overlapping images (JPG/TIF) in <project_dir>/images, or set images_dir",
+    )
 
 
 def find_gcp_file(cfg: OdmRunnerConfig) -> Path | None:

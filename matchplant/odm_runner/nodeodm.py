@@ -27,28 +27,41 @@ from matchplant.odm_runner.inputs import find_gcp_file, odm_images, odm_option_d
 log = get_logger("odm_runner")
 
 # what NodeODM must put in all.zip (its default leaves out opensfm/, which modules 3 and 8 need)
-NODEODM_OUTPUTS = ["opensfm/reconstruction.json", "opensfm/reconstruction.topocentric.json",
-                   "opensfm/undistorted/reconstruction.json", "opensfm/undistorted/images",
-                   "odm_dem", "odm_orthophoto", "odm_georeferencing", "odm_report", "images.json"]
+NODEODM_OUTPUTS = [
+    "opensfm/reconstruction.json",
+    "opensfm/reconstruction.topocentric.json",
+    "opensfm/undistorted/reconstruction.json",
+    "opensfm/undistorted/images",
+    "odm_dem",
+    "odm_orthophoto",
+    "odm_georeferencing",
+    "odm_report",
+    "images.json",
+]
 
 
 def _node(settings: NodeODMSettings):
     try:
         node = Node.from_url(settings.url, timeout=settings.timeout)
     except Exception as exc:  # noqa: BLE001 - pyodm raises plain exceptions for bad URLs
-        raise ConfigError(f"config key 'nodeodm.url' is not a valid address: {settings.url!r} ({exc})",
-                          fix="write it as http://HOST:PORT, e.g. http://localhost:3000") from exc
+        raise ConfigError(
+            f"config key 'nodeodm.url' is not a valid address: {settings.url!r} ({exc})",
+            fix="write it as http://HOST:PORT, e.g. http://localhost:3000",
+        ) from exc
     node.token = settings.token or ""
     return node
 
 
 def _node_error(exc: Exception, settings: NodeODMSettings) -> MatchPlantError:
     if isinstance(exc, NodeConnectionError):
-        return DependencyError(f"cannot reach the NodeODM server at {settings.url} ({exc})",
-                               fix="start it (docker run -p 3000:3000 opendronemap/nodeodm) or correct nodeodm.url")
+        return DependencyError(
+            f"cannot reach the NodeODM server at {settings.url} ({exc})",
+            fix="start it (docker run -p 3000:3000 opendronemap/nodeodm) or correct nodeodm.url",
+        )
     if isinstance(exc, NodeResponseError):
-        return ODMRunError(f"the NodeODM server refused the request: {exc}",
-                           fix="check nodeodm.token and the ODM options")
+        return ODMRunError(
+            f"the NodeODM server refused the request: {exc}", fix="check nodeodm.token and the ODM options"
+        )
     return ODMRunError(f"NodeODM error: {type(exc).__name__}: {exc}", fix="check the server's log")
 
 
@@ -75,8 +88,14 @@ def run_nodeodm(cfg: OdmRunnerConfig) -> dict:
     start = time.time()
     try:
         info = node.info()
-        log.info("NodeODM %s at %s (engine %s %s, %s tasks queued)", info.version, settings.url, info.engine,
-                 info.engine_version, info.task_queue_count)
+        log.info(
+            "NodeODM %s at %s (engine %s %s, %s tasks queued)",
+            info.version,
+            settings.url,
+            info.engine,
+            info.engine_version,
+            info.task_queue_count,
+        )
         task = None
         if settings.resume and state_path.is_file():
             state = read_json(state_path)
@@ -95,14 +114,29 @@ def run_nodeodm(cfg: OdmRunnerConfig) -> dict:
             gcp = find_gcp_file(cfg)
             files = [str(p) for p in images] + ([str(gcp)] if gcp else [])
             bar, uploaded = percent_bar("upload")
-            task = node.create_task(files, options, name=Path(cfg.project_dir).name, progress_callback=uploaded,
-                                    outputs=NODEODM_OUTPUTS, parallel_uploads=settings.parallel_uploads)
+            task = node.create_task(
+                files,
+                options,
+                name=Path(cfg.project_dir).name,
+                progress_callback=uploaded,
+                outputs=NODEODM_OUTPUTS,
+                parallel_uploads=settings.parallel_uploads,
+            )
             bar.close()
-            write_json(state_path, {"uuid": task.uuid, "url": settings.url, "options": options,
-                                    "images": len(images), "gcp_file": str(gcp) if gcp else None,
-                                    "created": _dt.datetime.now().isoformat(timespec="seconds")})
-            log.info("NodeODM task %s created with %d images; its id is saved in %s", task.uuid, len(images),
-                     state_path)
+            write_json(
+                state_path,
+                {
+                    "uuid": task.uuid,
+                    "url": settings.url,
+                    "options": options,
+                    "images": len(images),
+                    "gcp_file": str(gcp) if gcp else None,
+                    "created": _dt.datetime.now().isoformat(timespec="seconds"),
+                },
+            )
+            log.info(
+                "NodeODM task %s created with %d images; its id is saved in %s", task.uuid, len(images), state_path
+            )
         _wait(task, settings.poll_seconds)
         log.info("downloading the results into %s", cfg.project_dir)
         _download(task, Path(cfg.project_dir))
@@ -115,8 +149,14 @@ def run_nodeodm(cfg: OdmRunnerConfig) -> dict:
         raise _node_error(exc, settings) from exc
     except OSError as exc:
         raise _node_error(exc, settings) from exc
-    return {"backend": "nodeodm", "url": settings.url, "task": task.uuid, "options": options,
-            "seconds": round(time.time() - start, 1), "state_file": str(state_path)}
+    return {
+        "backend": "nodeodm",
+        "url": settings.url,
+        "task": task.uuid,
+        "options": options,
+        "seconds": round(time.time() - start, 1),
+        "state_file": str(state_path),
+    }
 
 
 def _wait(task, poll_seconds: float) -> None:
@@ -136,9 +176,10 @@ def _wait(task, poll_seconds: float) -> None:
                 tail = "\n".join("    " + ln for ln in (task.output(-15) or []))
             except Exception:  # noqa: BLE001 - the log is a courtesy; the failure is what matters
                 tail = ""
-            raise ODMRunError(f"the NodeODM task {task.uuid} {info.status.name.lower()}: {info.last_error}\n{tail}",
-                              fix="read the task's log in NodeODM/WebODM; fix the cause and run again "
-                                  "(a failed task is not resumed)")
+            raise ODMRunError(
+                f"the NodeODM task {task.uuid} {info.status.name.lower()}: {info.last_error}\n{tail}",
+                fix="read the task's log in NodeODM/WebODM; fix the cause and run again (a failed task is not resumed)",
+            )
         time.sleep(poll_seconds)
     bar.close()
 

@@ -7,9 +7,10 @@
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import rasterio
 
@@ -25,8 +26,15 @@ from matchplant.odm_runner.config import OdmRunnerConfig
 from matchplant.odm_runner.inputs import odm_option_dict
 
 # outputs modules 3, 8 and 9 read (docs/DESIGN.md §2); the topocentric copy is optional
-REQUIRED_OUTPUTS = ("reconstruction", "undistorted_reconstruction", "undistorted_images", "dsm", "dtm",
-                    "orthophoto", "coords")
+REQUIRED_OUTPUTS = (
+    "reconstruction",
+    "undistorted_reconstruction",
+    "undistorted_images",
+    "dsm",
+    "dtm",
+    "orthophoto",
+    "coords",
+)
 
 
 @dataclass
@@ -47,8 +55,10 @@ def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OU
     """Check the outputs modules 3, 8 and 9 need; each problem names the ODM option that fixes it."""
     project = ODMProject(project_dir)
     present = project.check()
-    problems = [f"{rel} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
-                for rel, n in project.missing_paths([n for n in required if not present[n]])]
+    problems = [
+        f"{rel} ({OUTPUTS[n].what}) is missing: produced by {OUTPUTS[n].produced_by}"
+        for rel, n in project.missing_paths([n for n in required if not present[n]])
+    ]
     details: dict[str, Any] = {}
     problems += split_problems(project)  # submodels that failed or come from another run
     readable = True
@@ -66,8 +76,9 @@ def check_outputs(project_dir: str | Path, required: Sequence[str] = REQUIRED_OU
             info = _raster_info(project.path(name))
             details[name] = info
             if "error" in info:
-                problems.append(f"{OUTPUTS[name].relpath} is unreadable ({info['error']}): re-run ODM "
-                                f"({OUTPUTS[name].produced_by})")
+                problems.append(
+                    f"{OUTPUTS[name].relpath} is unreadable ({info['error']}): re-run ODM ({OUTPUTS[name].produced_by})"
+                )
                 continue
             try:
                 check_raster(project.path(name), bands=1, what=OUTPUTS[name].what)
@@ -98,8 +109,9 @@ def _check_reconstructions(project: ODMProject, where: str, problems: list[str])
     return ok
 
 
-def _check_undistorted(project: ODMProject, where: str, images_present: bool, problems: list[str],
-                       details: dict) -> None:
+def _check_undistorted(
+    project: ODMProject, where: str, images_present: bool, problems: list[str], details: dict
+) -> None:
     """Every reconstructed image has its undistorted image (one folder: the project or a submodel)."""
     if not project.has("undistorted_reconstruction"):
         return
@@ -113,28 +125,38 @@ def _check_undistorted(project: ODMProject, where: str, images_present: bool, pr
     details["undistorted_images"] = details.get("undistorted_images", 0) + len(images)
     lacking = sorted(shots - images)
     if lacking and images_present:
-        problems.append(f"{where}{len(lacking)} of {len(shots)} reconstructed images have no undistorted image "
-                        f"(e.g. {lacking[0]}.tif): produced by the OpenSfM undistort step "
-                        "(do not use --optimize-disk-space)")
+        problems.append(
+            f"{where}{len(lacking)} of {len(shots)} reconstructed images have no undistorted image "
+            f"(e.g. {lacking[0]}.tif): produced by the OpenSfM undistort step "
+            "(do not use --optimize-disk-space)"
+        )
 
 
 def _check_split(project: ODMProject, problems: list[str], details: dict) -> None:
     """A split-merge run: the merged outputs at the top, and each submodel's frame and images."""
     for name in ("dsm", "dtm", "orthophoto", "coords"):
         if not (project.root / OUTPUTS[name].relpath).is_file():
-            problems.append(f"{OUTPUTS[name].relpath} (the merged {OUTPUTS[name].what}) is missing at the top of "
-                            f"the split-merge project: produced by ODM's merge stage (--merge all) from each "
-                            f"submodel's ({OUTPUTS[name].produced_by})")
+            problems.append(
+                f"{OUTPUTS[name].relpath} (the merged {OUTPUTS[name].what}) is missing at the top of "
+                f"the split-merge project: produced by ODM's merge stage (--merge all) from each "
+                f"submodel's ({OUTPUTS[name].produced_by})"
+            )
     subs = {}
     try:
         ids = project.shot_ids(undistorted=True)
         for sub in project.submodels:
             frame = sub.frame(project.frame().crs)
             own = sum(1 for sid in ids if project.owner(sid) is sub)
-            subs[sub.name] = {"frame": frame.describe(), "shots": len(sub.shot_ids(undistorted=True)),
-                              "used_shots": own}
-        details["split"] = {"submodels": subs, "images": len(ids),
-                            "images_in_several_submodels": sum(s["shots"] for s in subs.values()) - len(ids)}
+            subs[sub.name] = {
+                "frame": frame.describe(),
+                "shots": len(sub.shot_ids(undistorted=True)),
+                "used_shots": own,
+            }
+        details["split"] = {
+            "submodels": subs,
+            "images": len(ids),
+            "images_in_several_submodels": sum(s["shots"] for s in subs.values()) - len(ids),
+        }
     except MatchPlantError as exc:
         problems.append(f"the submodels cannot be read as one project: {exc.problem}")
 
@@ -142,9 +164,13 @@ def _check_split(project: ODMProject, problems: list[str], details: dict) -> Non
 def _raster_info(path: Path) -> dict:
     try:
         with rasterio.open(path) as src:
-            return {"width": src.width, "height": src.height, "bands": src.count,
-                    "crs": src.crs.to_string() if src.crs else None,
-                    "resolution_m": [abs(src.transform.a), abs(src.transform.e)]}
+            return {
+                "width": src.width,
+                "height": src.height,
+                "bands": src.count,
+                "crs": src.crs.to_string() if src.crs else None,
+                "resolution_m": [abs(src.transform.a), abs(src.transform.e)],
+            }
     except Exception as exc:  # noqa: BLE001 - any GDAL failure means the file is unusable
         return {"error": str(exc)}
 

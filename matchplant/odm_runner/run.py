@@ -43,8 +43,11 @@ def run(cfg: OdmRunnerConfig) -> OutputReport:
         log.info("manifest: %s", manifest)
     if not report.ok:
         see = " (see odm_manifest.json)" if run_info is not None else ""
-        raise InputError(f"the ODM project cannot be used by modules 3, 8 and 9 ({len(report.problems)} "
-                         "problem(s)):\n" + "\n".join(f"  - {p}" for p in report.problems), path=cfg.project_dir,
-                         fix="re-run ODM with the options named above, or restore the files named" + see)
+        raise InputError(
+            f"the ODM project cannot be used by modules 3, 8 and 9 ({len(report.problems)} "
+            "problem(s)):\n" + "\n".join(f"  - {p}" for p in report.problems),
+            path=cfg.project_dir,
+            fix="re-run ODM with the options named above, or restore the files named" + see,
+        )
     log.info("all outputs needed by modules 3, 8 and 9 are present in %s", cfg.project_dir)
     return report

@@ -1,7 +1,6 @@
 """Every step checked before any runs: its module and keys, values, references, inputs and outputs, and the
 outputs of one step against the inputs of another; all problems reported together."""
 
-
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -33,7 +32,6 @@ class Planned:
     pending: set[str] = field(default_factory=set)
 
 
-
 def _is_pending(key: str, pending: set[str]) -> bool:
     return key.split("[")[0] in pending
 
@@ -43,7 +41,7 @@ def _pending_paths(cfg: Any, pending: set[str]) -> list[Path]:
     out = []
     for key in pending:
         v = values.get(key)
-        for item in (v if isinstance(v, (list, tuple)) else [v]):
+        for item in v if isinstance(v, (list, tuple)) else [v]:
             if isinstance(item, (str, Path)) and str(item):
                 out.append(Path(item))
     return out
@@ -73,9 +71,13 @@ def check_step(planned: Planned, earlier_outputs: dict[str, Path], source: str) 
             if maker is None:
                 raise
             rest = Path(p).resolve().relative_to(earlier_outputs[maker].resolve()).as_posix()
-            raise ConfigError(exc.problem, path=p, fix=f"if step '{maker}' writes it, refer to it as "
-                                                       f"'${{{maker}.output_dir}}/{rest}' so that it is checked "
-                                                       "after that step has run") from exc
+            raise ConfigError(
+                exc.problem,
+                path=p,
+                fix=f"if step '{maker}' writes it, refer to it as "
+                f"'${{{maker}.output_dir}}/{rest}' so that it is checked "
+                "after that step has run",
+            ) from exc
     check_outputs_are_not_inputs(cfg, source=source)
     check_outputs_writable(cfg)
 
@@ -92,8 +94,14 @@ def plan_pipeline(path: Path, top: dict, steps: list[Step]) -> list[Planned]:
                 raise ConfigError("a pipeline step cannot run a pipeline", fix="list the pipeline's steps here")
             specs[step.name] = spec
         except MatchPlantError as exc:
-            problems.add(step.label, ConfigError(exc.problem, path=path, fix=exc.fix or (
-                f"set 'module' to one of: {', '.join(n for n in STEPS if n != 'run')}")))
+            problems.add(
+                step.label,
+                ConfigError(
+                    exc.problem,
+                    path=path,
+                    fix=exc.fix or (f"set 'module' to one of: {', '.join(n for n in STEPS if n != 'run')}"),
+                ),
+            )
     scalars = {k: v for k, v in top.items()}
     scope = Scope(scalars, steps, {n: set(flat_values(s.config())) for n, s in specs.items()})
     planned: list[Planned] = []
@@ -134,15 +142,22 @@ def _check_across_steps(planned: list[Planned], problems: Problems) -> None:
         outputs += [(p, k, path) for k, path in inputs_and_outputs(p.cfg)[1] if k not in exempt]
     for reader in planned:
         made_before = [path for w, _, path in outputs if w.step.number < reader.step.number]
-        inputs = [(f"{reader.step.name}.{k}", path, kind) for k, path, kind in inputs_and_outputs(reader.cfg)[0]
-                  if kind in INPUT_KINDS and not _is_pending(k, reader.pending) and not _within(path, made_before)]
+        inputs = [
+            (f"{reader.step.name}.{k}", path, kind)
+            for k, path, kind in inputs_and_outputs(reader.cfg)[0]
+            if kind in INPUT_KINDS and not _is_pending(k, reader.pending) and not _within(path, made_before)
+        ]
         for writer, key, path in outputs:
             if writer is reader:
                 continue  # checked with the step itself
             inside_ok = [f"{reader.step.name}.{k}" for k in getattr(type(reader.cfg), "outputs_inside_inputs", ())]
             try:
-                check_no_overlap([(f"{writer.step.name}.{key}", path)], inputs, inside_ok=inside_ok,
-                                 source=f"steps '{writer.step.name}' and '{reader.step.name}'")
+                check_no_overlap(
+                    [(f"{writer.step.name}.{key}", path)],
+                    inputs,
+                    inside_ok=inside_ok,
+                    source=f"steps '{writer.step.name}' and '{reader.step.name}'",
+                )
             except ConfigError as exc:
                 problems.add(writer.step.label, exc)
                 return

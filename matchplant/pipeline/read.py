@@ -1,7 +1,6 @@
 """Reading a pipeline file: its top-level keys and its steps (name, module, config file, settings), each with
 its line for the messages."""
 
-
 from __future__ import annotations
 
 import re
@@ -32,7 +31,6 @@ class Step:
         return f"step {self.number} '{self.name}' ({self.module})" + (f", line {self.line}" if self.line else "")
 
 
-
 # --------------------------------------------------------------------------------------------------
 # reading the file
 
@@ -52,8 +50,9 @@ class Problems:
             return
         if len(self.items) == 1:
             where, exc = self.items[0]
-            raise type(exc)(f"{self.path.name}, {where}: {exc.problem}", path=exc.path or self.path,
-                            fix=exc.fix) from exc
+            raise type(exc)(
+                f"{self.path.name}, {where}: {exc.problem}", path=exc.path or self.path, fix=exc.fix
+            ) from exc
         lines = [f"{len(self.items)} problems in {self.path.name} (no step has run):"]
         for where, exc in self.items:
             lines.append(f"  - {where}: {exc.problem}")
@@ -62,7 +61,6 @@ class Problems:
             if exc.fix:
                 lines.append(f"      fix:  {exc.fix}")
         raise ConfigError("\n".join(lines), path=self.path, fix="correct them, then run the pipeline again")
-
 
 
 # --------------------------------------------------------------------------------------------------
@@ -90,18 +88,28 @@ def read_pipeline(path: Path) -> tuple[dict, list[Step]]:
     if "steps" not in data:
         close = [k for k in data if did_you_mean(str(k), ["steps"])]
         hint = f"; it has '{close[0]}': did you mean 'steps'?" if close else ""
-        raise ConfigError(f"the pipeline has no 'steps' list{hint}", path=path,
-                          fix="add 'steps:' with one '- module: NAME' entry per step (see the README)")
+        raise ConfigError(
+            f"the pipeline has no 'steps' list{hint}",
+            path=path,
+            fix="add 'steps:' with one '- module: NAME' entry per step (see the README)",
+        )
     steps_data = data["steps"]
     if not isinstance(steps_data, list) or not steps_data:
-        raise ConfigError("the pipeline has no 'steps' list" if not steps_data else
-                          f"'steps' must be a list ('- module: NAME' lines), not a {type(steps_data).__name__}",
-                          path=path, fix="write each step as '- module: NAME' under 'steps:', indented the same")
+        raise ConfigError(
+            "the pipeline has no 'steps' list"
+            if not steps_data
+            else f"'steps' must be a list ('- module: NAME' lines), not a {type(steps_data).__name__}",
+            path=path,
+            fix="write each step as '- module: NAME' under 'steps:', indented the same",
+        )
     top = {str(k): v for k, v in data.items() if k != "steps"}
     top.setdefault("output_dir", "pipeline_output")
     if not isinstance(top["output_dir"], (str, Path)) or not str(top["output_dir"]).strip():
-        raise ConfigError(f"'output_dir' must be a folder, got {top['output_dir']!r}", path=path,
-                          fix="set output_dir: FOLDER (relative to the pipeline file)")
+        raise ConfigError(
+            f"'output_dir' must be a folder, got {top['output_dir']!r}",
+            path=path,
+            fix="set output_dir: FOLDER (relative to the pipeline file)",
+        )
     top["output_dir"] = str((base / str(top["output_dir"])).resolve())
     lines = _step_lines(read_text(path))
     problems = Problems(path)
@@ -116,8 +124,13 @@ def read_pipeline(path: Path) -> tuple[dict, list[Step]]:
             problems.add(where, exc)
             continue
         if step.name in seen:
-            problems.add(where, ConfigError(f"two steps are named '{step.name}' (steps {seen[step.name]} and "
-                                            f"{i + 1})", fix="give each step a unique 'name'"))
+            problems.add(
+                where,
+                ConfigError(
+                    f"two steps are named '{step.name}' (steps {seen[step.name]} and {i + 1})",
+                    fix="give each step a unique 'name'",
+                ),
+            )
         seen.setdefault(step.name, i + 1)
         steps.append(step)
     problems.raise_if_any()
@@ -126,31 +139,44 @@ def read_pipeline(path: Path) -> tuple[dict, list[Step]]:
 
 def _read_step(sd: Any, number: int, line: int | None, base: Path) -> Step:
     if isinstance(sd, str):
-        raise ConfigError(f"the step is the text '{sd}', not a mapping",
-                          fix=f"write it as '- module: {sd}' (with 'name:' and 'config:' below it)")
+        raise ConfigError(
+            f"the step is the text '{sd}', not a mapping",
+            fix=f"write it as '- module: {sd}' (with 'name:' and 'config:' below it)",
+        )
     if not isinstance(sd, dict):
         raise ConfigError(f"the step is {sd!r}, not a mapping", fix="write '- module: NAME' for each step")
     unknown = [str(k) for k in sd if k not in STEP_KEYS]
     if unknown:
         hint = did_you_mean(unknown[0], STEP_KEYS)
-        raise ConfigError(f"unknown key(s) {unknown}{'; ' + hint if hint else ''}",
-                          fix="a step takes name, module, config and config_file; module settings go under "
-                              "'config:'")
+        raise ConfigError(
+            f"unknown key(s) {unknown}{'; ' + hint if hint else ''}",
+            fix="a step takes name, module, config and config_file; module settings go under 'config:'",
+        )
     if "module" not in sd:
         raise ConfigError("the step has no 'module'", fix="write '- module: NAME' for each step")
     name = sd.get("name", sd["module"])
     if not isinstance(name, (str, int)) or not _NAME.match(str(name)):
-        raise ConfigError(f"step name {name!r} must be letters, digits, '_' or '-'",
-                          fix="rename the step (it is used in ${name.key} references and folder names)")
+        raise ConfigError(
+            f"step name {name!r} must be letters, digits, '_' or '-'",
+            fix="rename the step (it is used in ${name.key} references and folder names)",
+        )
     if not isinstance(sd["module"], str):
-        raise ConfigError(f"'module' must be a module name, got {sd['module']!r}",
-                          fix="run 'matchplant --help' for the list")
+        raise ConfigError(
+            f"'module' must be a module name, got {sd['module']!r}", fix="run 'matchplant --help' for the list"
+        )
     settings = sd.get("config") or {}
     if not isinstance(settings, dict):
-        raise ConfigError(f"'config' must be 'key: value' lines, got {settings!r}",
-                          fix="indent the module's settings under 'config:'")
+        raise ConfigError(
+            f"'config' must be 'key: value' lines, got {settings!r}", fix="indent the module's settings under 'config:'"
+        )
     cfile = sd.get("config_file")
     if cfile is not None and not isinstance(cfile, str):
         raise ConfigError(f"'config_file' must be a path, got {cfile!r}", fix="set config_file: FILE.yaml")
-    return Step(name=str(name), module=sd["module"], config_file=(base / cfile) if cfile else None,
-                settings=dict(settings), number=number, line=line)
+    return Step(
+        name=str(name),
+        module=sd["module"],
+        config_file=(base / cfile) if cfile else None,
+        settings=dict(settings),
+        number=number,
+        line=line,
+    )

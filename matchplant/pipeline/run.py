@@ -1,7 +1,6 @@
 """Running the checked steps in order: a step finished with the same settings and unchanged inputs is skipped
 (its fingerprint), a failure names the step and stops."""
 
-
 from __future__ import annotations
 
 import hashlib
@@ -26,8 +25,7 @@ log = get_logger("pipeline")
 class PipelineConfig:
     """Run several MatchPlant modules in order from one file (see matchplant/pipeline/)."""
 
-    pipeline: Path | None = param(None, "the pipeline YAML file (steps and their settings)", path="file",
-                                  required=True)
+    pipeline: Path | None = param(None, "the pipeline YAML file (steps and their settings)", path="file", required=True)
     output_dir: Path | None = param(None, "where the run log goes (default: the pipeline's output_dir)")
     from_step: str = param("", "re-run from this step on, even if earlier results are up to date")
     only: list[str] = param([], "run only these steps (names); empty = all")
@@ -36,7 +34,6 @@ class PipelineConfig:
     def check(self) -> None:
         if self.output_dir is None and self.pipeline is not None and Path(self.pipeline).is_file():
             self.output_dir = Path(read_pipeline(Path(self.pipeline))[0]["output_dir"])
-
 
 
 # --------------------------------------------------------------------------------------------------
@@ -76,8 +73,11 @@ def _check_names(cfg: PipelineConfig, steps: list[Step], path: Path) -> None:
     for key, label in ((cfg.from_step, "from_step"), *((n, "only") for n in cfg.only)):
         if key and key not in names:
             hint = did_you_mean(key, names)
-            raise ConfigError(f"{label}: no step named '{key}'{'; ' + hint if hint else ''}", path=path,
-                              fix=f"steps are: {', '.join(names)}")
+            raise ConfigError(
+                f"{label}: no step named '{key}'{'; ' + hint if hint else ''}",
+                path=path,
+                fix=f"steps are: {', '.join(names)}",
+            )
 
 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
@@ -113,16 +113,27 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         try:
             spec.run(step_cfg)
         except MatchPlantError as exc:
-            raise type(exc)(f"step '{step.name}' ({step.module}) failed: {exc.problem}", path=exc.path,
-                            fix=(exc.fix or "") + f"; then re-run: matchplant run {path} (finished steps are skipped)"
-                            ) from exc
+            raise type(exc)(
+                f"step '{step.name}' ({step.module}) failed: {exc.problem}",
+                path=exc.path,
+                fix=(exc.fix or "") + f"; then re-run: matchplant run {path} (finished steps are skipped)",
+            ) from exc
         except Exception as exc:
-            raise MatchPlantError(f"step '{step.name}' ({step.module}) failed: {type(exc).__name__}: {exc}",
-                                  fix=f"see the log; earlier steps' outputs are kept; re-run with --debug "
-                                      f"for the traceback, or with --set from_step={step.name}") from exc
+            raise MatchPlantError(
+                f"step '{step.name}' ({step.module}) failed: {type(exc).__name__}: {exc}",
+                fix=f"see the log; earlier steps' outputs are kept; re-run with --debug "
+                f"for the traceback, or with --set from_step={step.name}",
+            ) from exc
         # a step that finished after a later input changed must not count as up to date: fingerprint again
-        write_json(stamp, {"fingerprint": _fingerprint(step_cfg), "module": step.module,
-                           "seconds": round(time.time() - t0, 2), "finished": time.strftime("%Y-%m-%d %H:%M:%S")})
+        write_json(
+            stamp,
+            {
+                "fingerprint": _fingerprint(step_cfg),
+                "module": step.module,
+                "seconds": round(time.time() - t0, 2),
+                "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+            },
+        )
         log.info("[%s] done in %.1f s", step.name, time.time() - t0)
         results[step.name] = "ran"  # later steps see its new files: their fingerprints change by mtime
     return results

@@ -1,7 +1,6 @@
 """References between steps: ``${step.key}`` and ``${key}`` resolved from the pipeline's own keys and the earlier
 steps' settings; a step's config built from its file, its settings and those references."""
 
-
 from __future__ import annotations
 
 import json
@@ -55,44 +54,58 @@ class Scope:
         if head in order:
             other = order[head]
             if other.number == step.number:
-                raise ConfigError(f"'${{{ref}}}' refers to this step itself",
-                                  fix="refer to an earlier step's key or to a top-level key")
+                raise ConfigError(
+                    f"'${{{ref}}}' refers to this step itself",
+                    fix="refer to an earlier step's key or to a top-level key",
+                )
             if other.number > step.number:
-                cycle = any(m.group(1).split(".")[0] == step.name for m in _REF.finditer(json.dumps(other.settings, default=str)))
-                raise ConfigError(f"'${{{ref}}}' refers to step '{head}', which runs later (step {other.number})"
-                                  + (f"; a cycle: '{head}' also refers to '{step.name}'" if cycle else ""),
-                                  fix=f"a step can use only earlier steps' keys: move '{head}' before "
-                                      f"'{step.name}'" + (" and remove one of the two references" if cycle else ""))
+                cycle = any(
+                    m.group(1).split(".")[0] == step.name
+                    for m in _REF.finditer(json.dumps(other.settings, default=str))
+                )
+                raise ConfigError(
+                    f"'${{{ref}}}' refers to step '{head}', which runs later (step {other.number})"
+                    + (f"; a cycle: '{head}' also refers to '{step.name}'" if cycle else ""),
+                    fix=f"a step can use only earlier steps' keys: move '{head}' before "
+                    f"'{step.name}'" + (" and remove one of the two references" if cycle else ""),
+                )
             if not rest:
-                raise ConfigError(f"'${{{ref}}}' names a step but no key",
-                                  fix=f"write '${{{head}.output_dir}}' or another key of step '{head}'")
+                raise ConfigError(
+                    f"'${{{ref}}}' names a step but no key",
+                    fix=f"write '${{{head}.output_dir}}' or another key of step '{head}'",
+                )
             if rest not in self.keys.get(head, ()):
                 if head not in self.keys:
                     raise Unresolved
                 hint = did_you_mean(rest, self.keys[head])
-                raise ConfigError(f"'${{{ref}}}': step '{head}' ({other.module}) has no key '{rest}'"
-                                  f"{'; ' + hint if hint else ''}",
-                                  fix=f"use one of that module's keys (matchplant {other.module} --write-config "
-                                      "FILE lists them)")
+                raise ConfigError(
+                    f"'${{{ref}}}': step '{head}' ({other.module}) has no key '{rest}'{'; ' + hint if hint else ''}",
+                    fix=f"use one of that module's keys (matchplant {other.module} --write-config FILE lists them)",
+                )
             if head not in self.values:
                 raise Unresolved
             if self.values[head][rest] is None:
-                raise ConfigError(f"'${{{ref}}}' is not set (null) in step '{head}'",
-                                  fix=f"set '{rest}' in step '{head}', or refer to another key")
+                raise ConfigError(
+                    f"'${{{ref}}}' is not set (null) in step '{head}'",
+                    fix=f"set '{rest}' in step '{head}', or refer to another key",
+                )
             return self._plain(ref, self.values[head][rest]), True
         names = [*self.top, *(s.name for s in self.steps), *(f"{s.name}.output_dir" for s in self.steps)]
         hint = did_you_mean(ref, names)
-        raise ConfigError(f"'${{{ref}}}' refers to nothing known{'; ' + hint if hint else ''}",
-                          fix=f"top-level keys: {', '.join(sorted(self.top))}; earlier steps' keys as "
-                              "${step.key}")
+        raise ConfigError(
+            f"'${{{ref}}}' refers to nothing known{'; ' + hint if hint else ''}",
+            fix=f"top-level keys: {', '.join(sorted(self.top))}; earlier steps' keys as ${{step.key}}",
+        )
 
     @staticmethod
     def _plain(ref: str, value: Any) -> Any:
         if value is None:
             raise ConfigError(f"'${{{ref}}}' is empty (null)", fix=f"give '{ref}' a value")
         if isinstance(value, (dict, list, tuple)) or is_dataclass(value):
-            raise ConfigError(f"'${{{ref}}}' is a list or section, not a single value",
-                              fix="refer to a single value (a path, a number, a name)")
+            raise ConfigError(
+                f"'${{{ref}}}' is a list or section, not a single value",
+                fix="refer to a single value (a path, a number, a name)",
+            )
         return value
 
     def substitute(self, value: Any, step: Step, key: str) -> tuple[Any, bool]:
@@ -111,8 +124,10 @@ class Scope:
 
             text = _REF.sub(repl, value)
             if "${" in _REF.sub("", value):
-                raise ConfigError(f"'{key}: {value}' has a malformed reference",
-                                  fix="write references as ${name} or ${step.key} (letters, digits, _ - .)")
+                raise ConfigError(
+                    f"'{key}: {value}' has a malformed reference",
+                    fix="write references as ${name} or ${step.key} (letters, digits, _ - .)",
+                )
             return text, from_step
         if isinstance(value, (list, tuple)):
             pairs = [self.substitute(v, step, key) for v in value]

@@ -29,4 +29,4 @@ why).
 from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.run import run
 
-__all__ = ['PlantProjectionConfig', 'run']
+__all__ = ["PlantProjectionConfig", "run"]

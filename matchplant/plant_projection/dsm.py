@@ -91,8 +91,11 @@ class DsmSurfaces:
             res = min(abs(src.transform.a), abs(src.transform.e))
             dsm_crs = src.crs
         if dsm_crs is not None and self.crs is not None and not parse_crs(dsm_crs).equals(self.crs):
-            raise InputError(f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}", path=self.path,
-                             fix="use the DSM of this ODM project (or reproject it to the project's CRS)")
+            raise InputError(
+                f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}",
+                path=self.path,
+                fix="use the DSM of this ODM project (or reproject it to the project's CRS)",
+            )
         if self._whole is not None:
             return
         if any(b is None for b in all_bounds):
@@ -100,7 +103,7 @@ class DsmSurfaces:
             return
         b = np.array(all_bounds)
         union = (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
-        cells = (union[2] - union[0]) * (union[3] - union[1]) / res ** 2
+        cells = (union[2] - union[0]) * (union[3] - union[1]) / res**2
         if cells <= MAX_SURFACE_CELLS:
             self._whole = self._open(union, res)
 
@@ -121,12 +124,21 @@ class DsmSurfaces:
         filled = sum(f for _, f in self._read)
         lift, spread = max(n.lift for n in noise), max(n.spread for n in noise)
         if filled:
-            log.info("%s: %d DSM cells in holes up to fill_holes=%g m filled from their rims", self.path, filled,
-                     self.fill_holes)
+            log.info(
+                "%s: %d DSM cells in holes up to fill_holes=%g m filled from their rims",
+                self.path,
+                filled,
+                self.fill_holes,
+            )
         if lift:
-            log.info("%s: bare soil lies %.1f cm above the DSM's lowest envelope (noise, spread %.1f cm): the ground "
-                     "estimate is lifted to it%s", self.path, 100 * lift, 100 * spread,
-                     "" if len(noise) == 1 else f" (largest of {len(noise)} windows)")
+            log.info(
+                "%s: bare soil lies %.1f cm above the DSM's lowest envelope (noise, spread %.1f cm): the ground "
+                "estimate is lifted to it%s",
+                self.path,
+                100 * lift,
+                100 * spread,
+                "" if len(noise) == 1 else f" (largest of {len(noise)} windows)",
+            )
         return spread
 
     def get(self, bounds: np.ndarray) -> SoilSurface:

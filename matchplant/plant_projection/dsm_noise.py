@@ -94,7 +94,7 @@ def soil_level(surface: Surface, ground: Surface) -> SoilLevel:
     is a closed canopy, not soil: no lift then."""
     rows, cols = surface.data.shape
     step = max(1, int(np.ceil(np.sqrt(rows * cols / SAMPLES))))
-    r, c = np.mgrid[step // 2:rows:step, step // 2:cols:step]
+    r, c = np.mgrid[step // 2 : rows : step, step // 2 : cols : step]
     t = surface.transform
     x, y = t.c + (c + 0.5) * t.a, t.f + (r + 0.5) * t.e
     above = surface.data[r, c] - ground.sample(x, y)
@@ -127,8 +127,11 @@ class SoilSurface(Surface):
         if window not in self._lifted:
             opened = super().ground(window)
             noise = soil_level(self, opened)
-            lifted = (Surface(opened.data + np.float32(noise.lift), opened.transform, opened.crs, opened.path)
-                      if noise.lift else opened)
+            lifted = (
+                Surface(opened.data + np.float32(noise.lift), opened.transform, opened.crs, opened.path)
+                if noise.lift
+                else opened
+            )
             self._lifted[window] = (lifted, noise)
         return self._lifted[window][0]
 

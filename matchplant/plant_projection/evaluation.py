@@ -37,16 +37,22 @@ def read_boxes(path: Path, *, orthophoto: Path | None = None, crs=None) -> np.nd
         boxes = np.column_stack([table.numbers[c] for c in need])
         flat = np.flatnonzero((boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1]))
         if flat.size:
-            raise InputError(f"box CSV, line {table.lines[flat[0]]}: xmax <= xmin or ymax <= ymin ({flat.size} of "
-                             f"{len(boxes)} boxes)", path=path, fix="give each box as xmin,ymin,xmax,ymax with "
-                                                                     "xmin < xmax and ymin < ymax (map CRS)")
+            raise InputError(
+                f"box CSV, line {table.lines[flat[0]]}: xmax <= xmin or ymax <= ymin ({flat.size} of "
+                f"{len(boxes)} boxes)",
+                path=path,
+                fix="give each box as xmin,ymin,xmax,ymax with xmin < xmax and ymin < ymax (map CRS)",
+            )
         return boxes
     check_vector(path, what="box file", require_crs=crs is not None)
     try:
         gdf = gpd.read_file(path)
     except Exception as exc:  # noqa: BLE001 - GDAL's many formats; say which file failed
-        raise InputError(f"cannot read the vector file: {exc}", path=path,
-                         fix="give a GeoPackage, shapefile or GeoJSON (or a CSV / COCO JSON)") from exc
+        raise InputError(
+            f"cannot read the vector file: {exc}",
+            path=path,
+            fix="give a GeoPackage, shapefile or GeoJSON (or a CSV / COCO JSON)",
+        ) from exc
     if crs is not None and gdf.crs is not None and not gdf.crs.equals(crs):
         log.info("boxes of %s are in %s: reprojected to %s", path.name, gdf.crs.name, getattr(crs, "name", crs))
         gdf = gdf.to_crs(crs)
@@ -55,8 +61,11 @@ def read_boxes(path: Path, *, orthophoto: Path | None = None, crs=None) -> np.nd
 
 def _coco_map_boxes(path: Path, orthophoto: Path | None) -> np.ndarray:
     if orthophoto is None or not Path(orthophoto).is_file():
-        raise InputError("boxes drawn on the orthophoto need the orthophoto to be placed on the map", path=path,
-                         fix="set evaluate.orthophoto (or project) so odm_orthophoto.tif can be found")
+        raise InputError(
+            "boxes drawn on the orthophoto need the orthophoto to be placed on the map",
+            path=path,
+            fix="set evaluate.orthophoto (or project) so odm_orthophoto.tif can be found",
+        )
     ds = read_dataset(path, validate=False)
     images = {im["id"]: im for im in ds["images"]}
     with rasterio.open(orthophoto) as src:
@@ -79,7 +88,7 @@ def evaluate_boxes(reference: np.ndarray, predicted: np.ndarray, iou_threshold: 
     matched = match >= 0
     n_ref, n_pred = len(reference), len(predicted)
     m_iou = iou[matched]
-    q = (lambda p: float(np.quantile(m_iou, p)) if m_iou.size else 0.0)
+    q = lambda p: float(np.quantile(m_iou, p)) if m_iou.size else 0.0
     return {
         "reference_boxes": int(n_ref),
         "projected_boxes": int(n_pred),
@@ -110,8 +119,14 @@ def read_plants_boxes(path: Path) -> tuple[np.ndarray, object]:
     return np.asarray(gdf.geometry.bounds, dtype=float).reshape(-1, 4), gdf.crs
 
 
-def evaluation_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, metrics: dict,
-                      orthophoto: Path | None = None, max_pixels: int = 1600) -> Path:
+def evaluation_figure(
+    path: Path,
+    reference: np.ndarray,
+    predicted: np.ndarray,
+    metrics: dict,
+    orthophoto: Path | None = None,
+    max_pixels: int = 1600,
+) -> Path:
     """Both box sets over the orthophoto (read at reduced resolution) and the IoU histogram."""
     fig = figure(headless=True, figsize=(14, 7))
     ax, axh = fig.subplots(1, 2, gridspec_kw={"width_ratios": [2.2, 1]})
@@ -124,12 +139,29 @@ def evaluation_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, 
     match, iou = metrics["_match"], metrics["_iou"]
     thr = metrics["iou_threshold"]
     good = iou > thr
-    ax.add_collection(PolyCollection(rects(reference[good]), facecolors="none", edgecolors="yellow", linewidths=0.8,
-                                     label=f"reference, IoU > {thr:g}"))
-    ax.add_collection(PolyCollection(rects(reference[~good]), facecolors="none", edgecolors="red", linewidths=1.2,
-                                     label=f"reference, IoU <= {thr:g} or unmatched"))
-    ax.add_collection(PolyCollection(rects(predicted), facecolors="none", edgecolors="cyan", linewidths=0.6,
-                                     linestyles="--", label="projected"))
+    ax.add_collection(
+        PolyCollection(
+            rects(reference[good]),
+            facecolors="none",
+            edgecolors="yellow",
+            linewidths=0.8,
+            label=f"reference, IoU > {thr:g}",
+        )
+    )
+    ax.add_collection(
+        PolyCollection(
+            rects(reference[~good]),
+            facecolors="none",
+            edgecolors="red",
+            linewidths=1.2,
+            label=f"reference, IoU <= {thr:g} or unmatched",
+        )
+    )
+    ax.add_collection(
+        PolyCollection(
+            rects(predicted), facecolors="none", edgecolors="cyan", linewidths=0.6, linestyles="--", label="projected"
+        )
+    )
     allb = np.concatenate([reference, predicted]) if len(predicted) else reference
     if len(allb):
         pad = 0.02 * max(allb[:, 2].max() - allb[:, 0].min(), allb[:, 3].max() - allb[:, 1].min())
@@ -144,8 +176,10 @@ def evaluation_figure(path: Path, reference: np.ndarray, predicted: np.ndarray, 
     axh.axvline(thr, color="red", linestyle="--")
     axh.set_xlabel("IoU of matched boxes")
     axh.set_ylabel("reference boxes")
-    axh.set_title(f"{metrics['share_matched']:.1%} matched, "
-                  f"{metrics[f'share_iou_above_{thr:g}']:.1%} with IoU > {thr:g}\nmedian IoU {metrics['iou_median']:.3f}")
+    axh.set_title(
+        f"{metrics['share_matched']:.1%} matched, "
+        f"{metrics[f'share_iou_above_{thr:g}']:.1%} with IoU > {thr:g}\nmedian IoU {metrics['iou_median']:.3f}"
+    )
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png")

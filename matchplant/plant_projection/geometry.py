@@ -37,7 +37,7 @@ def box_outline(boxes: np.ndarray, edge_points: int) -> np.ndarray:
     inside each edge, ``P = 4 (edge_points + 1)``.
     """
     b = np.asarray(boxes, dtype=float).reshape(-1, 4) - 0.5
-    x1, y1, x2, y2 = (b[:, i:i + 1] for i in range(4))
+    x1, y1, x2, y2 = (b[:, i : i + 1] for i in range(4))
     t = np.arange(edge_points + 1) / (edge_points + 1)
     one = np.ones_like(t)
     xs = np.concatenate([x1 + (x2 - x1) * t, x2 * one, x2 + (x1 - x2) * t, x1 * one], axis=1)
@@ -84,7 +84,7 @@ def outline_boxes(xy: np.ndarray, how: str = "inscribed") -> tuple[np.ndarray, n
     centre = (c0 + c1 + c2 + c3) / 4
     a = (c1 - c0 + c2 - c3) / 4  # half-axis along the photo's x
     b = (c3 - c0 + c2 - c1) / 4  # half-axis along the photo's y
-    half = np.sqrt(a ** 2 + b ** 2)
+    half = np.sqrt(a**2 + b**2)
     return np.concatenate([centre - half, centre + half], axis=1), centroid, area
 
 
@@ -113,8 +113,15 @@ def near_edges(shot: Shot, frame: Frame, boxes: np.ndarray) -> np.ndarray:
     return out
 
 
-def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray, settings: ProjectionSettings, *,
-                  cut_edges: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def project_boxes(
+    shot: Shot,
+    frame: Frame,
+    surface: Surface,
+    boxes: np.ndarray,
+    settings: ProjectionSettings,
+    *,
+    cut_edges: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """Project pixel boxes ``[x1, y1, x2, y2]`` (M, 4) of one image onto the surface, all at once.
 
     Rays through each box outline (``settings.edge_points`` along each edge) meet the ground (estimated from the
@@ -154,15 +161,17 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
         tan = np.hypot(d_far[:, 0], d_far[:, 1]) / np.maximum(-d_far[:, 2], LEVEL)
         rise = 1.0 - ground.max_slope * tan
         with np.errstate(invalid="ignore", divide="ignore"):
-            top = np.where(rise > STEEP, gz + (surface.canopy_height(ground_window) + clearance) / rise + TOP_MARGIN,
-                           np.nan)
+            top = np.where(
+                rise > STEEP, gz + (surface.canopy_height(ground_window) + clearance) / rise + TOP_MARGIN, np.nan
+            )
         # a ray stopped at the clearance that goes on to meet the surface within twice that height was an
         # exact hit (soil at a leaf tip, a plant's side) and settles there; one that would fall further grazed
         # a plant's top and stays
         # (the DSM's soil dips below the ground, lifted to the soil's level, down to the DSM's lowest envelope)
         bottom = gz - ground_noise(surface, ground_window).lift - TOP_MARGIN
-        pts, st = rays_to_ground(shot, d_far, frame, surface, clearance=clearance, settle=SETTLE * clearance,
-                                 heights=(top, bottom))
+        pts, st = rays_to_ground(
+            shot, d_far, frame, surface, clearance=clearance, settle=SETTLE * clearance, heights=(top, bottom)
+        )
         d_pts[far], d_status[far] = pts, st
     g_pts, d_pts = g_pts.reshape(m, p, 3), d_pts.reshape(m, p, 3)
     status = np.where(d_status != HIT, d_status, g_status).reshape(m, p)
@@ -174,6 +183,16 @@ def project_boxes(shot: Shot, frame: Frame, surface: Surface, boxes: np.ndarray,
     cut = cut_edges if cut_edges is not None else np.zeros((m, 4), dtype=bool)
     scene = Scene.of(surface, cam, settings)
     sil = silhouette_boxes(g_pts, d_pts, near, ok, cut, scene, settings.map_box == "inscribed")
-    return {"ok": ok, "status": reason, "outline": d_pts, "bounds": sil.bounds, "centroid": sil.centre, "z": sil.z,
-            "area": sil.area, "off_nadir": sil.off_nadir, "unseen": sil.unseen, "beside_cut": sil.beside_cut,
-            "across": sil.across}
+    return {
+        "ok": ok,
+        "status": reason,
+        "outline": d_pts,
+        "bounds": sil.bounds,
+        "centroid": sil.centre,
+        "z": sil.z,
+        "area": sil.area,
+        "off_nadir": sil.off_nadir,
+        "unseen": sil.unseen,
+        "beside_cut": sil.beside_cut,
+        "across": sil.across,
+    }

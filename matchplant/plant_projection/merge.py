@@ -90,20 +90,32 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     if merge != "none" and n:
         order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
         # pairs of views that overlap, or come within the tolerance (a sliver beside its plant's box)
-        i, j, _ = overlapping_pairs(box + [-tol, -tol, tol, tol],
-                                    ordered=False)  # their order does not matter here
+        i, j, _ = overlapping_pairs(box + [-tol, -tol, tol, tol], ordered=False)  # their order does not matter here
         cat = t["category_id"].to_numpy()
         cut = t["cut"].to_numpy()
         partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
         guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
-        unseen = (t[list(UNSEEN_COLUMNS)].to_numpy(bool) if all(c in t for c in UNSEEN_COLUMNS)
-                  else np.zeros((n, 4), dtype=bool))
+        unseen = (
+            t[list(UNSEEN_COLUMNS)].to_numpy(bool)
+            if all(c in t for c in UNSEEN_COLUMNS)
+            else np.zeros((n, 4), dtype=bool)
+        )
         # boxes of one detector image (photo or tile) went through its non-maximum suppression together
         image = pd.factorize(t["image_id"])[0] if "image_id" in t else np.arange(n)
-        iou, strong = _pair_rules(np.ascontiguousarray(box), i, j, np.ascontiguousarray(cat, dtype=np.int64),
-                                  np.ascontiguousarray(image, dtype=np.int64), cut.astype(np.bool_),
-                                  guessed.astype(np.bool_), np.ascontiguousarray(unseen),
-                                  float(merge_iou), MERGE_CONTAINED, MERGE_CUT_INSIDE, tol)
+        iou, strong = _pair_rules(
+            np.ascontiguousarray(box),
+            i,
+            j,
+            np.ascontiguousarray(cat, dtype=np.int64),
+            np.ascontiguousarray(image, dtype=np.int64),
+            cut.astype(np.bool_),
+            guessed.astype(np.bool_),
+            np.ascontiguousarray(unseen),
+            float(merge_iou),
+            MERGE_CONTAINED,
+            MERGE_CUT_INSIDE,
+            tol,
+        )
         seed, rep, iou_to_rep = _claims(order, i, j, iou, strong, n)
         # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
         rank = np.empty(n, dtype=np.int64)
@@ -241,16 +253,20 @@ def _pair_rules(box, i, j, cat, image, cut, guessed, unseen, merge_iou, containe
         small, big = (a, b) if area_a <= area_b else (b, a)
         least = min(area_a, area_b)
         inside = inter / least if least > 0 else 0.0
-        if (v >= merge_iou or (inside >= contained and v >= merge_iou / 2)
-                or ((cut[a] or cut[b]) and inside >= cut_inside)):
+        if (
+            v >= merge_iou
+            or (inside >= contained and v >= merge_iou / 2)
+            or ((cut[a] or cut[b]) and inside >= cut_inside)
+        ):
             strong[k] = True
         elif guessed[small] and least > 0:
             w = min(box[small, 2], box[big, 2] + tol) - max(box[small, 0], box[big, 0] - tol)
             h = min(box[small, 3], box[big, 3] + tol) - max(box[small, 1], box[big, 1] - tol)
             strong[k] = w > 0 and h > 0 and w * h / least >= contained
         if not strong[k]:
-            strong[k] = ((guessed[a] and _seen_sides_match(box, unseen, a, b, tol))
-                         or (guessed[b] and _seen_sides_match(box, unseen, b, a, tol)))
+            strong[k] = (guessed[a] and _seen_sides_match(box, unseen, a, b, tol)) or (
+                guessed[b] and _seen_sides_match(box, unseen, b, a, tol)
+            )
     return iou, strong
 
 
@@ -349,6 +365,7 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
     plant, and they place it beyond every whole view's guess of it (each mirrored about the plant's top from
     its own direction) by more than :data:`MERGE_TOLERANCE`, the representative's guess is kept. A side that
     some view saw from its own side (a leaf tip on the soil, facing the nadir point) is taken as seen."""
+
     def area(df: pd.DataFrame) -> pd.Series:
         return (df["xmax"] - df["xmin"]) * (df["ymax"] - df["ymin"])
 
@@ -359,9 +376,11 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
     whole = ~t["cut"].to_numpy()
     for side, h, bc, ac in zip(("xmin", "ymin", "xmax", "ymax"), UNSEEN_COLUMNS, beside_cols, across_cols):
         beside = t[bc] if bc else pd.Series(False, index=t.index)
-        tiers = [t[side].where(~t[h] & ~beside),  # seen whole
-                 t[side].where(~t[h] & beside & (area(t) >= MOST_OF_PLANT * rep_area)),  # most of the plant in view
-                 t[side].where(~t["cut"])]  # the whole views' guesses
+        tiers = [
+            t[side].where(~t[h] & ~beside),  # seen whole
+            t[side].where(~t[h] & beside & (area(t) >= MOST_OF_PLANT * rep_area)),  # most of the plant in view
+            t[side].where(~t["cut"]),
+        ]  # the whole views' guesses
         med = np.full(len(plants), np.nan)
         for values in tiers:
             med = np.where(np.isfinite(med), med, groups.median(values.to_numpy(float)))
@@ -373,8 +392,9 @@ def _observed_sides(plants: pd.DataFrame, t: pd.DataFrame, reps_t: pd.DataFrame,
         seen_near = (~t[h] & ~beside & ~t[ac]).to_numpy() if ac else np.ones(len(t), dtype=bool)
         trusted = groups.max(seen_near.astype(np.int8)) > 0
         with np.errstate(invalid="ignore"):  # NaN: no value for this side
-            overshoot = (reps_t[h].to_numpy() & ~trusted & np.isfinite(widest)
-                         & (outward * med > widest + MERGE_TOLERANCE))
+            overshoot = (
+                reps_t[h].to_numpy() & ~trusted & np.isfinite(widest) & (outward * med > widest + MERGE_TOLERANCE)
+            )
         med = np.where(overshoot, reps_t[side].to_numpy(), med)
         use = unseen_rep & np.isfinite(med)
         plants.loc[use, side] = med[use]

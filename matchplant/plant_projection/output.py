@@ -6,8 +6,8 @@ half-written table that a later step would read.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import geopandas as gpd
 import numpy as np
@@ -33,8 +33,15 @@ def plant_geometries(plants: pd.DataFrame, views: ProjectedViews, geometry: str 
     return np.where(bad, boxes, polys)
 
 
-def write_plants(plants: pd.DataFrame, views: ProjectedViews, out_dir: Path, *, layer: str = "plants",
-                 geometry: str = "outline", vector_formats: Sequence[str] = ("gpkg",)) -> dict[str, Path]:
+def write_plants(
+    plants: pd.DataFrame,
+    views: ProjectedViews,
+    out_dir: Path,
+    *,
+    layer: str = "plants",
+    geometry: str = "outline",
+    vector_formats: Sequence[str] = ("gpkg",),
+) -> dict[str, Path]:
     """The plants as vector files (``plants.gpkg`` for GIS and step 9, ``.shp``, ``.geojson``: one per
     ``vector_formats``) and ``plants.csv`` (the same table without geometry, for spreadsheets, with the CRS
     in a last column ``crs`` so that the file alone places the plants); the representative view's index

@@ -37,12 +37,18 @@ class Scene(NamedTuple):
     canopy: float  # metres: the tallest plant above the ground
 
     @classmethod
-    def of(cls, surface: Surface, cam: np.ndarray, settings: ProjectionSettings) -> "Scene":
+    def of(cls, surface: Surface, cam: np.ndarray, settings: ProjectionSettings) -> Scene:
         window = settings.ground_window
         # soil hits scatter about the ground by the DSM's noise: only a hit standing out of it lay behind a plant
         hidden = settings.hidden_height + HIDDEN_SIGMAS * ground_noise(surface, window).spread
-        return cls(surface.raster, surface.ground(window).raster, np.ascontiguousarray(cam, dtype=np.float64),
-                   float(hidden), SKIM, float(surface.canopy_height(window)))
+        return cls(
+            surface.raster,
+            surface.ground(window).raster,
+            np.ascontiguousarray(cam, dtype=np.float64),
+            float(hidden),
+            SKIM,
+            float(surface.canopy_height(window)),
+        )
 
 
 @numba.njit(cache=True, nogil=True)

@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 
 from matchplant.core.formats.odm import ODMProject
-from matchplant.core.formats.split_check import check_split
 from matchplant.core.formats.predictions import read_predictions
+from matchplant.core.formats.split_check import check_split
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
@@ -54,10 +54,13 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
         check_dsm(path, "dsm" if cfg.dsm is not None else None)
     scores = np.array([float(p.get("score", 1.0)) for p in preds["predictions"]])
     if not (scores >= cfg.min_score).any():
-        raise ConfigError(f"0 of {len(scores)} detections score at least min_score={cfg.min_score:g} (the highest "
-                          f"scores {scores.max():.3f}), so no box would be projected", path=cfg.predictions,
-                          fix=f"lower 'min_score' (e.g. to {np.floor(scores.max() * 100) / 100:.2f}), or check that "
-                              "these are the model's predictions")
+        raise ConfigError(
+            f"0 of {len(scores)} detections score at least min_score={cfg.min_score:g} (the highest "
+            f"scores {scores.max():.3f}), so no box would be projected",
+            path=cfg.predictions,
+            fix=f"lower 'min_score' (e.g. to {np.floor(scores.max() * 100) / 100:.2f}), or check that "
+            "these are the model's predictions",
+        )
     views, rejected = project_predictions(project, preds, ProjectionSettings.from_config(cfg))
     low = rejected["reason"] == "score below min_score"
     failed = rejected[~low]
@@ -85,13 +88,23 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
         "outputs": {k: str(v) for k, v in written.items()},
     }
     write_json(dest / "projection_summary.json", summary)
-    log.info("%d of %d detections projected -> %d plants (median %.0f views each)", summary["projected_boxes"],
-             summary["detections"], summary["plants"], summary["views_per_plant_median"])
+    log.info(
+        "%d of %d detections projected -> %d plants (median %.0f views each)",
+        summary["projected_boxes"],
+        summary["detections"],
+        summary["plants"],
+        summary["views_per_plant_median"],
+    )
     if len(failed):
         reasons = "; ".join(f"{v} x {k}" for k, v in summary["not_projected_by_reason"].items())
-        log.warning("%d of %d boxes could not be projected (%s)%s; see %s", len(failed),
-                    len(preds["predictions"]) - int(low.sum()), reasons, unknown_images(failed),
-                    written["unprojected"])
+        log.warning(
+            "%d of %d boxes could not be projected (%s)%s; see %s",
+            len(failed),
+            len(preds["predictions"]) - int(low.sum()),
+            reasons,
+            unknown_images(failed),
+            written["unprojected"],
+        )
     if low.any():
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
     log.info("plants: %s", " and ".join(str(written[k]) for k in (*cfg.vector_formats, "csv")))
@@ -107,7 +120,9 @@ def unknown_images(failed: pd.DataFrame) -> str:
     return f"; {len(miss)} image(s) not in the reconstruction: {', '.join(names)}{' ...' if len(miss) > 5 else ''}"
 
 
-def nothing_projected(failed: pd.DataFrame, cfg: PlantProjectionConfig, project: ODMProject, report: Path) -> InputError:
+def nothing_projected(
+    failed: pd.DataFrame, cfg: PlantProjectionConfig, project: ODMProject, report: Path
+) -> InputError:
     """Why no box at all could be projected, and what to change, by the most common reason."""
     counts = failed["reason"].value_counts()
     top = str(counts.index[0])
@@ -116,19 +131,29 @@ def nothing_projected(failed: pd.DataFrame, cfg: PlantProjectionConfig, project:
     if top == NOT_IN_RECONSTRUCTION:
         some = sorted(project.shot_ids(undistorted=True) or project.shot_ids(undistorted=False))[:3]
         kind = f" or set image_type to auto (it is '{cfg.image_type}');" if cfg.image_type != "auto" else ";"
-        return InputError(problem + unknown_images(failed), path=cfg.predictions,
-                          fix=f"the image names in the predictions must be the project's (e.g. {', '.join(some)}, "
-                              f"or their undistorted '<name>.tif'){kind} check that predictions and project are "
-                              "of the same flight")
+        return InputError(
+            problem + unknown_images(failed),
+            path=cfg.predictions,
+            fix=f"the image names in the predictions must be the project's (e.g. {', '.join(some)}, "
+            f"or their undistorted '<name>.tif'){kind} check that predictions and project are "
+            "of the same flight",
+        )
     if top == BOX_OUTSIDE_IMAGE:
-        return InputError(problem, path=cfg.predictions,
-                          fix="check 'image_type' (undistorted or original photos) and that the boxes are in pixels "
-                              "of these images")
+        return InputError(
+            problem,
+            path=cfg.predictions,
+            fix="check 'image_type' (undistorted or original photos) and that the boxes are in pixels of these images",
+        )
     if top == EMPTY_BOX:
         return InputError(problem, path=cfg.predictions, fix="the boxes have no width or height; regenerate them")
     dsm = Path(cfg.dsm) if cfg.dsm is not None else project.path("dsm")
-    return InputError(problem, path=dsm, fix="the rays miss the DSM: use the DSM of this ODM project" +
-                      (" (or leave 'dsm' empty)" if cfg.dsm is not None else "") + ", or fill its holes")
+    return InputError(
+        problem,
+        path=dsm,
+        fix="the rays miss the DSM: use the DSM of this ODM project"
+        + (" (or leave 'dsm' empty)" if cfg.dsm is not None else "")
+        + ", or fill its holes",
+    )
 
 
 def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict:
@@ -137,8 +162,9 @@ def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     run wrote its plants)."""
     e = cfg.evaluate
     out = Path(dest or cfg.output_dir)
-    plants_path = e.plants or next((p for p in (out / "plants.gpkg", Path(cfg.output_dir) / "plants.gpkg")
-                                    if p.is_file()), out / "plants.gpkg")
+    plants_path = e.plants or next(
+        (p for p in (out / "plants.gpkg", Path(cfg.output_dir) / "plants.gpkg") if p.is_file()), out / "plants.gpkg"
+    )
     ortho = e.orthophoto
     if ortho is None and cfg.project is not None:
         p = ODMProject(cfg.project)
@@ -146,28 +172,52 @@ def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     predicted, crs = read_plants_boxes(plants_path)
     reference = read_boxes(e.reference, orthophoto=ortho, crs=crs)
     if not len(reference):
-        raise InputError("the reference holds no boxes", path=e.reference, fix="point evaluate.reference at the "
-                                                                              "boxes drawn on the orthophoto")
+        raise InputError(
+            "the reference holds no boxes",
+            path=e.reference,
+            fix="point evaluate.reference at the boxes drawn on the orthophoto",
+        )
     metrics = evaluate_boxes(reference, predicted, e.iou_threshold)
     if metrics["share_matched"] == 0:
         r, p = reference, predicted
-        raise InputError(f"none of the {len(r)} reference boxes overlaps any of the {len(p)} plants (reference "
-                         f"{r[:, 0].min():.1f}..{r[:, 2].max():.1f} E, {r[:, 1].min():.1f}..{r[:, 3].max():.1f} N; "
-                         f"plants {p[:, 0].min():.1f}..{p[:, 2].max():.1f} E, {p[:, 1].min():.1f}..{p[:, 3].max():.1f}"
-                         " N)", path=e.reference, fix="check that the reference is of this field and in the plants' "
-                                                      "CRS (a CSV must be in the map CRS)")
+        raise InputError(
+            f"none of the {len(r)} reference boxes overlaps any of the {len(p)} plants (reference "
+            f"{r[:, 0].min():.1f}..{r[:, 2].max():.1f} E, {r[:, 1].min():.1f}..{r[:, 3].max():.1f} N; "
+            f"plants {p[:, 0].min():.1f}..{p[:, 2].max():.1f} E, {p[:, 1].min():.1f}..{p[:, 3].max():.1f}"
+            " N)",
+            path=e.reference,
+            fix="check that the reference is of this field and in the plants' CRS (a CSV must be in the map CRS)",
+        )
     match, iou = metrics.pop("_match"), metrics.pop("_iou")
-    write_table(pd.DataFrame({"reference_index": np.arange(len(reference)), "xmin": reference[:, 0],
-                              "ymin": reference[:, 1], "xmax": reference[:, 2], "ymax": reference[:, 3],
-                              "plant_index": match, "iou": iou}), out / "evaluation_matches.csv")
+    write_table(
+        pd.DataFrame(
+            {
+                "reference_index": np.arange(len(reference)),
+                "xmin": reference[:, 0],
+                "ymin": reference[:, 1],
+                "xmax": reference[:, 2],
+                "ymax": reference[:, 3],
+                "plant_index": match,
+                "iou": iou,
+            }
+        ),
+        out / "evaluation_matches.csv",
+    )
     metrics.update(reference=str(e.reference), plants=str(e.plants or Path(cfg.output_dir) / "plants.gpkg"))
     write_json(out / "evaluation.json", metrics)
-    fig = evaluation_figure(out / "evaluation.png", reference, predicted, dict(metrics, _match=match, _iou=iou),
-                            ortho, e.figure_pixels)
+    fig = evaluation_figure(
+        out / "evaluation.png", reference, predicted, dict(metrics, _match=match, _iou=iou), ortho, e.figure_pixels
+    )
     thr = e.iou_threshold
-    log.info("%d reference boxes: %.1f%% matched, %.1f%% with IoU > %g, median IoU %.3f; figure %s",
-             metrics["reference_boxes"], 100 * metrics["share_matched"],
-             100 * metrics[f"share_iou_above_{thr:g}"], thr, metrics["iou_median"], fig)
+    log.info(
+        "%d reference boxes: %.1f%% matched, %.1f%% with IoU > %g, median IoU %.3f; figure %s",
+        metrics["reference_boxes"],
+        100 * metrics["share_matched"],
+        100 * metrics[f"share_iou_above_{thr:g}"],
+        thr,
+        metrics["iou_median"],
+        fig,
+    )
     return metrics
 
 

@@ -28,11 +28,18 @@ class ProjectionSettings:
     fill_holes: float
 
     @classmethod
-    def from_config(cls, cfg: PlantProjectionConfig | None = None) -> "ProjectionSettings":
+    def from_config(cls, cfg: PlantProjectionConfig | None = None) -> ProjectionSettings:
         """The settings of ``cfg`` (None: the config's defaults)."""
         cfg = cfg if cfg is not None else PlantProjectionConfig()
-        return cls(image_type=cfg.image_type, dsm=Path(cfg.dsm) if cfg.dsm is not None else None,
-                   min_score=float(cfg.min_score), edge_points=int(cfg.edge_points), map_box=cfg.map_box,
-                   border_pixels=float(cfg.border_pixels), clearance=float(cfg.silhouette_clearance),
-                   hidden_height=float(cfg.hidden_height), ground_window=float(cfg.ground_window),
-                   fill_holes=float(cfg.fill_holes))
+        return cls(
+            image_type=cfg.image_type,
+            dsm=Path(cfg.dsm) if cfg.dsm is not None else None,
+            min_score=float(cfg.min_score),
+            edge_points=int(cfg.edge_points),
+            map_box=cfg.map_box,
+            border_pixels=float(cfg.border_pixels),
+            clearance=float(cfg.silhouette_clearance),
+            hidden_height=float(cfg.hidden_height),
+            ground_window=float(cfg.ground_window),
+            fill_holes=float(cfg.fill_holes),
+        )

@@ -42,10 +42,9 @@ class Silhouette(NamedTuple):
     across: np.ndarray  # (M, 4) map sides seen across the plant
 
     @classmethod
-    def empty(cls, m: int) -> "Silhouette":
+    def empty(cls, m: int) -> Silhouette:
         sides = lambda: np.empty((m, 4), dtype=np.bool_)  # noqa: E731
-        return cls(np.empty((m, 4)), np.empty((m, 2)), np.empty(m), np.empty(m), np.empty(m), sides(), sides(),
-                   sides())
+        return cls(np.empty((m, 4)), np.empty((m, 2)), np.empty(m), np.empty(m), np.empty(m), sides(), sides(), sides())
 
 
 @numba.njit(cache=True, nogil=True)
@@ -97,11 +96,19 @@ def _silhouette_kernel(g, d, near, cut, ok, scene, inscribed, res):
             # the plant's top: the highest DSM point in the box, which reaches past a hidden side (the clearance
             # stops a grazing ray a little before its tangent point, short of the top)
             w, h = r - le, bo - t
-            window = (le - w * (APEX_REACH if hidden[3] else 0.0), r + w * (APEX_REACH if hidden[1] else 0.0),
-                      t - h * (APEX_REACH if hidden[0] else 0.0), bo + h * (APEX_REACH if hidden[2] else 0.0))
+            window = (
+                le - w * (APEX_REACH if hidden[3] else 0.0),
+                r + w * (APEX_REACH if hidden[1] else 0.0),
+                t - h * (APEX_REACH if hidden[0] else 0.0),
+                bo + h * (APEX_REACH if hidden[2] else 0.0),
+            )
             aa, ab = apex_one(dsm, (cx, cy, ax, ay, bx, by), window, work)
-            t, r, bo, le = (min(t, 2 * ab - bo) if hidden[0] else t, max(r, 2 * aa - le) if hidden[1] else r,
-                            max(bo, 2 * ab - t) if hidden[2] else bo, min(le, 2 * aa - r) if hidden[3] else le)
+            t, r, bo, le = (
+                min(t, 2 * ab - bo) if hidden[0] else t,
+                max(r, 2 * aa - le) if hidden[1] else r,
+                max(bo, 2 * ab - t) if hidden[2] else bo,
+                min(le, 2 * aa - r) if hidden[3] else le,
+            )
         if not (r > le and bo > t and math.isfinite(det)):  # inverted (rays crossing): the corners' box
             t, r, bo, le = -1.0, 1.0, 1.0, -1.0
         mx = cx + ((le + r) / 2) * ax + ((t + bo) / 2) * bx
@@ -142,8 +149,15 @@ def _silhouette_kernel(g, d, near, cut, ok, scene, inscribed, res):
                     across[i, side] = True
 
 
-def silhouette_boxes(g_pts: np.ndarray, d_pts: np.ndarray, near: np.ndarray, ok: np.ndarray, cut: np.ndarray,
-                     scene: Scene, inscribed: bool) -> Silhouette:
+def silhouette_boxes(
+    g_pts: np.ndarray,
+    d_pts: np.ndarray,
+    near: np.ndarray,
+    ok: np.ndarray,
+    cut: np.ndarray,
+    scene: Scene,
+    inscribed: bool,
+) -> Silhouette:
     """Map boxes of plants from their outline rays (module docstring).
 
     ``g_pts`` and ``d_pts`` (M, P, 3): where each outline ray (:func:`~.geometry.box_outline` order, corners at 0,

@@ -53,8 +53,15 @@ def align_submodels(views: ProjectedViews) -> dict[str, tuple[float, float]]:
             rows.append(row)
             offsets.append(d)
             weights.append(np.sqrt(sel.sum()))
-            log.info("submodels %s and %s place the %d view pairs of plants both see %.1f cm apart (east %.1f, "
-                     "north %.1f)", names[p], names[q], int(sel.sum()), 100 * np.hypot(*d), 100 * d[0], 100 * d[1])
+            log.info(
+                "submodels %s and %s place the %d view pairs of plants both see %.1f cm apart (east %.1f, north %.1f)",
+                names[p],
+                names[q],
+                int(sel.sum()),
+                100 * np.hypot(*d),
+                100 * d[0],
+                100 * d[1],
+            )
     if not rows:
         return {}
     # least squares: position_q - position_p = offset_pq, positions summing to zero (the average frame)

@@ -63,8 +63,9 @@ class ProjectedViews:
         return self.points[rows].astype(np.float64) + self.origins[rows][:, None, :]
 
 
-def resolve_image(name: str, undistorted_ids: set[str], original_ids: set[str],
-                  image_type: str = "auto") -> tuple[str | None, bool]:
+def resolve_image(
+    name: str, undistorted_ids: set[str], original_ids: set[str], image_type: str = "auto"
+) -> tuple[str | None, bool]:
     """The shot id and whether it is the undistorted image, for an image file name (or path).
 
     ODM names undistorted images ``<original name>.tif``; ``auto`` decides from the name.
@@ -81,8 +82,9 @@ def resolve_image(name: str, undistorted_ids: set[str], original_ids: set[str],
     return None, image_type != "original"
 
 
-def resolve_images(names, undistorted_ids: set[str], original_ids: set[str],
-                   image_type: str = "auto") -> tuple[dict[str, tuple[str | None, bool]], dict[str, str]]:
+def resolve_images(
+    names, undistorted_ids: set[str], original_ids: set[str], image_type: str = "auto"
+) -> tuple[dict[str, tuple[str | None, bool]], dict[str, str]]:
     """:func:`resolve_image` for many names, then the loose match for the rest: a name that differs from a
     shot id only by case or extension (``IMG_1.tif`` or ``IMG_1.jpg.tif`` for shot ``IMG_1.JPG``) is that shot,
     said in the log. Returns ``({name: (shot id or None, undistorted?)}, {unmatched name: "did you mean" hint})``."""
@@ -93,9 +95,10 @@ def resolve_images(names, undistorted_ids: set[str], original_ids: set[str],
             continue
         base = Path(str(name).replace("\\", "/")).name
         stripped = base[:-4] if base.lower().endswith(".tif") else None
-        for candidate, ids, is_und in ((stripped or (base if image_type == "undistorted" else None),
-                                        undistorted_ids, True),
-                                       (base if image_type != "undistorted" else None, original_ids, False)):
+        for candidate, ids, is_und in (
+            (stripped or (base if image_type == "undistorted" else None), undistorted_ids, True),
+            (base if image_type != "undistorted" else None, original_ids, False),
+        ):
             if candidate is None or (is_und and image_type == "original") or not ids:
                 continue
             matched, _ = match_names([candidate], ids)
@@ -106,8 +109,11 @@ def resolve_images(names, undistorted_ids: set[str], original_ids: set[str],
         else:
             hints[name] = did_you_mean(stripped or base, undistorted_ids | original_ids)
     if loose:
-        log.warning("%d image name(s) differ from the reconstruction's shot ids only by case or extension and were "
-                    "matched: %s", len(loose), "; ".join(loose[:5]) + (" ..." if len(loose) > 5 else ""))
+        log.warning(
+            "%d image name(s) differ from the reconstruction's shot ids only by case or extension and were matched: %s",
+            len(loose),
+            "; ".join(loose[:5]) + (" ..." if len(loose) > 5 else ""),
+        )
     return out, hints
 
 
@@ -120,8 +126,10 @@ def _shot(project: ODMProject, shot_id: str, undistorted: bool, warned: set) -> 
         # the undistorted image is not here (only its size was needed): use the camera's nominal size
         if "size" not in warned:
             warned.add("size")
-            log.warning("undistorted images not found in %s; using the cameras' nominal image sizes",
-                        project.path("undistorted_images"))
+            log.warning(
+                "undistorted images not found in %s; using the cameras' nominal image sizes",
+                project.path("undistorted_images"),
+            )
         return project.nominal_shot(shot_id, undistorted=True)
 
 
@@ -148,13 +156,16 @@ def _per_image(images: list[dict]) -> tuple[list, dict[str, np.ndarray]]:
     x0 = np.array([float(im.get("x0", 0) or 0) for im in ims]).reshape(-1)
     y0 = np.array([float(im.get("y0", 0) or 0) for im in ims]).reshape(-1)
     tiled = np.array([im.get("x0") is not None or im.get("y0") is not None for im in ims], dtype=bool)
-    tile = np.column_stack([x0, y0, [float(im.get("width") or np.nan) for im in ims],
-                            [float(im.get("height") or np.nan) for im in ims]]).reshape(-1, 4)
+    tile = np.column_stack(
+        [x0, y0, [float(im.get("width") or np.nan) for im in ims], [float(im.get("height") or np.nan) for im in ims]]
+    ).reshape(-1, 4)
     tile[~tiled] = np.nan
-    return list(by_id), {"image": np.array([im.get("file_name", "") for im in ims], dtype=object),
-                         "source_image": np.array([Path(source_name(im).replace("\\", "/")).name for im in ims],
-                                                  dtype=object),
-                         "offset": np.column_stack([x0, y0]).reshape(-1, 2), "tile": tile}
+    return list(by_id), {
+        "image": np.array([im.get("file_name", "") for im in ims], dtype=object),
+        "source_image": np.array([Path(source_name(im).replace("\\", "/")).name for im in ims], dtype=object),
+        "offset": np.column_stack([x0, y0]).reshape(-1, 2),
+        "tile": tile,
+    }
 
 
 def _dsm_paths(project: ODMProject, keys: list[tuple[str, bool]], dsm: Path | None) -> list[Path]:
@@ -172,8 +183,11 @@ def _dsm_paths(project: ODMProject, keys: list[tuple[str, bool]], dsm: Path | No
     if without:
         project.require("dsm")
         merged = project.path("dsm")
-        log.info("submodel(s) %s have no DSM of their own (odm_dem/dsm.tif); their shots' boxes meet the merged "
-                 "DSM %s", ", ".join(without), merged)
+        log.info(
+            "submodel(s) %s have no DSM of their own (odm_dem/dsm.tif); their shots' boxes meet the merged DSM %s",
+            ", ".join(without),
+            merged,
+        )
     return [own[sid] or merged for sid, _ in keys]
 
 
@@ -194,8 +208,9 @@ def dsm_files(project: ODMProject, dsm: Path | None) -> list[Path]:
     return have
 
 
-def project_predictions(project: ODMProject, predictions: dict,
-                        settings: ProjectionSettings | None = None) -> tuple[ProjectedViews, pd.DataFrame]:
+def project_predictions(
+    project: ODMProject, predictions: dict, settings: ProjectionSettings | None = None
+) -> tuple[ProjectedViews, pd.DataFrame]:
     """Project every prediction box; returns the projected views and the boxes that were not projected.
 
     ``predictions`` is :func:`matchplant.core.formats.predictions.read_predictions`'s dict, checked there (tile
@@ -248,11 +263,19 @@ def _box_table(predictions: dict) -> _Boxes:
     xyxy = np.column_stack([b[:, :2] + off, b[:, :2] + off + b[:, 2:]])
     src_of_image, sources = pd.factorize(per_image["source_image"])
     cat_codes, cat_values = pd.factorize(category_id)
-    cols = {"pred_index": np.arange(n), "image_id": pd.Series(image_ids).to_numpy(), "score": score,
-            "category_id": category_id,
-            "image": per_image["image"][code], "source_image": per_image["source_image"][code],
-            "category": np.array([cats.get(c, str(c)) for c in cat_values], dtype=object)[cat_codes],
-            "u1": xyxy[:, 0], "v1": xyxy[:, 1], "u2": xyxy[:, 2], "v2": xyxy[:, 3]}
+    cols = {
+        "pred_index": np.arange(n),
+        "image_id": pd.Series(image_ids).to_numpy(),
+        "score": score,
+        "category_id": category_id,
+        "image": per_image["image"][code],
+        "source_image": per_image["source_image"][code],
+        "category": np.array([cats.get(c, str(c)) for c in cat_values], dtype=object)[cat_codes],
+        "u1": xyxy[:, 0],
+        "v1": xyxy[:, 1],
+        "u2": xyxy[:, 2],
+        "v2": xyxy[:, 3],
+    }
     if any("plant_id" in p for p in preds):  # ground-truth ids travel through (synthetic field, tests)
         ids = [p.get("plant_id", -1) for p in preds]
         as_array = np.array(ids)  # integer ids (the usual case) make an integer array at once
@@ -267,14 +290,17 @@ def _shot_ids(project: ODMProject, images: list[dict], image_type: str) -> tuple
     if image_type == "original" and not orig_ids:
         project.require("reconstruction")
     names = {Path(source_name(im).replace("\\", "/")).name for im in images}
-    if not und_ids and (image_type == "undistorted" or (image_type == "auto" and orig_ids.isdisjoint(names) and
-                                                        any(n.lower().endswith(".tif") for n in names))):
+    if not und_ids and (
+        image_type == "undistorted"
+        or (image_type == "auto" and orig_ids.isdisjoint(names) and any(n.lower().endswith(".tif") for n in names))
+    ):
         project.require("undistorted_reconstruction")  # boxes on undistorted images: say what is missing
     return und_ids, orig_ids
 
 
-def _resolve_sources(project: ODMProject, boxes: _Boxes, ids: tuple[set[str], set[str]],
-                     image_type: str) -> tuple[np.ndarray, np.ndarray]:
+def _resolve_sources(
+    project: ODMProject, boxes: _Boxes, ids: tuple[set[str], set[str]], image_type: str
+) -> tuple[np.ndarray, np.ndarray]:
     """Each source photo's shot id (None: not in the reconstruction) and whether the boxes are on its undistorted
     image; adds the boxes' ``hint``, ``shot_id``, ``undistorted`` (and ``submodel``) columns."""
     src, sources = boxes.src, boxes.sources
@@ -286,8 +312,9 @@ def _resolve_sources(project: ODMProject, boxes: _Boxes, ids: tuple[set[str], se
     boxes.cols["shot_id"] = shot_of[src]
     boxes.cols["undistorted"] = und_of[src]
     if project.is_split:  # which submodel's frame placed each box (merge.align_submodels)
-        boxes.cols["submodel"] = np.array([project.owner(s).name if s is not None else "" for s in shot_of],
-                                          dtype=object)[src]
+        boxes.cols["submodel"] = np.array(
+            [project.owner(s).name if s is not None else "" for s in shot_of], dtype=object
+        )[src]
     return shot_of, und_of
 
 
@@ -325,8 +352,12 @@ class _ShotGroups:
 def _outside(xyxy: np.ndarray, size: np.ndarray) -> np.ndarray:
     """Boxes reaching more than :data:`OUTSIDE_SLACK` pixels past their image's border."""
     with np.errstate(invalid="ignore"):
-        return ((xyxy[:, 0] < -OUTSIDE_SLACK) | (xyxy[:, 1] < -OUTSIDE_SLACK)
-                | (xyxy[:, 2] > size[:, 0] + OUTSIDE_SLACK) | (xyxy[:, 3] > size[:, 1] + OUTSIDE_SLACK))
+        return (
+            (xyxy[:, 0] < -OUTSIDE_SLACK)
+            | (xyxy[:, 1] < -OUTSIDE_SLACK)
+            | (xyxy[:, 2] > size[:, 0] + OUTSIDE_SLACK)
+            | (xyxy[:, 3] > size[:, 1] + OUTSIDE_SLACK)
+        )
 
 
 def _by_position(xyxy: np.ndarray, group: np.ndarray, todo: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray]]:
@@ -366,8 +397,11 @@ class _Projection:
         if not (project.is_split and self.settings.dsm is None and merged.is_file()):
             return
         lost = {STATUS_TEXT[OUTSIDE], STATUS_TEXT[NODATA]}
-        retry = {k: self.groups[k][np.isin(self.reason[self.groups[k]], list(lost))]
-                 for k, p in zip(self.groups, dsm_of) if p != merged}
+        retry = {
+            k: self.groups[k][np.isin(self.reason[self.groups[k]], list(lost))]
+            for k, p in zip(self.groups, dsm_of)
+            if p != merged
+        }
         retry = {k: idx for k, idx in retry.items() if idx.size}
         if retry:
             count = sum(idx.size for idx in retry.values())
@@ -381,13 +415,21 @@ class _Projection:
         :class:`DsmSurfaces`)."""
         shots, frames = self.shots.shots, self.shots.frames
         surfaces = DsmSurfaces(path, self.crs, self.settings.ground_window, self.settings.fill_holes)
-        bounds = {k: ray_bounds(shots[k], frames[k], self.xyxy[idx], surfaces.z_lo, surfaces.z_hi)
-                  for k, idx in groups.items()}
+        bounds = {
+            k: ray_bounds(shots[k], frames[k], self.xyxy[idx], surfaces.z_lo, surfaces.z_hi)
+            for k, idx in groups.items()
+        }
         surfaces.prepare(list(bounds.values()))
         for k in progress(list(groups), desc=desc, unit="image"):
             idx = groups[k]
-            r = project_boxes(shots[k], frames[k], surfaces.get(bounds[k]), self.xyxy[idx], self.settings,
-                              cut_edges=self.cut_edges[idx])
+            r = project_boxes(
+                shots[k],
+                frames[k],
+                surfaces.get(bounds[k]),
+                self.xyxy[idx],
+                self.settings,
+                cut_edges=self.cut_edges[idx],
+            )
             self.res.store(idx, r, self.reason)
         self.soil_spread = max(self.soil_spread, surfaces.report())
 
@@ -402,8 +444,20 @@ class _Projection:
         return ProjectedViews(views, res.points, res.origins, res.row[done], self.crs, self.soil_spread), rejected
 
 
-REJECTED_COLUMNS = ("pred_index", "image_id", "image", "source_image", "u1", "v1", "u2", "v2", "score", "category",
-                    "reason", "hint")
+REJECTED_COLUMNS = (
+    "pred_index",
+    "image_id",
+    "image",
+    "source_image",
+    "u1",
+    "v1",
+    "u2",
+    "v2",
+    "score",
+    "category",
+    "reason",
+    "hint",
+)
 RESULT_COLUMNS = ("xmin", "ymin", "xmax", "ymax", "cx", "cy", "z", "area_m2", "off_nadir_deg")
 
 

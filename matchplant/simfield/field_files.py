@@ -31,25 +31,42 @@ def write_csv(path: Path, header: list[str], rows: list) -> None:
 
 def write_plants(paths: FieldPaths, plants: Plants, rasters: Rasters, res: float, offset: np.ndarray) -> None:
     radius = plants.radius()
-    write_csv(paths.plants_csv, ["id", "x", "y", "z", "height", "radius", "row"],
-               [[int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{z:.4f}", f"{h:.4f}", f"{r:.4f}", int(row)]
-                for i, x, y, z, h, r, row in zip(plants.ids, plants.x, plants.y, plants.z, plants.height, radius,
-                                                 plants.row)])
-    write_csv(paths.traits_csv, ["id", "x", "y", "height", "ndvi", "canopy_pixels", "canopy_area_m2"],
-               traits_rows(plants, rasters.label, res, offset))
+    write_csv(
+        paths.plants_csv,
+        ["id", "x", "y", "z", "height", "radius", "row"],
+        [
+            [int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{z:.4f}", f"{h:.4f}", f"{r:.4f}", int(row)]
+            for i, x, y, z, h, r, row in zip(
+                plants.ids, plants.x, plants.y, plants.z, plants.height, radius, plants.row
+            )
+        ],
+    )
+    write_csv(
+        paths.traits_csv,
+        ["id", "x", "y", "height", "ndvi", "canopy_pixels", "canopy_area_m2"],
+        traits_rows(plants, rasters.label, res, offset),
+    )
 
 
 def write_plot_truth(paths: FieldPaths, s, plants: Plants, offset: np.ndarray, crs: str) -> None:
     t = plot_truth(s, plants, offset, crs)
     write_json(paths.plots_json, t["grid"])
-    write_csv(paths.plots_csv, ["plot_id", "range", "column", "expected", "stand_count", "gaps", "geometry"],
-               t["plots"])
+    write_csv(
+        paths.plots_csv, ["plot_id", "range", "column", "expected", "stand_count", "gaps", "geometry"], t["plots"]
+    )
     write_csv(paths.gaps_csv, ["plot_id", "row", "x", "y"], t["gaps"])
     write_csv(paths.field_book, ["plot_id", "genotype", "rep"], t["field_book"])
 
 
-def write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terrain, offset: np.ndarray,
-                   crs: CRS, noise_rng: np.random.Generator | None = None) -> dict | None:
+def write_rasters(
+    paths: FieldPaths,
+    grid: Grid,
+    rasters: Rasters,
+    terrain: Terrain,
+    offset: np.ndarray,
+    crs: CRS,
+    noise_rng: np.random.Generator | None = None,
+) -> dict | None:
     """DTM, DSM, orthophoto, multispectral and plant ids. With ``noise_rng`` (noise: realistic) the DSM and
     DTM are photogrammetric and the multispectral raster has 5 bands (simfield/noise.py); returns what was
     measured on them."""
@@ -72,13 +89,21 @@ def write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terr
     outputs = [
         (paths.dtm, 1, "float32", NODATA, dtm),
         (paths.dsm, 1, "float32", NODATA, dsm),
-        (paths.orthophoto, 4, "uint8", 0, lambda r: np.concatenate(
-            [np.moveaxis(rasters.albedo[r], 2, 0), np.full((1,) + rasters.label[r].shape, 255, np.uint8)])),
+        (
+            paths.orthophoto,
+            4,
+            "uint8",
+            0,
+            lambda r: np.concatenate(
+                [np.moveaxis(rasters.albedo[r], 2, 0), np.full((1,) + rasters.label[r].shape, 255, np.uint8)]
+            ),
+        ),
         (paths.plant_ids, 1, "int32", -9999, lambda r: rasters.label[r][None]),
     ]
     if dem is None:
-        outputs.insert(3, (paths.multispectral, 2, "float32", NODATA,
-                           lambda r: np.stack([rasters.red[r], rasters.nir[r]])))
+        outputs.insert(
+            3, (paths.multispectral, 2, "float32", NODATA, lambda r: np.stack([rasters.red[r], rasters.nir[r]]))
+        )
     for path, count, dtype, nodata, fn in outputs:
         profile = raster_profile(grid, count, dtype, crs, transform, nodata)
         if count == 4:
@@ -106,6 +131,19 @@ def write_rasters(paths: FieldPaths, grid: Grid, rasters: Rasters, terrain: Terr
 
 
 def raster_profile(grid: Grid, count: int, dtype: str, crs: CRS, transform: Affine, nodata) -> dict:
-    return dict(driver="GTiff", width=grid.width, height=grid.height, count=count, dtype=dtype, crs=crs,
-                transform=transform, nodata=nodata, tiled=True, blockxsize=256, blockysize=256,
-                compress="deflate", zlevel=1, BIGTIFF="IF_SAFER")
+    return dict(
+        driver="GTiff",
+        width=grid.width,
+        height=grid.height,
+        count=count,
+        dtype=dtype,
+        crs=crs,
+        transform=transform,
+        nodata=nodata,
+        tiled=True,
+        blockxsize=256,
+        blockysize=256,
+        compress="deflate",
+        zlevel=1,
+        BIGTIFF="IF_SAFER",
+    )

@@ -31,9 +31,21 @@ SENSOR_WIDTH_MM = 13.2  # 1-inch sensor
 def make_camera(s: Settings) -> PinholeCamera:
     """A ``brown`` camera with small, realistic distortion (monotonic over the whole image)."""
     w, h = s.image_width, s.image_height
-    return PinholeCamera(id=f"v2 matchplant simcam {w} {h} brown {s.focal:.4f}", projection_type="brown",
-                         width=w, height=h, focal_x=s.focal, focal_y=s.focal * 1.002, c_x=0.004, c_y=-0.003,
-                         k1=-0.045, k2=0.018, k3=0.0, p1=0.0006, p2=-0.0004)
+    return PinholeCamera(
+        id=f"v2 matchplant simcam {w} {h} brown {s.focal:.4f}",
+        projection_type="brown",
+        width=w,
+        height=h,
+        focal_x=s.focal,
+        focal_y=s.focal * 1.002,
+        c_x=0.004,
+        c_y=-0.003,
+        k1=-0.045,
+        k2=0.018,
+        k3=0.0,
+        p1=0.0006,
+        p2=-0.0004,
+    )
 
 
 def nadir_rotation(heading: np.ndarray, tilt_deg: float) -> np.ndarray:
@@ -51,15 +63,15 @@ def nadir_rotation(heading: np.ndarray, tilt_deg: float) -> np.ndarray:
 @dataclass
 class Exposure:
     name: str
-    shot: Shot           # raw camera, local frame
+    shot: Shot  # raw camera, local frame
     line: int
-    utc: dt.datetime     # true time of the exposure
+    utc: dt.datetime  # true time of the exposure
 
 
 def plan_flight(s: Settings, terrain: Terrain, camera: PinholeCamera, rng: np.random.Generator) -> list[Exposure]:
     """Serpentine lines along the rows (north-south) with the requested front and side overlap."""
     scale = max(camera.width, camera.height)
-    foot_w = s.altitude * camera.width / (s.focal * scale)   # across track (image x)
+    foot_w = s.altitude * camera.width / (s.focal * scale)  # across track (image x)
     foot_h = s.altitude * camera.height / (s.focal * scale)  # along track (image y)
     step_x = (1 - s.overlap_side) * foot_w
     step_y = (1 - s.overlap_front) * foot_h
@@ -78,13 +90,13 @@ def plan_flight(s: Settings, terrain: Terrain, camera: PinholeCamera, rng: np.ra
         north = line % 2 == 0
         heading = np.array([0.0, 1.0 if north else -1.0])
         R0 = nadir_rotation(heading, s.tilt_deg)
-        for y in (ys if north else ys[::-1]):
+        for y in ys if north else ys[::-1]:
             noise = Rotation.from_rotvec(rng.normal(0, np.radians(s.attitude_noise_deg), 3)).as_matrix()
-            centre = np.array([x + rng.normal(0, 0.02), y - heading[1] * lead + rng.normal(0, 0.02),
-                               z_fly + rng.normal(0, 0.03)])
+            centre = np.array(
+                [x + rng.normal(0, 0.02), y - heading[1] * lead + rng.normal(0, 0.02), z_fly + rng.normal(0, 0.03)]
+            )
             name = f"SIM_{len(out) + 1:04d}.JPG"
-            out.append(Exposure(name=name, shot=Shot.from_center(name, camera, noise @ R0, centre), line=line,
-                                utc=t))
+            out.append(Exposure(name=name, shot=Shot.from_center(name, camera, noise @ R0, centre), line=line, utc=t))
             t += dt.timedelta(seconds=SHOT_INTERVAL_S)
         t += dt.timedelta(seconds=TURN_S)
     return out
@@ -114,8 +126,15 @@ def ground_hit(origin: np.ndarray, dirs: np.ndarray, terrain: Terrain) -> np.nda
     return s
 
 
-def cast(origin: np.ndarray, dirs: np.ndarray, terrain: Terrain, rasters: Rasters, top: float,
-         step: float, s_g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def cast(
+    origin: np.ndarray,
+    dirs: np.ndarray,
+    terrain: Terrain,
+    rasters: Rasters,
+    top: float,
+    step: float,
+    s_g: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Where rays first meet terrain + canopy: (row, col) of the raster cell hit by each ray.
 
     Between the height ``top`` above the terrain and the terrain itself, each ray is sampled every
@@ -209,13 +228,14 @@ def pixel_bearings(camera) -> np.ndarray:
     if key not in _BEARINGS:
         if len(_BEARINGS) > 3:
             _BEARINGS.clear()
-        v, u = np.mgrid[0:camera.height, 0:camera.width]
+        v, u = np.mgrid[0 : camera.height, 0 : camera.width]
         _BEARINGS[key] = camera.bearings(np.stack([u.ravel(), v.ravel()], axis=1).astype(float))
     return _BEARINGS[key]
 
 
-def render(shot: Shot, terrain: Terrain, rasters: Rasters, top: float, step: float,
-           chunk: int = 250_000) -> tuple[np.ndarray, np.ndarray]:
+def render(
+    shot: Shot, terrain: Terrain, rasters: Rasters, top: float, step: float, chunk: int = 250_000
+) -> tuple[np.ndarray, np.ndarray]:
     """RGB image (h, w, 3) uint8 and plant-id image (h, w) int32 (0 where no plant) seen by ``shot``."""
     cam = shot.camera
     w, h = cam.width, cam.height
@@ -261,8 +281,14 @@ def footprint(shot: Shot, terrain: Terrain, n: int = 16) -> np.ndarray:
     cam = shot.camera
     us = np.linspace(-0.5, cam.width - 0.5, n)
     vs = np.linspace(-0.5, cam.height - 0.5, n)
-    border = np.concatenate([np.stack([us, np.full(n, vs[0])], 1), np.stack([us, np.full(n, vs[-1])], 1),
-                             np.stack([np.full(n, us[0]), vs], 1), np.stack([np.full(n, us[-1]), vs], 1)])
+    border = np.concatenate(
+        [
+            np.stack([us, np.full(n, vs[0])], 1),
+            np.stack([us, np.full(n, vs[-1])], 1),
+            np.stack([np.full(n, us[0]), vs], 1),
+            np.stack([np.full(n, us[-1]), vs], 1),
+        ]
+    )
     d = shot.ray_directions(border)
     s = ground_hit(shot.center, d, terrain)
     p = shot.center[None, :] + s[:, None] * d

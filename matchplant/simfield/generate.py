@@ -67,8 +67,11 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     s = resolve(cfg)
     paths = FieldPaths(Path(cfg.output_dir))
     if paths.root.exists() and not paths.root.is_dir():
-        raise ConfigError("output_dir is a file, not a folder", path=paths.root,
-                          fix="choose a new or existing folder for the synthetic field")
+        raise ConfigError(
+            "output_dir is a file, not a folder",
+            path=paths.root,
+            fix="choose a new or existing folder for the synthetic field",
+        )
     paths.root.mkdir(parents=True, exist_ok=True)
     streams = np.random.SeedSequence(cfg.seed).spawn(6)
     rng_terrain, rng_gcp, rng_plants, rng_flight, rng_raster, rng_noise = (np.random.default_rng(x) for x in streams)
@@ -92,26 +95,48 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
 
     # rasters cover every ray of every image: a ray meets the canopy between the camera and its ground
     # footprint, so the footprints (plus a small margin) are enough
-    feet = np.array([footprint(e.shot, terrain) for e in exposures] +
-                    [footprint(e.shot.with_camera(ucamera), terrain) for e in exposures])
+    feet = np.array(
+        [footprint(e.shot, terrain) for e in exposures]
+        + [footprint(e.shot.with_camera(ucamera), terrain) for e in exposures]
+    )
     margin = 0.1
-    area = (min(feet[:, 0].min(), 0) - margin, min(feet[:, 1].min(), 0) - margin,
-            max(feet[:, 2].max(), s.field_width) + margin, max(feet[:, 3].max(), s.field_length) + margin)
+    area = (
+        min(feet[:, 0].min(), 0) - margin,
+        min(feet[:, 1].min(), 0) - margin,
+        max(feet[:, 2].max(), s.field_width) + margin,
+        max(feet[:, 3].max(), s.field_length) + margin,
+    )
     grid = Grid.covering(*area, s.raster_res)
     rasters = rasterize(s, grid, plants, gcps, rng_raster)
-    log.info("field: %d plants, %d GCPs, %d images of %dx%d px, GSD %.2f cm, rasters %dx%d at %.1f mm",
-             len(plants), len(gcps), len(exposures), camera.width, camera.height, 100 * s.gsd,
-             grid.width, grid.height, 1000 * s.raster_res)
+    log.info(
+        "field: %d plants, %d GCPs, %d images of %dx%d px, GSD %.2f cm, rasters %dx%d at %.1f mm",
+        len(plants),
+        len(gcps),
+        len(exposures),
+        camera.width,
+        camera.height,
+        100 * s.gsd,
+        grid.width,
+        grid.height,
+        1000 * s.raster_res,
+    )
 
     # -- images and per-image truth ------------------------------------------------------------------
     top = s.height_max + 0.01
     step = max(s.raster_res, s.gsd)
     reach = s.height_max * 1.5 + float(plants.radius().max()) if len(plants) else 1.0
     clock_offset = float(np.round(rng_noise.uniform(-4.0, 4.0), 3))
-    raw_ds = new_dataset(["plant"], {"description": f"MatchPlant synthetic field ({cfg.preset}, seed {cfg.seed}): "
-                                                    "every plant in every raw image"})
-    und_ds = new_dataset(["plant"], {"description": f"MatchPlant synthetic field ({cfg.preset}, seed {cfg.seed}): "
-                                                    "every plant in every undistorted image"})
+    raw_ds = new_dataset(
+        ["plant"],
+        {"description": f"MatchPlant synthetic field ({cfg.preset}, seed {cfg.seed}): every plant in every raw image"},
+    )
+    und_ds = new_dataset(
+        ["plant"],
+        {
+            "description": f"MatchPlant synthetic field ({cfg.preset}, seed {cfg.seed}): "
+            "every plant in every undistorted image"
+        },
+    )
     gcp_rows = []
     image_info = []
     lla = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
@@ -125,33 +150,62 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
             if np.isfinite(u) and camera.in_image(np.array([u, v])):
                 gcp_rows.append([f"GCP{g + 1:02d}", e.name, f"{u:.3f}", f"{v:.3f}"])
         week, tow = gps_time_of_week(e.utc)
-        image_info.append({"name": e.name, "line": e.line, "utc": e.utc.isoformat(),
-                           "camera_time": cam_time.replace(tzinfo=None).isoformat(timespec="milliseconds"),
-                           "gps_week": week, "gps_tow": round(tow, 3),
-                           "center": [float(v) for v in centre_map], "lat": lat, "lon": lon})
-    jobs = [ImageJob(e, e.shot.with_camera(ucamera), noise_streams[2 * k], noise_streams[2 * k + 1],
-                     dt.datetime.fromisoformat(info["camera_time"]), (info["lat"], info["lon"], info["center"][2]))
-            for k, (e, info) in enumerate(zip(exposures, image_info))]
+        image_info.append(
+            {
+                "name": e.name,
+                "line": e.line,
+                "utc": e.utc.isoformat(),
+                "camera_time": cam_time.replace(tzinfo=None).isoformat(timespec="milliseconds"),
+                "gps_week": week,
+                "gps_tow": round(tow, 3),
+                "center": [float(v) for v in centre_map],
+                "lat": lat,
+                "lon": lon,
+            }
+        )
+    jobs = [
+        ImageJob(
+            e,
+            e.shot.with_camera(ucamera),
+            noise_streams[2 * k],
+            noise_streams[2 * k + 1],
+            dt.datetime.fromisoformat(info["camera_time"]),
+            (info["lat"], info["lon"], info["center"][2]),
+        )
+        for k, (e, info) in enumerate(zip(exposures, image_info))
+    ]
     realistic = cfg.noise == "realistic"
     scene = Scene(s, paths, terrain, rasters, plants, plants.surface_offsets(terrain), top, step, reach, realistic)
     objects = []
-    for k, (raw_boxes, und_boxes, mask_truth) in enumerate(progress(_run_jobs(scene, jobs, _workers(cfg)), total=len(jobs),
-                                                        desc="rendering images", unit="image")):
+    for k, (raw_boxes, und_boxes, mask_truth) in enumerate(
+        progress(_run_jobs(scene, jobs, _workers(cfg)), total=len(jobs), desc="rendering images", unit="image")
+    ):
         e = exposures[k]
         if mask_truth is not None:
             objects.append([e.name, *mask_truth])
         for ds, boxes, undist in ((raw_ds, raw_boxes, False), (und_ds, und_boxes, True)):
             cam = ucamera if undist else camera
-            entry = {"id": k + 1, "file_name": e.name + (".tif" if undist else ""), "width": cam.width,
-                     "height": cam.height}
+            entry = {
+                "id": k + 1,
+                "file_name": e.name + (".tif" if undist else ""),
+                "width": cam.width,
+                "height": cam.height,
+            }
             if undist:
                 entry["shot_id"] = e.name
             ds["images"].append(entry)
             for b, i, c, px in boxes:
                 # the box is the whole plant (occluded parts included); visible_px counts its rendered pixels
-                ds["annotations"].append(make_annotation(len(ds["annotations"]) + 1, k + 1,
-                                                         [b[0], b[1], b[2] - b[0], b[3] - b[1]],
-                                                         plant_id=int(i + 1), truncated=bool(c), visible_px=px))
+                ds["annotations"].append(
+                    make_annotation(
+                        len(ds["annotations"]) + 1,
+                        k + 1,
+                        [b[0], b[1], b[2] - b[0], b[3] - b[1]],
+                        plant_id=int(i + 1),
+                        truncated=bool(c),
+                        visible_px=px,
+                    )
+                )
 
     # -- ODM outputs ---------------------------------------------------------------------------------
     write_coords_txt(paths.coords, crs, offset)
@@ -164,34 +218,56 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
         epoch = dt.datetime.fromisoformat(info["camera_time"]).replace(tzinfo=dt.timezone.utc).timestamp()
         c_topo = topo.from_map(np.array(info["center"])[None, :])[0]
         gps = [float(v) for v in c_topo]  # ODM leaves gps_position unconverted (topocentric)
-        shots[e.name] = Shot(id=e.name, camera=camera, rotation=e.shot.rotation, translation=e.shot.translation,
-                             capture_time=epoch, gps_position=tuple(gps), extra={"gps_dop": 0.05})
+        shots[e.name] = Shot(
+            id=e.name,
+            camera=camera,
+            rotation=e.shot.rotation,
+            translation=e.shot.translation,
+            capture_time=epoch,
+            gps_position=tuple(gps),
+            extra={"gps_dop": 0.05},
+        )
         Q = _map_to_topo_rotation(topo, c_topo)
-        topo_shots[e.name] = Shot.from_center(e.name, camera, e.shot.R @ Q, c_topo, capture_time=epoch,
-                                              gps_position=tuple(gps), extra={"gps_dop": 0.05})
+        topo_shots[e.name] = Shot.from_center(
+            e.name, camera, e.shot.R @ Q, c_topo, capture_time=epoch, gps_position=tuple(gps), extra={"gps_dop": 0.05}
+        )
     ids = [str(i) for i in range(len(sparse))]
-    rec = Reconstruction(cameras={camera.id: camera}, shots=shots, point_ids=ids, points=sparse,
-                         reference_lla=reference)
+    rec = Reconstruction(
+        cameras={camera.id: camera}, shots=shots, point_ids=ids, points=sparse, reference_lla=reference
+    )
     write_reconstruction(paths.reconstruction, rec)
-    urec = Reconstruction(cameras={camera.id: ucamera},
-                          shots={k: v.with_camera(ucamera) for k, v in shots.items()}, point_ids=ids,
-                          points=sparse, reference_lla=reference)
+    urec = Reconstruction(
+        cameras={camera.id: ucamera},
+        shots={k: v.with_camera(ucamera) for k, v in shots.items()},
+        point_ids=ids,
+        points=sparse,
+        reference_lla=reference,
+    )
     write_reconstruction(paths.undistorted_reconstruction, urec)
-    trec = Reconstruction(cameras={camera.id: camera}, shots=topo_shots, point_ids=ids,
-                          points=topo.from_map(sparse + offset),
-                          reference_lla={"latitude": ref_lat, "longitude": ref_lon, "altitude": terrain.z0})
+    trec = Reconstruction(
+        cameras={camera.id: camera},
+        shots=topo_shots,
+        point_ids=ids,
+        points=topo.from_map(sparse + offset),
+        reference_lla={"latitude": ref_lat, "longitude": ref_lon, "altitude": terrain.z0},
+    )
     write_reconstruction(paths.topocentric_reconstruction, trec)
     # the noise has streams of its own: an exact and a realistic field of one seed share everything else
-    noise = write_rasters(paths, grid, rasters, terrain, offset, crs,
-                           np.random.default_rng([cfg.seed, 1904]) if realistic else None)
+    noise = write_rasters(
+        paths, grid, rasters, terrain, offset, crs, np.random.default_rng([cfg.seed, 1904]) if realistic else None
+    )
 
     # -- inputs of modules 0 and 1 -------------------------------------------------------------------
-    lines = ["Timestamp\tX\tY\tZ"] + [f"{i['gps_tow']:.3f}\t{i['center'][0]:.4f}\t{i['center'][1]:.4f}\t"
-                                      f"{i['center'][2]:.4f}" for i in image_info]
+    lines = ["Timestamp\tX\tY\tZ"] + [
+        f"{i['gps_tow']:.3f}\t{i['center'][0]:.4f}\t{i['center'][1]:.4f}\t{i['center'][2]:.4f}" for i in image_info
+    ]
     write_text(paths.gnss_log, "\n".join(lines) + "\n")
     gmap = gcps + offset
-    write_csv(paths.gcp_survey, ["id", "x", "y", "z"],
-               [[f"GCP{g + 1:02d}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}"] for g, (x, y, z) in enumerate(gmap)])
+    write_csv(
+        paths.gcp_survey,
+        ["id", "x", "y", "z"],
+        [[f"GCP{g + 1:02d}", f"{x:.4f}", f"{y:.4f}", f"{z:.4f}"] for g, (x, y, z) in enumerate(gmap)],
+    )
 
     # -- truth ---------------------------------------------------------------------------------------
     write_plants(paths, plants, rasters, s.raster_res, offset)
@@ -199,14 +275,24 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     if cfg.second_date:
         later = grow(plants, terrain, np.random.default_rng([cfg.seed, 1902]))
         rasters2 = rasterize(s, grid, later, gcps, np.random.default_rng([cfg.seed, 1903]))
-        noise2 = write_rasters(paths.later, grid, rasters2, terrain, offset, crs,
-                                np.random.default_rng([cfg.seed, 1905]) if realistic else None)
+        noise2 = write_rasters(
+            paths.later,
+            grid,
+            rasters2,
+            terrain,
+            offset,
+            crs,
+            np.random.default_rng([cfg.seed, 1905]) if realistic else None,
+        )
         if noise2:
             write_json(paths.later.noise_json, noise2)
         write_plants(paths.later, later, rasters2, s.raster_res, offset)
     ext = plants.extents() + np.r_[offset[:2], offset[:2]]
-    write_csv(paths.map_boxes, ["id", "xmin", "ymin", "xmax", "ymax"],
-               [[int(i)] + [f"{v:.4f}" for v in b] for i, b in zip(plants.ids, ext)])
+    write_csv(
+        paths.map_boxes,
+        ["id", "xmin", "ymin", "xmax", "ymax"],
+        [[int(i)] + [f"{v:.4f}" for v in b] for i, b in zip(plants.ids, ext)],
+    )
     write_csv(paths.gcp_pixels, ["gcp_id", "image", "u", "v"], gcp_rows)
     write_dataset(paths.boxes_raw, raw_ds)
     write_dataset(paths.boxes_undistorted, und_ds)
@@ -226,16 +312,31 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
         "preset": cfg.preset,
         "seed": cfg.seed,
         "settings": {k: getattr(s, k) for k in s.__dataclass_fields__},
-        "camera": {"id": camera.id, "opensfm": camera.to_opensfm(), "make": CAMERA_MAKE, "model": camera_model(s),
-                   "sensor_width_mm": SENSOR_WIDTH_MM, "focal_mm": s.focal * SENSOR_WIDTH_MM},
-        "flight": {"altitude": s.altitude, "overlap_front": s.overlap_front, "overlap_side": s.overlap_side,
-                   "tilt_deg": s.tilt_deg, "attitude_noise_deg": s.attitude_noise_deg,
-                   "lines": int(max(e.line for e in exposures) + 1), "images": len(exposures),
-                   "shot_interval_s": SHOT_INTERVAL_S, "turn_s": TURN_S},
+        "camera": {
+            "id": camera.id,
+            "opensfm": camera.to_opensfm(),
+            "make": CAMERA_MAKE,
+            "model": camera_model(s),
+            "sensor_width_mm": SENSOR_WIDTH_MM,
+            "focal_mm": s.focal * SENSOR_WIDTH_MM,
+        },
+        "flight": {
+            "altitude": s.altitude,
+            "overlap_front": s.overlap_front,
+            "overlap_side": s.overlap_side,
+            "tilt_deg": s.tilt_deg,
+            "attitude_noise_deg": s.attitude_noise_deg,
+            "lines": int(max(e.line for e in exposures) + 1),
+            "images": len(exposures),
+            "shot_interval_s": SHOT_INTERVAL_S,
+            "turn_s": TURN_S,
+        },
         "images": image_info,
         "n_plants": len(plants),
-        "gcps": [{"id": f"GCP{g + 1:02d}", "x": float(x), "y": float(y), "z": float(z), "size_m": GCP_SIZE}
-                 for g, (x, y, z) in enumerate(gmap)],
+        "gcps": [
+            {"id": f"GCP{g + 1:02d}", "x": float(x), "y": float(y), "z": float(z), "size_m": GCP_SIZE}
+            for g, (x, y, z) in enumerate(gmap)
+        ],
         "labels": {"plant": "id >= 1", "soil": 0, "weed": -1, "gcp_target": -2},
         "conventions": {
             "coco_bbox": "pixel edges: the image spans [0, W] x [0, H]; camera pixel (u, v) is at (u + 0.5, v + 0.5)",
@@ -246,16 +347,30 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
         "elapsed_s": round(time.perf_counter() - t0, 2),
     }
     field["noise"] = cfg.noise
-    field["multispectral"] = {"bands": list(BAND_ORDER) if realistic else ["red", "nir"],
-                              "gdal_color_interpretation": ["red", "green", "blue", "undefined", "undefined"]
-                              if realistic else ["gray", "undefined"],
-                              "band_descriptions": not realistic}
+    field["multispectral"] = {
+        "bands": list(BAND_ORDER) if realistic else ["red", "nir"],
+        "gdal_color_interpretation": ["red", "green", "blue", "undefined", "undefined"]
+        if realistic
+        else ["gray", "undefined"],
+        "band_descriptions": not realistic,
+    }
     if realistic:
-        write_json(paths.noise_json, {**noise, "multispectral_bands": list(BAND_ORDER),
-                                      "masks": {"folders": ["truth/masks_antialiased (PNG)",
-                                                            "truth/masks_antialiased_jpg (JPEG)",
-                                                            "truth/masks_antialiased_gif (GIF)"],
-                                                "of": "undistorted images", "truth": "truth/mask_objects.csv"}})
+        write_json(
+            paths.noise_json,
+            {
+                **noise,
+                "multispectral_bands": list(BAND_ORDER),
+                "masks": {
+                    "folders": [
+                        "truth/masks_antialiased (PNG)",
+                        "truth/masks_antialiased_jpg (JPEG)",
+                        "truth/masks_antialiased_gif (GIF)",
+                    ],
+                    "of": "undistorted images",
+                    "truth": "truth/mask_objects.csv",
+                },
+            },
+        )
         write_csv(paths.mask_objects, ["image", "plants", "parts", "pixels"], objects)
     write_json(paths.field_json, field)
     _remove_stale(paths, {e.name for e in exposures}, realistic)
@@ -323,8 +438,9 @@ def _render_job(job: ImageJob) -> tuple[list, list, tuple | None]:
             write_bytes(sc.paths.images_nogps / name, with_exif(jpeg, sc.s, job.cam_time, None))
             write_mask(sc.paths.masks_raw / f"{name}.png", ids)
         foot = footprint(shot, sc.terrain)
-        boxes, which, cut = image_boxes(shot, sc.plants, sc.terrain, candidates_near(sc.plants, foot, sc.reach),
-                                        sc.offsets)
+        boxes, which, cut = image_boxes(
+            shot, sc.plants, sc.terrain, candidates_near(sc.plants, foot, sc.reach), sc.offsets
+        )
         seen_px = np.bincount(ids.ravel(), minlength=len(sc.plants) + 1)  # rendered pixels per plant id
         out.append([(b.tolist(), int(i), bool(c), int(seen_px[i + 1])) for b, i, c in zip(boxes, which, cut)])
     return out[0], out[1], objects
@@ -333,8 +449,10 @@ def _render_job(job: ImageJob) -> tuple[list, list, tuple | None]:
 def _write_antialiased(paths: FieldPaths, name: str, mask: np.ndarray) -> None:
     """One binary mask with smooth edges as PNG, JPEG (its artefacts too) and GIF."""
     write_bytes(paths.masks_antialiased / f"{name}.png", cv2.imencode(".png", mask)[1].tobytes())
-    write_bytes(paths.masks_antialiased_jpg / f"{name}.jpg",
-                 cv2.imencode(".jpg", mask, [cv2.IMWRITE_JPEG_QUALITY, REALISTIC.mask_jpeg_quality])[1].tobytes())
+    write_bytes(
+        paths.masks_antialiased_jpg / f"{name}.jpg",
+        cv2.imencode(".jpg", mask, [cv2.IMWRITE_JPEG_QUALITY, REALISTIC.mask_jpeg_quality])[1].tobytes(),
+    )
     buf = io.BytesIO()
     Image.fromarray(mask, "L").save(buf, format="GIF")
     write_bytes(paths.masks_antialiased_gif / f"{name}.gif", buf.getvalue())
@@ -373,9 +491,14 @@ def _remove_stale(paths: FieldPaths, names: set[str], realistic: bool = False) -
         for f in (paths.noise_json, paths.mask_objects, paths.later.noise_json):
             f.unlink(missing_ok=True)
     noisy = (paths.masks_antialiased, paths.masks_antialiased_jpg, paths.masks_antialiased_gif)
-    for folder, suffix in ((paths.images, ""), (paths.images_nogps, ""), (paths.undistorted_images, ".tif"),
-                           (paths.masks_raw, ".png"), (paths.masks_undistorted, ".png"),
-                           *zip(noisy, (".png", ".jpg", ".gif"))):
+    for folder, suffix in (
+        (paths.images, ""),
+        (paths.images_nogps, ""),
+        (paths.undistorted_images, ".tif"),
+        (paths.masks_raw, ".png"),
+        (paths.masks_undistorted, ".png"),
+        *zip(noisy, (".png", ".jpg", ".gif")),
+    ):
         keep = names if realistic or folder not in noisy else set()
         for f in folder.glob("SIM_*"):
             if f.name.removesuffix(suffix) not in keep:

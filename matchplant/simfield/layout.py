@@ -18,7 +18,7 @@ class FieldPaths:
 
     # -- what ODM leaves behind (docs/DESIGN.md §2) -------------------------------------------------------
     @property
-    def images(self) -> Path:            # raw distorted JPEGs with EXIF (GPS included), ODM's input
+    def images(self) -> Path:  # raw distorted JPEGs with EXIF (GPS included), ODM's input
         return self.root / "images"
 
     @property
@@ -46,7 +46,7 @@ class FieldPaths:
         return self.root / "odm_dem" / "dtm.tif"
 
     @property
-    def orthophoto(self) -> Path:         # RGBA
+    def orthophoto(self) -> Path:  # RGBA
         return self.root / "odm_orthophoto" / "odm_orthophoto.tif"
 
     @property
@@ -55,19 +55,19 @@ class FieldPaths:
 
     # -- other inputs ------------------------------------------------------------------------------
     @property
-    def multispectral(self) -> Path:      # exact: band 1 red, 2 NIR; realistic: blue, green, red, red edge, NIR
+    def multispectral(self) -> Path:  # exact: band 1 red, 2 NIR; realistic: blue, green, red, red edge, NIR
         return self.root / "multispectral" / "multispectral.tif"
 
     @property
-    def images_nogps(self) -> Path:       # the raw images with the GPS IFD removed (module 0's input)
+    def images_nogps(self) -> Path:  # the raw images with the GPS IFD removed (module 0's input)
         return self.root / "images_nogps"
 
     @property
-    def gnss_log(self) -> Path:           # paper's events.txt: TAB, header "Timestamp X Y Z", UTM
+    def gnss_log(self) -> Path:  # paper's events.txt: TAB, header "Timestamp X Y Z", UTM
         return self.root / "gnss" / "events.txt"
 
     @property
-    def gcp_survey(self) -> Path:         # id,x,y,z in the field CRS (EPSG in truth/field.json)
+    def gcp_survey(self) -> Path:  # id,x,y,z in the field CRS (EPSG in truth/field.json)
         return self.root / "gcp" / "gcp_survey.csv"
 
     # -- ground truth ------------------------------------------------------------------------------
@@ -76,15 +76,15 @@ class FieldPaths:
         return self.root / "truth"
 
     @property
-    def field_json(self) -> Path:         # crs (EPSG), offset, clock offset, gsd, preset, seed, camera
+    def field_json(self) -> Path:  # crs (EPSG), offset, clock offset, gsd, preset, seed, camera
         return self.truth / "field.json"
 
     @property
-    def plants_csv(self) -> Path:         # id,x,y,z,height,radius (map CRS; z = ground height)
+    def plants_csv(self) -> Path:  # id,x,y,z,height,radius (map CRS; z = ground height)
         return self.truth / "plants.csv"
 
     @property
-    def boxes_raw(self) -> Path:          # COCO: every visible plant in every raw image
+    def boxes_raw(self) -> Path:  # COCO: every visible plant in every raw image
         return self.truth / "boxes_raw.json"
 
     @property
@@ -92,20 +92,20 @@ class FieldPaths:
         return self.truth / "boxes_undistorted.json"
 
     @property
-    def map_boxes(self) -> Path:          # CSV: id,xmin,ymin,xmax,ymax (map CRS), plant's box on the map
+    def map_boxes(self) -> Path:  # CSV: id,xmin,ymin,xmax,ymax (map CRS), plant's box on the map
         return self.truth / "map_boxes.csv"
 
     @property
-    def gcp_pixels(self) -> Path:         # CSV: gcp_id,image,u,v (raw image pixels)
+    def gcp_pixels(self) -> Path:  # CSV: gcp_id,image,u,v (raw image pixels)
         return self.truth / "gcp_pixels.csv"
 
     # -- extra truth (added by the generator; not part of an ODM project) --------------------------
     @property
-    def plant_ids(self) -> Path:          # GeoTIFF int32 on the DSM grid: plant id, 0 soil, -1 weed, -2 GCP
+    def plant_ids(self) -> Path:  # GeoTIFF int32 on the DSM grid: plant id, 0 soil, -1 weed, -2 GCP
         return self.truth / "plant_ids.tif"
 
     @property
-    def masks_raw(self) -> Path:          # <image name>.png: uint16 plant id of every rendered raw pixel
+    def masks_raw(self) -> Path:  # <image name>.png: uint16 plant id of every rendered raw pixel
         return self.truth / "masks_raw"
 
     @property
@@ -126,34 +126,34 @@ class FieldPaths:
         return self.truth / "masks_antialiased_gif"
 
     @property
-    def mask_objects(self) -> Path:       # image,plants,parts,pixels of each anti-aliased mask
+    def mask_objects(self) -> Path:  # image,plants,parts,pixels of each anti-aliased mask
         return self.truth / "mask_objects.csv"
 
     @property
-    def noise_json(self) -> Path:         # the noise model and what was measured on the written rasters
+    def noise_json(self) -> Path:  # the noise model and what was measured on the written rasters
         return self.truth / "noise.json"
 
     # -- traits and plots (simfield/traits.py) -----------------------------------------------------
     @property
-    def traits_csv(self) -> Path:         # id,x,y,height,ndvi,canopy_pixels,canopy_area_m2 (true canopy)
+    def traits_csv(self) -> Path:  # id,x,y,height,ndvi,canopy_pixels,canopy_area_m2 (true canopy)
         return self.truth / "traits.csv"
 
     @property
-    def plots_json(self) -> Path:         # the plot grid: corners, columns, ranges, plot size, spacings
+    def plots_json(self) -> Path:  # the plot grid: corners, columns, ranges, plot size, spacings
         return self.truth / "plots.json"
 
     @property
-    def plots_csv(self) -> Path:          # plot_id,range,column,expected,stand_count,gaps,geometry (WKT)
+    def plots_csv(self) -> Path:  # plot_id,range,column,expected,stand_count,gaps,geometry (WKT)
         return self.truth / "plots.csv"
 
     @property
-    def gaps_csv(self) -> Path:           # plot_id,row,x,y of every empty seed position
+    def gaps_csv(self) -> Path:  # plot_id,row,x,y of every empty seed position
         return self.truth / "gaps.csv"
 
     @property
-    def field_book(self) -> Path:         # plot_id,genotype,rep
+    def field_book(self) -> Path:  # plot_id,genotype,rep
         return self.truth / "field_book.csv"
 
     @property
-    def later(self) -> "FieldPaths":      # a second date (second_date: true): rasters and truth, same layout
+    def later(self) -> FieldPaths:  # a second date (second_date: true): rasters and truth, same layout
         return FieldPaths(self.root / "date2")

@@ -34,20 +34,20 @@ BAND_ORDER = ("blue", "green", "red", "rededge", "nir")
 
 @dataclass(frozen=True)
 class NoiseModel:
-    chm_p50: float = 0.016        # m, median of the bare-ground CHM
-    chm_p95: float = 0.070        # m, its 95th percentile (a Gaussian: sigma = (p95 - p50) / 1.645)
-    grain_m: float = 0.02         # feature size of the fine ground noise, m
-    bump_m: float = 0.12          # feature size of the ground bumps, m
-    bump_weight: float = 0.8      # share of the ground noise's variance in the bumps
-    dtm_sigma: float = 0.01       # m, smooth error of the interpolated DTM (shared by the DSM)
-    dtm_scale_m: float = 1.5      # its feature size, m
-    median_m: float = 0.025       # ODM's median smoothing of the DEM: window side, m (odd pixels, >= 3)
-    blur_m: float = 0.005         # the gridding's Gaussian, sigma in m
-    hole_share: float = 0.004     # share of DSM cells that are nodata holes
-    hole_m: float = 0.03          # feature size of the holes, m
-    ms_blur_m: float = 0.005      # multispectral blur, sigma in m
-    ms_noise: float = 0.015       # multiplicative sensor noise of each band (SD)
-    mask_blur_px: float = 0.7     # anti-aliasing of the masks: Gaussian sigma, image pixels
+    chm_p50: float = 0.016  # m, median of the bare-ground CHM
+    chm_p95: float = 0.070  # m, its 95th percentile (a Gaussian: sigma = (p95 - p50) / 1.645)
+    grain_m: float = 0.02  # feature size of the fine ground noise, m
+    bump_m: float = 0.12  # feature size of the ground bumps, m
+    bump_weight: float = 0.8  # share of the ground noise's variance in the bumps
+    dtm_sigma: float = 0.01  # m, smooth error of the interpolated DTM (shared by the DSM)
+    dtm_scale_m: float = 1.5  # its feature size, m
+    median_m: float = 0.025  # ODM's median smoothing of the DEM: window side, m (odd pixels, >= 3)
+    blur_m: float = 0.005  # the gridding's Gaussian, sigma in m
+    hole_share: float = 0.004  # share of DSM cells that are nodata holes
+    hole_m: float = 0.03  # feature size of the holes, m
+    ms_blur_m: float = 0.005  # multispectral blur, sigma in m
+    ms_noise: float = 0.015  # multiplicative sensor noise of each band (SD)
+    mask_blur_px: float = 0.7  # anti-aliasing of the masks: Gaussian sigma, image pixels
     mask_jpeg_quality: int = 90
 
 
@@ -66,8 +66,8 @@ def _odd(m: float, res: float, least: int = 3) -> int:
 
 @dataclass
 class NoisyDEM:
-    dsm: np.ndarray    # float32, DSM minus the true terrain (smoothed canopy + ground noise + DTM error)
-    dtm: np.ndarray    # float32, DTM minus the true terrain
+    dsm: np.ndarray  # float32, DSM minus the true terrain (smoothed canopy + ground noise + DTM error)
+    dtm: np.ndarray  # float32, DTM minus the true terrain
     holes: np.ndarray  # bool, DSM cells written as nodata
 
 
@@ -105,7 +105,7 @@ def five_bands(rasters: Rasters, rng: np.random.Generator, m: NoiseModel = REALI
     }
     for name in BAND_ORDER:
         band = cv2.GaussianBlur(bands[name]().astype(np.float32), (0, 0), sigma)
-        band *= (1 + m.ms_noise * rng.standard_normal(band.shape, dtype=np.float32))
+        band *= 1 + m.ms_noise * rng.standard_normal(band.shape, dtype=np.float32)
         yield np.clip(band, 0, 1)
 
 
@@ -137,9 +137,15 @@ def noise_summary(m: NoiseModel, dem: NoisyDEM, rasters: Rasters) -> dict:
     chm = dem.dsm - dem.dtm
     ground = bare_ground_chm(chm, rasters.label, ~dem.holes, rasters.grid.res)
     q = np.percentile(ground, [5, 50, 95]) if len(ground) else [np.nan] * 3
-    return {"model": asdict(m),
-            "bare_ground_chm_m": {"p5": float(q[0]), "p50": float(q[1]), "p95": float(q[2]),
-                                  "share_above_0.02": float(np.mean(ground > 0.02)) if len(ground) else None,
-                                  "cells": len(ground),
-                                  "meaning": "DSM - DTM on soil at least 5 cm from any plant, weed or target"},
-            "dsm_holes": {"cells": int(dem.holes.sum()), "share": float(dem.holes.mean())}}
+    return {
+        "model": asdict(m),
+        "bare_ground_chm_m": {
+            "p5": float(q[0]),
+            "p50": float(q[1]),
+            "p95": float(q[2]),
+            "share_above_0.02": float(np.mean(ground > 0.02)) if len(ground) else None,
+            "cells": len(ground),
+            "meaning": "DSM - DTM on soil at least 5 cm from any plant, weed or target",
+        },
+        "dsm_holes": {"cells": int(dem.holes.sum()), "share": float(dem.holes.mean())},
+    }

@@ -58,28 +58,41 @@ def with_exif(jpeg: bytes, s: Settings, cam_time: dt.datetime, gps: tuple | None
     sub = f"{cam_time.microsecond // 1000:03d}"
     focal_mm = s.focal * SENSOR_WIDTH_MM
     exif = {
-        "0th": {piexif.ImageIFD.Make: CAMERA_MAKE, piexif.ImageIFD.Model: camera_model(s),
-                piexif.ImageIFD.Software: "matchplant simfield", piexif.ImageIFD.Orientation: 1,
-                piexif.ImageIFD.DateTime: stamp},
-        "Exif": {piexif.ExifIFD.DateTimeOriginal: stamp, piexif.ExifIFD.DateTimeDigitized: stamp,
-                 piexif.ExifIFD.SubSecTimeOriginal: sub, piexif.ExifIFD.SubSecTimeDigitized: sub,
-                 piexif.ExifIFD.FocalLength: (int(round(focal_mm * 1000)), 1000),
-                 piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(s.focal * 36)),
-                 piexif.ExifIFD.PixelXDimension: s.image_width, piexif.ExifIFD.PixelYDimension: s.image_height,
-                 piexif.ExifIFD.FocalPlaneXResolution: (int(round(s.image_width / SENSOR_WIDTH_MM * 1000)), 1000),
-                 piexif.ExifIFD.FocalPlaneResolutionUnit: 4},
-        "GPS": {}, "1st": {}, "thumbnail": None,
+        "0th": {
+            piexif.ImageIFD.Make: CAMERA_MAKE,
+            piexif.ImageIFD.Model: camera_model(s),
+            piexif.ImageIFD.Software: "matchplant simfield",
+            piexif.ImageIFD.Orientation: 1,
+            piexif.ImageIFD.DateTime: stamp,
+        },
+        "Exif": {
+            piexif.ExifIFD.DateTimeOriginal: stamp,
+            piexif.ExifIFD.DateTimeDigitized: stamp,
+            piexif.ExifIFD.SubSecTimeOriginal: sub,
+            piexif.ExifIFD.SubSecTimeDigitized: sub,
+            piexif.ExifIFD.FocalLength: (int(round(focal_mm * 1000)), 1000),
+            piexif.ExifIFD.FocalLengthIn35mmFilm: int(round(s.focal * 36)),
+            piexif.ExifIFD.PixelXDimension: s.image_width,
+            piexif.ExifIFD.PixelYDimension: s.image_height,
+            piexif.ExifIFD.FocalPlaneXResolution: (int(round(s.image_width / SENSOR_WIDTH_MM * 1000)), 1000),
+            piexif.ExifIFD.FocalPlaneResolutionUnit: 4,
+        },
+        "GPS": {},
+        "1st": {},
+        "thumbnail": None,
     }
     if gps is not None:
         lat, lon, alt = gps
-        exif["GPS"] = {piexif.GPSIFD.GPSVersionID: (2, 3, 0, 0),
-                       piexif.GPSIFD.GPSLatitudeRef: "N" if lat >= 0 else "S",
-                       piexif.GPSIFD.GPSLatitude: rational_dms(lat),
-                       piexif.GPSIFD.GPSLongitudeRef: "E" if lon >= 0 else "W",
-                       piexif.GPSIFD.GPSLongitude: rational_dms(lon),
-                       piexif.GPSIFD.GPSAltitudeRef: 0 if alt >= 0 else 1,
-                       piexif.GPSIFD.GPSAltitude: (int(round(abs(alt) * 1000)), 1000),
-                       piexif.GPSIFD.GPSMapDatum: "WGS-84"}
+        exif["GPS"] = {
+            piexif.GPSIFD.GPSVersionID: (2, 3, 0, 0),
+            piexif.GPSIFD.GPSLatitudeRef: "N" if lat >= 0 else "S",
+            piexif.GPSIFD.GPSLatitude: rational_dms(lat),
+            piexif.GPSIFD.GPSLongitudeRef: "E" if lon >= 0 else "W",
+            piexif.GPSIFD.GPSLongitude: rational_dms(lon),
+            piexif.GPSIFD.GPSAltitudeRef: 0 if alt >= 0 else 1,
+            piexif.GPSIFD.GPSAltitude: (int(round(abs(alt) * 1000)), 1000),
+            piexif.GPSIFD.GPSMapDatum: "WGS-84",
+        }
     out = io.BytesIO()
     piexif.insert(piexif.dump(exif), jpeg, out)
     return out.getvalue()

@@ -20,10 +20,10 @@ from scipy.ndimage import maximum_filter
 
 from matchplant.simfield.config import GROUND_ALTITUDE, Settings
 
-ROW_SPACING = 0.76     # m between maize rows (30 in)
-PLANT_SPACING = 0.20   # m between plants within a row
+ROW_SPACING = 0.76  # m between maize rows (30 in)
+PLANT_SPACING = 0.20  # m between plants within a row
 MAX_HALF_ACROSS = 0.33  # m: a plant's leaves stay within its half of the inter-row
-GCP_SIZE = 0.5         # m, side of a black-and-white GCP target
+GCP_SIZE = 0.5  # m, side of a black-and-white GCP target
 MAX_LEAVES = 8
 WEED, GCP_TARGET = -1, -2  # label values besides 0 (soil) and plant ids (1..N)
 
@@ -33,13 +33,13 @@ class Terrain:
     """Gentle plane plus a few long waves: ``z = z0 + g . (x, y) + sum a sin(k . (x, y) + phase)``."""
 
     z0: float
-    grad: np.ndarray       # (2,) slope vector (dz/dx, dz/dy)
-    k: np.ndarray          # (n, 2) wave vectors, rad/m
-    amp: np.ndarray        # (n,)
-    phase: np.ndarray      # (n,)
+    grad: np.ndarray  # (2,) slope vector (dz/dx, dz/dy)
+    k: np.ndarray  # (n, 2) wave vectors, rad/m
+    amp: np.ndarray  # (n,)
+    phase: np.ndarray  # (n,)
 
     @classmethod
-    def random(cls, s: Settings, rng: np.random.Generator) -> "Terrain":
+    def random(cls, s: Settings, rng: np.random.Generator) -> Terrain:
         az = rng.uniform(0, 2 * np.pi)
         grad = s.slope_pct / 100.0 * np.array([np.cos(az), np.sin(az)])
         n = 3
@@ -76,16 +76,16 @@ class Plants:
 
     x: np.ndarray
     y: np.ndarray
-    z: np.ndarray          # ground height at the centre
+    z: np.ndarray  # ground height at the centre
     height: np.ndarray
     row: np.ndarray
-    core: np.ndarray       # radius of the central whorl, m
-    leaf_len: np.ndarray   # (n, MAX_LEAVES), 0 for no leaf
-    leaf_dir: np.ndarray   # (n, MAX_LEAVES) rad
+    core: np.ndarray  # radius of the central whorl, m
+    leaf_len: np.ndarray  # (n, MAX_LEAVES), 0 for no leaf
+    leaf_dir: np.ndarray  # (n, MAX_LEAVES) rad
     leaf_sharp: np.ndarray  # (n, MAX_LEAVES) exponent p
-    su: np.ndarray         # scale across the row (x)
-    sv: np.ndarray         # scale along the row (y)
-    tint: np.ndarray       # (n, 3) RGB multiplier
+    su: np.ndarray  # scale across the row (x)
+    sv: np.ndarray  # scale along the row (y)
+    tint: np.ndarray  # (n, 3) RGB multiplier
     ndvi: np.ndarray | None = None  # per-plant leaf NDVI (vigour); None: every leaf 0.8 (NIR 0.45, red 0.05)
 
     def __len__(self) -> int:
@@ -95,7 +95,7 @@ class Plants:
     def ids(self) -> np.ndarray:
         return np.arange(1, len(self) + 1)
 
-    def subset(self, keep: np.ndarray) -> "Plants":
+    def subset(self, keep: np.ndarray) -> Plants:
         return Plants(**{k: None if v is None else v[keep] for k, v in self.__dict__.items()})
 
     def outline_radius(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -111,14 +111,20 @@ class Plants:
         theta = np.arctan2(uy, ux)
         return np.hypot(ux, uy) / self.outline_radius(idx, theta), theta
 
-    def surface_points(self, idx: np.ndarray, terrain: Terrain, n_theta: int = 72,
-                       rhos=(0.0, 0.25, 0.45, 0.6, 0.72, 0.82, 0.9, 0.96, 1.0)) -> np.ndarray:
+    def surface_points(
+        self,
+        idx: np.ndarray,
+        terrain: Terrain,
+        n_theta: int = 72,
+        rhos=(0.0, 0.25, 0.45, 0.6, 0.72, 0.82, 0.9, 0.96, 1.0),
+    ) -> np.ndarray:
         """Points (n, len(rhos) * m, 3) on each plant's canopy surface, leaf tips included: the ground-truth
         geometry. Ring ``k`` (points ``k*m .. (k+1)*m``) is the outline scaled by ``rhos[k]``, in angle order."""
         idx = np.asarray(idx)
         base = np.linspace(-np.pi, np.pi, n_theta, endpoint=False)
-        theta = np.concatenate([np.broadcast_to(base, (len(idx), n_theta)),
-                                np.mod(self.leaf_dir[idx] + np.pi, 2 * np.pi) - np.pi], axis=1)
+        theta = np.concatenate(
+            [np.broadcast_to(base, (len(idx), n_theta)), np.mod(self.leaf_dir[idx] + np.pi, 2 * np.pi) - np.pi], axis=1
+        )
         theta = np.sort(theta, axis=1)  # each ring is a closed outline, in order
         r = self.outline_radius(idx, theta)
         rho = np.asarray(rhos, dtype=float)
@@ -149,8 +155,9 @@ class Plants:
         r = self.outline_radius(idx, theta)
         ox = r * np.cos(theta) * self.su[idx][:, None]
         oy = r * np.sin(theta) * self.sv[idx][:, None]
-        return np.stack([self.x[idx] + ox.min(1), self.y[idx] + oy.min(1),
-                         self.x[idx] + ox.max(1), self.y[idx] + oy.max(1)], axis=1)
+        return np.stack(
+            [self.x[idx] + ox.min(1), self.y[idx] + oy.min(1), self.x[idx] + ox.max(1), self.y[idx] + oy.max(1)], axis=1
+        )
 
     def radius(self) -> np.ndarray:
         """Largest distance from the centre to the outline, m."""
@@ -194,8 +201,11 @@ def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: n
     n = len(x)
     mid, sd = (s.height_min + s.height_max) / 2, (s.height_max - s.height_min) / 4
     height = np.clip(rng.normal(mid, sd, n), s.height_min, s.height_max)
-    n_leaves = np.clip((3 + 5 * (height - s.height_min) / max(s.height_max - s.height_min, 1e-6)).astype(int)
-                       + rng.integers(0, 2, n), 3, MAX_LEAVES)
+    n_leaves = np.clip(
+        (3 + 5 * (height - s.height_min) / max(s.height_max - s.height_min, 1e-6)).astype(int) + rng.integers(0, 2, n),
+        3,
+        MAX_LEAVES,
+    )
     k = np.arange(MAX_LEAVES)[None, :]
     has = k < n_leaves[:, None]
     side = np.where(k % 2 == 0, 0.0, np.pi)  # leaves alternate across the row
@@ -204,9 +214,20 @@ def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: n
     leaf_len = np.where(has, (0.04 + 0.55 * height[:, None]) * rng.uniform(0.6, 1.0, (n, MAX_LEAVES)), 0.0)
     leaf_sharp = rng.uniform(12.0, 30.0, (n, MAX_LEAVES))
     core = 0.02 + 0.05 * height
-    plants = Plants(x=x, y=y, z=terrain.height(x, y), height=height, row=row, core=core, leaf_len=leaf_len,
-                    leaf_dir=leaf_dir, leaf_sharp=leaf_sharp, su=np.ones(n), sv=np.ones(n),
-                    tint=rng.uniform(0.85, 1.15, (n, 3)))
+    plants = Plants(
+        x=x,
+        y=y,
+        z=terrain.height(x, y),
+        height=height,
+        row=row,
+        core=core,
+        leaf_len=leaf_len,
+        leaf_dir=leaf_dir,
+        leaf_sharp=leaf_sharp,
+        su=np.ones(n),
+        sv=np.ones(n),
+        tint=rng.uniform(0.85, 1.15, (n, 3)),
+    )
     # Scale each canopy so that it stays in its half of the inter-row and clear of its row neighbours.
     ext = plants.extents()
     half_x = np.maximum(x - ext[:, 0], ext[:, 2] - x)
@@ -228,8 +249,12 @@ def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: n
         clear = GCP_SIZE / 2 + 0.05
         near = np.zeros(n, dtype=bool)
         for gx, gy in gcps[:, :2]:
-            near |= (ext[:, 0] < gx + clear) & (ext[:, 2] > gx - clear) & (ext[:, 1] < gy + clear) & \
-                    (ext[:, 3] > gy - clear)
+            near |= (
+                (ext[:, 0] < gx + clear)
+                & (ext[:, 2] > gx - clear)
+                & (ext[:, 1] < gy + clear)
+                & (ext[:, 3] > gy - clear)
+            )
         plants = plants.subset(~near)
     return plants
 
@@ -241,7 +266,7 @@ def make_gcps(s: Settings, terrain: Terrain, rng: np.random.Generator) -> np.nda
         grid = [(a, b) for b in (0.12, 0.5, 0.88) for a in (0.12, 0.5, 0.88)]
     else:
         grid = [(0.15, 0.15), (0.85, 0.15), (0.85, 0.85), (0.15, 0.85), (0.5, 0.5)]
-    pts = np.array(grid[:s.n_gcps], dtype=float) * [fx, fy] + rng.normal(0, 0.05, (min(s.n_gcps, len(grid)), 2))
+    pts = np.array(grid[: s.n_gcps], dtype=float) * [fx, fy] + rng.normal(0, 0.05, (min(s.n_gcps, len(grid)), 2))
     return np.column_stack([pts, terrain.height(pts[:, 0], pts[:, 1])])
 
 
@@ -257,11 +282,16 @@ class Grid:
     height: int
 
     @classmethod
-    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, res: float) -> "Grid":
+    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, res: float) -> Grid:
         x0 = np.floor(xmin / res) * res
         y1 = np.ceil(ymax / res) * res
-        return cls(x0=float(x0), y1=float(y1), res=res, width=int(np.ceil((xmax - x0) / res)),
-                   height=int(np.ceil((y1 - ymin) / res)))
+        return cls(
+            x0=float(x0),
+            y1=float(y1),
+            res=res,
+            width=int(np.ceil((xmax - x0) / res)),
+            height=int(np.ceil((y1 - ymin) / res)),
+        )
 
     def centres(self, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
         j = np.arange(self.height)[rows]
@@ -279,10 +309,10 @@ class Grid:
 @dataclass
 class Rasters:
     grid: Grid
-    canopy: np.ndarray      # float32 height above the terrain
-    label: np.ndarray       # int32: plant id, 0 soil, WEED, GCP_TARGET
-    albedo: np.ndarray      # uint8 RGB
-    red: np.ndarray         # float32 reflectance
+    canopy: np.ndarray  # float32 height above the terrain
+    label: np.ndarray  # int32: plant id, 0 soil, WEED, GCP_TARGET
+    albedo: np.ndarray  # uint8 RGB
+    red: np.ndarray  # float32 reflectance
     nir: np.ndarray
 
     def block_max(self, block: int = 6) -> tuple[int, np.ndarray]:
@@ -308,8 +338,15 @@ def _noise(shape: tuple[int, int], cells: float, rng: np.random.Generator) -> np
     return cv2.resize(coarse, (int(cw * cells), int(ch * cells)), interpolation=cv2.INTER_CUBIC)[:h, :w]
 
 
-def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np.random.Generator,
-              sun_az_deg: float = 135.0, sun_elev_deg: float = 55.0) -> Rasters:
+def rasterize(
+    s: Settings,
+    grid: Grid,
+    plants: Plants,
+    gcps: np.ndarray,
+    rng: np.random.Generator,
+    sun_az_deg: float = 135.0,
+    sun_elev_deg: float = 55.0,
+) -> Rasters:
     shape = (grid.height, grid.width)
     canopy = np.zeros(shape, np.float32)
     label = np.zeros(shape, np.int32)
@@ -327,7 +364,7 @@ def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np
     while start < len(order):
         first = order[start]
         count = max(1, budget // ((2 * half_x[first] + 3) * (2 * half_y[first] + 3) * MAX_LEAVES))
-        idx = order[start:start + count]
+        idx = order[start : start + count]
         hx, hy = int(half_x[idx].max()), int(half_y[idx].max())
         start += len(idx)
         r0, c0 = grid.cell(plants.x[idx], plants.y[idx])
@@ -339,8 +376,13 @@ def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np
         dx = (cx - plants.x[idx][:, None, None]).reshape(len(idx), -1)
         dy = (cy - plants.y[idx][:, None, None]).reshape(len(idx), -1)
         rho, theta = plants.rho(idx, dx, dy)
-        inside = (rho < 1.0) & (rr.reshape(len(idx), -1) >= 0) & (rr.reshape(len(idx), -1) < grid.height) & \
-                 (cc.reshape(len(idx), -1) >= 0) & (cc.reshape(len(idx), -1) < grid.width)
+        inside = (
+            (rho < 1.0)
+            & (rr.reshape(len(idx), -1) >= 0)
+            & (rr.reshape(len(idx), -1) < grid.height)
+            & (cc.reshape(len(idx), -1) >= 0)
+            & (cc.reshape(len(idx), -1) < grid.width)
+        )
         pi, ci = np.nonzero(inside)
         h = plants.height[idx][pi] * (1.0 - rho[pi, ci] ** 2)
         # brightness: paler whorl, bright midribs along each leaf
@@ -395,7 +437,7 @@ def rasterize(s: Settings, grid: Grid, plants: Plants, gcps: np.ndarray, rng: np
         # keep only weeds that lie entirely on bare soil (no plant or target under them)
         clear = ~((rho < 1.3) & (label[rr, cc] != 0)).reshape(n, -1).any(axis=1)
         m = (rho < 1.0) & clear[:, None, None]
-        hh = (wh[:, None, None] * (1 - rho ** 2))[m]
+        hh = (wh[:, None, None] * (1 - rho**2))[m]
         canopy[rr[m], cc[m]] = np.maximum(canopy[rr[m], cc[m]], hh)
         label[rr[m], cc[m]] = WEED
         weed[rr[m], cc[m]] = True

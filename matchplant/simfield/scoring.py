@@ -47,17 +47,26 @@ def positions(table: pd.DataFrame, top: tuple[str, str] = ("top_x", "top_y")) ->
     return xy
 
 
-def trait_scores(table: pd.DataFrame, field: FieldPaths, height_col: str = "chm_canopy_max",
-                 ndvi_col: str = "ndvi_canopy_mean", box_ndvi_col: str = "ndvi_mean") -> dict:
+def trait_scores(
+    table: pd.DataFrame,
+    field: FieldPaths,
+    height_col: str = "chm_canopy_max",
+    ndvi_col: str = "ndvi_canopy_mean",
+    box_ndvi_col: str = "ndvi_mean",
+) -> dict:
     """Height and NDVI of the plants found against each matched plant's truth."""
     truth = pd.read_csv(field.traits_csv)
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     ok = m >= 0
     t = truth.iloc[m[ok]]
-    out = {"plants": int(len(table)), "matched": int(ok.sum()), "true_plants": int(len(truth)),
-           "height_r": pearson(t["height"], table.loc[ok, height_col]),
-           "height_box_r": pearson(t["height"], table.loc[ok, "chm_max"]) if "chm_max" in table else float("nan"),
-           "height_mae_m": float(np.nanmean(np.abs(table.loc[ok, height_col].to_numpy() - t["height"].to_numpy())))}
+    out = {
+        "plants": int(len(table)),
+        "matched": int(ok.sum()),
+        "true_plants": int(len(truth)),
+        "height_r": pearson(t["height"], table.loc[ok, height_col]),
+        "height_box_r": pearson(t["height"], table.loc[ok, "chm_max"]) if "chm_max" in table else float("nan"),
+        "height_mae_m": float(np.nanmean(np.abs(table.loc[ok, height_col].to_numpy() - t["height"].to_numpy()))),
+    }
     if ndvi_col in table.columns:
         out["ndvi_r"] = pearson(t["ndvi"], table.loc[ok, ndvi_col])
         out["ndvi_mae"] = float(np.nanmean(np.abs(table.loc[ok, ndvi_col].to_numpy() - t["ndvi"].to_numpy())))
@@ -73,8 +82,13 @@ def outline_ious(geoms, table: pd.DataFrame, field: FieldPaths) -> np.ndarray:
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     with rasterio.open(field.plant_ids) as ds:
         true_lab = ds.read(1)
-        pred = rasterize(((g, k + 1) for k, g in enumerate(geoms) if g is not None and not g.is_empty),
-                         out_shape=ds.shape, transform=ds.transform, fill=0, dtype="int32")
+        pred = rasterize(
+            ((g, k + 1) for k, g in enumerate(geoms) if g is not None and not g.is_empty),
+            out_shape=ds.shape,
+            transform=ds.transform,
+            fill=0,
+            dtype="int32",
+        )
     n = len(table)
     pred_count = np.bincount(pred.ravel(), minlength=n + 1)[1:]
     true_id = np.where(m >= 0, truth["id"].to_numpy()[np.maximum(m, 0)], -10)
@@ -100,9 +114,14 @@ def plot_scores(plots: pd.DataFrame, gaps: pd.DataFrame, field: FieldPaths, spac
         found = int((d < spacing / 2).sum())
         d2, _ = cKDTree(tg[["x", "y"]].to_numpy(float)).query(gaps[["x", "y"]].to_numpy(float))
         false = int((d2 >= spacing / 2).sum())
-    return {"plots": int(len(j)), "stand_count_exact_share": exact, "true_gaps": int(len(tg)),
-            "gaps_reported": int(len(gaps)), "gaps_found_share": found / len(tg) if len(tg) else float("nan"),
-            "false_gap_share": false / len(gaps) if len(gaps) else 0.0}
+    return {
+        "plots": int(len(j)),
+        "stand_count_exact_share": exact,
+        "true_gaps": int(len(tg)),
+        "gaps_reported": int(len(gaps)),
+        "gaps_found_share": found / len(tg) if len(tg) else float("nan"),
+        "false_gap_share": false / len(gaps) if len(gaps) else 0.0,
+    }
 
 
 def growth_scores(table: pd.DataFrame, field: FieldPaths, later_top: tuple[str, str]) -> dict:
@@ -115,5 +134,8 @@ def growth_scores(table: pd.DataFrame, field: FieldPaths, later_top: tuple[str, 
     true2 = truth2.loc[truth1["id"].to_numpy()[m[ok]], ["x", "y"]].to_numpy(float)
     reused = np.hypot(*(table.loc[ok, ["x", "y"]].to_numpy(float) - true2).T)
     moved = np.hypot(*(table.loc[ok, list(later_top)].to_numpy(float) - true2).T)
-    return {"plants": int(ok.sum()), "reused_box_centre_error_median_m": float(np.nanmedian(reused)),
-            "recentred_error_median_m": float(np.nanmedian(moved))}
+    return {
+        "plants": int(ok.sum()),
+        "reused_box_centre_error_median_m": float(np.nanmedian(reused)),
+        "recentred_error_median_m": float(np.nanmedian(moved)),
+    }

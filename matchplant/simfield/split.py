@@ -72,11 +72,14 @@ def _moved(points: np.ndarray, pivot: np.ndarray, t: np.ndarray, theta: float) -
     return out + pivot + t
 
 
-def _moved_raster(data: np.ndarray, tr: Affine, pivot: np.ndarray, t: np.ndarray, theta: float,
-                  elevation: bool) -> np.ndarray:
+def _moved_raster(
+    data: np.ndarray, tr: Affine, pivot: np.ndarray, t: np.ndarray, theta: float, elevation: bool
+) -> np.ndarray:
     """A north-up raster (bands, rows, cols) of the world moved by :func:`_moved`, on the same grid."""
+
     def to_map(rc):
         return np.column_stack([tr.c + (rc[:, 1] + 0.5) * tr.a, tr.f + (rc[:, 0] + 0.5) * tr.e])
+
     rc = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     q = to_map(rc) - t[:2] - pivot[:2]  # back to the unmoved world: undo the shift, then the rotation
     c, s_ = math.cos(-theta), math.sin(-theta)
@@ -113,20 +116,25 @@ def _rewrite_rasters(project: ODMProject, subs: list[dict], root: Path) -> None:
             dst.write(merged.astype(data.dtype))
         for s, m in zip(subs, moved):
             b = s["bounds"]
-            win = from_bounds(*b, transform=tr).round_offsets().round_lengths().intersection(
-                Window(0, 0, cols, rows))
+            win = from_bounds(*b, transform=tr).round_offsets().round_lengths().intersection(Window(0, 0, cols, rows))
             r0, c0 = int(win.row_off), int(win.col_off)
-            part = m[:, r0:r0 + int(win.height), c0:c0 + int(win.width)]
-            prof = dict(profile, width=part.shape[2], height=part.shape[1], transform=rasterio.windows.transform(
-                win, tr))
+            part = m[:, r0 : r0 + int(win.height), c0 : c0 + int(win.width)]
+            prof = dict(
+                profile, width=part.shape[2], height=part.shape[1], transform=rasterio.windows.transform(win, tr)
+            )
             out = root / SUBMODELS_DIR / s["name"] / OUTPUTS[r].relpath
             out.parent.mkdir(parents=True, exist_ok=True)
             with rasterio.open(out, "w", **prof) as dst:
                 dst.write(part.astype(data.dtype))
 
 
-def split_field(paths: FieldPaths, submodels: int = 2, seed: int = 0, misalignment: float = MISALIGNMENT_M,
-                rotation_deg: float = MISALIGNMENT_DEG) -> FieldPaths:
+def split_field(
+    paths: FieldPaths,
+    submodels: int = 2,
+    seed: int = 0,
+    misalignment: float = MISALIGNMENT_M,
+    rotation_deg: float = MISALIGNMENT_DEG,
+) -> FieldPaths:
     """Rewrite the generated field at ``paths`` (in place) as a split-merge project of ``submodels``."""
     root = paths.root
     project = ODMProject(root)
@@ -151,8 +159,9 @@ def split_field(paths: FieldPaths, submodels: int = 2, seed: int = 0, misalignme
         c = np.array([centres[sid] for sid in ids])
         pivot = np.r_[c[:, :2].mean(axis=0), z_ground]
         angle = heading + k * math.pi + rng.normal(0.0, 0.3)  # neighbours about twice the shift apart
-        t = np.array([misalignment * math.cos(angle), misalignment * math.sin(angle),
-                      rng.normal(0.0, misalignment / 3)])
+        t = np.array(
+            [misalignment * math.cos(angle), misalignment * math.sin(angle), rng.normal(0.0, misalignment / 3)]
+        )
         theta = math.radians(rotation_deg) * (-1) ** k
         rz = np.array([[math.cos(theta), -math.sin(theta), 0], [math.sin(theta), math.cos(theta), 0], [0, 0, 1]])
         lon, lat, alt = to_lla.transform(*pivot)
@@ -166,12 +175,18 @@ def split_field(paths: FieldPaths, submodels: int = 2, seed: int = 0, misalignme
                 centre = topo.from_map(_moved(centres[sid][None, :], pivot, t, theta))[0]
                 R = sh.R @ rz.T @ topo.rotation_from_map(centre)  # the camera turned with the submodel's world
                 gps = tuple(float(v) for v in topo.from_map(centres[sid][None, :])[0])
-                shots[sid] = Shot.from_center(sid, sh.camera, R, centre, capture_time=sh.capture_time,
-                                              gps_position=gps, extra=dict(sh.extra))
+                shots[sid] = Shot.from_center(
+                    sid, sh.camera, R, centre, capture_time=sh.capture_time, gps_position=gps, extra=dict(sh.extra)
+                )
             pts = frame.to_map(src.points) if len(src.points) else src.points
             pts = topo.from_map(_moved(pts, pivot, t, theta)) if len(pts) else pts
-            return Reconstruction(cameras=dict(src.cameras), shots=shots, point_ids=list(src.point_ids),
-                                  points=pts, reference_lla=dict(ref))
+            return Reconstruction(
+                cameras=dict(src.cameras),
+                shots=shots,
+                point_ids=list(src.point_ids),
+                points=pts,
+                reference_lla=dict(ref),
+            )
 
         write_reconstruction(sub / OUTPUTS["reconstruction"].relpath, convert(rec))
         write_reconstruction(sub / OUTPUTS["undistorted_reconstruction"].relpath, convert(urec))
@@ -183,10 +198,20 @@ def split_field(paths: FieldPaths, submodels: int = 2, seed: int = 0, misalignme
         write_coords_txt(sub / OUTPUTS["coords"].relpath, crs, np.r_[offset, 0.0])
         bounds = (*(c[:, :2].min(axis=0) - half), *(c[:, :2].max(axis=0) + half))
         moves.append({"name": name, "pivot": pivot, "t": t, "theta": theta, "bounds": bounds})
-        info.append({"name": name, "lines": group, "images": ids, "reference_lla": ref,
-                     "coords_offset": [float(offset[0]), float(offset[1])],
-                     "misalignment": {"translation_m": [float(v) for v in t], "rotation_deg": math.degrees(theta),
-                                      "pivot": [float(v) for v in pivot]}})
+        info.append(
+            {
+                "name": name,
+                "lines": group,
+                "images": ids,
+                "reference_lla": ref,
+                "coords_offset": [float(offset[0]), float(offset[1])],
+                "misalignment": {
+                    "translation_m": [float(v) for v in t],
+                    "rotation_deg": math.degrees(theta),
+                    "pivot": [float(v) for v in pivot],
+                },
+            }
+        )
     _rewrite_rasters(project, moves, root)
     # the top keeps what ODM's merge stage leaves: merged rasters and coords.txt, no reconstruction
     for name in ("reconstruction", "topocentric_reconstruction", "undistorted_reconstruction"):
@@ -196,8 +221,14 @@ def split_field(paths: FieldPaths, submodels: int = 2, seed: int = 0, misalignme
     for s in info:
         for sid in s["images"]:
             shared.setdefault(sid, []).append(s["name"])
-    write_json(paths.truth / "split.json", {"submodels": info,
-                                            "shared": {k: v for k, v in sorted(shared.items()) if len(v) > 1}})
-    log.info("split into %d submodels (%s images each, %d in two)", len(info),
-             "/".join(str(len(s["images"])) for s in info), sum(len(v) > 1 for v in shared.values()))
+    write_json(
+        paths.truth / "split.json",
+        {"submodels": info, "shared": {k: v for k, v in sorted(shared.items()) if len(v) > 1}},
+    )
+    log.info(
+        "split into %d submodels (%s images each, %d in two)",
+        len(info),
+        "/".join(str(len(s["images"])) for s in info),
+        sum(len(v) > 1 for v in shared.values()),
+    )
     return paths

@@ -44,17 +44,25 @@ def grow(plants: Plants, terrain: Terrain, rng: np.random.Generator) -> Plants:
     dx = 0.04 * np.cos(ang) + 0.015 * np.sin(kx * plants.y + ph[0])
     dy = 0.04 * np.sin(ang) + 0.015 * np.sin(ky * plants.x + ph[1])
     x, y = plants.x + dx, plants.y + dy
-    return replace(plants, x=x, y=y, z=terrain.height(x, y), height=plants.height * g,
-                   leaf_len=plants.leaf_len * leaf, core=plants.core * g)
+    return replace(
+        plants,
+        x=x,
+        y=y,
+        z=terrain.height(x, y),
+        height=plants.height * g,
+        leaf_len=plants.leaf_len * leaf,
+        core=plants.core * g,
+    )
 
 
 def traits_rows(plants: Plants, label: np.ndarray, res: float, offset: np.ndarray) -> list[list]:
     """Rows of ``truth/traits.csv``: id, x, y, height, ndvi, canopy_pixels, canopy_area_m2."""
-    count = np.bincount(np.clip(label.ravel(), 0, None), minlength=len(plants) + 1)[1:len(plants) + 1]
+    count = np.bincount(np.clip(label.ravel(), 0, None), minlength=len(plants) + 1)[1 : len(plants) + 1]
     ndvi = plants.ndvi if plants.ndvi is not None else np.full(len(plants), 0.8)
-    return [[int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{h:.4f}", f"{v:.4f}", int(c),
-             f"{c * res * res:.6f}"]
-            for i, x, y, h, v, c in zip(plants.ids, plants.x, plants.y, plants.height, ndvi, count)]
+    return [
+        [int(i), f"{x + offset[0]:.4f}", f"{y + offset[1]:.4f}", f"{h:.4f}", f"{v:.4f}", int(c), f"{c * res * res:.6f}"]
+        for i, x, y, h, v, c in zip(plants.ids, plants.x, plants.y, plants.height, ndvi, count)
+    ]
 
 
 def plot_truth(s: Settings, plants: Plants, offset: np.ndarray, crs: str) -> dict:
@@ -88,17 +96,32 @@ def plot_truth(s: Settings, plants: Plants, offset: np.ndarray, crs: str) -> dic
             plots.append([pid, j + 1, i + 1, occ.size, int(occ.sum()), int((~occ).sum()), outline.wkt])
             for r, k in zip(*np.nonzero(~occ)):
                 rr = i * ROWS_PER_PLOT + r
-                gaps.append([pid, rr + 1, f"{row_x[rr] + offset[0]:.4f}",
-                             f"{slots[j * SLOTS_PER_PLOT + k] + shift[rr] + offset[1]:.4f}"])
+                gaps.append(
+                    [
+                        pid,
+                        rr + 1,
+                        f"{row_x[rr] + offset[0]:.4f}",
+                        f"{slots[j * SLOTS_PER_PLOT + k] + shift[rr] + offset[1]:.4f}",
+                    ]
+                )
             book.append([pid, f"G{(pid - 1) % GENOTYPES + 1:02d}", (pid - 1) // GENOTYPES + 1])
     c0 = origin
     corners = [c0, c0 + cols * across, c0 + cols * across + ranges * along, c0 + ranges * along]
-    grid = {"crs": crs, "corners": [[float(c[0]), float(c[1])] for c in corners],
-            "corners_meaning": "first plot's outer corner, then along the first range across the rows, "
-                               "then the far corners: plot 1 is at corner 1, plots numbered across then along",
-            "columns": cols, "ranges": ranges, "plot_width": width, "plot_length": length,
-            "rows_per_plot": ROWS_PER_PLOT, "row_spacing": ROW_SPACING, "plant_spacing": PLANT_SPACING,
-            "skew_deg": float(s.plot_skew_deg), "row_direction": [0.0, 1.0],
-            "row_direction_meaning": "unit vector along the crop rows (north); with a skew the ranges' edges "
-                                     "are not perpendicular to it"}
+    grid = {
+        "crs": crs,
+        "corners": [[float(c[0]), float(c[1])] for c in corners],
+        "corners_meaning": "first plot's outer corner, then along the first range across the rows, "
+        "then the far corners: plot 1 is at corner 1, plots numbered across then along",
+        "columns": cols,
+        "ranges": ranges,
+        "plot_width": width,
+        "plot_length": length,
+        "rows_per_plot": ROWS_PER_PLOT,
+        "row_spacing": ROW_SPACING,
+        "plant_spacing": PLANT_SPACING,
+        "skew_deg": float(s.plot_skew_deg),
+        "row_direction": [0.0, 1.0],
+        "row_direction_meaning": "unit vector along the crop rows (north); with a skew the ranges' edges "
+        "are not perpendicular to it",
+    }
     return {"grid": grid, "plots": plots, "gaps": gaps, "field_book": book}

@@ -18,15 +18,21 @@ MIN_BOX_PX = 0.5  # a plant counts as visible when its box reaches a pixel centr
 RING = 72 + MAX_LEAVES  # points per ring of Plants.surface_points
 
 
-def image_boxes(shot: Shot, plants: Plants, terrain: Terrain, candidates: np.ndarray,
-                offsets: np.ndarray | None = None, chunk: int = 2000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def image_boxes(
+    shot: Shot,
+    plants: Plants,
+    terrain: Terrain,
+    candidates: np.ndarray,
+    offsets: np.ndarray | None = None,
+    chunk: int = 2000,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Boxes ``(n, 4)`` as x0, y0, x1, y1 (pixel edges, clipped), plant indices and a truncated flag,
     for the ``candidates`` plants (indices) that appear in ``shot``'s image. ``offsets`` are
     :meth:`Plants.surface_offsets`, if already computed."""
     cam = shot.camera
     boxes, which, cut = [], [], []
     for start in range(0, len(candidates), chunk):
-        idx = candidates[start:start + chunk]
+        idx = candidates[start : start + chunk]
         if offsets is None:
             pts = plants.surface_points(idx, terrain)
         else:
@@ -67,5 +73,9 @@ def _visible_box(uv: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def candidates_near(plants: Plants, area: np.ndarray, margin: float) -> np.ndarray:
     """Indices of plants whose centre lies within ``margin`` of the box ``area`` (xmin, ymin, xmax, ymax)."""
-    return np.flatnonzero((plants.x > area[0] - margin) & (plants.x < area[2] + margin) &
-                          (plants.y > area[1] - margin) & (plants.y < area[3] + margin))
+    return np.flatnonzero(
+        (plants.x > area[0] - margin)
+        & (plants.x < area[2] + margin)
+        & (plants.y > area[1] - margin)
+        & (plants.y < area[3] + margin)
+    )

@@ -19,4 +19,4 @@ inputs and zonal never reach canopy, plots or the face; canopy and plots never r
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.run import run
 
-__all__ = ['SpatialStatExtractorConfig', 'run']
+__all__ = ["SpatialStatExtractorConfig", "run"]

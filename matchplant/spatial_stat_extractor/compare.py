@@ -8,8 +8,8 @@ matched pairs Pearson's r and the absolute differences; the IoU of the matches i
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pandas as pd
@@ -40,7 +40,8 @@ def match_by_iou(geoms_a, geoms_b, min_iou: float = 0.3) -> pd.DataFrame:
     ia, ib, iou = ia[keep], ib[keep], iou[keep]
     kept = greedy_matches(ia, ib, np.lexsort((ib, ia, -iou)), len(a), len(b))
     return pd.DataFrame({"index_a": ia[kept], "index_b": ib[kept], "iou": iou[kept]}).astype(
-        {"index_a": np.int64, "index_b": np.int64, "iou": float})
+        {"index_a": np.int64, "index_b": np.int64, "iou": float}
+    )
 
 
 def default_traits(columns: Sequence[str], trait_names: Sequence[str], dates: Sequence[str] = ()) -> list[str]:
@@ -52,16 +53,26 @@ def default_traits(columns: Sequence[str], trait_names: Sequence[str], dates: Se
     return out
 
 
-def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.DataFrame,
-                   traits: Sequence[str], label_a: str = "a", label_b: str = "b") -> tuple[pd.DataFrame, pd.DataFrame]:
+def compare_tables(
+    table_a: pd.DataFrame,
+    table_b: pd.DataFrame,
+    matches: pd.DataFrame,
+    traits: Sequence[str],
+    label_a: str = "a",
+    label_b: str = "b",
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-trait summary (KS, Pearson r, absolute differences) and the matched pairs table."""
     # scipy.stats on demand: ~1 s of imports that a run without compare.polygons never needs
     from scipy import stats as st
 
     ia, ib = matches["index_a"].to_numpy(), matches["index_b"].to_numpy()
-    pairs = pd.DataFrame({f"plant_id_{label_a}": table_a["plant_id"].to_numpy()[ia],
-                          f"plant_id_{label_b}": table_b["plant_id"].to_numpy()[ib],
-                          "iou": matches["iou"].to_numpy()})
+    pairs = pd.DataFrame(
+        {
+            f"plant_id_{label_a}": table_a["plant_id"].to_numpy()[ia],
+            f"plant_id_{label_b}": table_b["plant_id"].to_numpy()[ib],
+            "iou": matches["iou"].to_numpy(),
+        }
+    )
     rows = []
     for t in traits:
         va, vb = table_a[t].to_numpy(float), table_b[t].to_numpy(float)
@@ -69,9 +80,14 @@ def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.Dat
         pairs[f"{t}_{label_a}"], pairs[f"{t}_{label_b}"] = pa, pb
         fa, fb = va[np.isfinite(va)], vb[np.isfinite(vb)]
         both = np.isfinite(pa) & np.isfinite(pb)
-        row = {"trait": t, f"n_{label_a}": fa.size, f"n_{label_b}": fb.size, "n_matched": int(both.sum()),
-               f"mean_{label_a}": fa.mean() if fa.size else np.nan,
-               f"mean_{label_b}": fb.mean() if fb.size else np.nan}
+        row = {
+            "trait": t,
+            f"n_{label_a}": fa.size,
+            f"n_{label_b}": fb.size,
+            "n_matched": int(both.sum()),
+            f"mean_{label_a}": fa.mean() if fa.size else np.nan,
+            f"mean_{label_b}": fb.mean() if fb.size else np.nan,
+        }
         if fa.size and fb.size:
             ks = st.ks_2samp(fa, fb)
             row.update(ks_statistic=float(ks.statistic), ks_pvalue=float(ks.pvalue))
@@ -83,21 +99,39 @@ def compare_tables(table_a: pd.DataFrame, table_b: pd.DataFrame, matches: pd.Dat
             row.update(pearson_r=float(r.statistic), pearson_pvalue=float(r.pvalue))
         else:
             row.update(pearson_r=np.nan, pearson_pvalue=np.nan)
-        row.update(mean_abs_diff=d.mean() if d.size else np.nan, median_abs_diff=np.median(d) if d.size else np.nan,
-                   max_abs_diff=d.max() if d.size else np.nan,
-                   mean_diff=float(np.mean(pb[both] - pa[both])) if d.size else np.nan)
+        row.update(
+            mean_abs_diff=d.mean() if d.size else np.nan,
+            median_abs_diff=np.median(d) if d.size else np.nan,
+            max_abs_diff=d.max() if d.size else np.nan,
+            mean_diff=float(np.mean(pb[both] - pa[both])) if d.size else np.nan,
+        )
         rows.append(row)
     iou = matches["iou"].to_numpy()
-    rows.append({"trait": "iou", f"n_{label_a}": len(table_a), f"n_{label_b}": len(table_b),
-                 "n_matched": len(matches), "mean_iou": iou.mean() if iou.size else np.nan,
-                 "median_iou": np.median(iou) if iou.size else np.nan,
-                 f"unmatched_{label_a}": len(table_a) - len(matches),
-                 f"unmatched_{label_b}": len(table_b) - len(matches)})
+    rows.append(
+        {
+            "trait": "iou",
+            f"n_{label_a}": len(table_a),
+            f"n_{label_b}": len(table_b),
+            "n_matched": len(matches),
+            "mean_iou": iou.mean() if iou.size else np.nan,
+            "median_iou": np.median(iou) if iou.size else np.nan,
+            f"unmatched_{label_a}": len(table_a) - len(matches),
+            f"unmatched_{label_b}": len(table_b) - len(matches),
+        }
+    )
     return pd.DataFrame(rows), pairs
 
 
-def comparison_figure(table_a, table_b, pairs: pd.DataFrame, summary: pd.DataFrame, traits: Sequence[str],
-                      path: Path, label_a: str = "a", label_b: str = "b") -> Path:
+def comparison_figure(
+    table_a,
+    table_b,
+    pairs: pd.DataFrame,
+    summary: pd.DataFrame,
+    traits: Sequence[str],
+    path: Path,
+    label_a: str = "a",
+    label_b: str = "b",
+) -> Path:
     """Distributions (histograms of both sets) and matched-pair scatter plots, one row per trait."""
     n = max(len(traits), 1)
     fig = figure(headless=True, figsize=(9, 3.2 * n), constrained_layout=True)
@@ -127,8 +161,9 @@ def comparison_figure(table_a, table_b, pairs: pd.DataFrame, summary: pd.DataFra
             row[1].legend(fontsize=8)
         row[1].set_xlabel(f"{t} ({label_a})")
         row[1].set_ylabel(f"{t} ({label_b})")
-        row[1].set_title(f"r = {s['pearson_r']:.3f}, mean |diff| = {s['mean_abs_diff']:.3g}, "
-                         f"n = {int(s['n_matched'])}", fontsize=10)
+        row[1].set_title(
+            f"r = {s['pearson_r']:.3f}, mean |diff| = {s['mean_abs_diff']:.3g}, n = {int(s['n_matched'])}", fontsize=10
+        )
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110)
     return Path(path)
@@ -142,24 +177,38 @@ def run_comparison(cfg, polygons_a, table_a: pd.DataFrame, date_sets, out: Path)
     if polygons_a.crs is not None and polygons_b.crs is not None and not polygons_b.crs.equals(polygons_a.crs):
         log.info("second plant set reprojected from %s to %s", polygons_b.crs.to_string(), polygons_a.crs.to_string())
         polygons_b = polygons_b.to_crs(polygons_a.crs)
-    table_b, _ = extract_stats(polygons_b, date_sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata,
-                               layout="wide")
+    table_b, _ = extract_stats(
+        polygons_b, date_sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata, layout="wide"
+    )
     if cfg.layout == "long" and len(date_sets) > 1:  # compare on the wide form: one row per plant
-        table_a, _ = extract_stats(polygons_a, date_sets, cfg.stats, cfg.percentiles, cfg.mode,
-                                   nodata=cfg.nodata, layout="wide")
+        table_a, _ = extract_stats(
+            polygons_a, date_sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata, layout="wide"
+        )
     names = list(dict.fromkeys(layer.name for s in date_sets for layer in s.layers()))
     traits = list(c.traits) or default_traits(list(table_a.columns), names, [s.date for s in date_sets])
     missing = [t for t in traits if t not in table_a.columns]
     if missing:
-        raise ConfigError(f"compare.traits {missing} are not columns of the statistics",
-                          fix=f"choose from {[x for x in table_a.columns if x not in ('plant_id', 'x', 'y')]}")
+        raise ConfigError(
+            f"compare.traits {missing} are not columns of the statistics",
+            fix=f"choose from {[x for x in table_a.columns if x not in ('plant_id', 'x', 'y')]}",
+        )
     matches = match_by_iou(polygons_a.geometry.values, polygons_b.geometry.values, c.min_iou)
     summary, pairs = compare_tables(table_a, table_b, matches, traits, c.label_a, c.label_b)
-    log.info("comparison: %d of %d %s plants matched to %d %s plants (IoU >= %.2f)", len(matches),
-             len(table_a), c.label_a, len(table_b), c.label_b, c.min_iou)
-    written = {"compare_summary": write_csv(summary, out / "compare_summary.csv"),
-               "compare_matches": write_csv(pairs, out / "compare_matches.csv"),
-               f"stats_{c.label_b}": write_csv(table_b, out / f"stats_{c.label_b}.csv")}
-    written["compare_figure"] = comparison_figure(table_a, table_b, pairs, summary, traits, out / "compare.png",
-                                                  c.label_a, c.label_b)
+    log.info(
+        "comparison: %d of %d %s plants matched to %d %s plants (IoU >= %.2f)",
+        len(matches),
+        len(table_a),
+        c.label_a,
+        len(table_b),
+        c.label_b,
+        c.min_iou,
+    )
+    written = {
+        "compare_summary": write_csv(summary, out / "compare_summary.csv"),
+        "compare_matches": write_csv(pairs, out / "compare_matches.csv"),
+        f"stats_{c.label_b}": write_csv(table_b, out / f"stats_{c.label_b}.csv"),
+    }
+    written["compare_figure"] = comparison_figure(
+        table_a, table_b, pairs, summary, traits, out / "compare.png", c.label_a, c.label_b
+    )
     return written

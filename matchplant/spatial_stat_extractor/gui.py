@@ -18,12 +18,12 @@ from matplotlib.widgets import Button, CheckButtons, RadioButtons
 from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.gui import figure, is_headless, require_display, show
-from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.plots.figure import unit_of
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 from matchplant.spatial_stat_extractor.inputs.rasters import preview_layer
+from matchplant.spatial_stat_extractor.plots.figure import unit_of
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
 
@@ -46,9 +46,18 @@ TEXT_FIELDS = [  # (config key, label)
     ("output_dir", "Output folder"),
 ]
 # keys with a file picker ("..." beside the box: Tk's dialogs)
-PICKERS = {"polygons": "file", "rasters.chm": "file", "rasters.dsm": "file", "rasters.dtm": "file",
-           "rasters.multispectral": "file", "rasters.rgb": "file", "plots.polygons": "file",
-           "plots.field_book": "file", LATER_CHM: "file", "output_dir": "folder"}
+PICKERS = {
+    "polygons": "file",
+    "rasters.chm": "file",
+    "rasters.dsm": "file",
+    "rasters.dtm": "file",
+    "rasters.multispectral": "file",
+    "rasters.rgb": "file",
+    "plots.polygons": "file",
+    "plots.field_book": "file",
+    LATER_CHM: "file",
+    "output_dir": "folder",
+}
 # the later-date CHM box fills this one entry of more_dates (a config file can list any number of dates)
 LATER_DATE = "later"
 ERROR_COLOR = "#c62828"
@@ -83,8 +92,13 @@ class SpatialStatExtractorGUI:
     """The window over a :class:`~matchplant.spatial_stat_extractor.config.SpatialStatExtractorConfig`. ``headless=True``
     (tests) draws on a figure of its own, without a window."""
 
-    def __init__(self, cfg: SpatialStatExtractorConfig, config_path: Path | None = None, headless: bool | None = None,
-                 chooser=None):
+    def __init__(
+        self,
+        cfg: SpatialStatExtractorConfig,
+        config_path: Path | None = None,
+        headless: bool | None = None,
+        chooser=None,
+    ):
         self.cfg = cfg
         self.chooser = chooser  # replaces Tk's dialog (tests): chooser(kind, title, initial) -> path or None
         self.config_path = Path(config_path) if config_path else None
@@ -109,12 +123,14 @@ class SpatialStatExtractorGUI:
             y -= 0.036
         self.crs_text = fig.text(0.62, y + 0.005, "CRS: -", fontsize=9, family="monospace")
         fig.text(0.62, y - 0.03, "Statistics", fontsize=10, weight="bold")
-        self.stat_checks = CheckButtons(fig.add_axes([0.62, y - 0.25, 0.17, 0.21]), list(BASIC_STATS),
-                                        [s in cfg.stats for s in BASIC_STATS])
+        self.stat_checks = CheckButtons(
+            fig.add_axes([0.62, y - 0.25, 0.17, 0.21]), list(BASIC_STATS), [s in cfg.stats for s in BASIC_STATS]
+        )
         self.stat_checks.on_clicked(lambda _label: self._set_stats())
         fig.text(0.81, y - 0.03, "Pixels", fontsize=10, weight="bold")
-        self.mode_radio = RadioButtons(fig.add_axes([0.81, y - 0.13, 0.17, 0.09]), list(MODES),
-                                       active=list(MODES).index(cfg.mode))
+        self.mode_radio = RadioButtons(
+            fig.add_axes([0.81, y - 0.13, 0.17, 0.09]), list(MODES), active=list(MODES).index(cfg.mode)
+        )
         self.mode_radio.on_clicked(lambda label: self._set("mode", label))
         by = 0.13
         self.btn_preview = Button(fig.add_axes([0.62, by, 0.11, 0.05]), "Preview")
@@ -184,8 +200,12 @@ class SpatialStatExtractorGUI:
                 chosen = self.chooser(PICKERS[key], f"Choose the {label.lower()}", current)
             else:
                 widget = getattr(self.fig.canvas, "get_tk_widget", None)
-                chosen = ask_path(PICKERS[key], f"Choose the {label.lower()}", current,
-                                  parent=widget() if widget is not None else None)
+                chosen = ask_path(
+                    PICKERS[key],
+                    f"Choose the {label.lower()}",
+                    current,
+                    parent=widget() if widget is not None else None,
+                )
         except MatchPlantError as exc:
             self.set_status(f"error: {exc}", error=True)
             return None
@@ -201,8 +221,9 @@ class SpatialStatExtractorGUI:
 
     def sync(self) -> bool:
         """Take every text box's current text (also those not confirmed with Enter)."""
-        return all(self._set(key, box.text) for key, box in self.boxes.items()
-                   if box.text != _as_text(_get(self.cfg, key)))
+        return all(
+            self._set(key, box.text) for key, box in self.boxes.items() if box.text != _as_text(_get(self.cfg, key))
+        )
 
     def _validate(self) -> bool:
         if not self.sync():
@@ -236,9 +257,10 @@ class SpatialStatExtractorGUI:
         self.crs_text.set_text(f"CRS: raster {rcrs.to_string() if rcrs else 'none'}, polygons {pcrs}")
         self.ax.clear()
         finite = arr[np.isfinite(arr)]
-        vmin, vmax = (np.percentile(finite, [2, 98]) if finite.size else (0, 1))
-        self.image_artist = self.ax.imshow(arr, extent=extent, cmap="viridis", vmin=vmin, vmax=vmax,
-                                           interpolation="nearest")
+        vmin, vmax = np.percentile(finite, [2, 98]) if finite.size else (0, 1)
+        self.image_artist = self.ax.imshow(
+            arr, extent=extent, cmap="viridis", vmin=vmin, vmax=vmax, interpolation="nearest"
+        )
         rings = shapely.get_exterior_ring(shapely.get_parts(polys.geometry.values))
         coords, idx = shapely.get_coordinates(rings, return_index=True)
         segments = np.split(coords, np.flatnonzero(np.diff(idx)) + 1) if len(coords) else []
@@ -250,8 +272,9 @@ class SpatialStatExtractorGUI:
         self.ax.tick_params(axis="y", labelrotation=90)
         self.ax.set_xlim(extent[0], extent[1])
         self.ax.set_ylim(extent[2], extent[3])
-        self.ax.set_title(f"{layer.name} ({arr.shape[1]} x {arr.shape[0]} preview) and {len(polys)} plants",
-                          fontsize=10)
+        self.ax.set_title(
+            f"{layer.name} ({arr.shape[1]} x {arr.shape[0]} preview) and {len(polys)} plants", fontsize=10
+        )
         self.preview_polygons = polys
         self.set_status(f"preview of {Path(layer.paths[0]).name}: {len(polys)} plants{note}")
         return True
@@ -325,8 +348,10 @@ class SpatialStatExtractorGUI:
             self.colorbar.remove()
         self.colorbar = self.fig.colorbar(self.poly_artist, ax=self.ax, fraction=0.04, pad=0.02)
         self.colorbar.set_label(f"{col} ({unit_of(col)})", fontsize=9)
-        self.ax.set_title(f"plant outlines coloured by {col} "
-                          f"({np.nanmin(values):.3g} .. {np.nanmax(values):.3g} {unit_of(col)})", fontsize=10)
+        self.ax.set_title(
+            f"plant outlines coloured by {col} ({np.nanmin(values):.3g} .. {np.nanmax(values):.3g} {unit_of(col)})",
+            fontsize=10,
+        )
 
     def wait(self, timeout: float = 60) -> None:
         """Wait for the background work and draw its outcome (tests and scripts)."""
@@ -343,15 +368,21 @@ class SpatialStatExtractorGUI:
         return path
 
 
-def launch(cfg: SpatialStatExtractorConfig, config_path: Path | None = None, headless: bool | None = None,
-           chooser=None) -> SpatialStatExtractorGUI:
+def launch(
+    cfg: SpatialStatExtractorConfig, config_path: Path | None = None, headless: bool | None = None, chooser=None
+) -> SpatialStatExtractorGUI:
     """The window (the paper's Fig. 9); blocks until it is closed."""
     if not headless:
-        require_display("python 9_spatial_stat_extractor/spatial_stat_extractor.py --polygons FILE --dsm FILE --dtm FILE")
+        require_display(
+            "python 9_spatial_stat_extractor/spatial_stat_extractor.py --polygons FILE --dsm FILE --dtm FILE"
+        )
     gui = SpatialStatExtractorGUI(cfg, config_path, headless=headless, chooser=chooser)
     try:
-        named = [cfg.polygons] + [p for layer in cfg.date_sets()[0].layers() for p in layer.paths] \
-            if cfg.polygons is not None and cfg.date_sets() else []
+        named = (
+            [cfg.polygons] + [p for layer in cfg.date_sets()[0].layers() for p in layer.paths]
+            if cfg.polygons is not None and cfg.date_sets()
+            else []
+        )
     except MatchPlantError as exc:
         gui.set_status(f"error: {exc}", error=True)
         named = []

@@ -10,10 +10,10 @@ The command line and the window (:mod:`~matchplant.spatial_stat_extractor.gui`) 
 
 from __future__ import annotations
 
-from dataclasses import replace
 import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Callable, Sequence
 
 import geopandas as gpd
 import pandas as pd
@@ -24,14 +24,14 @@ from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
+from matchplant.spatial_stat_extractor.canopy.memory import gdal_cache_bytes, memory_report, memory_stage
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
-from matchplant.spatial_stat_extractor.canopy.memory import gdal_cache_bytes, memory_report, memory_stage
-from matchplant.spatial_stat_extractor.plots.table import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.inputs.rasters import raster_crs
+from matchplant.spatial_stat_extractor.plots.table import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
 
 log = get_logger("spatial_stat_extractor")
 
@@ -56,18 +56,36 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
     stages: dict[str, dict] = {}
 
     def done(stage: str, t0: float, c0: float) -> None:
-        stages[stage] = {"wall_s": round(time.perf_counter() - t0, 3), "cpu_s": round(time.process_time() - c0, 3),
-                         **memory_report(budget)}
-        log.info("%s: %.1f s (CPU %.1f s), peak memory so far %s MB", stage, stages[stage]["wall_s"],
-                 stages[stage]["cpu_s"], stages[stage]["peak_mb"])
+        stages[stage] = {
+            "wall_s": round(time.perf_counter() - t0, 3),
+            "cpu_s": round(time.process_time() - c0, 3),
+            **memory_report(budget),
+        }
+        log.info(
+            "%s: %.1f s (CPU %.1f s), peak memory so far %s MB",
+            stage,
+            stages[stage]["wall_s"],
+            stages[stage]["cpu_s"],
+            stages[stage]["peak_mb"],
+        )
 
     t0, c0 = time.perf_counter(), time.process_time()
     with memory_stage("the box statistics", budget):
-        table, report = extract_stats(polygons, sets, cfg.stats, cfg.percentiles, cfg.mode, nodata=cfg.nodata,
-                                      layout=cfg.layout, on_progress=on_progress)
+        table, report = extract_stats(
+            polygons,
+            sets,
+            cfg.stats,
+            cfg.percentiles,
+            cfg.mode,
+            nodata=cfg.nodata,
+            layout=cfg.layout,
+            on_progress=on_progress,
+        )
     done("box statistics", t0, c0)
-    report["polygons_crs"] = {"crs": polygons.crs.to_string() if polygons.crs is not None else None,
-                              "from": polygons.attrs.get("crs_source")}
+    report["polygons_crs"] = {
+        "crs": polygons.crs.to_string() if polygons.crs is not None else None,
+        "from": polygons.attrs.get("crs_source"),
+    }
     outlines = unclaimed = None
     if cfg.canopy.enabled:
         if on_progress is not None:
@@ -75,8 +93,15 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
         t0, c0 = time.perf_counter(), time.process_time()
         with memory_stage("the plant outlines and canopy statistics", budget):
             per_date, outlines, unclaimed, report["canopy"] = canopy_traits(
-                polygons, sets, cfg.canopy, cfg.stats, cfg.percentiles, cfg.nodata, max_memory=budget,
-                workers=cfg.workers)
+                polygons,
+                sets,
+                cfg.canopy,
+                cfg.stats,
+                cfg.percentiles,
+                cfg.nodata,
+                max_memory=budget,
+                workers=cfg.workers,
+            )
             table = merge_columns(table, per_date, cfg.layout, len(sets))
         done("outlines and canopy statistics", t0, c0)
     if on_progress is not None:
@@ -99,8 +124,12 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
         with memory_stage("the comparison", budget):
             written.update(run_comparison(cfg, polygons, table, sets, out))
     report["memory"] = {**memory_report(budget), "stages": stages}
-    log.info("peak memory %s MB (largest worker process %s MB; max_memory %s)", report["memory"]["peak_mb"],
-             report["memory"]["peak_worker_mb"], cfg.max_memory)
+    log.info(
+        "peak memory %s MB (largest worker process %s MB; max_memory %s)",
+        report["memory"]["peak_mb"],
+        report["memory"]["peak_worker_mb"],
+        cfg.max_memory,
+    )
     return polygons, table, report, written
 
 
@@ -117,8 +146,9 @@ def run(cfg: SpatialStatExtractorConfig) -> dict:
     return {"plants": len(polygons), "outputs": {k: str(v) for k, v in written.items()}, "report": report}
 
 
-def write_outputs(polygons, table: pd.DataFrame, report: dict, out_dir: Path, *,
-                  vector_formats: Sequence[str] = ("gpkg", "shp")) -> dict[str, Path]:
+def write_outputs(
+    polygons, table: pd.DataFrame, report: dict, out_dir: Path, *, vector_formats: Sequence[str] = ("gpkg", "shp")
+) -> dict[str, Path]:
     """The polygons in each of ``vector_formats`` (``polygons.gpkg``, ``.shp`` with only ``plant_id``,
     ``.geojson``), stats.csv, stats.gpkg (polygons + statistics) and stats_report.json."""
     out_dir = Path(out_dir)

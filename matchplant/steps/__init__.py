@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import difflib
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError
 
@@ -62,7 +63,6 @@ class StepSpec:
     # when set, the positional argument fills this key instead of naming a config file
     # (``matchplant run pipeline.yaml``)
     positional_key: str | None = None
-
 
     def load_gui(self) -> Callable[[Any, Path | None], Any]:
         """The step's window function, imported now."""

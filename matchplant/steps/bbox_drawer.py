@@ -3,5 +3,10 @@
 from matchplant.bbox_drawer import BboxDrawerConfig, run
 from matchplant.steps import StepSpec
 
-SPEC = StepSpec(name="bbox_drawer", config=BboxDrawerConfig, run=run, gui="matchplant.bbox_drawer.gui:launch",
-                flags={"--images": ("images", "folder of images to annotate")})
+SPEC = StepSpec(
+    name="bbox_drawer",
+    config=BboxDrawerConfig,
+    run=run,
+    gui="matchplant.bbox_drawer.gui:launch",
+    flags={"--images": ("images", "folder of images to annotate")},
+)

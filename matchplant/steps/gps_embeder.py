@@ -3,7 +3,13 @@
 from matchplant.gps_embeder import GpsEmbederConfig, run
 from matchplant.steps import StepSpec
 
-SPEC = StepSpec(name="gps_embeder", config=GpsEmbederConfig, run=run,
-                flags={"--images": ("images", "folder of the images"),
-                       "--log": ("gnss_log", "GNSS event log"),
-                       "--crs": ("log_crs", "CRS of the log, e.g. EPSG:32614")})
+SPEC = StepSpec(
+    name="gps_embeder",
+    config=GpsEmbederConfig,
+    run=run,
+    flags={
+        "--images": ("images", "folder of the images"),
+        "--log": ("gnss_log", "GNSS event log"),
+        "--crs": ("log_crs", "CRS of the log, e.g. EPSG:32614"),
+    },
+)

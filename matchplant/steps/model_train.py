@@ -3,8 +3,18 @@
 from matchplant.model_train import ModelTrainConfig, run
 from matchplant.steps import StepSpec
 
-SPEC = StepSpec(name="model_train", config=ModelTrainConfig, run=run,
-                flags={"--resume": ("resume", "continue the run in output_dir from its last checkpoint", "true"),
-                       "--fresh": ("resume", "start a new run in output_dir, replacing an earlier run's "
-                                   "checkpoints (e.g. after changing model.architecture)", "fresh"),
-                       "--epochs": ("epochs", "number of epochs (shortcut for --set epochs=N)")})
+SPEC = StepSpec(
+    name="model_train",
+    config=ModelTrainConfig,
+    run=run,
+    flags={
+        "--resume": ("resume", "continue the run in output_dir from its last checkpoint", "true"),
+        "--fresh": (
+            "resume",
+            "start a new run in output_dir, replacing an earlier run's "
+            "checkpoints (e.g. after changing model.architecture)",
+            "fresh",
+        ),
+        "--epochs": ("epochs", "number of epochs (shortcut for --set epochs=N)"),
+    },
+)

@@ -3,5 +3,10 @@
 from matchplant.pipeline import PipelineConfig, run_pipeline
 from matchplant.steps import StepSpec
 
-SPEC = StepSpec(name="run", config=PipelineConfig, run=run_pipeline, positional_key="pipeline",
-                flags={"--from": ("from_step", "re-run from this step on")})
+SPEC = StepSpec(
+    name="run",
+    config=PipelineConfig,
+    run=run_pipeline,
+    positional_key="pipeline",
+    flags={"--from": ("from_step", "re-run from this step on")},
+)

@@ -63,11 +63,13 @@ def dropped(w: Work) -> list[dict]:
 
 def exports(n_boxes: int, reasons: dict[str, int] | None = None):
     """The export holds ``n_boxes`` boxes and import_dropped.csv lists exactly ``reasons`` (reason -> count)."""
+
     def check(w: Work) -> None:
         ds = exported(w)
         assert len(ds["annotations"]) == n_boxes, (len(ds["annotations"]), n_boxes)
         got = Counter(r["reason"] for r in dropped(w))
         assert got == Counter(reasons or {}), got
+
     return check
 
 
@@ -79,8 +81,9 @@ def exports_truth_boxes(w: Work) -> None:
     ds = exported(w)
     got_names = {im["id"]: im["file_name"] for im in ds["images"]}
     got = sorted((got_names[a["image_id"]], *(round(v, 1) for v in a["bbox"])) for a in ds["annotations"])
-    assert len(got) == len(want) == 339 and all(g[0] == x[0] and max(abs(a - b) for a, b in zip(g[1:], x[1:])) <= 0.11
-                                                for g, x in zip(got, want)), (got[:3], want[:3])
+    assert len(got) == len(want) == 339 and all(
+        g[0] == x[0] and max(abs(a - b) for a, b in zip(g[1:], x[1:])) <= 0.11 for g, x in zip(got, want)
+    ), (got[:3], want[:3])
     assert not dropped(w)
 
 
@@ -90,13 +93,13 @@ def exports_truth_boxes(w: Work) -> None:
 def coco_some_boxes_broken(w: Work) -> list[str]:
     ds = truth(w)
     a = ds["annotations"]
-    a[0]["bbox"][2] = -a[0]["bbox"][2]                      # negative width
-    a[1]["bbox"][3] = 0.0                                   # zero height
-    a[2]["bbox"] = [450.0, 20.0, 30.0, 30.0]                # right of the 400 px wide photo
-    a[3]["bbox"] = [10.0, -80.0, 20.0, 30.0]                # above it
-    a[4]["category_id"] = 7                                 # no such category
-    a[5]["bbox"] = [1.0, "x", 3.0, 4.0]                     # not a number
-    a.append(copy.deepcopy(a[10]))                          # the same box twice (same id)
+    a[0]["bbox"][2] = -a[0]["bbox"][2]  # negative width
+    a[1]["bbox"][3] = 0.0  # zero height
+    a[2]["bbox"] = [450.0, 20.0, 30.0, 30.0]  # right of the 400 px wide photo
+    a[3]["bbox"] = [10.0, -80.0, 20.0, 30.0]  # above it
+    a[4]["category_id"] = 7  # no such category
+    a[5]["bbox"] = [1.0, "x", 3.0, 4.0]  # not a number
+    a.append(copy.deepcopy(a[10]))  # the same box twice (same id)
     return args(w, w.copy(IMAGES, "images"), f"import_coco={coco(w, ds)}")
 
 
@@ -157,7 +160,7 @@ def coco_duplicate_image_ids(w: Work) -> list[str]:
 
 def coco_categories_off_by_one(w: Work) -> list[str]:
     ds = truth(w)
-    ds["categories"][0]["id"] = 0                            # annotations still say 1
+    ds["categories"][0]["id"] = 0  # annotations still say 1
     return args(w, w.copy(IMAGES, "images"), f"import_coco={coco(w, ds, 'zero_based.json')}")
 
 
@@ -176,7 +179,7 @@ def coco_every_box_negative(w: Work) -> list[str]:
     ds = truth(w)
     for a in ds["annotations"]:
         x, y, bw, bh = a["bbox"]
-        a["bbox"] = [x + bw, y + bh, -bw, -bh]              # corners written as x2, y2, -w, -h
+        a["bbox"] = [x + bw, y + bh, -bw, -bh]  # corners written as x2, y2, -w, -h
     return args(w, w.copy(IMAGES, "images"), f"import_coco={coco(w, ds, 'flipped.json')}")
 
 
@@ -201,8 +204,8 @@ def yolo_one_value_out_of_range(w: Work) -> list[str]:
     labels = yolo_labels(w)
     path = labels / "SIM_0003.JPG.txt"
     lines = path.read_text().splitlines()
-    lines[0] = "0 1.4 0.5 0.1 0.1"                          # a centre right of the image
-    lines[1] = "0 0.5 0.5 -0.1 0.1"                         # a negative width
+    lines[0] = "0 1.4 0.5 0.1 0.1"  # a centre right of the image
+    lines[1] = "0 0.5 0.5 -0.1 0.1"  # a negative width
     path.write_text("\n".join(lines) + "\n")
     return args(w, w.copy(IMAGES, "images"), f"import_yolo={labels}")
 
@@ -218,8 +221,10 @@ def yolo_in_pixels(w: Work) -> list[str]:
     write(labels / "classes.txt", "plant\n")
     t = truth(w)
     for im in t["images"]:
-        rows = [f"0 {x + bw / 2:.2f} {y + bh / 2:.2f} {bw:.2f} {bh:.2f}"
-                for x, y, bw, bh in (a["bbox"] for a in t["annotations"] if a["image_id"] == im["id"])]
+        rows = [
+            f"0 {x + bw / 2:.2f} {y + bh / 2:.2f} {bw:.2f} {bh:.2f}"
+            for x, y, bw, bh in (a["bbox"] for a in t["annotations"] if a["image_id"] == im["id"])
+        ]
         write(labels / (Path(im["file_name"]).stem + ".txt"), "\n".join(rows) + "\n")
     return args(w, w.copy(IMAGES, "images"), f"import_yolo={labels}")
 
@@ -228,7 +233,7 @@ def yolo_six_columns(w: Work) -> list[str]:
     labels = yolo_labels(w)
     path = labels / "SIM_0006.JPG.txt"
     lines = path.read_text().splitlines()
-    lines[2] += " 0.87"                                      # a confidence left in
+    lines[2] += " 0.87"  # a confidence left in
     path.write_text("\n".join(lines) + "\n")
     return args(w, w.copy(IMAGES, "images"), f"import_yolo={labels}")
 
@@ -243,16 +248,21 @@ def yolo_without_classes(w: Work) -> list[str]:
 
 
 def deepforest_text_coordinate(w: Work) -> list[str]:
-    csv_path = write(w.inputs / "trees.csv", "image_path,xmin,ymin,xmax,ymax,label\n"
-                                             "SIM_0001.JPG.tif,10,10,40,40,plant\n"
-                                             "SIM_0001.JPG.tif,10,n/a,40,40,plant\n")
+    csv_path = write(
+        w.inputs / "trees.csv",
+        "image_path,xmin,ymin,xmax,ymax,label\n"
+        "SIM_0001.JPG.tif,10,10,40,40,plant\n"
+        "SIM_0001.JPG.tif,10,n/a,40,40,plant\n",
+    )
     return args(w, w.copy(IMAGES, "images"), f"import_deepforest={csv_path}")
 
 
 def deepforest_bom_crlf_swapped_corners(w: Work) -> list[str]:
     """A BOM/CRLF DeepForest CSV with one box whose corners are swapped (negative size): 2 of 3 boxes import."""
-    text = ("image_path,xmin,ymin,xmax,ymax,label\nSIM_0001.JPG.tif,10,10,40,40,plant\n"
-            "SIM_0001.JPG.tif,80,80,50,95,plant\nSIM_0002.JPG.tif,100,100,130,120,plant\n")
+    text = (
+        "image_path,xmin,ymin,xmax,ymax,label\nSIM_0001.JPG.tif,10,10,40,40,plant\n"
+        "SIM_0001.JPG.tif,80,80,50,95,plant\nSIM_0002.JPG.tif,100,100,130,120,plant\n"
+    )
     path = write(w.inputs / "trees.csv", text, bom=True, crlf=True)
     return args(w, w.copy(IMAGES, "images"), f"import_deepforest={path}")
 
@@ -275,17 +285,22 @@ def voc_of_resized_photos(w: Work) -> list[str]:
     voc = w.inputs / "voc"
     t = truth(w)
     for im in t["images"][:2]:
-        objects = "".join(f"<object><name>plant</name><bndbox><xmin>{x:.1f}</xmin><ymin>{y:.1f}</ymin>"
-                          f"<xmax>{x + bw:.1f}</xmax><ymax>{y + bh:.1f}</ymax></bndbox></object>"
-                          for x, y, bw, bh in (a["bbox"] for a in t["annotations"] if a["image_id"] == im["id"]))
-        write(voc / (Path(im["file_name"]).stem + ".xml"),
-              f"<annotation><filename>{im['file_name']}</filename><size><width>200</width><height>150</height>"
-              f"<depth>3</depth></size>{objects}</annotation>")
+        objects = "".join(
+            f"<object><name>plant</name><bndbox><xmin>{x:.1f}</xmin><ymin>{y:.1f}</ymin>"
+            f"<xmax>{x + bw:.1f}</xmax><ymax>{y + bh:.1f}</ymax></bndbox></object>"
+            for x, y, bw, bh in (a["bbox"] for a in t["annotations"] if a["image_id"] == im["id"])
+        )
+        write(
+            voc / (Path(im["file_name"]).stem + ".xml"),
+            f"<annotation><filename>{im['file_name']}</filename><size><width>200</width><height>150</height>"
+            f"<depth>3</depth></size>{objects}</annotation>",
+        )
     return args(w, w.copy(IMAGES, "images"), f"import_voc={voc}")
 
 
 def mask_of_other_size(w: Work) -> list[str]:
     import cv2
+
     masks = w.copy("field/truth/masks_undistorted", "masks")
     m = cv2.imread(str(masks / "SIM_0003.JPG.png"), cv2.IMREAD_UNCHANGED)
     cv2.imwrite(str(masks / "SIM_0003.JPG.png"), cv2.resize(m, (200, 150), interpolation=cv2.INTER_NEAREST))
@@ -301,59 +316,133 @@ def damaged_session(w: Work) -> list[str]:
 
 def output_is_image_folder(w: Work) -> list[str]:
     images = w.copy(IMAGES, "images")
-    return ["--set", f"images={images}", "--set", f"output_dir={images}",
-            "--set", f"import_coco={w.copy('field/truth/boxes_undistorted.json')}"]
+    return [
+        "--set",
+        f"images={images}",
+        "--set",
+        f"output_dir={images}",
+        "--set",
+        f"import_coco={w.copy('field/truth/boxes_undistorted.json')}",
+    ]
 
 
 def output_is_labels_folder(w: Work) -> list[str]:
     labels = yolo_labels(w)
-    return ["--set", f"images={w.copy(IMAGES, 'images')}", "--set", f"output_dir={labels}",
-            "--set", f"import_yolo={labels}"]
+    return [
+        "--set",
+        f"images={w.copy(IMAGES, 'images')}",
+        "--set",
+        f"output_dir={labels}",
+        "--set",
+        f"import_yolo={labels}",
+    ]
 
 
 def nothing_to_export(w: Work) -> list[str]:
     return args(w, w.copy(IMAGES, "images"))
 
 
-
 CASES = [
     # must work: partly usable files import the rest, warn and list what was left out
-    Case("m4-coco-some-boxes-broken", "bbox_drawer", coco_some_boxes_broken, expect="ok",
-         check=exports(339 - 6, {"zero or negative size": 2, "outside the image": 2, "unknown category id": 1,
-                                 "bbox is not [x, y, w, h] numbers": 1, "duplicate box": 1})),
-    Case("m4-coco-duplicate-ids-different-boxes", "bbox_drawer", coco_duplicate_ids_different_boxes, expect="ok",
-         check=exports_truth_boxes),
-    Case("m4-coco-some-images-missing", "bbox_drawer", coco_some_images_missing, expect="ok",
-         check=exports(339 - 40 - 44, {"image not in the image folder": 40 + 44})),
-    Case("m4-coco-bom-crlf-unicode-junk", "bbox_drawer", coco_bom_crlf_unicode_junk, expect="ok",
-         check=exports_truth_boxes),
-    Case("m4-coco-names-match-loosely", "bbox_drawer", coco_names_match_loosely, expect="ok",
-         check=exports_truth_boxes),
+    Case(
+        "m4-coco-some-boxes-broken",
+        "bbox_drawer",
+        coco_some_boxes_broken,
+        expect="ok",
+        check=exports(
+            339 - 6,
+            {
+                "zero or negative size": 2,
+                "outside the image": 2,
+                "unknown category id": 1,
+                "bbox is not [x, y, w, h] numbers": 1,
+                "duplicate box": 1,
+            },
+        ),
+    ),
+    Case(
+        "m4-coco-duplicate-ids-different-boxes",
+        "bbox_drawer",
+        coco_duplicate_ids_different_boxes,
+        expect="ok",
+        check=exports_truth_boxes,
+    ),
+    Case(
+        "m4-coco-some-images-missing",
+        "bbox_drawer",
+        coco_some_images_missing,
+        expect="ok",
+        check=exports(339 - 40 - 44, {"image not in the image folder": 40 + 44}),
+    ),
+    Case(
+        "m4-coco-bom-crlf-unicode-junk",
+        "bbox_drawer",
+        coco_bom_crlf_unicode_junk,
+        expect="ok",
+        check=exports_truth_boxes,
+    ),
+    Case(
+        "m4-coco-names-match-loosely", "bbox_drawer", coco_names_match_loosely, expect="ok", check=exports_truth_boxes
+    ),
     Case("m4-yolo-bom-crlf-unicode", "bbox_drawer", yolo_bom_crlf, expect="ok", check=exports_truth_boxes),
-    Case("m4-yolo-one-value-out-of-range", "bbox_drawer", yolo_one_value_out_of_range, expect="ok",
-         check=exports(339 - 2, {"YOLO value outside [0, 1]": 1, "zero or negative size": 1})),
-    Case("m4-yolo-label-for-no-image", "bbox_drawer", yolo_label_for_no_image, expect="ok",
-         check=exports(339 - 40, {"label file matches no image": 40})),
-    Case("m4-deepforest-bom-crlf-swapped-corners", "bbox_drawer", deepforest_bom_crlf_swapped_corners,
-         expect="ok", check=exports(2, {"zero or negative size": 1})),
+    Case(
+        "m4-yolo-one-value-out-of-range",
+        "bbox_drawer",
+        yolo_one_value_out_of_range,
+        expect="ok",
+        check=exports(339 - 2, {"YOLO value outside [0, 1]": 1, "zero or negative size": 1}),
+    ),
+    Case(
+        "m4-yolo-label-for-no-image",
+        "bbox_drawer",
+        yolo_label_for_no_image,
+        expect="ok",
+        check=exports(339 - 40, {"label file matches no image": 40}),
+    ),
+    Case(
+        "m4-deepforest-bom-crlf-swapped-corners",
+        "bbox_drawer",
+        deepforest_bom_crlf_swapped_corners,
+        expect="ok",
+        check=exports(2, {"zero or negative size": 1}),
+    ),
     # errors
-    Case("m4-coco-other-photos", "bbox_drawer", coco_other_photos, mentions=("other_flight.json", "image folder"),
-         outputs_allowed=("import_dropped.csv",)),
+    Case(
+        "m4-coco-other-photos",
+        "bbox_drawer",
+        coco_other_photos,
+        mentions=("other_flight.json", "image folder"),
+        outputs_allowed=("import_dropped.csv",),
+    ),
     Case("m4-coco-resized-photos", "bbox_drawer", coco_resized_photos, mentions=("big.json", "800x600", "400x300")),
     Case("m4-coco-duplicate-image-ids", "bbox_drawer", coco_duplicate_image_ids, mentions=("boxes.json", "image id")),
-    Case("m4-coco-categories-off-by-one", "bbox_drawer", coco_categories_off_by_one,
-         mentions=("zero_based.json", "unknown category"), outputs_allowed=("import_dropped.csv",)),
+    Case(
+        "m4-coco-categories-off-by-one",
+        "bbox_drawer",
+        coco_categories_off_by_one,
+        mentions=("zero_based.json", "unknown category"),
+        outputs_allowed=("import_dropped.csv",),
+    ),
     Case("m4-coco-no-categories", "bbox_drawer", coco_no_categories, mentions=("nocats.json", "categories")),
     Case("m4-coco-truncated", "bbox_drawer", coco_truncated, mentions=("cut.json", "truncated")),
-    Case("m4-coco-every-box-negative", "bbox_drawer", coco_every_box_negative,
-         mentions=("flipped.json", "negative size"), outputs_allowed=("import_dropped.csv",)),
+    Case(
+        "m4-coco-every-box-negative",
+        "bbox_drawer",
+        coco_every_box_negative,
+        mentions=("flipped.json", "negative size"),
+        outputs_allowed=("import_dropped.csv",),
+    ),
     Case("m4-coco-without-boxes", "bbox_drawer", coco_without_boxes, mentions=("empty.json", "no boxes")),
     Case("m4-yolo-in-pixels", "bbox_drawer", yolo_in_pixels, mentions=("labels", "outside [0, 1]")),
     Case("m4-yolo-six-columns", "bbox_drawer", yolo_six_columns, mentions=("SIM_0006.JPG.txt", "line 3")),
     Case("m4-yolo-without-classes", "bbox_drawer", yolo_without_classes, mentions=("classes.txt",)),
     Case("m4-deepforest-text-coordinate", "bbox_drawer", deepforest_text_coordinate, mentions=("trees.csv", "line 3")),
-    Case("m4-predictions-below-min-score", "bbox_drawer", predictions_below_min_score,
-         mentions=("predictions.json", "min_score")),
+    Case(
+        "m4-predictions-below-min-score",
+        "bbox_drawer",
+        predictions_below_min_score,
+        mentions=("predictions.json", "min_score"),
+    ),
     Case("m4-voc-of-resized-photos", "bbox_drawer", voc_of_resized_photos, mentions=("voc", "200x150", "400x300")),
     Case("m4-mask-of-other-size", "bbox_drawer", mask_of_other_size, mentions=("SIM_0003.JPG.png", "200x150")),
     Case("m4-damaged-session", "bbox_drawer", damaged_session, mentions=("session.json",)),

@@ -32,7 +32,7 @@ def _antialiased(ids: np.ndarray) -> np.ndarray:
     """The plants as a white-on-black mask drawn at 3x and reduced (anti-aliased edges, as resizing gives)."""
     h, w = ids.shape
     big = cv2.resize((ids > 0).astype(np.float32) * 255, (3 * w, 3 * h), interpolation=cv2.INTER_NEAREST)
-    big = cv2.GaussianBlur(big, (5, 5), 1.2)                    # soft edges at the fine scale
+    big = cv2.GaussianBlur(big, (5, 5), 1.2)  # soft edges at the fine scale
     return np.round(cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)).astype(np.uint8)
 
 
@@ -52,6 +52,7 @@ def antialiased_masks(fmt: str):
             else:
                 cv2.imwrite(str(folder / f"{Path(photo).stem}.jpg"), m, [cv2.IMWRITE_JPEG_QUALITY, 80])
         return args(w, w.copy(IMAGES, "images"), f"import_masks={folder}", f"mask_min_area={MIN_AREA}")
+
     return prepare
 
 
@@ -76,7 +77,7 @@ def colour_masks(w: Work) -> list[str]:
         rng.shuffle(palette)
         palette = palette[: int(ids.max()) + 1].astype(np.uint8)
         palette[0] = 0
-        cv2.imwrite(str(folder / f"{photo}.png"), palette[ids][..., ::-1])   # RGB written as OpenCV's BGR
+        cv2.imwrite(str(folder / f"{photo}.png"), palette[ids][..., ::-1])  # RGB written as OpenCV's BGR
     return args(w, w.copy(IMAGES, "images"), f"import_masks={folder}", "mask_min_area=1")
 
 
@@ -85,11 +86,18 @@ def one_box_per_plant(w: Work) -> None:
     names = {im["id"]: im["file_name"] for im in ds["images"]}
     got = sorted((names[a["image_id"]], *a["bbox"]) for a in ds["annotations"])
     want = []
-    for photo, ids in _instances(w).items():                   # numpy over the truth ids, one plant at a time
+    for photo, ids in _instances(w).items():  # numpy over the truth ids, one plant at a time
         for v in np.unique(ids[ids > 0]):
             rows, cols = np.nonzero(ids == v)
-            want.append((f"{photo}.tif", float(cols.min()), float(rows.min()), float(cols.max() + 1 - cols.min()),
-                         float(rows.max() + 1 - rows.min())))
+            want.append(
+                (
+                    f"{photo}.tif",
+                    float(cols.min()),
+                    float(rows.min()),
+                    float(cols.max() + 1 - cols.min()),
+                    float(rows.max() + 1 - rows.min()),
+                )
+            )
     assert got == sorted(want), (len(got), len(want))
 
 
@@ -109,8 +117,13 @@ def two_masks_for_one_photo(w: Work) -> list[str]:
 
 
 def threshold_with_instance_mode(w: Work) -> list[str]:
-    return args(w, w.copy(IMAGES, "images"), f"import_masks={w.copy(MASKS, 'masks')}", "mask_mode=instance",
-                "mask_threshold=128")
+    return args(
+        w,
+        w.copy(IMAGES, "images"),
+        f"import_masks={w.copy(MASKS, 'masks')}",
+        "mask_mode=instance",
+        "mask_threshold=128",
+    )
 
 
 def deepforest_csv(w: Work, label: str = "Tree") -> Path:
@@ -147,7 +160,7 @@ def label_studio_names(w: Work) -> list[str]:
     ds = truth(w)
     for k, im in enumerate(ds["images"]):
         photo = im["file_name"].removesuffix(".tif")
-        im["file_name"] = f"images/{k:07x}a-{photo}.png"        # images/<8 hex>-SIM_0001.JPG.png
+        im["file_name"] = f"images/{k:07x}a-{photo}.png"  # images/<8 hex>-SIM_0001.JPG.png
     return args(w, w.copy(IMAGES, "images"), f"import_coco={coco(w, ds, 'label_studio.json')}")
 
 
@@ -159,23 +172,45 @@ def two_names_one_photo(w: Work) -> list[str]:
 
 
 CASES = [
-    Case("m4-masks-antialiased-gif", "bbox_drawer", antialiased_masks("gif"), expect="ok",
-         check=counts_within_7_percent),
-    Case("m4-masks-antialiased-jpeg", "bbox_drawer", antialiased_masks("jpeg"), expect="ok",
-         check=counts_within_7_percent),
+    Case(
+        "m4-masks-antialiased-gif", "bbox_drawer", antialiased_masks("gif"), expect="ok", check=counts_within_7_percent
+    ),
+    Case(
+        "m4-masks-antialiased-jpeg",
+        "bbox_drawer",
+        antialiased_masks("jpeg"),
+        expect="ok",
+        check=counts_within_7_percent,
+    ),
     Case("m4-masks-colour-instances", "bbox_drawer", colour_masks, expect="ok", check=one_box_per_plant),
     Case("m4-masks-npy", "bbox_drawer", masks_as_npy, mentions=("masks", ".npy", "png")),
-    Case("m4-masks-two-for-one-photo", "bbox_drawer", two_masks_for_one_photo,
-         mentions=("SIM_0004.JPG", "SIM_0004.gif", "one mask per photo")),
-    Case("m4-mask-threshold-with-instance-mode", "bbox_drawer", threshold_with_instance_mode,
-         mentions=("mask_threshold", "mask_mode")),
-    Case("m4-deepforest-labels-not-categories", "bbox_drawer", labels_not_categories,
-         mentions=("deepforest.csv", "'Tree' (339 boxes)", "label_map", "categories")),
+    Case(
+        "m4-masks-two-for-one-photo",
+        "bbox_drawer",
+        two_masks_for_one_photo,
+        mentions=("SIM_0004.JPG", "SIM_0004.gif", "one mask per photo"),
+    ),
+    Case(
+        "m4-mask-threshold-with-instance-mode",
+        "bbox_drawer",
+        threshold_with_instance_mode,
+        mentions=("mask_threshold", "mask_mode"),
+    ),
+    Case(
+        "m4-deepforest-labels-not-categories",
+        "bbox_drawer",
+        labels_not_categories,
+        mentions=("deepforest.csv", "'Tree' (339 boxes)", "label_map", "categories"),
+    ),
     Case("m4-deepforest-labels-mapped", "bbox_drawer", labels_mapped, expect="ok", check=mapped_and_scored),
     Case("m4-label-map-onto-no-category", "bbox_drawer", label_map_onto_nothing, mentions=("label_map", "shrub")),
-    Case("m4-label-studio-prefix-and-suffix", "bbox_drawer", label_studio_names, expect="ok",
-         check=exports_truth_boxes),
-    Case("m4-two-image-names-one-photo", "bbox_drawer", two_names_one_photo,
-         mentions=("two_folders.json", "more than one image", "101MEDIA")),
+    Case(
+        "m4-label-studio-prefix-and-suffix", "bbox_drawer", label_studio_names, expect="ok", check=exports_truth_boxes
+    ),
+    Case(
+        "m4-two-image-names-one-photo",
+        "bbox_drawer",
+        two_names_one_photo,
+        mentions=("two_folders.json", "more than one image", "101MEDIA"),
+    ),
 ]
-

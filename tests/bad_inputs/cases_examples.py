@@ -16,8 +16,16 @@ def crs(w: Work) -> str:
 
 
 def gps_args(w: Work, images, log) -> list[str]:
-    return ["--set", f"images={images}", "--set", f"gnss_log={log}", "--set", f"log_crs={crs(w)}",
-            "--set", f"output_dir={w.out}"]
+    return [
+        "--set",
+        f"images={images}",
+        "--set",
+        f"gnss_log={log}",
+        "--set",
+        f"log_crs={crs(w)}",
+        "--set",
+        f"output_dir={w.out}",
+    ]
 
 
 def gps_missing_log(w: Work) -> list[str]:
@@ -66,16 +74,25 @@ def plants_written(w: Work) -> None:
 
 
 def stats_missing_dsm(w: Work) -> list[str]:
-    return ["--set", f"polygons={w.copy('plants/plants.gpkg')}", "--set", f"rasters.dsm={w.inputs / 'dsm.tif'}",
-            "--set", f"output_dir={w.out}"]
+    return [
+        "--set",
+        f"polygons={w.copy('plants/plants.gpkg')}",
+        "--set",
+        f"rasters.dsm={w.inputs / 'dsm.tif'}",
+        "--set",
+        f"output_dir={w.out}",
+    ]
 
 
 CASES = [
     Case("m0-missing-gnss-log", "gps_embeder", gps_missing_log, mentions=("events.txt",)),
     Case("m0-bom-crlf-log-junk-files-unicode", "gps_embeder", gps_bom_crlf_junk, expect="ok", check=gps_all_matched),
-    Case("m8-truncated-reconstruction", "plant_projection", projection_truncated_reconstruction,
-         mentions=("reconstruction.json",)),
-    Case("m8-unicode-and-space-paths", "plant_projection", projection_unicode_paths, expect="ok",
-         check=plants_written),
+    Case(
+        "m8-truncated-reconstruction",
+        "plant_projection",
+        projection_truncated_reconstruction,
+        mentions=("reconstruction.json",),
+    ),
+    Case("m8-unicode-and-space-paths", "plant_projection", projection_unicode_paths, expect="ok", check=plants_written),
     Case("m9-missing-dsm", "spatial_stat_extractor", stats_missing_dsm, mentions=("dsm",)),
 ]

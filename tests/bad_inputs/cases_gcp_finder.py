@@ -24,8 +24,16 @@ def crs(w: Work) -> str:
 
 
 def args(w: Work, images: Path, survey: Path, *extra: str, survey_crs: str = "field") -> list[str]:
-    a = ["--set", f"images={images}", "--set", f"survey={survey}", "--set", f"output_dir={w.out}",
-         "--set", f"survey_crs={crs(w) if survey_crs == 'field' else survey_crs}"]
+    a = [
+        "--set",
+        f"images={images}",
+        "--set",
+        f"survey={survey}",
+        "--set",
+        f"output_dir={w.out}",
+        "--set",
+        f"survey_crs={crs(w) if survey_crs == 'field' else survey_crs}",
+    ]
     for e in extra:
         a += ["--set", e]
     return a
@@ -219,9 +227,12 @@ def resume_with_foreign_images(w: Work) -> list[str]:
     t = truth(w)
     g = {r[0]: r[1:] for r in survey_rows(w)[1:]}
     (gid, image), (u, v) = next(iter(t.items()))
-    lines = [crs(w), f"{' '.join(g[gid])} {u} {v} {image} {gid}",
-             f"{' '.join(g['GCP02'])} 120.5 80.25 OTHER_0042.JPG GCP02",
-             f"{' '.join(g['GCP03'])} 10 20 DJI_0001.JPG GCP03"]
+    lines = [
+        crs(w),
+        f"{' '.join(g[gid])} {u} {v} {image} {gid}",
+        f"{' '.join(g['GCP02'])} 120.5 80.25 OTHER_0042.JPG GCP02",
+        f"{' '.join(g['GCP03'])} 10 20 DJI_0001.JPG GCP03",
+    ]
     return args(w, images(w), w.copy("field/gcp/gcp_survey.csv"), *AUTO, f"gcp_list={earlier_list(w, lines)}")
 
 
@@ -238,8 +249,9 @@ def resume_in_output_folder(w: Work) -> list[str]:
     g = {r[0]: r[1:] for r in survey_rows(w)[1:]}
     (gid, image), (u, v) = next(iter(t.items()))
     w.out.mkdir(parents=True)
-    (w.out / "gcp_list.txt").write_text(f"{crs(w)}\n{' '.join(g[gid])} {u} {v} {image} {gid}\n"
-                                        f"{' '.join(g['GCP02'])} 120.5 80.25 OTHER_0042.JPG GCP02\n")
+    (w.out / "gcp_list.txt").write_text(
+        f"{crs(w)}\n{' '.join(g[gid])} {u} {v} {image} {gid}\n{' '.join(g['GCP02'])} 120.5 80.25 OTHER_0042.JPG GCP02\n"
+    )
     return args(w, images(w), w.copy("field/gcp/gcp_survey.csv"))
 
 
@@ -288,41 +300,64 @@ def output_is_image_folder(w: Work) -> list[str]:
     return [x if not x.startswith("output_dir=") else f"output_dir={imgs}" for x in a]
 
 
-
 CASES = [
     Case("m1-survey-missing-z", "gcp_finder", survey_missing_z, mentions=("gcp_survey.csv", "'z'")),
     Case("m1-survey-missing-id", "gcp_finder", survey_missing_id, mentions=("gcp_survey.csv", "'id'")),
-    Case("m1-survey-duplicate-ids", "gcp_finder", survey_duplicate_ids,
-         mentions=("gcp_survey.csv", "GCP02", "lines 3 and 4")),
+    Case(
+        "m1-survey-duplicate-ids",
+        "gcp_finder",
+        survey_duplicate_ids,
+        mentions=("gcp_survey.csv", "GCP02", "lines 3 and 4"),
+    ),
     Case("m1-survey-non-numeric", "gcp_finder", survey_non_numeric, mentions=("gcp_survey.csv", "line 3")),
     Case("m1-survey-comma-in-value", "gcp_finder", survey_comma_in_value, mentions=("gcp_survey.csv", "line 3")),
     Case("m1-survey-nan", "gcp_finder", survey_nan, mentions=("gcp_survey.csv", "line 4")),
     Case("m1-survey-empty", "gcp_finder", survey_empty, mentions=("gcp_survey.csv", "empty")),
     Case("m1-survey-header-only", "gcp_finder", survey_header_only, mentions=("gcp_survey.csv",)),
     Case("m1-survey-far-from-flight", "gcp_finder", survey_far_away, mentions=("gcp_survey.csv", "survey_crs")),
-    Case("m1-survey-degrees-projected-crs", "gcp_finder", survey_degrees_with_projected_crs,
-         mentions=("gcp_survey.csv", "degrees", "survey_crs")),
-    Case("m1-survey-metres-geographic-crs", "gcp_finder", survey_metres_with_geographic_crs,
-         mentions=("gcp_survey.csv", "line 2", "survey_crs")),
+    Case(
+        "m1-survey-degrees-projected-crs",
+        "gcp_finder",
+        survey_degrees_with_projected_crs,
+        mentions=("gcp_survey.csv", "degrees", "survey_crs"),
+    ),
+    Case(
+        "m1-survey-metres-geographic-crs",
+        "gcp_finder",
+        survey_metres_with_geographic_crs,
+        mentions=("gcp_survey.csv", "line 2", "survey_crs"),
+    ),
     Case("m1-wrong-survey-crs-string", "gcp_finder", wrong_survey_crs_string, mentions=("survey_crs", "UTM14")),
     Case("m1-images-without-gps", "gcp_finder", images_without_gps, mentions=("images_nogps", "GPS")),
     Case("m1-truncated-jpeg", "gcp_finder", truncated_jpeg, mentions=("SIM_0005.JPG", "truncated")),
-    Case("m1-resume-in-output-folder", "gcp_finder", resume_in_output_folder, expect="ok",
-         check=kept_own_dropped_foreign),
+    Case(
+        "m1-resume-in-output-folder", "gcp_finder", resume_in_output_folder, expect="ok", check=kept_own_dropped_foreign
+    ),
     Case("m1-missing-gcp-list", "gcp_finder", missing_gcp_list, mentions=("gcp_list",)),
     Case("m1-gcp-list-without-crs-line", "gcp_finder", gcp_list_without_crs, mentions=("gcp_list.txt", "line 1")),
     Case("m1-gcp-list-nan-pixel", "gcp_finder", gcp_list_nan_pixel, mentions=("gcp_list.txt", "line 2")),
     Case("m1-survey-latlon-swapped", "gcp_finder", survey_latlon_swapped, mentions=("gcp_survey.csv", "swapped")),
     Case("m1-survey-id-with-space", "gcp_finder", survey_id_with_space, mentions=("gcp_survey.csv", "line 3")),
     Case("m1-geographic-output-crs", "gcp_finder", geographic_output_crs, mentions=("output_crs",)),
-    Case("m1-survey-utf16-whitespace", "gcp_finder", survey_utf16_whitespace, expect="ok",
-         check=all_gcps_have_candidates),
+    Case(
+        "m1-survey-utf16-whitespace", "gcp_finder", survey_utf16_whitespace, expect="ok", check=all_gcps_have_candidates
+    ),
     Case("m1-resume-mark-outside-image", "gcp_finder", resume_mark_outside_image, expect="ok", check=no_mark_outside),
     Case("m1-output-is-image-folder", "gcp_finder", output_is_image_folder, mentions=("output_dir",)),
     Case("m1-survey-lonlat", "gcp_finder", survey_lonlat_works, expect="ok", check=all_gcps_have_candidates),
-    Case("m1-survey-bom-crlf-semicolon-junk-unicode", "gcp_finder", survey_bom_crlf_semicolon_junk, expect="ok",
-         check=auto_marks_near_truth),
+    Case(
+        "m1-survey-bom-crlf-semicolon-junk-unicode",
+        "gcp_finder",
+        survey_bom_crlf_semicolon_junk,
+        expect="ok",
+        check=auto_marks_near_truth,
+    ),
     Case("m1-one-gcp-outside-flight", "gcp_finder", one_gcp_outside, expect="ok", check=only_gcp99_missing),
-    Case("m1-resume-list-with-foreign-images", "gcp_finder", resume_with_foreign_images, expect="ok",
-         check=foreign_dropped),
+    Case(
+        "m1-resume-list-with-foreign-images",
+        "gcp_finder",
+        resume_with_foreign_images,
+        expect="ok",
+        check=foreign_dropped,
+    ),
 ]

@@ -72,8 +72,11 @@ def tiles_like_truth(skip: tuple[str, ...] = (), dropped_images: int = 0):
         t = truth(w)
         got = sum(len(json.loads((w.out / f"{k}.json").read_text())["annotations"]) for k in ("train", "val", "test"))
         assert got == expected_boxes(t, set(skip)), (got, expected_boxes(t, set(skip)))
-        sources = {im["source_image"] for k in ("train", "val", "test")
-                   for im in json.loads((w.out / f"{k}.json").read_text())["images"]}
+        sources = {
+            im["source_image"]
+            for k in ("train", "val", "test")
+            for im in json.loads((w.out / f"{k}.json").read_text())["images"]
+        }
         assert sources == {im["file_name"] for im in t["images"]} - set(skip), sources
         n_tiles = sum(1 for _ in w.out.glob("*/images/*"))
         assert n_tiles == json.loads((w.out / "summary.json").read_text())["tiles"] and n_tiles > 0
@@ -83,6 +86,7 @@ def tiles_like_truth(skip: tuple[str, ...] = (), dropped_images: int = 0):
                 rows = [r for r in csv.DictReader(fh) if r["reason"] == "image not in the image folder"]
         ids = {im["id"] for im in t["images"] if im["file_name"] in skip}
         assert len(rows) == sum(a["image_id"] in ids for a in t["annotations"]) == dropped_images, len(rows)
+
     return check
 
 
@@ -157,8 +161,12 @@ def tile_larger_than_photos(w: Work) -> list[str]:
 
 def whole_photos(w: Work) -> None:
     """Every tile is a whole 400 x 300 photo, and every photo with boxes is one."""
-    tiles = [im for split in ("train", "val", "test") if (w.out / f"{split}.json").is_file()
-             for im in json.loads((w.out / f"{split}.json").read_text())["images"]]
+    tiles = [
+        im
+        for split in ("train", "val", "test")
+        if (w.out / f"{split}.json").is_file()
+        for im in json.loads((w.out / f"{split}.json").read_text())["images"]
+    ]
     assert tiles and all((t["x0"], t["y0"], t["width"], t["height"]) == (0, 0, 400, 300) for t in tiles), tiles[:3]
     assert len({t["source_image"] for t in tiles}) == len(tiles)
     assert len(tiles) == len({im["file_name"] for im in truth(w)["images"]})
@@ -231,22 +239,38 @@ def failed_rerun_keeps_earlier_tiles(w: Work) -> list[str]:
     return a
 
 
-
 CASES = [
-    Case("m5-bom-crlf-coco-unicode-junk", "img_splitter", bom_crlf_coco_unicode_junk, expect="ok",
-         check=tiles_like_truth()),
+    Case(
+        "m5-bom-crlf-coco-unicode-junk",
+        "img_splitter",
+        bom_crlf_coco_unicode_junk,
+        expect="ok",
+        check=tiles_like_truth(),
+    ),
     Case("m5-yolo-bom-crlf", "img_splitter", yolo_bom_crlf, expect="ok", check=tiles_like_truth()),
-    Case("m5-some-photos-missing", "img_splitter", some_photos_missing, expect="ok",
-         check=tiles_like_truth(("SIM_0007.JPG.tif",), dropped_images=33)),
-    Case("m5-positions-csv-from-excel", "img_splitter", positions_csv_from_excel, expect="ok",
-         check=tiles_like_truth()),
-    Case("m5-rerun-over-earlier-tiles", "img_splitter", rerun_over_earlier_tiles, expect="ok",
-         check=tiles_like_truth()),
+    Case(
+        "m5-some-photos-missing",
+        "img_splitter",
+        some_photos_missing,
+        expect="ok",
+        check=tiles_like_truth(("SIM_0007.JPG.tif",), dropped_images=33),
+    ),
+    Case(
+        "m5-positions-csv-from-excel", "img_splitter", positions_csv_from_excel, expect="ok", check=tiles_like_truth()
+    ),
+    Case(
+        "m5-rerun-over-earlier-tiles", "img_splitter", rerun_over_earlier_tiles, expect="ok", check=tiles_like_truth()
+    ),
     Case("m5-no-annotations", "img_splitter", no_annotations, mentions=("unlabelled.json", "no box")),
-    Case("m5-annotations-key-missing", "img_splitter", annotations_key_missing,
-         mentions=("images_only.json", "no box")),
-    Case("m5-predictions-as-annotations", "img_splitter", predictions_as_annotations,
-         mentions=("predictions.json", "predictions")),
+    Case(
+        "m5-annotations-key-missing", "img_splitter", annotations_key_missing, mentions=("images_only.json", "no box")
+    ),
+    Case(
+        "m5-predictions-as-annotations",
+        "img_splitter",
+        predictions_as_annotations,
+        mentions=("predictions.json", "predictions"),
+    ),
     Case("m5-split-not-one", "img_splitter", split_not_one, mentions=("split", "1.1")),
     Case("m5-split-percentages", "img_splitter", split_percentages, mentions=("split", "percentages")),
     # a tile at least the photo's size: no tiling, each photo one whole tile (inspect's advice for large plants)
@@ -257,12 +281,24 @@ CASES = [
     Case("m5-truncated-jpeg", "img_splitter", truncated_jpeg_photo, mentions=("SIM_0002.JPG", "truncated")),
     Case("m5-wrong-image-folder", "img_splitter", wrong_image_folder, mentions=("multispectral", "images")),
     Case("m5-box-not-numbers", "img_splitter", box_not_numbers, mentions=("annotations.json", "annotation 13")),
-    Case("m5-duplicate-annotation-ids", "img_splitter", duplicate_annotation_ids,
-         mentions=("annotations.json", "duplicate annotation ids")),
+    Case(
+        "m5-duplicate-annotation-ids",
+        "img_splitter",
+        duplicate_annotation_ids,
+        mentions=("annotations.json", "duplicate annotation ids"),
+    ),
     Case("m5-yolo-polygon-line", "img_splitter", yolo_polygon_line, mentions=("SIM_0008.JPG.txt", "polygon")),
-    Case("m5-boxes-too-small-for-any-tile", "img_splitter", boxes_too_small_for_any_tile,
-         mentions=("min_box_side", "boxes_undistorted.json")),
-    Case("m5-failed-rerun-keeps-earlier-tiles", "img_splitter", failed_rerun_keeps_earlier_tiles,
-         mentions=("SIM_0003.JPG.tif",)),
+    Case(
+        "m5-boxes-too-small-for-any-tile",
+        "img_splitter",
+        boxes_too_small_for_any_tile,
+        mentions=("min_box_side", "boxes_undistorted.json"),
+    ),
+    Case(
+        "m5-failed-rerun-keeps-earlier-tiles",
+        "img_splitter",
+        failed_rerun_keeps_earlier_tiles,
+        mentions=("SIM_0003.JPG.tif",),
+    ),
     Case("m5-output-is-image-folder", "img_splitter", output_is_image_folder, mentions=("output_dir",)),
 ]

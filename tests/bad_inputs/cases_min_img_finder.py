@@ -63,8 +63,14 @@ def aoi_geojson_in_metres(w: Work) -> list[str]:
     """A GeoJSON with UTM coordinates and no 'crs' member: by the standard it is WGS84 degrees."""
     geom, _ = field_box(w)
     path = w.inputs / "aoi.geojson"
-    path.write_text(json.dumps({"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {}, "geometry": geom.__geo_interface__}]}))
+    path.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [{"type": "Feature", "properties": {}, "geometry": geom.__geo_interface__}],
+            }
+        )
+    )
     return args(w, project(w), f"aoi_file={path}")
 
 
@@ -154,47 +160,113 @@ def one_skipped(w: Work) -> None:
 
 
 CASES = [
-    Case("m3-aoi-misses-field", "min_img_finder", with_aoi("aoi.gpkg", dx=5000.0),
-         mentions=("aoi.gpkg", "0 images", "CRS")),
-    Case("m3-aoi-beside-field", "min_img_finder", with_aoi("next field.gpkg", dx=6.0),
-         mentions=("next field.gpkg", "m from")),
-    Case("m3-aoi-shapefile-without-prj", "min_img_finder", aoi_shapefile_without_prj,
-         mentions=("field.shp", "coordinate system")),
+    Case(
+        "m3-aoi-misses-field",
+        "min_img_finder",
+        with_aoi("aoi.gpkg", dx=5000.0),
+        mentions=("aoi.gpkg", "0 images", "CRS"),
+    ),
+    Case(
+        "m3-aoi-beside-field",
+        "min_img_finder",
+        with_aoi("next field.gpkg", dx=6.0),
+        mentions=("next field.gpkg", "m from"),
+    ),
+    Case(
+        "m3-aoi-shapefile-without-prj",
+        "min_img_finder",
+        aoi_shapefile_without_prj,
+        mentions=("field.shp", "coordinate system"),
+    ),
     Case("m3-aoi-geojson-in-metres", "min_img_finder", aoi_geojson_in_metres, mentions=("aoi.geojson", "degrees")),
     Case("m3-aoi-points-only", "min_img_finder", aoi_points, mentions=("aoi.gpkg", "no polygon", "Point")),
     Case("m3-aoi-two-polygon-layers", "min_img_finder", aoi_two_layers(True), mentions=("layers.gpkg", "layers")),
     Case("m3-aoi-polygon-and-point-layers", "min_img_finder", aoi_two_layers(False), expect="ok", check=selected()),
     Case("m3-aoi-not-a-vector-file", "min_img_finder", aoi_not_vector, mentions=("aoi.gpkg",)),
     Case("m3-aoi-missing", "min_img_finder", aoi_missing, mentions=("aoi_file", "boundary.gpkg")),
-    Case("m3-dsm-all-nodata", "min_img_finder", broken(lambda p: rewrite_raster(p / DSM, data=-9999, nodata=-9999)),
-         mentions=("dsm.tif", "no valid data")),
-    Case("m3-dsm-without-crs", "min_img_finder", broken(lambda p: rewrite_raster(p / DSM, crs=None)),
-         mentions=("dsm.tif", "CRS")),
-    Case("m3-orthophoto-empty", "min_img_finder", broken(lambda p: rewrite_raster(p / ORTHO, data=0, nodata=0)),
-         mentions=("odm_orthophoto.tif", "aoi_file")),
-    Case("m3-truncated-reconstruction", "min_img_finder", broken(lambda p: truncate(p / UND_RECON, 0.7)),
-         mentions=("undistorted/reconstruction.json", "truncated")),
-    Case("m3-reconstruction-without-shots", "min_img_finder",
-         broken(lambda p: edit_json(p / UND_RECON, lambda d: d[0].update(shots={}))),
-         mentions=("reconstruction.json", "no images")),
-    Case("m3-coords-garbled", "min_img_finder",
-         broken(lambda p: (p / COORDS).write_text("WGS84 UTM 14N\n702309.0 north\n")),
-         mentions=("coords.txt", "line 2")),
-    Case("m3-undistorted-images-deleted", "min_img_finder",
-         broken(lambda p: [f.unlink() for f in (p / UND_IMAGES).iterdir()]),
-         mentions=("opensfm/undistorted/images", "optimize-disk-space")),
-    Case("m3-aoi-in-wgs84", "min_img_finder", with_aoi("aoi.geojson", to_crs="EPSG:4326"), expect="ok",
-         check=reprojected_and_said),
-    Case("m3-unicode-space-paths", "min_img_finder", with_aoi("zone d'intérêt ñ.gpkg", folder="champ d'essai 2024"),
-         expect="ok", check=selected()),
-    Case("m3-aoi-half-outside", "min_img_finder", with_aoi("aoi.gpkg", dx=2.0), expect="ok",
-         check=selected(coverage=30.0)),
-    Case("m3-junk-in-undistorted-folder", "min_img_finder", broken(junk_in_undistorted), expect="ok",
-         check=selected()),
-    Case("m3-names-without-original-extension", "min_img_finder", broken(names_without_original_extension),
-         expect="ok", check=selected()),
-    Case("m3-names-lower-case-extension", "min_img_finder", broken(names_lower_case_extension), expect="ok",
-         check=selected()),
-    Case("m3-one-undistorted-image-missing", "min_img_finder",
-         broken(lambda p: (p / UND_IMAGES / "SIM_0005.JPG.tif").unlink()), expect="ok", check=one_skipped),
+    Case(
+        "m3-dsm-all-nodata",
+        "min_img_finder",
+        broken(lambda p: rewrite_raster(p / DSM, data=-9999, nodata=-9999)),
+        mentions=("dsm.tif", "no valid data"),
+    ),
+    Case(
+        "m3-dsm-without-crs",
+        "min_img_finder",
+        broken(lambda p: rewrite_raster(p / DSM, crs=None)),
+        mentions=("dsm.tif", "CRS"),
+    ),
+    Case(
+        "m3-orthophoto-empty",
+        "min_img_finder",
+        broken(lambda p: rewrite_raster(p / ORTHO, data=0, nodata=0)),
+        mentions=("odm_orthophoto.tif", "aoi_file"),
+    ),
+    Case(
+        "m3-truncated-reconstruction",
+        "min_img_finder",
+        broken(lambda p: truncate(p / UND_RECON, 0.7)),
+        mentions=("undistorted/reconstruction.json", "truncated"),
+    ),
+    Case(
+        "m3-reconstruction-without-shots",
+        "min_img_finder",
+        broken(lambda p: edit_json(p / UND_RECON, lambda d: d[0].update(shots={}))),
+        mentions=("reconstruction.json", "no images"),
+    ),
+    Case(
+        "m3-coords-garbled",
+        "min_img_finder",
+        broken(lambda p: (p / COORDS).write_text("WGS84 UTM 14N\n702309.0 north\n")),
+        mentions=("coords.txt", "line 2"),
+    ),
+    Case(
+        "m3-undistorted-images-deleted",
+        "min_img_finder",
+        broken(lambda p: [f.unlink() for f in (p / UND_IMAGES).iterdir()]),
+        mentions=("opensfm/undistorted/images", "optimize-disk-space"),
+    ),
+    Case(
+        "m3-aoi-in-wgs84",
+        "min_img_finder",
+        with_aoi("aoi.geojson", to_crs="EPSG:4326"),
+        expect="ok",
+        check=reprojected_and_said,
+    ),
+    Case(
+        "m3-unicode-space-paths",
+        "min_img_finder",
+        with_aoi("zone d'intérêt ñ.gpkg", folder="champ d'essai 2024"),
+        expect="ok",
+        check=selected(),
+    ),
+    Case(
+        "m3-aoi-half-outside",
+        "min_img_finder",
+        with_aoi("aoi.gpkg", dx=2.0),
+        expect="ok",
+        check=selected(coverage=30.0),
+    ),
+    Case("m3-junk-in-undistorted-folder", "min_img_finder", broken(junk_in_undistorted), expect="ok", check=selected()),
+    Case(
+        "m3-names-without-original-extension",
+        "min_img_finder",
+        broken(names_without_original_extension),
+        expect="ok",
+        check=selected(),
+    ),
+    Case(
+        "m3-names-lower-case-extension",
+        "min_img_finder",
+        broken(names_lower_case_extension),
+        expect="ok",
+        check=selected(),
+    ),
+    Case(
+        "m3-one-undistorted-image-missing",
+        "min_img_finder",
+        broken(lambda p: (p / UND_IMAGES / "SIM_0005.JPG.tif").unlink()),
+        expect="ok",
+        check=one_skipped,
+    ),
 ]

@@ -67,8 +67,14 @@ def tiles_subset(w: Work, n: int = 2, folder: str = "tiles", split: str = "test"
 
 
 def eval_args(w: Work, dataset: Path, *extra: str, checkpoint: Path | None = None) -> list[str]:
-    return args(w, checkpoint or w.copy("model.pt"), f"evaluate.dataset_json={dataset}", "device=cpu",
-                "evaluate.drawn_images=1", *extra)
+    return args(
+        w,
+        checkpoint or w.copy("model.pt"),
+        f"evaluate.dataset_json={dataset}",
+        "device=cpu",
+        "evaluate.drawn_images=1",
+        *extra,
+    )
 
 
 def edited_checkpoint(w: Work, edit) -> Path:
@@ -314,26 +320,48 @@ CUDA_SKIP = (pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is avail
 
 CASES = [
     # checkpoints
-    Case("m7-checkpoint-bare-state-dict", "model_test", checkpoint_state_dict,
-         mentions=("fasterrcnn_weights.pth", "state_dict")),
+    Case(
+        "m7-checkpoint-bare-state-dict",
+        "model_test",
+        checkpoint_state_dict,
+        mentions=("fasterrcnn_weights.pth", "state_dict"),
+    ),
     Case("m7-checkpoint-truncated", "model_test", checkpoint_truncated, mentions=("model.pt", "truncated")),
     Case("m7-checkpoint-empty", "model_test", checkpoint_empty, mentions=("best.pt", "empty")),
     Case("m7-checkpoint-is-text", "model_test", checkpoint_is_text, mentions=("best.pt", "text file")),
-    Case("m7-checkpoint-other-architecture", "model_test", checkpoint_other_architecture,
-         mentions=("model.pt", "fasterrcnn_resnet50_fpn", "do not fit")),
-    Case("m7-checkpoint-unknown-architecture", "model_test", checkpoint_unknown_architecture,
-         mentions=("model.pt", "yolov8n")),
-    Case("m7-checkpoint-without-classes", "model_test", checkpoint_without_classes,
-         mentions=("model.pt", "class_names")),
+    Case(
+        "m7-checkpoint-other-architecture",
+        "model_test",
+        checkpoint_other_architecture,
+        mentions=("model.pt", "fasterrcnn_resnet50_fpn", "do not fit"),
+    ),
+    Case(
+        "m7-checkpoint-unknown-architecture",
+        "model_test",
+        checkpoint_unknown_architecture,
+        mentions=("model.pt", "yolov8n"),
+    ),
+    Case(
+        "m7-checkpoint-without-classes", "model_test", checkpoint_without_classes, mentions=("model.pt", "class_names")
+    ),
     # detection inputs and settings
     Case("m7-detect-folder-junk-only", "model_test", junk_only_folder, mentions=("photos", "Thumbs.db", "notes.txt")),
-    Case("m7-detect-parent-of-image-folder", "model_test", parent_of_image_folder,
-         mentions=("flight", "did you mean", "images")),
-    Case("m7-detect-text-file-as-image", "model_test", text_file_as_image,
-         mentions=("image_list.txt", "detect.images")),
+    Case(
+        "m7-detect-parent-of-image-folder",
+        "model_test",
+        parent_of_image_folder,
+        mentions=("flight", "did you mean", "images"),
+    ),
+    Case(
+        "m7-detect-text-file-as-image", "model_test", text_file_as_image, mentions=("image_list.txt", "detect.images")
+    ),
     Case("m7-detect-truncated-photo", "model_test", truncated_photo, mentions=("SIM_0002.JPG", "truncated")),
-    Case("m7-overlap-not-below-tile", "model_test", overlap_not_below_tile,
-         mentions=("detect.overlap", "detect.tile_size")),
+    Case(
+        "m7-overlap-not-below-tile",
+        "model_test",
+        overlap_not_below_tile,
+        mentions=("detect.overlap", "detect.tile_size"),
+    ),
     Case("m7-nothing-found", "model_test", nothing_found, mentions=("detect.score_threshold", "best box", "0.999")),
     Case("m7-device-cuda-without-cuda", "model_test", device_cuda_without_cuda, mentions=("cuda",), marks=CUDA_SKIP),
     Case("m7-device-typo", "model_test", device_typo, mentions=("device", "gpu")),
@@ -341,21 +369,50 @@ CASES = [
     # evaluation inputs
     Case("m7-eval-other-categories", "model_test", eval_other_categories, mentions=("test.json", "weed", "model.pt")),
     Case("m7-eval-no-annotations", "model_test", eval_no_annotations, mentions=("test.json", "no annotations")),
-    Case("m7-eval-predictions-file", "model_test", eval_predictions_file,
-         mentions=("predictions.json", "predictions file")),
+    Case(
+        "m7-eval-predictions-file",
+        "model_test",
+        eval_predictions_file,
+        mentions=("predictions.json", "predictions file"),
+    ),
     Case("m7-eval-tile-missing", "model_test", eval_tile_missing, mentions=("test.json", "SIM_0002.JPG_96_0.tif")),
     Case("m7-eval-tile-truncated", "model_test", eval_tile_truncated, mentions=("SIM_0002.JPG_0_0.tif", "truncated")),
-    Case("m7-eval-sizes-boxes-outside", "model_test", eval_sizes_boxes_outside,
-         mentions=("test.json", "outside", "256x256", "128x128")),
+    Case(
+        "m7-eval-sizes-boxes-outside",
+        "model_test",
+        eval_sizes_boxes_outside,
+        mentions=("test.json", "outside", "256x256", "128x128"),
+    ),
     # must work
-    Case("m7-single-image-file", "model_test", single_image_file, expect="ok",
-         check=predictions_for(("SIM_0003.JPG", 128, 128))),
-    Case("m7-unicode-paths-and-junk", "model_test", unicode_paths_and_junk, expect="ok",
-         check=predictions_for(("SIM_0001.JPG", 128, 128), ("SIM_0002.JPG", 128, 128))),
-    Case("m7-tile-larger-than-image", "model_test", tile_larger_than_image, expect="ok",
-         check=logged("larger than 1 of the 1 image", predictions_for(("SIM_0004.tif", 100, 100)))),
-    Case("m7-eval-bom-crlf-windows-names", "model_test", eval_bom_crlf_windows_names, expect="ok",
-         check=metrics_for(2)),
-    Case("m7-eval-sizes-differ-boxes-inside", "model_test", eval_sizes_differ_boxes_inside, expect="ok",
-         check=logged("other width/height", metrics_for(2))),
+    Case(
+        "m7-single-image-file",
+        "model_test",
+        single_image_file,
+        expect="ok",
+        check=predictions_for(("SIM_0003.JPG", 128, 128)),
+    ),
+    Case(
+        "m7-unicode-paths-and-junk",
+        "model_test",
+        unicode_paths_and_junk,
+        expect="ok",
+        check=predictions_for(("SIM_0001.JPG", 128, 128), ("SIM_0002.JPG", 128, 128)),
+    ),
+    Case(
+        "m7-tile-larger-than-image",
+        "model_test",
+        tile_larger_than_image,
+        expect="ok",
+        check=logged("larger than 1 of the 1 image", predictions_for(("SIM_0004.tif", 100, 100))),
+    ),
+    Case(
+        "m7-eval-bom-crlf-windows-names", "model_test", eval_bom_crlf_windows_names, expect="ok", check=metrics_for(2)
+    ),
+    Case(
+        "m7-eval-sizes-differ-boxes-inside",
+        "model_test",
+        eval_sizes_differ_boxes_inside,
+        expect="ok",
+        check=logged("other width/height", metrics_for(2)),
+    ),
 ]

@@ -25,21 +25,52 @@ def detect(w: Work) -> list[str]:
 
 
 def job(rank: int) -> dict:
-    return {"WORLD_SIZE": "2", "RANK": str(rank), "LOCAL_RANK": str(rank), "MASTER_ADDR": "127.0.0.1",
-            "MASTER_PORT": str(free_port()), "MATCHPLANT_JOIN_TIMEOUT": WAIT}
+    return {
+        "WORLD_SIZE": "2",
+        "RANK": str(rank),
+        "LOCAL_RANK": str(rank),
+        "MASTER_ADDR": "127.0.0.1",
+        "MASTER_PORT": str(free_port()),
+        "MATCHPLANT_JOIN_TIMEOUT": WAIT,
+    }
 
 
 LEFT_IN_SHELL = {"WORLD_SIZE": "2", "RANK": None, "MASTER_ADDR": None, "MASTER_PORT": None}
 
 CASES = [
-    Case("m7-dist-world-size-without-rendezvous", "model_test", detect, env=LEFT_IN_SHELL,
-         mentions=("WORLD_SIZE=2", "RANK, MASTER_ADDR, MASTER_PORT", "unset WORLD_SIZE", "torchrun")),
-    Case("m7-dist-world-size-not-a-number", "model_test", detect, env={"WORLD_SIZE": "two"},
-         mentions=("WORLD_SIZE='two'", "unset WORLD_SIZE")),
-    Case("m7-dist-rank-0-alone", "model_test", detect, env=job(0),
-         mentions=("could not join", "within 2 s", "MASTER_ADDR", "MATCHPLANT_JOIN_TIMEOUT")),
-    Case("m7-dist-rank-1-without-rank-0", "model_test", detect, env=job(1),
-         mentions=("no process of the distributed job listens", "after 2 s", "RANK=1", "MATCHPLANT_JOIN_TIMEOUT")),
-    Case("m7-dist-timeout-not-a-number", "model_test", detect, env={**job(0), "MATCHPLANT_JOIN_TIMEOUT": "soon"},
-         mentions=("MATCHPLANT_JOIN_TIMEOUT='soon'",)),
+    Case(
+        "m7-dist-world-size-without-rendezvous",
+        "model_test",
+        detect,
+        env=LEFT_IN_SHELL,
+        mentions=("WORLD_SIZE=2", "RANK, MASTER_ADDR, MASTER_PORT", "unset WORLD_SIZE", "torchrun"),
+    ),
+    Case(
+        "m7-dist-world-size-not-a-number",
+        "model_test",
+        detect,
+        env={"WORLD_SIZE": "two"},
+        mentions=("WORLD_SIZE='two'", "unset WORLD_SIZE"),
+    ),
+    Case(
+        "m7-dist-rank-0-alone",
+        "model_test",
+        detect,
+        env=job(0),
+        mentions=("could not join", "within 2 s", "MASTER_ADDR", "MATCHPLANT_JOIN_TIMEOUT"),
+    ),
+    Case(
+        "m7-dist-rank-1-without-rank-0",
+        "model_test",
+        detect,
+        env=job(1),
+        mentions=("no process of the distributed job listens", "after 2 s", "RANK=1", "MATCHPLANT_JOIN_TIMEOUT"),
+    ),
+    Case(
+        "m7-dist-timeout-not-a-number",
+        "model_test",
+        detect,
+        env={**job(0), "MATCHPLANT_JOIN_TIMEOUT": "soon"},
+        mentions=("MATCHPLANT_JOIN_TIMEOUT='soon'",),
+    ),
 ]

@@ -18,6 +18,7 @@ def broken(edit, name: str = "train.json"):
         path = w.inputs / name
         path.write_text(json.dumps(data))
         return [str(path), "--report", str(w.out / "report.json")]
+
     return prepare
 
 
@@ -46,7 +47,12 @@ def same_advice_as_the_photos(w: Work) -> None:
 
 
 CASES = [
-    Case("inspect-annotation-without-bbox", "inspect", broken(_no_bbox), mentions=("train.json", "no 'bbox'", "annotation")),
+    Case(
+        "inspect-annotation-without-bbox",
+        "inspect",
+        broken(_no_bbox),
+        mentions=("train.json", "no 'bbox'", "annotation"),
+    ),
     Case("inspect-bbox-as-text", "inspect", broken(_text_bbox), mentions=("train.json", "(str)", "bbox")),
     Case("inspect-images-without-size", "inspect", broken(_no_size), mentions=("train.json", "width", "height")),
     Case("inspect-tiles-advice-of-the-photos", "inspect", tiles, expect="ok", check=same_advice_as_the_photos),

@@ -20,10 +20,23 @@ import torch
 from cases_model_test import logged, tiles_subset
 from harness import Case, Work
 
-FAST = ("model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "model.pretrained=none", "model.min_size=64",
-        "model.max_size=128", "model.rpn.pre_nms_top_n_train=100", "model.rpn.post_nms_top_n_train=100",
-        "model.rpn.pre_nms_top_n_test=100", "model.rpn.post_nms_top_n_test=100", "model.roi.batch_size_per_image=32",
-        "epochs=1", "batch_size=2", "num_workers=0", "warmup_iters=1", "save_every=0", "device=cpu")
+FAST = (
+    "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+    "model.pretrained=none",
+    "model.min_size=64",
+    "model.max_size=128",
+    "model.rpn.pre_nms_top_n_train=100",
+    "model.rpn.post_nms_top_n_train=100",
+    "model.rpn.pre_nms_top_n_test=100",
+    "model.rpn.post_nms_top_n_test=100",
+    "model.roi.batch_size_per_image=32",
+    "epochs=1",
+    "batch_size=2",
+    "num_workers=0",
+    "warmup_iters=1",
+    "save_every=0",
+    "device=cpu",
+)
 
 
 def args(w: Work, train: Path, val: Path | None, *extra: str) -> list[str]:
@@ -124,8 +137,10 @@ def val_shares_tiles(w: Work) -> list[str]:
     train, data, _, _ = splits(w)
     val = w.inputs / "my_val.json"
     keep = {im["id"] for im in data["images"][:2]}
-    rewrite(val, dict(data, images=data["images"][:2], annotations=[a for a in data["annotations"]
-                                                                    if a["image_id"] in keep]))
+    rewrite(
+        val,
+        dict(data, images=data["images"][:2], annotations=[a for a in data["annotations"] if a["image_id"] in keep]),
+    )
     return [*args(w, train, val), "--set", f"val_images={train.parent / 'train' / 'images'}"]
 
 
@@ -233,36 +248,70 @@ CUDA_SKIP = (pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is avail
 # not run until then: without the check they train (and pass on bad input) instead of failing at once
 
 CASES = [
-    Case("m6-sizes-boxes-outside", "model_train", sizes_boxes_outside,
-         mentions=("train.json", "outside", "256x256", "128x128")),
+    Case(
+        "m6-sizes-boxes-outside",
+        "model_train",
+        sizes_boxes_outside,
+        mentions=("train.json", "outside", "256x256", "128x128"),
+    ),
     Case("m6-tile-missing", "model_train", tile_missing, mentions=("train.json", "SIM_0003.JPG_192_0.tif")),
-    Case("m6-tile-not-an-image", "model_train", tile_not_an_image,
-         mentions=("train.json", "SIM_0003.JPG_96_0.tif", "not a readable image")),
+    Case(
+        "m6-tile-not-an-image",
+        "model_train",
+        tile_not_an_image,
+        mentions=("train.json", "SIM_0003.JPG_96_0.tif", "not a readable image"),
+    ),
     Case("m6-tile-truncated", "model_train", tile_truncated, mentions=("truncated",)),
     Case("m6-wrong-images-folder", "model_train", wrong_images_folder, mentions=("train.json", "none of the 4")),
     Case("m6-train-is-val", "model_train", train_is_val, mentions=("val_json", "train_json")),
     Case("m6-val-shares-tiles", "model_train", val_shares_tiles, mentions=("my_val.json", "also training tiles")),
-    Case("m6-train-without-annotations", "model_train", train_without_annotations,
-         mentions=("train.json", "no annotations")),
-    Case("m6-val-without-annotations", "model_train", val_without_annotations,
-         mentions=("val.json", "no annotations")),
+    Case(
+        "m6-train-without-annotations",
+        "model_train",
+        train_without_annotations,
+        mentions=("train.json", "no annotations"),
+    ),
+    Case("m6-val-without-annotations", "model_train", val_without_annotations, mentions=("val.json", "no annotations")),
     Case("m6-no-categories", "model_train", no_categories, mentions=("train.json", "categories")),
-    Case("m6-category-ids-from-zero", "model_train", category_ids_from_zero,
-         mentions=("train.json", "category_id", "numbered from 0")),
-    Case("m6-duplicate-category-names", "model_train", duplicate_category_names,
-         mentions=("train.json", "'plant'", "ids [1, 2]")),
+    Case(
+        "m6-category-ids-from-zero",
+        "model_train",
+        category_ids_from_zero,
+        mentions=("train.json", "category_id", "numbered from 0"),
+    ),
+    Case(
+        "m6-duplicate-category-names",
+        "model_train",
+        duplicate_category_names,
+        mentions=("train.json", "'plant'", "ids [1, 2]"),
+    ),
     Case("m6-val-other-category", "model_train", val_other_category, mentions=("val.json", "weed", "plant")),
     Case("m6-image-id-text", "model_train", image_id_text, mentions=("train.json", "SIM_0003", "integer")),
-    Case("m6-train-json-is-predictions", "model_train", train_json_is_predictions,
-         mentions=("predictions.json", "predictions file")),
+    Case(
+        "m6-train-json-is-predictions",
+        "model_train",
+        train_json_is_predictions,
+        mentions=("predictions.json", "predictions file"),
+    ),
     Case("m6-train-json-truncated", "model_train", train_json_truncated, mentions=("train.json", "truncated")),
     # a bare torchvision state_dict (how the paper's code and many users save weights) is a starting point
-    Case("m6-transfer-from-state-dict", "model_train", transfer_from_state_dict, expect="ok",
-         check=finished_from_weights),
+    Case(
+        "m6-transfer-from-state-dict", "model_train", transfer_from_state_dict, expect="ok", check=finished_from_weights
+    ),
     Case("m6-transfer-truncated", "model_train", transfer_truncated, mentions=("last season.pt", "truncated")),
     Case("m6-cuda-without-cuda", "model_train", cuda_without_cuda, mentions=("cuda",), marks=CUDA_SKIP),
-    Case("m6-windows-json-unicode-folder", "model_train", windows_json_unicode_folder, expect="ok",
-         check=trained_on(2, 1)),
-    Case("m6-sizes-differ-boxes-inside", "model_train", sizes_differ_boxes_inside, expect="ok",
-         check=logged("other width/height", trained_on(2, 1))),
+    Case(
+        "m6-windows-json-unicode-folder",
+        "model_train",
+        windows_json_unicode_folder,
+        expect="ok",
+        check=trained_on(2, 1),
+    ),
+    Case(
+        "m6-sizes-differ-boxes-inside",
+        "model_train",
+        sizes_differ_boxes_inside,
+        expect="ok",
+        check=logged("other width/height", trained_on(2, 1)),
+    ),
 ]

@@ -51,8 +51,17 @@ def fresh_after_architecture_change(w: Work) -> list[str]:
     train, _, val, _ = splits(w)
     earlier_run(w)
     torch.save({"stale": True}, w.out / "checkpoints" / "epoch_009.pt")
-    return [*args(w, train, val, "model.architecture=fasterrcnn_mobilenet_v3_large_fpn", "model.min_size=96",
-                  "model.max_size=96"), "--fresh"]
+    return [
+        *args(
+            w,
+            train,
+            val,
+            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
+            "model.min_size=96",
+            "model.max_size=96",
+        ),
+        "--fresh",
+    ]
 
 
 def started_fresh(w: Work) -> None:
@@ -64,13 +73,32 @@ def started_fresh(w: Work) -> None:
 
 
 CASES = [
-    Case("m6-resume-architecture-changed", "model_train", architecture_changed,
-         mentions=("model.architecture", "last.pt", "fasterrcnn_mobilenet_v3_large_fpn", "--fresh")),
-    Case("m6-resume-input-size-changed", "model_train", input_size_changed,
-         mentions=("model.min_size", "last.pt", "64", "--fresh")),
-    Case("m6-resume-classes-changed", "model_train", classes_changed, mentions=("classes", "weed", "last.pt", "--fresh")),
-    Case("m6-resume-batch-size-changed-mid-epoch", "model_train", batch_size_changed_mid_epoch,
-         mentions=("batch_size", "last.pt", "7 iterations per epoch")),
-    Case("m6-resume-fresh-after-architecture-change", "model_train", fresh_after_architecture_change, expect="ok",
-         check=started_fresh),
+    Case(
+        "m6-resume-architecture-changed",
+        "model_train",
+        architecture_changed,
+        mentions=("model.architecture", "last.pt", "fasterrcnn_mobilenet_v3_large_fpn", "--fresh"),
+    ),
+    Case(
+        "m6-resume-input-size-changed",
+        "model_train",
+        input_size_changed,
+        mentions=("model.min_size", "last.pt", "64", "--fresh"),
+    ),
+    Case(
+        "m6-resume-classes-changed", "model_train", classes_changed, mentions=("classes", "weed", "last.pt", "--fresh")
+    ),
+    Case(
+        "m6-resume-batch-size-changed-mid-epoch",
+        "model_train",
+        batch_size_changed_mid_epoch,
+        mentions=("batch_size", "last.pt", "7 iterations per epoch"),
+    ),
+    Case(
+        "m6-resume-fresh-after-architecture-change",
+        "model_train",
+        fresh_after_architecture_change,
+        expect="ok",
+        check=started_fresh,
+    ),
 ]

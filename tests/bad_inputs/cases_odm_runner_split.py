@@ -39,6 +39,7 @@ def from_another_run(root: Path) -> None:
         for rec in data:
             ref = rec["reference_lla"]
             ref["longitude"], ref["latitude"], _ = Geod(ellps="WGS84").fwd(ref["longitude"], ref["latitude"], 30, 1100)
+
     for rel in (RECON, UND_RECON):
         edit_json(root / SUB / rel, move)
 
@@ -58,6 +59,7 @@ def broken_split(step: str, change):
         if change is not None:
             change(root)
         return step_args(step, w, root)
+
     return prepare
 
 
@@ -65,7 +67,7 @@ def dict_reconstruction(w: Work) -> list[str]:
     root = project(w)
     for rel in (RECON, UND_RECON):
         data = json.loads((root / rel).read_text())
-        (root / rel).write_text(json.dumps(data[0]))          # one object, not a list of one
+        (root / rel).write_text(json.dumps(data[0]))  # one object, not a list of one
     return step_args("odm_runner", w, root)
 
 
@@ -76,11 +78,24 @@ def manifest_ok(w: Work) -> None:
 
 STEPS = {"odm_runner": "m2", "min_img_finder": "m3", "plant_projection": "m8"}
 CASES = [Case(f"{m}-split-whole", step, broken_split(step, None), expect="ok") for step, m in STEPS.items()]
-CASES += [Case(f"{m}-split-failed-node", step, broken_split(step, failed_node),
-               mentions=("submodel_0001", "opensfm/reconstruction.json", "node"), outputs_allowed=("odm_manifest.json",))
-          for step, m in STEPS.items()]
-CASES += [Case(f"{m}-split-submodel-from-another-run", step, broken_split(step, from_another_run),
-               mentions=("submodel_0001", "reference_lla", "1.1 km", "another run"),
-               outputs_allowed=("odm_manifest.json",))
-          for step, m in STEPS.items()]
+CASES += [
+    Case(
+        f"{m}-split-failed-node",
+        step,
+        broken_split(step, failed_node),
+        mentions=("submodel_0001", "opensfm/reconstruction.json", "node"),
+        outputs_allowed=("odm_manifest.json",),
+    )
+    for step, m in STEPS.items()
+]
+CASES += [
+    Case(
+        f"{m}-split-submodel-from-another-run",
+        step,
+        broken_split(step, from_another_run),
+        mentions=("submodel_0001", "reference_lla", "1.1 km", "another run"),
+        outputs_allowed=("odm_manifest.json",),
+    )
+    for step, m in STEPS.items()
+]
 CASES += [Case("m2-reconstruction-one-object", "odm_runner", dict_reconstruction, expect="ok", check=manifest_ok)]

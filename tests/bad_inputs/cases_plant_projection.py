@@ -103,15 +103,22 @@ def dsm_key_empty(w: Work) -> list[str]:
 
 
 def results_list(w: Work, with_images: bool) -> list[str]:
-    path = write_preds(w, [{k: p[k] for k in ("image_id", "category_id", "bbox", "score")}
-                           for p in preds(w)["predictions"]], "results.json")
+    path = write_preds(
+        w,
+        [{k: p[k] for k in ("image_id", "category_id", "bbox", "score")} for p in preds(w)["predictions"]],
+        "results.json",
+    )
     extra = [f"images_from={w.copy('field/truth/boxes_undistorted.json')}"] if with_images else []
     return args(w, project(w), path, *extra)
 
 
 def unicode_paths(w: Work) -> list[str]:
-    return args(w, project(w, "parcela ñ 3 (año 2024)"), w.copy("predictions.json", "détections 1.json"),
-                "output_dir=" + str(w.out))
+    return args(
+        w,
+        project(w, "parcela ñ 3 (año 2024)"),
+        w.copy("predictions.json", "détections 1.json"),
+        "output_dir=" + str(w.out),
+    )
 
 
 def bom_crlf(w: Work) -> list[str]:
@@ -134,8 +141,16 @@ def one_image_unknown(w: Work) -> list[str]:
 
 
 def evaluate(w: Work, reference: Path) -> list[str]:
-    return ["--set", "mode=evaluate", "--set", f"evaluate.reference={reference}",
-            "--set", f"evaluate.plants={w.copy('plants/plants.gpkg')}", "--set", f"output_dir={w.out}"]
+    return [
+        "--set",
+        "mode=evaluate",
+        "--set",
+        f"evaluate.reference={reference}",
+        "--set",
+        f"evaluate.plants={w.copy('plants/plants.gpkg')}",
+        "--set",
+        f"output_dir={w.out}",
+    ]
 
 
 def reference_csv(w: Work, text_of=None, name: str = "reference.csv") -> list[str]:
@@ -200,74 +215,193 @@ def one_image_reported(w: Work) -> None:
 
 
 CASES = [
-    Case("m8-undistorted-reconstruction-truncated", "plant_projection",
-         broken_project(lambda p: truncate(p / UND_RECON)),
-         mentions=("undistorted/reconstruction.json", "truncated")),
-    Case("m8-reconstruction-no-shots", "plant_projection",
-         broken_project(lambda p: edit_json(p / UND_RECON, lambda d: d[0].update(shots={}))),
-         mentions=("reconstruction.json", "no images")),
-    Case("m8-unknown-camera-model", "plant_projection",
-         broken_project(lambda p: edit_json(p / UND_RECON,
-                                            lambda d: first_camera(d).update(projection_type="equirect"))),
-         mentions=("reconstruction.json", "equirect", "not support")),
-    Case("m8-dsm-all-nodata", "plant_projection",
-         broken_project(lambda p: rewrite_raster(p / DSM, data=-9999, nodata=-9999)), mentions=("dsm.tif", "no valid")),
-    Case("m8-dsm-without-crs", "plant_projection", broken_project(lambda p: rewrite_raster(p / DSM, crs=None)),
-         mentions=("dsm.tif", "CRS")),
+    Case(
+        "m8-undistorted-reconstruction-truncated",
+        "plant_projection",
+        broken_project(lambda p: truncate(p / UND_RECON)),
+        mentions=("undistorted/reconstruction.json", "truncated"),
+    ),
+    Case(
+        "m8-reconstruction-no-shots",
+        "plant_projection",
+        broken_project(lambda p: edit_json(p / UND_RECON, lambda d: d[0].update(shots={}))),
+        mentions=("reconstruction.json", "no images"),
+    ),
+    Case(
+        "m8-unknown-camera-model",
+        "plant_projection",
+        broken_project(
+            lambda p: edit_json(p / UND_RECON, lambda d: first_camera(d).update(projection_type="equirect"))
+        ),
+        mentions=("reconstruction.json", "equirect", "not support"),
+    ),
+    Case(
+        "m8-dsm-all-nodata",
+        "plant_projection",
+        broken_project(lambda p: rewrite_raster(p / DSM, data=-9999, nodata=-9999)),
+        mentions=("dsm.tif", "no valid"),
+    ),
+    Case(
+        "m8-dsm-without-crs",
+        "plant_projection",
+        broken_project(lambda p: rewrite_raster(p / DSM, crs=None)),
+        mentions=("dsm.tif", "CRS"),
+    ),
     Case("m8-dsm-key-all-nodata", "plant_projection", dsm_key_empty, mentions=("dsm_filled.tif", "'dsm'")),
-    Case("m8-dsm-of-another-field", "plant_projection", dsm_elsewhere, mentions=("dsm other field.tif", "none of"),
-         outputs_allowed=REPORT),
-    Case("m8-coords-garbled", "plant_projection",
-         broken_project(lambda p: (p / COORDS).write_text("WGS84 UTM 14N\n")), mentions=("coords.txt", "line")),
-    Case("m8-coco-dataset-as-predictions", "plant_projection", changed_preds(coco_dataset),
-         mentions=("predictions.json", "COCO dataset")),
-    Case("m8-results-list-without-images-from", "plant_projection", lambda w: results_list(w, False),
-         mentions=("results.json", "images_from")),
-    Case("m8-bbox-nan", "plant_projection", changed_preds(set_first("bbox", [10, float("nan"), 5, 5])),
-         mentions=("predictions.json", "predictions[0]", "bbox")),
-    Case("m8-bbox-three-numbers", "plant_projection", changed_preds(set_first("bbox", [10, 20, 5])),
-         mentions=("predictions.json", "predictions[0]")),
-    Case("m8-bbox-negative-size", "plant_projection", changed_preds(set_first("bbox", [50, 60, -12, 8])),
-         mentions=("predictions.json", "predictions[0]", "negative")),
-    Case("m8-score-above-one", "plant_projection", changed_preds(set_first("score", 1.7)),
-         mentions=("predictions.json", "score", "[0, 1]")),
+    Case(
+        "m8-dsm-of-another-field",
+        "plant_projection",
+        dsm_elsewhere,
+        mentions=("dsm other field.tif", "none of"),
+        outputs_allowed=REPORT,
+    ),
+    Case(
+        "m8-coords-garbled",
+        "plant_projection",
+        broken_project(lambda p: (p / COORDS).write_text("WGS84 UTM 14N\n")),
+        mentions=("coords.txt", "line"),
+    ),
+    Case(
+        "m8-coco-dataset-as-predictions",
+        "plant_projection",
+        changed_preds(coco_dataset),
+        mentions=("predictions.json", "COCO dataset"),
+    ),
+    Case(
+        "m8-results-list-without-images-from",
+        "plant_projection",
+        lambda w: results_list(w, False),
+        mentions=("results.json", "images_from"),
+    ),
+    Case(
+        "m8-bbox-nan",
+        "plant_projection",
+        changed_preds(set_first("bbox", [10, float("nan"), 5, 5])),
+        mentions=("predictions.json", "predictions[0]", "bbox"),
+    ),
+    Case(
+        "m8-bbox-three-numbers",
+        "plant_projection",
+        changed_preds(set_first("bbox", [10, 20, 5])),
+        mentions=("predictions.json", "predictions[0]"),
+    ),
+    Case(
+        "m8-bbox-negative-size",
+        "plant_projection",
+        changed_preds(set_first("bbox", [50, 60, -12, 8])),
+        mentions=("predictions.json", "predictions[0]", "negative"),
+    ),
+    Case(
+        "m8-score-above-one",
+        "plant_projection",
+        changed_preds(set_first("score", 1.7)),
+        mentions=("predictions.json", "score", "[0, 1]"),
+    ),
     Case("m8-scores-in-percent", "plant_projection", changed_preds(in_percent), mentions=("score", "percentage")),
-    Case("m8-min-score-above-every-score", "plant_projection", changed_preds(all_scores(0.3), "min_score=0.8"),
-         mentions=("min_score", "0 of")),
-    Case("m8-no-detections", "plant_projection", changed_preds(lambda d: d.update(predictions=[])),
-         mentions=("predictions.json", "no detections")),
-    Case("m8-image-names-of-another-flight", "plant_projection",
-         changed_preds(rename_images(lambda n: n.replace("SIM_", "DJI_2024_"))),
-         mentions=("predictions.json", "not in the reconstruction", "DJI_2024_0001"), outputs_allowed=REPORT),
-    Case("m8-tile-offset-not-a-number", "plant_projection",
-         changed_preds(lambda d: d["images"][1].update(x0="left", y0=0)), mentions=("predictions.json", "x0")),
-    Case("m8-bbox-as-text", "plant_projection", changed_preds(set_first("bbox", ["10", "20", "5", "5"])),
-         mentions=("predictions.json", "predictions[0]", "numbers")),
-    Case("m8-image-type-original-for-undistorted-boxes", "plant_projection", changed_preds(lambda d: None,
-                                                                                         "image_type=original"),
-         mentions=("predictions.json", "image_type"), outputs_allowed=REPORT),
-    Case("m8-undistorted-reconstruction-missing", "plant_projection",
-         broken_project(lambda p: (p / UND_RECON).unlink()), mentions=("undistorted/reconstruction.json",)),
-    Case("m8-predictions-truncated", "plant_projection",
-         lambda w: args(w, project(w), (lambda p: (truncate(p, 0.6), p)[1])(w.copy("predictions.json"))),
-         mentions=("predictions.json", "line")),
-    Case("m8-predictions-missing", "plant_projection", lambda w: args(w, project(w), w.inputs / "preds.json"),
-         mentions=("predictions", "preds.json")),
-    Case("m8-evaluate-reference-column-renamed", "plant_projection",
-         lambda w: reference_csv(w, lambda t: t.replace("xmin", "x_min", 1)), mentions=("reference.csv", "xmin")),
-    Case("m8-evaluate-reference-of-another-field", "plant_projection", lambda w: reference_csv(w, shift_east),
-         mentions=("reference.csv", "none of")),
-    Case("m8-evaluate-reference-excel-export", "plant_projection",
-         lambda w: reference_csv(w, excel_export, "référence plantes.csv"), expect="ok", check=evaluated_well),
-    Case("m8-names-without-original-extension", "plant_projection",
-         changed_preds(rename_images(lambda n: n.replace(".JPG.tif", ".tif"))), expect="ok", check=same_plants),
-    Case("m8-names-lower-case-extension", "plant_projection",
-         changed_preds(rename_images(lambda n: n.replace(".JPG", ".jpg"))), expect="ok", check=same_plants),
+    Case(
+        "m8-min-score-above-every-score",
+        "plant_projection",
+        changed_preds(all_scores(0.3), "min_score=0.8"),
+        mentions=("min_score", "0 of"),
+    ),
+    Case(
+        "m8-no-detections",
+        "plant_projection",
+        changed_preds(lambda d: d.update(predictions=[])),
+        mentions=("predictions.json", "no detections"),
+    ),
+    Case(
+        "m8-image-names-of-another-flight",
+        "plant_projection",
+        changed_preds(rename_images(lambda n: n.replace("SIM_", "DJI_2024_"))),
+        mentions=("predictions.json", "not in the reconstruction", "DJI_2024_0001"),
+        outputs_allowed=REPORT,
+    ),
+    Case(
+        "m8-tile-offset-not-a-number",
+        "plant_projection",
+        changed_preds(lambda d: d["images"][1].update(x0="left", y0=0)),
+        mentions=("predictions.json", "x0"),
+    ),
+    Case(
+        "m8-bbox-as-text",
+        "plant_projection",
+        changed_preds(set_first("bbox", ["10", "20", "5", "5"])),
+        mentions=("predictions.json", "predictions[0]", "numbers"),
+    ),
+    Case(
+        "m8-image-type-original-for-undistorted-boxes",
+        "plant_projection",
+        changed_preds(lambda d: None, "image_type=original"),
+        mentions=("predictions.json", "image_type"),
+        outputs_allowed=REPORT,
+    ),
+    Case(
+        "m8-undistorted-reconstruction-missing",
+        "plant_projection",
+        broken_project(lambda p: (p / UND_RECON).unlink()),
+        mentions=("undistorted/reconstruction.json",),
+    ),
+    Case(
+        "m8-predictions-truncated",
+        "plant_projection",
+        lambda w: args(w, project(w), (lambda p: (truncate(p, 0.6), p)[1])(w.copy("predictions.json"))),
+        mentions=("predictions.json", "line"),
+    ),
+    Case(
+        "m8-predictions-missing",
+        "plant_projection",
+        lambda w: args(w, project(w), w.inputs / "preds.json"),
+        mentions=("predictions", "preds.json"),
+    ),
+    Case(
+        "m8-evaluate-reference-column-renamed",
+        "plant_projection",
+        lambda w: reference_csv(w, lambda t: t.replace("xmin", "x_min", 1)),
+        mentions=("reference.csv", "xmin"),
+    ),
+    Case(
+        "m8-evaluate-reference-of-another-field",
+        "plant_projection",
+        lambda w: reference_csv(w, shift_east),
+        mentions=("reference.csv", "none of"),
+    ),
+    Case(
+        "m8-evaluate-reference-excel-export",
+        "plant_projection",
+        lambda w: reference_csv(w, excel_export, "référence plantes.csv"),
+        expect="ok",
+        check=evaluated_well,
+    ),
+    Case(
+        "m8-names-without-original-extension",
+        "plant_projection",
+        changed_preds(rename_images(lambda n: n.replace(".JPG.tif", ".tif"))),
+        expect="ok",
+        check=same_plants,
+    ),
+    Case(
+        "m8-names-lower-case-extension",
+        "plant_projection",
+        changed_preds(rename_images(lambda n: n.replace(".JPG", ".jpg"))),
+        expect="ok",
+        check=same_plants,
+    ),
     Case("m8-unicode-space-paths", "plant_projection", unicode_paths, expect="ok", check=same_plants),
     Case("m8-predictions-bom-crlf", "plant_projection", bom_crlf, expect="ok", check=same_plants),
-    Case("m8-results-list-with-images-from", "plant_projection", lambda w: results_list(w, True), expect="ok",
-         check=same_plants),
+    Case(
+        "m8-results-list-with-images-from",
+        "plant_projection",
+        lambda w: results_list(w, True),
+        expect="ok",
+        check=same_plants,
+    ),
     Case("m8-rerun-over-old-output", "plant_projection", rerun_over_old_output, expect="ok", check=rerun_replaced),
-    Case("m8-one-image-not-in-reconstruction", "plant_projection", one_image_unknown, expect="ok",
-         check=one_image_reported),
+    Case(
+        "m8-one-image-not-in-reconstruction",
+        "plant_projection",
+        one_image_unknown,
+        expect="ok",
+        check=one_image_reported,
+    ),
 ]

@@ -23,18 +23,23 @@ def gps_step(w: Work, name: str = "gps", **extra: str) -> str:
 
 
 def gcp_step(w: Work, name: str = "gcp", images: str = "${gps.output_dir}/images", **extra: str) -> str:
-    survey = w.copy("field/gcp/gcp_survey.csv") if not (w.inputs / "gcp_survey.csv").exists() \
+    survey = (
+        w.copy("field/gcp/gcp_survey.csv")
+        if not (w.inputs / "gcp_survey.csv").exists()
         else w.inputs / "gcp_survey.csv"
+    )
     config = {"images": images, "survey": str(survey), "survey_crs": crs(w), "auto": True, **extra}
     return f"  - name: {name}\n    module: gcp_finder\n    config: {json.dumps(config)}\n"
 
 
 def tiles_step(w: Work, name: str = "tiles", **extra) -> str:
-    images = w.copy("field/opensfm/undistorted/images", "undistorted") if not (w.inputs / "undistorted").exists() \
+    images = (
+        w.copy("field/opensfm/undistorted/images", "undistorted")
+        if not (w.inputs / "undistorted").exists()
         else w.inputs / "undistorted"
+    )
     boxes = w.copy("field/truth/boxes_undistorted.json")
-    config = {"images": str(images), "annotations": str(boxes), "tile_size": 128, "overlap": 32, "workers": 1,
-              **extra}
+    config = {"images": str(images), "annotations": str(boxes), "tile_size": 128, "overlap": 32, "workers": 1, **extra}
     return f"  - name: {name}\n    module: img_splitter\n    config: {json.dumps(config)}\n"
 
 
@@ -93,7 +98,8 @@ def out_of_range(w: Work) -> list[str]:
 
 def missing_steps(w: Work) -> list[str]:
     return pipeline(w, gps_step(w) + gcp_step(w), name="pipeline.yaml") and _rewrite(
-        w, lambda t: t.replace("steps:\n", "step:\n"))
+        w, lambda t: t.replace("steps:\n", "step:\n")
+    )
 
 
 def _rewrite(w: Work, change) -> list[str]:
@@ -155,7 +161,9 @@ def pipeline_step_in_pipeline(w: Work) -> list[str]:
 
 
 def several_problems(w: Work) -> list[str]:
-    return pipeline(w, gps_step(w, gnss_logg="events.txt") + gcp_step(w, survey_crs="${crs}") + tiles_step(w, overlap=999))
+    return pipeline(
+        w, gps_step(w, gnss_logg="events.txt") + gcp_step(w, survey_crs="${crs}") + tiles_step(w, overlap=999)
+    )
 
 
 def from_unknown_step(w: Work) -> list[str]:
@@ -183,11 +191,21 @@ def chained_outputs_written(w: Work) -> None:
 
 
 CASES = [
-    Case("run-unknown-module", "run", unknown_module, mentions=("img_spliter", "did you mean 'img_splitter'",
-                                                                  "pipeline.yaml")),
-    Case("run-unknown-key-in-step-3", "run", unknown_key_in_step_3, mentions=("tile_sise", "did you mean 'tile_size'",
-                                                                                "step 3 'tiles'")),
-    Case("run-ref-unknown-step", "run", ref_unknown_step, mentions=("${gsp.output_dir}", "did you mean 'gps.output_dir'")),
+    Case(
+        "run-unknown-module",
+        "run",
+        unknown_module,
+        mentions=("img_spliter", "did you mean 'img_splitter'", "pipeline.yaml"),
+    ),
+    Case(
+        "run-unknown-key-in-step-3",
+        "run",
+        unknown_key_in_step_3,
+        mentions=("tile_sise", "did you mean 'tile_size'", "step 3 'tiles'"),
+    ),
+    Case(
+        "run-ref-unknown-step", "run", ref_unknown_step, mentions=("${gsp.output_dir}", "did you mean 'gps.output_dir'")
+    ),
     Case("run-ref-unknown-key", "run", ref_unknown_key, mentions=("output_folder", "did you mean 'output_dir'")),
     Case("run-ref-unknown-top-level-key", "run", ref_unknown_top_level, mentions=("${crs}", "did you mean 'cr'")),
     Case("run-ref-forward", "run", ref_forward, mentions=("step 'gps', which runs later", "move 'gps' before 'gcp'")),
@@ -203,15 +221,23 @@ CASES = [
     Case("run-step-is-text", "run", step_is_text, mentions=("- module: gcp_finder",)),
     Case("run-step-key-typo", "run", step_key_typo, mentions=("confg", "did you mean 'config'")),
     Case("run-missing-input-of-step-2", "run", missing_input_of_step_2, mentions=("gcp_survey_2024.csv", "survey")),
-    Case("run-literal-path-to-earlier-output", "run", literal_path_to_earlier_output,
-         mentions=("${gps.output_dir}/images",)),
+    Case(
+        "run-literal-path-to-earlier-output",
+        "run",
+        literal_path_to_earlier_output,
+        mentions=("${gps.output_dir}/images",),
+    ),
     Case("run-required-key-missing", "run", required_key_missing, mentions=("survey_old", "did you mean 'survey'")),
     Case("run-output-is-an-input", "run", output_is_an_input, mentions=("output_dir", "images")),
     Case("run-output-contains-inputs", "run", output_contains_pipeline_inputs, mentions=("output_dir", "contains")),
     Case("run-config-file-missing", "run", config_file_missing, mentions=("gcp.yaml",)),
     Case("run-pipeline-in-pipeline", "run", pipeline_step_in_pipeline, mentions=("cannot run a pipeline",)),
-    Case("run-several-problems-at-once", "run", several_problems,
-         mentions=("3 problems", "step 1 'gps'", "step 2 'gcp'", "step 3 'tiles'", "overlap")),
+    Case(
+        "run-several-problems-at-once",
+        "run",
+        several_problems,
+        mentions=("3 problems", "step 1 'gps'", "step 2 'gcp'", "step 3 'tiles'", "overlap"),
+    ),
     Case("run-from-unknown-step", "run", from_unknown_step, mentions=("GCP", "did you mean 'gcp'")),
     Case("run-bom-crlf-unicode-paths", "run", bom_crlf_unicode, expect="ok", check=chained_outputs_written),
 ]

@@ -26,8 +26,16 @@ ORTHO = "odm_orthophoto/odm_orthophoto.tif"
 def args(w: Work, polygons: Path, *extra: str, dsm: Path | None = None, dtm: Path | None = None) -> list[str]:
     dsm = dsm or w.copy("field/" + DSM)
     dtm = dtm or w.copy("field/" + DTM)
-    a = ["--set", f"polygons={polygons}", "--set", f"rasters.dsm={dsm}", "--set", f"rasters.dtm={dtm}",
-         "--set", f"output_dir={w.out}"]
+    a = [
+        "--set",
+        f"polygons={polygons}",
+        "--set",
+        f"rasters.dsm={dsm}",
+        "--set",
+        f"rasters.dtm={dtm}",
+        "--set",
+        f"output_dir={w.out}",
+    ]
     for e in extra:
         a += ["--set", e]
     return a
@@ -106,8 +114,9 @@ def header_only_csv(w: Work) -> list[str]:
 
 
 def nir_beyond(w: Work) -> list[str]:
-    return args(w, gpkg(w), f"rasters.multispectral={w.copy('field/' + ORTHO)}", "rasters.red_band=1",
-                "rasters.nir_band=7")
+    return args(
+        w, gpkg(w), f"rasters.multispectral={w.copy('field/' + ORTHO)}", "rasters.red_band=1", "rasters.nir_band=7"
+    )
 
 
 def dtm_other_grid(w: Work) -> list[str]:
@@ -209,8 +218,9 @@ def heights_right(w: Work, out: Path | None = None, tol: float = 1e-6, crs=None)
     by_id = {r["plant_id"]: r for r in got}
     checked = 0
     for p in plants[:10]:
-        inside = (xs >= float(p["xmin"])) & (xs <= float(p["xmax"])) & (ys >= float(p["ymin"])) & \
-                 (ys <= float(p["ymax"]))
+        inside = (
+            (xs >= float(p["xmin"])) & (xs <= float(p["xmax"])) & (ys >= float(p["ymin"])) & (ys <= float(p["ymax"]))
+        )
         if not inside.any() or np.isnan(chm[inside]).all():
             continue
         want = np.nanmax(chm[inside])
@@ -243,53 +253,130 @@ def unicode_ok(w: Work) -> None:
 
 
 CASES = [
-    Case("m9-output-dir-is-polygons-folder", "spatial_stat_extractor", output_on_polygons_folder,
-         mentions=("output_dir", "polygons")),
-    Case("m9-dsm-all-nodata", "spatial_stat_extractor",
-         broken_raster(DSM, lambda p: rewrite_raster(p, data=-9999, nodata=-9999)), mentions=("dsm.tif", "no valid")),
+    Case(
+        "m9-output-dir-is-polygons-folder",
+        "spatial_stat_extractor",
+        output_on_polygons_folder,
+        mentions=("output_dir", "polygons"),
+    ),
+    Case(
+        "m9-dsm-all-nodata",
+        "spatial_stat_extractor",
+        broken_raster(DSM, lambda p: rewrite_raster(p, data=-9999, nodata=-9999)),
+        mentions=("dsm.tif", "no valid"),
+    ),
     Case("m9-chm-all-nan", "spatial_stat_extractor", chm_all_nan, mentions=("chm week 3.tif", "no valid")),
-    Case("m9-dtm-truncated", "spatial_stat_extractor", broken_raster(DTM, lambda p: truncate(p, 0.4)),
-         mentions=("dtm.tif",)),
-    Case("m9-dtm-not-a-raster", "spatial_stat_extractor",
-         broken_raster(DTM, lambda p: p.write_text("ENVI header\n")), mentions=("dtm.tif",)),
-    Case("m9-csv-polygons-no-crs-anywhere", "spatial_stat_extractor", csv_no_crs_anywhere,
-         mentions=("plants.csv", "polygons_crs")),
-    Case("m9-polygons-miss-the-raster", "spatial_stat_extractor", lambda w: args(w, moved(w, 2500.0)),
-         mentions=("plants elsewhere.gpkg", "none of")),
-    Case("m9-nir-beyond-band-count", "spatial_stat_extractor", nir_beyond,
-         mentions=("odm_orthophoto.tif", "nir_band = 7", "4 band")),
-    Case("m9-rgb-band-beyond-band-count", "spatial_stat_extractor",
-         lambda w: args(w, gpkg(w), f"rasters.rgb={w.copy('field/' + ORTHO, 'ortho.tif')}",
-                        "rasters.rgb_bands=[1,2,5]"),
-         mentions=("ortho.tif", "rgb_bands[2] = 5")),
-    Case("m9-red-band-zero", "spatial_stat_extractor",
-         lambda w: args(w, gpkg(w), f"rasters.multispectral={w.copy('field/' + ORTHO)}", "rasters.red_band=0"),
-         mentions=("red_band",)),
-    Case("m9-gpkg-layer-misspelt", "spatial_stat_extractor", lambda w: args(w, gpkg(w), "layer=plant"),
-         mentions=("plants.gpkg", "did you mean 'plants'")),
+    Case(
+        "m9-dtm-truncated",
+        "spatial_stat_extractor",
+        broken_raster(DTM, lambda p: truncate(p, 0.4)),
+        mentions=("dtm.tif",),
+    ),
+    Case(
+        "m9-dtm-not-a-raster",
+        "spatial_stat_extractor",
+        broken_raster(DTM, lambda p: p.write_text("ENVI header\n")),
+        mentions=("dtm.tif",),
+    ),
+    Case(
+        "m9-csv-polygons-no-crs-anywhere",
+        "spatial_stat_extractor",
+        csv_no_crs_anywhere,
+        mentions=("plants.csv", "polygons_crs"),
+    ),
+    Case(
+        "m9-polygons-miss-the-raster",
+        "spatial_stat_extractor",
+        lambda w: args(w, moved(w, 2500.0)),
+        mentions=("plants elsewhere.gpkg", "none of"),
+    ),
+    Case(
+        "m9-nir-beyond-band-count",
+        "spatial_stat_extractor",
+        nir_beyond,
+        mentions=("odm_orthophoto.tif", "nir_band = 7", "4 band"),
+    ),
+    Case(
+        "m9-rgb-band-beyond-band-count",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), f"rasters.rgb={w.copy('field/' + ORTHO, 'ortho.tif')}", "rasters.rgb_bands=[1,2,5]"),
+        mentions=("ortho.tif", "rgb_bands[2] = 5"),
+    ),
+    Case(
+        "m9-red-band-zero",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), f"rasters.multispectral={w.copy('field/' + ORTHO)}", "rasters.red_band=0"),
+        mentions=("red_band",),
+    ),
+    Case(
+        "m9-gpkg-layer-misspelt",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), "layer=plant"),
+        mentions=("plants.gpkg", "did you mean 'plants'"),
+    ),
     Case("m9-polygons-gpkg-empty", "spatial_stat_extractor", empty_gpkg, mentions=("plants_empty.gpkg", "no features")),
-    Case("m9-polygons-csv-header-only", "spatial_stat_extractor", header_only_csv,
-         mentions=("plants.csv", "no data rows")),
-    Case("m9-polygons-missing", "spatial_stat_extractor", lambda w: args(w, w.inputs / "plantas.gpkg"),
-         mentions=("plantas.gpkg",)),
+    Case(
+        "m9-polygons-csv-header-only",
+        "spatial_stat_extractor",
+        header_only_csv,
+        mentions=("plants.csv", "no data rows"),
+    ),
+    Case(
+        "m9-polygons-missing",
+        "spatial_stat_extractor",
+        lambda w: args(w, w.inputs / "plantas.gpkg"),
+        mentions=("plantas.gpkg",),
+    ),
     Case("m9-dtm-of-another-field", "spatial_stat_extractor", dtm_other_field, mentions=("dtm_other.tif",)),
-    Case("m9-polygons-crs-not-a-crs", "spatial_stat_extractor",
-         lambda w: args(w, csv_alone(w), "polygons_crs=UTM zone 15"), mentions=("polygons_crs", "EPSG")),
-    Case("m9-polygons-csv-box-not-a-number", "spatial_stat_extractor", csv_box_blank,
-         mentions=("plants.csv", "ymax", "line 4")),
-    Case("m9-id-column-misspelt", "spatial_stat_extractor", lambda w: args(w, gpkg(w), "id_column=plantid"),
-         mentions=("plants.gpkg", "did you mean 'plant_id'")),
+    Case(
+        "m9-polygons-crs-not-a-crs",
+        "spatial_stat_extractor",
+        lambda w: args(w, csv_alone(w), "polygons_crs=UTM zone 15"),
+        mentions=("polygons_crs", "EPSG"),
+    ),
+    Case(
+        "m9-polygons-csv-box-not-a-number",
+        "spatial_stat_extractor",
+        csv_box_blank,
+        mentions=("plants.csv", "ymax", "line 4"),
+    ),
+    Case(
+        "m9-id-column-misspelt",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), "id_column=plantid"),
+        mentions=("plants.gpkg", "did you mean 'plant_id'"),
+    ),
     Case("m9-polygons-csv-excel-export", "spatial_stat_extractor", excel_csv, expect="ok", check=heights_right),
-    Case("m9-polygons-gpkg-truncated", "spatial_stat_extractor",
-         lambda w: args(w, (lambda p: (truncate(p, 0.3), p)[1])(gpkg(w))), mentions=("plants.gpkg",)),
-    Case("m9-polygons-in-wgs84", "spatial_stat_extractor", lambda w: in_crs(w, "EPSG:4326"), expect="ok",
-         check=lambda w: heights_right(w, tol=1e-6, crs="EPSG:4326")),
-    Case("m9-csv-polygons-crs-from-raster", "spatial_stat_extractor", lambda w: args(w, csv_alone(w)),
-         expect="ok", check=crs_from("dsm.tif")),
-    Case("m9-csv-polygons-crs-from-column", "spatial_stat_extractor", csv_with_crs, expect="ok",
-         check=crs_from("'crs' column of")),
-    Case("m9-csv-polygons-bom-crlf", "spatial_stat_extractor", bom_crlf_csv, expect="ok",
-         check=crs_from("polygons_crs")),
+    Case(
+        "m9-polygons-gpkg-truncated",
+        "spatial_stat_extractor",
+        lambda w: args(w, (lambda p: (truncate(p, 0.3), p)[1])(gpkg(w))),
+        mentions=("plants.gpkg",),
+    ),
+    Case(
+        "m9-polygons-in-wgs84",
+        "spatial_stat_extractor",
+        lambda w: in_crs(w, "EPSG:4326"),
+        expect="ok",
+        check=lambda w: heights_right(w, tol=1e-6, crs="EPSG:4326"),
+    ),
+    Case(
+        "m9-csv-polygons-crs-from-raster",
+        "spatial_stat_extractor",
+        lambda w: args(w, csv_alone(w)),
+        expect="ok",
+        check=crs_from("dsm.tif"),
+    ),
+    Case(
+        "m9-csv-polygons-crs-from-column",
+        "spatial_stat_extractor",
+        csv_with_crs,
+        expect="ok",
+        check=crs_from("'crs' column of"),
+    ),
+    Case(
+        "m9-csv-polygons-bom-crlf", "spatial_stat_extractor", bom_crlf_csv, expect="ok", check=crs_from("polygons_crs")
+    ),
     Case("m9-unicode-space-paths", "spatial_stat_extractor", unicode_paths, expect="ok", check=unicode_ok),
     Case("m9-dtm-on-another-grid", "spatial_stat_extractor", dtm_other_grid, expect="ok", check=heights_close),
 ]

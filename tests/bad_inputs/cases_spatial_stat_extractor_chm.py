@@ -65,8 +65,13 @@ def later_flight(w: Work, dx: float, *extra: str) -> list[str]:
     for rel in (DSM, DTM):
         with rasterio.open(w.artifacts / "field" / rel) as src:
             t = src.transform
-        out.append(write_like(w.artifacts / "field" / rel, w.inputs / "flight 2" / Path(rel).name,
-                              transform=Affine.translation(dx, 0) @ t))
+        out.append(
+            write_like(
+                w.artifacts / "field" / rel,
+                w.inputs / "flight 2" / Path(rel).name,
+                transform=Affine.translation(dx, 0) @ t,
+            )
+        )
     second = json.dumps([{"date": "d2", "dsm": str(out[0]), "dtm": str(out[1])}])
     return args(w, gpkg(w), "rasters.date=d1", f"more_dates={second}", *extra)
 
@@ -108,19 +113,42 @@ def noisy_right(w: Work) -> None:
 
 
 CASES = [
-    Case("m9-dsm-dtm-swapped", "spatial_stat_extractor", swapped,
-         mentions=("rasters.dsm", "rasters.dtm", "swapped", "negative")),
-    Case("m9-chm-in-centimetres", "spatial_stat_extractor",
-         lambda w: chm_args(w, chm_file(w, "chm_cm.tif", scale=100.0)),
-         mentions=("chm_cm.tif", "centimetres", "canopy.max_height")),
-    Case("m9-dsm-given-as-chm", "spatial_stat_extractor",
-         lambda w: chm_args(w, w.copy("field/" + DSM, "chm.tif")),
-         mentions=("chm.tif", "rasters.chm", "bare ground")),
-    Case("m9-canopy-min-top-in-cm", "spatial_stat_extractor",
-         lambda w: args(w, gpkg(w), "canopy.min_top=5"), mentions=("canopy.min_top", "0.05", "5 cm")),
-    Case("m9-later-flight-1.5m-off", "spatial_stat_extractor", lambda w: later_flight(w, 1.5),
-         mentions=("d2", "shifted 1.5", "canopy.max_shift", "canopy.register")),
-    Case("m9-later-flight-registered", "spatial_stat_extractor",
-         lambda w: later_flight(w, 1.5, "canopy.register=true"), expect="ok", check=registered_right),
+    Case(
+        "m9-dsm-dtm-swapped",
+        "spatial_stat_extractor",
+        swapped,
+        mentions=("rasters.dsm", "rasters.dtm", "swapped", "negative"),
+    ),
+    Case(
+        "m9-chm-in-centimetres",
+        "spatial_stat_extractor",
+        lambda w: chm_args(w, chm_file(w, "chm_cm.tif", scale=100.0)),
+        mentions=("chm_cm.tif", "centimetres", "canopy.max_height"),
+    ),
+    Case(
+        "m9-dsm-given-as-chm",
+        "spatial_stat_extractor",
+        lambda w: chm_args(w, w.copy("field/" + DSM, "chm.tif")),
+        mentions=("chm.tif", "rasters.chm", "bare ground"),
+    ),
+    Case(
+        "m9-canopy-min-top-in-cm",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), "canopy.min_top=5"),
+        mentions=("canopy.min_top", "0.05", "5 cm"),
+    ),
+    Case(
+        "m9-later-flight-1.5m-off",
+        "spatial_stat_extractor",
+        lambda w: later_flight(w, 1.5),
+        mentions=("d2", "shifted 1.5", "canopy.max_shift", "canopy.register"),
+    ),
+    Case(
+        "m9-later-flight-registered",
+        "spatial_stat_extractor",
+        lambda w: later_flight(w, 1.5, "canopy.register=true"),
+        expect="ok",
+        check=registered_right,
+    ),
     Case("m9-noisy-chm-default-thresholds", "spatial_stat_extractor", noisy, expect="ok", check=noisy_right),
 ]

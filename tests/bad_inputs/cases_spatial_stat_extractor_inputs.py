@@ -61,8 +61,16 @@ def pixel_boxes(w: Work) -> tuple[list[dict], Path]:
     for p in rows(w.artifacts / "plants" / "plants.csv"):
         c0, r0 = inv * (float(p["xmin"]), float(p["ymax"]))
         c1, r1 = inv * (float(p["xmax"]), float(p["ymin"]))
-        out.append({"image_path": ortho.name, "xmin": f"{c0:.4f}", "ymin": f"{r0:.4f}", "xmax": f"{c1:.4f}",
-                    "ymax": f"{r1:.4f}", "label": "plant"})
+        out.append(
+            {
+                "image_path": ortho.name,
+                "xmin": f"{c0:.4f}",
+                "ymin": f"{r0:.4f}",
+                "xmax": f"{c1:.4f}",
+                "ymax": f"{r1:.4f}",
+                "label": "plant",
+            }
+        )
     return out, ortho
 
 
@@ -84,11 +92,26 @@ def coco_on_ortho(w: Work) -> list[str]:
     table, ortho = pixel_boxes(w)
     with rasterio.open(ortho) as ds:
         size = {"width": ds.width, "height": ds.height}
-    anns = [{"id": i + 1, "image_id": 1, "category_id": 1, "iscrowd": 0,
-             "bbox": [float(r["xmin"]), float(r["ymin"]), float(r["xmax"]) - float(r["xmin"]),
-                      float(r["ymax"]) - float(r["ymin"])]} for i, r in enumerate(table)]
-    data = {"images": [{"id": 1, "file_name": ortho.name, **size}], "categories": [{"id": 1, "name": "plant"}],
-            "annotations": anns}
+    anns = [
+        {
+            "id": i + 1,
+            "image_id": 1,
+            "category_id": 1,
+            "iscrowd": 0,
+            "bbox": [
+                float(r["xmin"]),
+                float(r["ymin"]),
+                float(r["xmax"]) - float(r["xmin"]),
+                float(r["ymax"]) - float(r["ymin"]),
+            ],
+        }
+        for i, r in enumerate(table)
+    ]
+    data = {
+        "images": [{"id": 1, "file_name": ortho.name, **size}],
+        "categories": [{"id": 1, "name": "plant"}],
+        "annotations": anns,
+    }
     path = w.inputs / "boxes_coco.json"
     path.write_text(json.dumps(data))
     return args(w, path)
@@ -110,15 +133,18 @@ def image_not_georeferenced(w, table, ortho):
     with rasterio.open(ortho) as src:
         data = src.read([1, 2, 3])
     png = w.inputs / "ortho_export.png"
-    with rasterio.open(png, "w", driver="PNG", width=data.shape[2], height=data.shape[1], count=3,
-                       dtype="uint8") as dst:
+    with rasterio.open(
+        png, "w", driver="PNG", width=data.shape[2], height=data.shape[1], count=3, dtype="uint8"
+    ) as dst:
         dst.write(data)
     return [dict(r, image_path=png.name) for r in table]
 
 
 def boxes_outside(w, table, ortho):
-    return [dict(r, xmin=str(float(r["xmin"]) + 50000), xmax=str(float(r["xmax"]) + 50000)) if i == 2 else r
-            for i, r in enumerate(table)]
+    return [
+        dict(r, xmin=str(float(r["xmin"]) + 50000), xmax=str(float(r["xmax"]) + 50000)) if i == 2 else r
+        for i, r in enumerate(table)
+    ]
 
 
 def ids_repeat(w: Work) -> list[str]:
@@ -138,8 +164,9 @@ def to_wgs84(src_path: Path, dst_path: Path) -> Path:
             profile.pop(k, None)
         with rasterio.open(dst_path, "w", **profile) as dst:
             for b in range(1, src.count + 1):
-                reproject(rasterio.band(src, b), rasterio.band(dst, b), resampling=Resampling.nearest,
-                          dst_nodata=src.nodata)
+                reproject(
+                    rasterio.band(src, b), rasterio.band(dst, b), resampling=Resampling.nearest, dst_nodata=src.nodata
+                )
     return dst_path
 
 
@@ -159,8 +186,10 @@ def ms_in_wgs84(w: Work) -> list[str]:
 
 def plant_boxes(w: Work, ids: list[str] | None = None) -> list:
     """Module 8's plant boxes (plants.csv), in file order or in the order of ``ids``."""
-    by_id = {p["plant_id"]: shapely.box(float(p["xmin"]), float(p["ymin"]), float(p["xmax"]), float(p["ymax"]))
-             for p in rows(w.artifacts / "plants" / "plants.csv")}
+    by_id = {
+        p["plant_id"]: shapely.box(float(p["xmin"]), float(p["ymin"]), float(p["xmax"]), float(p["ymax"]))
+        for p in rows(w.artifacts / "plants" / "plants.csv")
+    }
     return list(by_id.values()) if ids is None else [by_id[i] for i in ids]
 
 
@@ -194,7 +223,6 @@ def centre_values(path: Path, boxes, bands):
     return out
 
 
-
 def assert_ndvi_equals_numpy(got: list[dict], vals) -> None:
     """Each plant's ndvi_mean equals numpy's over its (red, nir) pixels; at least 5 plants with pixels."""
     checked = 0
@@ -225,8 +253,9 @@ def chm_max_truth(w: Work, boxes) -> np.ndarray:
     for k, g in enumerate(boxes):
         x0, y0, x1, y1 = g.bounds
         inside = (xs > x0) & (xs < x1) & (ys > y0) & (ys < y1)
-        on_edge = (np.abs(xs - x0) < 1e-6) | (np.abs(xs - x1) < 1e-6) | (np.abs(ys - y0) < 1e-6) | \
-            (np.abs(ys - y1) < 1e-6)
+        on_edge = (
+            (np.abs(xs - x0) < 1e-6) | (np.abs(xs - x1) < 1e-6) | (np.abs(ys - y0) < 1e-6) | (np.abs(ys - y1) < 1e-6)
+        )
         near = (xs >= x0 - 1e-6) & (xs <= x1 + 1e-6) & (ys >= y0 - 1e-6) & (ys <= y1 + 1e-6)
         if inside.any() and not (on_edge & near).any() and not np.isnan(chm[inside]).all():
             out[k] = np.nanmax(chm[inside])
@@ -280,35 +309,95 @@ def ndvi_in_degrees(w: Work) -> None:
 
 
 CASES = [
-    Case("m9-ms-5band-generic-writer-right-numbers", "spatial_stat_extractor",
-         ms_case("rasters.red_band=3", "rasters.nir_band=5"), expect="ok", check=ndvi_right),
-    Case("m9-ms-5band-band-order", "spatial_stat_extractor", ms_case(f"rasters.band_order={ORDER}"), expect="ok",
-         check=ndvi_right),
-    Case("m9-ms-5band-bands-not-named", "spatial_stat_extractor", ms_case(),
-         mentions=("reflectance.tif", "red_band", "band_order")),
-    Case("m9-ms-band-order-too-short", "spatial_stat_extractor", ms_case("rasters.band_order=[blue,green,red,nir]"),
-         mentions=("reflectance.tif", "band_order", "has 5")),
-    Case("m9-ms-band-order-contradicts-red-band", "spatial_stat_extractor",
-         ms_case(f"rasters.band_order={ORDER}", "rasters.red_band=1"),
-         mentions=("reflectance.tif", "red_band = 1", "set red_band: 3")),
-    Case("m9-ms-red-band-name-unknown", "spatial_stat_extractor",
-         ms_case(f"rasters.band_order={ORDER}", "rasters.red_band=redd"), mentions=("red_band", "'redd'")),
-    Case("m9-ms-band-order-name-twice", "spatial_stat_extractor",
-         ms_case("rasters.band_order=[red,green,red,rededge,nir]"), mentions=("band_order", "more than once")),
-    Case("m9-deepforest-csv-on-the-orthophoto", "spatial_stat_extractor", deepforest_csv, expect="ok",
-         check=heights_of_pixel_boxes),
-    Case("m9-coco-boxes-on-the-orthophoto", "spatial_stat_extractor", coco_on_ortho, expect="ok",
-         check=heights_of_pixel_boxes),
-    Case("m9-deepforest-image-missing", "spatial_stat_extractor", deepforest_broken(image_missing),
-         mentions=("boxes.csv", "ortho_tile_07.tif", "boxes_image")),
-    Case("m9-deepforest-image-not-georeferenced", "spatial_stat_extractor", deepforest_broken(image_not_georeferenced),
-         mentions=("ortho_export.png", "no crs")),
-    Case("m9-deepforest-box-outside-the-image", "spatial_stat_extractor", deepforest_broken(boxes_outside),
-         mentions=("boxes.csv", "outside the image", "line 4")),
-    Case("m9-id-column-repeats-fix-is-number", "spatial_stat_extractor", ids_repeat,
-         mentions=("plants_ids.gpkg", "not unique", "id_column: number")),
-    Case("m9-id-column-number", "spatial_stat_extractor", lambda w: args(w, gpkg(w), "id_column=number"),
-         expect="ok", check=numbered),
+    Case(
+        "m9-ms-5band-generic-writer-right-numbers",
+        "spatial_stat_extractor",
+        ms_case("rasters.red_band=3", "rasters.nir_band=5"),
+        expect="ok",
+        check=ndvi_right,
+    ),
+    Case(
+        "m9-ms-5band-band-order",
+        "spatial_stat_extractor",
+        ms_case(f"rasters.band_order={ORDER}"),
+        expect="ok",
+        check=ndvi_right,
+    ),
+    Case(
+        "m9-ms-5band-bands-not-named",
+        "spatial_stat_extractor",
+        ms_case(),
+        mentions=("reflectance.tif", "red_band", "band_order"),
+    ),
+    Case(
+        "m9-ms-band-order-too-short",
+        "spatial_stat_extractor",
+        ms_case("rasters.band_order=[blue,green,red,nir]"),
+        mentions=("reflectance.tif", "band_order", "has 5"),
+    ),
+    Case(
+        "m9-ms-band-order-contradicts-red-band",
+        "spatial_stat_extractor",
+        ms_case(f"rasters.band_order={ORDER}", "rasters.red_band=1"),
+        mentions=("reflectance.tif", "red_band = 1", "set red_band: 3"),
+    ),
+    Case(
+        "m9-ms-red-band-name-unknown",
+        "spatial_stat_extractor",
+        ms_case(f"rasters.band_order={ORDER}", "rasters.red_band=redd"),
+        mentions=("red_band", "'redd'"),
+    ),
+    Case(
+        "m9-ms-band-order-name-twice",
+        "spatial_stat_extractor",
+        ms_case("rasters.band_order=[red,green,red,rededge,nir]"),
+        mentions=("band_order", "more than once"),
+    ),
+    Case(
+        "m9-deepforest-csv-on-the-orthophoto",
+        "spatial_stat_extractor",
+        deepforest_csv,
+        expect="ok",
+        check=heights_of_pixel_boxes,
+    ),
+    Case(
+        "m9-coco-boxes-on-the-orthophoto",
+        "spatial_stat_extractor",
+        coco_on_ortho,
+        expect="ok",
+        check=heights_of_pixel_boxes,
+    ),
+    Case(
+        "m9-deepforest-image-missing",
+        "spatial_stat_extractor",
+        deepforest_broken(image_missing),
+        mentions=("boxes.csv", "ortho_tile_07.tif", "boxes_image"),
+    ),
+    Case(
+        "m9-deepforest-image-not-georeferenced",
+        "spatial_stat_extractor",
+        deepforest_broken(image_not_georeferenced),
+        mentions=("ortho_export.png", "no crs"),
+    ),
+    Case(
+        "m9-deepforest-box-outside-the-image",
+        "spatial_stat_extractor",
+        deepforest_broken(boxes_outside),
+        mentions=("boxes.csv", "outside the image", "line 4"),
+    ),
+    Case(
+        "m9-id-column-repeats-fix-is-number",
+        "spatial_stat_extractor",
+        ids_repeat,
+        mentions=("plants_ids.gpkg", "not unique", "id_column: number"),
+    ),
+    Case(
+        "m9-id-column-number",
+        "spatial_stat_extractor",
+        lambda w: args(w, gpkg(w), "id_column=number"),
+        expect="ok",
+        check=numbered,
+    ),
     Case("m9-dsm-dtm-in-wgs84", "spatial_stat_extractor", dem_in_wgs84, expect="ok", check=heights_in_metres),
     Case("m9-multispectral-in-wgs84", "spatial_stat_extractor", ms_in_wgs84, expect="ok", check=ndvi_in_degrees),
 ]

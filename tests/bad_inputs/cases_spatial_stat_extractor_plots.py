@@ -31,8 +31,15 @@ def grid(w: Work) -> dict:
 
 def grid_args(w: Work, corners=None, *extra: str) -> list[str]:
     g = grid(w)
-    return args(w, gpkg(w), f"plots.corners={json.dumps(corners or g['corners'])}", f"plots.columns={g['columns']}",
-                f"plots.ranges={g['ranges']}", f"plots.plant_spacing={g['plant_spacing']}", *extra)
+    return args(
+        w,
+        gpkg(w),
+        f"plots.corners={json.dumps(corners or g['corners'])}",
+        f"plots.columns={g['columns']}",
+        f"plots.ranges={g['ranges']}",
+        f"plots.plant_spacing={g['plant_spacing']}",
+        *extra,
+    )
 
 
 def book_rows(w: Work) -> list[list[str]]:
@@ -52,6 +59,7 @@ def excel_book(w: Work, rows: list[list[str]], name: str = "field book.csv") -> 
 def with_book(path_of):
     def prepare(w: Work) -> list[str]:
         return grid_args(w, None, f"plots.field_book={path_of(w)}")
+
     return prepare
 
 
@@ -138,6 +146,7 @@ def corners_in_degrees(swap: bool):
         to_ll = Transformer.from_crs(g["crs"], "EPSG:4326", always_xy=True)
         ll = [list(to_ll.transform(*c)) for c in g["corners"]]
         return grid_args(w, [[b, a] for a, b in ll] if swap else ll)
+
     return prepare
 
 
@@ -185,37 +194,110 @@ def overlap_counted_once(w: Work) -> None:
 need_openpyxl = (pytest.mark.skipif(openpyxl is None, reason="openpyxl is not installed"),)
 
 CASES = [
-    Case("m9-plots-field-book-excel-csv", "spatial_stat_extractor", with_book(excel_csv_book), expect="ok",
-         check=book_joined),
-    Case("m9-plots-field-book-xlsx", "spatial_stat_extractor", with_book(xlsx_book), expect="ok", check=book_joined,
-         marks=need_openpyxl),
-    Case("m9-plots-field-book-ids-prefixed", "spatial_stat_extractor", with_book(prefixed_book), expect="ok",
-         check=book_joined),
-    Case("m9-plots-field-book-joins-nothing", "spatial_stat_extractor", with_book(other_trial_book),
-         mentions=("trial 2025.csv", "none of the", "plot ids")),
-    Case("m9-plots-field-book-old-xls", "spatial_stat_extractor", with_book(xls_book),
-         mentions=("field book.xls", ".xlsx")),
-    Case("m9-plots-field-book-no-id-column", "spatial_stat_extractor", with_book(no_id_book),
-         mentions=("book.csv", "plot_id", "plots.field_book_id_column")),
-    Case("m9-plots-field-book-header-only", "spatial_stat_extractor", with_book(header_only_book),
-         mentions=("book.csv", "no data rows")),
-    Case("m9-plots-field-book-without-plots", "spatial_stat_extractor", book_without_plots,
-         mentions=("plots.field_book", "plots.corners")),
-    Case("m9-plots-corners-lon-lat", "spatial_stat_extractor", corners_in_degrees(False), expect="ok",
-         check=stand_counts_right),
-    Case("m9-plots-corners-lat-lon", "spatial_stat_extractor", corners_in_degrees(True), expect="ok",
-         check=stand_counts_right),
-    Case("m9-plots-corners-last-year", "spatial_stat_extractor", last_years_corners,
-         mentions=("plots.corners", "hold no plant")),
-    Case("m9-plots-identical-polygons", "spatial_stat_extractor", identical_plots,
-         mentions=("plots drawn.gpkg", "same plot", "counted twice")),
-    Case("m9-plots-hand-drawn-overlapping", "spatial_stat_extractor", hand_drawn_overlapping, expect="ok",
-         check=overlap_counted_once),
-    Case("m9-plots-own-file-read-back", "spatial_stat_extractor", own_plots_read_back, expect="ok",
-         check=same_as_first_run),
-    Case("m9-plots-row-direction-out-of-range", "spatial_stat_extractor",
-         lambda w: grid_args(w, None, "plots.row_direction=400"), mentions=("plots.row_direction",)),
-    Case("m9-plots-polygons-and-corners", "spatial_stat_extractor",
-         lambda w: grid_args(w, None, f"plots.polygons={plots_file(w, truth_geoms(w), truth_plots(w)['plot_id'].tolist(), 'p.gpkg')}"),
-         mentions=("plots.polygons", "plots.corners")),
+    Case(
+        "m9-plots-field-book-excel-csv",
+        "spatial_stat_extractor",
+        with_book(excel_csv_book),
+        expect="ok",
+        check=book_joined,
+    ),
+    Case(
+        "m9-plots-field-book-xlsx",
+        "spatial_stat_extractor",
+        with_book(xlsx_book),
+        expect="ok",
+        check=book_joined,
+        marks=need_openpyxl,
+    ),
+    Case(
+        "m9-plots-field-book-ids-prefixed",
+        "spatial_stat_extractor",
+        with_book(prefixed_book),
+        expect="ok",
+        check=book_joined,
+    ),
+    Case(
+        "m9-plots-field-book-joins-nothing",
+        "spatial_stat_extractor",
+        with_book(other_trial_book),
+        mentions=("trial 2025.csv", "none of the", "plot ids"),
+    ),
+    Case(
+        "m9-plots-field-book-old-xls",
+        "spatial_stat_extractor",
+        with_book(xls_book),
+        mentions=("field book.xls", ".xlsx"),
+    ),
+    Case(
+        "m9-plots-field-book-no-id-column",
+        "spatial_stat_extractor",
+        with_book(no_id_book),
+        mentions=("book.csv", "plot_id", "plots.field_book_id_column"),
+    ),
+    Case(
+        "m9-plots-field-book-header-only",
+        "spatial_stat_extractor",
+        with_book(header_only_book),
+        mentions=("book.csv", "no data rows"),
+    ),
+    Case(
+        "m9-plots-field-book-without-plots",
+        "spatial_stat_extractor",
+        book_without_plots,
+        mentions=("plots.field_book", "plots.corners"),
+    ),
+    Case(
+        "m9-plots-corners-lon-lat",
+        "spatial_stat_extractor",
+        corners_in_degrees(False),
+        expect="ok",
+        check=stand_counts_right,
+    ),
+    Case(
+        "m9-plots-corners-lat-lon",
+        "spatial_stat_extractor",
+        corners_in_degrees(True),
+        expect="ok",
+        check=stand_counts_right,
+    ),
+    Case(
+        "m9-plots-corners-last-year",
+        "spatial_stat_extractor",
+        last_years_corners,
+        mentions=("plots.corners", "hold no plant"),
+    ),
+    Case(
+        "m9-plots-identical-polygons",
+        "spatial_stat_extractor",
+        identical_plots,
+        mentions=("plots drawn.gpkg", "same plot", "counted twice"),
+    ),
+    Case(
+        "m9-plots-hand-drawn-overlapping",
+        "spatial_stat_extractor",
+        hand_drawn_overlapping,
+        expect="ok",
+        check=overlap_counted_once,
+    ),
+    Case(
+        "m9-plots-own-file-read-back",
+        "spatial_stat_extractor",
+        own_plots_read_back,
+        expect="ok",
+        check=same_as_first_run,
+    ),
+    Case(
+        "m9-plots-row-direction-out-of-range",
+        "spatial_stat_extractor",
+        lambda w: grid_args(w, None, "plots.row_direction=400"),
+        mentions=("plots.row_direction",),
+    ),
+    Case(
+        "m9-plots-polygons-and-corners",
+        "spatial_stat_extractor",
+        lambda w: grid_args(
+            w, None, f"plots.polygons={plots_file(w, truth_geoms(w), truth_plots(w)['plot_id'].tolist(), 'p.gpkg')}"
+        ),
+        mentions=("plots.polygons", "plots.corners"),
+    ),
 ]

@@ -18,9 +18,9 @@ import contextlib
 import hashlib
 import os
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 from matchplant.cli import run_module
 
@@ -86,7 +86,7 @@ def read_rows(path: Path, sep: str) -> list[list[str]]:
     return [ln.split(sep) for ln in path.read_text().splitlines()]
 
 
-def write_rows(w: "Work", rows: list[list[str]], name: str, sep: str) -> Path:
+def write_rows(w: Work, rows: list[list[str]], name: str, sep: str) -> Path:
     """Rows of fields written as a delimited file among the case's inputs."""
     path = w.inputs / name
     path.write_text("".join(sep.join(r) + "\n" for r in rows))
@@ -109,15 +109,21 @@ def environment(values: dict):
 def tree_hashes(folder: Path) -> dict[str, str]:
     if not folder.exists():
         return {}
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def leftovers(out: Path, before: set[str], allowed: tuple[str, ...]) -> list[str]:
     """Files in ``out`` that the failed run created, other than its log and the allowed ones."""
     now = {str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()} if out.exists() else set()
-    return sorted(p for p in now - before
-                  if not p.startswith("logs") and Path(p).name not in allowed and not Path(p).name.startswith("."))
+    return sorted(
+        p
+        for p in now - before
+        if not p.startswith("logs") and Path(p).name not in allowed and not Path(p).name.startswith(".")
+    )
 
 
 def run_case(case: Case, work: Work, capsys) -> None:
@@ -137,9 +143,10 @@ def run_case(case: Case, work: Work, capsys) -> None:
     assert code != 1, f"{case.name}: internal error instead of a clear message:\n{err}"
     assert code == 2, f"{case.name}: bad input must fail with exit code 2, got {code}:\n{err}"
     # warnings may come first; the error is the last message, whole, without a traceback
-    assert "Traceback" not in err and (err.startswith("error: ") or "\nerror: " in err), \
+    assert "Traceback" not in err and (err.startswith("error: ") or "\nerror: " in err), (
         f"{case.name}: not one clean message:\n{err}"
-    err = err[err.find("error: ") if err.startswith("error: ") else err.rfind("\nerror: ") + 1:]
+    )
+    err = err[err.find("error: ") if err.startswith("error: ") else err.rfind("\nerror: ") + 1 :]
     assert "fix:" in err or "did you mean" in err, f"{case.name}: the message gives no fix:\n{err}"
     # the case's own folder is named after the case: words must come from the message, not from that name
     said = err.replace(str(work.root), "<case folder>").lower()

@@ -9,11 +9,20 @@ import pytest
 from fixtures import artifacts, work  # noqa: F401  (the fixtures; not a conftest.py, whose module name
 from harness import run_case  # would shadow tests/conftest.py for the tests that import from it)
 
-CASES = [case for path in sorted(Path(__file__).parent.glob("cases_*.py"))
-         for case in importlib.import_module(path.stem).CASES]
+CASES = [
+    case
+    for path in sorted(Path(__file__).parent.glob("cases_*.py"))
+    for case in importlib.import_module(path.stem).CASES
+]
 # the cases over ~10 s (pytest --durations on 2 shared cores): the slow tier
-SLOW = {"m3-aoi-polygon-and-point-layers", "m6-sizes-differ-boxes-inside", "m6-windows-json-unicode-folder",
-        "m7-nothing-found", "m7-unicode-paths-and-junk", "m8-evaluate-reference-of-another-field"}
+SLOW = {
+    "m3-aoi-polygon-and-point-layers",
+    "m6-sizes-differ-boxes-inside",
+    "m6-windows-json-unicode-folder",
+    "m7-nothing-found",
+    "m7-unicode-paths-and-junk",
+    "m8-evaluate-reference-of-another-field",
+}
 
 
 def marks(case) -> tuple:

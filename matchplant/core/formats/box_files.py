@@ -39,7 +39,7 @@ RULES = {
     "upload prefix": "by stripping Label Studio's upload prefix (<8 hex digits>-)",
     "extra suffix": "by removing a second file extension the tool added (IMG_1.JPG.png)",
     "upload prefix + extra suffix": "by stripping Label Studio's upload prefix (<8 hex digits>-) and a second file "
-                                    "extension (3f2a1b7c-IMG_1.JPG.png)",
+    "extension (3f2a1b7c-IMG_1.JPG.png)",
     "loose": "up to case and extension",
 }
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".gif", ".webp", ".dng")
@@ -62,8 +62,12 @@ def base_name(raw: str) -> str:
 def _without_extra_suffix(name: str) -> str | None:
     """``IMG_1.JPG.png`` -> ``IMG_1.JPG`` (a photo's name with another image extension added), else None."""
     stem, dot, ext = name.rpartition(".")
-    if dot and "." + ext.lower() in PHOTO_SUFFIXES and "." in stem and \
-            "." + stem.rpartition(".")[2].lower() in PHOTO_SUFFIXES:
+    if (
+        dot
+        and "." + ext.lower() in PHOTO_SUFFIXES
+        and "." in stem
+        and "." + stem.rpartition(".")[2].lower() in PHOTO_SUFFIXES
+    ):
         return stem
     return None
 
@@ -87,8 +91,10 @@ def resolve_image_names(names, files, rules: dict[str, str] | None = None) -> tu
         base = base_name(raw)
         bare = strip_upload_prefix(base)
         steps = [("exact", str(raw)), ("folder", base), ("upload prefix", bare)]
-        steps += [("extra suffix", _without_extra_suffix(base)),
-                  ("upload prefix + extra suffix", _without_extra_suffix(bare) if bare != base else None)]
+        steps += [
+            ("extra suffix", _without_extra_suffix(base)),
+            ("upload prefix + extra suffix", _without_extra_suffix(bare) if bare != base else None),
+        ]
         steps = [(r, n) for r, n in steps if n]
         rule, hit = next(((r, h) for r, n in steps if (h := match_name(n, files)) is not None), (None, None))
         if rule == "exact" and Path(str(raw).replace("\\", "/")).name != str(raw):
@@ -110,7 +116,7 @@ def resolve_image_names(names, files, rules: dict[str, str] | None = None) -> tu
 
 
 def _closest(name: str, files: list[str]) -> str:
-    """"did you mean 'x'?" by the names without extension (``p0.png`` is not like ``x.png``)."""
+    """ "did you mean 'x'?" by the names without extension (``p0.png`` is not like ``x.png``)."""
     stems = {Path(f).stem.casefold(): f for f in files}
     close = difflib.get_close_matches(Path(name).stem.casefold(), list(stems), n=1, cutoff=0.6)
     return f"did you mean '{stems[close[0]]}'?" if close else ""
@@ -124,8 +130,9 @@ def read_deepforest_csv(path: str | Path) -> dict[str, list[LabelledBox]]:
         reader = csv.DictReader(fh)
         need = {"image_path", "xmin", "ymin", "xmax", "ymax"}
         if not reader.fieldnames or not need <= set(reader.fieldnames):
-            raise InputError(f"the CSV lacks the column(s) {sorted(need - set(reader.fieldnames or []))}",
-                             path=path, fix=fix)
+            raise InputError(
+                f"the CSV lacks the column(s) {sorted(need - set(reader.fieldnames or []))}", path=path, fix=fix
+            )
         # DeepForest's predict_image writes "score" (1.x) or "scores" (older releases)
         score_key = next((k for k in ("score", "scores") if k in reader.fieldnames), None)
         for row in reader:
@@ -136,9 +143,12 @@ def read_deepforest_csv(path: str | Path) -> dict[str, list[LabelledBox]]:
                 xyxy = [float(row[k]) for k in ("xmin", "ymin", "xmax", "ymax")]
                 score = float(row[score_key]) if score_key and row.get(score_key) not in (None, "") else None
             except (TypeError, ValueError):
-                raise InputError(f"line {line}: a coordinate or score is missing or not a number "
-                                 f"({', '.join(f'{k}={row.get(k)!r}' for k in ('xmin', 'ymin', 'xmax', 'ymax'))})",
-                                 path=path, fix=fix) from None
+                raise InputError(
+                    f"line {line}: a coordinate or score is missing or not a number "
+                    f"({', '.join(f'{k}={row.get(k)!r}' for k in ('xmin', 'ymin', 'xmax', 'ymax'))})",
+                    path=path,
+                    fix=fix,
+                ) from None
             if not row.get("image_path"):
                 raise InputError(f"line {line}: image_path is empty", path=path, fix=fix)
             label = (row.get("label") or "plant").strip() or "plant"
@@ -151,8 +161,11 @@ def _number(node: ET.Element | None, tag: str, path: Path) -> float:
     try:
         return float(text)
     except (TypeError, ValueError):
-        raise InputError(f"a <{tag}> is missing or not a number", path=path,
-                         fix="give Pascal VOC XML files (LabelImg, CVAT 'Pascal VOC' export)") from None
+        raise InputError(
+            f"a <{tag}> is missing or not a number",
+            path=path,
+            fix="give Pascal VOC XML files (LabelImg, CVAT 'Pascal VOC' export)",
+        ) from None
 
 
 def read_voc(path: str | Path) -> tuple[dict[str, list[LabelledBox]], dict[str, tuple[int, int]]]:
@@ -170,16 +183,23 @@ def read_voc(path: str | Path) -> tuple[dict[str, list[LabelledBox]], dict[str, 
             raise InputError(f"not valid XML ({exc})", path=f, fix="re-export the annotations") from None
         name = root.findtext("filename")
         if root.tag != "annotation" or not name:
-            raise InputError("not a Pascal VOC annotation (<annotation> with <filename>)", path=f,
-                             fix="give Pascal VOC XML files")
+            raise InputError(
+                "not a Pascal VOC annotation (<annotation> with <filename>)", path=f, fix="give Pascal VOC XML files"
+            )
         size = root.find("size")
         if size is not None and size.findtext("width"):
             sizes[name] = (int(_number(size, "width", f)), int(_number(size, "height", f)))
         items = boxes.setdefault(name, [])
         for i, obj in enumerate(root.iter("object"), start=1):
             bb = obj.find("bndbox")
-            items.append(LabelledBox([_number(bb, k, f) for k in ("xmin", "ymin", "xmax", "ymax")],
-                                     (obj.findtext("name") or "plant").strip(), None, f"{f.name}, object {i}"))
+            items.append(
+                LabelledBox(
+                    [_number(bb, k, f) for k in ("xmin", "ymin", "xmax", "ymax")],
+                    (obj.findtext("name") or "plant").strip(),
+                    None,
+                    f"{f.name}, object {i}",
+                )
+            )
     return boxes, sizes
 
 
@@ -191,8 +211,11 @@ def read_cvat_xml(path: str | Path) -> tuple[dict[str, list[LabelledBox]], dict[
     except ET.ParseError as exc:
         raise InputError(f"not valid XML ({exc})", path=path, fix="export the task as 'CVAT for images 1.1'") from None
     if root.tag != "annotations":
-        raise InputError("not a 'CVAT for images' export (<annotations> root)", path=path,
-                         fix="export the task as 'CVAT for images 1.1' (or as COCO, read with import_coco)")
+        raise InputError(
+            "not a 'CVAT for images' export (<annotations> root)",
+            path=path,
+            fix="export the task as 'CVAT for images 1.1' (or as COCO, read with import_coco)",
+        )
     boxes: dict[str, list[LabelledBox]] = {}
     sizes: dict[str, tuple[int, int]] = {}
     for image in root.iter("image"):
@@ -200,18 +223,31 @@ def read_cvat_xml(path: str | Path) -> tuple[dict[str, list[LabelledBox]], dict[
         try:
             sizes[name] = (int(float(image.get("width", 0))), int(float(image.get("height", 0))))
         except ValueError:
-            raise InputError(f"<image name='{name}'> has a width or height that is not a number", path=path,
-                             fix="re-export the task as 'CVAT for images 1.1'") from None
+            raise InputError(
+                f"<image name='{name}'> has a width or height that is not a number",
+                path=path,
+                fix="re-export the task as 'CVAT for images 1.1'",
+            ) from None
         items = boxes.setdefault(name, [])
         for i, b in enumerate(image.iter("box"), start=1):
             try:
                 xyxy = [float(b.get(k)) for k in ("xtl", "ytl", "xbr", "ybr")]
             except (TypeError, ValueError):
-                raise InputError(f"a <box> of {name} lacks xtl/ytl/xbr/ybr", path=path,
-                                 fix="re-export the task as 'CVAT for images 1.1'") from None
+                raise InputError(
+                    f"a <box> of {name} lacks xtl/ytl/xbr/ybr",
+                    path=path,
+                    fix="re-export the task as 'CVAT for images 1.1'",
+                ) from None
             items.append(LabelledBox(xyxy, b.get("label", "plant"), None, f"image '{name}', box {i}"))
     return boxes, sizes
 
 
-__all__ = ["RULES", "base_name", "read_cvat_xml", "read_deepforest_csv", "read_voc", "resolve_image_names",
-           "strip_upload_prefix"]
+__all__ = [
+    "RULES",
+    "base_name",
+    "read_cvat_xml",
+    "read_deepforest_csv",
+    "read_voc",
+    "resolve_image_names",
+    "strip_upload_prefix",
+]

@@ -17,9 +17,10 @@ import csv
 import io
 import math
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -42,16 +43,25 @@ class LabelledBox(NamedTuple):
 
 
 def new_dataset(categories: Iterable[str], info: dict | None = None) -> dict:
-    return {"info": info or {"description": "MatchPlant dataset"}, "licenses": [],
-            "images": [], "annotations": [],
-            "categories": [{"id": i + 1, "name": str(name), "supercategory": "plant"}
-                           for i, name in enumerate(categories)]}
+    return {
+        "info": info or {"description": "MatchPlant dataset"},
+        "licenses": [],
+        "images": [],
+        "annotations": [],
+        "categories": [{"id": i + 1, "name": str(name), "supercategory": "plant"} for i, name in enumerate(categories)],
+    }
 
 
 def make_annotation(ann_id: int, image_id: int, bbox: Iterable[float], category_id: int = 1, **extra) -> dict:
     x, y, w, h = (float(v) for v in bbox)
-    ann = {"id": int(ann_id), "image_id": int(image_id), "category_id": int(category_id),
-           "bbox": [x, y, w, h], "area": w * h, "iscrowd": 0}
+    ann = {
+        "id": int(ann_id),
+        "image_id": int(image_id),
+        "category_id": int(category_id),
+        "bbox": [x, y, w, h],
+        "area": w * h,
+        "iscrowd": 0,
+    }
     ann.update(extra)
     return ann
 
@@ -62,23 +72,30 @@ def read_dataset(path: str | Path, *, validate: bool = True) -> dict:
     path = Path(path)
     data = read_json(path, what="COCO file")
     if not isinstance(data, dict) or "images" not in data:
-        raise InputError("not a COCO dataset (no 'images' list)", path=path,
-                         fix="give the COCO JSON written by module 4 or 5")
+        raise InputError(
+            "not a COCO dataset (no 'images' list)", path=path, fix="give the COCO JSON written by module 4 or 5"
+        )
     data.setdefault("annotations", [])
     data.setdefault("categories", [])
     for key in ("images", "annotations", "categories"):
         items = data[key]
         if not isinstance(items, list) or not all(isinstance(item, dict) for item in items):
-            raise InputError(f"'{key}' is not a list of objects {{...}}", path=path,
-                             fix="give a COCO dataset (images, annotations, categories are lists of objects)")
+            raise InputError(
+                f"'{key}' is not a list of objects {{...}}",
+                path=path,
+                fix="give a COCO dataset (images, annotations, categories are lists of objects)",
+            )
     if validate:
         problems = validate_dataset(data)
         if problems:
             shown = "\n".join(f"  - {p}" for p in problems[:10])
             more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
-            raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=path,
-                             fix="correct them, or import the file with module 4 (import_coco), which leaves out "
-                                 "and lists the boxes it cannot use, and use module 4's annotations.json")
+            raise InputError(
+                f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}",
+                path=path,
+                fix="correct them, or import the file with module 4 (import_coco), which leaves out "
+                "and lists the boxes it cannot use, and use module 4's annotations.json",
+            )
     return data
 
 
@@ -110,8 +127,12 @@ def validate_dataset(data: dict, *, tolerance: float = 1.0) -> list[str]:
     for im in images:
         if not im.get("file_name"):
             problems.append(f"image {im.get('id')} has no file_name")
-        if not (isinstance(im.get("width"), (int, float)) and isinstance(im.get("height"), (int, float))
-                and im["width"] > 0 and im["height"] > 0):
+        if not (
+            isinstance(im.get("width"), (int, float))
+            and isinstance(im.get("height"), (int, float))
+            and im["width"] > 0
+            and im["height"] > 0
+        ):
             problems.append(f"image {im.get('id')} ({im.get('file_name')}) has no valid width/height")
     for a in anns:
         im = by_id.get(a.get("image_id"))
@@ -122,16 +143,16 @@ def validate_dataset(data: dict, *, tolerance: float = 1.0) -> list[str]:
             problems.append(f"annotation {a.get('id')} has unknown category {a.get('category_id')}")
         box = bbox_values(a.get("bbox"))
         if box is None:
-            problems.append(f"annotation {a.get('id')} has no [x, y, w, h] bbox of finite numbers "
-                            f"(got {a.get('bbox')!r})")
+            problems.append(
+                f"annotation {a.get('id')} has no [x, y, w, h] bbox of finite numbers (got {a.get('bbox')!r})"
+            )
             continue
         x, y, w, h = box
         if not (w > 0 and h > 0):
             problems.append(f"annotation {a.get('id')} in {im.get('file_name')} has a box of size {w}x{h}")
         W, H = im.get("width", 0), im.get("height", 0)
         if x < -tolerance or y < -tolerance or x + w > W + tolerance or y + h > H + tolerance:
-            problems.append(f"annotation {a.get('id')} box {[x, y, w, h]} lies outside "
-                            f"{im.get('file_name')} ({W}x{H})")
+            problems.append(f"annotation {a.get('id')} box {[x, y, w, h]} lies outside {im.get('file_name')} ({W}x{H})")
     return problems
 
 
@@ -159,10 +180,17 @@ class DropLog:
     rows: list[dict] = field(default_factory=list)
 
     def add(self, source: Any, where: Any, image: Any, box: Any, reason: str, detail: str = "") -> None:
-        shown = box if isinstance(box, str) else ("" if box is None else
-                                                  "[" + ", ".join(_short(v) for v in box) + "]")
-        self.rows.append({"source": str(source), "where": str(where), "image": str(image), "box": shown,
-                          "reason": reason, "detail": detail})
+        shown = box if isinstance(box, str) else ("" if box is None else "[" + ", ".join(_short(v) for v in box) + "]")
+        self.rows.append(
+            {
+                "source": str(source),
+                "where": str(where),
+                "image": str(image),
+                "box": shown,
+                "reason": reason,
+                "detail": detail,
+            }
+        )
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -224,9 +252,10 @@ def annotated_region(image: dict) -> np.ndarray | None:
     except (TypeError, ValueError):
         arr = np.zeros(0)
     if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3 or not np.isfinite(arr).all():
-        raise InputError(f"the {REGION_KEY} of image '{image.get('file_name')}' is not a list of at least 3 "
-                         f"[x, y] points", fix=f"remove '{REGION_KEY}' (whole image annotated) or re-export "
-                                               f"the annotations with module 4")
+        raise InputError(
+            f"the {REGION_KEY} of image '{image.get('file_name')}' is not a list of at least 3 [x, y] points",
+            fix=f"remove '{REGION_KEY}' (whole image annotated) or re-export the annotations with module 4",
+        )
     return arr
 
 

@@ -42,8 +42,11 @@ def load_exif(path: str | Path) -> dict:
                 return piexif.load(im.getexif().tobytes())
         return piexif.load(str(path))
     except Exception as exc:  # noqa: BLE001 - piexif raises several types for damaged files
-        raise InputError(f"cannot read the EXIF of this image ({type(exc).__name__}: {exc})", path=path,
-                         fix="check that the file is a complete JPEG/TIFF; remove it from the folder if not") from exc
+        raise InputError(
+            f"cannot read the EXIF of this image ({type(exc).__name__}: {exc})",
+            path=path,
+            fix="check that the file is a complete JPEG/TIFF; remove it from the folder if not",
+        ) from exc
 
 
 def exif_text(value) -> str:
@@ -60,8 +63,11 @@ def exif_time(exif: dict, utc_offset_h: float = 0.0) -> float | None:
     camera clock's offset from UTC in hours (the clock offset estimation absorbs any error in it).
     """
     e = exif.get("Exif") or {}
-    raw = e.get(piexif.ExifIFD.DateTimeOriginal) or e.get(piexif.ExifIFD.DateTimeDigitized) or \
-        (exif.get("0th") or {}).get(piexif.ImageIFD.DateTime)
+    raw = (
+        e.get(piexif.ExifIFD.DateTimeOriginal)
+        or e.get(piexif.ExifIFD.DateTimeDigitized)
+        or (exif.get("0th") or {}).get(piexif.ImageIFD.DateTime)
+    )
     if not raw:
         return None
     try:
@@ -94,8 +100,8 @@ def exif_gps(exif: dict) -> tuple[float, float, float | None] | None:
     """(lat, lon, altitude) in degrees / metres from the GPS IFD, or None without a position."""
     g = exif.get("GPS") or {}
     try:
-        lat = sum(rational(v) / 60 ** i for i, v in enumerate(g[piexif.GPSIFD.GPSLatitude]))
-        lon = sum(rational(v) / 60 ** i for i, v in enumerate(g[piexif.GPSIFD.GPSLongitude]))
+        lat = sum(rational(v) / 60**i for i, v in enumerate(g[piexif.GPSIFD.GPSLatitude]))
+        lon = sum(rational(v) / 60**i for i, v in enumerate(g[piexif.GPSIFD.GPSLongitude]))
     except (KeyError, TypeError, IndexError):
         return None
     if exif_text(g.get(piexif.GPSIFD.GPSLatitudeRef, b"N")).upper() == "S":
@@ -144,7 +150,7 @@ def read_xmp(path: str | Path, limit: int = 1 << 19) -> str:
     if start < 0:
         return ""
     end = head.find(b"</x:xmpmeta>", start)
-    return head[start:end if end > 0 else len(head)].decode("utf-8", errors="replace")
+    return head[start : end if end > 0 else len(head)].decode("utf-8", errors="replace")
 
 
 # ==================================================================================================
@@ -162,10 +168,14 @@ def dms_rationals(deg: float) -> tuple:
 def gps_ifd(lat: float, lon: float, alt: float | None, utc_time: float | None = None) -> dict:
     """A GPS IFD for piexif; ``utc_time`` (POSIX seconds of the fix) fills GPSDateStamp/GPSTimeStamp."""
     G = piexif.GPSIFD
-    ifd = {G.GPSVersionID: (2, 3, 0, 0),
-           G.GPSLatitudeRef: b"N" if lat >= 0 else b"S", G.GPSLatitude: dms_rationals(lat),
-           G.GPSLongitudeRef: b"E" if lon >= 0 else b"W", G.GPSLongitude: dms_rationals(lon),
-           G.GPSMapDatum: b"WGS-84"}
+    ifd = {
+        G.GPSVersionID: (2, 3, 0, 0),
+        G.GPSLatitudeRef: b"N" if lat >= 0 else b"S",
+        G.GPSLatitude: dms_rationals(lat),
+        G.GPSLongitudeRef: b"E" if lon >= 0 else b"W",
+        G.GPSLongitude: dms_rationals(lon),
+        G.GPSMapDatum: b"WGS-84",
+    }
     if alt is not None and np.isfinite(alt):
         ifd[G.GPSAltitudeRef] = 0 if alt >= 0 else 1
         ifd[G.GPSAltitude] = (int(round(abs(alt) * 1000)), 1000)
@@ -196,7 +206,7 @@ def jpeg_segments(data: bytes) -> tuple[list[tuple[int, int, int]], int]:
             segments.append((marker, pos, pos + 2))
             pos += 2
             continue
-        length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
+        length = struct.unpack(">H", data[pos + 2 : pos + 4])[0]
         segments.append((marker, pos, pos + 2 + length))
         pos += 2 + length
     raise ValueError("truncated JPEG (no start-of-scan marker)")
@@ -214,7 +224,7 @@ def splice_exif(data: bytes, exif_bytes: bytes) -> bytes:
         raise ValueError("EXIF block larger than a JPEG segment (64 KiB); the thumbnail is too big")
     segments, _ = jpeg_segments(data)
     new = b"\xff\xe1" + struct.pack(">H", len(exif_bytes) + 2) + exif_bytes
-    exif_segs = [(s, e) for m, s, e in segments if m == 0xE1 and data[s + 4:s + 10] == b"Exif\x00\x00"]
+    exif_segs = [(s, e) for m, s, e in segments if m == 0xE1 and data[s + 4 : s + 10] == b"Exif\x00\x00"]
     if exif_segs:
         insert_at = exif_segs[0][0]
     else:  # after SOI and a leading JFIF APP0, where EXIF readers look for it
@@ -240,7 +250,7 @@ def splice_exif(data: bytes, exif_bytes: bytes) -> bytes:
 
 def jpeg_scan_data(data: bytes) -> bytes:
     """The compressed image (from the start-of-scan marker to the end): equal bytes = equal pixels."""
-    return data[jpeg_segments(data)[1]:]
+    return data[jpeg_segments(data)[1] :]
 
 
 def dump_exif(exif: dict, src: Path) -> bytes:
@@ -261,12 +271,23 @@ def dump_exif(exif: dict, src: Path) -> bytes:
     try:
         return piexif.dump(exif)
     except Exception as exc:  # noqa: BLE001
-        raise InputError(f"cannot rewrite this image's EXIF ({exc})", path=src,
-                         fix="remove the image, or strip its EXIF maker notes with exiftool") from exc
+        raise InputError(
+            f"cannot rewrite this image's EXIF ({exc})",
+            path=src,
+            fix="remove the image, or strip its EXIF maker notes with exiftool",
+        ) from exc
 
 
-def write_gps_copy(src: Path, dst: Path, exif: dict, lat: float, lon: float, alt: float | None,
-                   utc_time: float | None = None, writer: BatchedWrites | None = None) -> None:
+def write_gps_copy(
+    src: Path,
+    dst: Path,
+    exif: dict,
+    lat: float,
+    lon: float,
+    alt: float | None,
+    utc_time: float | None = None,
+    writer: BatchedWrites | None = None,
+) -> None:
     """Copy ``src`` to ``dst`` with the GPS IFD set; the pixel data and other segments are untouched.
 
     With ``writer`` (a :class:`~matchplant.core.runtime.io.BatchedWrites` on ``dst``'s folder) the copy is made
@@ -278,8 +299,9 @@ def write_gps_copy(src: Path, dst: Path, exif: dict, lat: float, lon: float, alt
     try:
         out = splice_exif(data, exif_bytes)
     except ValueError as exc:
-        raise InputError(f"cannot write EXIF into this image: {exc}", path=src,
-                         fix="check that the file is a complete JPEG") from exc
+        raise InputError(
+            f"cannot write EXIF into this image: {exc}", path=src, fix="check that the file is a complete JPEG"
+        ) from exc
     if writer is not None:
         writer.write(Path(dst).name, out)
         return

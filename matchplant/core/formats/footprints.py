@@ -10,9 +10,9 @@ because any step that reasons about "which part of the field does this photo see
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import rasterio
@@ -37,13 +37,13 @@ log = get_logger("footprints")
 class Footprint:
     """An image's ground footprint, with the border samples that made it (to check it against the DSM)."""
 
-    name: str               # shot id (original image name)
-    file: Path              # undistorted image
-    shot: Shot              # with the camera sized to the undistorted image
-    polygon: Polygon        # ground footprint in the map CRS
-    border: np.ndarray      # (N, 3) map points where the border rays meet the DSM (or the fallback plane)
-    border_uv: np.ndarray   # (N, 2) the border pixels
-    hit: np.ndarray         # (N,) True where the ray met the DSM
+    name: str  # shot id (original image name)
+    file: Path  # undistorted image
+    shot: Shot  # with the camera sized to the undistorted image
+    polygon: Polygon  # ground footprint in the map CRS
+    border: np.ndarray  # (N, 3) map points where the border rays meet the DSM (or the fallback plane)
+    border_uv: np.ndarray  # (N, 2) the border pixels
+    hit: np.ndarray  # (N,) True where the ray met the DSM
     frame: Frame | None = None  # the shot's frame (a split project's submodels have one each)
 
     @property
@@ -64,8 +64,9 @@ def border_pixels(width: int, height: int, per_side: int) -> np.ndarray:
     return np.concatenate([top, right, bottom, left])
 
 
-def image_footprint(shot: Shot, frame: Frame, surface: Surface,
-                    per_side: int = 16) -> tuple[Polygon, np.ndarray, np.ndarray, np.ndarray]:
+def image_footprint(
+    shot: Shot, frame: Frame, surface: Surface, per_side: int = 16
+) -> tuple[Polygon, np.ndarray, np.ndarray, np.ndarray]:
     """The ground polygon seen by ``shot``: its border rays intersected with the DSM.
 
     Rays that miss the DSM (they leave it, or meet a nodata hole) end on the horizontal plane at the median
@@ -88,8 +89,10 @@ def image_footprint(shot: Shot, frame: Frame, surface: Surface,
         pts[~hit] = np.where(ok[:, None], origin + s[:, None] * d, np.nan)
     good = np.isfinite(pts).all(axis=1)
     if good.sum() < 3:
-        raise GeometryError(f"image '{shot.id}' does not look at the ground (its border rays miss the DSM)",
-                            fix="exclude it, or check that the DSM and the reconstruction are of the same field")
+        raise GeometryError(
+            f"image '{shot.id}' does not look at the ground (its border rays miss the DSM)",
+            fix="exclude it, or check that the DSM and the reconstruction are of the same field",
+        )
     poly = shapely.make_valid(Polygon(pts[good, :2]))
     if not isinstance(poly, Polygon):  # a self-crossing outline (extreme tilt): keep its largest piece
         parts = [g for g in getattr(poly, "geoms", []) if isinstance(g, Polygon)]
@@ -118,8 +121,9 @@ def open_dsm(path: Path, resolution: float = 0.0) -> Surface:
     return Surface(data=data, transform=transform, crs=crs, path=Path(path))
 
 
-def compute_footprints(project: ODMProject, frame: Frame | None, surface: Surface, per_side: int = 16,
-                       names: Sequence[str] | None = None) -> list[Footprint]:
+def compute_footprints(
+    project: ODMProject, frame: Frame | None, surface: Surface, per_side: int = 16, names: Sequence[str] | None = None
+) -> list[Footprint]:
     """Footprints of every undistorted image in the reconstruction (sorted by name), over every submodel of a
     split project (each image once, each shot in its own frame; ``frame``, if given, only sets the map CRS).
 
@@ -131,9 +135,11 @@ def compute_footprints(project: ODMProject, frame: Frame | None, surface: Surfac
     files = project.undistorted_images()
     todo = sorted(n for n in (names or ids) if n in files and n in ids)
     if not todo:
-        raise InputError("no undistorted image matches the undistorted reconstruction",
-                         path=project.path("undistorted_images"),
-                         fix="re-run ODM without --optimize-disk-space (module 2)")
+        raise InputError(
+            "no undistorted image matches the undistorted reconstruction",
+            path=project.path("undistorted_images"),
+            fix="re-run ODM without --optimize-disk-space (module 2)",
+        )
     out = []
     for name in progress(todo, desc="footprints", unit="image"):
         shot = project.shot(name, undistorted=True)
@@ -143,11 +149,24 @@ def compute_footprints(project: ODMProject, frame: Frame | None, surface: Surfac
         except GeometryError as exc:
             log.warning("skipping %s: %s", name, exc.problem)
             continue
-        out.append(Footprint(name=name, file=files[name], shot=shot, polygon=poly, border=pts, border_uv=uv,
-                             hit=hit, frame=shot_frame))
+        out.append(
+            Footprint(
+                name=name,
+                file=files[name],
+                shot=shot,
+                polygon=poly,
+                border=pts,
+                border_uv=uv,
+                hit=hit,
+                frame=shot_frame,
+            )
+        )
     if not out:
-        raise InputError("no image footprint could be placed on the DSM", path=project.path("dsm"),
-                         fix="check that the DSM and the reconstruction are of the same field")
+        raise InputError(
+            "no image footprint could be placed on the DSM",
+            path=project.path("dsm"),
+            fix="check that the DSM and the reconstruction are of the same field",
+        )
     return out
 
 

@@ -50,9 +50,11 @@ def read_gcp_list(path: str | Path) -> tuple[str, object, list[Mark]]:
     try:
         crs = parse_crs(header, source=path)
     except InputError:
-        raise InputError(f"gcp_list.txt line {body[0][0]} must be the CRS of the coordinates, not {header!r}",
-                         path=path, fix="insert the CRS as the first line, e.g. EPSG:32614 or 'WGS84 UTM 14N'"
-                         ) from None
+        raise InputError(
+            f"gcp_list.txt line {body[0][0]} must be the CRS of the coordinates, not {header!r}",
+            path=path,
+            fix="insert the CRS as the first line, e.g. EPSG:32614 or 'WGS84 UTM 14N'",
+        ) from None
     marks = []
     for lineno, ln in body[1:]:
         tok = ln.split()
@@ -61,11 +63,18 @@ def read_gcp_list(path: str | Path) -> tuple[str, object, list[Mark]]:
                 raise ValueError
             x, y, z, u, v = (float(t) for t in tok[:5])
         except ValueError:
-            raise InputError(f"gcp_list.txt line {lineno} is not 'geo_x geo_y geo_z im_x im_y image [gcp_name]': "
-                             f"{ln.strip()!r}", path=path, fix="repair or delete that line") from None
+            raise InputError(
+                f"gcp_list.txt line {lineno} is not 'geo_x geo_y geo_z im_x im_y image [gcp_name]': {ln.strip()!r}",
+                path=path,
+                fix="repair or delete that line",
+            ) from None
         if not all(math.isfinite(a) for a in (x, y, z, u, v)) or min(u, v) < -0.5:
-            raise InputError(f"gcp_list.txt line {lineno} has a value that is not a coordinate (NaN, infinite or "
-                             f"a negative pixel): {ln.strip()!r}", path=path, fix="repair or delete that line")
+            raise InputError(
+                f"gcp_list.txt line {lineno} has a value that is not a coordinate (NaN, infinite or "
+                f"a negative pixel): {ln.strip()!r}",
+                path=path,
+                fix="repair or delete that line",
+            )
         marks.append(Mark(x, y, z, u, v, tok[5], tok[6] if len(tok) > 6 else "", tok[7:]))
     return header, crs, marks
 

@@ -8,8 +8,8 @@ Reading goes through ``np.fromfile`` + ``cv2.imdecode`` so that non-ASCII paths 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import cv2
 import numpy as np
@@ -43,8 +43,14 @@ def match_name(name: str, known: Iterable[str]) -> str | None:
     return None
 
 
-def list_images(folder: str | Path, suffixes: Iterable[str] = IMAGE_SUFFIXES, *, key: str = "images",
-                fix: str | None = None, min_count: int = 1) -> list[Path]:
+def list_images(
+    folder: str | Path,
+    suffixes: Iterable[str] = IMAGE_SUFFIXES,
+    *,
+    key: str = "images",
+    fix: str | None = None,
+    min_count: int = 1,
+) -> list[Path]:
     """The image files of ``folder``, sorted by name.
 
     ``key`` names the config key that points at the folder, for the messages; fewer than ``min_count``
@@ -60,8 +66,9 @@ def list_images(folder: str | Path, suffixes: Iterable[str] = IMAGE_SUFFIXES, *,
         others = sorted({p.suffix.lower() or p.name for p in folder.iterdir() if p.is_file()})
         kinds = "/".join(s.lstrip(".").upper() for s in suffixes)
         found = f"; found {', '.join(others)}" if others else ""
-        raise InputError(f"{len(files)} image(s) ({kinds}) in the folder, at least {min_count} needed{found}",
-                         path=folder, fix=fix)
+        raise InputError(
+            f"{len(files)} image(s) ({kinds}) in the folder, at least {min_count} needed{found}", path=folder, fix=fix
+        )
     return files
 
 
@@ -102,7 +109,7 @@ def display_rgb(img: np.ndarray) -> np.ndarray:
         return img
     a = img.astype(np.float32)
     finite = a[np.isfinite(a)]
-    lo, hi = (np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0))
+    lo, hi = np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0)
     return (np.clip((np.nan_to_num(a, nan=lo) - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
 
 
@@ -117,8 +124,9 @@ def image_size(path: str | Path) -> tuple[int, int]:
             with rasterio.open(path) as src:
                 return int(src.width), int(src.height)
         except Exception as exc:  # noqa: BLE001
-            raise InputError(f"cannot read the image size: {exc}", path=path,
-                             fix="check that the file is a complete image") from exc
+            raise InputError(
+                f"cannot read the image size: {exc}", path=path, fix="check that the file is a complete image"
+            ) from exc
 
 
 def whole_image_size(path: str | Path) -> tuple[int, int]:
@@ -130,14 +138,20 @@ def whole_image_size(path: str | Path) -> tuple[int, int]:
             warnings.simplefilter("ignore")  # PIL's "Corrupt EXIF data": said below, with the file's name
             size = image_size(path)
     except InputError as exc:
-        raise InputError("not a readable image (broken, truncated or another kind of file)", path=path,
-                         fix="copy the photo again, or move it out of the image folder") from exc
+        raise InputError(
+            "not a readable image (broken, truncated or another kind of file)",
+            path=path,
+            fix="copy the photo again, or move it out of the image folder",
+        ) from exc
     if path.suffix.lower() in JPEG_SUFFIXES:
         check_jpeg(path)
     elif path.suffix.lower() == ".png":
         with open(path, "rb") as fh:
             fh.seek(max(0, path.stat().st_size - 64))
             if b"IEND" not in fh.read():
-                raise InputError("the PNG is truncated (no end chunk)", path=path,
-                                 fix="copy the image again, or move it out of the image folder")
+                raise InputError(
+                    "the PNG is truncated (no end chunk)",
+                    path=path,
+                    fix="copy the image again, or move it out of the image folder",
+                )
     return size

@@ -31,15 +31,15 @@ from matchplant.core.runtime.errors import InputError
 
 MASK_SUFFIXES = IMAGE_SUFFIXES + (".gif", ".webp")  # GIF: what web tools and some labelling apps save
 MODES = ("auto", "binary", "instance")
-SAME_PEAK = 0.04   # objects whose peak value is within 4 % of the mask's top value share its population
+SAME_PEAK = 0.04  # objects whose peak value is within 4 % of the mask's top value share its population
 BINARY_SHARE = 0.7  # ... and when this share of the objects does, the mask is binary
 FLAT_TOP_SHARE = 0.9  # ... or when this share of its flat (interior) pixels is at the top value
-MIN_BLOB = 4       # px: blobs smaller than this do not vote (JPEG speckle)
-FAINT = 0.15      # with many levels, pixels under this share of the top value are noise, not objects
-FEW_LEVELS = 16   # (an instance mask of a few ids may have faint ids: 1 and 7)
-EDGE_PX = 2        # in-between values within this many px of an object edge are its anti-aliasing
-SPAN_WARN = 0.5    # an "instance" whose box covers more of the image than this is suspicious
-PIECES_WARN = 5    # ... as is one falling into more separate pieces than this
+MIN_BLOB = 4  # px: blobs smaller than this do not vote (JPEG speckle)
+FAINT = 0.15  # with many levels, pixels under this share of the top value are noise, not objects
+FEW_LEVELS = 16  # (an instance mask of a few ids may have faint ids: 1 and 7)
+EDGE_PX = 2  # in-between values within this many px of an object edge are its anti-aliasing
+SPAN_WARN = 0.5  # an "instance" whose box covers more of the image than this is suspicious
+PIECES_WARN = 5  # ... as is one falling into more separate pieces than this
 HUE_TOLERANCE = 0.2  # a colour mask whose colours are this close to one hue (scaled to their brightness) ...
 ONE_HUE_SHARE = 0.8  # ... in this share of its pixels is one colour (JPEG's chroma blurs edges)
 
@@ -51,7 +51,7 @@ class MaskObjects:
     boxes: list[LabelledBox]
     mode: str
     reason: str
-    dropped: int = 0           # objects under min_area
+    dropped: int = 0  # objects under min_area
     threshold: float | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -75,8 +75,11 @@ def read_mask(path: str | Path) -> np.ndarray:
                     im = im.convert("L")
                 img = np.asarray(im)
         except Exception as exc:  # noqa: BLE001 - PIL raises many kinds for a file that is no image
-            raise InputError(f"not a readable mask image ({exc.__class__.__name__})", path=path,
-                             fix="save the mask as PNG (8- or 16-bit grey, or RGB), or remove the file") from None
+            raise InputError(
+                f"not a readable mask image ({exc.__class__.__name__})",
+                path=path,
+                fix="save the mask as PNG (8- or 16-bit grey, or RGB), or remove the file",
+            ) from None
     return img
 
 
@@ -95,8 +98,11 @@ def mask_values(mask: np.ndarray) -> tuple[np.ndarray, str]:
             if all(np.ptp(colour[..., c][alpha > 0]) == 0 for c in range(colour.shape[2])):
                 return alpha, "grey"  # the mask is in the alpha band
         mask = colour
-    if mask.shape[2] == 1 or np.array_equal(mask[..., :1], mask[..., 1:2]) and np.array_equal(mask[..., :1],
-                                                                                           mask[..., -1:]):
+    if (
+        mask.shape[2] == 1
+        or np.array_equal(mask[..., :1], mask[..., 1:2])
+        and np.array_equal(mask[..., :1], mask[..., -1:])
+    ):
         return mask[..., 0], "grey"
     rgb = mask[..., :3].astype(np.uint32)
     packed = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
@@ -142,19 +148,23 @@ def decide_mode(values: np.ndarray, kind: str = "grey") -> tuple[str, str]:
     share = float(np.mean(peaks[voting] >= top * (1 - SAME_PEAK)))
     flat_top = _flat_top_share(values, top)  # pixel-weighted: small blurred objects do not sway it
     if share < BINARY_SHARE and flat_top < FLAT_TOP_SHARE:
-        return "instance", (f"{len(levels)} values whose objects peak at different values (only {share:.0%} of "
-                            f"{int(voting.sum())} blobs, {flat_top:.0%} of the flat pixels at the top value "
-                            f"{top:g}): one object per value")
+        return "instance", (
+            f"{len(levels)} values whose objects peak at different values (only {share:.0%} of "
+            f"{int(voting.sum())} blobs, {flat_top:.0%} of the flat pixels at the top value "
+            f"{top:g}): one object per value"
+        )
     fg = (values >= top / 2).astype(np.uint8)
     kernel = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
     edge = (cv2.dilate(fg, kernel) > 0) & ~(cv2.erode(fg, kernel) > 0)
     between = nz & (values > 0.15 * top) & (values < 0.85 * top)
     at_edges = float(edge[between].mean()) if between.any() else 1.0
     what = "one colour on black" if kind == "one-colour" else f"{len(levels)} grey levels"
-    return "binary", (f"{what}, but {share:.0%} of the {int(voting.sum())} objects peak at the same value {top:g} "
-                      f"and {flat_top:.0%} of the interior pixels are at it (two populations: background 0, "
-                      f"foreground ~{top:g}), and {at_edges:.0%} of the in-between pixels lie at object edges "
-                      "(anti-aliasing)")
+    return "binary", (
+        f"{what}, but {share:.0%} of the {int(voting.sum())} objects peak at the same value {top:g} "
+        f"and {flat_top:.0%} of the interior pixels are at it (two populations: background 0, "
+        f"foreground ~{top:g}), and {at_edges:.0%} of the in-between pixels lie at object edges "
+        "(anti-aliasing)"
+    )
 
 
 def _blobs(mask: np.ndarray) -> tuple[int, np.ndarray]:
@@ -167,14 +177,20 @@ def _flat_top_share(values: np.ndarray, top: float) -> float:
     """Of the non-zero pixels equal to their four neighbours (object interiors), the share at the top value: ~1
     in a binary mask (its edges are gradients, never flat), low in an instance mask (every id has an interior)."""
     v = values
-    flat = (v[1:-1, 1:-1] > 0) & (v[1:-1, 1:-1] == v[:-2, 1:-1]) & (v[1:-1, 1:-1] == v[2:, 1:-1]) & \
-        (v[1:-1, 1:-1] == v[1:-1, :-2]) & (v[1:-1, 1:-1] == v[1:-1, 2:])
+    flat = (
+        (v[1:-1, 1:-1] > 0)
+        & (v[1:-1, 1:-1] == v[:-2, 1:-1])
+        & (v[1:-1, 1:-1] == v[2:, 1:-1])
+        & (v[1:-1, 1:-1] == v[1:-1, :-2])
+        & (v[1:-1, 1:-1] == v[1:-1, 2:])
+    )
     inner = v[1:-1, 1:-1][flat]
     return float(np.mean(inner >= top * (1 - SAME_PEAK))) if inner.size else 0.0
 
 
-def mask_objects(mask: np.ndarray, min_area: int = 1, label: str = "plant", mode: str = "auto",
-                 threshold: float | None = None) -> MaskObjects:
+def mask_objects(
+    mask: np.ndarray, min_area: int = 1, label: str = "plant", mode: str = "auto", threshold: float | None = None
+) -> MaskObjects:
     """The objects of a mask (2-D, or RGB(A) colour) as boxes ``[x1, y1, x2, y2]`` in pixel edges.
 
     ``mode`` "auto" decides from the pixels (:func:`decide_mode`); a ``threshold`` (pixel value; foreground
@@ -229,13 +245,17 @@ def _instances(values: np.ndarray, min_area: int, label: str, reason: str) -> Ma
         spans.append((xs.stop - xs.start) * (ys.stop - ys.start) / float(w * h))
     big = [s for s in spans if s > SPAN_WARN]
     if big and len(out.boxes) > 1 or big and max(big) > 0.9:
-        out.warnings.append(f"{len(big)} instance(s) span more than {SPAN_WARN:.0%} of the image (largest "
-                            f"{max(big):.0%}): an anti-aliased or class mask read as instances?")
+        out.warnings.append(
+            f"{len(big)} instance(s) span more than {SPAN_WARN:.0%} of the image (largest "
+            f"{max(big):.0%}): an anti-aliased or class mask read as instances?"
+        )
     pieces = _pieces(ids, nz, k)[keep]
     if len(pieces) and pieces.max() > PIECES_WARN:
         many = int((pieces > PIECES_WARN).sum())
-        out.warnings.append(f"{many} instance(s) fall into more than {PIECES_WARN} separate pieces (up to "
-                            f"{int(pieces.max())}): a class mask (one value per category) read as instances?")
+        out.warnings.append(
+            f"{many} instance(s) fall into more than {PIECES_WARN} separate pieces (up to "
+            f"{int(pieces.max())}): a class mask (one value per category) read as instances?"
+        )
     return out
 
 
@@ -246,5 +266,13 @@ def _pieces(ids: np.ndarray, nz: np.ndarray, k: int) -> np.ndarray:
     return np.bincount(pairs // (n + 1), minlength=k + 1)[1:]
 
 
-__all__ = ["MASK_SUFFIXES", "MODES", "MaskObjects", "decide_mode", "mask_boxes", "mask_objects", "mask_values",
-           "read_mask"]
+__all__ = [
+    "MASK_SUFFIXES",
+    "MODES",
+    "MaskObjects",
+    "decide_mode",
+    "mask_boxes",
+    "mask_objects",
+    "mask_values",
+    "read_mask",
+]

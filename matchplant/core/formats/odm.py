@@ -42,21 +42,34 @@ class Output:
 
 
 OUTPUTS: dict[str, Output] = {
-    "reconstruction": Output("opensfm/reconstruction.json", "camera poses of the original images",
-                             "any completed ODM run (the OpenSfM step)"),
-    "topocentric_reconstruction": Output("opensfm/reconstruction.topocentric.json",
-                                         "the reconstruction in its local frame", "georeferenced ODM runs (>= 2.0)"),
-    "undistorted_reconstruction": Output("opensfm/undistorted/reconstruction.json",
-                                         "camera poses of the undistorted images",
-                                         "the OpenSfM undistort step (do not use --optimize-disk-space)"),
-    "undistorted_images": Output("opensfm/undistorted/images", "undistorted images",
-                                 "the OpenSfM undistort step (do not use --optimize-disk-space)"),
+    "reconstruction": Output(
+        "opensfm/reconstruction.json", "camera poses of the original images", "any completed ODM run (the OpenSfM step)"
+    ),
+    "topocentric_reconstruction": Output(
+        "opensfm/reconstruction.topocentric.json",
+        "the reconstruction in its local frame",
+        "georeferenced ODM runs (>= 2.0)",
+    ),
+    "undistorted_reconstruction": Output(
+        "opensfm/undistorted/reconstruction.json",
+        "camera poses of the undistorted images",
+        "the OpenSfM undistort step (do not use --optimize-disk-space)",
+    ),
+    "undistorted_images": Output(
+        "opensfm/undistorted/images",
+        "undistorted images",
+        "the OpenSfM undistort step (do not use --optimize-disk-space)",
+    ),
     "dsm": Output("odm_dem/dsm.tif", "digital surface model", "--dsm"),
     "dtm": Output("odm_dem/dtm.tif", "digital terrain model", "--dtm"),
-    "orthophoto": Output("odm_orthophoto/odm_orthophoto.tif", "orthophoto",
-                         "the orthophoto step (do not use --skip-orthophoto)"),
-    "coords": Output("odm_georeferencing/coords.txt", "map CRS and offset",
-                     "georeferencing: GPS in the images' EXIF or a gcp_list.txt"),
+    "orthophoto": Output(
+        "odm_orthophoto/odm_orthophoto.tif", "orthophoto", "the orthophoto step (do not use --skip-orthophoto)"
+    ),
+    "coords": Output(
+        "odm_georeferencing/coords.txt",
+        "map CRS and offset",
+        "georeferencing: GPS in the images' EXIF or a gcp_list.txt",
+    ),
 }
 # in a split-merge project these are per submodel; the others (rasters, coords.txt) are merged at the top
 PER_SUBMODEL = ("reconstruction", "topocentric_reconstruction", "undistorted_reconstruction", "undistorted_images")
@@ -68,17 +81,27 @@ def submodel_dirs(root: Path) -> list[Path]:
     folder = Path(root) / SUBMODELS_DIR
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if p.is_dir() and p.name.startswith("submodel_")
-                  and ((p / OUTPUTS["reconstruction"].relpath).is_file()
-                       or (p / OUTPUTS["undistorted_reconstruction"].relpath).is_file()))
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_dir()
+        and p.name.startswith("submodel_")
+        and (
+            (p / OUTPUTS["reconstruction"].relpath).is_file()
+            or (p / OUTPUTS["undistorted_reconstruction"].relpath).is_file()
+        )
+    )
 
 
 class ODMProject:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         if not self.root.is_dir():
-            raise InputError("ODM project folder not found", path=self.root,
-                             fix="point the config at the folder that holds opensfm/, odm_dem/ and odm_orthophoto/")
+            raise InputError(
+                "ODM project folder not found",
+                path=self.root,
+                fix="point the config at the folder that holds opensfm/, odm_dem/ and odm_orthophoto/",
+            )
         subs = submodel_dirs(self.root)
         self.submodels: list[ODMProject] = [ODMProject(p) for p in subs]
         self._warned: set[str] = set()
@@ -93,7 +116,7 @@ class ODMProject:
     def name(self) -> str:
         return self.root.name
 
-    def _raster_source(self, name: str) -> "ODMProject":
+    def _raster_source(self, name: str) -> ODMProject:
         """Where a merged output comes from: the top, else the first submodel that has it (logged once)."""
         if not self.is_split or (self.root / OUTPUTS[name].relpath).is_file():
             return self
@@ -101,8 +124,12 @@ class ODMProject:
             if (sub.root / OUTPUTS[name].relpath).is_file():
                 if name not in self._warned:
                     self._warned.add(name)
-                    log.warning("merged %s missing (%s); using %s's, which covers only that submodel's part "
-                                "of the field", OUTPUTS[name].what, self.root / OUTPUTS[name].relpath, sub.name)
+                    log.warning(
+                        "merged %s missing (%s); using %s's, which covers only that submodel's part of the field",
+                        OUTPUTS[name].what,
+                        self.root / OUTPUTS[name].relpath,
+                        sub.name,
+                    )
                 return sub
         return self
 
@@ -137,8 +164,11 @@ class ODMProject:
         missing = self.missing_paths(self.missing(*names))
         if missing:
             lines = [f"  - {rel} ({OUTPUTS[n].what}): produced by {OUTPUTS[n].produced_by}" for rel, n in missing]
-            raise InputError("the ODM project lacks outputs this step needs:\n" + "\n".join(lines),
-                             path=self.root, fix="re-run ODM with the options named above (module 2 does this)")
+            raise InputError(
+                "the ODM project lacks outputs this step needs:\n" + "\n".join(lines),
+                path=self.root,
+                fix="re-run ODM with the options named above (module 2 does this)",
+            )
 
     def check(self) -> dict[str, bool]:
         """Which outputs exist (for module 2's manifest and for reports)."""
@@ -153,9 +183,11 @@ class ODMProject:
         """One folder's reconstruction; a split project has one per submodel (:attr:`submodels`), each in its
         own frame: use :meth:`shot_ids`, :meth:`shot` and :meth:`frame_of` instead."""
         if self.is_split:
-            raise InputError("a split-merge project has one reconstruction per submodel, each in its own frame",
-                             path=self.root / SUBMODELS_DIR,
-                             fix="read it through shot_ids(), shot() and frame_of() (or one submodel's folder)")
+            raise InputError(
+                "a split-merge project has one reconstruction per submodel, each in its own frame",
+                path=self.root / SUBMODELS_DIR,
+                fix="read it through shot_ids(), shot() and frame_of() (or one submodel's folder)",
+            )
         name = "undistorted_reconstruction" if undistorted else "reconstruction"
         self.require(name)
         return self._read(name)
@@ -179,8 +211,9 @@ class ODMProject:
             name = "reconstruction" if self.has("reconstruction") else "undistorted_reconstruction"
             self.require(name)
             rec = self._read(name)
-            cache[key] = detect_frame(rec.reference_lla, self.coords, self.has("topocentric_reconstruction"), crs,
-                                      source=self.path(name))
+            cache[key] = detect_frame(
+                rec.reference_lla, self.coords, self.has("topocentric_reconstruction"), crs, source=self.path(name)
+            )
         return cache[key]
 
     # -- shots, over the submodels of a split project ---------------------------------------------
@@ -191,16 +224,18 @@ class ODMProject:
             return {sid for sid, sub in self._owners.items() if sub.has(name) and sid in sub.shot_ids(undistorted)}
         return set(self._read(name).shots) if self.has(name) else set()
 
-    def owner(self, shot_id: str) -> "ODMProject":
+    def owner(self, shot_id: str) -> ODMProject:
         """The folder whose reconstruction places ``shot_id``: the project itself, or one submodel."""
         if not self.is_split:
             return self
         try:
             return self._owners[shot_id]
         except KeyError:
-            raise InputError(f"image '{shot_id}' is in none of the {len(self.submodels)} submodels' "
-                             "reconstructions", path=self.root / SUBMODELS_DIR,
-                             fix="ODM could not place this image; use another image, or check the name") from None
+            raise InputError(
+                f"image '{shot_id}' is in none of the {len(self.submodels)} submodels' reconstructions",
+                path=self.root / SUBMODELS_DIR,
+                fix="ODM could not place this image; use another image, or check the name",
+            ) from None
 
     def own_raster(self, shot_id: str, name: str = "dsm") -> Path | None:
         """The raster ``name`` of the submodel that places ``shot_id`` (ODM leaves each submodel's own DSM, DTM and
@@ -216,7 +251,7 @@ class ODMProject:
         return self.owner(shot_id).frame(self.frame().crs)
 
     @cached_property
-    def _owners(self) -> dict[str, "ODMProject"]:
+    def _owners(self) -> dict[str, ODMProject]:
         """Shot id -> the submodel it is used from. An image in several submodels (the split overlap) is used
         from the one whose cameras' centroid (map CRS) is nearest to it, where it lies least near an edge."""
         crs = self.frame().crs
@@ -234,9 +269,12 @@ class ODMProject:
             ids = sorted(shots)
             frame = sub.frame(crs)
             if not frame.crs.equals(crs):
-                raise InputError(f"submodel {sub.name} is in {frame.crs.name}, the merged outputs in {crs.name}",
-                                 path=sub.path("coords"), fix="re-run ODM's split-merge so that every submodel "
-                                                              "shares the map CRS of odm_georeferencing/coords.txt")
+                raise InputError(
+                    f"submodel {sub.name} is in {frame.crs.name}, the merged outputs in {crs.name}",
+                    path=sub.path("coords"),
+                    fix="re-run ODM's split-merge so that every submodel "
+                    "shares the map CRS of odm_georeferencing/coords.txt",
+                )
             centres = frame.to_map(np.array([shots[i].center for i in ids]))
             centroids.append(centres[:, :2].mean(axis=0))
             for sid, c in zip(ids, centres):
@@ -251,8 +289,12 @@ class ODMProject:
             owners[sid] = cands[int(np.argmin(dist))][0]
             shared.append(f"{sid} -> {owners[sid].name} (of {', '.join(s.name for s, _ in cands)})")
         if shared:
-            log.info("%d images appear in more than one submodel (the split overlap); each is used once, from the "
-                     "submodel whose cameras are centred nearest to it, e.g. %s", len(shared), "; ".join(shared[:3]))
+            log.info(
+                "%d images appear in more than one submodel (the split overlap); each is used once, from the "
+                "submodel whose cameras are centred nearest to it, e.g. %s",
+                len(shared),
+                "; ".join(shared[:3]),
+            )
             for line in shared:
                 log.debug("split overlap: %s", line)
         return owners
@@ -268,8 +310,11 @@ class ODMProject:
         loose = self.undistorted_images().get(shot_id)
         if loose is not None:
             return loose
-        raise InputError(f"undistorted image of '{shot_id}' not found", path=folder / f"{shot_id}.tif",
-                         fix="the undistort step did not finish; re-run ODM without --optimize-disk-space")
+        raise InputError(
+            f"undistorted image of '{shot_id}' not found",
+            path=folder / f"{shot_id}.tif",
+            fix="the undistort step did not finish; re-run ODM without --optimize-disk-space",
+        )
 
     def undistorted_images(self) -> dict[str, Path]:
         """Shot id -> undistorted image path, for every undistorted image present (in a split project, each
@@ -305,8 +350,14 @@ class ODMProject:
                 out[sid] = out.pop(name)
             if matched:
                 first = next(iter(matched.items()))
-                log.warning("%d undistorted image name(s) differ from their shot ids by case or extension and were "
-                            "matched (e.g. %s -> shot %s) in %s", len(matched), out[first[1]].name, first[1], folder)
+                log.warning(
+                    "%d undistorted image name(s) differ from their shot ids by case or extension and were "
+                    "matched (e.g. %s -> shot %s) in %s",
+                    len(matched),
+                    out[first[1]].name,
+                    first[1],
+                    folder,
+                )
         return out
 
     def shot(self, shot_id: str, undistorted: bool = True) -> Shot:
@@ -328,4 +379,3 @@ class ODMProject:
         name = "undistorted_reconstruction" if undistorted else "reconstruction"
         owner.require(name)
         return owner._read(name).shot(shot_id)
-

@@ -6,8 +6,8 @@ Format: ``{image file name: [[u, v], ...]}``, at least three points per polygon,
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
@@ -19,8 +19,13 @@ FIX = "use the owned_areas.json written by module 3 (3_min_img_finder)"
 
 def write_owned_areas(path: str | Path, polygons: Mapping[str, np.ndarray]) -> Path:
     """Write ``{image file name: (N, 2) pixel polygon}``, rounded to 0.01 px."""
-    return write_json(path, {name: [[round(float(u), 2), round(float(v), 2)] for u, v in np.asarray(poly)]
-                             for name, poly in polygons.items()})
+    return write_json(
+        path,
+        {
+            name: [[round(float(u), 2), round(float(v), 2)] for u, v in np.asarray(poly)]
+            for name, poly in polygons.items()
+        },
+    )
 
 
 def read_owned_areas(path: str | Path | None) -> dict[str, np.ndarray]:
@@ -37,7 +42,8 @@ def read_owned_areas(path: str | Path | None) -> dict[str, np.ndarray]:
         except (TypeError, ValueError):
             arr = np.zeros((0,))
         if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) < 3 or not np.isfinite(arr).all():
-            raise InputError(f"the polygon of '{name}' is not a list of at least 3 finite [u, v] points",
-                             path=path, fix=FIX)
+            raise InputError(
+                f"the polygon of '{name}' is not a list of at least 3 finite [u, v] points", path=path, fix=FIX
+            )
         out[name] = arr
     return out

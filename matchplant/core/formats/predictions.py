@@ -44,22 +44,38 @@ def _structure(data, path: Path, images_from) -> dict:
     image."""
     if isinstance(data, list):
         if images_from is None:
-            raise InputError("this is a plain COCO results list; it has no image names", path=path,
-                             fix="also give the COCO dataset the predictions were made on")
+            raise InputError(
+                "this is a plain COCO results list; it has no image names",
+                path=path,
+                fix="also give the COCO dataset the predictions were made on",
+            )
         ds = read_dataset(images_from, validate=False)
         data = {"images": ds["images"], "categories": ds["categories"], "predictions": data}
     if not isinstance(data, dict) or "predictions" not in data or "images" not in data:
-        raise InputError("not a predictions file (needs 'images' and 'predictions')", path=path,
-                         fix="give the predictions JSON written by module 7")
-    if not isinstance(data["images"], list) or not all(isinstance(im, dict) and "id" in im for im in data["images"]) \
-            or not isinstance(data["predictions"], list) or not all(isinstance(p, dict) for p in data["predictions"]):
-        raise InputError("'images' and 'predictions' must be lists of objects (images with an 'id')", path=path,
-                         fix="give the predictions JSON written by module 7")
+        raise InputError(
+            "not a predictions file (needs 'images' and 'predictions')",
+            path=path,
+            fix="give the predictions JSON written by module 7",
+        )
+    if (
+        not isinstance(data["images"], list)
+        or not all(isinstance(im, dict) and "id" in im for im in data["images"])
+        or not isinstance(data["predictions"], list)
+        or not all(isinstance(p, dict) for p in data["predictions"])
+    ):
+        raise InputError(
+            "'images' and 'predictions' must be lists of objects (images with an 'id')",
+            path=path,
+            fix="give the predictions JSON written by module 7",
+        )
     known = {im["id"] for im in data["images"]}
     orphans = [p for p in data["predictions"] if p.get("image_id") not in known]
     if orphans:
-        raise InputError(f"{len(orphans)} prediction(s) refer to images not listed in the file", path=path,
-                         fix="regenerate the predictions with module 7")
+        raise InputError(
+            f"{len(orphans)} prediction(s) refer to images not listed in the file",
+            path=path,
+            fix="regenerate the predictions with module 7",
+        )
     data.setdefault("categories", [{"id": 1, "name": "plant"}])
     return data
 
@@ -68,36 +84,52 @@ def _check_kind(data, path: Path, images_from) -> None:
     """A COCO dataset, a results list without its images, or a file of another kind, said in those words."""
     if isinstance(data, list):
         if images_from is None:
-            raise ConfigError(f"the predictions file is a plain COCO results list ({len(data)} boxes) without "
-                              "image names", path=path,
-                              fix="set 'images_from' to the COCO dataset the predictions were made on (it names "
-                                  "the images), or give module 7's predictions.json")
+            raise ConfigError(
+                f"the predictions file is a plain COCO results list ({len(data)} boxes) without image names",
+                path=path,
+                fix="set 'images_from' to the COCO dataset the predictions were made on (it names "
+                "the images), or give module 7's predictions.json",
+            )
         if not all(isinstance(p, dict) for p in data):
-            raise InputError("the predictions file is a list, but not of detections {image_id, bbox, score}",
-                             path=path, fix=FIX_PREDICTIONS)
+            raise InputError(
+                "the predictions file is a list, but not of detections {image_id, bbox, score}",
+                path=path,
+                fix=FIX_PREDICTIONS,
+            )
         return
     if not isinstance(data, dict):
-        raise InputError(f"the predictions file holds a {type(data).__name__}, not predictions", path=path,
-                         fix=FIX_PREDICTIONS)
+        raise InputError(
+            f"the predictions file holds a {type(data).__name__}, not predictions", path=path, fix=FIX_PREDICTIONS
+        )
     if "predictions" not in data and "annotations" in data:
-        raise InputError("this is a COCO dataset ('images' and 'annotations': labelled boxes), not predictions",
-                         path=path, fix="give module 7's predictions JSON; to project labelled boxes, rename "
-                                        "their 'annotations' key to 'predictions'")
+        raise InputError(
+            "this is a COCO dataset ('images' and 'annotations': labelled boxes), not predictions",
+            path=path,
+            fix="give module 7's predictions JSON; to project labelled boxes, rename "
+            "their 'annotations' key to 'predictions'",
+        )
     if "predictions" not in data:
         hint = did_you_mean("predictions", data)
-        raise InputError(f"the predictions file has no 'predictions'{'; ' + hint if hint else ''} (keys: "
-                         f"{', '.join(map(str, data)) or 'none'})", path=path, fix=FIX_PREDICTIONS)
+        raise InputError(
+            f"the predictions file has no 'predictions'{'; ' + hint if hint else ''} (keys: "
+            f"{', '.join(map(str, data)) or 'none'})",
+            path=path,
+            fix=FIX_PREDICTIONS,
+        )
     if "images" not in data:
-        raise InputError("the predictions file has 'predictions' but no 'images' (the image names)", path=path,
-                         fix=FIX_PREDICTIONS)
+        raise InputError(
+            "the predictions file has 'predictions' but no 'images' (the image names)", path=path, fix=FIX_PREDICTIONS
+        )
 
 
 def _check_entries(preds: dict, path: Path) -> None:
     """At least one detection; every image entry, the categories and every detection usable."""
     if not preds["predictions"]:
-        raise InputError("the predictions file holds no detections ('predictions' is empty)", path=path,
-                         fix="run module 7 again (check its score threshold), or point 'predictions' at the "
-                             "right file")
+        raise InputError(
+            "the predictions file holds no detections ('predictions' is empty)",
+            path=path,
+            fix="run module 7 again (check its score threshold), or point 'predictions' at the right file",
+        )
     images = {im["id"]: im for im in preds["images"]}
     for k, im in enumerate(preds["images"]):
         name = im.get("source_image") or im.get("file_name")
@@ -105,8 +137,9 @@ def _check_entries(preds: dict, path: Path) -> None:
             raise InputError(f"images[{k}] (id {im['id']!r}) has no 'file_name'", path=path, fix=FIX_PREDICTIONS)
         for key in ("x0", "y0", "width", "height"):  # a tile's place in its photo, and the image size
             if im.get(key) is not None and not (_number(im[key]) and im[key] >= 0):
-                raise InputError(f"images[{k}] ('{name}'): '{key}' is {im[key]!r}, not a number >= 0", path=path,
-                                 fix=FIX_PREDICTIONS)
+                raise InputError(
+                    f"images[{k}] ('{name}'): '{key}' is {im[key]!r}, not a number >= 0", path=path, fix=FIX_PREDICTIONS
+                )
     cats = preds.get("categories")
     if not isinstance(cats, list) or not all(isinstance(c, dict) and "id" in c for c in cats):
         raise InputError("'categories' must be a list of objects with an 'id'", path=path, fix=FIX_PREDICTIONS)
@@ -122,26 +155,40 @@ def _check_prediction(i: int, p: dict, image: str, path: Path) -> None:
     where = f"predictions[{i}] (image '{image}')"
     bbox = p.get("bbox")
     if not (isinstance(bbox, (list, tuple)) and len(bbox) == 4 and all(_number(v) for v in bbox)):
-        raise InputError(f"{where}: bbox {bbox!r} is not four finite numbers [x, y, width, height]", path=path,
-                         fix="regenerate the predictions (module 7), or remove that box")
+        raise InputError(
+            f"{where}: bbox {bbox!r} is not four finite numbers [x, y, width, height]",
+            path=path,
+            fix="regenerate the predictions (module 7), or remove that box",
+        )
     x, y, w, h = (float(v) for v in bbox)
     if w < 0 or h < 0:
         corners = " (it looks like [x1, y1, x2, y2] with the corners swapped)" if w + x >= 0 and h + y >= 0 else ""
-        raise InputError(f"{where}: bbox {bbox!r} has a negative width or height{corners}", path=path,
-                         fix="COCO boxes are [x, y, width, height] with width, height >= 0; convert the boxes")
+        raise InputError(
+            f"{where}: bbox {bbox!r} has a negative width or height{corners}",
+            path=path,
+            fix="COCO boxes are [x, y, width, height] with width, height >= 0; convert the boxes",
+        )
     if "score" in p:
         s = p["score"]
         if not _number(s) or not 0.0 <= float(s) <= 1.0:
             pct = " (a percentage? scores are 0..1)" if _number(s) and 1.0 < float(s) <= 100.0 else ""
-            raise InputError(f"{where}: score {s!r} is not a number in [0, 1]{pct}", path=path,
-                             fix="scores must be probabilities between 0 and 1; divide percentages by 100")
+            raise InputError(
+                f"{where}: score {s!r} is not a number in [0, 1]{pct}",
+                path=path,
+                fix="scores must be probabilities between 0 and 1; divide percentages by 100",
+            )
     cat = p.get("category_id", 1)
     if not (_number(cat) and float(cat) == int(cat)):
         raise InputError(f"{where}: category_id {cat!r} is not an integer", path=path, fix=FIX_PREDICTIONS)
 
 
-def write_predictions(path: str | Path, images: list[dict], categories: list[dict],
-                      predictions: list[dict], info: dict | None = None) -> Path:
-    data = {"info": info or {"description": "MatchPlant predictions"}, "images": images,
-            "categories": categories, "predictions": predictions}
+def write_predictions(
+    path: str | Path, images: list[dict], categories: list[dict], predictions: list[dict], info: dict | None = None
+) -> Path:
+    data = {
+        "info": info or {"description": "MatchPlant predictions"},
+        "images": images,
+        "categories": categories,
+        "predictions": predictions,
+    }
     return write_json(path, data, indent=None)

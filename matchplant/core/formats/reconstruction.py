@@ -33,15 +33,21 @@ class Reconstruction:
         try:
             return self.shots[shot_id]
         except KeyError:
-            raise InputError(f"image '{shot_id}' is not in the reconstruction ({len(self.shots)} images are)",
-                             path=self.path, fix="ODM could not place this image; use another image, "
-                                                 "or check the image name") from None
+            raise InputError(
+                f"image '{shot_id}' is not in the reconstruction ({len(self.shots)} images are)",
+                path=self.path,
+                fix="ODM could not place this image; use another image, or check the image name",
+            ) from None
 
     def to_opensfm(self) -> list:
-        rec = {"cameras": {cid: cam.to_opensfm() for cid, cam in self.cameras.items()},
-               "shots": {sid: shot.to_opensfm() for sid, shot in self.shots.items()},
-               "points": {pid: {"coordinates": [float(c) for c in xyz], "color": [128.0, 128.0, 128.0]}
-                          for pid, xyz in zip(self.point_ids, self.points)}}
+        rec = {
+            "cameras": {cid: cam.to_opensfm() for cid, cam in self.cameras.items()},
+            "shots": {sid: shot.to_opensfm() for sid, shot in self.shots.items()},
+            "points": {
+                pid: {"coordinates": [float(c) for c in xyz], "color": [128.0, 128.0, 128.0]}
+                for pid, xyz in zip(self.point_ids, self.points)
+            },
+        }
         if self.reference_lla is not None:
             rec["reference_lla"] = dict(self.reference_lla)
         return [rec]
@@ -65,13 +71,19 @@ def read_reconstruction(path: str | Path) -> Reconstruction:
             log.info("%s holds one reconstruction object, not OpenSfM's list of them: read as a list of one", path)
         data = [data]
     if not isinstance(data, list) or not data or not all(isinstance(r, dict) for r in data):
-        raise InputError("not an OpenSfM reconstruction (expected a list of reconstructions, each with 'cameras' "
-                         "and 'shots')", path=path, fix="point to opensfm/reconstruction.json of an ODM project")
+        raise InputError(
+            "not an OpenSfM reconstruction (expected a list of reconstructions, each with 'cameras' and 'shots')",
+            path=path,
+            fix="point to opensfm/reconstruction.json of an ODM project",
+        )
     if not any("shots" in r or "cameras" in r for r in data):
         hint = did_you_mean("shots", data[0])
-        raise InputError(f"not an OpenSfM reconstruction: no 'cameras' or 'shots' (keys: "
-                         f"{', '.join(map(str, data[0])) or 'none'}){'; ' + hint if hint else ''}", path=path,
-                         fix=RESTORE)
+        raise InputError(
+            f"not an OpenSfM reconstruction: no 'cameras' or 'shots' (keys: "
+            f"{', '.join(map(str, data[0])) or 'none'}){'; ' + hint if hint else ''}",
+            path=path,
+            fix=RESTORE,
+        )
     cameras: dict[str, Camera] = {}
     shots: dict[str, Shot] = {}
     pids: list[str] = []
@@ -85,39 +97,50 @@ def read_reconstruction(path: str | Path) -> Reconstruction:
             except MatchPlantError as exc:
                 raise InputError(f"{where}cameras.'{cid}': {exc.problem}", path=path, fix=exc.fix) from exc
             except (TypeError, ValueError) as exc:
-                raise InputError(f"{where}cameras.'{cid}' has a value that is not a number ({exc})", path=path,
-                                 fix=RESTORE) from exc
+                raise InputError(
+                    f"{where}cameras.'{cid}' has a value that is not a number ({exc})", path=path, fix=RESTORE
+                ) from exc
             cam = cameras[cid]
             if cam.width <= 0 or cam.height <= 0 or not (np.isfinite(cam.focal_x) and cam.focal_x > 0):
-                raise InputError(f"{where}cameras.'{cid}' has an impossible size or focal length ({cam.width}x"
-                                 f"{cam.height}, focal {cam.focal_x:g})", path=path, fix=RESTORE)
+                raise InputError(
+                    f"{where}cameras.'{cid}' has an impossible size or focal length ({cam.width}x"
+                    f"{cam.height}, focal {cam.focal_x:g})",
+                    path=path,
+                    fix=RESTORE,
+                )
         reference = reference or rec.get("reference_lla")
         for sid, sd in _section(rec, "shots", where, path).items():
             shots[sid] = _shot(sid, sd, cameras, f"{where}shots.'{sid}'", path)
         for pid, pd in _section(rec, "points", where, path).items():
             xyz = pd.get("coordinates") if isinstance(pd, dict) else None
             if not _vector(xyz):
-                raise InputError(f"{where}points.'{pid}'.coordinates is not three numbers: {xyz!r}", path=path,
-                                 fix=RESTORE)
+                raise InputError(
+                    f"{where}points.'{pid}'.coordinates is not three numbers: {xyz!r}", path=path, fix=RESTORE
+                )
             pids.append(pid)
             pts.append(xyz)
-    if reference is not None and not (isinstance(reference, dict) and
-                                      all(_finite(reference.get(key)) for key in ("latitude", "longitude"))):
+    if reference is not None and not (
+        isinstance(reference, dict) and all(_finite(reference.get(key)) for key in ("latitude", "longitude"))
+    ):
         raise InputError(f"reference_lla is not a latitude/longitude: {reference!r}", path=path, fix=RESTORE)
     if not shots:
-        raise InputError("the reconstruction holds no images (its 'shots' are empty)", path=path,
-                         fix="ODM did not reconstruct anything: check its log, the image overlap and the GPS "
-                             "tags, then re-run it")
+        raise InputError(
+            "the reconstruction holds no images (its 'shots' are empty)",
+            path=path,
+            fix="ODM did not reconstruct anything: check its log, the image overlap and the GPS tags, then re-run it",
+        )
     points = np.asarray(pts, dtype=float).reshape(-1, 3)
-    return Reconstruction(cameras=cameras, shots=shots, point_ids=pids, points=points,
-                          reference_lla=reference, path=path)
+    return Reconstruction(
+        cameras=cameras, shots=shots, point_ids=pids, points=points, reference_lla=reference, path=path
+    )
 
 
 def _section(rec: dict, key: str, where: str, path: Path) -> dict:
     value = rec.get(key, {})
     if not isinstance(value, dict):
-        raise InputError(f"{where}'{key}' holds {type(value).__name__}, expected an object {{id: ...}}", path=path,
-                         fix=RESTORE)
+        raise InputError(
+            f"{where}'{key}' holds {type(value).__name__}, expected an object {{id: ...}}", path=path, fix=RESTORE
+        )
     return value
 
 
@@ -140,15 +163,23 @@ def _shot(sid: str, sd, cameras: dict[str, Camera], key: str, path: Path) -> Sho
     cid = sd.get("camera")
     if cid not in cameras:
         hint = did_you_mean(str(cid), cameras)
-        raise InputError(f"{key}.camera '{cid}' is not among the file's cameras"
-                         f"{'; ' + hint if hint else ''} ({len(cameras)} cameras)", path=path, fix=RESTORE)
+        raise InputError(
+            f"{key}.camera '{cid}' is not among the file's cameras"
+            f"{'; ' + hint if hint else ''} ({len(cameras)} cameras)",
+            path=path,
+            fix=RESTORE,
+        )
     gps = sd.get("gps_position")
     known = {"rotation", "translation", "camera", "capture_time", "gps_position"}
-    return Shot(id=sid, camera=cameras[cid], rotation=np.asarray(sd["rotation"], dtype=float),
-                translation=np.asarray(sd["translation"], dtype=float),
-                capture_time=sd.get("capture_time"),
-                gps_position=tuple(gps) if isinstance(gps, (list, tuple)) else None,
-                extra={k: v for k, v in sd.items() if k not in known})
+    return Shot(
+        id=sid,
+        camera=cameras[cid],
+        rotation=np.asarray(sd["rotation"], dtype=float),
+        translation=np.asarray(sd["translation"], dtype=float),
+        capture_time=sd.get("capture_time"),
+        gps_position=tuple(gps) if isinstance(gps, (list, tuple)) else None,
+        extra={k: v for k, v in sd.items() if k not in known},
+    )
 
 
 def write_reconstruction(path: str | Path, recon: Reconstruction) -> Path:

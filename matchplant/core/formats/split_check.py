@@ -31,10 +31,15 @@ def split_problems(project: ODMProject) -> list[str]:
         return []
     problems = []
     for p in sorted(folder.iterdir()):
-        if p.is_dir() and p.name.startswith("submodel_") and not any(
-                (p / OUTPUTS[n].relpath).is_file() for n in ("reconstruction", "undistorted_reconstruction")):
-            problems.append(f"{SUBMODELS_DIR}/{p.name} has no {OUTPUTS['reconstruction'].relpath} (its node failed "
-                            f"or its results were not copied back): that part of the field would be missing")
+        if (
+            p.is_dir()
+            and p.name.startswith("submodel_")
+            and not any((p / OUTPUTS[n].relpath).is_file() for n in ("reconstruction", "undistorted_reconstruction"))
+        ):
+            problems.append(
+                f"{SUBMODELS_DIR}/{p.name} has no {OUTPUTS['reconstruction'].relpath} (its node failed "
+                f"or its results were not copied back): that part of the field would be missing"
+            )
     if len(project.submodels) > 1:
         try:
             problems += _frame_problems(project)
@@ -47,11 +52,13 @@ def check_split(project: ODMProject) -> None:
     """An error naming every incomplete or foreign submodel of a split-merge project (nothing when whole)."""
     problems = split_problems(project)
     if problems:
-        raise InputError("the split-merge project is not whole: " + "; ".join(problems),
-                         path=project.root / SUBMODELS_DIR,
-                         fix="copy the missing or foreign submodel's results of THIS run back (ClusterODM: check that "
-                             "node's log, or re-run ODM with --split), or move that submodel folder out of "
-                             "submodels/ to process the field without its part")
+        raise InputError(
+            "the split-merge project is not whole: " + "; ".join(problems),
+            path=project.root / SUBMODELS_DIR,
+            fix="copy the missing or foreign submodel's results of THIS run back (ClusterODM: check that "
+            "node's log, or re-run ODM with --split), or move that submodel folder out of "
+            "submodels/ to process the field without its part",
+        )
 
 
 def _shots(sub: ODMProject) -> dict:
@@ -91,9 +98,11 @@ def _frame_problems(project: ODMProject) -> list[str]:
         _, _, dist = GEOD.inv(refs[k][0], refs[k][1], lon, lat)
         if dist > max(FAR_REFERENCE_M, 2 * span):
             far.add(k)
-            problems.append(f"{SUBMODELS_DIR}/{subs[k].name}: its reference_lla ({refs[k][1]:.6f}, {refs[k][0]:.6f}) "
-                            f"is {dist / 1000:.1f} km from {what} (a field {span:.0f} m across): copied from "
-                            "another run?")
+            problems.append(
+                f"{SUBMODELS_DIR}/{subs[k].name}: its reference_lla ({refs[k][1]:.6f}, {refs[k][0]:.6f}) "
+                f"is {dist / 1000:.1f} km from {what} (a field {span:.0f} m across): copied from "
+                "another run?"
+            )
     for p in range(len(subs)):
         for q in range(p + 1, len(subs)):
             shared = sorted(set(placed[p]) & set(placed[q]))
@@ -101,9 +110,11 @@ def _frame_problems(project: ODMProject) -> list[str]:
                 continue
             gap = float(np.median([np.hypot(*(placed[p][s] - placed[q][s])) for s in shared]))
             if gap > SHARED_TOLERANCE_M:
-                problems.append(f"{SUBMODELS_DIR}/{subs[p].name} and {subs[q].name} place the {len(shared)} images they "
-                                f"share (e.g. {shared[0]}) {gap:.1f} m apart (ODM aligns them to centimetres): one of "
-                                "them is from another run")
+                problems.append(
+                    f"{SUBMODELS_DIR}/{subs[p].name} and {subs[q].name} place the {len(shared)} images they "
+                    f"share (e.g. {shared[0]}) {gap:.1f} m apart (ODM aligns them to centimetres): one of "
+                    "them is from another run"
+                )
     return problems
 
 

@@ -14,8 +14,8 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 from pandas.api.types import is_bool_dtype
 
@@ -26,20 +26,27 @@ VECTOR_FORMATS = ("gpkg", "shp", "geojson")
 DRIVERS = {".gpkg": "GPKG", ".shp": "ESRI Shapefile", ".geojson": "GeoJSON"}
 
 # the short names a shapefile shows for the plants' longer column names
-SHAPEFILE_NAMES = {"source_image": "src_image", "off_nadir_deg": "off_nadir", "category_id": "cat_id",
-                   "score_max": "score_max", "truth_plant_id": "truth_id"}
+SHAPEFILE_NAMES = {
+    "source_image": "src_image",
+    "off_nadir_deg": "off_nadir",
+    "category_id": "cat_id",
+    "score_max": "score_max",
+    "truth_plant_id": "truth_id",
+}
 
 
-def write_vector(gdf, path: str | Path, *, layer: str | None = None,
-                 shapefile_columns: Sequence[str] | None = None) -> Path:
+def write_vector(
+    gdf, path: str | Path, *, layer: str | None = None, shapefile_columns: Sequence[str] | None = None
+) -> Path:
     """One layer to ``path``, the driver chosen by its suffix; ``layer`` names it in a GeoPackage or GeoJSON
     (default: the file's stem, not the temporary name's). ``shapefile_columns``: the only columns a shapefile
     keeps (default: all, with short names)."""
     path = Path(path)
     driver = DRIVERS.get(path.suffix.lower())
     if driver is None:
-        raise ConfigError(f"cannot write a vector file named {path.name}", path=path,
-                          fix=f"name it with one of {', '.join(DRIVERS)}")
+        raise ConfigError(
+            f"cannot write a vector file named {path.name}", path=path, fix=f"name it with one of {', '.join(DRIVERS)}"
+        )
     if driver == "ESRI Shapefile":
         return _write_shapefile(gdf, path, shapefile_columns)
     with atomic_path(path) as tmp:
@@ -47,8 +54,9 @@ def write_vector(gdf, path: str | Path, *, layer: str | None = None,
     return path
 
 
-def write_layers(layers: Mapping[str, object], path: str | Path, *,
-                 shapefile_columns: Sequence[str] | None = None) -> list[Path]:
+def write_layers(
+    layers: Mapping[str, object], path: str | Path, *, shapefile_columns: Sequence[str] | None = None
+) -> list[Path]:
     """Named layers: all in one GeoPackage; in a format of one layer per file, the first layer goes to
     ``path`` and each other one to ``<stem>_<layer><suffix>`` beside it. Returns the files written."""
     path = Path(path)
@@ -57,18 +65,31 @@ def write_layers(layers: Mapping[str, object], path: str | Path, *,
             for name, gdf in layers.items():
                 gdf.to_file(tmp, layer=name, driver="GPKG")
         return [path]
-    return [write_vector(gdf, path if k == 0 else path.with_name(f"{path.stem}_{name}{path.suffix}"), layer=name,
-                         shapefile_columns=shapefile_columns)
-            for k, (name, gdf) in enumerate(layers.items())]
+    return [
+        write_vector(
+            gdf,
+            path if k == 0 else path.with_name(f"{path.stem}_{name}{path.suffix}"),
+            layer=name,
+            shapefile_columns=shapefile_columns,
+        )
+        for k, (name, gdf) in enumerate(layers.items())
+    ]
 
 
-def write_formats(layers: Mapping[str, object], base: str | Path, formats: Sequence[str], *,
-                  shapefile_columns: Sequence[str] | None = None) -> dict[str, Path]:
+def write_formats(
+    layers: Mapping[str, object],
+    base: str | Path,
+    formats: Sequence[str],
+    *,
+    shapefile_columns: Sequence[str] | None = None,
+) -> dict[str, Path]:
     """The layers (:func:`write_layers`) in every format of ``formats`` (names from :data:`VECTOR_FORMATS`),
     as ``<base>.<format>``; returns ``{format: main file}``."""
     base = Path(base)
-    return {fmt: write_layers(layers, base.with_name(f"{base.name}.{fmt}"), shapefile_columns=shapefile_columns)[0]
-            for fmt in formats}
+    return {
+        fmt: write_layers(layers, base.with_name(f"{base.name}.{fmt}"), shapefile_columns=shapefile_columns)[0]
+        for fmt in formats
+    }
 
 
 def _write_shapefile(gdf, path: Path, columns: Sequence[str] | None) -> Path:

@@ -26,8 +26,8 @@ LINE_FORMAT = "'class cx cy w h' (five values: a class index, then the box centr
 
 
 class YoloBox(NamedTuple):
-    xyxy: list[float]   # [x1, y1, x2, y2] in pixels of the image
-    category: str       # class name from classes.txt
+    xyxy: list[float]  # [x1, y1, x2, y2] in pixels of the image
+    category: str  # class name from classes.txt
 
 
 def coco_to_yolo(dataset: dict, out_dir: str | Path, labels_subdir: str = "") -> Path:
@@ -44,8 +44,9 @@ def coco_to_yolo(dataset: dict, out_dir: str | Path, labels_subdir: str = "") ->
     for a in dataset["annotations"]:
         w_im, h_im = sizes[a["image_id"]]
         x, y, w, h = a["bbox"]
-        by_image[a["image_id"]].append(f"{index[a['category_id']]} {(x + w / 2) / w_im:.8f} "
-                                       f"{(y + h / 2) / h_im:.8f} {w / w_im:.8f} {h / h_im:.8f}")
+        by_image[a["image_id"]].append(
+            f"{index[a['category_id']]} {(x + w / 2) / w_im:.8f} {(y + h / 2) / h_im:.8f} {w / w_im:.8f} {h / h_im:.8f}"
+        )
     labels = out_dir / labels_subdir
     for im in dataset["images"]:
         write_text(labels / (Path(im["file_name"]).stem + ".txt"), "".join(l + "\n" for l in by_image[im["id"]]))
@@ -57,8 +58,11 @@ def find_classes_file(labels_dir: Path) -> Path:
     for candidate in (labels_dir / CLASSES_NAME, labels_dir.parent / CLASSES_NAME):
         if candidate.is_file():
             return candidate
-    raise InputError("YOLO labels need a classes.txt (one class name per line)", path=labels_dir / CLASSES_NAME,
-                     fix="put classes.txt in the labels folder or its parent")
+    raise InputError(
+        "YOLO labels need a classes.txt (one class name per line)",
+        path=labels_dir / CLASSES_NAME,
+        fix="put classes.txt in the labels folder or its parent",
+    )
 
 
 def read_classes(labels_dir: Path) -> list[str]:
@@ -69,19 +73,24 @@ def read_classes(labels_dir: Path) -> list[str]:
         raise InputError("classes.txt is empty", path=path, fix="write one class name per line, e.g. plant")
     repeated = sorted({c for c in classes if classes.count(c) > 1})
     if repeated:
-        raise InputError(f"classes.txt names {repeated} more than once", path=path,
-                         fix="give each class one line (the line number is the class index, from 0)")
+        raise InputError(
+            f"classes.txt names {repeated} more than once",
+            path=path,
+            fix="give each class one line (the line number is the class index, from 0)",
+        )
     return classes
 
 
 def label_files(labels_dir: Path) -> list[Path]:
     """The ``.txt`` label files of a folder (not ``classes.txt``, hidden files or macOS ``._*`` forks)."""
-    return sorted(p for p in labels_dir.glob("*.txt")
-                  if p.is_file() and p.name != CLASSES_NAME and not p.name.startswith("."))
+    return sorted(
+        p for p in labels_dir.glob("*.txt") if p.is_file() and p.name != CLASSES_NAME and not p.name.startswith(".")
+    )
 
 
-def read_yolo(labels_dir: str | Path, sizes: dict[str, tuple[int, int]],
-              drops: DropLog | None = None) -> tuple[list[str], dict[str, list[YoloBox]]]:
+def read_yolo(
+    labels_dir: str | Path, sizes: dict[str, tuple[int, int]], drops: DropLog | None = None
+) -> tuple[list[str], dict[str, list[YoloBox]]]:
     """Read YOLO labels for the images in ``sizes`` (name -> (width, height)); returns (classes, boxes).
 
     Only images with a label file are in ``boxes`` (an empty label file is an image without plants).
@@ -105,32 +114,56 @@ def read_yolo(labels_dir: str | Path, sizes: dict[str, tuple[int, int]],
         if path.stem not in by_stem:
             hint = did_you_mean(path.stem, by_stem)
             for number, cls, values in lines:
-                drops.add(path, f"line {number}", path.stem, values, "label file matches no image",
-                          f"no image named {path.stem}.*{'; ' + hint if hint else ''}")
+                drops.add(
+                    path,
+                    f"line {number}",
+                    path.stem,
+                    values,
+                    "label file matches no image",
+                    f"no image named {path.stem}.*{'; ' + hint if hint else ''}",
+                )
             continue
         name, (w_im, h_im) = by_stem[path.stem]
         items = []
         for number, cls, (cx, cy, w, h) in lines:
-            bad = [f"{k}={v:g}" for k, v in zip(("cx", "cy", "w", "h"), (cx, cy, w, h))
-                   if not -TOLERANCE <= v <= 1 + TOLERANCE]
+            bad = [
+                f"{k}={v:g}"
+                for k, v in zip(("cx", "cy", "w", "h"), (cx, cy, w, h))
+                if not -TOLERANCE <= v <= 1 + TOLERANCE
+            ]
             if w <= 0 or h <= 0:
                 drops.add(path, f"line {number}", name, [cx, cy, w, h], "zero or negative size", f"w={w:g}, h={h:g}")
                 continue
             if bad:
-                drops.add(path, f"line {number}", name, [cx, cy, w, h], "YOLO value outside [0, 1]",
-                          ", ".join(bad) + " (pixels instead of fractions of the image?)")
+                drops.add(
+                    path,
+                    f"line {number}",
+                    name,
+                    [cx, cy, w, h],
+                    "YOLO value outside [0, 1]",
+                    ", ".join(bad) + " (pixels instead of fractions of the image?)",
+                )
                 continue
-            items.append(YoloBox([(cx - w / 2) * w_im, (cy - h / 2) * h_im, (cx + w / 2) * w_im,
-                                  (cy + h / 2) * h_im], classes[cls]))
+            items.append(
+                YoloBox(
+                    [(cx - w / 2) * w_im, (cy - h / 2) * h_im, (cx + w / 2) * w_im, (cy + h / 2) * h_im], classes[cls]
+                )
+            )
         out[name] = items
     if not files:
-        raise InputError("no YOLO label files (<image stem>.txt) in the folder", path=labels_dir,
-                         fix="point the config at the folder that holds the .txt labels")
+        raise InputError(
+            "no YOLO label files (<image stem>.txt) in the folder",
+            path=labels_dir,
+            fix="point the config at the folder that holds the .txt labels",
+        )
     if n_lines and len(drops) - before == n_lines:
         first = drops.rows[before]
-        raise InputError(f"none of the {n_lines} YOLO boxes can be used: {drops.summary()} (first: {first['source']}, "
-                         f"{first['where']}: {first['detail']})", path=labels_dir,
-                         fix="YOLO lines are " + LINE_FORMAT + ", in files named like the images")
+        raise InputError(
+            f"none of the {n_lines} YOLO boxes can be used: {drops.summary()} (first: {first['source']}, "
+            f"{first['where']}: {first['detail']})",
+            path=labels_dir,
+            fix="YOLO lines are " + LINE_FORMAT + ", in files named like the images",
+        )
     return classes, out
 
 
@@ -142,22 +175,37 @@ def _label_lines(path: Path, n_classes: int) -> list[tuple[int, int, list[float]
         if not parts:
             continue
         if len(parts) != 5:
-            extra = (" (a polygon: YOLO segmentation labels are not boxes)" if len(parts) > 6 else
-                     " (a sixth value, e.g. a confidence?)" if len(parts) == 6 else "")
-            raise InputError(f"line {number} has {len(parts)} values{extra}; expected {LINE_FORMAT}", path=path,
-                             fix="write each box as 'class cx cy w h' (export 'YOLO detection' labels)")
+            extra = (
+                " (a polygon: YOLO segmentation labels are not boxes)"
+                if len(parts) > 6
+                else " (a sixth value, e.g. a confidence?)"
+                if len(parts) == 6
+                else ""
+            )
+            raise InputError(
+                f"line {number} has {len(parts)} values{extra}; expected {LINE_FORMAT}",
+                path=path,
+                fix="write each box as 'class cx cy w h' (export 'YOLO detection' labels)",
+            )
         try:
             cls = int(parts[0])
             values = [float(v) for v in parts[1:]]
         except ValueError:
-            raise InputError(f"line {number} is not numbers: {line.strip()!r}; expected {LINE_FORMAT}", path=path,
-                             fix="correct the line") from None
+            raise InputError(
+                f"line {number} is not numbers: {line.strip()!r}; expected {LINE_FORMAT}",
+                path=path,
+                fix="correct the line",
+            ) from None
         if not 0 <= cls < n_classes:
-            raise InputError(f"line {number}: class {cls} is not in classes.txt (classes 0..{n_classes - 1})",
-                             path=path, fix="correct the class index or add the class name to classes.txt")
+            raise InputError(
+                f"line {number}: class {cls} is not in classes.txt (classes 0..{n_classes - 1})",
+                path=path,
+                fix="correct the class index or add the class name to classes.txt",
+            )
         if not all(math.isfinite(v) for v in values):
-            raise InputError(f"line {number}: a value is not a finite number: {line.strip()!r}", path=path,
-                             fix="correct the line")
+            raise InputError(
+                f"line {number}: a value is not a finite number: {line.strip()!r}", path=path, fix="correct the line"
+            )
         out.append((number, cls, values))
     return out
 
@@ -173,8 +221,9 @@ def yolo_to_coco(labels_dir: str | Path, sizes: dict[str, tuple[int, int]], drop
         ds["images"].append({"id": image_id, "file_name": name, "width": w, "height": h})
         for item in boxes.get(name, []):
             x1, y1, x2, y2 = item.xyxy
-            ds["annotations"].append(make_annotation(ann_id, image_id, [x1, y1, x2 - x1, y2 - y1],
-                                                     classes.index(item.category) + 1))
+            ds["annotations"].append(
+                make_annotation(ann_id, image_id, [x1, y1, x2 - x1, y2 - y1], classes.index(item.category) + 1)
+            )
             ann_id += 1
     return ds
 

@@ -25,7 +25,7 @@ import numpy as np
 _LEVEL_MARGIN = 0.999  # share of the side a box of that level may span: a margin for rounding
 _COLUMNS, _ROWS = 2, 8  # columns and rows per side in the sort key: the finer, the fewer wasted candidates
 _BITS = 29  # bits of the column and of the row in a sort key; the level sits above them
-_MAX_SIDES = 2.0 ** 25  # the field spans at most this many sides of the finest level (keys fit their bits)
+_MAX_SIDES = 2.0**25  # the field spans at most this many sides of the finest level (keys fit their bits)
 _SAMPLE = 4096  # queries sampled to size the buffers of the pairs
 _BUCKET = 4096  # pairs per bucket of the first pass of their sort (a bucket is then sorted in cache)
 _DIGIT = 11  # bits per pass, at most, of the radix sort within a bucket
@@ -72,8 +72,11 @@ def _grid(box, valid):
             lv += 1
             side *= 2.0
         level[k] = lv
-        key[k] = ((lv << (2 * _BITS)) | (_index(box[k, 0], ox, side / _COLUMNS) << _BITS)
-                  | _index(box[k, 1], oy, side / _ROWS))
+        key[k] = (
+            (lv << (2 * _BITS))
+            | (_index(box[k, 0], ox, side / _COLUMNS) << _BITS)
+            | _index(box[k, 1], oy, side / _ROWS)
+        )
     return level, key, ox, oy, base
 
 
@@ -89,9 +92,9 @@ def _reach(box, level, base, top):
             reach[level[k], 1] = max(reach[level[k], 1], box[k, 3] - box[k, 1])
             scale = max(scale, abs(box[k, 0]), abs(box[k, 1]), abs(box[k, 2]), abs(box[k, 3]))
     for lv in range(top + 1):
-        side = base * 2.0 ** lv
+        side = base * 2.0**lv
         for a in range(2):
-            reach[lv, a] = min(reach[lv, a] * (1 + 2.0 ** -30) + scale * 2.0 ** -48, side)
+            reach[lv, a] = min(reach[lv, a] * (1 + 2.0**-30) + scale * 2.0**-48, side)
     return reach
 
 
@@ -116,7 +119,7 @@ def _columns(skey, level_start, top, budget):
             while c <= col:
                 starts[offset[lv] + c] = p
                 c += 1
-        starts[offset[lv] + c:offset[lv + 1]] = level_start[lv + 1]
+        starts[offset[lv] + c : offset[lv + 1]] = level_start[lv + 1]
     return starts, offset, count
 
 
@@ -151,7 +154,7 @@ def _scan(grid, n_first, same, j_bits, out_key, out_iou, m, first_query, stride)
         q_area = (qx1 - qx0) * (qy1 - qy0)
         q_first = q < n_first
         own = level[q]
-        side = base * 2.0 ** own
+        side = base * 2.0**own
         for lv in range(own, top + 1):
             if level_start[lv + 1] > level_start[lv]:
                 c0, c1 = _index(qx0 - reach[lv, 0], ox, side / _COLUMNS), _index(qx1, ox, side / _COLUMNS)
@@ -308,8 +311,9 @@ def _larger(x: np.ndarray, used: int) -> np.ndarray:
     return out
 
 
-def overlapping_pairs(a: np.ndarray, b: np.ndarray | None = None, *,
-                      ordered: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def overlapping_pairs(
+    a: np.ndarray, b: np.ndarray | None = None, *, ordered: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Index pairs ``(i, j)`` of boxes of ``a`` and ``b`` with IoU > 0, and their IoU (as :func:`iou_pairs`
     computes it), sorted by ``(i, j)``. Within one set (``b`` None) each pair comes once, with ``i < j``.
 

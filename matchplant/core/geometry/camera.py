@@ -48,16 +48,16 @@ class Camera:
     def normalized_to_pixel(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=float)
         s = self.scale
-        return np.stack([xy[..., 0] * s + (self.width - 1) / 2.0,
-                         xy[..., 1] * s + (self.height - 1) / 2.0], axis=-1)
+        return np.stack([xy[..., 0] * s + (self.width - 1) / 2.0, xy[..., 1] * s + (self.height - 1) / 2.0], axis=-1)
 
     def pixel_to_normalized(self, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, dtype=float)
         s = self.scale
-        return np.stack([(uv[..., 0] - (self.width - 1) / 2.0) / s,
-                         (uv[..., 1] - (self.height - 1) / 2.0) / s], axis=-1)
+        return np.stack(
+            [(uv[..., 0] - (self.width - 1) / 2.0) / s, (uv[..., 1] - (self.height - 1) / 2.0) / s], axis=-1
+        )
 
-    def resized(self, width: int, height: int) -> "Camera":
+    def resized(self, width: int, height: int) -> Camera:
         """The same camera for an image stored at another size (normalised parameters are unchanged).
 
         ODM may write undistorted images smaller than the camera's nominal size; the aspect ratio must
@@ -66,13 +66,19 @@ class Camera:
         if abs(width / height - self.width / self.height) > 0.01:
             raise GeometryError(
                 f"image size {width}x{height} does not have the aspect ratio of camera '{self.id}' "
-                f"({self.width}x{self.height})", fix="check that the image belongs to this reconstruction")
+                f"({self.width}x{self.height})",
+                fix="check that the image belongs to this reconstruction",
+            )
         return replace(self, width=int(width), height=int(height))
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
         uv = np.asarray(uv, dtype=float)
-        return ((uv[..., 0] >= -0.5 - margin) & (uv[..., 0] <= self.width - 0.5 + margin) &
-                (uv[..., 1] >= -0.5 - margin) & (uv[..., 1] <= self.height - 0.5 + margin))
+        return (
+            (uv[..., 0] >= -0.5 - margin)
+            & (uv[..., 0] <= self.width - 0.5 + margin)
+            & (uv[..., 1] >= -0.5 - margin)
+            & (uv[..., 1] <= self.height - 0.5 + margin)
+        )
 
     # -- to be provided by each family ----------------------------------------------------------
     def project(self, points_cam: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
@@ -134,8 +140,7 @@ class PinholeCamera(Camera):
             x = np.where(z > 0, p[..., 0] / z, np.nan)
             y = np.where(z > 0, p[..., 1] / z, np.nan)
         xd, yd = self._distort(x, y)
-        return self.normalized_to_pixel(np.stack([self.focal_x * xd + self.c_x,
-                                                  self.focal_y * yd + self.c_y], axis=-1))
+        return self.normalized_to_pixel(np.stack([self.focal_x * xd + self.c_x, self.focal_y * yd + self.c_y], axis=-1))
 
     def bearings(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
@@ -155,18 +160,27 @@ class PinholeCamera(Camera):
         elif self.projection_type == "simple_radial":
             d.update(focal_x=self.focal_x, focal_y=self.focal_y, c_x=self.c_x, c_y=self.c_y, k1=self.k1)
         elif self.projection_type == "radial":
-            d.update(focal_x=self.focal_x, focal_y=self.focal_y, c_x=self.c_x, c_y=self.c_y,
-                     k1=self.k1, k2=self.k2)
+            d.update(focal_x=self.focal_x, focal_y=self.focal_y, c_x=self.c_x, c_y=self.c_y, k1=self.k1, k2=self.k2)
         else:
-            d.update(focal_x=self.focal_x, focal_y=self.focal_y, c_x=self.c_x, c_y=self.c_y,
-                     k1=self.k1, k2=self.k2, k3=self.k3, p1=self.p1, p2=self.p2)
+            d.update(
+                focal_x=self.focal_x,
+                focal_y=self.focal_y,
+                c_x=self.c_x,
+                c_y=self.c_y,
+                k1=self.k1,
+                k2=self.k2,
+                k3=self.k3,
+                p1=self.p1,
+                p2=self.p2,
+            )
         return d
 
-    def undistorted(self) -> "PinholeCamera":
+    def undistorted(self) -> PinholeCamera:
         """A ``perspective`` camera without distortion, as OpenSfM writes for undistorted images."""
         f = (self.focal_x + self.focal_y) / 2.0
-        return PinholeCamera(id=self.id, projection_type="perspective", width=self.width, height=self.height,
-                             focal_x=f, focal_y=f)
+        return PinholeCamera(
+            id=self.id, projection_type="perspective", width=self.width, height=self.height, focal_x=f, focal_y=f
+        )
 
 
 @dataclass(frozen=True)
@@ -216,8 +230,16 @@ class FisheyeCamera(Camera):
         if self.projection_type == "fisheye":
             d.update(focal=self.focal_x, k1=self.k1, k2=self.k2)
         else:
-            d.update(focal_x=self.focal_x, focal_y=self.focal_y, c_x=self.c_x, c_y=self.c_y,
-                     k1=self.k1, k2=self.k2, k3=self.k3, k4=self.k4)
+            d.update(
+                focal_x=self.focal_x,
+                focal_y=self.focal_y,
+                c_x=self.c_x,
+                c_y=self.c_y,
+                k1=self.k1,
+                k2=self.k2,
+                k3=self.k3,
+                k4=self.k4,
+            )
         return d
 
 
@@ -225,9 +247,10 @@ def camera_from_opensfm(camera_id: str, d: dict) -> Camera:
     """Build a camera from an entry of ``reconstruction.json``'s ``cameras``."""
     t = d.get("projection_type", "perspective")
     if t not in PINHOLE_TYPES + FISHEYE_TYPES:
-        raise GeometryError(f"camera '{camera_id}' has projection type '{t}', which MatchPlant does not support",
-                            fix=f"supported: {', '.join(PINHOLE_TYPES + FISHEYE_TYPES)}; "
-                                "re-run ODM with --camera-lens brown")
+        raise GeometryError(
+            f"camera '{camera_id}' has projection type '{t}', which MatchPlant does not support",
+            fix=f"supported: {', '.join(PINHOLE_TYPES + FISHEYE_TYPES)}; re-run ODM with --camera-lens brown",
+        )
     try:
         w, h = int(d["width"]), int(d["height"])
         if t in ("perspective", "fisheye"):
@@ -238,14 +261,24 @@ def camera_from_opensfm(camera_id: str, d: dict) -> Camera:
             return FisheyeCamera(**common, k1=float(d.get("k1", 0)), k2=float(d.get("k2", 0)))
         fx = float(d["focal_x"])
         fy = float(d.get("focal_y", fx))
-        common = dict(id=camera_id, projection_type=t, width=w, height=h, focal_x=fx, focal_y=fy,
-                      c_x=float(d.get("c_x", 0)), c_y=float(d.get("c_y", 0)))
+        common = dict(
+            id=camera_id,
+            projection_type=t,
+            width=w,
+            height=h,
+            focal_x=fx,
+            focal_y=fy,
+            c_x=float(d.get("c_x", 0)),
+            c_y=float(d.get("c_y", 0)),
+        )
         k = {name: float(d.get(name, 0.0)) for name in ("k1", "k2", "k3", "k4", "p1", "p2")}
         if t in ("brown", "radial", "simple_radial"):
             return PinholeCamera(**common, k1=k["k1"], k2=k["k2"], k3=k["k3"], p1=k["p1"], p2=k["p2"])
         if t == "fisheye_opencv":
             return FisheyeCamera(**common, k1=k["k1"], k2=k["k2"], k3=k["k3"], k4=k["k4"])
     except KeyError as exc:
-        raise GeometryError(f"camera '{camera_id}' ({t}) lacks the parameter {exc}",
-                            fix="the reconstruction file is incomplete; re-run the reconstruction") from exc
+        raise GeometryError(
+            f"camera '{camera_id}' ({t}) lacks the parameter {exc}",
+            fix="the reconstruction file is incomplete; re-run the reconstruction",
+        ) from exc
     raise AssertionError(t)  # pragma: no cover - every supported type returned above

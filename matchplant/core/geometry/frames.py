@@ -64,28 +64,37 @@ def read_coords_txt(path: str | Path) -> tuple[CRS, np.ndarray]:
     path = Path(path)
     fix = "restore coords.txt from ODM's output (line 1: e.g. 'WGS84 UTM 14N', line 2: 'x y'), or re-run ODM"
     if not path.is_file():
-        raise InputError("coords.txt not found", path=path,
-                         fix="ODM writes it when the images carry GPS or a gcp_list.txt is given")
+        raise InputError(
+            "coords.txt not found", path=path, fix="ODM writes it when the images carry GPS or a gcp_list.txt is given"
+        )
     try:
         text = read_text(path, what="coords.txt")
     except InputError as exc:
         raise InputError(exc.problem, path=path, fix=fix) from exc
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.split("\n")) if ln.strip()]
     if len(lines) < 2:
-        raise InputError(f"coords.txt has {len(lines)} line(s): it must hold the CRS on line 1 and the offset "
-                         "'x y' on line 2", path=path, fix=fix)
+        raise InputError(
+            f"coords.txt has {len(lines)} line(s): it must hold the CRS on line 1 and the offset 'x y' on line 2",
+            path=path,
+            fix=fix,
+        )
     crs = parse_crs(lines[0][1], source=path)
     if crs.is_geographic:
-        raise InputError(f"coords.txt line {lines[0][0]}: {lines[0][1]!r} is a geographic CRS; ODM writes a "
-                         "projected one (UTM) there", path=path, fix=fix)
+        raise InputError(
+            f"coords.txt line {lines[0][0]}: {lines[0][1]!r} is a geographic CRS; ODM writes a "
+            "projected one (UTM) there",
+            path=path,
+            fix=fix,
+        )
     lineno, second = lines[1]
     try:
         values = [float(v) for v in second.replace(",", " ").split()[:2]]
     except ValueError:
         values = []
     if len(values) != 2 or not np.all(np.isfinite(values)):
-        raise InputError(f"coords.txt line {lineno} is not an 'x y' offset (two numbers): {second!r}", path=path,
-                         fix=fix)
+        raise InputError(
+            f"coords.txt line {lineno} is not an 'x y' offset (two numbers): {second!r}", path=path, fix=fix
+        )
     return crs, np.array(values + [0.0])
 
 
@@ -146,7 +155,8 @@ class TopocentricFrame(Frame):
         self._enu_to_lla = Transformer.from_pipeline(
             f"+proj=pipeline +step +inv +proj=topocentric +ellps=WGS84 +lat_0={self.lat!r} "
             f"+lon_0={self.lon!r} +h_0={self.alt!r} +step +inv +proj=cart +ellps=WGS84 "
-            f"+step +proj=unitconvert +xy_in=rad +xy_out=deg")
+            f"+step +proj=unitconvert +xy_in=rad +xy_out=deg"
+        )
         target = self.crs.to_3d() if not self.crs.is_geographic else CRS.from_epsg(4979)
         self._lla_to_map = Transformer.from_crs(CRS.from_epsg(4979), target, always_xy=True)
 
@@ -181,9 +191,14 @@ class TopocentricFrame(Frame):
         return f"topocentric around lat {self.lat:.7f}, lon {self.lon:.7f} -> {self.crs.name}"
 
 
-def detect_frame(reference_lla: dict | None, coords: tuple[CRS, np.ndarray] | None = None,
-                 has_topocentric_copy: bool = False, crs: CRS | None = None, *,
-                 source: str | Path | None = None) -> Frame:
+def detect_frame(
+    reference_lla: dict | None,
+    coords: tuple[CRS, np.ndarray] | None = None,
+    has_topocentric_copy: bool = False,
+    crs: CRS | None = None,
+    *,
+    source: str | Path | None = None,
+) -> Frame:
     """Decide which frame a reconstruction is in (docs/DESIGN.md §3) and return it.
 
     ``coords`` is coords.txt's (CRS, offset) if present; ``has_topocentric_copy`` says whether a
@@ -192,9 +207,11 @@ def detect_frame(reference_lla: dict | None, coords: tuple[CRS, np.ndarray] | No
     if reference_lla is None:
         if coords is not None:
             return OffsetFrame(crs=coords[0], offset=coords[1])
-        raise InputError("the reconstruction has no reference_lla and there is no coords.txt, so it is not "
-                         "georeferenced", path=source,
-                         fix="run ODM with GPS-tagged images or a gcp_list.txt")
+        raise InputError(
+            "the reconstruction has no reference_lla and there is no coords.txt, so it is not georeferenced",
+            path=source,
+            fix="run ODM with GPS-tagged images or a gcp_list.txt",
+        )
     lat, lon = float(reference_lla["latitude"]), float(reference_lla["longitude"])
     alt = float(reference_lla.get("altitude", 0.0))
     if coords is not None:

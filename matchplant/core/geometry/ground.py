@@ -25,8 +25,9 @@ SECANT_FLAT = 1e-15  # two heights closer than this: no secant through them (the
 SETTLED = 0.5  # a hit below this share of the clearance above the surface had settled onto it
 
 
-def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface, *,
-                     clearance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def pixels_to_ground(
+    shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface, *, clearance: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Map points (N, 3) where the rays through pixels ``uv`` (N, 2) meet the DSM, and a status per ray.
 
     ``clearance`` > 0: a ray stops where it first comes within that many metres above the surface
@@ -36,8 +37,16 @@ def pixels_to_ground(shot: Shot, uv: np.ndarray, frame: Frame, surface: Surface,
     return rays_to_ground(shot, shot.ray_directions(uv), frame, surface, clearance=clearance)
 
 
-def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface, *, clearance: float = 0.0,
-                   settle: float = 0.0, heights: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+def rays_to_ground(
+    shot: Shot,
+    dirs: np.ndarray,
+    frame: Frame,
+    surface: Surface,
+    *,
+    clearance: float = 0.0,
+    settle: float = 0.0,
+    heights: tuple | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`pixels_to_ground` for ray directions (N, 3) in the reconstruction frame, already computed
     (:meth:`Shot.ray_directions`); the same rays can then meet several surfaces. ``settle`` and ``heights`` (the
     range of map heights to search per ray, when known): :meth:`Surface.intersect`."""
@@ -51,8 +60,7 @@ def rays_to_ground(shot: Shot, dirs: np.ndarray, frame: Frame, surface: Surface,
     reach = max(c_map[2] - surface.zmin, REACH_MIN) / np.maximum(-dirs[:, 2], DESCENT_MIN)
     far_map = frame.to_map(c[None, :] + reach[:, None] * dirs)
     map_dirs = (far_map - c_map) / reach[:, None]
-    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, settle=settle,
-                                          heights=heights)
+    points, s, status = surface.intersect(c_map[None, :], map_dirs, clearance=clearance, settle=settle, heights=heights)
     # ...then secant steps on the exact curve s -> frame.to_map(c + s * dir).
     ok = status == HIT
     if ok.any():

@@ -41,18 +41,19 @@ class Shot:
         return -self.R.T @ np.asarray(self.translation, dtype=float)
 
     @classmethod
-    def from_center(cls, id: str, camera: Camera, R: np.ndarray, center: np.ndarray, **kw) -> "Shot":
+    def from_center(cls, id: str, camera: Camera, R: np.ndarray, center: np.ndarray, **kw) -> Shot:
         R = np.asarray(R, dtype=float)
         t = -R @ np.asarray(center, dtype=float)
         return cls(id=id, camera=camera, rotation=rotation_vector(R), translation=t, **kw)
 
-    def with_camera(self, camera: Camera) -> "Shot":
+    def with_camera(self, camera: Camera) -> Shot:
         return replace(self, camera=camera)
 
     def world_to_camera(self, points: np.ndarray) -> np.ndarray:
         # einsum, not ``@``: a multi-threaded BLAS spends ~30x the CPU on (N, 3) x (3, 3) products
-        return np.einsum("...j,ij->...i", np.asarray(points, dtype=float), self.R) + \
-            np.asarray(self.translation, dtype=float)
+        return np.einsum("...j,ij->...i", np.asarray(points, dtype=float), self.R) + np.asarray(
+            self.translation, dtype=float
+        )
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """World points (N, 3) in the reconstruction frame to pixels (N, 2); NaN behind the camera."""
@@ -63,8 +64,11 @@ class Shot:
         return self.camera.bearings(uv) @ self.R  # rows are R^T b: camera to world
 
     def to_opensfm(self) -> dict:
-        d = {"rotation": [float(v) for v in self.rotation], "translation": [float(v) for v in self.translation],
-             "camera": self.camera.id}
+        d = {
+            "rotation": [float(v) for v in self.rotation],
+            "translation": [float(v) for v in self.translation],
+            "camera": self.camera.id,
+        }
         if self.capture_time is not None:
             d["capture_time"] = float(self.capture_time)
         if self.gps_position is not None:

@@ -62,28 +62,32 @@ MAX_STEPS = 200_000  # patches a ray walks at most
 @dataclass
 class Surface:
     data: np.ndarray  # float32 (as ODM writes it), NaN for holes
-    transform: "object"  # affine.Affine, north-up
-    crs: "object" = None
+    transform: object  # affine.Affine, north-up
+    crs: object = None
     path: Path | None = None
 
     def __post_init__(self):
         t = self.transform
         if abs(t.b) > ROTATION or abs(t.d) > ROTATION:
-            raise InputError("rotated rasters are not supported", path=self.path,
-                             fix="warp the raster to a north-up grid (gdalwarp)")
+            raise InputError(
+                "rotated rasters are not supported", path=self.path, fix="warp the raster to a north-up grid (gdalwarp)"
+            )
         self.data = np.ascontiguousarray(self.data, dtype=np.float32)  # as ODM writes it: half the memory traffic
         i = ~t
         self._inv = np.array([i.a, i.b, i.c, i.d, i.e, i.f], dtype=np.float64)
         self.zmin, self.zmax = float(np.nanmin(self.data, initial=np.inf)), float(np.nanmax(self.data, initial=-np.inf))
         if not self.zmax >= self.zmin:
-            raise InputError("the elevation raster holds no valid data in the area of interest", path=self.path,
-                             fix="check that the DSM covers the images (same CRS, same field)")
+            raise InputError(
+                "the elevation raster holds no valid data in the area of interest",
+                path=self.path,
+                fix="check that the DSM covers the images (same CRS, same field)",
+            )
         self.raster = Raster(self.data, self._inv, patch_block_max(self.data, _BLOCK), _BLOCK, self.zmin, self.zmax)
         self._grounds: dict[float, Surface] = {}
         self._canopy: dict[float, float] = {}
         self._max_slope: float | None = None
 
-    def ground(self, window: float) -> "Surface":
+    def ground(self, window: float) -> Surface:
         """The bare ground under the plants, estimated from this surface: a morphological opening (the
         highest flat square of side ``window`` metres that fits under the surface, at each point) removes
         every bump narrower than the window and keeps the soil between them exactly, slopes included.
@@ -95,13 +99,22 @@ class Surface:
             size = max(3, int(math.ceil(window / (block * self.pixel_size))) | 1)
             used = size * block * self.pixel_size
             if used > window * WINDOW_RAISED:
-                log.info("ground estimate: window raised from ground_window=%.3g m to %.3g m (%d cells of %.3g m, "
-                         "the least the opening needs)", window, used, size, block * self.pixel_size)
+                log.info(
+                    "ground estimate: window raised from ground_window=%.3g m to %.3g m (%d cells of %.3g m, "
+                    "the least the opening needs)",
+                    window,
+                    used,
+                    size,
+                    block * self.pixel_size,
+                )
             # OpenCV's separable min / max filters: the same values as scipy.ndimage's, in a third of the time
             square = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
             eroded = cv2.erode(low, square, borderType=cv2.BORDER_REPLICATE)
-            opened = cv2.dilate(np.where(np.isinf(eroded), -np.inf, eroded).astype(np.float32, copy=False), square,
-                                borderType=cv2.BORDER_REPLICATE)
+            opened = cv2.dilate(
+                np.where(np.isinf(eroded), -np.inf, eroded).astype(np.float32, copy=False),
+                square,
+                borderType=cv2.BORDER_REPLICATE,
+            )
             opened[~np.isfinite(opened) | hole] = np.nan  # DSM holes stay holes: rays meeting them are reported
             with np.errstate(invalid="ignore"):
                 self._canopy[window] = float(np.nanmax(high - opened, initial=0.0))
@@ -114,13 +127,17 @@ class Surface:
         return self._canopy[window]
 
     @classmethod
-    def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None,
-             band: int = 1) -> "Surface":
+    def open(
+        cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None, band: int = 1
+    ) -> Surface:
         """Read ``path`` (only the window covering ``bounds = (xmin, ymin, xmax, ymax)``, if given)."""
         path = Path(path)
         if not path.is_file():
-            raise InputError("elevation raster not found", path=path,
-                             fix="run ODM with --dsm, or point the config at the DSM GeoTIFF")
+            raise InputError(
+                "elevation raster not found",
+                path=path,
+                fix="run ODM with --dsm, or point the config at the DSM GeoTIFF",
+            )
         try:
             with rasterio.open(path) as src:
                 if bounds is not None:
@@ -129,8 +146,7 @@ class Surface:
                     col0, row0 = int(np.floor(win.col_off)) - 1, int(np.floor(win.row_off)) - 1
                     col1 = int(np.ceil(win.col_off + win.width)) + 1
                     row1 = int(np.ceil(win.row_off + win.height)) + 1
-                    win = Window(col0, row0, col1 - col0, row1 - row0).intersection(
-                        Window(0, 0, src.width, src.height))
+                    win = Window(col0, row0, col1 - col0, row1 - row0).intersection(Window(0, 0, src.width, src.height))
                     transform = src.window_transform(win)
                 else:
                     win, transform = None, src.transform
@@ -142,8 +158,11 @@ class Surface:
                 nodata = src.nodata if MaskFlags.nodata in flags and src.nodata is not None else math.nan
                 crs = src.crs
         except rasterio.errors.WindowError as exc:
-            raise InputError("the area of interest does not overlap the raster", path=path,
-                             fix="check that the raster and the reconstruction are of the same field and CRS") from exc
+            raise InputError(
+                "the area of interest does not overlap the raster",
+                path=path,
+                fix="check that the raster and the reconstruction are of the same field and CRS",
+            ) from exc
         except rasterio.errors.RasterioIOError as exc:
             raise InputError(f"cannot read the raster: {exc}", path=path, fix="check that it is a GeoTIFF") from exc
         holes_to_nan(data, np.float32(nodata))  # and ODM's -9999 even when the file does not declare it
@@ -176,8 +195,9 @@ class Surface:
         """Bilinear height at map points; NaN outside the raster or where every neighbour is a hole."""
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         out = np.empty(x.shape, dtype=np.float64)
-        sample_many(self.data, self._inv, np.ascontiguousarray(x).ravel(), np.ascontiguousarray(y).ravel(),
-                     out.reshape(-1))
+        sample_many(
+            self.data, self._inv, np.ascontiguousarray(x).ravel(), np.ascontiguousarray(y).ravel(), out.reshape(-1)
+        )
         return out
 
     def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -188,9 +208,16 @@ class Surface:
         rows, cols = self.data.shape
         return (col >= 0) & (col <= cols) & (row >= 0) & (row <= rows)
 
-    def intersect(self, origins: np.ndarray, directions: np.ndarray, *, clearance: float = 0.0,
-                  settle: float = 0.0, max_steps: int = MAX_STEPS,
-                  heights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def intersect(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        *,
+        clearance: float = 0.0,
+        settle: float = 0.0,
+        max_steps: int = MAX_STEPS,
+        heights: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First intersection of straight rays (in the raster's CRS) with the surface.
 
         Each ray is walked cell by cell between the heights of the highest and lowest valid cell (so slopes
@@ -209,8 +236,9 @@ class Surface:
         d_all = d
         s = np.empty(d.shape[0], dtype=np.float64)
         status = np.empty(d.shape[0], dtype=np.int8)
-        z_top, z_bottom = (None, None) if heights is None else \
-            (np.asarray(h, dtype=np.float64).reshape(-1) for h in heights)
+        z_top, z_bottom = (
+            (None, None) if heights is None else (np.asarray(h, dtype=np.float64).reshape(-1) for h in heights)
+        )
         todo = slice(None)
         if clearance == 0.0 and d.shape[0] and self.max_slope * max_tangent(d) < GENTLE:
             done = np.empty(d.shape[0], dtype=np.bool_)
@@ -224,8 +252,14 @@ class Surface:
             z_top, z_bottom = np.full(d.shape[0], np.nan), np.full(d.shape[0], np.nan)
         s_m = np.empty(d.shape[0], dtype=np.float64)
         st_m = np.empty(d.shape[0], dtype=np.int8)
-        intersect_many(self.raster, Rays(o, d, np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom)),
-                       float(clearance), float(settle), int(max_steps), Hits(s_m, st_m))
+        intersect_many(
+            self.raster,
+            Rays(o, d, np.ascontiguousarray(z_top), np.ascontiguousarray(z_bottom)),
+            float(clearance),
+            float(settle),
+            int(max_steps),
+            Hits(s_m, st_m),
+        )
         s[todo], status[todo] = s_m, st_m
         points = np.empty(d_all.shape)
         ray_points(np.ascontiguousarray(np.asarray(origins, dtype=np.float64).reshape(-1, 3)), d_all, s, points)

@@ -37,9 +37,17 @@ from matchplant.core.runtime.io import write_text
 PATH_KINDS = (None, "file", "dir", "exists", "out")
 
 
-def param(default: Any = MISSING, help: str = "", *, min: float | None = None,
-          max: float | None = None, choices: typing.Sequence[Any] | None = None,
-          path: str | None = None, required: bool = False, default_factory: Any = MISSING) -> Any:
+def param(
+    default: Any = MISSING,
+    help: str = "",
+    *,
+    min: float | None = None,
+    max: float | None = None,
+    choices: typing.Sequence[Any] | None = None,
+    path: str | None = None,
+    required: bool = False,
+    default_factory: Any = MISSING,
+) -> Any:
     """A documented config field.
 
     ``min``/``max`` bound numbers (and every item of a list of numbers); ``choices`` lists the allowed
@@ -49,8 +57,7 @@ def param(default: Any = MISSING, help: str = "", *, min: float | None = None,
     """
     if path not in PATH_KINDS:
         raise ValueError(f"path must be one of {PATH_KINDS}")
-    metadata = {"help": help, "min": min, "max": max, "choices": choices, "path": path,
-                "required": required}
+    metadata = {"help": help, "min": min, "max": max, "choices": choices, "path": path, "required": required}
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata=metadata)
     if isinstance(default, (list, dict, set)):
@@ -68,8 +75,14 @@ def section(cls: type) -> Any:
 # loading
 
 
-def load_config(cls: type, path: str | Path | None = None, overrides: typing.Iterable[str] = (),
-                *, check_paths: bool = True, strict: bool = True) -> Any:
+def load_config(
+    cls: type,
+    path: str | Path | None = None,
+    overrides: typing.Iterable[str] = (),
+    *,
+    check_paths: bool = True,
+    strict: bool = True,
+) -> Any:
     """Build a ``cls`` instance from a YAML file and ``key=value`` overrides, then validate it.
 
     ``strict=False`` skips validation (a GUI loads an incomplete config and lets the user finish it).
@@ -96,8 +109,9 @@ def load_config(cls: type, path: str | Path | None = None, overrides: typing.Ite
 
 def read_yaml_mapping(path: Path) -> dict:
     if not path.is_file():
-        raise ConfigError("config file not found", path=path,
-                          fix="check the path, or write a template with --write-config FILE")
+        raise ConfigError(
+            "config file not found", path=path, fix="check the path, or write a template with --write-config FILE"
+        )
     try:
         with open(path, encoding="utf-8") as fh:
             data = yaml.safe_load(fh)
@@ -106,20 +120,28 @@ def read_yaml_mapping(path: Path) -> dict:
         mark = getattr(exc, "problem_mark", None)
         if mark is not None:
             where = f" at line {mark.line + 1}, column {mark.column + 1}"
-        raise ConfigError(f"the config is not valid YAML{where}: {getattr(exc, 'problem', exc)}",
-                          path=path, fix="check indentation and 'key: value' syntax there") from exc
+        raise ConfigError(
+            f"the config is not valid YAML{where}: {getattr(exc, 'problem', exc)}",
+            path=path,
+            fix="check indentation and 'key: value' syntax there",
+        ) from exc
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError("the config must be a mapping of 'key: value' lines", path=path,
-                          fix="start each setting on its own line as 'key: value'")
+        raise ConfigError(
+            "the config must be a mapping of 'key: value' lines",
+            path=path,
+            fix="start each setting on its own line as 'key: value'",
+        )
     return data
 
 
 def parse_override(item: str) -> tuple[str, Any]:
     if "=" not in item:
-        raise ConfigError(f"--set expects key=value, got {item!r}",
-                          fix="write it as --set key=value, for example --set output_dir=runs/mine")
+        raise ConfigError(
+            f"--set expects key=value, got {item!r}",
+            fix="write it as --set key=value, for example --set output_dir=runs/mine",
+        )
     key, text = item.split("=", 1)
     try:
         value = yaml.safe_load(text) if text.strip() else ""
@@ -141,7 +163,7 @@ def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", b
         if i < len(parts) - 1:
             target = getattr(target, part)
             if not is_dataclass(target):
-                raise ConfigError(f"'{'.'.join(parts[:i + 1])}' has no sub-keys", fix=f"use --set {part}=VALUE")
+                raise ConfigError(f"'{'.'.join(parts[: i + 1])}' has no sub-keys", fix=f"use --set {part}=VALUE")
         else:
             hints = get_type_hints(type(target))
             setattr(target, part, _coerce(value, hints[part], dotted_key, source, base or Path.cwd()))
@@ -155,13 +177,17 @@ def _unknown_key(key: str, names: typing.Iterable[str], prefix: str, source: str
     if key in renamed:
         new, how = renamed[key]
         new = f"{prefix}.{new}" if prefix else new
-        return ConfigError(f"config key '{full}' ({source}) was replaced by '{new}'",
-                           fix=f"write {new}: {how}")
+        return ConfigError(f"config key '{full}' ({source}) was replaced by '{new}'", fix=f"write {new}: {how}")
     close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
-    hint = f"did you mean '{(prefix + '.') if prefix else ''}{close[0]}'?" if close else \
-        f"valid keys here: {', '.join(sorted(names))}"
-    return ConfigError(f"unknown config key '{full}' ({source}); {hint}",
-                       fix="correct or remove the key; see the module's config.yaml for every key")
+    hint = (
+        f"did you mean '{(prefix + '.') if prefix else ''}{close[0]}'?"
+        if close
+        else f"valid keys here: {', '.join(sorted(names))}"
+    )
+    return ConfigError(
+        f"unknown config key '{full}' ({source}); {hint}",
+        fix="correct or remove the key; see the module's config.yaml for every key",
+    )
 
 
 def from_dict(cls: type, data: dict, *, prefix: str = "", source: str = "a mapping", base: Path | None = None) -> Any:
@@ -182,10 +208,12 @@ def _resolve_aliases(cls: type, data: dict, prefix: str, source: str) -> dict:
         if name != key:
             full = f"{prefix}.{key}" if prefix else str(key)
             if name in data:
-                raise ConfigError(f"config keys '{full}' and '{name}' ({source}) name the same setting",
-                                  fix=f"keep only '{name}'")
-            logging.getLogger("matchplant.config").info("config key '%s' (%s) is read as '%s', its name in "
-                                                        "every module", full, source, name)
+                raise ConfigError(
+                    f"config keys '{full}' and '{name}' ({source}) name the same setting", fix=f"keep only '{name}'"
+                )
+            logging.getLogger("matchplant.config").info(
+                "config key '%s' (%s) is read as '%s', its name in every module", full, source, name
+            )
         out[name] = value
     return out
 
@@ -205,8 +233,10 @@ def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> An
             if value is None:
                 value = {}
             if not isinstance(value, dict):
-                raise ConfigError(f"config key '{key}' must be a section of 'key: value' lines ({source})",
-                                  fix=f"indent the settings of '{key}' under it")
+                raise ConfigError(
+                    f"config key '{key}' must be a section of 'key: value' lines ({source})",
+                    fix=f"indent the settings of '{key}' under it",
+                )
             kwargs[name] = _build(typ, value, prefix=key, source=source, base=base)
         else:
             kwargs[name] = _coerce(value, typ, key, source, base)
@@ -233,8 +263,9 @@ def _type_name(typ: Any) -> str:
 
 def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
     def bad(expected: str) -> ConfigError:
-        return ConfigError(f"config key '{key}' must be {expected}, got {value!r} ({source})",
-                           fix=f"set '{key}' to {expected}")
+        return ConfigError(
+            f"config key '{key}' must be {expected}, got {value!r} ({source})", fix=f"set '{key}' to {expected}"
+        )
 
     origin = get_origin(typ)
     if origin in (Union, types.UnionType):
@@ -332,8 +363,10 @@ def validate(cfg: Any, *, source: str = "config", check_paths: bool = True, pref
             continue
         md = f.metadata
         if value is None and md.get("required"):
-            raise ConfigError(f"config key '{key}' is required but not set ({source})",
-                              fix=f"add '{key}: ...' to the config, or pass --set {key}=...")
+            raise ConfigError(
+                f"config key '{key}' is required but not set ({source})",
+                fix=f"add '{key}: ...' to the config, or pass --set {key}=...",
+            )
         values = value if isinstance(value, (list, tuple)) else [value]
         for v in values:
             if v is None:
@@ -342,16 +375,22 @@ def validate(cfg: Any, *, source: str = "config", check_paths: bool = True, pref
                 if isinstance(v, float) and math.isnan(v):
                     raise ConfigError(f"config key '{key}' is NaN ({source})", fix=f"set '{key}' to a number")
                 if md.get("min") is not None and v < md["min"]:
-                    raise ConfigError(f"config key '{key}' = {v} is below its minimum {md['min']} ({source})",
-                                      fix=f"set '{key}' to at least {md['min']}")
+                    raise ConfigError(
+                        f"config key '{key}' = {v} is below its minimum {md['min']} ({source})",
+                        fix=f"set '{key}' to at least {md['min']}",
+                    )
                 if md.get("max") is not None and v > md["max"]:
-                    raise ConfigError(f"config key '{key}' = {v} is above its maximum {md['max']} ({source})",
-                                      fix=f"set '{key}' to at most {md['max']}")
+                    raise ConfigError(
+                        f"config key '{key}' = {v} is above its maximum {md['max']} ({source})",
+                        fix=f"set '{key}' to at most {md['max']}",
+                    )
             if md.get("choices") is not None and v not in md["choices"]:
                 close = difflib.get_close_matches(str(v), [str(c) for c in md["choices"]], n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
-                raise ConfigError(f"config key '{key}' = {v!r} is not one of {list(md['choices'])}{hint} ({source})",
-                                  fix=f"set '{key}' to one of {list(md['choices'])}")
+                raise ConfigError(
+                    f"config key '{key}' = {v!r} is not one of {list(md['choices'])}{hint} ({source})",
+                    fix=f"set '{key}' to one of {list(md['choices'])}",
+                )
             kind = md.get("path")
             if check_paths and kind in ("file", "dir", "exists") and isinstance(v, Path) and f.name not in unused:
                 _check_path(v, kind, key, source)
@@ -362,14 +401,23 @@ def validate(cfg: Any, *, source: str = "config", check_paths: bool = True, pref
 
 def _check_path(p: Path, kind: str, key: str, source: str) -> None:
     if not p.exists():
-        raise ConfigError(f"config key '{key}': {kind if kind != 'exists' else 'path'} not found ({source})",
-                          path=p, fix=f"correct '{key}' (relative paths in a YAML file are relative to that file)")
+        raise ConfigError(
+            f"config key '{key}': {kind if kind != 'exists' else 'path'} not found ({source})",
+            path=p,
+            fix=f"correct '{key}' (relative paths in a YAML file are relative to that file)",
+        )
     if kind == "file" and not p.is_file():
-        raise ConfigError(f"config key '{key}' must be a file, but this is a folder ({source})", path=p,
-                          fix=f"point '{key}' at a file inside it")
+        raise ConfigError(
+            f"config key '{key}' must be a file, but this is a folder ({source})",
+            path=p,
+            fix=f"point '{key}' at a file inside it",
+        )
     if kind == "dir" and not p.is_dir():
-        raise ConfigError(f"config key '{key}' must be a folder, but this is a file ({source})", path=p,
-                          fix=f"point '{key}' at the folder that holds it")
+        raise ConfigError(
+            f"config key '{key}' must be a folder, but this is a file ({source})",
+            path=p,
+            fix=f"point '{key}' at the folder that holds it",
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -378,6 +426,7 @@ def _check_path(p: Path, kind: str, key: str, source: str) -> None:
 
 def to_dict(cfg: Any) -> dict:
     """Plain data (paths as strings) for YAML, JSON and logs."""
+
     def plain(v: Any) -> Any:
         if is_dataclass(v):
             return {f.name: plain(getattr(v, f.name)) for f in fields(v)}
@@ -388,11 +437,13 @@ def to_dict(cfg: Any) -> dict:
         if isinstance(v, dict):
             return {str(k): plain(x) for k, x in v.items()}
         return v
+
     return plain(cfg)
 
 
-def to_yaml(cfg_or_cls: Any, *, comments: bool = True, header: typing.Sequence[str] = (),
-            base: Path | None = None) -> str:
+def to_yaml(
+    cfg_or_cls: Any, *, comments: bool = True, header: typing.Sequence[str] = (), base: Path | None = None
+) -> str:
     """YAML text of a config (or of a class's defaults) with each key's help as a comment.
 
     ``header`` lines follow the class's description at the top. With ``base`` (the folder the file will be
@@ -424,8 +475,9 @@ def _yaml_lines(cfg: Any, lines: list[str], indent: str, comments: bool, base: P
             lines.append(f"{indent}{f.name}:")
             _yaml_lines(value, lines, indent + "  ", comments, base)
         else:
-            dumped = yaml.safe_dump({f.name: to_dict_value(value, base)}, default_flow_style=True,
-                                    sort_keys=False, width=1000).strip()
+            dumped = yaml.safe_dump(
+                {f.name: to_dict_value(value, base)}, default_flow_style=True, sort_keys=False, width=1000
+            ).strip()
             lines.append(indent + dumped[1:-1])  # strip the braces of the one-key flow mapping
 
 
@@ -471,5 +523,17 @@ def field_help(cls: type) -> dict[str, str]:
     return out
 
 
-__all__ = ["param", "section", "load_config", "from_dict", "set_value", "validate", "to_dict", "to_yaml", "save_config",
-           "field_help", "dataclass", "dataclasses"]
+__all__ = [
+    "param",
+    "section",
+    "load_config",
+    "from_dict",
+    "set_value",
+    "validate",
+    "to_dict",
+    "to_yaml",
+    "save_config",
+    "field_help",
+    "dataclass",
+    "dataclasses",
+]

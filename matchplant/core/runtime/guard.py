@@ -28,9 +28,10 @@ import os
 import shutil
 import tempfile
 import uuid
+from collections.abc import Iterable, Iterator
 from dataclasses import fields, is_dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError, OutputError
 
@@ -55,8 +56,10 @@ def path_fields(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Path, str]]:
 
 def inputs_and_outputs(cfg: Any) -> tuple[list[tuple[str, Path, str]], list[tuple[str, Path]]]:
     items = list(path_fields(cfg))
-    return ([(k, p, kind) for k, p, kind in items if kind in INPUT_KINDS],
-            [(k, p) for k, p, kind in items if kind == "out"])
+    return (
+        [(k, p, kind) for k, p, kind in items if kind in INPUT_KINDS],
+        [(k, p) for k, p, kind in items if kind == "out"],
+    )
 
 
 def _real(p: Path) -> Path:
@@ -91,8 +94,13 @@ def overlap(out_key: str, out: Path, in_key: str, inp: Path, kind: str, *, insid
     return None
 
 
-def check_no_overlap(outputs: list[tuple[str, Path]], inputs: list[tuple[str, Path, str]],
-                     *, source: str = "config", inside_ok: Iterable[str] = ()) -> None:
+def check_no_overlap(
+    outputs: list[tuple[str, Path]],
+    inputs: list[tuple[str, Path, str]],
+    *,
+    source: str = "config",
+    inside_ok: Iterable[str] = (),
+) -> None:
     """Raise a ConfigError for the first output that would write over, into or around an input (an output may
     lie inside the input folders named in ``inside_ok``)."""
     inside_ok = set(inside_ok)
@@ -100,16 +108,23 @@ def check_no_overlap(outputs: list[tuple[str, Path]], inputs: list[tuple[str, Pa
         for in_key, inp, kind in inputs:
             why = overlap(out_key, out, in_key, inp, kind, inside_ok=in_key in inside_ok)
             if why:
-                raise ConfigError(f"{why} ({source}); inputs are never written over", path=out,
-                                  fix=f"set '{out_key}' to a new folder of its own, apart from the inputs")
+                raise ConfigError(
+                    f"{why} ({source}); inputs are never written over",
+                    path=out,
+                    fix=f"set '{out_key}' to a new folder of its own, apart from the inputs",
+                )
 
 
 def check_outputs_are_not_inputs(cfg: Any, *, source: str = "config") -> None:
     """Refuse an output path that is an input, is inside an input folder, or contains an input."""
     inputs, outputs = inputs_and_outputs(cfg)
     exempt = set(getattr(type(cfg), "writes_into_inputs", ()))
-    check_no_overlap([(k, p) for k, p in outputs if k not in exempt], inputs, source=source,
-                     inside_ok=getattr(type(cfg), "outputs_inside_inputs", ()))
+    check_no_overlap(
+        [(k, p) for k, p in outputs if k not in exempt],
+        inputs,
+        source=source,
+        inside_ok=getattr(type(cfg), "outputs_inside_inputs", ()),
+    )
 
 
 def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
@@ -122,16 +137,22 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
         what = "is a file" if probe == folder else f"cannot be created: {probe} is a file"
-        raise OutputError(f"output folder '{key}' ({folder}) {what}", path=probe,
-                          fix=f"set '{key}' to a folder (or move the file away)")
+        raise OutputError(
+            f"output folder '{key}' ({folder}) {what}",
+            path=probe,
+            fix=f"set '{key}' to a folder (or move the file away)",
+        )
     try:
         fd, name = tempfile.mkstemp(prefix=".matchplant-write-test-", dir=probe)
         os.close(fd)
         os.unlink(name)
     except OSError as exc:
         what = "cannot be written" if probe == folder else f"cannot be created in {probe}"
-        raise OutputError(f"output folder '{key}' ({folder}) {what}: {exc.strerror or exc}", path=folder,
-                          fix=f"set '{key}' to a folder you can write to, or change its permissions") from exc
+        raise OutputError(
+            f"output folder '{key}' ({folder}) {what}: {exc.strerror or exc}",
+            path=folder,
+            fix=f"set '{key}' to a folder you can write to, or change its permissions",
+        ) from exc
 
 
 def check_outputs_writable(cfg: Any) -> None:
@@ -162,8 +183,11 @@ def _move_tree(src: Path, dst: Path) -> None:
             had = target.exists() or target.is_symlink()
             if had:
                 if target.is_dir() and not target.is_symlink():
-                    raise OutputError(f"cannot write {target}: a folder of that name is in the way", path=target,
-                                      fix="move that folder away, then run again")
+                    raise OutputError(
+                        f"cannot write {target}: a folder of that name is in the way",
+                        path=target,
+                        fix="move that folder away, then run again",
+                    )
                 (backup / rel).parent.mkdir(parents=True, exist_ok=True)
                 os.replace(target, backup / rel)
             done.append((f, target, had))
@@ -208,5 +232,14 @@ def staged_outputs(out_dir: str | Path) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
 
 
-__all__ = ["path_fields", "inputs_and_outputs", "overlap", "check_no_overlap", "check_outputs_are_not_inputs",
-           "check_writable", "check_outputs_writable", "check_outputs", "staged_outputs"]
+__all__ = [
+    "path_fields",
+    "inputs_and_outputs",
+    "overlap",
+    "check_no_overlap",
+    "check_outputs_are_not_inputs",
+    "check_writable",
+    "check_outputs_writable",
+    "check_outputs",
+    "staged_outputs",
+]

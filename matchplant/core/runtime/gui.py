@@ -53,10 +53,12 @@ def require_display(command: str) -> None:
     """Raise a :class:`DependencyError` (exit code 2) when no window can be opened."""
     reason = gui_unavailable_reason()
     if reason is not None:
-        raise DependencyError(f"the GUI needs a window, and {reason}",
-                              fix=f"run the step without the GUI: '{command}' without --gui does the same work "
-                                  "headless from the config and --set values; or use a desktop, 'ssh -X', or "
-                                  "'xvfb-run' for a virtual display")
+        raise DependencyError(
+            f"the GUI needs a window, and {reason}",
+            fix=f"run the step without the GUI: '{command}' without --gui does the same work "
+            "headless from the config and --set values; or use a desktop, 'ssh -X', or "
+            "'xvfb-run' for a virtual display",
+        )
 
 
 def is_headless(headless: bool | None) -> bool:
@@ -108,5 +110,4 @@ def close(fig: Figure) -> None:
 
 def status_text(ax, text: str = ""):
     """A one-line status area at the bottom of an axes: messages and errors for the user."""
-    return ax.text(0.0, 0.0, text, transform=ax.transAxes, fontsize=9, va="bottom", ha="left",
-                   family="monospace")
+    return ax.text(0.0, 0.0, text, transform=ax.transAxes, fontsize=9, va="bottom", ha="left", family="monospace")

@@ -11,8 +11,9 @@ import contextlib
 import json
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from matchplant.core.runtime.errors import InputError
 
@@ -75,11 +76,15 @@ def read_json(path: str | Path) -> Any:
         with open(path, encoding="utf-8") as fh:
             return json.load(fh)
     except json.JSONDecodeError as exc:
-        raise InputError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})",
-                         path=path, fix="repair or regenerate the file") from exc
+        raise InputError(
+            f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})",
+            path=path,
+            fix="repair or regenerate the file",
+        ) from exc
     except UnicodeDecodeError as exc:
-        raise InputError("not a text (UTF-8) file", path=path,
-                         fix="point the config at the JSON file, not a binary file") from exc
+        raise InputError(
+            "not a text (UTF-8) file", path=path, fix="point the config at the JSON file, not a binary file"
+        ) from exc
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
@@ -147,7 +152,7 @@ class BatchedWrites:
     def close(self) -> None:
         self.flush()
 
-    def __enter__(self) -> "BatchedWrites":
+    def __enter__(self) -> BatchedWrites:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

@@ -20,8 +20,22 @@ import yaml
 from matchplant.core.runtime.config import to_dict
 
 LOGGER_NAME = "matchplant"
-VERSIONED = ("matchplant", "numpy", "scipy", "opencv-python-headless", "rasterio", "pyproj", "shapely",
-             "geopandas", "torch", "torchvision", "pycocotools", "matplotlib", "piexif", "rasterstats")
+VERSIONED = (
+    "matchplant",
+    "numpy",
+    "scipy",
+    "opencv-python-headless",
+    "rasterio",
+    "pyproj",
+    "shapely",
+    "geopandas",
+    "torch",
+    "torchvision",
+    "pycocotools",
+    "matplotlib",
+    "piexif",
+    "rasterstats",
+)
 
 
 def get_logger(name: str | None = None) -> logging.Logger:
@@ -31,8 +45,10 @@ def get_logger(name: str | None = None) -> logging.Logger:
 def package_versions() -> dict[str, str]:
     # not platform.platform(): it runs 'uname -p' in a child process, a fork of this one, whose resident memory
     # (the parent's at the fork) module 9 would report as its worker processes' peak
-    out = {"python": platform.python_version(),
-           "platform": f"{platform.system()}-{platform.release()}-{platform.machine()}"}
+    out = {
+        "python": platform.python_version(),
+        "platform": f"{platform.system()}-{platform.release()}-{platform.machine()}",
+    }
     for pkg in VERSIONED:
         try:
             out[pkg] = metadata.version(pkg)

@@ -32,10 +32,23 @@ def write_manifest(stage: Path, extra: list[str] = ()) -> list[str]:
     """List the files under ``stage`` (and ``extra``: files other processes of a torchrun job write) in
     ``stage/manifest.json``; returns the list."""
     stage = Path(stage)
-    files = sorted({p.relative_to(stage).as_posix() for p in stage.rglob("*") if p.is_file()
-                    and p.relative_to(stage).parts[0] not in NOT_LISTED} | set(extra) | {MANIFEST})
-    write_json(stage / MANIFEST, {"description": "the files of this step's last run in this folder; the next run "
-                                                 "removes those it does not write again", "files": files})
+    files = sorted(
+        {
+            p.relative_to(stage).as_posix()
+            for p in stage.rglob("*")
+            if p.is_file() and p.relative_to(stage).parts[0] not in NOT_LISTED
+        }
+        | set(extra)
+        | {MANIFEST}
+    )
+    write_json(
+        stage / MANIFEST,
+        {
+            "description": "the files of this step's last run in this folder; the next run "
+            "removes those it does not write again",
+            "files": files,
+        },
+    )
     return files
 
 
@@ -55,6 +68,10 @@ def remove_stale(out_dir: Path, before: list[str], now: list[str]) -> int:
                 break
             parent.rmdir()
     if removed:
-        log.info("%d file(s) of the previous run removed from %s (listed in its %s, not written this time)",
-                 removed, out_dir, MANIFEST)
+        log.info(
+            "%d file(s) of the previous run removed from %s (listed in its %s, not written this time)",
+            removed,
+            out_dir,
+            MANIFEST,
+        )
     return removed

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Iterable, TypeVar
+from collections.abc import Iterable
+from typing import TypeVar
 
 from tqdm.auto import tqdm
 from tqdm.std import tqdm as std_tqdm
@@ -101,8 +102,9 @@ class LogProgress(std_tqdm):
         super().close()
 
 
-def progress(iterable: Iterable[T] | None, desc: str = "", total: int | None = None, unit: str = "it",
-             **kwargs) -> Iterable[T]:
+def progress(
+    iterable: Iterable[T] | None, desc: str = "", total: int | None = None, unit: str = "it", **kwargs
+) -> Iterable[T]:
     """Wrap ``iterable`` (or, with ``None``, a bar to ``update()`` by hand) with progress reporting."""
     if os.environ.get("MATCHPLANT_QUIET") == "1":
         return tqdm(iterable, desc=desc, total=total, unit=unit, disable=True, **kwargs)

@@ -26,9 +26,10 @@ import io
 import json
 import math
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
@@ -84,18 +85,27 @@ def match_names(names: Iterable[str], targets: Iterable[str]) -> tuple[dict[str,
     return matched, unmatched
 
 
-def match_name(name: str, choices: Iterable[str], *, what: str, path: str | Path | None = None,
-               fix: str | None = None, error: type = InputError) -> str:
+def match_name(
+    name: str,
+    choices: Iterable[str],
+    *,
+    what: str,
+    path: str | Path | None = None,
+    fix: str | None = None,
+    error: type = InputError,
+) -> str:
     """The one of ``choices`` that ``name`` means (exactly, else loosely); else an error with "did you mean"."""
     choices = [str(c) for c in choices]
     matched, _ = match_names([name], choices)
     if name in matched:
         return matched[name]
     hint = did_you_mean(name, choices)
-    listing = hint or f"known: {', '.join(choices[:12])}{' ...' if len(choices) > 12 else ''}" if choices else \
-        "there are none"
-    raise error(f"{what} '{name}' not found; {listing}", path=path,
-                fix=fix or f"use one of the existing {what}s")
+    listing = (
+        hint or f"known: {', '.join(choices[:12])}{' ...' if len(choices) > 12 else ''}"
+        if choices
+        else "there are none"
+    )
+    raise error(f"{what} '{name}' not found; {listing}", path=path, fix=fix or f"use one of the existing {what}s")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -107,8 +117,11 @@ def read_text(path: str | Path, *, what: str = "file") -> str:
     ends (turned into ``\\n``); cp1252 as a last resort, with a warning."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{what} not found" if not path.exists() else f"{what} is a folder, not a file",
-                         path=path, fix="check the path in your config")
+        raise InputError(
+            f"{what} not found" if not path.exists() else f"{what} is a folder, not a file",
+            path=path,
+            fix="check the path in your config",
+        )
     data = path.read_bytes()
     if data.startswith((b"\xff\xfe", b"\xfe\xff")):
         text = data.decode("utf-16")
@@ -117,22 +130,29 @@ def read_text(path: str | Path, *, what: str = "file") -> str:
             text = data.decode("utf-8-sig")
         except UnicodeDecodeError as exc:
             if b"\x00" in data[:4096]:
-                raise InputError(f"{what} is binary, not text (byte {exc.start})", path=path,
-                                 fix="point the config at the text file") from exc
+                raise InputError(
+                    f"{what} is binary, not text (byte {exc.start})", path=path, fix="point the config at the text file"
+                ) from exc
             text = data.decode("cp1252", errors="replace")
             log.warning("%s is not UTF-8; read it as Windows-1252 (save it as UTF-8 to silence this)", path)
     return text.replace("\r\n", "\n").replace("\r", "\n")
 
 
-def read_json(path: str | Path, *, expect: type | tuple[type, ...] | None = None, required: Sequence[str] = (),
-              what: str = "JSON file") -> Any:
+def read_json(
+    path: str | Path,
+    *,
+    expect: type | tuple[type, ...] | None = None,
+    required: Sequence[str] = (),
+    what: str = "JSON file",
+) -> Any:
     """Parse a JSON file; name a truncated file as such, a syntax error's line, a wrong top-level type and
     missing top-level keys (``required``, with "did you mean" from the keys present)."""
     path = Path(path)
     text = read_text(path, what=what)
     if not text.strip():
-        raise InputError(f"{what} is empty", path=path, fix="regenerate the file (the step that wrote it may "
-                                                            "have been interrupted)")
+        raise InputError(
+            f"{what} is empty", path=path, fix="regenerate the file (the step that wrote it may have been interrupted)"
+        )
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -140,15 +160,22 @@ def read_json(path: str | Path, *, expect: type | tuple[type, ...] | None = None
         # cut off: the error is at the very end, or the text stops inside a string or before its last bracket
         cut = exc.pos >= len(tail) - 1 or exc.msg.startswith("Unterminated string") or tail[-1:] not in "}]"
         if cut and not exc.msg.startswith("Extra data"):
-            raise InputError(f"{what} is not valid JSON: it ends early, at line {exc.lineno} ({exc.msg}), "
-                             "as a truncated file does", path=path,
-                             fix="the file was cut off (disk full, interrupted copy or run); copy or "
-                                 "regenerate it") from exc
-        raise InputError(f"{what} is not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}",
-                         path=path, fix="repair the file there, or regenerate it") from exc
+            raise InputError(
+                f"{what} is not valid JSON: it ends early, at line {exc.lineno} ({exc.msg}), as a truncated file does",
+                path=path,
+                fix="the file was cut off (disk full, interrupted copy or run); copy or regenerate it",
+            ) from exc
+        raise InputError(
+            f"{what} is not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}",
+            path=path,
+            fix="repair the file there, or regenerate it",
+        ) from exc
     if expect is not None and not isinstance(data, expect):
-        raise InputError(f"{what} holds {_kind(data)}, expected {_kind_of(expect)}", path=path,
-                         fix="point the config at the right file")
+        raise InputError(
+            f"{what} holds {_kind(data)}, expected {_kind_of(expect)}",
+            path=path,
+            fix="point the config at the right file",
+        )
     if required:
         _require_keys(data, required, what, path)
     return data
@@ -156,7 +183,8 @@ def read_json(path: str | Path, *, expect: type | tuple[type, ...] | None = None
 
 def _kind(value: Any) -> str:
     return {dict: "an object {...}", list: "a list [...]", str: "a string", type(None): "null"}.get(
-        type(value), f"a {type(value).__name__}")
+        type(value), f"a {type(value).__name__}"
+    )
 
 
 def _kind_of(expect: type | tuple[type, ...]) -> str:
@@ -166,14 +194,19 @@ def _kind_of(expect: type | tuple[type, ...]) -> str:
 
 def _require_keys(data: Any, required: Sequence[str], what: str, path: Path) -> None:
     if not isinstance(data, dict):
-        raise InputError(f"{what} holds {_kind(data)}, expected an object with {list(required)}", path=path,
-                         fix="point the config at the right file")
+        raise InputError(
+            f"{what} holds {_kind(data)}, expected an object with {list(required)}",
+            path=path,
+            fix="point the config at the right file",
+        )
     for key in required:
         if key not in data:
             hint = did_you_mean(key, data)
-            raise InputError(f"{what} has no '{key}'{'; ' + hint if hint else ''}", path=path,
-                             fix=f"the file needs a top-level '{key}'; regenerate it or point the config "
-                                 "at the right file")
+            raise InputError(
+                f"{what} has no '{key}'{'; ' + hint if hint else ''}",
+                path=path,
+                fix=f"the file needs a top-level '{key}'; regenerate it or point the config at the right file",
+            )
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -189,14 +222,18 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 continue
             if key in seen:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"key '{key}' appears twice (lines {seen[key]} and {key_node.start_mark.line + 1})",
-                    key_node.start_mark)
+                    None,
+                    None,
+                    f"key '{key}' appears twice (lines {seen[key]} and {key_node.start_mark.line + 1})",
+                    key_node.start_mark,
+                )
             seen[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep)
 
 
-def read_yaml(path: str | Path, *, expect: type | None = dict, what: str = "YAML file",
-              error: type = ConfigError) -> Any:
+def read_yaml(
+    path: str | Path, *, expect: type | None = dict, what: str = "YAML file", error: type = ConfigError
+) -> Any:
     """Parse a YAML file (BOM and CRLF accepted); an empty file, a syntax error (with its line), tabs used
     for indentation, a key given twice and a wrong top-level type are errors."""
     path = Path(path)
@@ -213,14 +250,23 @@ def read_yaml(path: str | Path, *, expect: type | None = dict, what: str = "YAML
         line = mark.line + 1 if mark is not None else None
         tab = next((i + 1 for i, ln in enumerate(text.splitlines()) if re.match(r"^ *\t", ln)), None)
         if tab is not None:
-            raise error(f"{what}: line {tab} is indented with a tab", path=path,
-                        fix="indent with spaces only (YAML does not allow tabs)") from exc
+            raise error(
+                f"{what}: line {tab} is indented with a tab",
+                path=path,
+                fix="indent with spaces only (YAML does not allow tabs)",
+            ) from exc
         problem = getattr(exc, "problem", None) or str(exc)
-        raise error(f"{what} is not valid YAML{f' at line {line}' if line else ''}: {problem}", path=path,
-                    fix="check the indentation and the 'key: value' syntax there") from exc
+        raise error(
+            f"{what} is not valid YAML{f' at line {line}' if line else ''}: {problem}",
+            path=path,
+            fix="check the indentation and the 'key: value' syntax there",
+        ) from exc
     if expect is not None and not isinstance(data, expect):
-        raise error(f"{what} holds {_kind(data)}, expected {_kind_of(expect)} of 'key: value' lines", path=path,
-                    fix="write one 'key: value' setting per line")
+        raise error(
+            f"{what} holds {_kind(data)}, expected {_kind_of(expect)} of 'key: value' lines",
+            path=path,
+            fix="write one 'key: value' setting per line",
+        )
     return data
 
 
@@ -260,9 +306,16 @@ def _number(text: str, decimal_comma: bool) -> float:
     return float(t)
 
 
-def read_csv(path: str | Path, *, required: Sequence[str] = (), numeric: Sequence[str] = (),
-             aliases: dict[str, Sequence[str]] | None = None, allow_empty: bool = False,
-             comment: str = "#", what: str = "CSV file") -> Table:
+def read_csv(
+    path: str | Path,
+    *,
+    required: Sequence[str] = (),
+    numeric: Sequence[str] = (),
+    aliases: dict[str, Sequence[str]] | None = None,
+    allow_empty: bool = False,
+    comment: str = "#",
+    what: str = "CSV file",
+) -> Table:
     """Read a delimited table with a header line and check it.
 
     - delimiter sniffed from the header (``,`` ``;`` TAB ``|``, else whitespace); BOM, CRLF, UTF-16 accepted;
@@ -274,11 +327,17 @@ def read_csv(path: str | Path, *, required: Sequence[str] = (), numeric: Sequenc
     """
     path = Path(path)
     text = read_text(path, what=what)
-    numbered = [(i + 1, ln) for i, ln in enumerate(text.split("\n"))
-                if ln.strip() and not (comment and ln.lstrip().startswith(comment))]
+    numbered = [
+        (i + 1, ln)
+        for i, ln in enumerate(text.split("\n"))
+        if ln.strip() and not (comment and ln.lstrip().startswith(comment))
+    ]
     if not numbered:
-        raise InputError(f"{what} is empty", path=path, fix=f"the first line must be the header: "
-                                                            f"{','.join(required) or 'column names'}")
+        raise InputError(
+            f"{what} is empty",
+            path=path,
+            fix=f"the first line must be the header: {','.join(required) or 'column names'}",
+        )
     delim = _sniff(numbered[0][1])
 
     def split(line: str) -> list[str]:
@@ -299,16 +358,21 @@ def read_csv(path: str | Path, *, required: Sequence[str] = (), numeric: Sequenc
     for lineno, line in numbered[1:]:
         values = split(line)
         if len(values) != len(header):
-            raise InputError(f"{what}, line {lineno}: {len(values)} values, but the header has {len(header)} "
-                             f"columns", path=path, fix="give every line one value per column (quote values "
-                                                        "that contain the delimiter)")
+            raise InputError(
+                f"{what}, line {lineno}: {len(values)} values, but the header has {len(header)} columns",
+                path=path,
+                fix="give every line one value per column (quote values that contain the delimiter)",
+            )
         row = dict(zip(header, values))
         row.update({name: row[col] for name, col in rename.items()})
         rows.append(row)
         lines.append(lineno)
     if not rows and not allow_empty:
-        raise InputError(f"{what} has a header but no data rows", path=path, fix="add the data, or point the "
-                                                                                 "config at the right file")
+        raise InputError(
+            f"{what} has a header but no data rows",
+            path=path,
+            fix="add the data, or point the config at the right file",
+        )
     table = Table(path, header, rows, lines, delim or " ")
     for name in numeric:
         values = np.empty(len(rows))
@@ -319,33 +383,46 @@ def read_csv(path: str | Path, *, required: Sequence[str] = (), numeric: Sequenc
                 values[i] = math.nan
             if not math.isfinite(values[i]):
                 shown = repr(row[name]) if row[name] else "empty"
-                raise InputError(f"{what}, line {lines[i]}: column '{rename[name]}' is {shown}, not a number",
-                                 path=path, fix=f"write a number there (a dot for decimals), or remove line "
-                                                f"{lines[i]}")
+                raise InputError(
+                    f"{what}, line {lines[i]}: column '{rename[name]}' is {shown}, not a number",
+                    path=path,
+                    fix=f"write a number there (a dot for decimals), or remove line {lines[i]}",
+                )
         table.numbers[name] = values
     return table
 
 
-def _check_header(header: list[str], required: Sequence[str], numeric: Sequence[str],
-                  aliases: dict[str, Sequence[str]], path: Path, what: str) -> None:
+def _check_header(
+    header: list[str],
+    required: Sequence[str],
+    numeric: Sequence[str],
+    aliases: dict[str, Sequence[str]],
+    path: Path,
+    what: str,
+) -> None:
     folded = [h.casefold() for h in header]
     if len(set(folded)) != len(folded):
         dup = next(h for h in header if folded.count(h.casefold()) > 1)
-        raise InputError(f"{what}: column '{dup}' appears twice in the header", path=path,
-                         fix="give each column a unique name")
+        raise InputError(
+            f"{what}: column '{dup}' appears twice in the header", path=path, fix="give each column a unique name"
+        )
     needed = list(dict.fromkeys([*required, *numeric]))
     for name in needed:
         options = [name, *aliases.get(name, [])]
         if any(o.casefold() in folded for o in options):
             continue
         if header and sum(_is_number(h) for h in header) >= max(1, len(header) // 2):
-            raise InputError(f"{what} has no header line (the first line holds numbers)", path=path,
-                             fix=f"add the header line: {','.join(needed)}")
+            raise InputError(
+                f"{what} has no header line (the first line holds numbers)",
+                path=path,
+                fix=f"add the header line: {','.join(needed)}",
+            )
         hint = did_you_mean(name, header)
-        raise InputError(f"{what} has no column '{name}'{'; ' + hint if hint else ''} (columns: "
-                         f"{', '.join(header)})", path=path,
-                         fix=f"rename the column to '{name}'" + (f" (or {', '.join(aliases[name])})"
-                                                                  if aliases.get(name) else ""))
+        raise InputError(
+            f"{what} has no column '{name}'{'; ' + hint if hint else ''} (columns: {', '.join(header)})",
+            path=path,
+            fix=f"rename the column to '{name}'" + (f" (or {', '.join(aliases[name])})" if aliases.get(name) else ""),
+        )
 
 
 def _is_number(text: str) -> bool:
@@ -360,9 +437,18 @@ def _is_number(text: str) -> bool:
 # values and units
 
 
-def check_range(values: Any, *, lo: float | None = None, hi: float | None = None, what: str,
-                path: str | Path | None = None, lines: Sequence[int] | None = None, unit: str = "",
-                fix: str | None = None, error: type = InputError) -> None:
+def check_range(
+    values: Any,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    what: str,
+    path: str | Path | None = None,
+    lines: Sequence[int] | None = None,
+    unit: str = "",
+    fix: str | None = None,
+    error: type = InputError,
+) -> None:
     """Every value finite and within ``[lo, hi]``; else name the first bad one (and its line) and the count."""
     arr = np.asarray(values, dtype=float).ravel()
     bad = ~np.isfinite(arr)
@@ -375,13 +461,23 @@ def check_range(values: Any, *, lo: float | None = None, hi: float | None = None
     i = int(np.flatnonzero(bad)[0])
     where = f"line {lines[i]}: " if lines is not None else ""
     span = f"[{'' if lo is None else lo}, {'' if hi is None else hi}]{' ' + unit if unit else ''}"
-    raise error(f"{where}{what} = {arr[i]:g} is outside {span} ({int(bad.sum())} of {arr.size} values)",
-                path=path, fix=fix or f"correct {what} (expected {span})")
+    raise error(
+        f"{where}{what} = {arr[i]:g} is outside {span} ({int(bad.sum())} of {arr.size} values)",
+        path=path,
+        fix=fix or f"correct {what} (expected {span})",
+    )
 
 
-def check_coordinates(x: Any, y: Any, *, geographic: bool, what: str = "coordinates",
-                      path: str | Path | None = None, lines: Sequence[int] | None = None,
-                      fix: str | None = None) -> None:
+def check_coordinates(
+    x: Any,
+    y: Any,
+    *,
+    geographic: bool,
+    what: str = "coordinates",
+    path: str | Path | None = None,
+    lines: Sequence[int] | None = None,
+    fix: str | None = None,
+) -> None:
     """Coordinates against their units: degrees (``geographic``: x = lon, y = lat) or projected metres.
 
     Catches projected metres in a lat/lon column, lat/lon swapped, and degrees labelled as a projected CRS.
@@ -394,20 +490,29 @@ def check_coordinates(x: Any, y: Any, *, geographic: bool, what: str = "coordina
         return
     if geographic:
         if np.all(np.abs(x) <= 90) and np.any(np.abs(y) > 90) and np.all(np.abs(y) <= 180):
-            raise InputError(f"{what}: latitude and longitude look swapped (latitude {y[np.abs(y) > 90][0]:g})",
-                             path=path, fix=fix or "swap the two columns (x = longitude, y = latitude)")
+            raise InputError(
+                f"{what}: latitude and longitude look swapped (latitude {y[np.abs(y) > 90][0]:g})",
+                path=path,
+                fix=fix or "swap the two columns (x = longitude, y = latitude)",
+            )
         bad = (np.abs(x) > 180) | (np.abs(y) > 90)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
             where = f"line {lines[i]}: " if lines is not None else ""
-            raise InputError(f"{where}{what} ({x[i]:g}, {y[i]:g}) are not degrees: they look like projected "
-                             f"metres ({int(bad.sum())} of {x.size} points)", path=path,
-                             fix=fix or "give the data's projected CRS (e.g. EPSG:326xx for UTM) instead of a "
-                                        "lat/lon one, or convert the coordinates to degrees")
+            raise InputError(
+                f"{where}{what} ({x[i]:g}, {y[i]:g}) are not degrees: they look like projected "
+                f"metres ({int(bad.sum())} of {x.size} points)",
+                path=path,
+                fix=fix
+                or "give the data's projected CRS (e.g. EPSG:326xx for UTM) instead of a "
+                "lat/lon one, or convert the coordinates to degrees",
+            )
     elif np.all(np.abs(x) <= 180) and np.all(np.abs(y) <= 90) and np.ptp(x) < 1 and np.ptp(y) < 1:
-        raise InputError(f"{what} ({x[0]:g}, {y[0]:g}) look like degrees, but a projected CRS (metres) is set",
-                         path=path, fix=fix or "set a geographic CRS (EPSG:4326) for them, or convert them to "
-                                               "the projected CRS")
+        raise InputError(
+            f"{what} ({x[0]:g}, {y[0]:g}) look like degrees, but a projected CRS (metres) is set",
+            path=path,
+            fix=fix or "set a geographic CRS (EPSG:4326) for them, or convert them to the projected CRS",
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -419,12 +524,18 @@ def check_path(p: str | Path, kind: str, *, key: str, source: str = "config") ->
     p = Path(p)
     expected = {"file": "file", "dir": "folder"}.get(kind, "path")
     if not p.exists():
-        raise ConfigError(f"config key '{key}': {expected} not found ({source})", path=p,
-                          fix=f"correct '{key}' (relative paths in a YAML file are relative to that file)")
+        raise ConfigError(
+            f"config key '{key}': {expected} not found ({source})",
+            path=p,
+            fix=f"correct '{key}' (relative paths in a YAML file are relative to that file)",
+        )
     if (kind == "file" and p.is_dir()) or (kind == "dir" and not p.is_dir()):
         actual = "a folder" if p.is_dir() else "a file"
-        raise ConfigError(f"config key '{key}' must be a {expected}, but this is {actual} ({source})", path=p,
-                          fix=f"point '{key}' at a {expected}")
+        raise ConfigError(
+            f"config key '{key}' must be a {expected}, but this is {actual} ({source})",
+            path=p,
+            fix=f"point '{key}' at a {expected}",
+        )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -440,20 +551,40 @@ def check_jpeg(path: str | Path, *, decode: bool = False, what: str = "image") -
     except OSError as exc:
         raise InputError(f"{what} cannot be read: {exc.strerror}", path=path, fix="check the file") from exc
     if not data.startswith(b"\xff\xd8"):
-        raise InputError(f"{what} is not a JPEG (no start-of-image marker)", path=path,
-                         fix="remove it from the folder, or convert it to JPEG")
+        raise InputError(
+            f"{what} is not a JPEG (no start-of-image marker)",
+            path=path,
+            fix="remove it from the folder, or convert it to JPEG",
+        )
     if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
-        raise InputError(f"{what} is truncated (no end-of-image marker; {len(data)} bytes)", path=path,
-                         fix="copy the photo again from the card, or remove it from the folder")
+        raise InputError(
+            f"{what} is truncated (no end-of-image marker; {len(data)} bytes)",
+            path=path,
+            fix="copy the photo again from the card, or remove it from the folder",
+        )
     if decode:
         try:
             with Image.open(path) as im:
                 im.draft("RGB", (max(1, im.width // 8), max(1, im.height // 8)))
                 im.load()
         except (OSError, SyntaxError, ValueError) as exc:
-            raise InputError(f"{what} cannot be decoded: {exc}", path=path,
-                             fix="copy the photo again, or remove it from the folder") from exc
+            raise InputError(
+                f"{what} cannot be decoded: {exc}", path=path, fix="copy the photo again, or remove it from the folder"
+            ) from exc
 
 
-__all__ = ["did_you_mean", "name_key", "match_names", "match_name", "read_text", "read_json", "read_yaml",
-           "Table", "read_csv", "check_range", "check_coordinates", "check_path", "check_jpeg"]
+__all__ = [
+    "did_you_mean",
+    "name_key",
+    "match_names",
+    "match_name",
+    "read_text",
+    "read_json",
+    "read_yaml",
+    "Table",
+    "read_csv",
+    "check_range",
+    "check_coordinates",
+    "check_path",
+    "check_jpeg",
+]

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import pyogrio
@@ -32,8 +33,14 @@ class RasterInfo:
     nodata: float | None
 
 
-def check_raster(path: str | Path, *, bands: Sequence[int] | int | None = None, require_crs: bool = True,
-                 allow_empty: bool = False, what: str = "raster") -> RasterInfo:
+def check_raster(
+    path: str | Path,
+    *,
+    bands: Sequence[int] | int | None = None,
+    require_crs: bool = True,
+    allow_empty: bool = False,
+    what: str = "raster",
+) -> RasterInfo:
     """A GeoTIFF (any GDAL raster) that opens, has a CRS and georeferencing, has the ``bands`` asked for (a
     count or 1-based indices) and holds some valid data (not all nodata/NaN) in each of them."""
     path = Path(path)
@@ -45,20 +52,32 @@ def check_raster(path: str | Path, *, bands: Sequence[int] | int | None = None, 
             info = RasterInfo(path, ds.crs, ds.count, ds.width, ds.height, ds.nodata)
             wanted = list(range(1, bands + 1)) if isinstance(bands, int) else list(bands or range(1, ds.count + 1))
             if wanted and max(wanted) > ds.count:
-                raise InputError(f"{what} has {ds.count} band(s), band {max(wanted)} is needed", path=path,
-                                 fix="check the band numbers in your config, or use the right raster")
+                raise InputError(
+                    f"{what} has {ds.count} band(s), band {max(wanted)} is needed",
+                    path=path,
+                    fix="check the band numbers in your config, or use the right raster",
+                )
             if require_crs and (ds.crs is None or ds.transform.is_identity):
-                raise InputError(f"{what} has no {'CRS' if ds.crs is None else 'georeferencing'}", path=path,
-                                 fix="use the georeferenced raster (e.g. ODM's odm_dem/*.tif), or assign its "
-                                     "CRS with gdal_edit.py -a_srs EPSG:xxxx")
+                raise InputError(
+                    f"{what} has no {'CRS' if ds.crs is None else 'georeferencing'}",
+                    path=path,
+                    fix="use the georeferenced raster (e.g. ODM's odm_dem/*.tif), or assign its "
+                    "CRS with gdal_edit.py -a_srs EPSG:xxxx",
+                )
             if not allow_empty:
                 for b in wanted:
                     if not _has_valid(ds, b):
-                        raise InputError(f"{what}: band {b} holds no valid data (all nodata or NaN)", path=path,
-                                         fix="check the raster in a GIS; regenerate it or choose another band")
+                        raise InputError(
+                            f"{what}: band {b} holds no valid data (all nodata or NaN)",
+                            path=path,
+                            fix="check the raster in a GIS; regenerate it or choose another band",
+                        )
     except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"{what} cannot be read as a raster: {exc}", path=path,
-                         fix="use a GeoTIFF; a truncated or interrupted copy must be copied again") from exc
+        raise InputError(
+            f"{what} cannot be read as a raster: {exc}",
+            path=path,
+            fix="use a GeoTIFF; a truncated or interrupted copy must be copied again",
+        ) from exc
     return info
 
 
@@ -78,8 +97,11 @@ def _sampled_windows(ds, band: int) -> list:
     nr, nc = -(-ds.height // bh), -(-ds.width // bw)
     rows = np.unique(np.linspace(0, nr - 1, min(nr, SAMPLED_BLOCKS)).round().astype(int))
     cols = np.unique(np.linspace(0, nc - 1, min(nc, SAMPLED_BLOCKS)).round().astype(int))
-    return [rasterio.windows.Window(c * bw, r * bh, min(bw, ds.width - c * bw), min(bh, ds.height - r * bh))
-            for r in rows for c in cols]
+    return [
+        rasterio.windows.Window(c * bw, r * bh, min(bw, ds.width - c * bw), min(bh, ds.height - r * bh))
+        for r in rows
+        for c in cols
+    ]
 
 
 def _has_valid(ds, band: int) -> bool:
@@ -91,19 +113,28 @@ def _has_valid(ds, band: int) -> bool:
         # is among them, so a truncated copy fails here
         if any([_valid(ds, ds.read(band, window=w)) for w in _sampled_windows(ds, band)]):
             return True
-        rows = max(1, 2 ** 24 // max(ds.width, 1))
+        rows = max(1, 2**24 // max(ds.width, 1))
         for r0 in range(0, ds.height, rows):
             window = rasterio.windows.Window(0, r0, ds.width, min(rows, ds.height - r0))
             if _valid(ds, ds.read(band, window=window)):
                 return True
     except rasterio.errors.RasterioIOError as exc:
-        raise InputError(f"raster band {band} cannot be read (truncated file?): {exc}", path=ds.name,
-                         fix="copy or regenerate the raster") from exc
+        raise InputError(
+            f"raster band {band} cannot be read (truncated file?): {exc}",
+            path=ds.name,
+            fix="copy or regenerate the raster",
+        ) from exc
     return False
 
 
-def check_vector(path: str | Path, *, layer: str | None = None, require_crs: bool = True,
-                 allow_empty: bool = False, what: str = "vector file") -> str:
+def check_vector(
+    path: str | Path,
+    *,
+    layer: str | None = None,
+    require_crs: bool = True,
+    allow_empty: bool = False,
+    what: str = "vector file",
+) -> str:
     """A GeoPackage/shapefile/GeoJSON that opens, has the ``layer`` (did you mean), a CRS and features; returns
     the layer name (the only one when ``layer`` is None; several layers and no ``layer`` is an error)."""
     path = Path(path)
@@ -112,24 +143,39 @@ def check_vector(path: str | Path, *, layer: str | None = None, require_crs: boo
     try:
         layers = [str(name) for name, _ in pyogrio.list_layers(path)]
     except Exception as exc:  # noqa: BLE001 - pyogrio raises DataSourceError and GDAL errors of several kinds
-        raise InputError(f"{what} cannot be opened as vector data: {exc}", path=path,
-                         fix="use a GeoPackage, shapefile or GeoJSON; copy a truncated file again") from exc
+        raise InputError(
+            f"{what} cannot be opened as vector data: {exc}",
+            path=path,
+            fix="use a GeoPackage, shapefile or GeoJSON; copy a truncated file again",
+        ) from exc
     if not layers:
         raise InputError(f"{what} has no layer", path=path, fix="point the config at a file with features")
     if layer is None:
         if len(layers) > 1:
-            raise InputError(f"{what} has {len(layers)} layers ({', '.join(layers)}); which one?", path=path,
-                             fix="set the layer name in the config")
+            raise InputError(
+                f"{what} has {len(layers)} layers ({', '.join(layers)}); which one?",
+                path=path,
+                fix="set the layer name in the config",
+            )
         layer = layers[0]
     elif layer not in layers:
         hint = did_you_mean(layer, layers)
-        raise InputError(f"{what} has no layer '{layer}'{'; ' + hint if hint else ''} (layers: "
-                         f"{', '.join(layers)})", path=path, fix="set the layer to one of those")
+        raise InputError(
+            f"{what} has no layer '{layer}'{'; ' + hint if hint else ''} (layers: {', '.join(layers)})",
+            path=path,
+            fix="set the layer to one of those",
+        )
     meta = pyogrio.read_info(path, layer=layer)
     if require_crs and not meta.get("crs"):
-        raise InputError(f"{what}, layer '{layer}', has no CRS", path=path,
-                         fix="assign the CRS in a GIS (or ogr2ogr -a_srs EPSG:xxxx), or give it in the config")
+        raise InputError(
+            f"{what}, layer '{layer}', has no CRS",
+            path=path,
+            fix="assign the CRS in a GIS (or ogr2ogr -a_srs EPSG:xxxx), or give it in the config",
+        )
     if not allow_empty and meta.get("features", 0) == 0:
-        raise InputError(f"{what}, layer '{layer}', has no features", path=path,
-                         fix="point the config at the file that holds the plants/polygons")
+        raise InputError(
+            f"{what}, layer '{layer}', has no features",
+            path=path,
+            fix="point the config at the file that holds the plants/polygons",
+        )
     return layer

@@ -7,11 +7,11 @@ second at start-up, which a command run without a window never pays.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from matplotlib.backend_tools import Cursors
 from matplotlib.figure import Figure
@@ -115,8 +115,10 @@ def busy(fig: Figure, say: Callable[[str], None], text: str, area: Any = None) -
 def ask_path(kind: str, title: str, initial: str | Path | None = None, parent: Any = None) -> str | None:
     """Tk's dialog for a ``file``, a ``folder`` or a ``save`` file name; None when cancelled."""
     if filedialog is None:
-        raise DependencyError("Tk's file dialogs are not available in this Python",
-                              fix="type the path in the box, or install Tk (e.g. apt install python3-tk)")
+        raise DependencyError(
+            "Tk's file dialogs are not available in this Python",
+            fix="type the path in the box, or install Tk (e.g. apt install python3-tk)",
+        )
     initial = Path(initial) if initial else None
     start = str(initial if initial is not None and initial.is_dir() else initial.parent) if initial else None
     own_root = None
@@ -163,9 +165,17 @@ class SetupScreen:
     dialog (tests). The window stays open after a run, so the user can change a file and run again.
     """
 
-    def __init__(self, title: str, cfg: Any, fields: list[SetupField], on_run: Callable[[Any], str],
-                 headless: bool | None = None, chooser: Callable[..., str | None] | None = None,
-                 run_label: str = "Run", prefill: Callable[[dict[str, str]], dict[str, str]] | None = None):
+    def __init__(
+        self,
+        title: str,
+        cfg: Any,
+        fields: list[SetupField],
+        on_run: Callable[[Any], str],
+        headless: bool | None = None,
+        chooser: Callable[..., str | None] | None = None,
+        run_label: str = "Run",
+        prefill: Callable[[dict[str, str]], dict[str, str]] | None = None,
+    ):
         self.cfg, self.fields, self.on_run = cfg, fields, on_run
         self.chooser = chooser
         # prefill(texts of every box) -> {key: path}: what the previous module wrote where its README says,
@@ -179,8 +189,11 @@ class SetupScreen:
         self.browse_buttons: dict[str, Button] = {}
         for i, f in enumerate(fields):
             y = 1 - (i + 1.6) * row
-            box = QuietTextBox(self.fig.add_axes((0.22, y, 0.62, 0.7 * row)), f.label + " ",
-                               initial=_as_text(_config_value(cfg, f.key)))
+            box = QuietTextBox(
+                self.fig.add_axes((0.22, y, 0.62, 0.7 * row)),
+                f.label + " ",
+                initial=_as_text(_config_value(cfg, f.key)),
+            )
             self.boxes[f.key] = box
             if f.kind != "text":
                 button = Button(self.fig.add_axes((0.86, y, 0.12, 0.7 * row)), "Browse...")
@@ -191,8 +204,14 @@ class SetupScreen:
         # the status line in an axes of its own, so that "working ..." is drawn alone and at once
         self.status_area = self.fig.add_axes((0.0, 0.0, 0.85, 1.8 * row))
         self.status_area.set_axis_off()
-        self.status = self.status_area.text(0.02 / 0.85, 0.5, "Choose the files (Browse... or type a path), "
-                                            f"then {run_label}.", fontsize=9, family="monospace", va="center")
+        self.status = self.status_area.text(
+            0.02 / 0.85,
+            0.5,
+            f"Choose the files (Browse... or type a path), then {run_label}.",
+            fontsize=9,
+            family="monospace",
+            va="center",
+        )
         self.ran = False
         self.fill_in()
 
@@ -252,8 +271,7 @@ class SetupScreen:
         if not self.apply():
             return False
         try:
-            with busy(self.fig, self.say, "working ... (the window answers again when this is done)",
-                      self.status_area):
+            with busy(self.fig, self.say, "working ... (the window answers again when this is done)", self.status_area):
                 message = self.on_run(self.cfg)
         except MatchPlantError as exc:
             self.say(f"error: {exc}".replace("\n", " | "), error=True)

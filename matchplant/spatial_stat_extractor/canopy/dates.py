@@ -53,9 +53,14 @@ class Offset:
         return float(np.hypot(self.dx, self.dy))
 
     def report(self) -> dict:
-        return {"dx": round(self.dx, 3), "dy": round(self.dy, 3), "distance": round(self.distance, 3),
-                "correlation": round(float(self.score), 3), "correlation_near_zero": round(float(self.near), 3),
-                "windows": self.windows}
+        return {
+            "dx": round(self.dx, 3),
+            "dy": round(self.dy, 3),
+            "distance": round(self.distance, 3),
+            "correlation": round(float(self.score), 3),
+            "correlation_near_zero": round(float(self.near), 3),
+            "windows": self.windows,
+        }
 
 
 def _res(chm) -> float:
@@ -156,6 +161,6 @@ def measure_offset(t: Templates, chm, max_shift: float) -> Offset:
     dj = _parabola(total[i, j - 1], total[i, j], total[i, j + 1]) if 0 < j < 2 * s else 0.0
     # the big window's cell (i, j) is the template moved by (j - s) cells east and (i - s) cells south
     dx, dy = (j + dj - s) * r, -(i + di - s) * r
-    ii, jj = np.mgrid[-s:s + 1, -s:s + 1]
+    ii, jj = np.mgrid[-s : s + 1, -s : s + 1]
     near = np.hypot(ii, jj) * r <= max_shift + r
     return Offset(dx=float(dx), dy=float(dy), score=float(total[i, j]), near=float(total[near].max()), windows=used)

@@ -128,11 +128,14 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     c0, r0 = inv @ (b[ok, 0], b[ok, 3])
     c1, r1 = inv @ (b[ok, 2], b[ok, 1])
     box = np.stack([np.minimum(c0, c1), np.minimum(r0, r1), np.maximum(c0, c1), np.maximum(r0, r1)], axis=1)
-    inner = np.stack([np.floor(box[:, 0] + 0.5), np.floor(box[:, 1] + 0.5), np.floor(box[:, 2] + 0.5),
-                      np.floor(box[:, 3] + 0.5)], axis=1).astype(np.int64)  # pixel centres inside
+    inner = np.stack(
+        [np.floor(box[:, 0] + 0.5), np.floor(box[:, 1] + 0.5), np.floor(box[:, 2] + 0.5), np.floor(box[:, 3] + 0.5)],
+        axis=1,
+    ).astype(np.int64)  # pixel centres inside
     g = int(np.ceil(guard_m / res))
-    guarded = np.stack([np.floor(box[:, 0]) - g, np.floor(box[:, 1]) - g, np.ceil(box[:, 2]) + g,
-                        np.ceil(box[:, 3]) + g], axis=1).astype(np.int64)
+    guarded = np.stack(
+        [np.floor(box[:, 0]) - g, np.floor(box[:, 1]) - g, np.ceil(box[:, 2]) + g, np.ceil(box[:, 3]) + g], axis=1
+    ).astype(np.int64)
     size = np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))
     half = int(np.clip(3 * size + 2 * g, 32, MAX_HALF))
     centre = np.stack([(box[:, 1] + box[:, 3]) / 2, (box[:, 0] + box[:, 2]) / 2], axis=1)
@@ -149,8 +152,9 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     # pixels outside every box are the sample (a few leaf edges a box cut short widen its tail, which
     # robust_sd caps), better than no measurement and the fixed thresholds of an exact CHM
     near_ground, near_ndvi = [], []
-    outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])],
-                     axis=1).astype(np.int64)
+    outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])], axis=1).astype(
+        np.int64
+    )
     for k in picks:
         R0 = int(max(0, centre[k, 0] - half))
         R1 = int(min(chm.height, centre[k, 0] + half))
@@ -168,23 +172,41 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
             values.append(v[::step])
             if N is not None:
                 ndvis.append(N[mask][::step])
-        whole = near & ~seen & (inner[:, 0] >= C0) & (inner[:, 2] <= C1) & (inner[:, 1] >= R0) & \
-            (inner[:, 3] <= R1) & (inner[:, 2] > inner[:, 0]) & (inner[:, 3] > inner[:, 1])
+        whole = (
+            near
+            & ~seen
+            & (inner[:, 0] >= C0)
+            & (inner[:, 2] <= C1)
+            & (inner[:, 1] >= R0)
+            & (inner[:, 3] <= R1)
+            & (inner[:, 2] > inner[:, 0])
+            & (inner[:, 3] > inner[:, 1])
+        )
         for j in np.flatnonzero(whole):  # a few dozen boxes per window
-            a = W[inner[j, 1] - R0:inner[j, 3] - R0, inner[j, 0] - C0:inner[j, 2] - C0]
+            a = W[inner[j, 1] - R0 : inner[j, 3] - R0, inner[j, 0] - C0 : inner[j, 2] - C0]
             if np.isfinite(a).any():
                 tops.append(np.nanmax(a))
                 lows.append(np.nanmin(a))
                 if N is not None:
-                    top_ndvi.append(N[inner[j, 1] - R0:inner[j, 3] - R0, inner[j, 0] - C0:inner[j, 2] - C0]
-                                    .ravel()[np.nanargmax(a)])
+                    top_ndvi.append(
+                        N[inner[j, 1] - R0 : inner[j, 3] - R0, inner[j, 0] - C0 : inner[j, 2] - C0].ravel()[
+                            np.nanargmax(a)
+                        ]
+                    )
         seen |= whole
     v = np.concatenate(ground) if ground else np.zeros(0)
     guarded = v.size >= MIN_GROUND
     if not guarded:
         v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
-    out = GroundSample(pixels=int(v.size), windows=len(picks), box_max=np.array(tops), box_min=np.array(lows),
-                      ndvi_soil=_finite(soil_ndvi), ndvi_tops=_finite([np.array(top_ndvi)]), guarded=guarded)
+    out = GroundSample(
+        pixels=int(v.size),
+        windows=len(picks),
+        box_max=np.array(tops),
+        box_min=np.array(lows),
+        ndvi_soil=_finite(soil_ndvi),
+        ndvi_tops=_finite([np.array(top_ndvi)]),
+        guarded=guarded,
+    )
     if v.size >= MIN_GROUND:
         p50, p95, p99 = np.percentile(v, [50, 95, 99])
         out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
@@ -217,8 +239,10 @@ def soil_ndvi_threshold(noise: GroundSample) -> tuple[float | None, str]:
     sd = robust_sd(soil, s50)
     cut = min(s50 + max(K_NDVI * sd, MIN_NDVI_GAP), (s50 + t50) / 2)
     below, above = float(np.mean(soil < cut)), float(np.mean(tops >= cut))
-    why = (f"soil median {s50:.2f} + {K_NDVI:g} x SD {sd:.3f}, tops median {t50:.2f}: {below:.0%} of the soil "
-           f"below {cut:.2f}, {above:.0%} of the tops above")
+    why = (
+        f"soil median {s50:.2f} + {K_NDVI:g} x SD {sd:.3f}, tops median {t50:.2f}: {below:.0%} of the soil "
+        f"below {cut:.2f}, {above:.0%} of the tops above"
+    )
     if below < SOIL_BELOW or above < TOPS_ABOVE:
         return None, f"NDVI does not tell leaves from soil ({why})"
     return cut, why
@@ -234,8 +258,9 @@ def thresholds(min_height, min_top, noise: GroundSample, ndvi_threshold=None) ->
         src["ndvi_threshold"] = f"auto ({why_ndvi})"
     else:
         src["ndvi_threshold"] = "set" if ndvi_threshold is not None else "none"
-    k_height, k_top, k_unclaimed = ((K_HEIGHT_NDVI, K_TOP_NDVI, K_UNCLAIMED_NDVI) if ndvi_threshold is not None
-                                    else (K_HEIGHT, K_TOP, K_UNCLAIMED))
+    k_height, k_top, k_unclaimed = (
+        (K_HEIGHT_NDVI, K_TOP_NDVI, K_UNCLAIMED_NDVI) if ndvi_threshold is not None else (K_HEIGHT, K_TOP, K_UNCLAIMED)
+    )
     base = noise.p50 if noise.measured else 0.0
     sd = noise.sd if noise.measured else 0.0
     why = f"ground p50 {base:.3f} m + {{k:g}} x SD {sd:.3f} m" if noise.measured else "no ground noise measured"
@@ -251,8 +276,15 @@ def thresholds(min_height, min_top, noise: GroundSample, ndvi_threshold=None) ->
         src["min_top"] = "set"
     unclaimed = max(float(min_top), base + k_unclaimed * sd)
     soil = float(np.median(noise.ndvi_soil)) if auto_ndvi and ndvi_threshold is not None else None
-    return Thresholds(float(min_height), float(min_top), float(unclaimed), src,
-                      None if ndvi_threshold is None else float(ndvi_threshold), soil, float(sd))
+    return Thresholds(
+        float(min_height),
+        float(min_top),
+        float(unclaimed),
+        src,
+        None if ndvi_threshold is None else float(ndvi_threshold),
+        soil,
+        float(sd),
+    )
 
 
 def check_chm(noise: GroundSample, th: Thresholds, max_height: float, what: str, keys: tuple[str, ...]) -> None:
@@ -264,34 +296,41 @@ def check_chm(noise: GroundSample, th: Thresholds, max_height: float, what: str,
     named = " and ".join(keys)
     if len(tops) >= 3:
         down, up = base - lows, tops - base
-        negative = (down > np.maximum(2 * up, max(5 * sd, 0.05)))
+        negative = down > np.maximum(2 * up, max(5 * sd, 0.05))
         if negative.mean() > 0.5:
             if len(keys) == 2:
                 fix = f"swap {keys[0]} and {keys[1]} (the DSM is the surface, the higher one)"
             else:
                 fix = f"give {keys[0]} as surface minus terrain (DSM - DTM), not the reverse"
-            raise InputError(f"the CHM from {what} is negative under {int(negative.sum())} of {len(tops)} plants "
-                             f"sampled (median {np.median(-down):.2f} m below the ground): {named} look swapped",
-                             fix=fix)
+            raise InputError(
+                f"the CHM from {what} is negative under {int(negative.sum())} of {len(tops)} plants "
+                f"sampled (median {np.median(-down):.2f} m below the ground): {named} look swapped",
+                fix=fix,
+            )
     if len(tops):
         tall = float(np.median(tops) - base)
         if tall > max_height:
-            raise InputError(f"the CHM from {what} makes the plants {tall:.1f} m tall (median of {len(tops)} "
-                             f"sampled, highest {np.max(tops):.1f} m), above canopy.max_height = {max_height:g} m: "
-                             f"are {named} in centimetres?",
-                             fix="convert them to metres (e.g. gdal_calc.py -A dsm.tif --calc=\"A/100\" "
-                                 "--outfile=dsm_m.tif), or raise canopy.max_height for taller plants")
+            raise InputError(
+                f"the CHM from {what} makes the plants {tall:.1f} m tall (median of {len(tops)} "
+                f"sampled, highest {np.max(tops):.1f} m), above canopy.max_height = {max_height:g} m: "
+                f"are {named} in centimetres?",
+                fix='convert them to metres (e.g. gdal_calc.py -A dsm.tif --calc="A/100" '
+                "--outfile=dsm_m.tif), or raise canopy.max_height for taller plants",
+            )
     if noise.measured and abs(base) > max(1.0, 3 * sd):  # an offset, not a noise in other units
-        raise InputError(f"the CHM from {what} puts the bare ground {base:.2f} m from zero (median between the "
-                         f"plants): {named} are not a height above the ground (a DSM given as the CHM, or DSM "
-                         "and DTM in different units or vertical datums)",
-                         fix="give the CHM as DSM - DTM of one flight, both in metres (rasters.dsm + rasters.dtm)")
+        raise InputError(
+            f"the CHM from {what} puts the bare ground {base:.2f} m from zero (median between the "
+            f"plants): {named} are not a height above the ground (a DSM given as the CHM, or DSM "
+            "and DTM in different units or vertical datums)",
+            fix="give the CHM as DSM - DTM of one flight, both in metres (rasters.dsm + rasters.dtm)",
+        )
     if len(tops):
         highest = float(np.max(tops))
         for key in ("min_height", "min_top"):
             v = getattr(th, key)
             if th.source[key] == "set" and v > highest:
-                raise ConfigError(f"canopy.{key} = {v:g} m is above the top of every plant sampled (the highest "
-                                  f"{highest:.2f} m, {len(tops)} plants): heights are in metres",
-                                  fix=f"set canopy.{key}: {v / 100:g} for {v:g} cm, or auto (from the CHM's "
-                                      "ground noise)")
+                raise ConfigError(
+                    f"canopy.{key} = {v:g} m is above the top of every plant sampled (the highest "
+                    f"{highest:.2f} m, {len(tops)} plants): heights are in metres",
+                    fix=f"set canopy.{key}: {v / 100:g} for {v:g} cm, or auto (from the CHM's ground noise)",
+                )

@@ -24,7 +24,7 @@ def _gather_ranges(src, length, values):
     out = np.empty(total, values.dtype)
     j = 0
     for k in range(len(length)):
-        out[j:j + length[k]] = values[src[k]:src[k] + length[k]]
+        out[j : j + length[k]] = values[src[k] : src[k] + length[k]]
         j += length[k]
     return out
 
@@ -161,8 +161,17 @@ def _labelled_pixels(labels, values, rules, at):
     return pix, start, total, extent, image
 
 
-def labelled_pixels(labels: np.ndarray, values: np.ndarray, windows: np.ndarray, reach: np.ndarray,
-                    home: np.ndarray, ids: np.ndarray, width: int, row0: int = 0, col0: int = 0):
+def labelled_pixels(
+    labels: np.ndarray,
+    values: np.ndarray,
+    windows: np.ndarray,
+    reach: np.ndarray,
+    home: np.ndarray,
+    ids: np.ndarray,
+    width: int,
+    row0: int = 0,
+    col0: int = 0,
+):
     """The pixels of a label image (1 + an index ``k`` into the other arguments, 0: none) that lie in their
     label's window (``windows[k]``: col0, row0, col1, row1 in the image's pixels, end excluded), whose value
     reaches ``reach[k]`` (NaN never does) and whose ``home[k]`` is set, grouped by ``k`` (raster order within
@@ -171,10 +180,15 @@ def labelled_pixels(labels: np.ndarray, values: np.ndarray, windows: np.ndarray,
     values (each rounded to float32, as the canopy's volume always was), and their extent (row min, row max, col min, col max in the image;
     min > max where none); and the image of these pixels holding ``ids[k]`` (0 elsewhere). Two passes over the
     image instead of a dozen over millions of pixels and a sort by plant."""
-    rules = LabelRules(np.ascontiguousarray(windows, dtype=np.int64), np.ascontiguousarray(reach, dtype=float),
-                       np.ascontiguousarray(home, dtype=np.bool_), np.ascontiguousarray(ids, dtype=np.int32))
-    return _labelled_pixels(np.ascontiguousarray(labels), np.ascontiguousarray(values), rules,
-                            Placement(int(width), int(row0), int(col0)))
+    rules = LabelRules(
+        np.ascontiguousarray(windows, dtype=np.int64),
+        np.ascontiguousarray(reach, dtype=float),
+        np.ascontiguousarray(home, dtype=np.bool_),
+        np.ascontiguousarray(ids, dtype=np.int32),
+    )
+    return _labelled_pixels(
+        np.ascontiguousarray(labels), np.ascontiguousarray(values), rules, Placement(int(width), int(row0), int(col0))
+    )
 
 
 def sort_within_groups(values: np.ndarray, first: np.ndarray) -> np.ndarray:

@@ -74,9 +74,13 @@ def line_saddles(a: np.ndarray, p: np.ndarray, q: np.ndarray, s: np.ndarray, own
     each the highest of its 3 x 3 pixels (clipped at the edge; holes, NaN or -inf, skipped), or -inf where
     fewer than half the samples see anything. One compiled pass (nine gathers of every sample of every pair
     took a tenth of the outlining time)."""
-    return _line_saddles(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(p, dtype=np.int64),
-                         np.ascontiguousarray(q, dtype=np.int64), np.ascontiguousarray(s, dtype=np.float64),
-                         np.ascontiguousarray(own, dtype=np.int64))
+    return _line_saddles(
+        np.ascontiguousarray(a, dtype=np.float64),
+        np.ascontiguousarray(p, dtype=np.int64),
+        np.ascontiguousarray(q, dtype=np.int64),
+        np.ascontiguousarray(s, dtype=np.float64),
+        np.ascontiguousarray(own, dtype=np.int64),
+    )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -106,5 +110,9 @@ def box_tops(a: np.ndarray, peak: np.ndarray, boxes: np.ndarray, windows: np.nda
     highest local maximum in its box (integer ``c0, r0, c1, r1``), else in its window, else the highest pixel
     of its box (holes, NaN, never), first in raster order on ties; NaN where the box holds no finite height.
     One compiled pass (slices and an argmax per plant took half of finding the tops)."""
-    return _box_tops(np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(peak, dtype=np.bool_),
-                     np.ascontiguousarray(boxes, dtype=np.int64), np.ascontiguousarray(windows, dtype=np.int64))
+    return _box_tops(
+        np.ascontiguousarray(a, dtype=np.float64),
+        np.ascontiguousarray(peak, dtype=np.bool_),
+        np.ascontiguousarray(boxes, dtype=np.int64),
+        np.ascontiguousarray(windows, dtype=np.int64),
+    )

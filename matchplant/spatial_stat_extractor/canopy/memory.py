@@ -20,10 +20,20 @@ try:
 except ImportError:  # pragma: no cover - Windows
     resource = None
 
-_UNITS = {"": 1, "b": 1, "k": 1024, "kb": 1024, "m": 1024 ** 2, "mb": 1024 ** 2, "g": 1024 ** 3, "gb": 1024 ** 3,
-          "t": 1024 ** 4, "tb": 1024 ** 4}
+_UNITS = {
+    "": 1,
+    "b": 1,
+    "k": 1024,
+    "kb": 1024,
+    "m": 1024**2,
+    "mb": 1024**2,
+    "g": 1024**3,
+    "gb": 1024**3,
+    "t": 1024**4,
+    "tb": 1024**4,
+}
 DEFAULT_MAX_MEMORY = "3GB"  # max_memory's default, the settings' too: room for the system and a browser on 8 GB
-MIN_MEMORY = 256 * 1024 ** 2  # below this the strips would be a few rows: not a useful setting
+MIN_MEMORY = 256 * 1024**2  # below this the strips would be a few rows: not a useful setting
 
 
 def parse_memory(text, key: str = "max_memory") -> int:
@@ -34,8 +44,10 @@ def parse_memory(text, key: str = "max_memory") -> int:
         raise ConfigError(f"{key}: '{text}' is not a memory size", fix=f"write e.g. {key}: 3GB (or 512MB)")
     size = int(float(m.group(1)) * _UNITS[unit])
     if size < MIN_MEMORY:
-        raise ConfigError(f"{key}: {text} is too little for module 9 (at least 256MB)",
-                          fix=f"set {key} to at least 256MB; 2GB-3GB suit an 8 GB laptop")
+        raise ConfigError(
+            f"{key}: {text} is too little for module 9 (at least 256MB)",
+            fix=f"set {key} to at least 256MB; 2GB-3GB suit an 8 GB laptop",
+        )
     return size
 
 
@@ -44,11 +56,11 @@ DEFAULT_MEMORY = parse_memory(DEFAULT_MAX_MEMORY)  # the same default in bytes, 
 
 def gdal_cache_bytes(max_memory: int) -> int:
     """GDAL's block cache for a budget: a sixteenth of it, 64 MB to 512 MB (room for rows of tiles)."""
-    return int(min(512 * 1024 ** 2, max(64 * 1024 ** 2, max_memory // 16)))
+    return int(min(512 * 1024**2, max(64 * 1024**2, max_memory // 16)))
 
 
 def format_memory(size: float) -> str:
-    return f"{size / 1024 ** 3:.2f} GB" if size >= 1024 ** 3 else f"{size / 1024 ** 2:.0f} MB"
+    return f"{size / 1024**3:.2f} GB" if size >= 1024**3 else f"{size / 1024**2:.0f} MB"
 
 
 def _maxrss(who) -> float | None:
@@ -74,8 +86,8 @@ def peak_memory() -> dict[str, float | None]:
 def memory_report(max_memory: int) -> dict:
     """What ``stats_report.json`` records: the setting and the peaks so far, in MB."""
     peak = peak_memory()
-    mb = {k: (round(v / 1024 ** 2, 1) if v is not None else None) for k, v in peak.items()}
-    return {"max_memory_mb": round(max_memory / 1024 ** 2, 1), "peak_mb": mb["self"], "peak_worker_mb": mb["workers"]}
+    mb = {k: (round(v / 1024**2, 1) if v is not None else None) for k, v in peak.items()}
+    return {"max_memory_mb": round(max_memory / 1024**2, 1), "peak_mb": mb["self"], "peak_worker_mb": mb["workers"]}
 
 
 @contextlib.contextmanager
@@ -90,5 +102,6 @@ def memory_stage(stage: str, max_memory: int):
             f"out of memory in {stage} (max_memory: {format_memory(max_memory)}; "
             f"{type(exc).__name__}: {exc or 'no detail'})",
             fix=f"set max_memory lower than the memory this computer has free, e.g. max_memory: "
-                f"{lower // 1024 ** 2}MB (the rasters are then read in smaller strips), set workers: 1, "
-                "or close other programs") from exc
+            f"{lower // 1024**2}MB (the rasters are then read in smaller strips), set workers: 1, "
+            "or close other programs",
+        ) from exc

@@ -48,8 +48,8 @@ from matchplant.spatial_stat_extractor.canopy.grouping import (
 )
 from matchplant.spatial_stat_extractor.canopy.maxima import box_tops, local_maxima
 from matchplant.spatial_stat_extractor.canopy.peaks import one_plant_boxes
-from matchplant.spatial_stat_extractor.zonal.runs import ranges
 from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
+from matchplant.spatial_stat_extractor.zonal.runs import ranges
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)
@@ -59,12 +59,12 @@ STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the bo
 class SegmentSettings:
     """How a canopy is cut out of the CHM (module 9's ``canopy`` section carries the same keys)."""
 
-    margin: float = 0.05          # m around each box
-    relative: float = 0.1         # keep pixels at least this share of the plant's own top height
-    min_height: float = 0.02      # m above ground: lower pixels are soil
-    min_top: float = 0.05         # m: a lower top is a weed, soil or a plant too small for the CHM (flagged)
-    min_pixels: int = 4           # smaller canopies keep their box (flagged)
-    max_shift: float = 0.0        # m: later dates search the top within this distance of the earlier top
+    margin: float = 0.05  # m around each box
+    relative: float = 0.1  # keep pixels at least this share of the plant's own top height
+    min_height: float = 0.02  # m above ground: lower pixels are soil
+    min_top: float = 0.05  # m: a lower top is a weed, soil or a plant too small for the CHM (flagged)
+    min_pixels: int = 4  # smaller canopies keep their box (flagged)
+    max_shift: float = 0.0  # m: later dates search the top within this distance of the earlier top
     mask_threshold: float | None = None  # with a mask layer (NDVI): canopy pixels also need mask >= this
     mask_soil: float | None = None  # the mask's value on soil: a plant's pixels also reach halfway from it to
     # the value at the plant's top (more leaf than soil: a pale plant keeps its leaves, a green one its edges)
@@ -81,13 +81,13 @@ class Outlines:
     ``pix[start[k]:start[k + 1]]``), and the canopies no box claims that look like plants (``unclaimed``:
     top x, y, height and pixel count; plants the detector missed, for stand counts)."""
 
-    geometry: np.ndarray          # shapely polygons (the box where flagged)
-    tight_box: np.ndarray         # (n, 4) xmin, ymin, xmax, ymax of the canopy pixels
-    top: np.ndarray               # (n, 3) x, y, height above ground of the top
-    pixels: np.ndarray            # canopy pixel count
-    area: np.ndarray              # m²
-    volume: np.ndarray            # m³ (sum of heights x pixel area)
-    flag: np.ndarray              # "" or why the box was kept: "small", "low", "no_top", "outside"
+    geometry: np.ndarray  # shapely polygons (the box where flagged)
+    tight_box: np.ndarray  # (n, 4) xmin, ymin, xmax, ymax of the canopy pixels
+    top: np.ndarray  # (n, 3) x, y, height above ground of the top
+    pixels: np.ndarray  # canopy pixel count
+    area: np.ndarray  # m²
+    volume: np.ndarray  # m³ (sum of heights x pixel area)
+    flag: np.ndarray  # "" or why the box was kept: "small", "low", "no_top", "outside"
     pix: np.ndarray
     start: np.ndarray
     transform: object
@@ -108,8 +108,9 @@ class Outlines:
         return self.flag != ""
 
     def same_grid(self, source) -> bool:
-        return (source.width, source.height) == (self.width, self.height) and \
-            source.transform.almost_equals(self.transform)
+        return (source.width, source.height) == (self.width, self.height) and source.transform.almost_equals(
+            self.transform
+        )
 
 
 def _apply(t, x, y) -> tuple[np.ndarray, np.ndarray]:
@@ -121,8 +122,10 @@ def _apply(t, x, y) -> tuple[np.ndarray, np.ndarray]:
 def _pixel_boxes(geoms, transform) -> np.ndarray:
     """(n, 4) col0, row0, col1, row1 (continuous pixel coordinates) of each geometry's bounds."""
     if abs(transform.b) > 1e-12 or abs(transform.d) > 1e-12:
-        raise InputError("the CHM raster is rotated; outlines need a north-up raster",
-                         fix="warp the DSM/DTM to a north-up grid (gdalwarp) first")
+        raise InputError(
+            "the CHM raster is rotated; outlines need a north-up raster",
+            fix="warp the DSM/DTM to a north-up grid (gdalwarp) first",
+        )
     b = shapely.bounds(np.asarray(geoms, dtype=object))
     inv = ~transform
     c0, r0 = _apply(inv, b[:, 0], b[:, 3])
@@ -134,8 +137,6 @@ def holes_low(W: np.ndarray) -> np.ndarray:
     """``W`` with -inf in its holes (NaN): lower than any height. ``np.fmax`` ignores NaN; ``np.nan_to_num``,
     which also tests for and replaces infinities, took 3x as long, a fifth of the outlining time."""
     return np.fmax(W, -np.inf)
-
-
 
 
 def _tops(W: np.ndarray, boxes: np.ndarray, windows: np.ndarray, min_height: float) -> np.ndarray:
@@ -168,8 +169,10 @@ def _tops_near(W: np.ndarray, seeds: np.ndarray, radius_px: float, min_top: floa
         offset = np.median(shift, axis=0)
     d, j = tree.query(seeds + offset, distance_upper_bound=radius_px)
     found = np.isfinite(d)
-    found &= np.hypot(pr[np.minimum(j, len(pr) - 1)] - seeds[:, 0], pc[np.minimum(j, len(pr) - 1)] - seeds[:, 1]) \
+    found &= (
+        np.hypot(pr[np.minimum(j, len(pr) - 1)] - seeds[:, 0], pc[np.minimum(j, len(pr) - 1)] - seeds[:, 1])
         <= radius_px
+    )
     r, c = pr[j[found]], pc[j[found]]
     out[found] = np.stack([r, c, W[r, c], np.ones(len(r))], axis=1)
     h, w = W.shape
@@ -179,8 +182,9 @@ def _tops_near(W: np.ndarray, seeds: np.ndarray, radius_px: float, min_top: floa
     return out
 
 
-def _flood(h: np.ndarray, sub: np.ndarray, rows: np.ndarray, cols: np.ndarray, labels: np.ndarray,
-           levels: int = FLOOD_LEVELS) -> np.ndarray:
+def _flood(
+    h: np.ndarray, sub: np.ndarray, rows: np.ndarray, cols: np.ndarray, labels: np.ndarray, levels: int = FLOOD_LEVELS
+) -> np.ndarray:
     """Seeded watershed by flooding from the tops down: at each of ``levels`` heights, from the highest
     seed to the lowest canopy pixel, the pixels newly above water join the nearest labelled pixel (a
     Euclidean distance transform). Plants thus meet in the valleys between them, and a short plant
@@ -199,8 +203,9 @@ def _flood(h: np.ndarray, sub: np.ndarray, rows: np.ndarray, cols: np.ndarray, l
     return L
 
 
-def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
-            s: SegmentSettings) -> tuple[np.ndarray, np.ndarray]:
+def _assign(
+    W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray, s: SegmentSettings
+) -> tuple[np.ndarray, np.ndarray]:
     """Label image: 1 + the index of the top whose canopy each pixel belongs to, 0 elsewhere; and the
     canopies no top claims that look like plants (top at least ``min_top``, ``min_pixels`` pixels or more):
     (m, 4) local row, col, height and pixel count of their tops."""
@@ -223,10 +228,13 @@ def _assign(W: np.ndarray, mask: np.ndarray, tops: np.ndarray, ok: np.ndarray,
     # touching neighbours: a seeded watershed, only over each shared component
     size, box = label_boxes(comp, n)
     for k in np.flatnonzero(nseed >= 2):
-        sl = np.s_[box[k, 0]:box[k, 1], box[k, 2]:box[k, 3]]
+        sl = np.s_[box[k, 0] : box[k, 1], box[k, 2] : box[k, 3]]
         mine = cid == k
-        L[sl] = np.where(comp[sl] == k, _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start,
-                                                tc[mine] - sl[1].start, idx[mine] + 1), L[sl])
+        L[sl] = np.where(
+            comp[sl] == k,
+            _flood(W[sl], comp[sl] == k, tr[mine] - sl[0].start, tc[mine] - sl[1].start, idx[mine] + 1),
+            L[sl],
+        )
     free = np.flatnonzero((nseed == 0) & (size >= s.min_pixels))
     free = free[free > 0]
     if not len(free):
@@ -252,10 +260,12 @@ def plant_windows(geoms, t, s: SegmentSettings, seeds: np.ndarray | None = None)
     res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
     m = s.margin / res
     pb = _pixel_boxes(geoms, t)
-    box_i = np.stack([np.floor(pb[:, 0] + 0.5), np.floor(pb[:, 1] + 0.5),
-                      np.floor(pb[:, 2] + 0.5), np.floor(pb[:, 3] + 0.5)], axis=1)  # pixel centres inside
-    win_i = np.stack([np.floor(pb[:, 0] - m), np.floor(pb[:, 1] - m), np.ceil(pb[:, 2] + m),
-                      np.ceil(pb[:, 3] + m)], axis=1)
+    box_i = np.stack(
+        [np.floor(pb[:, 0] + 0.5), np.floor(pb[:, 1] + 0.5), np.floor(pb[:, 2] + 0.5), np.floor(pb[:, 3] + 0.5)], axis=1
+    )  # pixel centres inside
+    win_i = np.stack(
+        [np.floor(pb[:, 0] - m), np.floor(pb[:, 1] - m), np.ceil(pb[:, 2] + m), np.ceil(pb[:, 3] + m)], axis=1
+    )
     box_i = np.nan_to_num(box_i, nan=-1).astype(np.int64)
     win_i = np.nan_to_num(win_i, nan=-1).astype(np.int64)
     seed_px = None
@@ -272,8 +282,16 @@ def home_strip(win_i: np.ndarray, height: int, strip_rows: int) -> np.ndarray:
     return np.clip((win_i[:, 1] + win_i[:, 3]) // 2, 0, height - 1) // strip_rows
 
 
-def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarray | None = None,
-            strip_rows: int = STRIP_ROWS, band: tuple[int, int] | None = None) -> Outlines:
+def segment(
+    geoms,
+    chm,
+    s: SegmentSettings,
+    *,
+    mask_source=None,
+    seeds: np.ndarray | None = None,
+    strip_rows: int = STRIP_ROWS,
+    band: tuple[int, int] | None = None,
+) -> Outlines:
     """Outlines of the plants whose boxes are ``geoms`` (in the CHM's CRS) on the CHM source ``chm``
     (``transform, width, height, read(row0, row1, col0, col1)``). ``seeds``: (n, 2) map x, y of earlier
     tops, to re-centre each plant within ``s.max_shift`` (later dates). ``mask_source``: a layer on the
@@ -286,8 +304,14 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
     res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
     box_i, win_i, seed_px = plant_windows(geoms, t, s, seeds)
     W_, H_ = chm.width, chm.height
-    outside = (win_i[:, 2] <= 0) | (win_i[:, 0] >= W_) | (win_i[:, 3] <= 0) | (win_i[:, 1] >= H_) | \
-        shapely.is_empty(geoms) | shapely.is_missing(geoms)
+    outside = (
+        (win_i[:, 2] <= 0)
+        | (win_i[:, 0] >= W_)
+        | (win_i[:, 3] <= 0)
+        | (win_i[:, 1] >= H_)
+        | shapely.is_empty(geoms)
+        | shapely.is_missing(geoms)
+    )
     tops = np.full((n, 3), np.nan)
     dup = np.full(n, -1)  # a duplicate box: the plant whose top it shares
     parts_pix, free_parts = [], []
@@ -322,21 +346,29 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
             mv = holes_low(mask_source.read(Rr0, Rr1, Cc0, Cc1))
             mask &= mv >= s.mask_threshold
         # every plant whose window meets this one competes for the canopy (seeds), only home plants are kept
-        near = live[(win_i[live, 2] > Cc0) & (win_i[live, 0] < Cc1) & (win_i[live, 3] > Rr0) &
-                    (win_i[live, 1] < Rr1)]
+        near = live[(win_i[live, 2] > Cc0) & (win_i[live, 0] < Cc1) & (win_i[live, 3] > Rr0) & (win_i[live, 1] < Rr1)]
         if seed_px is None:
-            tp = _tops(W, _local(box_i[near], Rr0, Rr1, Cc0, Cc1), _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
-                       s.min_top)
+            tp = _tops(W, _local(box_i[near], Rr0, Rr1, Cc0, Cc1), _local(win_i[near], Rr0, Rr1, Cc0, Cc1), s.min_top)
         else:
             tp = _tops_near(W, seed_px[near] - np.array([Rr0, Cc0]), s.max_shift / res, s.min_top)
         ok = np.isfinite(tp[:, 2]) & (tp[:, 2] >= s.min_top) & (tp[:, 3] == 1)  # a top is a local maximum
         if mv is not None:  # a top on soil by the mask (NDVI) is a ground bump under the box: flagged low
-            bare = ok & (mv[np.nan_to_num(tp[:, 0]).astype(int), np.nan_to_num(tp[:, 1]).astype(int)] < s.mask_threshold)
+            bare = ok & (
+                mv[np.nan_to_num(tp[:, 0]).astype(int), np.nan_to_num(tp[:, 1]).astype(int)] < s.mask_threshold
+            )
             soil_top[near[bare & np.isin(near, home)]] = True
         # two boxes of one plant find the same top, or two tops no real valley parts (peaks.py): the box
         # with the highest keeps the plant, the others are duplicates
-        tp, keeper = one_plant_boxes(W, tp, ok, _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
-                                     _local(box_i[near], Rr0, Rr1, Cc0, Cc1), s.noise_sd, s.min_top, mask)
+        tp, keeper = one_plant_boxes(
+            W,
+            tp,
+            ok,
+            _local(win_i[near], Rr0, Rr1, Cc0, Cc1),
+            _local(box_i[near], Rr0, Rr1, Cc0, Cc1),
+            s.noise_sd,
+            s.min_top,
+            mask,
+        )
         first = keeper == np.arange(len(near))
         is_home = np.zeros(n, bool)
         is_home[home] = True
@@ -352,8 +384,16 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
             L = _leafy(L, mv, tp, s.mask_soil)
         # a home plant keeps its canopy pixels inside its box + margin that reach `relative` x its top height
         pix, first, total, extent, lab = labelled_pixels(
-            L, W, win_i[near] - [Cc0, Rr0, Cc0, Rr0], s.relative * tp[:, 2], is_home[near],
-            np.arange(1, len(near) + 1), W_, Rr0, Cc0)
+            L,
+            W,
+            win_i[near] - [Cc0, Rr0, Cc0, Rr0],
+            s.relative * tp[:, 2],
+            is_home[near],
+            np.arange(1, len(near) + 1),
+            W_,
+            Rr0,
+            Cc0,
+        )
         hit = is_home[near]
         mine = near[hit]
         tops[mine, :2] = tp[hit, :2] + [Rr0, Cc0]
@@ -369,8 +409,24 @@ def segment(geoms, chm, s: SegmentSettings, *, mask_source=None, seeds: np.ndarr
         geo_suspect.append(suspect)
         bar.update(1)
     bar.close()
-    out = _collect(geoms, n, t, W_, H_, res, s, tops, outside | skipped, box_i, parts_pix,
-                   (own_src, own_len, own_sum, own_ext), (geo_owner, geo_polys, geo_suspect), chm, dup, no_peak)
+    out = _collect(
+        geoms,
+        n,
+        t,
+        W_,
+        H_,
+        res,
+        s,
+        tops,
+        outside | skipped,
+        box_i,
+        parts_pix,
+        (own_src, own_len, own_sum, own_ext),
+        (geo_owner, geo_polys, geo_suspect),
+        chm,
+        dup,
+        no_peak,
+    )
     out.flag[skipped] = "skipped"
     out.flag[soil_top & (out.flag == "small")] = "low"
     free = np.concatenate(free_parts) if free_parts else np.zeros((0, 4))
@@ -400,7 +456,9 @@ def _leafy(L: np.ndarray, mv: np.ndarray, tops: np.ndarray, soil: float) -> np.n
     return np.where(mv >= half[L], L, 0)
 
 
-def _trace(lab: np.ndarray, owners: np.ndarray, extent: np.ndarray, t, R0: int, C0: int) -> tuple[np.ndarray, np.ndarray]:
+def _trace(
+    lab: np.ndarray, owners: np.ndarray, extent: np.ndarray, t, R0: int, C0: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The outline of each plant in the label image ``lab`` (1 + an index into ``owners``, the plants; 0:
     none; the window read at ``R0, C0``), traced over its pixels' extent only (``extent``: row min, row max,
     col min, col max of each plant's pixels; the window's padding rows hold no home plant's pixel). The
@@ -438,8 +496,9 @@ def _local(b: np.ndarray, R0: int, R1: int, C0: int, C1: int) -> np.ndarray:
     return out
 
 
-def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, geo_parts, chm, dup,
-             no_peak) -> Outlines:
+def _collect(
+    geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, geo_parts, chm, dup, no_peak
+) -> Outlines:
     """One :class:`Outlines` from the strips' parts: ``parts_pix``, each plant's canopy pixels (grouped by
     plant within a part), ``own`` (each plant's range in their concatenation, its heights' sum and extent)
     and ``geo_parts`` (the plants traced and their polygons)."""
@@ -460,8 +519,12 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, 
     ext = own_ext.copy()  # row min, row max, col min, col max of the pixels gathered
     vol = np.where(ok, own_sum, np.nan)
     shared = np.flatnonzero((dup >= 0) & ok[np.maximum(dup, 0)])
-    src[shared], length[shared], ext[shared], vol[shared] = src[dup[shared]], length[dup[shared]], \
-        ext[dup[shared]], vol[dup[shared]]
+    src[shared], length[shared], ext[shared], vol[shared] = (
+        src[dup[shared]],
+        length[dup[shared]],
+        ext[dup[shared]],
+        vol[dup[shared]],
+    )
     boxed = np.setdiff1d(np.flatnonzero(~ok & ~outside), shared)
     if len(boxed):
         b = box_i[boxed]
@@ -500,6 +563,19 @@ def _collect(geoms, n, t, W_, H_, res, s, tops, outside, box_i, parts_pix, own, 
     geometry[shared] = geometry[dup[shared]]
     check[shared] = check[dup[shared]]
     geometry = valid_polygons(geometry, check)
-    return Outlines(geometry=geometry, tight_box=tight, top=top, pixels=count, area=area, volume=volume,
-                    flag=flag, pix=pix, start=start, transform=t, width=W_, height=H_,
-                    crs=getattr(chm, "crs", None), duplicate_of=np.where(flag == "duplicate", dup, -1))
+    return Outlines(
+        geometry=geometry,
+        tight_box=tight,
+        top=top,
+        pixels=count,
+        area=area,
+        volume=volume,
+        flag=flag,
+        pix=pix,
+        start=start,
+        transform=t,
+        width=W_,
+        height=H_,
+        crs=getattr(chm, "crs", None),
+        duplicate_of=np.where(flag == "duplicate", dup, -1),
+    )

@@ -37,14 +37,22 @@ from scipy.spatial import cKDTree
 
 from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
 
-K_DIP = 3.0    # ground-noise SDs: a shallower dip between two tops is noise, not a valley
+K_DIP = 3.0  # ground-noise SDs: a shallower dip between two tops is noise, not a valley
 REL_DIP = 0.4  # share of the lower top: a deeper dip is the valley between two plants (one plant's leaves
 # part its maxima by up to a third of its height on the straight line between them)
 MAX_DIP = 0.5  # share of the lower top: a dip deeper than this is a valley, however noisy the CHM
 
 
-def one_plant_boxes(W: np.ndarray, tops: np.ndarray, ok: np.ndarray, windows: np.ndarray, boxes: np.ndarray,
-                    noise_sd: float, min_top: float, leaf: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def one_plant_boxes(
+    W: np.ndarray,
+    tops: np.ndarray,
+    ok: np.ndarray,
+    windows: np.ndarray,
+    boxes: np.ndarray,
+    noise_sd: float,
+    min_top: float,
+    leaf: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The tops (a duplicate's moved to its own plant where its box holds one) and the box that keeps
     each box's plant (see the module doc; ``windows``/``boxes``: integer ``c0, r0, c1, r1`` of each box
     plus margin / of each box; ``leaf``: the canopy pixels, where a second top must lie)."""
@@ -113,8 +121,15 @@ def _tolerance(lower: np.ndarray, noise_sd: float) -> np.ndarray:
     return np.minimum(np.maximum(K_DIP * noise_sd, REL_DIP * lower), MAX_DIP * lower)
 
 
-def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.ndarray, noise_sd: float,
-                min_top: float, leaf: np.ndarray | None = None) -> np.ndarray:
+def second_tops(
+    W: np.ndarray,
+    tops: np.ndarray,
+    keep: np.ndarray,
+    boxes: np.ndarray,
+    noise_sd: float,
+    min_top: float,
+    leaf: np.ndarray | None = None,
+) -> np.ndarray:
     """``tops`` with each duplicate box (``keep`` not itself) moved to the highest local maximum (5 x 5,
     at least ``min_top``, on a ``leaf`` pixel) inside its box (integer ``c0, r0, c1, r1``) that a real
     valley parts from its keeper's top, where there is one. A loop over the duplicate boxes (a few per
@@ -126,7 +141,7 @@ def second_tops(W: np.ndarray, tops: np.ndarray, keep: np.ndarray, boxes: np.nda
         c0, r0, c1, r1 = boxes[k]
         # the filter sees 2 pixels around the box, so a maximum is one of the whole CHM's
         R0, C0 = max(0, r0 - 2), max(0, c0 - 2)
-        win = np.fmax(W[R0:r1 + 2, C0:c1 + 2], -np.inf)  # holes lower than any height
+        win = np.fmax(W[R0 : r1 + 2, C0 : c1 + 2], -np.inf)  # holes lower than any height
         if win.size == 0:
             continue
         pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (outlines._tops)

@@ -10,7 +10,7 @@ the outline polygons with :func:`~matchplant.spatial_stat_extractor.zonal.engine
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -41,8 +41,9 @@ def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarr
     return out
 
 
-def grouped_stats(values: np.ndarray, start: np.ndarray, stats: Sequence[str],
-                  percentiles: Sequence[float] = ()) -> dict[str, np.ndarray]:
+def grouped_stats(
+    values: np.ndarray, start: np.ndarray, stats: Sequence[str], percentiles: Sequence[float] = ()
+) -> dict[str, np.ndarray]:
     """Statistics of ``values[start[k]:start[k + 1]]`` for every group ``k``, NaN values left out
     (percentiles: linear interpolation between order statistics, as ``numpy.percentile``)."""
     n = len(start) - 1

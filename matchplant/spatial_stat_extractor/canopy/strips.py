@@ -32,8 +32,6 @@ import shapely
 from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.canopy.stats import gather, grouped_stats
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.canopy.memory import format_memory, gdal_cache_bytes
 from matchplant.spatial_stat_extractor.canopy.outlines import (
     STRIP_ROWS,
@@ -43,6 +41,8 @@ from matchplant.spatial_stat_extractor.canopy.outlines import (
     plant_windows,
     segment,
 )
+from matchplant.spatial_stat_extractor.canopy.stats import gather, grouped_stats
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
 
@@ -86,8 +86,7 @@ class _Job:
     windows: np.ndarray | None = None  # each plant's window (outlines.plant_windows), found once for every band
 
 
-def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int,
-                workers: int) -> tuple[int, int]:
+def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int, workers: int) -> tuple[int, int]:
     """Rows per strip and the number of strips for a per-process share of ``budget`` bytes."""
     res = float(np.sqrt(abs(transform.a * transform.e - transform.b * transform.d)))
     b = shapely.bounds(np.asarray(geoms, dtype=object))
@@ -132,7 +131,7 @@ class _LastWindow:
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
         b = self._bounds
         if b is not None and b[0] <= row0 and row1 <= b[1] and b[2] <= col0 and col1 <= b[3]:
-            return self._data[row0 - b[0]:row1 - b[0], col0 - b[2]:col1 - b[2]]
+            return self._data[row0 - b[0] : row1 - b[0], col0 - b[2] : col1 - b[2]]
         self._data, self._bounds = self.source.read(row0, row1, col0, col1), (row0, row1, col0, col1)
         return self._data
 
@@ -154,21 +153,41 @@ def _run_band(job: _Job, band: tuple[int, int] | None, sources: tuple) -> dict:
     chm, mask, measured = sources
     kept = _LastWindow(chm)  # for this band only: its window is freed with it
     chm, measured = kept, [kept if src is chm else src for src in measured]
-    sub = np.arange(len(job.geoms)) if band is None else \
-        band_plants(job.windows, chm.height, band, job.strip_rows)
-    o = segment(job.geoms[sub], chm, job.settings, mask_source=mask,
-                seeds=None if job.seeds is None else job.seeds[sub], strip_rows=job.strip_rows, band=band)
+    sub = np.arange(len(job.geoms)) if band is None else band_plants(job.windows, chm.height, band, job.strip_rows)
+    o = segment(
+        job.geoms[sub],
+        chm,
+        job.settings,
+        mask_source=mask,
+        seeds=None if job.seeds is None else job.seeds[sub],
+        strip_rows=job.strip_rows,
+        band=band,
+    )
     rows = np.flatnonzero(o.flag != "skipped")
     cols: dict[str, np.ndarray] = {}
     if len(rows):
         for m, src in zip(job.measures, measured):
             cols.update(_measure(o, rows, src, m))
     of = o.duplicate_of[rows]
-    return {"rows": sub[rows], "geometry": o.geometry[rows], "tight_box": o.tight_box[rows], "top": o.top[rows],
-            "pixels": o.pixels[rows], "area": o.area[rows], "volume": o.volume[rows], "flag": o.flag[rows],
-            "duplicate_of": np.where(of >= 0, sub[np.maximum(of, 0)], -1),
-            "unclaimed": o.unclaimed, "faint": o.faint, "noise_bumps": o.noise_bumps, "cols": cols,
-            "transform": o.transform, "width": o.width, "height": o.height, "crs": o.crs}
+    return {
+        "rows": sub[rows],
+        "geometry": o.geometry[rows],
+        "tight_box": o.tight_box[rows],
+        "top": o.top[rows],
+        "pixels": o.pixels[rows],
+        "area": o.area[rows],
+        "volume": o.volume[rows],
+        "flag": o.flag[rows],
+        "duplicate_of": np.where(of >= 0, sub[np.maximum(of, 0)], -1),
+        "unclaimed": o.unclaimed,
+        "faint": o.faint,
+        "noise_bumps": o.noise_bumps,
+        "cols": cols,
+        "transform": o.transform,
+        "width": o.width,
+        "height": o.height,
+        "crs": o.crs,
+    }
 
 
 _worker: dict = {}
@@ -185,9 +204,18 @@ def _worker_band(band: tuple[int, int]) -> dict:
     return _run_band(_worker["job"], band, _worker["sources"])
 
 
-def outline_field(geoms, chm_layer: Layer, mask_layer: Layer | None, measures: list[Measure], s: SegmentSettings,
-                  *, nodata: float | None, seeds: np.ndarray | None, max_memory: int,
-                  workers: int = 0) -> tuple[Outlines, dict[str, np.ndarray]]:
+def outline_field(
+    geoms,
+    chm_layer: Layer,
+    mask_layer: Layer | None,
+    measures: list[Measure],
+    s: SegmentSettings,
+    *,
+    nodata: float | None,
+    seeds: np.ndarray | None,
+    max_memory: int,
+    workers: int = 0,
+) -> tuple[Outlines, dict[str, np.ndarray]]:
     """Outlines of every plant and its canopy statistics (``measures``), strip by strip within ``max_memory``
     bytes, with ``workers`` processes (0: one per core). Returns a compact :class:`Outlines` (no canopy
     pixels kept) and the columns ``<measure prefix>_<stat>``."""
@@ -206,11 +234,29 @@ def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, see
     want = max(1, min(want, count))
     if want > 1:  # fewer processes when each would get too thin a strip
         rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
-    job = _Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, rows, gdal_cache_bytes(max_memory // want),
-               plant_windows(geoms, chm.transform, s, seeds)[1])
-    log.info("outlines: %d strip(s) of %d rows across %d columns (max_memory %s: ~%s per strip), %d worker "
-             "process(es) of %d core(s)", count, rows, chm.width, format_memory(max_memory),
-             format_memory(BYTES_PER_PIXEL * chm.width * rows), want, cores)
+    job = _Job(
+        geoms,
+        chm_layer,
+        mask_layer,
+        nodata,
+        s,
+        seeds,
+        measures,
+        rows,
+        gdal_cache_bytes(max_memory // want),
+        plant_windows(geoms, chm.transform, s, seeds)[1],
+    )
+    log.info(
+        "outlines: %d strip(s) of %d rows across %d columns (max_memory %s: ~%s per strip), %d worker "
+        "process(es) of %d core(s)",
+        count,
+        rows,
+        chm.width,
+        format_memory(max_memory),
+        format_memory(BYTES_PER_PIXEL * chm.width * rows),
+        want,
+        cores,
+    )
     bands = [(k, k + 1) for k in range(count)]
     bar = progress(None, desc="outlines + canopy statistics", total=count, unit="strip")
     try:
@@ -222,8 +268,9 @@ def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, see
         else:
             # spawn: a clean interpreter per worker (forking a process holding GDAL and numba threads is unsafe)
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=want, mp_context=ctx, initializer=_init_worker,
-                                     initargs=(job,)) as pool:
+            with ProcessPoolExecutor(
+                max_workers=want, mp_context=ctx, initializer=_init_worker, initargs=(job,)
+            ) as pool:
                 parts = []
                 for part in pool.map(_worker_band, bands):
                     parts.append(part)
@@ -246,7 +293,14 @@ def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict
     for p in parts:
         r = p["rows"]
         geometry[r], tight[r], top[r], pixels[r], area[r], volume[r], flag[r] = (
-            p["geometry"], p["tight_box"], p["top"], p["pixels"], p["area"], p["volume"], p["flag"])
+            p["geometry"],
+            p["tight_box"],
+            p["top"],
+            p["pixels"],
+            p["area"],
+            p["volume"],
+            p["flag"],
+        )
         of[r] = p["duplicate_of"]
         for k, v in p["cols"].items():
             cols[k][r] = v
@@ -260,8 +314,23 @@ def _merge(parts: list[dict], n: int, geoms: np.ndarray) -> tuple[Outlines, dict
             v[d] = v[o]
     unclaimed = np.concatenate([p["unclaimed"] for p in parts]) if parts else np.zeros((0, 4))
     faint = np.concatenate([p["faint"] for p in parts]) if parts else np.zeros((0, 4))
-    out = Outlines(geometry=geometry, tight_box=tight, top=top, pixels=pixels, area=area, volume=volume, flag=flag,
-                   pix=np.zeros(0, np.int64), start=np.zeros(n + 1, np.int64), transform=first["transform"],
-                   width=first["width"], height=first["height"], crs=first["crs"], unclaimed=unclaimed, faint=faint,
-                   noise_bumps=sum(p["noise_bumps"] for p in parts), duplicate_of=of)
+    out = Outlines(
+        geometry=geometry,
+        tight_box=tight,
+        top=top,
+        pixels=pixels,
+        area=area,
+        volume=volume,
+        flag=flag,
+        pix=np.zeros(0, np.int64),
+        start=np.zeros(n + 1, np.int64),
+        transform=first["transform"],
+        width=first["width"],
+        height=first["height"],
+        crs=first["crs"],
+        unclaimed=unclaimed,
+        faint=faint,
+        noise_bumps=sum(p["noise_bumps"] for p in parts),
+        duplicate_of=of,
+    )
     return out, cols

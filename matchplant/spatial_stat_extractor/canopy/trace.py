@@ -20,10 +20,11 @@ import numba
 import numpy as np
 import shapely
 
+
 @numba.njit(cache=True, nogil=True)
 def _grown(xy):
     out = np.empty((2 * xy.shape[0], 2), np.int64)
-    out[:xy.shape[0]] = xy
+    out[: xy.shape[0]] = xy
     return out
 
 
@@ -96,12 +97,19 @@ def _rings(lab):
             area2.append(a2)
             first_pixel.append(r * cols + c)
             corner.append(diagonal)
-    return (xy[:nxy], np.array(starts, np.int64), np.array(labels, np.int64), np.array(area2, np.int64),
-            np.array(first_pixel, np.int64), np.array(corner, np.bool_))
+    return (
+        xy[:nxy],
+        np.array(starts, np.int64),
+        np.array(labels, np.int64),
+        np.array(area2, np.int64),
+        np.array(first_pixel, np.int64),
+        np.array(corner, np.bool_),
+    )
 
 
-def outline_pieces(labels: np.ndarray, transform, row0: int = 0, col0: int = 0) -> tuple[np.ndarray, np.ndarray,
-                                                                                          np.ndarray]:
+def outline_pieces(
+    labels: np.ndarray, transform, row0: int = 0, col0: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The outline of every label of ``labels`` (integers, 0: none; cut at ``row0, col0`` from a raster whose
     pixel corners ``transform`` puts on the map): the labels, ascending, one (multi)polygon each, and whether
     it may be invalid. Only a ring through a corner where its label holds two diagonal pixels can touch itself
@@ -157,9 +165,9 @@ def _holes_shell(xy, starts, lab, area2, first, cols) -> np.ndarray:
     one = hi - lo == 1
     out[one] = order[lo[one]]
     for h in np.flatnonzero(~one):
-        cand = order[lo[h]:hi[h]]
+        cand = order[lo[h] : hi[h]]
         pr, pc = divmod(int(first[holes[h]]), cols)
-        rings = [shapely.polygons(xy[starts[shells[k]]:starts[shells[k] + 1]].astype(float)) for k in cand]
+        rings = [shapely.polygons(xy[starts[shells[k]] : starts[shells[k] + 1]].astype(float)) for k in cand]
         inside = [k for k, g in zip(cand, rings) if shapely.contains_xy(g, pc + 0.5, pr + 0.5)]
         out[h] = min(inside, key=lambda k: area2[shells[k]]) if inside else cand[0]
     return out

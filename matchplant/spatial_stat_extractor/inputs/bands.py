@@ -25,14 +25,32 @@ from matchplant.core.runtime.log import get_logger
 log = get_logger("spatial_stat_extractor")
 
 # words of a band description, longest first when matching: "red edge" is not "red", "near-infrared" not "red"
-_DESCRIPTION_WORDS = {"rededge": ("red edge", "rededge", "red-edge", "red_edge"),
-                      "nir": ("near-infrared", "near infrared", "near_infrared", "nir"),
-                      "green": ("green",), "blue": ("blue",), "red": ("red",)}
+_DESCRIPTION_WORDS = {
+    "rededge": ("red edge", "rededge", "red-edge", "red_edge"),
+    "nir": ("near-infrared", "near infrared", "near_infrared", "nir"),
+    "green": ("green",),
+    "blue": ("blue",),
+    "red": ("red",),
+}
 # what users write in band_order for the same bands
-_SYNONYMS = {"red_edge": "rededge", "re": "rededge", "edge": "rededge", "near_infrared": "nir",
-             "nearinfrared": "nir", "infrared": "nir", "ir": "nir", "r": "red", "g": "green", "b": "blue"}
-_COLOUR_LABELS = {ColorInterp.red: "red", ColorInterp.green: "green", ColorInterp.blue: "blue",
-                  ColorInterp.alpha: "alpha"}
+_SYNONYMS = {
+    "red_edge": "rededge",
+    "re": "rededge",
+    "edge": "rededge",
+    "near_infrared": "nir",
+    "nearinfrared": "nir",
+    "infrared": "nir",
+    "ir": "nir",
+    "r": "red",
+    "g": "green",
+    "b": "blue",
+}
+_COLOUR_LABELS = {
+    ColorInterp.red: "red",
+    ColorInterp.green: "green",
+    ColorInterp.blue: "blue",
+    ColorInterp.alpha: "alpha",
+}
 _said: set[tuple[str, str]] = set()  # (file, message) logged once per run, not once per layer
 
 
@@ -42,9 +60,11 @@ def normalise_name(name: str, key: str) -> str:
     text = re.sub(r"[\s\-]+", "_", str(name).strip().lower())
     text = _SYNONYMS.get(text, text)
     if not re.fullmatch(r"[a-z][a-z0-9_]*", text) or re.fullmatch(r"b\d+", text):
-        raise ConfigError(f"{key}: {name!r} is not a band name (letters, digits, _; not b1, b2 ..., which "
-                          "formulas already use for the band numbers)",
-                          fix="name the bands like [blue, green, red, rededge, nir]")
+        raise ConfigError(
+            f"{key}: {name!r} is not a band name (letters, digits, _; not b1, b2 ..., which "
+            "formulas already use for the band numbers)",
+            fix="name the bands like [blue, green, red, rededge, nir]",
+        )
     return text
 
 
@@ -52,8 +72,10 @@ def check_order(order: Sequence[str], key: str) -> tuple[str, ...]:
     names = tuple(normalise_name(n, f"{key}[{i}]") for i, n in enumerate(order))
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
-        raise ConfigError(f"{key} names {dup} more than once: {list(order)}",
-                          fix="give each band of the raster its own name, in file order")
+        raise ConfigError(
+            f"{key} names {dup} more than once: {list(order)}",
+            fix="give each band of the raster its own name, in file order",
+        )
     return names
 
 
@@ -104,14 +126,21 @@ def band_names(ds, order: Sequence[str] = (), key: str = "band_order") -> BandNa
     if order:
         order = check_order(order, key)
         if len(order) != ds.count:
-            raise ConfigError(f"{key} names {len(order)} band(s) {list(order)}, but the raster has {ds.count}",
-                              path=name, fix=f"list all {ds.count} bands of {Path(name).name} in file order, "
-                                             "e.g. [blue, green, red, rededge, nir]")
+            raise ConfigError(
+                f"{key} names {len(order)} band(s) {list(order)}, but the raster has {ds.count}",
+                path=name,
+                fix=f"list all {ds.count} bands of {Path(name).name} in file order, "
+                "e.g. [blue, green, red, rededge, nir]",
+            )
         described = described_roles(ds)
         clash = {b: r for b, r in described.items() if order[b - 1] != r}
         if clash:
-            _once(name, "warning", f"{Path(name).name}: {key} overrules the raster's band descriptions "
-                                   f"({', '.join(f'band {b} is described as {r!r}, {key} says {order[b - 1]!r}' for b, r in sorted(clash.items()))})")
+            _once(
+                name,
+                "warning",
+                f"{Path(name).name}: {key} overrules the raster's band descriptions "
+                f"({', '.join(f'band {b} is described as {r!r}, {key} says {order[b - 1]!r}' for b, r in sorted(clash.items()))})",
+            )
         return BandNames({i: n for i, n in enumerate(order, start=1)}, key)
     roles = described_roles(ds)
     source = "its band descriptions" if roles else ""
@@ -122,9 +151,13 @@ def band_names(ds, order: Sequence[str] = (), key: str = "band_order") -> BandNa
         source = "its band descriptions and colour labels" if source else "its colour labels (an 8-bit RGB image)"
     elif {r for r in labels.values()} & {"red", "green", "blue"}:
         shown = ", ".join(f"{b} {r}" for b, r in sorted(labels.items()))
-        _once(name, "info", f"{Path(name).name}: colour labels ({shown}) not used as band names: they are GDAL's "
-                            f"defaults for a {ds.count}-band {ds.dtypes[0]} TIFF written as photometric RGB (+ extra "
-                            f"samples), not a statement of which band is red; set band_order to name the bands")
+        _once(
+            name,
+            "info",
+            f"{Path(name).name}: colour labels ({shown}) not used as band names: they are GDAL's "
+            f"defaults for a {ds.count}-band {ds.dtypes[0]} TIFF written as photometric RGB (+ extra "
+            f"samples), not a statement of which band is red; set band_order to name the bands",
+        )
     return BandNames(roles, source)
 
 
@@ -141,19 +174,24 @@ def pick_band(ds, names: BandNames, role: str, given: int | str | None, key: str
         wanted = normalise_name(given, key)
         band = names.number(wanted)
         if band is None:
-            raise ConfigError(f"{key} = {given!r}, but no band of the raster is named {wanted!r} "
-                              f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'its bands are not named'})",
-                              path=file_name(ds), fix="set band_order: [...] (every band's name, in file order), "
-                                                      f"or {key} to a band number (1 = first)")
+            raise ConfigError(
+                f"{key} = {given!r}, but no band of the raster is named {wanted!r} "
+                f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'its bands are not named'})",
+                path=file_name(ds),
+                fix=f"set band_order: [...] (every band's name, in file order), or {key} to a band number (1 = first)",
+            )
         return band
     if given is not None:
         return int(given)
     band = names.number(role)
     if band is None:
-        raise ConfigError(f"{key} is not set and the raster's {ds.count} bands do not say which one is {role} "
-                          f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'no band descriptions; colour labels only count on 8-bit RGB images'})",
-                          path=file_name(ds), fix="set band_order: [...] (every band's name in file order, e.g. "
-                                                  f"[blue, green, red, rededge, nir]) or {key}: <band number>")
+        raise ConfigError(
+            f"{key} is not set and the raster's {ds.count} bands do not say which one is {role} "
+            f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'no band descriptions; colour labels only count on 8-bit RGB images'})",
+            path=file_name(ds),
+            fix="set band_order: [...] (every band's name in file order, e.g. "
+            f"[blue, green, red, rededge, nir]) or {key}: <band number>",
+        )
     _once(file_name(ds), "info", f"{Path(file_name(ds)).name}: {key} = {band} ({role}, from {names.source})")
     return band
 
@@ -167,6 +205,9 @@ def check_bands(ds, names: BandNames, wanted: dict[str, int], keys: dict[str, st
             right = names.number(role)
             hint = f"set {keys[role]}: {right}" if right is not None else f"check {keys[role]}"
             other = "correct band_order" if names.source == "band_order" else "set band_order if those names are wrong"
-            raise ConfigError(f"{keys[role]} = {band}, but band {band} of the raster is '{said}' (named by "
-                              f"{names.source}: {names.listing()})", path=file_name(ds),
-                              fix=f"{hint}, or {other}" if order_key else hint)
+            raise ConfigError(
+                f"{keys[role]} = {band}, but band {band} of the raster is '{said}' (named by "
+                f"{names.source}: {names.listing()})",
+                path=file_name(ds),
+                fix=f"{hint}, or {other}" if order_key else hint,
+            )

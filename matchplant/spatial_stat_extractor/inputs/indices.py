@@ -36,23 +36,29 @@ def parse_formula(text: str, names: set[str], key: str) -> ast.Expression:
     try:
         tree = ast.parse(text, mode="eval")
     except SyntaxError as exc:
-        raise ConfigError(f"{key}: '{text}' is not a formula ({exc.msg})",
-                          fix="write it like (b2 - b1) / (b2 + b1)") from exc
+        raise ConfigError(
+            f"{key}: '{text}' is not a formula ({exc.msg})", fix="write it like (b2 - b1) / (b2 + b1)"
+        ) from exc
     for node in ast.walk(tree):
         if isinstance(node, ast.Name) and node.id not in names:
-            raise ConfigError(f"{key}: '{node.id}' in '{text}' is not a band name",
-                              fix=f"use {', '.join(sorted(names))}")
+            raise ConfigError(
+                f"{key}: '{node.id}' in '{text}' is not a band name", fix=f"use {', '.join(sorted(names))}"
+            )
         if isinstance(node, ast.Constant) and not isinstance(node.value, (int, float)):
             raise ConfigError(f"{key}: only numbers may appear as constants in '{text}'", fix="remove the text")
-        if not isinstance(node, (ast.Expression, ast.BinOp, ast.UnaryOp, ast.Name, ast.Constant, ast.Load,
-                                 ast.USub, ast.UAdd, *_OPS)):
-            raise ConfigError(f"{key}: '{text}' uses {type(node).__name__}; only + - * / ** and parentheses "
-                              "are allowed", fix="write the index with arithmetic on the bands")
+        if not isinstance(
+            node, (ast.Expression, ast.BinOp, ast.UnaryOp, ast.Name, ast.Constant, ast.Load, ast.USub, ast.UAdd, *_OPS)
+        ):
+            raise ConfigError(
+                f"{key}: '{text}' uses {type(node).__name__}; only + - * / ** and parentheses are allowed",
+                fix="write the index with arithmetic on the bands",
+            )
     return tree
 
 
 def evaluate(tree: ast.Expression, values: dict[str, np.ndarray]) -> np.ndarray:
     """The formula on arrays; non-finite results (division by zero) become NaN."""
+
     def ev(node):
         if isinstance(node, ast.Expression):
             return ev(node.body)

@@ -20,4 +20,3 @@ class Layer:
     expression: str = ""  # formula: RGB (R, G, B, r, g, b from bands = red, green, blue) or b1, b2, ...
     index: bool = False  # a vegetation index (measured over the canopy by default)
     band_order: tuple = ()  # the names of the raster's bands in file order (config band_order), () = the file's
-

@@ -43,7 +43,8 @@ def is_box_json(path: Path) -> bool:
     """A COCO dataset or module 7's predictions (not a GeoJSON)."""
     data = read_json(path, what="polygon file")
     return isinstance(data, (dict, list)) and (
-        isinstance(data, list) or ("images" in data and ("annotations" in data or "predictions" in data)))
+        isinstance(data, list) or ("images" in data and ("annotations" in data or "predictions" in data))
+    )
 
 
 def find_image(name: str, box_file: Path, images: Path | None) -> Path:
@@ -57,8 +58,11 @@ def find_image(name: str, box_file: Path, images: Path | None) -> Path:
             return cand
     near = [p.name for p in folder.glob("*") if p.suffix.lower() in (".tif", ".tiff", ".png", ".jpg", ".jpeg")]
     hint = did_you_mean(Path(name).name, near)
-    raise InputError(f"the image '{name}' that the boxes are drawn on is not in {folder}"
-                     f"{'; ' + hint if hint else ''}", path=box_file, fix=FIX_IMAGE)
+    raise InputError(
+        f"the image '{name}' that the boxes are drawn on is not in {folder}{'; ' + hint if hint else ''}",
+        path=box_file,
+        fix=FIX_IMAGE,
+    )
 
 
 class ImageFrame:
@@ -73,14 +77,20 @@ class ImageFrame:
                 self.transform, self.width, self.height = ds.transform, ds.width, ds.height
                 self.crs = None if ds.crs is None else parse_crs(ds.crs)
         except rasterio.errors.RasterioIOError as exc:
-            raise InputError(f"the image '{path.name}' the boxes are drawn on cannot be read: {exc}", path=path,
-                             fix="give the GeoTIFF the boxes were drawn or detected on") from exc
+            raise InputError(
+                f"the image '{path.name}' the boxes are drawn on cannot be read: {exc}",
+                path=path,
+                fix="give the GeoTIFF the boxes were drawn or detected on",
+            ) from exc
         if self.crs is None or self.transform.is_identity:
             missing = "CRS" if self.crs is None else "georeference (transform)"
-            raise InputError(f"the boxes of {box_file.name} are pixels of '{path.name}', which has no {missing}: "
-                             "they cannot be placed on the map", path=path,
-                             fix="give the GeoTIFF tile the boxes were drawn on (it keeps its georeference; or "
-                                 "add a world file .tfw/.jgw and .prj), or give the boxes in map coordinates")
+            raise InputError(
+                f"the boxes of {box_file.name} are pixels of '{path.name}', which has no {missing}: "
+                "they cannot be placed on the map",
+                path=path,
+                fix="give the GeoTIFF tile the boxes were drawn on (it keeps its georeference; or "
+                "add a world file .tfw/.jgw and .prj), or give the boxes in map coordinates",
+            )
         self.path = path
 
     def to_map(self, geoms: np.ndarray, box_file: Path, rows: np.ndarray) -> np.ndarray:
@@ -88,32 +98,48 @@ class ImageFrame:
         map coordinates (outside the pixel range, inside the map bounds) are kept."""
         b = shapely.bounds(geoms)
         tol = 1.0  # a box drawn to the image's edge may end half a pixel past it
-        in_pixels = (b[:, 0] >= -tol) & (b[:, 1] >= -tol) & (b[:, 2] <= self.width + tol) & \
-                    (b[:, 3] <= self.height + tol)
+        in_pixels = (
+            (b[:, 0] >= -tol) & (b[:, 1] >= -tol) & (b[:, 2] <= self.width + tol) & (b[:, 3] <= self.height + tol)
+        )
         left, bottom, right, top = rasterio.transform.array_bounds(self.height, self.width, self.transform)
         on_map = (b[:, 0] >= left) & (b[:, 2] <= right) & (b[:, 1] >= bottom) & (b[:, 3] <= top)
         bad = ~in_pixels & ~on_map
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
-            raise InputError(f"{int(bad.sum())} box(es) lie outside the image '{self.path.name}' "
-                             f"({self.width} x {self.height} pixels), e.g. {rows[k]}: "
-                             f"{np.round(b[k], 2).tolist()}", path=box_file,
-                             fix="check that the boxes belong to this image (image_path / file_name) and are "
-                                 "xmin, ymin, xmax, ymax in its pixels")
+            raise InputError(
+                f"{int(bad.sum())} box(es) lie outside the image '{self.path.name}' "
+                f"({self.width} x {self.height} pixels), e.g. {rows[k]}: "
+                f"{np.round(b[k], 2).tolist()}",
+                path=box_file,
+                fix="check that the boxes belong to this image (image_path / file_name) and are "
+                "xmin, ymin, xmax, ymax in its pixels",
+            )
         if on_map.all() and not in_pixels.all():
-            log.info("%s: the boxes on '%s' are in map coordinates already (outside its %d x %d pixels, inside its "
-                     "map bounds); kept as they are", box_file.name, self.path.name, self.width, self.height)
+            log.info(
+                "%s: the boxes on '%s' are in map coordinates already (outside its %d x %d pixels, inside its "
+                "map bounds); kept as they are",
+                box_file.name,
+                self.path.name,
+                self.width,
+                self.height,
+            )
             return geoms
         if (~in_pixels).any():
-            raise InputError(f"the boxes on '{self.path.name}' mix pixel and map coordinates", path=box_file,
-                             fix="give every box in the image's pixels")
+            raise InputError(
+                f"the boxes on '{self.path.name}' mix pixel and map coordinates",
+                path=box_file,
+                fix="give every box in the image's pixels",
+            )
         t = self.transform
-        return shapely.transform(geoms, lambda xy: np.column_stack([t.a * xy[:, 0] + t.b * xy[:, 1] + t.c,
-                                                                    t.d * xy[:, 0] + t.e * xy[:, 1] + t.f]))
+        return shapely.transform(
+            geoms,
+            lambda xy: np.column_stack([t.a * xy[:, 0] + t.b * xy[:, 1] + t.c, t.d * xy[:, 0] + t.e * xy[:, 1] + t.f]),
+        )
 
 
-def place(table: pd.DataFrame, geoms: np.ndarray, names: np.ndarray, box_file: Path, images: Path | None,
-          rows: np.ndarray) -> gpd.GeoDataFrame:
+def place(
+    table: pd.DataFrame, geoms: np.ndarray, names: np.ndarray, box_file: Path, images: Path | None, rows: np.ndarray
+) -> gpd.GeoDataFrame:
     """Pixel geometries of several images (``names``) on the map, in the CRS of the first image (the others
     reprojected to it)."""
     out = np.empty(len(geoms), dtype=object)
@@ -131,9 +157,14 @@ def place(table: pd.DataFrame, geoms: np.ndarray, names: np.ndarray, box_file: P
         elif not frame.crs.equals(crs):
             placed = gpd.GeoSeries(placed, crs=frame.crs).to_crs(crs).values
         out[sel] = placed
-    log.info("%s: %d boxes in pixels of %d image(s) (%s) placed on the map through their georeference, %s",
-             box_file.name, len(geoms), len(frames), ", ".join(f.path.name for f in list(frames.values())[:3]),
-             crs.to_string())
+    log.info(
+        "%s: %d boxes in pixels of %d image(s) (%s) placed on the map through their georeference, %s",
+        box_file.name,
+        len(geoms),
+        len(frames),
+        ", ".join(f.path.name for f in list(frames.values())[:3]),
+        crs.to_string(),
+    )
     gdf = gpd.GeoDataFrame(table.reset_index(drop=True), geometry=list(out), crs=crs)
     gdf.attrs["crs_source"] = f"the image {next(iter(frames.values())).path}"
     return gdf
@@ -173,8 +204,11 @@ def boxes_from_json(path: Path, images: Path | None) -> gpd.GeoDataFrame:
         image = by_id.get(a.get("image_id"))
         if box is None or box[2] <= 0 or box[3] <= 0 or image is None:
             what = "has no image entry" if image is None else f"has no usable bbox [x, y, w, h]: {a.get('bbox')!r}"
-            raise InputError(f"{where} {what}", path=path,
-                             fix="give every box as bbox [x, y, width, height] in pixels of a listed image")
+            raise InputError(
+                f"{where} {what}",
+                path=path,
+                fix="give every box as bbox [x, y, width, height] in pixels of a listed image",
+            )
         x, y, w, h = to_source_pixels(box, image) if image.get("source_image") else box
         boxes.append((x, y, x + w, y + h))
         names.append(source_name(image) if image.get("source_image") else image.get("file_name", ""))
@@ -189,5 +223,6 @@ def boxes_from_json(path: Path, images: Path | None) -> gpd.GeoDataFrame:
         log.info("%s: plant polygons from the boxes (bbox); segmentations are not used", path.name)
     b = np.asarray(boxes, dtype=float)
     geoms = shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3])
-    return place(pd.DataFrame(records), geoms, np.asarray(names, dtype=object), path, images,
-                 np.asarray(rows, dtype=object))
+    return place(
+        pd.DataFrame(records), geoms, np.asarray(names, dtype=object), path, images, np.asarray(rows, dtype=object)
+    )

@@ -31,8 +31,8 @@ from matchplant.spatial_stat_extractor.inputs.bands import (
     file_name,
     pick_band,
 )
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.indices import FormulaSource, parse_formula
+from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.sources import (
     ArraySource,
     DifferenceSource,
@@ -76,9 +76,14 @@ def _in_metres(ds, stack: contextlib.ExitStack, metric_crs=None):
     key = (ds.name, str(target))
     if key not in _warned:
         _warned.add(key)
-        log.info("%s is in degrees (%s); read on a %.3g m grid in %s (nearest neighbour), so that areas and "
-                 "distances are in metres", Path(ds.name).name, ds.crs.to_string(), abs(vrt.transform.a),
-                 pyproj_crs(target).name)
+        log.info(
+            "%s is in degrees (%s); read on a %.3g m grid in %s (nearest neighbour), so that areas and "
+            "distances are in metres",
+            Path(ds.name).name,
+            ds.crs.to_string(),
+            abs(vrt.transform.a),
+            pyproj_crs(target).name,
+        )
     return vrt
 
 
@@ -99,13 +104,14 @@ def _check_once(path: str, band: int, name: str) -> None:
             _checked.add(key)
 
 
-def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band",
-          check: bool = True) -> RasterFileSource:
+def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band", check: bool = True) -> RasterFileSource:
     """Band ``band`` (config key ``key``) of ``ds``; with ``check``, a band of only nodata/NaN is an error."""
     if not 1 <= band <= ds.count:
-        raise InputError(f"{layer.name}: {key} = {band}, but the raster has {ds.count} band(s), "
-                         f"no band {band}",
-                         path=ds.name, fix=f"set {key} to a band number from 1 to {ds.count} (1 = first band)")
+        raise InputError(
+            f"{layer.name}: {key} = {band}, but the raster has {ds.count} band(s), no band {band}",
+            path=ds.name,
+            fix=f"set {key} to a band number from 1 to {ds.count} (1 = first band)",
+        )
     # a raster that is all nodata/NaN in this band is named here, not found out as "0 plants with values"
     if check:
         _check_once(file_name(ds), band, layer.name)
@@ -137,13 +143,22 @@ def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None =
     dtm = _open(layer.paths[1], stack, warp=False)  # put on the DSM's grid below, whatever its CRS
     _check_overlap(dsm, dtm)
     check_raster(dtm.name, bands=[1], require_crs=False, what=f"{layer.name} DTM")
-    if (dsm.crs and dtm.crs and dsm.crs != dtm.crs) or dsm.transform != dtm.transform \
-            or dsm.shape != dtm.shape:
+    if (dsm.crs and dtm.crs and dsm.crs != dtm.crs) or dsm.transform != dtm.transform or dsm.shape != dtm.shape:
         # put the DTM on the DSM's grid (ODM writes them on one grid; other tools may not)
-        log.info("DTM %s is on another grid than the DSM; resampling it (bilinear) onto the DSM grid",
-                 Path(layer.paths[1]).name)
-        dtm = stack.enter_context(WarpedVRT(dtm, crs=dsm.crs or dtm.crs, transform=dsm.transform,
-                                            width=dsm.width, height=dsm.height, resampling=Resampling.bilinear))
+        log.info(
+            "DTM %s is on another grid than the DSM; resampling it (bilinear) onto the DSM grid",
+            Path(layer.paths[1]).name,
+        )
+        dtm = stack.enter_context(
+            WarpedVRT(
+                dtm,
+                crs=dsm.crs or dtm.crs,
+                transform=dsm.transform,
+                width=dsm.width,
+                height=dsm.height,
+                resampling=Resampling.bilinear,
+            )
+        )
     return DifferenceSource(_band(dsm, 1, layer, nodata), _band(dtm, 1, layer, nodata, check=False))
 
 
@@ -153,14 +168,20 @@ def ndvi_bands(ds, layer: Layer) -> tuple[int, int]:
     names = band_names(ds, layer.band_order)
     red, nir = layer.bands
     if (red is None or nir is None) and ds.count == 2 and not names.roles:
-        log.info("%s: 2 bands, not named; %s (set red_band/nir_band or band_order if not)", Path(file_name(ds)).name,
-                 " and ".join(f"{k} = {v}" for k, v, g in (("red_band", 1, red), ("nir_band", 2, nir)) if g is None))
+        log.info(
+            "%s: 2 bands, not named; %s (set red_band/nir_band or band_order if not)",
+            Path(file_name(ds)).name,
+            " and ".join(f"{k} = {v}" for k, v, g in (("red_band", 1, red), ("nir_band", 2, nir)) if g is None),
+        )
         red, nir = 1 if red is None else red, 2 if nir is None else nir
     red = pick_band(ds, names, "red", red, "red_band")
     nir = pick_band(ds, names, "nir", nir, "nir_band")
     if red == nir:
-        raise InputError(f"red_band and nir_band are both band {red}", path=file_name(ds),
-                         fix="set band_order (every band's name in file order) or red_band and nir_band")
+        raise InputError(
+            f"red_band and nir_band are both band {red}",
+            path=file_name(ds),
+            fix="set band_order (every band's name in file order) or red_band and nir_band",
+        )
     check_bands(ds, names, {"red": red, "nir": nir}, {"red": "red_band", "nir": "nir_band"})
     return red, nir
 
@@ -172,9 +193,12 @@ def _check_overlap(dsm, dtm) -> None:
     if dsm.crs and dtm.crs and dsm.crs != dtm.crs:
         b = transform_bounds(dtm.crs, dsm.crs, *b)
     if b[0] >= a[2] or b[2] <= a[0] or b[1] >= a[3] or b[3] <= a[1]:
-        raise InputError(f"the DTM does not overlap the DSM {Path(dsm.name).name} (DSM bounds "
-                         f"{tuple(round(v, 1) for v in a)}, DTM bounds {tuple(round(v, 1) for v in b)})",
-                         path=dtm.name, fix="give the DTM of the same field and flight as the DSM")
+        raise InputError(
+            f"the DTM does not overlap the DSM {Path(dsm.name).name} (DSM bounds "
+            f"{tuple(round(v, 1) for v in a)}, DTM bounds {tuple(round(v, 1) for v in b)})",
+            path=dtm.name,
+            fix="give the DTM of the same field and flight as the DSM",
+        )
 
 
 def raster_crs(date_sets) -> tuple[object, Path] | tuple[None, None]:
@@ -195,19 +219,25 @@ def _formula(ds, layer: Layer, nodata: float | None) -> FormulaSource:
     alpha_src = _band(ds, alpha, layer, None, check=False) if alpha is not None and alpha not in layer.bands else None
     names = band_names(ds, layer.band_order)
     if len(layer.bands) == 3:
-        check_bands(ds, names, dict(zip(("red", "green", "blue"), layer.bands)),
-                    {"red": "rgb_bands[0] (red)", "green": "rgb_bands[1] (green)", "blue": "rgb_bands[2] (blue)"},
-                    order_key=bool(layer.band_order))
+        check_bands(
+            ds,
+            names,
+            dict(zip(("red", "green", "blue"), layer.bands)),
+            {"red": "rgb_bands[0] (red)", "green": "rgb_bands[1] (green)", "blue": "rgb_bands[2] (blue)"},
+            order_key=bool(layer.band_order),
+        )
         names = {"R", "G", "B", "r", "g", "b"}
         tree = parse_formula(layer.expression, names, f"index '{layer.name}'")
-        bands = {c: _band(ds, b, layer, nodata, key=f"rgb_bands[{i}]")
-                 for i, (c, b) in enumerate(zip("RGB", layer.bands))}
+        bands = {
+            c: _band(ds, b, layer, nodata, key=f"rgb_bands[{i}]") for i, (c, b) in enumerate(zip("RGB", layer.bands))
+        }
         return FormulaSource(tree, bands, chromatic=True, alpha=alpha_src)
     numbers = {f"b{i}": i for i in range(1, ds.count + 1)}
     if names.source == "band_order":  # the user's names for the bands, beside b1..bN
         numbers.update({name: b for b, name in names.roles.items()})
-    tree = parse_formula(layer.expression, set(numbers), f"formula '{layer.name}' ({Path(file_name(ds)).name}, "
-                                                         f"{ds.count} bands)")
+    tree = parse_formula(
+        layer.expression, set(numbers), f"formula '{layer.name}' ({Path(file_name(ds)).name}, {ds.count} bands)"
+    )
     # every band is offered to the formula, used or not: an empty unused band is no error
     bands = {k: _band(ds, i, layer, nodata, check=False) for k, i in numbers.items()}
     return FormulaSource(tree, bands, alpha=alpha_src)

@@ -7,8 +7,8 @@ difference of two files (the CHM), NDVI of two bands.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from rasterio.windows import Window
@@ -44,8 +44,7 @@ class RasterFileSource:
     """One band of an open rasterio dataset, read window by window. The file's nodata, any
     ``extra_nodata`` values (ODM's -9999 on elevation rasters) and NaN are masked."""
 
-    def __init__(self, dataset, band: int = 1, nodata: float | None = None,
-                 extra_nodata: Sequence[float] = ()):
+    def __init__(self, dataset, band: int = 1, nodata: float | None = None, extra_nodata: Sequence[float] = ()):
         self.ds = dataset
         self.band = band
         self.transform = dataset.transform
@@ -53,8 +52,13 @@ class RasterFileSource:
         self.width, self.height = dataset.width, dataset.height
         file_nodata = dataset.nodatavals[band - 1] if dataset.nodatavals else None
         # each value once (an elevation raster's nodata is often ODM's -9999 too): a pass per value per read
-        self.nodata = list(dict.fromkeys(v for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
-                                         if v is not None and not np.isnan(v)))
+        self.nodata = list(
+            dict.fromkeys(
+                v
+                for v in (nodata if nodata is not None else file_nodata, *extra_nodata)
+                if v is not None and not np.isnan(v)
+            )
+        )
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
         # GDAL converts to float64 as it reads (no second pass over the window)

@@ -48,8 +48,11 @@ def _read_text(path: Path) -> pd.DataFrame:
     try:
         book = pd.read_csv(io.StringIO(text), sep=sep, dtype=str, keep_default_na=False, skip_blank_lines=True)
     except (pd.errors.ParserError, ValueError) as exc:
-        raise InputError(f"the field book cannot be read as a table: {exc}", path=path,
-                         fix="save it as CSV with one header row (or as .xlsx)") from exc
+        raise InputError(
+            f"the field book cannot be read as a table: {exc}",
+            path=path,
+            fix="save it as CSV with one header row (or as .xlsx)",
+        ) from exc
     return book.fillna("")  # (cells missing from short rows)
 
 
@@ -57,14 +60,19 @@ def _read_excel(path: Path) -> pd.DataFrame:
     try:
         import openpyxl  # noqa: F401  (pandas reads .xlsx through it)
     except ImportError as exc:
-        raise InputError("reading an .xlsx field book needs the openpyxl package, which is not installed",
-                         path=path, fix="pip install openpyxl (requirements.txt lists it), or save the sheet "
-                                        "as CSV") from exc
+        raise InputError(
+            "reading an .xlsx field book needs the openpyxl package, which is not installed",
+            path=path,
+            fix="pip install openpyxl (requirements.txt lists it), or save the sheet as CSV",
+        ) from exc
     try:
         book = pd.read_excel(path, sheet_name=0, dtype=object, engine="openpyxl")
     except Exception as exc:  # openpyxl raises zip, XML and key errors for a damaged or mislabelled file
-        raise InputError(f"cannot read the workbook: {exc}", path=path,
-                         fix="open it in a spreadsheet and save it again as .xlsx, or as CSV") from exc
+        raise InputError(
+            f"cannot read the workbook: {exc}",
+            path=path,
+            fix="open it in a spreadsheet and save it again as .xlsx, or as CSV",
+        ) from exc
     log.info("field book %s: first sheet of the workbook read", path.name)
     return book.apply(lambda c: c.map(lambda v: "" if pd.isna(v) else _cell_text(v)))
 
@@ -109,8 +117,11 @@ def id_column_of(book: pd.DataFrame, wanted: str, path: Path, key: str) -> str:
             log.info("field book %s: plot ids read from its column '%s' (%s = '%s')", path.name, col, key, wanted)
             return col
     hint = did_you_mean(wanted, book.columns)
-    raise InputError(f"the field book has no '{wanted}' column ({hint or 'columns: ' + str(list(book.columns))})",
-                     path=path, fix=f"set {key} to its plot id column")
+    raise InputError(
+        f"the field book has no '{wanted}' column ({hint or 'columns: ' + str(list(book.columns))})",
+        path=path,
+        fix=f"set {key} to its plot id column",
+    )
 
 
 def _number(s: str) -> str | None:
@@ -130,8 +141,11 @@ def join_field_book(table: pd.DataFrame, path: Path, id_column: str, key: str = 
     ids = _keys(book[col])
     missing = [i + 2 for i, s in enumerate(ids) if s == ""]
     if missing:
-        raise InputError(f"field book rows without a plot id in '{col}' (lines {missing[:5]})", path=path,
-                         fix="give every row its plot id, or delete the row")
+        raise InputError(
+            f"field book rows without a plot id in '{col}' (lines {missing[:5]})",
+            path=path,
+            fix="give every row its plot id, or delete the row",
+        )
     plot_ids = _keys(table["plot_id"])
     book_keys, plot_keys, how = ids, plot_ids, "as written"
     joined = sum(k in set(plot_keys) for k in book_keys)
@@ -140,24 +154,39 @@ def join_field_book(table: pd.DataFrame, path: Path, id_column: str, key: str = 
         n_num = sum(k in set(by_number[1]) for k in by_number[0])
         if n_num > joined:
             book_keys, plot_keys, how = by_number[0], by_number[1], "by their numbers"
-            log.warning("field book %s: plot ids matched to the plots' ids by their numbers (e.g. '%s' -> plot "
-                        "%s; did you mean the plots' ids?): %d of %d rows join", path.name, ids[0],
-                        plot_ids[by_number[1].index(by_number[0][0])] if by_number[0][0] in by_number[1] else "?",
-                        n_num, len(ids))
+            log.warning(
+                "field book %s: plot ids matched to the plots' ids by their numbers (e.g. '%s' -> plot "
+                "%s; did you mean the plots' ids?): %d of %d rows join",
+                path.name,
+                ids[0],
+                plot_ids[by_number[1].index(by_number[0][0])] if by_number[0][0] in by_number[1] else "?",
+                n_num,
+                len(ids),
+            )
             joined = n_num
     dup = pd.Series(book_keys)[pd.Series(book_keys).duplicated()].unique().tolist()
     if dup:
-        raise InputError(f"plot ids repeat in the field book ({how}, e.g. {dup[:5]})", path=path,
-                         fix="one row per plot")
+        raise InputError(
+            f"plot ids repeat in the field book ({how}, e.g. {dup[:5]})", path=path, fix="one row per plot"
+        )
     if joined == 0:
-        raise InputError(f"none of the {len(ids)} field-book rows joins a plot: its plot ids (column '{col}', e.g. "
-                         f"{ids[:3]}) are not the plots' ids (e.g. {plot_ids[:3]})", path=path,
-                         fix="make the field book's plot id column hold the plots' ids (a grid numbers them 1..N; "
-                             "see plots.csv), or set plots.field_book_id_column")
+        raise InputError(
+            f"none of the {len(ids)} field-book rows joins a plot: its plot ids (column '{col}', e.g. "
+            f"{ids[:3]}) are not the plots' ids (e.g. {plot_ids[:3]})",
+            path=path,
+            fix="make the field book's plot id column hold the plots' ids (a grid numbers them 1..N; "
+            "see plots.csv), or set plots.field_book_id_column",
+        )
     unjoined = [s for s, k in zip(ids, book_keys) if k not in set(plot_keys)]
     if unjoined:
-        log.warning("field book %s: %d of %d rows join no plot (ids e.g. %s; %s)", path.name, len(unjoined), len(ids),
-                    unjoined[:5], did_you_mean(unjoined[0], plot_ids) or "not near any plot id")
+        log.warning(
+            "field book %s: %d of %d rows join no plot (ids e.g. %s; %s)",
+            path.name,
+            len(unjoined),
+            len(ids),
+            unjoined[:5],
+            did_you_mean(unjoined[0], plot_ids) or "not near any plot id",
+        )
     without = len(set(plot_keys) - set(book_keys))
     if without:
         log.warning("%d of %d plots have no row in the field book %s", without, len(plot_keys), path.name)

@@ -22,12 +22,15 @@ from matchplant.core.runtime.io import atomic_path
 if TYPE_CHECKING:
     from matplotlib.colors import Normalize
 
-UNITS = ((r"^(stand_count|expected|gaps|unclaimed|low_boxes)$", "plants"),
-         (r"^canopy_cover$", "share of the plot area"),
-         (r"_cv(_|$)", "coefficient of variation"),
-         (r"area_m2", "m²"), (r"volume_m3", "m³"),
-         (r"(^|_)(chm|height)|_m(_|$)", "m"),
-         (r"(^|_)(ndvi|ndre|gndvi|exg|exgr|vari|gli|ngrdi|savi|evi|lai)(_|$)", "index, no unit"))
+UNITS = (
+    (r"^(stand_count|expected|gaps|unclaimed|low_boxes)$", "plants"),
+    (r"^canopy_cover$", "share of the plot area"),
+    (r"_cv(_|$)", "coefficient of variation"),
+    (r"area_m2", "m²"),
+    (r"volume_m3", "m³"),
+    (r"(^|_)(chm|height)|_m(_|$)", "m"),
+    (r"(^|_)(ndvi|ndre|gndvi|exg|exgr|vari|gli|ngrdi|savi|evi|lai)(_|$)", "index, no unit"),
+)
 
 
 def unit_of(column: str) -> str:
@@ -49,8 +52,9 @@ def colour_norm(values: pd.Series) -> Normalize:
     return Normalize(vmin=lo, vmax=hi)
 
 
-def field_figure(plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, path: Path,
-                 spacing: float = 0.2) -> Path:
+def field_figure(
+    plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, path: Path, spacing: float = 0.2
+) -> Path:
     fig = figure(headless=True, figsize=(8, 7), constrained_layout=True)
     try:
         draw_field(fig, plots, pts, gaps, column, spacing)
@@ -66,8 +70,16 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
     ax = fig.add_subplot(1, 1, 1)
     if column in plots.columns and plots[column].notna().any():
         unit = unit_of(column)
-        plots.plot(column=column, ax=ax, cmap="viridis", norm=colour_norm(plots[column]), edgecolor="white",
-                   linewidth=0.6, legend=True, legend_kwds={"label": f"{column} ({unit})", "shrink": 0.7})
+        plots.plot(
+            column=column,
+            ax=ax,
+            cmap="viridis",
+            norm=colour_norm(plots[column]),
+            edgecolor="white",
+            linewidth=0.6,
+            legend=True,
+            legend_kwds={"label": f"{column} ({unit})", "shrink": 0.7},
+        )
     else:
         plots.plot(ax=ax, color="lightgrey", edgecolor="white")
     if len(pts):
@@ -93,8 +105,15 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
     if len(plots) <= 200:
         for pid, g in zip(plots["plot_id"], plots.geometry.values):
             c = g.representative_point()
-            ax.annotate(str(pid), (c.x, c.y), fontsize=6, ha="center", va="center", color="white",
-                        bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.35, "lw": 0})
+            ax.annotate(
+                str(pid),
+                (c.x, c.y),
+                fontsize=6,
+                ha="center",
+                va="center",
+                color="white",
+                bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.35, "lw": 0},
+            )
     ax.set_title(f"plots: {column}, plants and gaps")
     ax.legend(loc="upper right", fontsize=7)
     return ax

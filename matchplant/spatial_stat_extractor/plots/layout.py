@@ -16,9 +16,9 @@ from pyproj import CRS, Transformer
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.plots.rows import bearing_to_vector, canonical
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
+from matchplant.spatial_stat_extractor.plots.rows import bearing_to_vector, canonical
 
 log = get_logger("spatial_stat_extractor")
 SAME_PLOT = 0.5  # plots overlapping by this share of the smaller one are one plot given twice
@@ -34,9 +34,10 @@ def corners_in_map(cfg: PlotsConfig, crs, pts: np.ndarray | None) -> np.ndarray:
     a projected map (longitude, latitude or latitude, longitude, whichever lands on the plants)."""
     c = np.asarray(cfg.corners, dtype=float)
     if c.ndim != 2 or c.shape[1] != 2 or len(c) not in (3, 4) or cfg.columns < 1 or cfg.ranges < 1:
-        raise ConfigError("plots.corners needs 3 or 4 [x, y] corners, and plots.columns and plots.ranges at "
-                          "least 1", fix="e.g. corners: [[x1, y1], [x2, y2], [x3, y3], [x4, y4]], columns: 9, "
-                                         "ranges: 7")
+        raise ConfigError(
+            "plots.corners needs 3 or 4 [x, y] corners, and plots.columns and plots.ranges at least 1",
+            fix="e.g. corners: [[x1, y1], [x2, y2], [x3, y3], [x4, y4]], columns: 9, ranges: 7",
+        )
     if crs is None or pts is None or not len(pts) or not CRS.from_user_input(crs).is_projected:
         return c
     degrees = (np.abs(c) <= 180).all() and ((np.abs(c[:, 1]) <= 90).all() or (np.abs(c[:, 0]) <= 90).all())
@@ -57,11 +58,18 @@ def corners_in_map(cfg: PlotsConfig, crs, pts: np.ndarray | None) -> np.ndarray:
             best, best_d, best_order = xy, d, order
     size = np.hypot(*(pts.max(axis=0) - pts.min(axis=0)))
     if best is None or best_d > size + np.hypot(*(best.max(axis=0) - best.min(axis=0))):
-        raise ConfigError(f"plots.corners {c.tolist()[:2]}... look like degrees, but the map CRS is "
-                          f"{CRS.from_user_input(crs).to_string()} (metres) and even as longitude/latitude they "
-                          f"are not on the plants", fix="give the corners in the map CRS (the plants' x, y)")
-    log.warning("plots.corners look like degrees (%s) while the map is in %s: reprojected from EPSG:4326 "
-                "(give them in the map CRS to silence this)", best_order, CRS.from_user_input(crs).to_string())
+        raise ConfigError(
+            f"plots.corners {c.tolist()[:2]}... look like degrees, but the map CRS is "
+            f"{CRS.from_user_input(crs).to_string()} (metres) and even as longitude/latitude they "
+            f"are not on the plants",
+            fix="give the corners in the map CRS (the plants' x, y)",
+        )
+    log.warning(
+        "plots.corners look like degrees (%s) while the map is in %s: reprojected from EPSG:4326 "
+        "(give them in the map CRS to silence this)",
+        best_order,
+        CRS.from_user_input(crs).to_string(),
+    )
     return best
 
 
@@ -73,8 +81,10 @@ def plot_grid(cfg: PlotsConfig, crs=None, pts: np.ndarray | None = None) -> gpd.
     a, across, along = c[0], c[1] - c[0], c[-1] - c[0]
     cw, cl = np.linalg.norm(across) / cfg.columns, np.linalg.norm(along) / cfg.ranges
     if cw <= 0 or cl <= 0:
-        raise ConfigError("plots.corners: the first, second and last corners must differ",
-                          fix="corner 1 = plot 1's outer corner, corner 2 = across the rows, last = along them")
+        raise ConfigError(
+            "plots.corners: the first, second and last corners must differ",
+            fix="corner 1 = plot 1's outer corner, corner 2 = across the rows, last = along them",
+        )
     u, v = across / np.linalg.norm(across), along / np.linalg.norm(along)
     if abs(u[0] * v[1] - u[1] * v[0]) < 0.05:
         raise ConfigError("plots.corners: the corners lie on one line", fix="give the field's corners in order")
@@ -83,15 +93,24 @@ def plot_grid(cfg: PlotsConfig, crs=None, pts: np.ndarray | None = None) -> gpd.
     if cfg.serpentine:
         col = np.where(rng % 2 == 1, cfg.columns - 1 - col, col)
     centre = a + np.outer(col + 0.5, across / cfg.columns) + np.outer(rng + 0.5, along / cfg.ranges)
-    corners = np.stack([centre + s1 * pw / 2 * u + s2 * pl / 2 * v
-                        for s1, s2 in ((-1, -1), (1, -1), (1, 1), (-1, 1))], axis=1)
+    corners = np.stack(
+        [centre + s1 * pw / 2 * u + s2 * pl / 2 * v for s1, s2 in ((-1, -1), (1, -1), (1, 1), (-1, 1))], axis=1
+    )
     geoms = shapely.polygons(corners)
     if cw < pw - 1e-9 or cl < pl - 1e-9:
-        log.warning("plot size %.2f x %.2f m is larger than the grid cell %.2f x %.2f m: plots overlap",
-                    pw, pl, cw, cl)
+        log.warning("plot size %.2f x %.2f m is larger than the grid cell %.2f x %.2f m: plots overlap", pw, pl, cw, cl)
     v = canonical(v)
-    return gpd.GeoDataFrame({"plot_id": np.arange(1, len(geoms) + 1), "range": rng + 1, "column": col + 1,
-                             "row_dir_x": v[0], "row_dir_y": v[1]}, geometry=geoms, crs=crs)
+    return gpd.GeoDataFrame(
+        {
+            "plot_id": np.arange(1, len(geoms) + 1),
+            "range": rng + 1,
+            "column": col + 1,
+            "row_dir_x": v[0],
+            "row_dir_y": v[1],
+        },
+        geometry=geoms,
+        crs=crs,
+    )
 
 
 def _polygonal(geoms: np.ndarray, ids, path) -> np.ndarray:
@@ -99,12 +118,20 @@ def _polygonal(geoms: np.ndarray, ids, path) -> np.ndarray:
     bad = ~shapely.is_valid(geoms)
     if bad.any():
         fixed = shapely.make_valid(geoms[bad])
-        parts = [shapely.multipolygons([p for p in shapely.get_parts(g) if shapely.get_type_id(p) == 3])
-                 if shapely.get_type_id(g) == 7 else g for g in fixed]
+        parts = [
+            shapely.multipolygons([p for p in shapely.get_parts(g) if shapely.get_type_id(p) == 3])
+            if shapely.get_type_id(g) == 7
+            else g
+            for g in fixed
+        ]
         geoms = geoms.copy()
         geoms[bad] = parts
-        log.warning("%d plot polygons were invalid (a ring crossing itself, e.g. plot ids %s in %s): repaired",
-                    int(bad.sum()), list(np.asarray(ids)[bad][:5]), path)
+        log.warning(
+            "%d plot polygons were invalid (a ring crossing itself, e.g. plot ids %s in %s): repaired",
+            int(bad.sum()),
+            list(np.asarray(ids)[bad][:5]),
+            path,
+        )
     return geoms
 
 
@@ -119,8 +146,12 @@ def read_plots(cfg: PlotsConfig, crs=None, pts: np.ndarray | None = None) -> gpd
     if g.crs is None and crs is not None:
         g = g.set_crs(crs)
     elif crs is not None and not g.crs.equals(crs):
-        log.info("plots: %s is in %s, the plants in %s: reprojected", cfg.polygons, g.crs.to_string(),
-                 CRS.from_user_input(crs).to_string())
+        log.info(
+            "plots: %s is in %s, the plants in %s: reprojected",
+            cfg.polygons,
+            g.crs.to_string(),
+            CRS.from_user_input(crs).to_string(),
+        )
         g = g.to_crs(crs)
     g = g.set_geometry(_polygonal(np.asarray(g.geometry.values), g["plot_id"], cfg.polygons))
     n = len(g)
@@ -148,21 +179,29 @@ def check_overlaps(plots: gpd.GeoDataFrame, cfg: PlotsConfig) -> None:
     i, j = i[keep], j[keep]
     if not len(i):
         return
-    share = shapely.area(shapely.intersection(geoms[i], geoms[j])) / np.minimum(shapely.area(geoms[i]),
-                                                                                 shapely.area(geoms[j]))
+    share = shapely.area(shapely.intersection(geoms[i], geoms[j])) / np.minimum(
+        shapely.area(geoms[i]), shapely.area(geoms[j])
+    )
     ids = plots["plot_id"].to_numpy()
     key, path = _source(cfg)
     same = share >= SAME_PLOT
     if same.any():
         pairs = [f"{ids[a]} and {ids[b]} ({s:.0%})" for a, b, s in zip(i[same], j[same], share[same])][:5]
-        raise InputError(f"{int(same.sum())} pairs of plots are the same plot or nearly (overlap of the smaller "
-                         f"one): plots {', '.join(pairs)}; their plants would be counted twice", path=path,
-                         fix=f"remove the duplicate plots from {key} (or correct their outlines)")
+        raise InputError(
+            f"{int(same.sum())} pairs of plots are the same plot or nearly (overlap of the smaller "
+            f"one): plots {', '.join(pairs)}; their plants would be counted twice",
+            path=path,
+            fix=f"remove the duplicate plots from {key} (or correct their outlines)",
+        )
     some = share > 1e-3
     if some.any():
         pairs = [f"{ids[a]}/{ids[b]} ({s:.0%})" for a, b, s in zip(i[some], j[some], share[some])][:5]
-        log.warning("%d pairs of plots overlap (e.g. plots %s of the smaller one); a plant in an overlap is "
-                    "counted once, in the plot whose centre is nearest", int(some.sum()), ", ".join(pairs))
+        log.warning(
+            "%d pairs of plots overlap (e.g. plots %s of the smaller one); a plant in an overlap is "
+            "counted once, in the plot whose centre is nearest",
+            int(some.sum()),
+            ", ".join(pairs),
+        )
 
 
 def join_plants(plots: gpd.GeoDataFrame, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -189,13 +228,17 @@ def check_plants_in_plots(plots: gpd.GeoDataFrame, pts: np.ndarray, plot_i: np.n
     if held.sum() <= n // 2:
         c_plots = shapely.get_coordinates(shapely.centroid(shapely.union_all(plots.geometry.values)))[0]
         off = pts.mean(axis=0) - c_plots
-        raise InputError(f"{n - int(held.sum())} of the {n} plots hold no plant (e.g. plot ids "
-                         f"{list(empty[:5])}): the plots' centre is {np.hypot(*off):.1f} m from the plants' "
-                         f"(dx {off[0]:.1f}, dy {off[1]:.1f} m)", path=path,
-                         fix=f"check {key}: this season's corners, the map CRS of the plants, "
-                             f"{'plots.columns/ranges' if key == 'plots.corners' else 'the plot file'}")
-    log.warning("%d of %d plots hold no plant (plot ids %s): counted with stand count 0", len(empty), n,
-                list(empty[:10]))
+        raise InputError(
+            f"{n - int(held.sum())} of the {n} plots hold no plant (e.g. plot ids "
+            f"{list(empty[:5])}): the plots' centre is {np.hypot(*off):.1f} m from the plants' "
+            f"(dx {off[0]:.1f}, dy {off[1]:.1f} m)",
+            path=path,
+            fix=f"check {key}: this season's corners, the map CRS of the plants, "
+            f"{'plots.columns/ranges' if key == 'plots.corners' else 'the plot file'}",
+        )
+    log.warning(
+        "%d of %d plots hold no plant (plot ids %s): counted with stand count 0", len(empty), n, list(empty[:10])
+    )
 
 
 def plants_outside(pts: np.ndarray, plant_i: np.ndarray) -> int:
@@ -203,4 +246,3 @@ def plants_outside(pts: np.ndarray, plant_i: np.ndarray) -> int:
     if outside:
         log.info("%d of %d plants stand in no plot", outside, len(pts))
     return outside
-

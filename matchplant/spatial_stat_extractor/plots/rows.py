@@ -151,8 +151,9 @@ def seed_slot(along: np.ndarray, row: np.ndarray, grid: dict, sp: float) -> tupl
     return slot, along - (grid["base"][row] + (grid["kmin"][row] + slot) * sp)
 
 
-def seed_layout(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.ndarray, sp: float,
-                grid: dict | None = None) -> dict:
+def seed_layout(
+    along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.ndarray, sp: float, grid: dict | None = None
+) -> dict:
     """Seed positions (``grid``, else :func:`seed_grid` from these plants) and gaps of one plot: each plant
     takes its nearest seed, and every seed left without a plant is a gap.
 
@@ -169,5 +170,9 @@ def seed_layout(along: np.ndarray, row: np.ndarray, start: np.ndarray, end: np.n
     valid = np.arange(width)[None, :] < n_slots[:, None]
     gr, gs = np.nonzero(valid & ~filled)
     spacing = np.concatenate([np.diff(np.sort(along[row == r])) for r in range(nrow)]) if len(along) else []
-    return {"expected": int(n_slots.sum()), "gap_row": gr, "gap_along": g["base"][gr] + (g["kmin"][gr] + gs) * sp,
-            "spacing": np.asarray(spacing, float)}
+    return {
+        "expected": int(n_slots.sum()),
+        "gap_row": gr,
+        "gap_along": g["base"][gr] + (g["kmin"][gr] + gs) * sp,
+        "spacing": np.asarray(spacing, float),
+    }

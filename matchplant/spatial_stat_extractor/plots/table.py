@@ -40,8 +40,9 @@ import pandas as pd
 from matchplant.core.formats.vectors import write_vector
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.plots.fieldbook import join_field_book
+from matchplant.spatial_stat_extractor.plots.figure import field_figure
 from matchplant.spatial_stat_extractor.plots.layout import (
     check_overlaps,
     check_plants_in_plots,
@@ -59,8 +60,7 @@ from matchplant.spatial_stat_extractor.plots.rows import (
     seed_layout,
     seed_slot,
 )
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
-from matchplant.spatial_stat_extractor.plots.figure import field_figure
+from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
 
 log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")
@@ -85,8 +85,14 @@ def default_traits(columns) -> list[str]:
     out = [c for c in cols if DEFAULT_TRAITS.match(c)]
     for c in cols:
         m = PLANT_MEAN.match(c)
-        if m and m["t"] != "chm" and not m["t"].endswith("_canopy") and "canopy" not in m["t"] \
-                and f"{m['t']}_canopy_mean{m['d'] or ''}" not in cols and c not in out:
+        if (
+            m
+            and m["t"] != "chm"
+            and not m["t"].endswith("_canopy")
+            and "canopy" not in m["t"]
+            and f"{m['t']}_canopy_mean{m['d'] or ''}" not in cols
+            and c not in out
+        ):
             out.append(c)
     return out
 
@@ -102,12 +108,16 @@ def _plant_points(table: pd.DataFrame) -> np.ndarray:
     return np.stack([x, y], axis=1)
 
 
-def row_directions(plots: gpd.GeoDataFrame, pts: np.ndarray, plant_i: np.ndarray, plot_i: np.ndarray,
-                   cfg: PlotsConfig) -> np.ndarray:
+def row_directions(
+    plots: gpd.GeoDataFrame, pts: np.ndarray, plant_i: np.ndarray, plot_i: np.ndarray, cfg: PlotsConfig
+) -> np.ndarray:
     """(n, 2) each plot's row direction: its own (grid, file columns, ``plots.row_direction``), else from
     its plants' alignment, else the field's consensus of those, else (with a warning) its long side."""
-    v = np.array(plots[["row_dir_x", "row_dir_y"]], dtype=float) if "row_dir_x" in plots.columns \
+    v = (
+        np.array(plots[["row_dir_x", "row_dir_y"]], dtype=float)
+        if "row_dir_x" in plots.columns
         else np.full((len(plots), 2), np.nan)
+    )
     todo = np.flatnonzero(~np.isfinite(v).all(axis=1))
     if not len(todo):
         return v
@@ -123,15 +133,25 @@ def row_directions(plots: gpd.GeoDataFrame, pts: np.ndarray, plant_i: np.ndarray
     if clear:
         doubled = np.radians(bearings * 2)
         mean = np.degrees(np.arctan2(np.sin(doubled).mean(), np.cos(doubled).mean())) / 2 % 180
-        spread = np.degrees(np.sqrt(-2 * np.log(min(np.hypot(np.sin(doubled).mean(), np.cos(doubled).mean()), 1.0)))) / 2
-        log.info("row direction from the plants' alignment in %d plots: bearing %.1f deg (spread %.1f deg)%s",
-                 len(clear), mean, spread, f"; {len(rest)} plots with too few plants take it" if rest else "")
+        spread = (
+            np.degrees(np.sqrt(-2 * np.log(min(np.hypot(np.sin(doubled).mean(), np.cos(doubled).mean()), 1.0)))) / 2
+        )
+        log.info(
+            "row direction from the plants' alignment in %d plots: bearing %.1f deg (spread %.1f deg)%s",
+            len(clear),
+            mean,
+            spread,
+            f"; {len(rest)} plots with too few plants take it" if rest else "",
+        )
         if rest:
             v[rest] = canonical(np.array([np.sin(np.radians(mean)), np.cos(np.radians(mean))]))
     elif rest:
-        log.warning("the row direction of %d plots cannot be told from the plants (too few, or in-row and "
-                    "across-row spacing alike): taken along each plot's long side; set plots.row_direction "
-                    "(degrees from north) if the rows run across", len(rest))
+        log.warning(
+            "the row direction of %d plots cannot be told from the plants (too few, or in-row and "
+            "across-row spacing alike): taken along each plot's long side; set plots.row_direction "
+            "(degrees from north) if the rows run across",
+            len(rest),
+        )
         v[rest] = np.array([long_side(geoms[k]) for k in rest])
     return v
 
@@ -146,8 +166,15 @@ def _plot_rows(geom, v: np.ndarray, p: np.ndarray, nrow: int):
     return n0, rw, start, end, row, p @ v, across
 
 
-def at_free_seeds(plots: gpd.GeoDataFrame, dirs: np.ndarray, pts: np.ndarray, plant_i: np.ndarray,
-                  plot_i: np.ndarray, n_table: int, cfg: PlotsConfig) -> np.ndarray:
+def at_free_seeds(
+    plots: gpd.GeoDataFrame,
+    dirs: np.ndarray,
+    pts: np.ndarray,
+    plant_i: np.ndarray,
+    plot_i: np.ndarray,
+    n_table: int,
+    cfg: PlotsConfig,
+) -> np.ndarray:
     """Which canopies no box claims (``pts`` from ``n_table`` on) count as plants: those standing at a seed
     position that no counted plant took, as near to it as the counted plants stand to theirs: they scatter
     round their seeds like a 2-D normal (sowing precision, the tops' position error) whose sigma follows
@@ -183,8 +210,13 @@ def at_free_seeds(plots: gpd.GeoDataFrame, dirs: np.ndarray, pts: np.ndarray, pl
         cand = np.flatnonzero(~box & ~np.isin(seed, seed[box]) & (dist <= reach))
         cand = cand[np.argsort(dist[cand], kind="stable")]
         take[mine[cand[np.unique(seed[cand], return_index=True)[1]]]] = True
-    log.info("plots: %d of %d canopies no box claims stand at an empty seed position (within %.3f m) and are "
-             "counted as plants the detector missed", int(take.sum()), len(pts) - n_table, reach)
+    log.info(
+        "plots: %d of %d canopies no box claims stand at an empty seed position (within %.3f m) and are "
+        "counted as plants the detector missed",
+        int(take.sum()),
+        len(pts) - n_table,
+        reach,
+    )
     return take
 
 
@@ -198,8 +230,14 @@ def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, u
     check_overlaps(plots, cfg)
     plant_i, plot_i = join_plants(plots, pts)
     # a second box of one plant (same top), a box with no CHM or no top under it, is not a plant of the stand
-    flags = next((table[c].fillna("").astype(str).to_numpy() for c in table.columns
-                  if c == "outline_flag" or c.startswith("outline_flag_")), np.full(n_table, ""))
+    flags = next(
+        (
+            table[c].fillna("").astype(str).to_numpy()
+            for c in table.columns
+            if c == "outline_flag" or c.startswith("outline_flag_")
+        ),
+        np.full(n_table, ""),
+    )
     flags = np.concatenate([flags, np.full(len(pts) - n_table, "")])
     real = ~np.isin(flags, NOT_PLANTS)
     low_i = plot_i[np.isin(flags[plant_i], ("low", "no_peak"))]
@@ -209,8 +247,10 @@ def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, u
     traits = cfg.traits or default_traits(table.columns)
     missing = [t for t in traits if t not in table.columns]
     if missing:
-        raise ConfigError(f"plots.traits {missing} are not columns of the plant table",
-                          fix=f"choose from {[c for c in table.columns if c not in ('plant_id', 'x', 'y')]}")
+        raise ConfigError(
+            f"plots.traits {missing} are not columns of the plant table",
+            fix=f"choose from {[c for c in table.columns if c not in ('plant_id', 'x', 'y')]}",
+        )
     area_col = next((c for c in table.columns if c == "canopy_area_m2" or c.startswith("canopy_area_m2_")), None)
     boxed = plant_i < n_table
     dirs = row_directions(plots, pts, plant_i[boxed], plot_i[boxed], cfg)
@@ -226,13 +266,21 @@ def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, u
         r = seed_layout(along, row, start, end, cfg.plant_spacing)
         sp = r["spacing"]
         in_table = mine[mine < n_table]
-        rec = {"plot_id": pid, "stand_count": len(mine), "expected": r["expected"], "gaps": len(r["gap_row"]),
-               "unclaimed": int((mine >= n_table).sum()), "low_boxes": int((low_i == k).sum()),
-               "spacing_mean_m": float(sp.mean()) if sp.size else np.nan,
-               "spacing_cv": float(sp.std() / sp.mean()) if sp.size > 1 and sp.mean() > 0 else np.nan,
-               "canopy_cover": float(np.nansum(table[area_col].to_numpy(float)[in_table]) / geom.area)
-               if area_col else np.nan,
-               "row_dir_x": v[0], "row_dir_y": v[1]}
+        rec = {
+            "plot_id": pid,
+            "stand_count": len(mine),
+            "expected": r["expected"],
+            "gaps": len(r["gap_row"]),
+            "unclaimed": int((mine >= n_table).sum()),
+            "low_boxes": int((low_i == k).sum()),
+            "spacing_mean_m": float(sp.mean()) if sp.size else np.nan,
+            "spacing_cv": float(sp.std() / sp.mean()) if sp.size > 1 and sp.mean() > 0 else np.nan,
+            "canopy_cover": float(np.nansum(table[area_col].to_numpy(float)[in_table]) / geom.area)
+            if area_col
+            else np.nan,
+            "row_dir_x": v[0],
+            "row_dir_y": v[1],
+        }
         for t in traits:
             vals = table[t].to_numpy(float)[in_table]
             vals = vals[np.isfinite(vals)]
@@ -249,8 +297,9 @@ def plot_table(plots: gpd.GeoDataFrame, table: pd.DataFrame, cfg: PlotsConfig, u
     return out, pd.DataFrame(gap_rows, columns=["plot_id", "row", "x", "y"]), traits
 
 
-def plot_raster_stats(plots: gpd.GeoDataFrame, rasters, stats, percentiles=(), mode: str = "center",
-                      nodata: float | None = None) -> pd.DataFrame:
+def plot_raster_stats(
+    plots: gpd.GeoDataFrame, rasters, stats, percentiles=(), mode: str = "center", nodata: float | None = None
+) -> pd.DataFrame:
     """Statistics of every raster of every date over each whole plot polygon: ``plot_id`` and
     ``plot_<trait>_<stat>[_<date>]`` (reprojected where a raster is in another CRS, as for the plants)."""
     g = gpd.GeoDataFrame({"plant_id": plots["plot_id"].to_numpy()}, geometry=plots.geometry.values, crs=plots.crs)
@@ -260,8 +309,16 @@ def plot_raster_stats(plots: gpd.GeoDataFrame, rasters, stats, percentiles=(), m
     return table.rename(columns={c: f"plot_{c}" for c in table.columns if c != "plot_id"})
 
 
-def run_plots(cfg: PlotsConfig, table: pd.DataFrame, unclaimed: pd.DataFrame | None, polygons,
-              out: Path, rasters=(), mode: str = "center", nodata: float | None = None) -> dict[str, Path]:
+def run_plots(
+    cfg: PlotsConfig,
+    table: pd.DataFrame,
+    unclaimed: pd.DataFrame | None,
+    polygons,
+    out: Path,
+    rasters=(),
+    mode: str = "center",
+    nodata: float | None = None,
+) -> dict[str, Path]:
     """Per-plot table, gaps and figure in ``out`` (see the module doc); ``rasters``: the date sets whose
     rasters are also summarised over each plot polygon (``plots.raster_stats``)."""
     if cfg.plant_spacing <= 0:
@@ -271,17 +328,21 @@ def run_plots(cfg: PlotsConfig, table: pd.DataFrame, unclaimed: pd.DataFrame | N
     plots = read_plots(cfg, polygons.crs, _plant_points(table))
     per_plot, gaps, traits = plot_table(plots, table, cfg, unclaimed)
     if cfg.raster_stats and len(rasters):
-        per_plot = per_plot.merge(plot_raster_stats(plots, rasters, cfg.raster_stats, (), mode, nodata),
-                                  on="plot_id", how="left")
+        per_plot = per_plot.merge(
+            plot_raster_stats(plots, rasters, cfg.raster_stats, (), mode, nodata), on="plot_id", how="left"
+        )
     if cfg.field_book is not None:
         per_plot = join_field_book(per_plot, Path(cfg.field_book), cfg.field_book_id_column or cfg.id_column)
     geoms = plots.set_index("plot_id").geometry.reindex(per_plot["plot_id"]).values
     gdf = gpd.GeoDataFrame(per_plot, geometry=geoms, crs=plots.crs)
     trait = cfg.figure_trait or (traits[0] if traits else "")
     col = f"{trait}_mean" if f"{trait}_mean" in gdf.columns else (trait if trait in gdf.columns else "stand_count")
-    log.info("%d plots: %d plants in plots, %d gaps", len(per_plot), int(per_plot["stand_count"].fillna(0).sum()),
-             len(gaps))
-    return {"plots_gpkg": write_vector(gdf, out / "plots.gpkg", layer="plots"),
-            "plots_csv": write_csv(per_plot, out / "plots.csv"),
-            "plot_gaps_csv": write_csv(gaps, out / "plot_gaps.csv"),
-            "plots_figure": field_figure(gdf, _plant_points(table), gaps, col, out / "plots.png", cfg.plant_spacing)}
+    log.info(
+        "%d plots: %d plants in plots, %d gaps", len(per_plot), int(per_plot["stand_count"].fillna(0).sum()), len(gaps)
+    )
+    return {
+        "plots_gpkg": write_vector(gdf, out / "plots.gpkg", layer="plots"),
+        "plots_csv": write_csv(per_plot, out / "plots.csv"),
+        "plot_gaps_csv": write_csv(gaps, out / "plot_gaps.csv"),
+        "plots_figure": field_figure(gdf, _plant_points(table), gaps, col, out / "plots.png", cfg.plant_spacing),
+    }

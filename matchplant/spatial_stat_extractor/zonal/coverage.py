@@ -68,7 +68,7 @@ def _polygon_coverage(edges, e0, e1, cell, acc, cuts):
     tx, ty = cuts
     x0, y0, x1, y1 = edges.x0, edges.y0, edges.x1, edges.y1
     stride = w + 1
-    acc[:h * stride] = 0.0
+    acc[: h * stride] = 0.0
     for e in range(e0, e1):
         ax, ay, bx, by = x0[e] - cx, y0[e] - cy, x1[e] - cx, y1[e] - cy
         if ay == by:

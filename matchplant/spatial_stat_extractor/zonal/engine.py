@@ -16,8 +16,8 @@ Overlapping polygons are independent. Batches of polygons (sorted by row) read o
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Sequence
 
 import numpy as np
 import shapely
@@ -25,7 +25,6 @@ import shapely
 from matchplant.spatial_stat_extractor.zonal.coverage import Edges, Pixels, PolygonWindows, coverage_batch
 from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES, percentile_name
 from matchplant.spatial_stat_extractor.zonal.runs import quantiles, ranges
-
 
 # --------------------------------------------------------------------------------------------------
 # geometry in pixel space
@@ -45,7 +44,7 @@ class PixelPolygons:
     empty: np.ndarray  # per polygon: no area
 
     @classmethod
-    def from_geometries(cls, geoms: Sequence, transform) -> "PixelPolygons":
+    def from_geometries(cls, geoms: Sequence, transform) -> PixelPolygons:
         geoms = np.asarray(geoms, dtype=object)
         n = len(geoms)
         parts, owner = shapely.get_parts(geoms, return_index=True)
@@ -76,7 +75,7 @@ class PixelPolygons:
         """Pixel windows ``(col0, row0, col1, row1)`` clipped to the raster, and outside/partial flags."""
         b = np.nan_to_num(self.bounds, nan=-1.0)
         full = np.stack([np.floor(b[:, 0]), np.floor(b[:, 1]), np.ceil(b[:, 2]), np.ceil(b[:, 3])], axis=1)
-        full = np.clip(full, -2**40, 2**40).astype(np.int64)
+        full = np.clip(full, -(2**40), 2**40).astype(np.int64)
         win = full.copy()
         win[:, [0, 2]] = np.clip(win[:, [0, 2]], 0, width)
         win[:, [1, 3]] = np.clip(win[:, [1, 3]], 0, height)
@@ -145,13 +144,13 @@ def _center_weights(pp: PixelPolygons, b: _Batch) -> np.ndarray:
     return (np.cumsum(crossings) & 1).astype(float)
 
 
-
 # --------------------------------------------------------------------------------------------------
 # statistics over grouped values
 
 
-def _segment_stats(v: np.ndarray, bounds: np.ndarray, stats: Sequence[str],
-                   percentiles: Sequence[float]) -> dict[str, np.ndarray]:
+def _segment_stats(
+    v: np.ndarray, bounds: np.ndarray, stats: Sequence[str], percentiles: Sequence[float]
+) -> dict[str, np.ndarray]:
     """Statistics of the runs ``v[bounds[i]:bounds[i + 1]]`` (the pixel-centre rule: every weight 1)."""
     k = len(bounds) - 1
     counts = np.diff(bounds)
@@ -187,8 +186,16 @@ def _segment_stats(v: np.ndarray, bounds: np.ndarray, stats: Sequence[str],
     return out
 
 
-def _center_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0: int, C1: int,
-                  stats: Sequence[str], percentiles: Sequence[float]) -> dict[str, np.ndarray]:
+def _center_stats(
+    pp: PixelPolygons,
+    b: _Batch,
+    window: np.ndarray,
+    R0: int,
+    C0: int,
+    C1: int,
+    stats: Sequence[str],
+    percentiles: Sequence[float],
+) -> dict[str, np.ndarray]:
     """The pixel-centre rule's statistics of one batch over its raster window (NaN = masked)."""
     wbuf = _center_weights(pp, b)
     k = len(b.polys)
@@ -210,14 +217,21 @@ def _center_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0:
     return got
 
 
-def _coverage_stats(pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0: int,
-                    percentiles: Sequence[float]) -> dict[str, np.ndarray]:
+def _coverage_stats(
+    pp: PixelPolygons, b: _Batch, window: np.ndarray, R0: int, C0: int, percentiles: Sequence[float]
+) -> dict[str, np.ndarray]:
     """The coverage-weighted statistics of one batch over its raster window (compiled kernel)."""
     k = len(b.polys)
     qs = np.array([q / 100.0 for q in percentiles] + [0.5])
     out, quant = np.empty((k, 7)), np.empty((k, len(qs)))
-    coverage_batch(Edges(pp.x0, pp.y0, pp.x1, pp.y1, pp.edge_start), PolygonWindows(b.polys, b.col0, b.row0, b.w, b.h),
-                   Pixels(window, R0, C0), qs, out, quant)
+    coverage_batch(
+        Edges(pp.x0, pp.y0, pp.x1, pp.y1, pp.edge_start),
+        PolygonWindows(b.polys, b.col0, b.row0, b.w, b.h),
+        Pixels(window, R0, C0),
+        qs,
+        out,
+        quant,
+    )
     got = dict(zip(("count", "sum", "mean", "min", "max", "std", "nodata"), out.T))
     got.update({percentile_name(q): quant[:, i] for i, q in enumerate(percentiles)}, median=quant[:, -1])
     return got
@@ -251,20 +265,27 @@ def _plan_batches(win: np.ndarray, todo: np.ndarray, max_cells: int, max_window:
         base = cum[i - 1] if i else 0
         k = max(int(np.searchsorted(cum, base + max_cells, side="right")) - i, 1)
         while k > 1:
-            sel = order[i:i + k]
+            sel = order[i : i + k]
             area = (win[sel, 3].max() - win[sel, 1].min()) * (win[sel, 2].max() - win[sel, 0].min())
             if area <= max_window:
                 break
             k //= 2
-        batches.append(order[i:i + k])
+        batches.append(order[i : i + k])
         i += k
     return batches
 
 
-def zonal_stats(geoms: Sequence, source, stats: Iterable[str] = DEFAULT_STATS,
-                percentiles: Iterable[float] = (), mode: str = "center", *,
-                max_cells: int = 4_000_000, max_window: int = 16_000_000,
-                on_progress: Callable[[int, int], None] | None = None) -> ZonalResult:
+def zonal_stats(
+    geoms: Sequence,
+    source,
+    stats: Iterable[str] = DEFAULT_STATS,
+    percentiles: Iterable[float] = (),
+    mode: str = "center",
+    *,
+    max_cells: int = 4_000_000,
+    max_window: int = 16_000_000,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> ZonalResult:
     """Statistics of ``source`` (see :class:`~matchplant.spatial_stat_extractor.inputs.sources.ArraySource`)
     inside each polygon of ``geoms`` (shapely polygons in the raster's CRS).
 

@@ -3,7 +3,7 @@ as rasterstats and ``numpy.percentile``), without a Python loop over small group
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -27,8 +27,9 @@ def lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
 LARGE_GROUP = 50_000  # values: a larger group's quantiles come from a partition around them (plot polygons)
 
 
-def quantiles(v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequence[float],
-               budget: int = 4_000_000) -> np.ndarray:
+def quantiles(
+    v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequence[float], budget: int = 4_000_000
+) -> np.ndarray:
     """Quantiles ``qs`` (0..1) of each group ``v[starts[i]:starts[i] + counts[i]]``, numpy's 'linear'
     method (rasterstats). Groups are sorted in padded matrices of groups of similar size, to bound the
     padding; groups of over ``LARGE_GROUP`` values (a plot's hundred thousand pixels) are partitioned
@@ -42,7 +43,7 @@ def quantiles(v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequenc
         pos = np.asarray(qs, float) * (n - 1)
         lo = np.floor(pos).astype(np.int64)
         hi = np.minimum(lo + 1, n - 1)
-        vals = np.partition(v[starts[g]:starts[g] + n], np.unique(np.concatenate([lo, hi])))
+        vals = np.partition(v[starts[g] : starts[g] + n], np.unique(np.concatenate([lo, hi])))
         out[g] = lerp(vals[lo], vals[hi], pos - lo)
     order = order[~big]
     i = 0
@@ -50,7 +51,7 @@ def quantiles(v: np.ndarray, starts: np.ndarray, counts: np.ndarray, qs: Sequenc
         # as many groups as fit the budget padded to the widest of them (they come in increasing size)
         padded = np.arange(1, len(order) - i + 1) * counts[order[i:]]
         k = max(int(np.searchsorted(padded, budget, side="right")), 1)
-        groups = order[i:i + k]
+        groups = order[i : i + k]
         i += k
         n = counts[groups]
         width = int(n.max())

@@ -17,8 +17,8 @@ Library use::
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import pandas as pd
@@ -48,21 +48,31 @@ def polygons_in(gdf, crs, layer_label: str, report: dict):
             log.warning("%s has no CRS; assuming it is in the polygons' CRS %s", layer_label, gdf.crs.to_string())
         return gdf.geometry.values
     if gdf.crs is None:
-        log.warning("the polygons have no CRS; assuming they are in the raster's CRS %s (set polygons_crs "
-                    "if not)", crs.to_string())
+        log.warning(
+            "the polygons have no CRS; assuming they are in the raster's CRS %s (set polygons_crs if not)",
+            crs.to_string(),
+        )
         return gdf.geometry.values
     if gdf.crs.equals(crs):
         return gdf.geometry.values
-    log.info("%s is in %s, the polygons in %s: reprojecting the polygons", layer_label, crs.to_string(),
-             gdf.crs.to_string())
+    log.info(
+        "%s is in %s, the polygons in %s: reprojecting the polygons", layer_label, crs.to_string(), gdf.crs.to_string()
+    )
     report["reprojected_from"] = gdf.crs.to_string()
     return gdf.to_crs(crs).geometry.values
 
 
-def extract_stats(polygons, date_sets: Sequence, stats: Sequence[str] = DEFAULT_STATS,
-                  percentiles: Sequence[float] = (95,), mode: str = "center", *, nodata: float | None = None,
-                  layout: str = "wide",
-                  on_progress: Callable[[float, str], None] | None = None) -> tuple[pd.DataFrame, dict]:
+def extract_stats(
+    polygons,
+    date_sets: Sequence,
+    stats: Sequence[str] = DEFAULT_STATS,
+    percentiles: Sequence[float] = (95,),
+    mode: str = "center",
+    *,
+    nodata: float | None = None,
+    layout: str = "wide",
+    on_progress: Callable[[float, str], None] | None = None,
+) -> tuple[pd.DataFrame, dict]:
     """Per-plant statistics of every trait of every date; returns the table and a report.
 
     ``polygons``: from :func:`read_polygons`. Wide layout: one row per plant, columns
@@ -80,8 +90,7 @@ def extract_stats(polygons, date_sets: Sequence, stats: Sequence[str] = DEFAULT_
     try:
         for k, (s, layer) in enumerate(jobs):
             label = f"{layer.name}" + (f" ({s.date})" if s.date else "")
-            entry = {"date": s.date, "trait": layer.name, "kind": layer.kind,
-                     "files": [str(p) for p in layer.paths]}
+            entry = {"date": s.date, "trait": layer.name, "kind": layer.kind, "files": [str(p) for p in layer.paths]}
 
             def step(done, total, k=k, label=label):
                 if on_progress is not None:
@@ -93,9 +102,11 @@ def extract_stats(polygons, date_sets: Sequence, stats: Sequence[str] = DEFAULT_
                 try:
                     res = zonal_stats(geoms, src, stats, percentiles, mode=mode, on_progress=step)
                 except rasterio.errors.RasterioIOError as exc:  # a block past the end of a cut-off file
-                    raise InputError(f"{label}: a raster cannot be read part-way (truncated file?): {exc}",
-                                     path=", ".join(entry["files"]),
-                                     fix="copy or regenerate the raster (an interrupted copy or run)") from exc
+                    raise InputError(
+                        f"{label}: a raster cannot be read part-way (truncated file?): {exc}",
+                        path=", ".join(entry["files"]),
+                        fix="copy or regenerate the raster (an interrupted copy or run)",
+                    ) from exc
             _report_problems(entry, res, ids, label, polygons.attrs.get("source"))
             report["layers"].append(entry)
             table = per_date.setdefault(s.date, pd.DataFrame({"plant_id": ids}))
@@ -127,30 +138,49 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
     def listed(mask):
         return [v.item() if hasattr(v, "item") else v for v in ids[mask][:50]]
 
-    entry.update(outside=int(res.outside.sum()), outside_ids=listed(res.outside),
-                 partly_outside=int(res.partial.sum()), partly_outside_ids=listed(res.partial),
-                 only_nodata=int(res.no_valid.sum()), only_nodata_ids=listed(res.no_valid))
+    entry.update(
+        outside=int(res.outside.sum()),
+        outside_ids=listed(res.outside),
+        partly_outside=int(res.partial.sum()),
+        partly_outside_ids=listed(res.partial),
+        only_nodata=int(res.no_valid.sum()),
+        only_nodata_ids=listed(res.no_valid),
+    )
     n = len(ids)
     of = f" (polygons: {Path(source).name})" if source else ""
     if res.outside.all():
-        raise InputError(f"none of the {n} plants overlaps the raster of {label} "
-                         f"({', '.join(Path(f).name for f in entry['files'])}){of}: 0 plants with values",
-                         path=entry["files"][0],
-                         fix="check that the raster is of the same field, and the CRS of the polygons "
-                             "(polygons_crs) and of the raster")
+        raise InputError(
+            f"none of the {n} plants overlaps the raster of {label} "
+            f"({', '.join(Path(f).name for f in entry['files'])}){of}: 0 plants with values",
+            path=entry["files"][0],
+            fix="check that the raster is of the same field, and the CRS of the polygons "
+            "(polygons_crs) and of the raster",
+        )
     if (res.outside | res.no_valid).all():
-        raise InputError(f"0 of the {n} plants have values in the raster of {label} "
-                         f"({', '.join(Path(f).name for f in entry['files'])}){of}: every plant is on nodata pixels "
-                         f"({int(res.outside.sum())} outside the raster)", path=entry["files"][0],
-                         fix="check that the rasters cover the plants (a DTM or nodata value of another field?)")
+        raise InputError(
+            f"0 of the {n} plants have values in the raster of {label} "
+            f"({', '.join(Path(f).name for f in entry['files'])}){of}: every plant is on nodata pixels "
+            f"({int(res.outside.sum())} outside the raster)",
+            path=entry["files"][0],
+            fix="check that the rasters cover the plants (a DTM or nodata value of another field?)",
+        )
     if res.outside.any():
-        log.warning("%s: %d of %d plants are outside the raster (e.g. ids %s); their statistics are empty",
-                    label, res.outside.sum(), n, entry["outside_ids"][:5])
+        log.warning(
+            "%s: %d of %d plants are outside the raster (e.g. ids %s); their statistics are empty",
+            label,
+            res.outside.sum(),
+            n,
+            entry["outside_ids"][:5],
+        )
     if res.partial.any():
         log.info("%s: %d plants are only partly on the raster", label, res.partial.sum())
     if res.no_valid.any():
-        log.warning("%s: %d plants cover only nodata pixels (e.g. ids %s)", label, res.no_valid.sum(),
-                    entry["only_nodata_ids"][:5])
+        log.warning(
+            "%s: %d plants cover only nodata pixels (e.g. ids %s)",
+            label,
+            res.no_valid.sum(),
+            entry["only_nodata_ids"][:5],
+        )
 
 
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
