@@ -7,7 +7,7 @@ BIN     = $(VENV)/Scripts
 endif
 STAMP   = $(VENV)/.installed
 
-.PHONY: test test-fast demo install install-cpu bench clean
+.PHONY: test test-fast lint demo install install-cpu bench clean
 
 $(STAMP): requirements.txt requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +28,11 @@ install-cpu:
 
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -rs --durations=15 $(PYTEST_ARGS)
+
+# ruff (pyproject.toml): lint findings and unformatted files both fail; `ruff format .` and `ruff check --fix .` mend
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 # the quick loop: everything but the tests marked slow (README, "Test tiers")
 test-fast: $(STAMP)

@@ -1,4 +1,5 @@
-"""Overlapping box pairs (``matchplant.core.geometry.boxes.overlapping_pairs``, module 8's merge) against shapely's STRtree.
+"""Overlapping box pairs (``matchplant.core.geometry.boxes.overlapping_pairs``, module 8's merge) against shapely's
+STRtree.
 
     NUMBA_NUM_THREADS=1 taskset -c 1 python bench/bench_core_boxes.py           # 21,000 plants x 25 views
     NUMBA_NUM_THREADS=1 taskset -c 1 python bench/bench_core_boxes.py --quick   # 2,000 plants x 25 views

@@ -54,7 +54,8 @@ def main() -> None:
             t = time.perf_counter()
             sel = finder.select()
             print(
-                f"greedy ({label}): {len(sel.indices)} images, coverage {100 * finder.exact_coverage(sel.indices):.2f} %, "
+                f"greedy ({label}): {len(sel.indices)} images, "
+                f"coverage {100 * finder.exact_coverage(sel.indices):.2f} %, "
                 f"selection {sel.seconds:.3f} s (with exact polygon check {time.perf_counter() - t:.3f} s)"
                 + (", cap relaxed" if sel.relaxed else "")
             )

@@ -92,8 +92,8 @@ def main() -> None:
                 "best_fixed": best,
                 "chosen_over_best": round(ratio, 3) if ratio else None,
                 "within_10_percent": bool(ratio is not None and ratio <= 1.10),
-                "work": f"MobileNetV3-FPN training step, batch 2, {args.size} px tiles at {net} px, {args.iters} iterations "
-                f"x {args.rounds} rounds per setting",
+                "work": f"MobileNetV3-FPN training step, batch 2, {args.size} px tiles at {net} px, "
+                f"{args.iters} iterations x {args.rounds} rounds per setting",
             },
             indent=1,
         )

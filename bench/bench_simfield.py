@@ -86,15 +86,15 @@ def main() -> None:
             shutil.rmtree(base, ignore_errors=True)
     print(f"\nmachine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; python {sys.version.split()[0]}")
     print(
-        "| preset | noise | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers | wall s | CPU s "
-        "| peak MB |"
+        "| preset | noise | images | size px | GSD cm | plants | boxes raw / undist. | disk MB | workers "
+        "| wall s | CPU s | peak MB |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['preset']} | {r['noise']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} | {r['plants']} | "
-            f"{r['raw_boxes']} / {r['undistorted_boxes']} | {r['disk_mb']:.0f} | {r['workers']} | {r['wall_s']:.1f} | "
-            f"{r['cpu_s']:.1f} | {r['peak_mb']:.0f} |"
+            f"| {r['preset']} | {r['noise']} | {r['images']} | {r['width']}x{r['height']} | {r['gsd_cm']:.2f} "
+            f"| {r['plants']} | {r['raw_boxes']} / {r['undistorted_boxes']} | {r['disk_mb']:.0f} | {r['workers']} "
+            f"| {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['peak_mb']:.0f} |"
         )
 
 

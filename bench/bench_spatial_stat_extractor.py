@@ -1,7 +1,8 @@
 """Benchmark of module 9's zonal statistics against rasterstats and exactextract.
 
 20,000 plant boxes over an 8,000 x 8,000 float32 raster (a 80 m field at 1 cm), in one run:
-``matchplant.spatial_stat_extractor.zonal.engine`` (pixel-centre rule) vs rasterstats, and (coverage-weighted) vs exactextract.
+``matchplant.spatial_stat_extractor.zonal.engine`` (pixel-centre rule) vs rasterstats, and (coverage-weighted) vs
+exactextract.
 Checks that the numbers agree, then prints the times and both ratios.
 
     python bench/bench_spatial_stat_extractor.py            # full size (a few minutes: rasterstats is slow)

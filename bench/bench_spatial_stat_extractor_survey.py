@@ -4,9 +4,10 @@ command as a user runs it: box statistics, outlines, canopy statistics and plots
 
     python bench/bench_spatial_stat_extractor_survey.py --scale 0.1       # 3000², 1000 plants: seconds
     python bench/bench_spatial_stat_extractor_survey.py --scale 0.3       # 9000², 9000 plants: minutes
-    python bench/bench_spatial_stat_extractor_survey.py                   # the full survey (an hour and more, ~4 GB disk)
+    python bench/bench_spatial_stat_extractor_survey.py  # the full survey (an hour and more, ~4 GB disk)
     taskset -c 1 python bench/bench_spatial_stat_extractor_survey.py --workers 1 --max-memory 3GB
-    python bench/bench_spatial_stat_extractor_survey.py --length 2 --max-memory 4GB --no-crop   # 60,000 x 30,000 px: 2 ha
+    # 60,000 x 30,000 px: 2 ha
+    python bench/bench_spatial_stat_extractor_survey.py --length 2 --max-memory 4GB --no-crop
 
 Each run is a whole process (``python -m matchplant.cli spatial_stat_extractor``): its wall time, CPU time and
 peak memory (``os.wait4``: the process and its worker processes) and, from its ``stats_report.json``, the
@@ -258,7 +259,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     meta = make_field(field_dir, args.scale, length=args.length)
     print(
-        f"field: {meta.get('rows', meta['side'])} x {meta['side']} px float32 CHM ({meta['chm_mb']} MB tiled deflate), {meta['plants']} plants "
+        f"field: {meta.get('rows', meta['side'])} x {meta['side']} px float32 CHM ({meta['chm_mb']} MB tiled "
+        f"deflate), {meta['plants']} plants "
         f"(made in {time.perf_counter() - t0:.0f} s or cached) in {work}",
         flush=True,
     )

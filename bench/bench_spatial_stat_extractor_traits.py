@@ -1,10 +1,12 @@
 """Benchmark of module 9's traits (issue 19): outlines, canopy statistics, growth and plots against the truth,
 and the speed of canopy statistics against box statistics.
 
-    python bench/bench_spatial_stat_extractor_traits.py                # the small field (vigour, second date), generated once
+    python bench/bench_spatial_stat_extractor_traits.py  # the small field (vigour, second date), generated once
     python bench/bench_spatial_stat_extractor_traits.py --quick        # the tiny field
-    python bench/bench_spatial_stat_extractor_traits.py --field DIR    # an existing field generated with vigour and second_date
-    python bench/bench_spatial_stat_extractor_traits.py --speed        # + 20,000 plants on an 8000 x 8000 raster (--quick: 2000², 1250)
+    # an existing field generated with vigour and second_date
+    python bench/bench_spatial_stat_extractor_traits.py --field DIR
+    # + 20,000 plants on an 8000 x 8000 raster (--quick: 2000², 1250)
+    python bench/bench_spatial_stat_extractor_traits.py --speed
 
 The plants are the field's true image boxes projected by module 8 (as bench_plant_projection.py does), so
 the numbers measure module 9 on realistic boxes, not the detector. Prints the acceptance figures of

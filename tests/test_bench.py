@@ -74,7 +74,10 @@ def test_single_thread_env_and_pinning():
     if not hasattr(os, "sched_setaffinity"):
         assert pin_one_core() is None
         return
-    code = "from bench.harness import pin_one_core; import os; c = pin_one_core(); print(c, sorted(os.sched_getaffinity(0)))"
+    code = (
+        "from bench.harness import pin_one_core; import os; c = pin_one_core(); "
+        "print(c, sorted(os.sched_getaffinity(0)))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True).stdout
     core, allowed = out.split(" ", 1)
     assert allowed.strip() == f"[{core}]"

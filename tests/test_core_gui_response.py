@@ -73,10 +73,13 @@ ext, axbb = box.text_disp.get_window_extent(), box.ax.bbox
 screen.fig.savefig(SHOT)
 seen["click"] = time.perf_counter()
 screen.run()
-print(json.dumps({"quiet_s": quiet, "plain_s": plain, "typed": typed, "title": screen.fig.canvas.manager.get_window_title(),
+shown = box.text_disp
+clipped = shown.get_clip_on() and (shown.get_clip_box() is not None or shown.get_clip_path() is not None)
+print(json.dumps({"quiet_s": quiet, "plain_s": plain, "typed": typed,
+                  "title": screen.fig.canvas.manager.get_window_title(),
                   "toolbar": screen.fig.canvas.toolbar is not None,
                   "text_x0": ext.x0, "text_x1": ext.x1, "box_x0": axbb.x0, "box_x1": axbb.x1,
-                  "clipped": box.text_disp.get_clip_on() and (box.text_disp.get_clip_box() is not None or box.text_disp.get_clip_path() is not None), **{k: v for k, v in seen.items() if k != "click"}}))
+                  "clipped": clipped, **{k: v for k, v in seen.items() if k != "click"}}))
 close(screen.fig)
 """
 

@@ -221,7 +221,10 @@ def test_check_path(tmp_path):
 # -- rasters, vectors, JPEG ---------------------------------------------------------------------------------------
 
 
-def write_raster(path, data, crs="EPSG:32614", nodata=None, transform=Affine(0.1, 0, 500000, 0, -0.1, 4500000)):
+UTM_10CM = Affine(0.1, 0, 500000, 0, -0.1, 4500000)
+
+
+def write_raster(path, data, crs="EPSG:32614", nodata=None, transform=UTM_10CM):
     data = np.atleast_3d(data).transpose(2, 0, 1) if data.ndim == 2 else data
     with rasterio.open(
         path,

@@ -46,7 +46,9 @@ def test_cuda_reasons_name_the_cause():
     assert "CPU-only" in cuda_unusable_reason(cpu_build)
 
     def old_driver():
-        warnings.warn("CUDA initialization: The NVIDIA driver on your system is too old (found version 11040)")
+        warnings.warn(
+            "CUDA initialization: The NVIDIA driver on your system is too old (found version 11040)", stacklevel=2
+        )
         return False
 
     cuda_build = SimpleNamespace(version=SimpleNamespace(cuda="13.0"), cuda=SimpleNamespace(is_available=old_driver))

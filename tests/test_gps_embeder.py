@@ -96,7 +96,7 @@ def run(img_dir, log, out, **kw) -> list[dict]:
 
 
 def check_positions(rows, out: Path, truth: np.ndarray, img_dir: Path) -> None:
-    for i, row in enumerate(rows):
+    for row in rows:
         if row["status"] != "matched":
             continue
         k = int(row["image"][4:8])

@@ -259,6 +259,10 @@ def test_yolo_labels_as_input_give_the_same_tiles(field, tmp_path):
         assert np.allclose([x["bbox"] for x in ca["annotations"]], [x["bbox"] for x in cb["annotations"]], atol=1e-4)
 
 
+def ann_images(field: Path) -> list[dict]:
+    return json.loads((field / "annotations.json").read_text())["images"]
+
+
 def test_bad_inputs_are_clear_errors(field, tmp_path):
     with pytest.raises(ConfigError, match="overlap"):
         _cfg(field, tile_size=64, overlap=64)
@@ -283,9 +287,6 @@ def test_bad_inputs_are_clear_errors(field, tmp_path):
         run(_cfg(field, annotations=field / "no_boxes.json"))
     assert not (field / "out").exists()  # nothing written by failed runs
 
-
-def ann_images(field: Path) -> list[dict]:
-    return json.loads((field / "annotations.json").read_text())["images"]
     other = tmp_path / "other"
     other.mkdir()
     cv2.imwrite(str(other / "x.png"), np.zeros((10, 10, 3), np.uint8))

@@ -713,7 +713,8 @@ def _fake_probe(iteration_s: float):
 
 
 class _Clock:
-    """A clock for the budget and the engine that only moves when told (a training iteration 'takes' what the test says)."""
+    """A clock for the budget and the engine that only moves when told (a training iteration 'takes' what the test
+    says)."""
 
     now = 1000.0
 

@@ -130,7 +130,7 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
             cands[gcps[gi].id].append(
                 Candidate(gcps[gi].id, info.name, float(uv[gi, 0]), float(uv[gi, 1]), float(dist[gi]))
             )
-    for gid, lst in cands.items():
+    for lst in cands.values():
         lst.sort(key=lambda c: c.center_distance)
         if cfg.max_images_per_gcp:
             del lst[cfg.max_images_per_gcp :]

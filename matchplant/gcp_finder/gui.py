@@ -162,7 +162,8 @@ class GcpFinderGUI:
         for i, gid in enumerate(self.gcp_ids):
             n, m = self.store.count(gid), len(self.finder.candidates[gid])
             ok = n >= MIN_IMAGES_PER_GCP
-            text = f"{'>' if i == self.gi else ' '} {gid:<8} {n:>2} / {m:<3} {'ok' if ok else 'need 3' if m else 'not seen'}"
+            state = "ok" if ok else "need 3" if m else "not seen"
+            text = f"{'>' if i == self.gi else ' '} {gid:<8} {n:>2} / {m:<3} {state}"
             s.text(
                 0,
                 0.95 - i * step,

@@ -177,8 +177,8 @@ def estimate_lines(
             f"estimate ({architecture} on {device}, batch {probe.batch}, network input {probe.input_px[0]} x "
             f"{probe.input_px[1]} px): first iteration {probe.first_s:.2f} s, then {costs.iteration:.2f} s per "
             f"iteration ({probe.iterations} timed); {iters_per_epoch} iterations per epoch = {duration(epoch_s)} per "
-            f"epoch{f' + {duration(val_s)} validation' if validated else ''}; {epochs} epochs = {duration(total)}; peak "
-            f"memory {probe.peak_memory_mb / 1024:.1f} GiB"
+            f"epoch{f' + {duration(val_s)} validation' if validated else ''}; {epochs} epochs = {duration(total)}; "
+            f"peak memory {probe.peak_memory_mb / 1024:.1f} GiB"
         )
     ]
     return lines, total

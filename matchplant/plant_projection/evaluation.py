@@ -88,7 +88,10 @@ def evaluate_boxes(reference: np.ndarray, predicted: np.ndarray, iou_threshold: 
     matched = match >= 0
     n_ref, n_pred = len(reference), len(predicted)
     m_iou = iou[matched]
-    q = lambda p: float(np.quantile(m_iou, p)) if m_iou.size else 0.0
+
+    def q(p: float) -> float:
+        return float(np.quantile(m_iou, p)) if m_iou.size else 0.0
+
     return {
         "reference_boxes": int(n_ref),
         "projected_boxes": int(n_pred),

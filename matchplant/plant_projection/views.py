@@ -90,7 +90,7 @@ def resolve_images(
     said in the log. Returns ``({name: (shot id or None, undistorted?)}, {unmatched name: "did you mean" hint})``."""
     out = {name: resolve_image(name, undistorted_ids, original_ids, image_type) for name in names}
     loose, hints = [], {}
-    for name, (sid, und) in out.items():
+    for name, (sid, _und) in out.items():
         if sid is not None:
             continue
         base = Path(str(name).replace("\\", "/")).name

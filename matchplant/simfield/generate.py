@@ -141,7 +141,7 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
     image_info = []
     lla = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
     noise_streams = streams[5].spawn(len(exposures) * 2)
-    for k, e in enumerate(exposures):
+    for e in exposures:
         cam_time = e.utc + dt.timedelta(seconds=clock_offset)
         centre_map = frame.to_map(e.shot.center[None, :])[0]
         lon, lat = lla.transform(centre_map[0], centre_map[1])

@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,37 @@ def _rewrite_rasters(project: ODMProject, subs: list[dict], root: Path) -> None:
                 dst.write(part.astype(data.dtype))
 
 
+@dataclass(frozen=True)
+class _Move:
+    """How one submodel's world is moved against the field's (its misalignment), and its own frame."""
+
+    pivot: np.ndarray
+    t: np.ndarray
+    theta: float
+    rz: np.ndarray
+    topo: TopocentricFrame
+    ref: dict
+
+
+def _convert(src: Reconstruction, ids: list[str], centres: dict, frame, move: _Move) -> Reconstruction:
+    """The submodel's reconstruction: its shots ``ids`` and the points, moved and put in its own frame."""
+    topo, pivot, t, theta = move.topo, move.pivot, move.t, move.theta
+    shots = {}
+    for sid in ids:
+        sh = src.shots[sid]
+        centre = topo.from_map(_moved(centres[sid][None, :], pivot, t, theta))[0]
+        R = sh.R @ move.rz.T @ topo.rotation_from_map(centre)  # the camera turned with the submodel's world
+        gps = tuple(float(v) for v in topo.from_map(centres[sid][None, :])[0])
+        shots[sid] = Shot.from_center(
+            sid, sh.camera, R, centre, capture_time=sh.capture_time, gps_position=gps, extra=dict(sh.extra)
+        )
+    pts = frame.to_map(src.points) if len(src.points) else src.points
+    pts = topo.from_map(_moved(pts, pivot, t, theta)) if len(pts) else pts
+    return Reconstruction(
+        cameras=dict(src.cameras), shots=shots, point_ids=list(src.point_ids), points=pts, reference_lla=dict(move.ref)
+    )
+
+
 def split_field(
     paths: FieldPaths,
     submodels: int = 2,
@@ -168,28 +200,9 @@ def split_field(
         ref = {"latitude": float(lat), "longitude": float(lon), "altitude": float(alt)}
         topo = TopocentricFrame(ref["latitude"], ref["longitude"], ref["altitude"], crs)
 
-        def convert(src: Reconstruction) -> Reconstruction:
-            shots = {}
-            for sid in ids:
-                sh = src.shots[sid]
-                centre = topo.from_map(_moved(centres[sid][None, :], pivot, t, theta))[0]
-                R = sh.R @ rz.T @ topo.rotation_from_map(centre)  # the camera turned with the submodel's world
-                gps = tuple(float(v) for v in topo.from_map(centres[sid][None, :])[0])
-                shots[sid] = Shot.from_center(
-                    sid, sh.camera, R, centre, capture_time=sh.capture_time, gps_position=gps, extra=dict(sh.extra)
-                )
-            pts = frame.to_map(src.points) if len(src.points) else src.points
-            pts = topo.from_map(_moved(pts, pivot, t, theta)) if len(pts) else pts
-            return Reconstruction(
-                cameras=dict(src.cameras),
-                shots=shots,
-                point_ids=list(src.point_ids),
-                points=pts,
-                reference_lla=dict(ref),
-            )
-
-        write_reconstruction(sub / OUTPUTS["reconstruction"].relpath, convert(rec))
-        write_reconstruction(sub / OUTPUTS["undistorted_reconstruction"].relpath, convert(urec))
+        move = _Move(pivot, t, theta, rz, topo, ref)
+        for source, key in ((rec, "reconstruction"), (urec, "undistorted_reconstruction")):
+            write_reconstruction(sub / OUTPUTS[key].relpath, _convert(source, ids, centres, frame, move))
         for sid in ids:
             _link(project.undistorted_image_path(sid), sub / OUTPUTS["undistorted_images"].relpath / f"{sid}.tif")
             if (paths.images / sid).is_file():

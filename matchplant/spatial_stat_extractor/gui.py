@@ -1,4 +1,5 @@
-"""Module 9's window (the paper's Fig. 9): choose the files (a "..." file picker beside each path), the statistics and percentiles, look at the plants over the raster,
+"""Module 9's window (the paper's Fig. 9): choose the files (a "..." file picker beside each path), the statistics and
+percentiles, look at the plants over the raster,
 run in the background with a progress bar, and save. A thin layer over :mod:`matchplant.spatial_stat_extractor.run`.
 
 The preview reads the raster at reduced resolution (overviews or decimated reads), never the full
@@ -89,7 +90,8 @@ def _as_text(value) -> str:
 
 
 class SpatialStatExtractorGUI:
-    """The window over a :class:`~matchplant.spatial_stat_extractor.config.SpatialStatExtractorConfig`. ``headless=True``
+    """The window over a :class:`~matchplant.spatial_stat_extractor.config.SpatialStatExtractorConfig`.
+    ``headless=True``
     (tests) draws on a figure of its own, without a window."""
 
     def __init__(

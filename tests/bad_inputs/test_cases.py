@@ -39,5 +39,5 @@ def test_slow_cases_exist():
 
 
 @pytest.mark.parametrize("case", [pytest.param(c, id=c.name, marks=marks(c)) for c in CASES])
-def test_case(case, work, capsys):
+def test_case(case, work, capsys):  # noqa: F811 - the fixture imported above
     run_case(case, work, capsys)

@@ -22,7 +22,7 @@ _SIMPLE = "fiub"  # float, signed and unsigned integer, bool
 def write_table(df: pd.DataFrame, fh: IO[str], digits: int = 12) -> None:
     """``df`` (no index) to the text file ``fh`` (opened with ``newline=""``): floats to ``digits``
     significant digits, NaN and None as empty fields."""
-    if not all(dt.kind in _SIMPLE or dt == object for dt in df.dtypes) or df.columns.duplicated().any():
+    if not all(dt.kind in _SIMPLE or dt.kind == "O" for dt in df.dtypes) or df.columns.duplicated().any():
         df.to_csv(fh, index=False, float_format=f"%.{digits}g")
         return
     columns = [_texts(df[c], digits) for c in df.columns]

@@ -49,7 +49,7 @@ def coco_to_yolo(dataset: dict, out_dir: str | Path, labels_subdir: str = "") ->
         )
     labels = out_dir / labels_subdir
     for im in dataset["images"]:
-        write_text(labels / (Path(im["file_name"]).stem + ".txt"), "".join(l + "\n" for l in by_image[im["id"]]))
+        write_text(labels / (Path(im["file_name"]).stem + ".txt"), "".join(line + "\n" for line in by_image[im["id"]]))
     write_text(out_dir / CLASSES_NAME, "".join(c["name"] + "\n" for c in cats))
     return out_dir
 
@@ -113,7 +113,7 @@ def read_yolo(
         n_lines += len(lines)
         if path.stem not in by_stem:
             hint = did_you_mean(path.stem, by_stem)
-            for number, cls, values in lines:
+            for number, _cls, values in lines:
                 drops.add(
                     path,
                     f"line {number}",

@@ -1,4 +1,5 @@
-"""Compiled kernels under :class:`~matchplant.core.geometry.surface.Surface`: bilinear sampling and ray/surface crossings.
+"""Compiled kernels under :class:`~matchplant.core.geometry.surface.Surface`: bilinear sampling and ray/surface
+crossings.
 
 The surface is the bilinear interpolation of the raster's cell centres. Between four valid centres it is one
 bilinear patch, and along a straight ray a bilinear patch is a quadratic in the ray parameter, so a ray's

@@ -127,9 +127,7 @@ class Surface:
         return self._canopy[window]
 
     @classmethod
-    def open(
-        cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None, band: int = 1
-    ) -> Surface:
+    def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None, band: int = 1) -> Surface:
         """Read ``path`` (only the window covering ``bounds = (xmin, ymin, xmax, ymax)``, if given)."""
         path = Path(path)
         if not path.is_file():

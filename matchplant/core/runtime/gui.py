@@ -45,7 +45,8 @@ def gui_unavailable_reason() -> str | None:
         return "there is no display here (DISPLAY and WAYLAND_DISPLAY are not set)"
     backend = _pyplot().get_backend().lower()
     if backend in ("agg", "pdf", "ps", "svg", "cairo", "pgf", "template") or backend.startswith("module://"):
-        return f"Matplotlib's backend is '{backend}', which cannot open a window (MPLBACKEND={os.environ.get('MPLBACKEND', '')!r})"
+        setting = os.environ.get("MPLBACKEND", "")
+        return f"Matplotlib's backend is '{backend}', which cannot open a window (MPLBACKEND={setting!r})"
     return None
 
 

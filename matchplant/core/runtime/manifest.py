@@ -1,7 +1,8 @@
 """Re-runs leave nothing stale (issue 29): a step (modules 7 and 9) lists every file a run wrote in
 ``manifest.json``; the next run into the same folder removes what the previous manifest listed and this run did
 not write again (module 7's drawn images of other photos or a ``metrics.json`` of an evaluation not repeated,
-module 9's outlines of a run with canopy outlines), and nothing else: files the user put in the folder stay. The removal happens only after the new outputs are in place (a failed run changes
+module 9's outlines of a run with canopy outlines), and nothing else: files the user put in the folder stay. The
+removal happens only after the new outputs are in place (a failed run changes
 nothing)."""
 
 from __future__ import annotations

@@ -23,7 +23,8 @@ With an NDVI layer on the CHM's grid (``canopy.ndvi_threshold: auto``), the same
 NDVI (the ground sample's pixels) and the NDVI at each sampled plant's top. A pixel is soil below the soil's
 p50 + 3 SD (the same robust spread; at least p50 + 0.05, at most halfway to the tops' median, so that a weak,
 pale plant keeps its leaves), used when that separates the two populations (at least 90 % of the soil below
-it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM). A photogrammetric CHM cannot tell a leaf's low edge from a ground
+it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM). A
+photogrammetric CHM cannot tell a leaf's low edge from a ground
 bump of the same height (both a few SD of the noise), but NDVI can: with leaves told from soil by NDVI the
 CHM thresholds drop to ``min_height`` = p50 + 1 SD and ``min_top`` = p50 + 2 SD (a box's top must then also
 be a leaf, so a bump under a false box still does not make a plant), and so does the top of a canopy no box

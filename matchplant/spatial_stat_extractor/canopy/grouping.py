@@ -177,7 +177,8 @@ def labelled_pixels(
     reaches ``reach[k]`` (NaN never does) and whose ``home[k]`` is set, grouped by ``k`` (raster order within
     one): their flat indices ``(row + row0) * width + col + col0`` on the raster the image was cut from at
     ``row0, col0`` and ``start`` (``k``'s pixels: ``[start[k]:start[k + 1]]``); per ``k`` the sum of their
-    values (each rounded to float32, as the canopy's volume always was), and their extent (row min, row max, col min, col max in the image;
+    values (each rounded to float32, as the canopy's volume always was), and their extent (row min, row max, col min,
+    col max in the image;
     min > max where none); and the image of these pixels holding ``ids[k]`` (0 elsewhere). Two passes over the
     image instead of a dozen over millions of pixels and a sort by plant."""
     rules = LabelRules(

@@ -14,7 +14,8 @@ Plants whose canopy is smaller than ``min_pixels`` (too small for the CHM's reso
 below ``min_top`` (weeds, soil, plants too small for the CHM) keep their box and are flagged
 (``outline_flag`` ``small`` or ``low``; ``no_top``: no CHM under the box; ``no_peak``: no local maximum
 in the box or its margin, so no plant's top: a box on leaves or between plants). A second box of one
-plant (the same top, or a top that no real valley parts from the plant's: :mod:`~matchplant.spatial_stat_extractor.canopy.peaks`)
+plant (the same top, or a top that no real valley parts from the plant's:
+:mod:`~matchplant.spatial_stat_extractor.canopy.peaks`)
 is flagged ``duplicate`` and shares that plant's outline and canopy. Canopies that
 no box claims but that look like plants (a top of at least ``min_top`` and ``unclaimed_min_top``, above
 the ground noise's highest bumps, and ``min_pixels`` or more) are listed too (``Outlines.unclaimed``):

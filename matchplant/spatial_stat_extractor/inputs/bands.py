@@ -135,11 +135,11 @@ def band_names(ds, order: Sequence[str] = (), key: str = "band_order") -> BandNa
         described = described_roles(ds)
         clash = {b: r for b, r in described.items() if order[b - 1] != r}
         if clash:
+            says = [f"band {b} is described as {r!r}, {key} says {order[b - 1]!r}" for b, r in sorted(clash.items())]
             _once(
                 name,
                 "warning",
-                f"{Path(name).name}: {key} overrules the raster's band descriptions "
-                f"({', '.join(f'band {b} is described as {r!r}, {key} says {order[b - 1]!r}' for b, r in sorted(clash.items()))})",
+                f"{Path(name).name}: {key} overrules the raster's band descriptions ({', '.join(says)})",
             )
         return BandNames({i: n for i, n in enumerate(order, start=1)}, key)
     roles = described_roles(ds)
@@ -174,9 +174,9 @@ def pick_band(ds, names: BandNames, role: str, given: int | str | None, key: str
         wanted = normalise_name(given, key)
         band = names.number(wanted)
         if band is None:
+            known = f"named by {names.source}: {names.listing()}" if names.roles else "its bands are not named"
             raise ConfigError(
-                f"{key} = {given!r}, but no band of the raster is named {wanted!r} "
-                f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'its bands are not named'})",
+                f"{key} = {given!r}, but no band of the raster is named {wanted!r} ({known})",
                 path=file_name(ds),
                 fix=f"set band_order: [...] (every band's name, in file order), or {key} to a band number (1 = first)",
             )
@@ -185,9 +185,13 @@ def pick_band(ds, names: BandNames, role: str, given: int | str | None, key: str
         return int(given)
     band = names.number(role)
     if band is None:
+        known = (
+            f"named by {names.source}: {names.listing()}"
+            if names.roles
+            else "no band descriptions; colour labels only count on 8-bit RGB images"
+        )
         raise ConfigError(
-            f"{key} is not set and the raster's {ds.count} bands do not say which one is {role} "
-            f"({'named by ' + names.source + ': ' + names.listing() if names.roles else 'no band descriptions; colour labels only count on 8-bit RGB images'})",
+            f"{key} is not set and the raster's {ds.count} bands do not say which one is {role} ({known})",
             path=file_name(ds),
             fix="set band_order: [...] (every band's name in file order, e.g. "
             f"[blue, green, red, rededge, nir]) or {key}: <band number>",
