@@ -247,6 +247,37 @@ def test_source_files_are_small(path):
     assert n <= MAX_LINES, f"{path.name} has {n} lines; split it along its concerns (at most {MAX_LINES})"
 
 
+# the training engine (issue 37): set up, plan, loop, finish over small parts; the next change to the loop (the GPU)
+# works on parts, not on one long function
+SHORT_FUNCTION_PACKAGES = {"model_train": 60}
+
+
+def long_functions(folder: Path, limit: int) -> list[str]:
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > limit:
+                    found.append(f"{path.relative_to(folder.parent)}:{node.lineno} {node.name} ({n} lines)")
+    return found
+
+
+@pytest.mark.parametrize("word", sorted(SHORT_FUNCTION_PACKAGES))
+def test_training_functions_are_short(word):
+    limit = SHORT_FUNCTION_PACKAGES[word]
+    found = long_functions(PACKAGE / word, limit)
+    assert not found, f"functions over {limit} lines (split them into named parts):\n" + "\n".join(found)
+
+
+def test_the_function_length_check_sees_a_long_function(tmp_path):
+    body = "".join(f"    x{i} = {i}\n" for i in range(70))
+    (tmp_path / "long.py").write_text(f"def long():\n{body}")
+    (tmp_path / "short.py").write_text("def short():\n    return 1\n")
+    found = long_functions(tmp_path, 60)
+    assert len(found) == 1 and "long (71 lines)" in found[0]
+
+
 def test_the_checker_sees_cycles_and_inner_imports(tmp_path):
     """The reader and the cycle finder catch what they must, on a small package made for the purpose."""
     root = tmp_path / "matchplant"

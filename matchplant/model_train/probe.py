@@ -100,42 +100,17 @@ def probe_speed(
         targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
         twin = copy.deepcopy(model).to(device).train()
         keep_frozen_norms_fixed(twin)
-        params = [p for p in twin.parameters() if p.requires_grad]
-        opt = torch.optim.SGD(params, lr=0.0, momentum=0.9)
         input_px = tuple(twin.transform(images[:1])[0].tensors.shape[-2:])
-        times: list[float] = []
-        started = time.perf_counter()
-        # a second iteration always, unless the first took longer than the cap: the first pays the warm-up, and
-        # taken as the steady speed it made a 30-iteration run's estimate 1.5x the run (1.7x for 6 iterations)
-        while len(times) < 1 + MORE and (
-            len(times) < 1
-            or (len(times) < 2 and times[0] <= cap_s)
-            or time.perf_counter() - started + times[-1] <= min(cap_s, 0.05 * times[0] * (run_iters or 10**9))
-        ):
-            t = time.perf_counter()
-            with torch.autocast(device_type=device.type, enabled=amp):
-                loss = sum(twin(images, targets).values())
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if device.type == "cuda":
-                torch.cuda.synchronize(device)
-            times.append(time.perf_counter() - t)
-        twin.eval()
+        times = _time_iterations(twin, images, targets, device, amp, cap_s, run_iters)
         if getattr(dataset, "crop", None):  # training on crops: detection (validation) sees whole tiles
             images = [dataset.plain_image(i % len(dataset)).to(device) for i in range(batch_size)]
-        t = time.perf_counter()
-        with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp):
-            twin(images)
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-        inference = (time.perf_counter() - t) / len(images)
+        inference = _time_inference(twin, images, device, amp)
     later = sorted(times[1:])
     steady = later[len(later) // 2] if later else times[0]
     if num_workers == 0:  # loading happens between the steps, in this process
         steady += load_s
     peak = _peak_memory_mb(device)
-    del twin, opt
+    del twin
     return Probe(
         first_s=times[0],
         iteration_s=steady,
@@ -146,6 +121,45 @@ def probe_speed(
         batch=batch_size,
         input_px=(int(input_px[1]), int(input_px[0])),
     )
+
+
+def _time_iterations(twin, images, targets, device, amp: bool, cap_s: float, run_iters: int | None) -> list[float]:
+    """Seconds of each timed training iteration of ``twin`` (a copy of the model, at learning rate 0)."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    opt = torch.optim.SGD([p for p in twin.parameters() if p.requires_grad], lr=0.0, momentum=0.9)
+    times: list[float] = []
+    started = time.perf_counter()
+    # a second iteration always, unless the first took longer than the cap: the first pays the warm-up, and
+    # taken as the steady speed it made a 30-iteration run's estimate 1.5x the run (1.7x for 6 iterations)
+    while len(times) < 1 + MORE and (
+        len(times) < 1
+        or (len(times) < 2 and times[0] <= cap_s)
+        or time.perf_counter() - started + times[-1] <= min(cap_s, 0.05 * times[0] * (run_iters or 10**9))
+    ):
+        t = time.perf_counter()
+        with torch.autocast(device_type=device.type, enabled=amp):
+            loss = sum(twin(images, targets).values())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - t)
+    return times
+
+
+def _time_inference(twin, images, device, amp: bool) -> float:
+    """Seconds per image of one detection pass of ``twin`` over ``images`` (validation's cost)."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    twin.eval()
+    t = time.perf_counter()
+    with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp):
+        twin(images)
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return (time.perf_counter() - t) / len(images)
 
 
 def costs_from_probe(probe: Probe, n_val_images: int, n_params: int) -> Costs:
