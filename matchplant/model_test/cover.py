@@ -29,6 +29,7 @@ from matchplant.core.formats.footprints import Footprint, compute_footprints, op
 from matchplant.core.formats.odm import SUBMODELS_DIR, ODMProject
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
+from matchplant.model_test.inputs import check_images, list_images
 
 log = get_logger("model_test")
 
@@ -167,3 +168,12 @@ def choose(files: list[Path], k: int, project_dir: Path) -> Cover:
         short,
     )
     return Cover(files=chosen, every=list(files), k=k, points=A.shape[1], short=short)
+
+
+def images_to_detect(dcfg) -> tuple[list[Path], list[Path]]:
+    """The photos to detect on (the cover's when ``detect.cover`` is set), each checked whole (broken files named
+    before any detection), and every photo of ``detect.images`` (``dcfg``: the ``detect`` section)."""
+    every = list_images(Path(dcfg.images))
+    files = choose(every, dcfg.cover, cover_project(dcfg.images, dcfg.project_dir)).files if dcfg.cover else every
+    check_images(files, dcfg.tile_size)
+    return files, every

@@ -49,9 +49,10 @@ from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
-from matchplant.model_test.cover import choose, cover_project
+from matchplant.model_test.cover import images_to_detect
 from matchplant.model_test.estimate import estimate
-from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
+from matchplant.model_test.inputs import nothing_found, nothing_in_test
+from matchplant.model_test.runtime_onnx import torch_threads, with_runtime
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
 log = get_logger("model_test")
@@ -409,10 +410,11 @@ def detect(
     dcfg = cfg.detect
     check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
     if files is None:
-        files, every = detect_images(cfg)
+        files, every = images_to_detect(cfg.detect)
     shard, device = join(device or select_device(cfg.device))  # one share of the images per torchrun process
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
+    model = with_runtime(model, dcfg.runtime, device, torch_threads())
     predictor = model_predictor(model, device, cfg.amp)
     # before hours of work: the actual tiles and network input of every photo, timed on this device
     plan = estimate(
@@ -562,17 +564,6 @@ def detect(
     return path
 
 
-def detect_images(cfg: ModelTestConfig) -> tuple[list[Path], list[Path]]:
-    """The images to detect on (``detect.cover``'s when set), each checked whole (broken files named before any
-    detection), and every image of ``detect.images``."""
-    every = list_images(Path(cfg.detect.images))
-    files = every
-    if cfg.detect.cover:
-        files = choose(every, cfg.detect.cover, cover_project(cfg.detect.images, cfg.detect.project_dir)).files
-    check_images(files, cfg.detect.tile_size)
-    return files, every
-
-
 def run(cfg: ModelTestConfig) -> dict:
     """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
     shard, device = join(select_device(cfg.device))
@@ -582,7 +573,7 @@ def run(cfg: ModelTestConfig) -> dict:
     ck = read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
-    files, every = detect_images(cfg) if cfg.detect.images is not None else (None, None)
+    files, every = images_to_detect(cfg.detect) if cfg.detect.images is not None else (None, None)
     if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
         Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     result: dict = {}
