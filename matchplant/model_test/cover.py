@@ -34,6 +34,7 @@ from matchplant.model_test.inputs import check_images, list_images
 log = get_logger("model_test")
 
 POINTS_ACROSS = 30  # grid points across the narrowest footprint's short side
+MAX_POINTS = 2_000_000
 DSM_RESOLUTION = 0.05  # m: footprints need the relief at the scale of a photo's border sampling (as module 3)
 
 
@@ -83,8 +84,9 @@ def incidence(polygons: list, points_across: int = POINTS_ACROSS) -> sparse.csr_
         rect = poly.minimum_rotated_rectangle
         xy = np.asarray(rect.exterior.coords)
         sides.append(min(np.hypot(*(xy[1] - xy[0])), np.hypot(*(xy[2] - xy[1]))))
-    step = max(min(sides) / points_across, 1e-6)
     x0, y0, x1, y1 = shapely.union_all(polygons).bounds
+    # at most MAX_POINTS over the bounds: an oblique photo's footprint can reach far past the field
+    step = max(min(sides) / points_across, np.sqrt((x1 - x0) * (y1 - y0) / MAX_POINTS), 1e-6)
     gx, gy = np.meshgrid(np.arange(x0 + step / 2, x1, step), np.arange(y0 + step / 2, y1, step))
     gx, gy = gx.ravel(), gy.ravel()
     rows, cols = [], []
