@@ -76,8 +76,9 @@ class DetectConfig:
     )
     runtime: Literal["auto", "torch", "onnx"] = param(
         "auto",
-        "what runs the detector on a CPU: onnx (its convolutions in ONNX Runtime: same boxes, faster; "
-        "bench/bench_detect_runtime.py), torch, or auto (onnx when onnxruntime is installed, else torch)",
+        "what runs the detector on new images on a CPU: onnx (its convolutions in ONNX Runtime: same boxes, "
+        "faster; bench/bench_detect_runtime.py), torch, or auto (onnx when onnxruntime is installed, else torch); "
+        "evaluation always runs in PyTorch",
         choices=list(RUNTIMES),
     )
     project_dir: Path | None = param(
