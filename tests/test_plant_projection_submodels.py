@@ -23,7 +23,7 @@ from matchplant.core.runtime.io import read_json, write_json
 from matchplant.min_img_finder.config import MinImgFinderConfig
 from matchplant.min_img_finder.run import MinImageFinder
 from matchplant.min_img_finder.setcover import reachable_coverage
-from matchplant.model_test.run import list_images
+from matchplant.model_test.inputs import list_images
 from matchplant.odm_runner.outputs import check_outputs
 from matchplant.plant_projection.config import PlantProjectionConfig
 from matchplant.plant_projection.evaluation import evaluate_boxes

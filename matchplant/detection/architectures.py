@@ -150,6 +150,7 @@ ARCHITECTURES: dict[str, Architecture] = {
             two_stage=True,
             anchors=AnchorRule(3, 3),
             default_anchors=LITE_ANCHORS,
+            cpu_seconds_per_megapixel=2.5,  # median of 7 runs, 0.70-4.68 (load 2 to 11 on 2 cores; issue 40)
         ),
         Architecture(
             "retinanet_resnet50_fpn",

@@ -182,7 +182,9 @@ def measure_cpu_rates(architectures=None, tile: int = 1024, repeats: int = 2) ->
     return rates
 
 
-if __name__ == "__main__":  # python -m matchplant.detection.device [--measure]: the device and why; CPU rates
+if (
+    __name__ == "__main__"
+):  # python -m matchplant.detection.device [--measure [ARCH ...]]: the device and why; CPU rates
     import sys
 
     from matchplant.core.runtime.log import setup_console
@@ -193,5 +195,6 @@ if __name__ == "__main__":  # python -m matchplant.detection.device [--measure]:
         import torch  # lazy: PyTorch is heavy; configs load without it
 
         print(f"CPU seconds per megapixel (one detection pass, {torch.get_num_threads()} threads):")
-        for name, value in measure_cpu_rates().items():
+        names = [a for a in sys.argv[sys.argv.index("--measure") + 1 :] if not a.startswith("-")]  # or every one
+        for name, value in measure_cpu_rates(names or None).items():
             print(f"  {name:<36} {value:.2f}")

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.model_test.cover import cover_project
 from matchplant.model_test.inputs import check_device
+from matchplant.model_test.runtime_onnx import MISSING_FIX, RUNTIMES, available
 
 
 @dataclass
@@ -64,6 +67,26 @@ class DetectConfig:
         min=0,
     )
     drawn_images: int = param(4, "how many images to draw with their detections", min=0)
+    cover: int = param(
+        0,
+        "0 = detect on every photo; k >= 1 = only on the fewest photos that see every point of the field at least "
+        "k times (from their footprints on the DSM; k = 2 keeps module 8's plants at a fraction of the time; the "
+        "estimates for the cover and for every photo are logged before work starts)",
+        min=0,
+    )
+    runtime: Literal["auto", "torch", "onnx"] = param(
+        "auto",
+        "what runs the detector on new images on a CPU: onnx (its convolutions in ONNX Runtime: same boxes, "
+        "faster; bench/bench_detect_runtime.py), torch, or auto (onnx when onnxruntime is installed, else torch); "
+        "evaluation always runs in PyTorch",
+        choices=list(RUNTIMES),
+    )
+    project_dir: Path | None = param(
+        None,
+        "the ODM project whose footprints choose detect.cover's photos; null = detect.images when it is an ODM "
+        "project folder",
+        path="dir",
+    )
 
 
 @dataclass
@@ -105,3 +128,7 @@ class ModelTestConfig:
                 "nothing to do: neither evaluate.dataset_json nor detect.images is set",
                 fix="set evaluate.dataset_json (test tiles) and/or detect.images (new images)",
             )
+        if self.detect.runtime == "onnx" and not available():
+            raise ConfigError("detect.runtime: onnx, but onnxruntime is not installed", fix=MISSING_FIX)
+        if self.detect.cover and self.detect.images is not None:
+            cover_project(self.detect.images, self.detect.project_dir)  # an error now, not after the model loads

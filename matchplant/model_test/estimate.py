@@ -78,13 +78,27 @@ def estimate(
     device,
     processes: int = 1,
     warn_after_s: float = WARN_AFTER_S,
+    every: list[tuple[int, int]] | None = None,
 ) -> dict:
     """The plan, the probe and the estimated seconds (``processes``: a torchrun job shares the photos); logged,
-    and a warning before a run longer than ``warn_after_s``."""
+    and a warning before a run longer than ``warn_after_s``. ``every``: the sizes of every photo when ``sizes``
+    are a cover's (``detect.cover``): both estimates are logged side by side (``p["every_photo"]``)."""
     p = plan(sizes, tile, overlap, model_config)
     rate = probe(predictor, first_image, tile, model_config)
     seconds = rate * p["input_megapixels"] / max(processes, 1)
     p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(device))
+    if every is not None:
+        whole = plan(every, tile, overlap, model_config)
+        whole["seconds"] = rate * whole["input_megapixels"] / max(processes, 1)
+        p["every_photo"] = {k: whole[k] for k in ("photos", "tiles", "input_megapixels", "seconds")}
+        log.info(
+            "detection estimate: the cover's %d photo(s) about %s; every one of the %d photos about %s (%.0f %% of it)",
+            p["photos"],
+            duration(seconds),
+            whole["photos"],
+            duration(whole["seconds"]),
+            100 * seconds / whole["seconds"] if whole["seconds"] else 100.0,
+        )
     lo = int(model_config.get("min_size", 800))
     what = (
         f"{p['photos']} photo(s), {p['tiles']} tiles of {tile} px ({p['tiles_per_photo'][0]}"

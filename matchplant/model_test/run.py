@@ -49,8 +49,10 @@ from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.model import set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
+from matchplant.model_test.cover import images_to_detect
 from matchplant.model_test.estimate import estimate
-from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
+from matchplant.model_test.inputs import nothing_found, nothing_in_test
+from matchplant.model_test.runtime_onnx import torch_threads, with_runtime
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
 log = get_logger("model_test")
@@ -394,6 +396,7 @@ def detect(
     *,
     ck: dict | None = None,
     files: list[Path] | None = None,
+    every: list[Path] | None = None,
     listed: list[str] | None = None,
 ) -> Path:
     """Detect plants on every image of ``detect.images``; writes ``predictions.json`` and drawn images into
@@ -406,10 +409,12 @@ def detect(
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     dcfg = cfg.detect
     check_detect_scale(dcfg, ck)  # plants >2x or <0.5x their training size in the detector's input
-    files = files or detect_images(cfg)
+    if files is None:
+        files, every = images_to_detect(cfg.detect)
     shard, device = join(device or select_device(cfg.device))  # one share of the images per torchrun process
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
+    model = with_runtime(model, dcfg.runtime, device, torch_threads())
     predictor = model_predictor(model, device, cfg.amp)
     # before hours of work: the actual tiles and network input of every photo, timed on this device
     plan = estimate(
@@ -421,6 +426,7 @@ def detect(
         ck["model_config"],
         device,
         processes=shard.world,
+        every=[image_size(f) for f in every] if every is not None and len(every) != len(files) else None,
     )
     started = time.perf_counter()
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
@@ -534,6 +540,7 @@ def detect(
             "tile_size": dcfg.tile_size,
             "overlap": dcfg.overlap,
             "score_threshold": dcfg.score_threshold,
+            "cover": dcfg.cover,
             "timing": {
                 "estimated_s": round(plan["seconds"], 3),
                 "detection_s": round(seconds, 3),
@@ -557,13 +564,6 @@ def detect(
     return path
 
 
-def detect_images(cfg: ModelTestConfig) -> list[Path]:
-    """The images of ``detect.images``, each checked whole (broken files named before any detection)."""
-    files = list_images(Path(cfg.detect.images))
-    check_images(files, cfg.detect.tile_size)
-    return files
-
-
 def run(cfg: ModelTestConfig) -> dict:
     """Evaluation and/or detection; every output appears at the end, together (a failed run leaves none)."""
     shard, device = join(select_device(cfg.device))
@@ -573,7 +573,7 @@ def run(cfg: ModelTestConfig) -> dict:
     ck = read_model(cfg)
     cfg = with_detect_settings(cfg, ck)  # a null detect.tile_size / overlap: the checkpoint's training tiles'
     ds = test_tiles(cfg, ck) if cfg.evaluate.dataset_json is not None and shard.main else None
-    files = detect_images(cfg) if cfg.detect.images is not None else None
+    files, every = images_to_detect(cfg.detect) if cfg.detect.images is not None else (None, None)
     if shard.world > 1:  # every process stages its own files: the folder they move into must exist first
         Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     result: dict = {}
@@ -583,7 +583,7 @@ def run(cfg: ModelTestConfig) -> dict:
             result["metrics"] = evaluate(cfg, device, out, ck=ck, ds=ds)
         drawn: list[str] = []  # every process's drawn images
         if files is not None:
-            result["predictions"] = detect(cfg, device, out, ck=ck, files=files, listed=drawn)
+            result["predictions"] = detect(cfg, device, out, ck=ck, files=files, every=every, listed=drawn)
         now = write_manifest(out, drawn) if shard.main else []
     if shard.main:  # only once the new outputs are in place; the other processes' drawn images are in `now`
         remove_stale(Path(cfg.output_dir), before, now)

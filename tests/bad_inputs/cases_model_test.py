@@ -221,6 +221,20 @@ def device_typo(w: Work) -> list[str]:
     return [*detect_args(w, photos(w)), "--set", "device=gpu"]
 
 
+def cover_without_project(w: Work) -> list[str]:
+    return [*detect_args(w, photos(w)), "--set", "detect.cover=2"]
+
+
+def cover_project_of_other_photos(w: Work) -> list[str]:
+    folder = w.inputs / "other"
+    photo(w, folder, "plot_a.png")
+    return [*detect_args(w, folder), "--set", "detect.cover=1", "--set", f"detect.project_dir={w.artifacts / 'field'}"]
+
+
+def runtime_typo(w: Work) -> list[str]:
+    return [*detect_args(w, photos(w)), "--set", "detect.runtime=openvino"]
+
+
 def output_is_image_folder(w: Work) -> list[str]:
     folder = photos(w)
     return [x if not x.startswith("output_dir=") else f"output_dir={folder}" for x in detect_args(w, folder)]
@@ -365,6 +379,14 @@ CASES = [
     Case("m7-nothing-found", "model_test", nothing_found, mentions=("detect.score_threshold", "best box", "0.999")),
     Case("m7-device-cuda-without-cuda", "model_test", device_cuda_without_cuda, mentions=("cuda",), marks=CUDA_SKIP),
     Case("m7-device-typo", "model_test", device_typo, mentions=("device", "gpu")),
+    Case("m7-cover-without-project", "model_test", cover_without_project, mentions=("detect.project_dir", "photos")),
+    Case(
+        "m7-cover-project-of-other-photos",
+        "model_test",
+        cover_project_of_other_photos,
+        mentions=("detect.project_dir", "none of the 1 photo(s)"),
+    ),
+    Case("m7-runtime-typo", "model_test", runtime_typo, mentions=("detect.runtime", "openvino", "onnx")),
     Case("m7-output-is-image-folder", "model_test", output_is_image_folder, mentions=("output_dir", "detect.images")),
     # evaluation inputs
     Case("m7-eval-other-categories", "model_test", eval_other_categories, mentions=("test.json", "weed", "model.pt")),
