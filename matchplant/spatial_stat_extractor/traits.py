@@ -92,7 +92,7 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
     if noise.measured:
         log.info(
             "date '%s': CHM ground noise p50 %.3f m, p95 %.3f m, SD %.3f m (%d pixels between the plants%s, "
-            "%d windows)",
+            "%d windows; %s)",
             rs.date,
             noise.p50,
             noise.p95,
@@ -100,6 +100,7 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
             noise.pixels,
             "" if noise.guarded else f", just outside the boxes: none lies {cfg.margin + GUARD:g} m from every box",
             noise.windows,
+            noise.excluded_text(),
         )
     else:
         log.warning(
