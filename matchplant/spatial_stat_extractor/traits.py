@@ -44,6 +44,7 @@ from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MEMORY
 from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
 from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
+from matchplant.spatial_stat_extractor.inputs.elevation import chm_keys
 from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.zonal.table import polygons_in
 
@@ -74,12 +75,6 @@ def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSet
         unclaimed_min_top=th.unclaimed_min_top,
         noise_sd=th.noise_sd,
     )
-
-
-def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:
-    """The config keys of a date's CHM, for messages."""
-    where = "rasters" if first else f"more_dates (date '{rs.date}')"
-    return (f"{where}.chm",) if rs.chm is not None else (f"{where}.dsm", f"{where}.dtm")
 
 
 def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool, entry: dict, ndvi=None) -> Thresholds:
