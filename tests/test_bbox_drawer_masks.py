@@ -17,7 +17,7 @@ from PIL import Image
 
 from matchplant.bbox_drawer.importers import read_mask_boxes
 from matchplant.core.formats.masks import mask_objects, read_mask
-from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.errors import ConfigError, InputError
 
 H, W, S = 300, 400, 3
 MIN_AREA = 20
@@ -137,6 +137,58 @@ def test_grey_instance_ids_stay_instances(labels):
     few = np.zeros((50, 60), np.uint8)
     few[5:15, 5:15], few[20:30, 30:50] = 1, 7  # two plants, ids 1 and 7
     assert mask_objects(few).mode == "instance" and len(mask_objects(few).boxes) == 2
+
+
+def test_instance_ids_near_the_top_value_stay_instances(labels, tmp_path, caplog):
+    """Issue 39: 16-bit ids 1001-1040 all lie within 4 % of the top value; touching plants (ellipses overlapping
+    their neighbours) then merged into one binary object. Read as instances: one box per id at its extent
+    (numpy over each id); forced binary, the merge is warned about."""
+    m = np.zeros((220, 420), np.uint16)
+    for k in range(40):
+        r, c = divmod(k, 10)
+        cv2.ellipse(m, (20 + 40 * c, 25 + 50 * r), (24, 18), 0, 0, 360, 1001 + k, -1)
+    want = []
+    for v in range(1001, 1041):
+        rows, cols = np.nonzero(m == v)
+        want.append([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1])
+    got = mask_objects(m, 1)
+    assert got.mode == "instance" and "40 distinct values" in got.reason
+    assert sorted(b.xyxy for b in got.boxes) == sorted(map(lambda b: [float(x) for x in b], want))
+    assert _blobs_of(m) == 4  # the binary reading: 4 rows of touching plants
+    forced = mask_objects(m, 1, mode="binary")
+    assert len(forced.boxes) == 4 and any("40 distinct values" in w and "merges" in w for w in forced.warnings)
+    # the 260 separate ids of the fixture moved to 1001-1260 (16-bit): one box per id, as ids 1-260
+    ids = _ids(labels)
+    high = np.where(ids > 0, ids + 1000, 0).astype(np.uint16)
+    assert mask_objects(high, 1).mode == "instance"
+    assert [b.xyxy for b in mask_objects(high, 1).boxes] == [b.xyxy for b in mask_objects(ids, 1).boxes]
+    # through the importer: the mode and why are logged
+    (tmp_path / "m").mkdir()
+    cv2.imwrite(str(tmp_path / "m" / "a.png"), m)
+    with caplog.at_level(logging.INFO, logger="matchplant"):
+        boxes = read_mask_boxes(tmp_path / "m", ["a.JPG"], 1)
+    assert len(boxes["a.JPG"]) == 40 and "read as instance" in caplog.text and "1001-1040" in caplog.text
+
+
+def _blobs_of(m: np.ndarray) -> int:
+    return cv2.connectedComponents((m > 0).astype(np.uint8), connectivity=8)[0] - 1
+
+
+def test_a_threshold_above_the_masks_values_names_the_key(labels, tmp_path, caplog):
+    """mask_threshold above every value of the masks: a ConfigError naming the key, the values and the fix
+    (was: "the file holds no boxes"); above the values of some masks only: a warning naming them."""
+    m = _binary_variants(labels)["area"]
+    (tmp_path / "k").mkdir()
+    cv2.imwrite(str(tmp_path / "k" / "a.png"), m)
+    with pytest.raises(ConfigError) as e:
+        read_mask_boxes(tmp_path / "k", ["a.JPG"], 1, threshold=300)
+    text = str(e.value)
+    assert "mask_threshold = 300" in text and "reach 255" in text and "a.png" in text and "remove it" in text
+    cv2.imwrite(str(tmp_path / "k" / "b.png"), (m // 2))  # values up to 127
+    with caplog.at_level(logging.WARNING, logger="matchplant"):
+        boxes = read_mask_boxes(tmp_path / "k", ["a.JPG", "b.JPG"], 1, threshold=200)
+    assert len(boxes["a.JPG"]) > 100 and not boxes["b.JPG"]
+    assert "mask_threshold = 200 is above every value of 1 mask(s) (b.png" in caplog.text
 
 
 def test_mode_and_threshold_overrule_and_warnings(labels, tmp_path, caplog):

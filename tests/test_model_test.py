@@ -23,7 +23,8 @@ from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, opera
 from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.config import ModelTestConfig
-from matchplant.model_test.run import detect_image, merge_tile_boxes, run, tile_starts
+from matchplant.model_test.merge import merge_nested, merge_tile_boxes
+from matchplant.model_test.run import detect_image, run, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -605,14 +606,21 @@ def test_nested_duplicates_from_another_tile_are_merged():
     )  # 'part' is wholly inside: still merged
     assert boxes.tolist() == [plant]
     # a box far inside a larger one of its class on the same photo is merged too (issue 26: one pass over the
-    # photo's final boxes), even when one tile saw both
+    # photo's final boxes), even when one tile saw both: the lower-scoring one goes (issue 39)
     answers = [
         tile(plant),
-        (np.array([np.array(plant) - shift, np.array(small) - shift], float), np.array([0.8, 0.95]), np.ones(2, int)),
+        (np.array([np.array(plant) - shift, np.array(small) - shift], float), np.array([0.8, 0.7]), np.ones(2, int)),
     ]
     counts: dict = {}
     boxes, _, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100, counts=counts)
     assert boxes.tolist() == [plant] and counts["nested_merged"] == 1 and counts["tiles"] == 2
+    # the inner box scoring higher than the outer ones is the plant: the outer boxes go, from either tile
+    answers = [
+        tile(plant),
+        (np.array([np.array(plant) - shift, np.array(small) - shift], float), np.array([0.8, 0.95]), np.ones(2, int)),
+    ]
+    boxes, scores, _ = detect_image(img, predictor(answers), tile_size=200, overlap=100)
+    assert boxes.tolist() == [small] and scores.tolist() == [0.95]
 
 
 def _nested_pairs(boxes: np.ndarray, labels: np.ndarray, share: float = 0.8) -> int:
@@ -646,6 +654,8 @@ def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
     labels = np.r_[np.ones(42, int), np.full(3, 2)]
     assert _nested_pairs(boxes, labels) == 12
     scores = rng.uniform(0.5, 1.0, len(boxes))
+    scores[:12] = rng.uniform(0.75, 1.0, 12)
+    scores[30:42] = scores[:12] - rng.uniform(0.05, 0.2, 12)  # a part of a plant is found less surely
 
     def predict(tiles):
         return [(boxes, scores, labels)]
@@ -654,6 +664,38 @@ def test_nested_duplicates_on_one_photo_are_merged_with_known_truth():
     out_b, _, out_l = detect_image(np.zeros((340, 400, 3), np.uint8), predict, tile_size=512, overlap=64, counts=counts)
     assert len(out_b) == 33 and counts["nested_merged"] == 12 and _nested_pairs(out_b, out_l) == 0
     assert sorted(map(tuple, out_b[out_l == 1])) == sorted(map(tuple, plants))  # the larger boxes stay
+
+
+def test_nested_merge_keeps_the_better_box_with_known_truth():
+    """Issue 39: nested pairs whose truth is the outer box (a part of the plant found beside it, scoring lower),
+    whose truth is the inner box (a panicle, and a false box around it and its surroundings scoring lower), and
+    false boxes around two true plants each: the box kept is the true one of every pair, the count the truth's.
+    Keeping the larger box (the old rule) lost every true inner box."""
+    rng = np.random.default_rng(8)
+    xy = np.stack(np.meshgrid(np.arange(8) * 70 + 20, np.arange(5) * 70 + 20), -1).reshape(-1, 2).astype(float)
+    truth = np.hstack([xy, xy + rng.uniform(30, 45, (40, 2))])
+    w = truth[:, 2:] - truth[:, :2]
+    parts = truth[:12] + np.hstack([w[:12] * 0.2, -w[:12] * 0.15])  # inside true plants 0-11
+    around = truth[12:24] + np.hstack([-w[12:24] * 0.4, w[12:24] * 0.4])  # false boxes around true plants 12-23
+    pair = np.hstack([truth[24:32:2, :2], truth[25:33:2, 2:]])  # false boxes around plants 24+25, 26+27, ...
+    boxes = np.vstack([truth, parts, around, pair])
+    s_truth = rng.uniform(0.75, 1.0, 40)
+    scores = np.r_[s_truth, s_truth[:12] - 0.2, s_truth[12:24] - rng.uniform(0.05, 0.3, 12), np.full(4, 0.6)]
+    labels = np.ones(len(boxes), int)
+    assert _nested_pairs(boxes, labels) == 12 + 12 + 8
+    keep = merge_nested(boxes, scores, labels, 0.8)
+    assert sorted(keep.tolist()) == list(range(40))  # every true box, and only the true boxes
+    assert _nested_pairs(boxes[keep], labels[keep]) == 0
+    # the larger box kept whatever the scores (the old rule) keeps the false outer boxes instead of 20 true ones
+    larger = merge_nested(boxes, np.zeros(len(boxes)), labels, 0.8)
+    assert len(set(larger.tolist()) & set(range(40))) == 40 - 12 - 8
+    # equal scores: the outer box, which holds the other (containment), is kept
+    two = np.array([[0, 0, 40, 40], [5, 5, 30, 30]], float)
+    assert merge_nested(two, np.array([0.9, 0.9]), np.ones(2, int)).tolist() == [0]
+    assert merge_nested(two, np.array([0.8, 0.9]), np.ones(2, int)).tolist() == [1]
+    # across tiles (merge_tile_boxes): the same choice, the inner box of tile 1 scoring higher than the outer of 0
+    kept = merge_tile_boxes(two, np.array([0.7, 0.9]), np.ones(2, int), np.zeros(2, bool), 0.5, np.array([0, 1]))
+    assert kept.tolist() == [1]
 
 
 def test_detection_output_holds_no_nested_box(checkpoint, tmp_path, caplog):

@@ -297,6 +297,56 @@ def test_plot_file_read_back_gives_the_grids_rows(tmp_path):
     assert abs(wrong["expected"].sum() / ref["expected"].sum() - 1) > 0.1  # the long side: not the rows
 
 
+def test_unusable_row_direction_columns_are_named(tmp_path, caplog):
+    """Issue 39: zero or text row_dir_x/row_dir_y values in a plot file were ignored without a word. Some
+    unusable: a warning naming the file, the columns and the plots, their direction from the plants (the same
+    counts as the file read whole); all unusable, or one column of the two: an error naming them."""
+    rng = np.random.default_rng(11)
+    cfg, table, truth, _ = sown(rng, cols=3, ranges=2, nrow=6, seeds=10, sp=0.3, angle=20.0)
+    polys = boxes(table)
+    run_plots(cfg, table, None, polys, tmp_path / "grid")
+    own = gpd.read_file(tmp_path / "grid" / "plots.gpkg")
+
+    def variant(name, change):
+        g = own.copy()
+        change(g)
+        g.to_file(tmp_path / name, driver="GPKG")
+        return PlotsConfig(polygons=tmp_path / name, rows_per_plot=6, plant_spacing=0.3)
+
+    def zero_first_two(g):
+        g.loc[:1, ["row_dir_x", "row_dir_y"]] = 0.0
+
+    some = variant("some_zero.gpkg", zero_first_two)
+    with caplog.at_level("WARNING", logger="matchplant"):
+        plots = read_plots(some, polys.crs)
+    assert "some_zero.gpkg" in caplog.text and "row_dir_x/row_dir_y of 2 of 6 plots" in caplog.text
+    assert "zero vector" in caplog.text and str(list(own["plot_id"][:2])) in caplog.text
+    assert plots[["row_dir_x", "row_dir_y"]].isna().sum().tolist() == [2, 2]
+    got, _, _ = plot_table(plots, table, some)
+    assert dict(zip(got["plot_id"], got["stand_count"])) == truth and (got["expected"] == 60).all()
+
+    def all_zero(g):
+        g["row_dir_x"], g["row_dir_y"] = 0.0, 0.0
+
+    def text(g):
+        g["row_dir_x"] = "north"
+
+    def one_column(g):
+        del g["row_dir_y"]
+
+    for name, change, why in (
+        ("all_zero.gpkg", all_zero, "zero vector"),
+        ("text.gpkg", text, "text where a number belongs"),
+        ("one.gpkg", one_column, "only row_dir_x is in the file"),
+    ):
+        with pytest.raises(InputError) as e:
+            read_plots(variant(name, change), polys.crs)
+        text = str(e.value)
+        assert name in text and "row_dir_x" in text and why in text and "plots.row_direction" in text, text
+    # plots.row_direction set: it overrides the columns, nothing to refuse
+    read_plots(replace(variant("all_zero2.gpkg", all_zero), row_direction=20.0), polys.crs)
+
+
 def test_row_direction_from_the_plants_is_accurate():
     rng = np.random.default_rng(3)
     cfg, table, _, _ = sown(rng, angle=-33.0, cols=2, ranges=2)

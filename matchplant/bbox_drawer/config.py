@@ -50,7 +50,8 @@ class BboxDrawerConfig:
     )
     mask_mode: Literal["auto", "binary", "instance"] = param(
         "auto",
-        "how masks are read: 'auto' decides from each mask's pixels (a mask whose objects all peak at one "
+        "how masks are read: 'auto' decides from each mask's pixels (objects whose interiors each hold a "
+        "value of their own are instances, whatever the values; a mask whose objects all peak at one "
         "value is binary, however many grey levels its anti-aliased edges hold; said in the log), "
         "'binary' (objects = connected components above mask_threshold), 'instance' (one object per "
         "value or colour)",

@@ -32,7 +32,7 @@ from matchplant.core.formats.masks import MASK_SUFFIXES, mask_objects, read_mask
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.yolo import read_yolo
 from matchplant.core.geometry.boxes import nms
-from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 
 log = get_logger("bbox_drawer")
@@ -122,6 +122,7 @@ def read_mask_boxes(
     modes: Counter = Counter()
     reasons: dict[str, str] = {}
     dropped = total = 0
+    below: dict[str, float] = {}  # masks whose every value lies under mask_threshold: file -> top value
     for name, path in found.items():
         mask = read_mask(path)
         if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
@@ -144,9 +145,13 @@ def read_mask_boxes(
         reasons.setdefault(objects.mode, f"{path.name}: {objects.reason}")
         for warning in objects.warnings:
             log.warning("mask %s: %s; if so, set mask_mode: binary (and mask_threshold)", path.name, warning)
+        if threshold is not None and 0 < objects.top < threshold:
+            below[path.name] = objects.top
         dropped += objects.dropped
         total += objects.dropped + len(objects.boxes)
         out[name] = [ImportedBox(b.xyxy, b.category, where=path.name) for b in objects.boxes]
+    if below:
+        _threshold_above(masks_dir, threshold, below, total)
     for kind, n in sorted(modes.items()):
         log.info(
             "%d mask(s) read as %s (%s), e.g. %s",
@@ -170,6 +175,24 @@ def read_mask_boxes(
             total,
         )
     return out
+
+
+def _threshold_above(masks_dir: Path, threshold: float, below: dict[str, float], total: int) -> None:
+    """``mask_threshold`` above every value of some masks: they give no object. An error when no mask gave one,
+    else a warning naming them."""
+    tops = sorted(set(below.values()))
+    names = ", ".join(list(below)[:5]) + (f" and {len(below) - 5} more" if len(below) > 5 else "")
+    what = (
+        f"mask_threshold = {threshold:g} is above every value of {len(below)} mask(s) ({names}: their values "
+        f"reach {tops[0]:g}" + (f"-{tops[-1]:g}" if len(tops) > 1 else "") + "), so they give no plant"
+    )
+    fix = (
+        f"set mask_threshold to the plants' value or below (half the foreground value, e.g. {tops[0] / 2:g}, "
+        "for an anti-aliased binary mask), or remove it (empty: decided from each mask's pixels)"
+    )
+    if not total:
+        raise ConfigError(what, path=masks_dir, fix=fix)
+    log.warning("%s; %s", what, fix)
 
 
 MASK_WORDS = ("_mask", "-mask", "_masks", "_label", "-label", "_labels", "_seg", "_gt", "_instances")

@@ -55,8 +55,9 @@ class DetectConfig:
     merge_containment: float = param(
         0.8,
         "a box lying at least this share inside a larger box of the same "
-        "class from another tile is the same plant (nested duplicate); 1 = "
-        "only boxes wholly inside",
+        "class (from another tile, or on the photo's final boxes) is the same "
+        "plant (nested duplicate): the lower-scoring box of the two is dropped "
+        "(on equal scores, the inner one); 1 = only boxes wholly inside",
         min=0.01,
         max=1,
     )

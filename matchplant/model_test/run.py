@@ -18,12 +18,10 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import shapely
 
 from matchplant.core.formats.images import image_size, read_rgb8
 from matchplant.core.formats.odm import SUBMODELS_DIR
 from matchplant.core.formats.predictions import write_predictions
-from matchplant.core.geometry.boxes import nms
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
@@ -52,6 +50,7 @@ from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.cover import images_to_detect
 from matchplant.model_test.estimate import estimate
 from matchplant.model_test.inputs import nothing_found, nothing_in_test
+from matchplant.model_test.merge import merge_nested, merge_tile_boxes
 from matchplant.model_test.runtime_onnx import torch_threads, with_runtime
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
@@ -203,124 +202,6 @@ def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
     return starts
 
 
-def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    wh = np.clip(rb - lt, 0, None)
-    return wh[..., 0] * wh[..., 1]
-
-
-def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, found through an R-tree
-    (shapely's STRtree): a photo's thousands of boxes meet only their neighbours, so the pairs are few where
-    a dense matrix would be n x m."""
-    if not len(a) or not len(b):
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
-    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
-    wh = np.clip(np.minimum(a[i, 2:], b[j, 2:]) - np.maximum(a[i, :2], b[j, :2]), 0, None)
-    inter = wh[:, 0] * wh[:, 1]
-    ok = inter > 0
-    return i[ok], j[ok], inter[ok]
-
-
-def merge_tile_boxes(
-    boxes: np.ndarray,
-    scores: np.ndarray,
-    labels: np.ndarray,
-    cut: np.ndarray,
-    iou: float = 0.5,
-    tiles: np.ndarray | None = None,
-    containment: float = 0.8,
-) -> np.ndarray:
-    """Indices of the boxes kept after merging detections of overlapping tiles (image pixels).
-
-    Whole boxes: class-wise NMS at ``iou`` (the same plant seen whole in two tiles). A ``cut`` box (it
-    touches a tile border inside the image) is a part of a plant; it is dropped when at least half of
-    it lies inside a kept whole box of its class, else kept through the same NMS (a plant larger than
-    the overlap, seen cut in every tile). With ``tiles`` (each box's tile number), a box lying at least
-    ``containment`` inside a larger kept box of its class from another tile is a nested duplicate (a
-    part of the plant seen from another tile, IoU too low for NMS) and is dropped, unless its own tile
-    also saw the larger plant (then it is a second plant); boxes of one tile keep the model's decision.
-    """
-    if len(boxes) == 0:
-        return np.zeros(0, dtype=int)
-    whole = np.flatnonzero(~cut)
-    keep_whole = whole[nms(boxes[whole], scores[whole], iou, labels[whole])]
-    parts = np.flatnonzero(cut)
-    if len(parts) and len(keep_whole):
-        i, j, inter = _touching(boxes[parts], boxes[keep_whole])
-        area = np.prod(boxes[parts, 2:] - boxes[parts, :2], axis=1)
-        hit = (inter / np.maximum(area[i], 1e-9) >= 0.5) & (labels[parts][i] == labels[keep_whole][j])
-        covered = np.zeros(len(parts), bool)
-        covered[i[hit]] = True
-        parts = parts[~covered]
-    if len(parts):
-        parts = parts[nms(boxes[parts], scores[parts], iou, labels[parts])]
-    kept = np.concatenate([keep_whole, parts])
-    if tiles is not None and len(kept) > 1:
-        kept = kept[~_nested(boxes, labels, np.asarray(tiles), kept, containment, iou)]
-    return kept[np.argsort(-scores[kept], kind="stable")]
-
-
-def _nested(
-    boxes: np.ndarray, labels: np.ndarray, tiles: np.ndarray, kept: np.ndarray, containment: float, iou: float
-) -> np.ndarray:
-    """Which of the ``kept`` boxes are nested duplicates: at least ``containment`` inside a larger kept box
-    of their class from another tile, whose plant their own tile did not see (no box of that tile has IoU
-    >= ``iou`` with the larger one; if it did, the inner box is a second plant that tile told apart).
-    Largest first: a dropped box drops nothing."""
-    b, lab, til = boxes[kept], labels[kept], tiles[kept]
-    area = np.prod(np.clip(b[:, 2:] - b[:, :2], 0, None), axis=1)
-    all_area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
-    inner, outer = _inside_pairs(b, lab, area, containment)
-    other_tile = til[inner] != til[outer]
-    inner, outer = inner[other_tile], outer[other_tile]
-    groups: dict[tuple, np.ndarray] = {}  # the boxes of each (tile, class)
-    dropped = np.zeros(len(b), bool)
-    for k in np.argsort(-area[outer], kind="stable"):
-        i, j = int(inner[k]), int(outer[k])
-        if dropped[j] or dropped[i]:
-            continue
-        key = (int(til[i]), int(lab[i]))
-        if key not in groups:
-            groups[key] = np.flatnonzero((tiles == key[0]) & (labels == key[1]))
-        own = groups[key]
-        own = own[own != kept[i]]
-        inter = _box_intersections(b[j][None], boxes[own])[0]
-        seen = inter / np.maximum(area[j] + all_area[own] - inter, 1e-9) >= iou
-        dropped[i] = not seen.any()
-    return dropped
-
-
-def _inside_pairs(b: np.ndarray, lab: np.ndarray, area: np.ndarray, containment: float):
-    """``(inner, outer)``: box ``inner`` lies at least ``containment`` inside the larger box ``outer`` of its
-    class (equal areas: the later one is the inner)."""
-    i, j, inter = _touching(b, b)
-    larger = (area[i] < area[j]) | ((area[i] == area[j]) & (i > j))
-    ok = (i != j) & larger & (inter >= containment * np.maximum(area[i], 1e-9)) & (lab[i] == lab[j])
-    return i[ok], j[ok]
-
-
-def merge_nested(boxes: np.ndarray, labels: np.ndarray, containment: float = 0.8) -> np.ndarray:
-    """Indices of a photo's final boxes kept after one pass over them: a box lying at least ``containment``
-    inside a larger box of its class on the same photo is a nested duplicate (a part of the plant, found by
-    the model in one tile, or left by the merge across tiles) and is merged into the larger one. The same
-    containment rule as across tiles (:func:`_nested`, largest first: a dropped box drops nothing), without
-    its exception for boxes of one tile: the photo's output holds no box that far inside another."""
-    n = len(boxes)
-    if n < 2:
-        return np.arange(n)
-    area = np.prod(np.clip(boxes[:, 2:] - boxes[:, :2], 0, None), axis=1)
-    inner, outer = _inside_pairs(boxes, labels, area, containment)
-    dropped = np.zeros(n, bool)
-    for k in np.argsort(-area[outer], kind="stable"):  # largest outer first, as _nested
-        i, j = inner[k], outer[k]
-        if not (dropped[i] or dropped[j]):
-            dropped[i] = True
-    return np.flatnonzero(~dropped)
-
-
 Predictor = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray, np.ndarray]]]
 
 
@@ -382,7 +263,7 @@ def detect_image(
     labels, cut = np.concatenate(all_l).astype(int), np.concatenate(all_cut).astype(bool)
     keep = merge_tile_boxes(boxes, scores, labels, cut, merge_iou, np.concatenate(all_t), merge_containment)
     boxes, scores, labels = boxes[keep], scores[keep], labels[keep]
-    keep = merge_nested(boxes, labels, merge_containment)
+    keep = merge_nested(boxes, scores, labels, merge_containment)
     if counts is not None:
         for key, n in (("tiles", len(origins)), ("tile_boxes", len(cut)), ("nested_merged", len(boxes) - len(keep))):
             counts[key] = counts.get(key, 0) + n
@@ -491,8 +372,8 @@ def detect(
         shard.barrier()
         return final / "predictions.json"
     log.info(
-        "%d nested box(es) merged: each lay >= %.0f %% inside a larger box of its class on the same photo "
-        "(detect.merge_containment)",
+        "%d nested box(es) merged: of two boxes of a class on a photo, one >= %.0f %% inside the other "
+        "(detect.merge_containment), the lower-scoring one dropped (on equal scores, the inner one)",
         merged,
         100 * dcfg.merge_containment,
     )

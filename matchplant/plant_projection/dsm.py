@@ -17,7 +17,7 @@ from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import Surface
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.plant_projection.dsm_noise import SoilSurface, ground_noise, soil_surface
+from matchplant.plant_projection.dsm_noise import Holes, SoilSurface, ground_noise, soil_surface
 from matchplant.plant_projection.geometry import box_outline
 
 log = get_logger("plant_projection")
@@ -140,6 +140,11 @@ class DsmSurfaces:
                 "" if len(noise) == 1 else f" (largest of {len(noise)} windows)",
             )
         return spread
+
+    def holes(self) -> Holes:
+        """The holes left unfilled on the surfaces read (the most in one read, the largest)."""
+        kept = [s.holes for s, _ in self._read]
+        return Holes(max((h.count for h in kept), default=0), max((h.largest for h in kept), default=0.0))
 
     def get(self, bounds: np.ndarray) -> SoilSurface:
         """The surface under one image's rays (``bounds`` from :func:`ray_bounds`)."""

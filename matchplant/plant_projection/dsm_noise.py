@@ -51,39 +51,66 @@ class SoilLevel(NamedTuple):
     spread: float
 
 
+class Holes(NamedTuple):
+    """A DSM's nodata holes left after filling: how many, and the largest one's side (metres, its bounding box's
+    longer side), for the warning when their rays lose boxes."""
+
+    count: int = 0
+    largest: float = 0.0
+
+
 def soil_surface(surface: Surface, max_side: float) -> tuple[SoilSurface, int]:
     """``surface`` as a :class:`SoilSurface`, its nodata holes no wider than ``max_side`` metres (both sides of
-    the hole's bounding box) filled from their rims; larger holes stay holes. Returns the surface and the number of
-    cells filled."""
+    the hole's bounding box) filled from their rims; larger holes stay holes (``SoilSurface.holes``). Returns the
+    surface and the number of cells filled."""
     data = surface.data
     holes = np.isnan(data)
-    if max_side <= 0 or not holes.any():
+    if not holes.any():
         return SoilSurface(data, surface.transform, surface.crs, surface.path), 0
     _, labels, stats, _ = cv2.connectedComponentsWithStats(holes.view(np.uint8), connectivity=8)
     cells = max_side / surface.pixel_size
-    small = (stats[:, cv2.CC_STAT_WIDTH] <= cells) & (stats[:, cv2.CC_STAT_HEIGHT] <= cells)
-    small[0] = False  # label 0: the valid cells
-    fill = small[labels]
-    return SoilSurface(_fill_from_rim(data, fill), surface.transform, surface.crs, surface.path), int(fill.sum())
+    side = np.maximum(stats[1:, cv2.CC_STAT_WIDTH], stats[1:, cv2.CC_STAT_HEIGHT])
+    small = np.r_[False, side <= cells] if max_side > 0 else np.zeros(len(stats), bool)  # label 0: valid cells
+    kept = side[~small[1:]]
+    filled = data
+    if small.any():
+        rows, cols = np.nonzero(holes)
+        mine = small[labels[rows, cols]]
+        filled = _fill_from_rim(data, rows[mine], cols[mine])
+    out = SoilSurface(filled, surface.transform, surface.crs, surface.path)
+    out.holes = Holes(int(kept.size), float(kept.max() * surface.pixel_size) if kept.size else 0.0)
+    return out, int(stats[1:, cv2.CC_STAT_AREA][small[1:]].sum())
 
 
-def _fill_from_rim(data: np.ndarray, fill: np.ndarray) -> np.ndarray:
-    """``data`` with the cells ``fill`` (holes) set ring by ring, from the rim inwards, to the mean of their
+_NEIGHBOURS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+
+
+def _fill_from_rim(data: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``data`` with the hole cells ``rows``, ``cols`` set ring by ring, from the rim inwards, to the mean of their
     already known 3 x 3 neighbours: a fill between the rim's lowest and highest values, which no noise on the rim
-    can make overshoot (inpainting that extrapolates the rim's gradients does, by metres on a noisy DSM)."""
-    known = (~np.isnan(data)).astype(np.float32)
-    values = np.where(known > 0, data, np.float32(0.0))
-    todo = fill.copy()
-    while todo.any():
-        den = cv2.blur(known, (3, 3), borderType=cv2.BORDER_CONSTANT)
-        ring = todo & (den > 0)
+    can make overshoot (inpainting that extrapolates the rim's gradients does, by metres on a noisy DSM).
+
+    Only the hole cells are visited (their neighbours gathered by index, every hole at once), so a DSM with
+    thousands of small holes costs a few passes over its hole cells, not one pass over the whole raster per ring:
+    the earlier whole-raster box filters took 39 s instead of 2.6 s on a DSM with ~1,400 holes."""
+    h, w = data.shape
+    out = data.copy()
+    while rows.size:
+        num, den = np.zeros(rows.size), np.zeros(rows.size)
+        for dr, dc in _NEIGHBOURS:
+            r, c = rows + dr, cols + dc
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            v = np.full(rows.size, np.nan)
+            v[inside] = out[r[inside], c[inside]]
+            known = np.isfinite(v)
+            num[known] += v[known]
+            den += known
+        ring = den > 0
         if not ring.any():  # nothing known next to what is left (cannot happen for a hole with a rim)
             break
-        num = cv2.blur(values, (3, 3), borderType=cv2.BORDER_CONSTANT)
-        values[ring] = num[ring] / den[ring]
-        known[ring] = 1.0
-        todo &= ~ring
-    return np.where(fill & ~todo, values, data)
+        out[rows[ring], cols[ring]] = num[ring] / den[ring]  # the whole ring at once, from the cells known before
+        rows, cols = rows[~ring], cols[~ring]
+    return out
 
 
 def soil_level(surface: Surface, ground: Surface) -> SoilLevel:
@@ -122,6 +149,7 @@ class SoilSurface(Surface):
     def __post_init__(self):
         super().__post_init__()
         self._lifted: dict[float, tuple[Surface, SoilLevel]] = {}
+        self.holes = Holes()  # the holes left unfilled (soil_surface)
 
     def ground(self, window: float) -> Surface:
         if window not in self._lifted:

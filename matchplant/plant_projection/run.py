@@ -20,6 +20,7 @@ import pandas as pd
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.formats.split_check import check_split
+from matchplant.core.geometry.surface import NODATA, STATUS_TEXT
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
@@ -64,6 +65,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     views, rejected = project_predictions(project, preds, ProjectionSettings.from_config(cfg))
     low = rejected["reason"] == "score below min_score"
     failed = rejected[~low]
+    lost_in_holes(failed, len(preds["predictions"]) - int(low.sum()), views.dsm_holes, cfg, out)
     if not len(views.table):
         out.mkdir(parents=True, exist_ok=True)
         report = write_table(failed, out / "unprojected_boxes.csv")  # the why, kept although the run fails
@@ -109,6 +111,36 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
         log.info("%d detections scored below min_score=%.2f and were left out", int(low.sum()), cfg.min_score)
     log.info("plants: %s", " and ".join(str(written[k]) for k in (*cfg.vector_formats, "csv")))
     return summary
+
+
+MOST_LOST = 0.5  # more than this share of the boxes lost in DSM holes is an error, not a warning
+
+
+def lost_in_holes(failed: pd.DataFrame, boxes: int, holes: dict, cfg: PlantProjectionConfig, out: Path) -> None:
+    """Boxes lost because their rays meet the ground in DSM holes larger than ``fill_holes``: a warning naming the
+    DSM, the key, the largest hole and the fix; an error (with ``unprojected_boxes.csv``) when they are most of
+    the boxes."""
+    lost = int((failed["reason"] == STATUS_TEXT[NODATA]).sum())
+    if not lost:
+        return
+    with_holes = {Path(p): h for p, h in holes.items() if h.count}
+    largest = max((h.largest for h in with_holes.values()), default=0.0)
+    where = ", ".join(f"{p} ({h.count} hole(s), the largest {h.largest:.2f} m across)" for p, h in with_holes.items())
+    problem = (
+        f"{lost} of {boxes} boxes lost: their rays meet the ground in DSM holes (nodata) larger than fill_holes = "
+        f"{cfg.fill_holes:g} m, which are left unfilled: {where or 'the DSM'}"
+    )
+    fix = (
+        f"set fill_holes: {np.ceil(largest * 10) / 10:g} (metres) to fill holes up to the largest from their rims "
+        "(right where the ground under them is like the rim's), or fill the DSM's holes in ODM (a denser point "
+        "cloud, --dem-gapfill-steps) and re-run"
+    )
+    dsm = next(iter(with_holes), Path(cfg.dsm) if cfg.dsm is not None else None)
+    if lost > MOST_LOST * boxes:
+        out.mkdir(parents=True, exist_ok=True)
+        report = write_table(failed, out / "unprojected_boxes.csv")  # the why, kept although the run fails
+        raise InputError(f"{problem}; each box's reason is in {report}", path=dsm, fix=fix)
+    log.warning("%s; %s", problem, fix)
 
 
 def unknown_images(failed: pd.DataFrame) -> str:

@@ -8,7 +8,7 @@ edge is no plant edge.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
 
@@ -24,6 +24,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.core.runtime.validate import did_you_mean, match_names
 from matchplant.plant_projection.dsm import DsmSurfaces, ray_bounds
+from matchplant.plant_projection.dsm_noise import Holes
 from matchplant.plant_projection.geometry import project_boxes
 from matchplant.plant_projection.settings import ProjectionSettings
 
@@ -56,6 +57,7 @@ class ProjectedViews:
     rows: np.ndarray  # view i's row in points and origins
     crs: object
     soil_spread: float = 0.0  # metres: the DSM's noise on bare soil (dsm_noise.soil_level), 0 on an exact DSM
+    dsm_holes: dict = field(default_factory=dict)  # DSM path -> its holes left unfilled (dsm_noise.Holes)
 
     def outlines(self, views: np.ndarray | None = None) -> np.ndarray:
         """Outline points (N, P, 3) of the views ``views`` (indices into the table; None: all)."""
@@ -379,6 +381,7 @@ class _Projection:
         self.cut_edges = _cut(boxes.xyxy, shots.size, boxes.tile, settings.border_pixels)
         self.res = _Results(len(boxes.xyxy), settings.edge_points, order)
         self.soil_spread = 0.0  # metres: the largest spread of the bare soil measured on the DSMs (dsm_noise)
+        self.dsm_holes: dict[Path, Holes] = {}
 
     def on_own_dsms(self, project: ODMProject) -> list[Path]:
         """Every group onto its DSM, one DSM at a time (a split project: one per submodel, read by window);
@@ -432,6 +435,7 @@ class _Projection:
             )
             self.res.store(idx, r, self.reason)
         self.soil_spread = max(self.soil_spread, surfaces.report())
+        self.dsm_holes[path] = surfaces.holes()
 
     def assemble(self, cols: dict[str, np.ndarray]) -> tuple[ProjectedViews, pd.DataFrame]:
         """The projected views and the rejected boxes, from the box table's columns and the results."""
@@ -441,7 +445,10 @@ class _Projection:
         rejected = table.loc[~done, list(REJECTED_COLUMNS)].reset_index(drop=True)
         views = (table if done.all() else table[done]).drop(columns=["reason", "hint"]).reset_index(drop=True)
         res = self.res
-        return ProjectedViews(views, res.points, res.origins, res.row[done], self.crs, self.soil_spread), rejected
+        return (
+            ProjectedViews(views, res.points, res.origins, res.row[done], self.crs, self.soil_spread, self.dsm_holes),
+            rejected,
+        )
 
 
 REJECTED_COLUMNS = (

@@ -27,8 +27,10 @@ from matchplant.core.runtime.manifest import previous_files, remove_stale, write
 from matchplant.spatial_stat_extractor.canopy.memory import gdal_cache_bytes, memory_report, memory_stage
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.inputs.elevation import check_elevation
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons, with_crs
 from matchplant.spatial_stat_extractor.inputs.rasters import raster_crs
+from matchplant.spatial_stat_extractor.plots.layout import check_plot_file
 from matchplant.spatial_stat_extractor.plots.table import plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
 from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
@@ -49,6 +51,9 @@ def extract_and_write(cfg: SpatialStatExtractorConfig, on_progress: Callable[[fl
 def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress):
     out = Path(cfg.output_dir)
     sets = cfg.date_sets()
+    check_elevation(sets)  # a CHM in feet or of one value: named before any work
+    if plots_wanted(cfg.plots):
+        check_plot_file(cfg.plots)
     polygons = read_polygons(cfg.polygons, cfg.id_column, cfg.layer, cfg.polygons_crs, cfg.boxes_image)
     if polygons.crs is None:
         polygons = with_crs(polygons, *raster_crs(sets))

@@ -44,6 +44,7 @@ from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MEMORY
 from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
 from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
+from matchplant.spatial_stat_extractor.inputs.elevation import chm_keys
 from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
 from matchplant.spatial_stat_extractor.zonal.table import polygons_in
 
@@ -76,12 +77,6 @@ def settings_from(cfg: CanopyConfig, th: Thresholds | None = None) -> SegmentSet
     )
 
 
-def chm_keys(rs: RasterSet, first: bool) -> tuple[str, ...]:
-    """The config keys of a date's CHM, for messages."""
-    where = "rasters" if first else f"more_dates (date '{rs.date}')"
-    return (f"{where}.chm",) if rs.chm is not None else (f"{where}.dsm", f"{where}.dtm")
-
-
 def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool, entry: dict, ndvi=None) -> Thresholds:
     """The CHM's ground noise measured (and ``ndvi``'s, a layer on the CHM's grid), the canopy thresholds
     resolved from it, the CHM checked; logged and reported in ``entry``."""
@@ -92,7 +87,7 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
     if noise.measured:
         log.info(
             "date '%s': CHM ground noise p50 %.3f m, p95 %.3f m, SD %.3f m (%d pixels between the plants%s, "
-            "%d windows)",
+            "%d windows; %s)",
             rs.date,
             noise.p50,
             noise.p95,
@@ -100,6 +95,7 @@ def resolve_thresholds(chm, geoms, cfg: CanopyConfig, rs: RasterSet, first: bool
             noise.pixels,
             "" if noise.guarded else f", just outside the boxes: none lies {cfg.margin + GUARD:g} m from every box",
             noise.windows,
+            noise.excluded_text(),
         )
     else:
         log.warning(

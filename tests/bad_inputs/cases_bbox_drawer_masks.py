@@ -126,6 +126,25 @@ def threshold_with_instance_mode(w: Work) -> list[str]:
     )
 
 
+def large_ids(w: Work) -> list[str]:
+    """The truth's instance masks with ids from 1001 (16-bit, as some tools number them): every id lies within
+    4 % of the top value, which the mode test read as one binary foreground (touching plants merged)."""
+    folder = w.inputs / "masks"
+    folder.mkdir()
+    for photo, ids in _instances(w).items():
+        cv2.imwrite(str(folder / f"{photo}.png"), np.where(ids > 0, ids.astype(np.uint16) + 1000, 0).astype(np.uint16))
+    return args(w, w.copy(IMAGES, "images"), f"import_masks={folder}", "mask_min_area=1")
+
+
+def threshold_above_values(w: Work) -> list[str]:
+    """Anti-aliased binary masks (values 0-255) with mask_threshold 300: no pixel reaches it."""
+    folder = w.inputs / "masks"
+    folder.mkdir()
+    for photo, ids in _instances(w).items():
+        cv2.imwrite(str(folder / f"{Path(photo).stem}.png"), _antialiased(ids))
+    return args(w, w.copy(IMAGES, "images"), f"import_masks={folder}", "mask_threshold=300")
+
+
 def deepforest_csv(w: Work, label: str = "Tree") -> Path:
     t = truth(w)
     names = {im["id"]: im["file_name"] for im in t["images"]}
@@ -195,6 +214,13 @@ CASES = [
         "bbox_drawer",
         threshold_with_instance_mode,
         mentions=("mask_threshold", "mask_mode"),
+    ),
+    Case("m4-masks-16bit-large-ids", "bbox_drawer", large_ids, expect="ok", check=one_box_per_plant),
+    Case(
+        "m4-mask-threshold-above-values",
+        "bbox_drawer",
+        threshold_above_values,
+        mentions=("mask_threshold = 300", "255", "masks"),
     ),
     Case(
         "m4-deepforest-labels-not-categories",

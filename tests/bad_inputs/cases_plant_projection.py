@@ -206,6 +206,30 @@ def rerun_replaced(w: Work) -> None:
     assert (w.out / "notes.txt").read_text() == "mine\n"
 
 
+def dsm_hole(x0: float, x1: float):
+    """A case preparer: the project with a nodata hole over the columns ``x0``-``x1`` (shares of the DSM's width)
+    and the middle four fifths of its rows, far larger than fill_holes (a field's flooded corner, a failed
+    match over low texture)."""
+
+    def prepare(w: Work) -> list[str]:
+        proj = project(w)
+        with rasterio.open(proj / DSM) as src:
+            z = src.read(1)
+        h, wd = z.shape
+        z[h // 10 : h - h // 10, int(x0 * wd) : int(x1 * wd)] = -9999
+        rewrite_raster(proj / DSM, data=z, nodata=-9999)
+        return args(w, proj, w.copy("predictions.json"))
+
+    return prepare
+
+
+def lost_to_the_hole(w: Work) -> None:
+    """Boxes lost in the hole are listed with their reason, the others projected."""
+    left = rows(w.out / "unprojected_boxes.csv")
+    assert left and all("nodata" in r["reason"] for r in left), left
+    assert len(rows(w.out / "plants.csv")) > len(left) / 4
+
+
 def one_image_reported(w: Work) -> None:
     on_third = sum(p["image_id"] == preds(w)["images"][2]["id"] for p in preds(w)["predictions"])
     left = rows(w.out / "unprojected_boxes.csv")
@@ -248,6 +272,14 @@ CASES = [
         mentions=("dsm.tif", "CRS"),
     ),
     Case("m8-dsm-key-all-nodata", "plant_projection", dsm_key_empty, mentions=("dsm_filled.tif", "'dsm'")),
+    Case(
+        "m8-dsm-hole-over-most-plants",
+        "plant_projection",
+        dsm_hole(0.05, 0.95),
+        mentions=("dsm.tif", "fill_holes = 0.1 m", "m across", "set fill_holes", "--dem-gapfill-steps"),
+        outputs_allowed=REPORT,
+    ),
+    Case("m8-dsm-hole-over-some-plants", "plant_projection", dsm_hole(0.4, 0.55), expect="ok", check=lost_to_the_hole),
     Case(
         "m8-dsm-of-another-field",
         "plant_projection",

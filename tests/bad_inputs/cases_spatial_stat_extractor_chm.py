@@ -8,7 +8,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pyproj
 import rasterio
+import rasterio.crs
 from affine import Affine
 from cases_odm_runner import DSM
 from cases_spatial_stat_extractor import DTM, args, gpkg, heights_right, rows
@@ -112,6 +114,31 @@ def noisy_right(w: Work) -> None:
     heights_right(w, tol=0.2)  # box maxima of the noisy CHM, recomputed from the clean one within the noise
 
 
+def chm_in_feet(w: Work, vertical: bool) -> list[str]:
+    """The CHM in US survey feet as its CRS says: heights in a NAVD88 (ftUS) vertical CRS, or the whole grid in a
+    UTM projection in ftUS (coordinates and heights)."""
+    chm, profile = chm_of(w)
+    ft = 0.3048006096012192
+    data = np.where(chm == -9999, -9999, chm / ft)
+    epsg = rasterio.crs.CRS(profile["crs"]).to_epsg()
+    if vertical:
+        crs, transform, name = rasterio.crs.CRS.from_user_input(f"EPSG:{epsg}+6360"), profile["transform"], "v"
+    else:
+        proj4 = pyproj.CRS.from_epsg(epsg).to_proj4().replace("+units=m", "+units=us-ft")
+        crs, transform, name = rasterio.crs.CRS.from_proj4(proj4), Affine.scale(1 / ft) @ profile["transform"], "h"
+    path = w.inputs / f"chm_ftUS_{name}.tif"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(path, "w", **dict(profile, crs=crs, transform=transform)) as out:
+        out.write(data.astype(profile["dtype"]), 1)
+    return chm_args(w, path)
+
+
+def dsm_as_dtm(w: Work) -> list[str]:
+    """The DSM given as the DTM too (a copy): a CHM of zeros everywhere."""
+    dsm = w.copy("field/" + DSM)
+    return args(w, gpkg(w), dsm=dsm, dtm=w.copy("field/" + DSM, "dtm.tif"))
+
+
 CASES = [
     Case(
         "m9-dsm-dtm-swapped",
@@ -151,4 +178,28 @@ CASES = [
         check=registered_right,
     ),
     Case("m9-noisy-chm-default-thresholds", "spatial_stat_extractor", noisy, expect="ok", check=noisy_right),
+    Case(
+        "m9-chm-all-zeros",
+        "spatial_stat_extractor",
+        lambda w: chm_args(w, chm_file(w, "chm_zero.tif", scale=0.0)),
+        mentions=("chm_zero.tif", "0 everywhere", "rasters.chm", "'low'"),
+    ),
+    Case(
+        "m9-dsm-given-as-dtm",
+        "spatial_stat_extractor",
+        dsm_as_dtm,
+        mentions=("dtm.tif", "everywhere", "rasters.dsm", "rasters.dtm", "same surface"),
+    ),
+    Case(
+        "m9-chm-vertical-us-feet",
+        "spatial_stat_extractor",
+        lambda w: chm_in_feet(w, vertical=True),
+        mentions=("chm_ftUS_v.tif", "rasters.chm", "US survey foot", "0.3048"),
+    ),
+    Case(
+        "m9-chm-grid-in-us-feet",
+        "spatial_stat_extractor",
+        lambda w: chm_in_feet(w, vertical=False),
+        mentions=("chm_ftUS_h.tif", "rasters.chm", "US survey foot", "gdalwarp"),
+    ),
 ]

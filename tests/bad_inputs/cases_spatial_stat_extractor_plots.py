@@ -167,6 +167,15 @@ def hand_drawn_overlapping(w: Work) -> list[str]:
     return args(w, gpkg(w), f"plots.polygons={path}", f"plots.plant_spacing={grid(w)['plant_spacing']}")
 
 
+def zero_row_directions(w: Work) -> list[str]:
+    """A plot file whose row_dir_x/row_dir_y columns are all 0 (a template filled with zeros): ignored without a
+    word before."""
+    path = plots_file(w, truth_geoms(w), truth_plots(w)["plot_id"].tolist(), "plots zero dirs.gpkg")
+    g = gpd.read_file(path).assign(row_dir_x=0.0, row_dir_y=0.0)
+    g.to_file(path, driver="GPKG")
+    return args(w, gpkg(w), f"plots.polygons={path}", f"plots.plant_spacing={grid(w)['plant_spacing']}")
+
+
 def own_plots_read_back(w: Work) -> list[str]:
     first = w.root / "first run"
     a = grid_args(w)
@@ -299,5 +308,11 @@ CASES = [
             w, None, f"plots.polygons={plots_file(w, truth_geoms(w), truth_plots(w)['plot_id'].tolist(), 'p.gpkg')}"
         ),
         mentions=("plots.polygons", "plots.corners"),
+    ),
+    Case(
+        "m9-plots-zero-row-directions",
+        "spatial_stat_extractor",
+        zero_row_directions,
+        mentions=("plots zero dirs.gpkg", "row_dir_x/row_dir_y", "zero vector", "plots.row_direction"),
     ),
 ]

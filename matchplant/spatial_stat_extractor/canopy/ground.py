@@ -23,8 +23,8 @@ With an NDVI layer on the CHM's grid (``canopy.ndvi_threshold: auto``), the same
 NDVI (the ground sample's pixels) and the NDVI at each sampled plant's top. A pixel is soil below the soil's
 p50 + 3 SD (the same robust spread; at least p50 + 0.05, at most halfway to the tops' median, so that a weak,
 pale plant keeps its leaves), used when that separates the two populations (at least 90 % of the soil below
-it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM). A
-photogrammetric CHM cannot tell a leaf's low edge from a ground
+it and 75 % of the tops above it; not so on a closed canopy, or an NDVI raster shifted against the CHM).
+A photogrammetric CHM cannot tell a leaf's low edge from a ground
 bump of the same height (both a few SD of the noise), but NDVI can: with leaves told from soil by NDVI the
 CHM thresholds drop to ``min_height`` = p50 + 1 SD and ``min_top`` = p50 + 2 SD (a box's top must then also
 be a leaf, so a bump under a false box still does not make a plant), and so does the top of a canopy no box
@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
+from scipy import ndimage as ndi
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 
@@ -56,6 +57,8 @@ MAX_WINDOWS = 32
 MIN_WINDOWS = 4
 MAX_HALF = 256  # px: half the side of a sample window
 GROUND_PER_WINDOW = 20000  # ground values kept per window (evenly strided)
+K_EDGE, K_TALL = 3.0, 8.0  # lower spreads above the ground's mode: a tall region's edge, and the top it must reach
+MIN_SPREAD = 0.002  # m: the least lower spread (an exact CHM's ground has none; its leaves are still not ground)
 
 
 @dataclass
@@ -75,6 +78,9 @@ class GroundSample:
     ndvi_soil: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI of the ground sample
     ndvi_tops: np.ndarray = field(default_factory=lambda: np.zeros(0))  # NDVI at each sampled box's top
     guarded: bool = True  # the sample keeps the guard from the boxes (False: the plants stand too close)
+    excluded: float = 0.0  # share of the pixels between the plants taken out as tall things no box covers
+    excluded_above: float = np.nan  # m: the level they were above (the lowest edge level of a window)
+    excluded_heights: np.ndarray = field(default_factory=lambda: np.zeros(0))  # a sample of their heights
 
     @property
     def measured(self) -> bool:
@@ -84,7 +90,25 @@ class GroundSample:
         r = {"ground_pixels": self.pixels, "windows": self.windows, "guarded": self.guarded}
         if self.measured:
             r.update(p50=round(self.p50, 4), p95=round(self.p95, 4), p99=round(self.p99, 4), sd=round(self.sd, 4))
+        r["excluded_tall"] = round(self.excluded, 4)
+        if self.excluded_heights.size:
+            h = self.excluded_heights
+            r.update(
+                excluded_above=round(self.excluded_above, 4),
+                excluded_median=round(float(np.median(h)), 3),
+                excluded_max=round(float(h.max()), 3),
+            )
         return r
+
+    def excluded_text(self) -> str:
+        """What was taken out of the sample, for the log."""
+        if not self.excluded_heights.size:
+            return "nothing tall left out"
+        h = self.excluded_heights
+        return (
+            f"{self.excluded:.1%} of the pixels left out as tall things no box covers (trees, buildings, "
+            f"missed plants: above {self.excluded_above:.3f} m, median {np.median(h):.2f} m, highest {h.max():.2f} m)"
+        )
 
 
 @dataclass
@@ -153,6 +177,7 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     # pixels outside every box are the sample (a few leaf edges a box cut short widen its tail, which
     # robust_sd caps), better than no measurement and the fixed thresholds of an exact CHM
     near_ground, near_ndvi = [], []
+    tall_seen = {True: _Tall(), False: _Tall()}  # what was left out of each sample (guarded, just outside)
     outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])], axis=1).astype(
         np.int64
     )
@@ -166,13 +191,19 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
         off = np.array([C0, R0, C0, R0])
         free = ~_covered(W.shape, guarded[near] - off) & np.isfinite(W)
         outside = ~_covered(W.shape, outer[near] - off) & np.isfinite(W)
+        tall, edge = tall_regions(W, outside)
         N = None if ndvi is None else np.asarray(ndvi.read(R0, R1, C0, C1), dtype=float)
-        for mask, values, ndvis in ((free, ground, soil_ndvi), (outside, near_ground, near_ndvi)):
-            v = W[mask]
+        for mask, values, ndvis, left in (
+            (free, ground, soil_ndvi, tall_seen[True]),
+            (outside, near_ground, near_ndvi, tall_seen[False]),
+        ):
+            kept = mask & ~tall
+            v = W[kept]
             step = max(1, v.size // GROUND_PER_WINDOW)
             values.append(v[::step])
             if N is not None:
-                ndvis.append(N[mask][::step])
+                ndvis.append(N[kept][::step])
+            left.add(W[mask & tall], step, edge)
         whole = (
             near
             & ~seen
@@ -199,20 +230,89 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     guarded = v.size >= MIN_GROUND
     if not guarded:
         v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
+    left = tall_seen[guarded]
+    soil = np.concatenate(soil_ndvi) if soil_ndvi else np.zeros(0)
+    if v.size >= MIN_GROUND:  # a window whose mode was a roof: far above the whole sample's ground
+        m, spread = ground_mode(v)
+        high = v > m + K_TALL * spread
+        if high.any():
+            left.add(v[high], 1, m + K_TALL * spread)
+            v = v[~high]
+            soil = soil[~high] if soil.size == high.size else soil
     out = GroundSample(
         pixels=int(v.size),
         windows=len(picks),
         box_max=np.array(tops),
         box_min=np.array(lows),
-        ndvi_soil=_finite(soil_ndvi),
+        ndvi_soil=_finite([soil]),
         ndvi_tops=_finite([np.array(top_ndvi)]),
         guarded=guarded,
     )
+    if left.count:
+        out.excluded = left.count / (left.count + v.size)
+        out.excluded_above = left.above
+        out.excluded_heights = np.concatenate(left.heights)
     if v.size >= MIN_GROUND:
         p50, p95, p99 = np.percentile(v, [50, 95, 99])
         out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
         out.sd = robust_sd(v, p50)
     return out
+
+
+class _Tall:
+    """What was left out of one sample: a count on the sample's scale (each window's pixels over its stride),
+    a sample of the heights, the lowest level they were above."""
+
+    def __init__(self):
+        self.count, self.heights, self.above = 0.0, [], np.inf
+
+    def add(self, values: np.ndarray, step: int, level: float) -> None:
+        if values.size:
+            self.count += values.size / step
+            self.heights.append(values[:: max(1, values.size // 2000)])
+            self.above = min(self.above, level)
+
+
+def half_sample_mode(x: np.ndarray) -> float:
+    """The densest point of ``x`` (Bickel's half-sample mode: the shortest half, recursively), robust to any
+    population less dense than the main one, however far away or large."""
+    x = np.sort(x[np.isfinite(x)])
+    while x.size > 3:
+        h = (x.size + 1) // 2
+        i = int(np.argmin(x[h - 1 :] - x[: x.size - h + 1]))
+        x = x[i : i + h]
+    return float(np.mean(x)) if x.size else np.nan
+
+
+def ground_mode(v: np.ndarray) -> tuple[float, float]:
+    """The ground's level (the densest mode of ``v``) and its spread below it (1.4826 x the median distance
+    below the mode, at least ``MIN_SPREAD``): what lies above the ground does not reach down there."""
+    v = v[np.isfinite(v)]
+    step = max(1, v.size // GROUND_PER_WINDOW)
+    m = half_sample_mode(v[::step])
+    below = m - v[v < m]
+    spread = 1.4826 * float(np.median(below)) if below.size else 0.0
+    return m, max(spread, MIN_SPREAD)
+
+
+MIN_OUTSIDE = 200  # pixels outside the boxes a window needs to find its ground's mode
+
+
+def tall_regions(W: np.ndarray, outside: np.ndarray) -> tuple[np.ndarray, float]:
+    """The pixels of tall things no box covers in one window (module doc): connected regions outside the boxes
+    above the ground's mode + ``K_EDGE`` lower spreads that reach the mode + ``K_TALL``; and the edge level."""
+    none = np.zeros(W.shape, bool)
+    if outside.sum() < MIN_OUTSIDE:
+        return none, np.nan
+    m, spread = ground_mode(W[outside])
+    edge = m + K_EDGE * spread
+    above = outside & (W > edge)
+    seeds = above & (W > m + K_TALL * spread)
+    if not seeds.any():
+        return none, edge
+    labels, _ = ndi.label(above)
+    hit = np.unique(labels[seeds])
+    return np.isin(labels, hit[hit > 0]), edge
 
 
 TAIL_CAP = 3.0  # the upper-tail spread is at most this many MAD spreads: beyond, the tail is canopy, not noise

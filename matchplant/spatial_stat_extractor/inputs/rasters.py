@@ -31,6 +31,7 @@ from matchplant.spatial_stat_extractor.inputs.bands import (
     file_name,
     pick_band,
 )
+from matchplant.spatial_stat_extractor.inputs.elevation import not_metres
 from matchplant.spatial_stat_extractor.inputs.indices import FormulaSource, parse_formula
 from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.sources import (
@@ -56,14 +57,15 @@ def _open(path: Path, stack: contextlib.ExitStack, metric_crs=None, warp: bool =
         ds = stack.enter_context(rasterio.open(path))
     except rasterio.errors.RasterioIOError as exc:
         raise InputError(f"cannot read the raster: {exc}", path=path, fix="give a GeoTIFF") from exc
-    if warp and ds.crs is not None and ds.crs.is_geographic:
+    if warp and ds.crs is not None and (ds.crs.is_geographic or not_metres(ds.crs)):
         return _in_metres(ds, stack, metric_crs)
     return ds
 
 
 def _in_metres(ds, stack: contextlib.ExitStack, metric_crs=None):
-    """A raster in degrees warped (nearest neighbour, its own resolution) onto a metric grid."""
-    if metric_crs is not None and not getattr(metric_crs, "is_projected", False):
+    """A raster in degrees (or a projected CRS in feet: its values are not heights, checked apart) warped
+    (nearest neighbour, its own resolution) onto a metric grid."""
+    if metric_crs is not None and (not getattr(metric_crs, "is_projected", False) or not_metres(metric_crs)):
         metric_crs = None
     if metric_crs is None:
         west, south, east, north = transform_bounds(ds.crs, "EPSG:4326", *ds.bounds)
@@ -77,9 +79,10 @@ def _in_metres(ds, stack: contextlib.ExitStack, metric_crs=None):
     if key not in _warned:
         _warned.add(key)
         log.info(
-            "%s is in degrees (%s); read on a %.3g m grid in %s (nearest neighbour), so that areas and "
+            "%s is in %s (%s); read on a %.3g m grid in %s (nearest neighbour), so that areas and "
             "distances are in metres",
             Path(ds.name).name,
+            "degrees" if ds.crs.is_geographic else not_metres(ds.crs),
             ds.crs.to_string(),
             abs(vrt.transform.a),
             pyproj_crs(target).name,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import geopandas as gpd
 import numpy as np
+import pandas as pd
 import shapely
 from pyproj import CRS, Transformer
 
@@ -154,20 +155,71 @@ def read_plots(cfg: PlotsConfig, crs=None, pts: np.ndarray | None = None) -> gpd
         )
         g = g.to_crs(crs)
     g = g.set_geometry(_polygonal(np.asarray(g.geometry.values), g["plot_id"], cfg.polygons))
-    n = len(g)
-    own = np.full((n, 2), np.nan)
-    if {"row_dir_x", "row_dir_y"} <= set(g.columns):
-        own = np.array(g[["row_dir_x", "row_dir_y"]], dtype=float)
-        good = np.isfinite(own).all(axis=1) & (np.hypot(*own.T) > 0.5)
-        own[~good] = np.nan
-        if good.any() and cfg.row_direction is None:
-            log.info("plots: row direction of %d plots from the file's row_dir_x/row_dir_y columns", int(good.sum()))
+    own = file_row_directions(g, cfg)
     if cfg.row_direction is not None:
         given = bearing_to_vector(cfg.row_direction)
         if np.isfinite(own).all(axis=1).any():
             log.info("plots.row_direction = %g overrides the file's row_dir_x/row_dir_y", cfg.row_direction)
         own[:] = canonical(given)
     return g.assign(row_dir_x=own[:, 0], row_dir_y=own[:, 1])
+
+
+ROW_DIR = ("row_dir_x", "row_dir_y")
+
+
+def check_plot_file(cfg: PlotsConfig) -> None:
+    """The plot file's errors that can be known before any work (:func:`file_row_directions`; warnings wait for
+    the plots themselves)."""
+    if cfg.polygons is not None:
+        g = read_polygons(cfg.polygons, cfg.id_column).rename(columns={"plant_id": "plot_id"})
+        file_row_directions(g, cfg, warn=False)
+
+
+def file_row_directions(g: gpd.GeoDataFrame, cfg: PlotsConfig, warn: bool = True) -> np.ndarray:
+    """(n, 2) each plot's row direction from the plot file's ``row_dir_x``/``row_dir_y`` columns (a unit vector,
+    east and north), NaN where the file has none (empty: found from the plants). Values present but unusable
+    (zero vectors, text, one column of the two) were ignored without a word: a warning naming the file, the
+    columns and the plots; an error when every value given is unusable (and ``plots.row_direction`` is not set)."""
+    n = len(g)
+    own = np.full((n, 2), np.nan)
+    have = [c for c in ROW_DIR if c in g.columns]
+    if not have:
+        return own
+    raw = np.stack([pd.to_numeric(g[c], errors="coerce").to_numpy(float) for c in have], axis=1)
+    filled = np.stack([g[c].notna().to_numpy() & (g[c].astype(str).str.strip() != "") for c in have], axis=1)
+    given = filled.any(axis=1)
+    if len(have) == 1:
+        bad, why = given, f"only {have[0]} is in the file, not {({*ROW_DIR} - {*have}).pop()}"
+    else:
+        norm = np.hypot(raw[:, 0], raw[:, 1])
+        good = np.isfinite(raw).all(axis=1) & (norm > 1e-6)
+        own[good] = raw[good] / norm[good, None]  # a direction: its length does not matter
+        bad = given & ~good
+        kinds = {
+            "text where a number belongs": (filled & ~np.isfinite(raw)).any(axis=1),
+            "a zero vector": np.isfinite(raw).all(axis=1) & (norm <= 1e-6),
+            "one component empty": filled.sum(axis=1) == 1,
+        }
+        why = ", ".join(f"{k} in {int((v & bad).sum())}" for k, v in kinds.items() if (v & bad).any())
+    used = int(np.isfinite(own[:, 0]).sum())
+    if not bad.any() or cfg.row_direction is not None:  # (plots.row_direction overrides the columns anyway)
+        if used and cfg.row_direction is None and warn:
+            log.info("plots: row direction of %d plots from the file's row_dir_x/row_dir_y columns", used)
+        return own
+    ids = g["plot_id"].to_numpy()[bad][:5].tolist()
+    what = (
+        f"plots.polygons {cfg.polygons}: the row direction columns {'/'.join(have)} of {int(bad.sum())} of {n} "
+        f"plots cannot be used ({why}; e.g. plots {ids})"
+    )
+    fix = (
+        "give each plot's row direction as a unit vector (row_dir_x east, row_dir_y north, e.g. 0 and 1 for rows "
+        "running north), leave them empty (found from the plants), or set plots.row_direction (degrees from north)"
+    )
+    if not used:  # every value given is unusable: the file meant something no plot gets
+        raise InputError(what, path=cfg.polygons, fix=fix)
+    if warn:
+        log.warning("%s: the row direction of those plots is found from their plants; %s", what, fix)
+    return own
 
 
 def check_overlaps(plots: gpd.GeoDataFrame, cfg: PlotsConfig) -> None:
