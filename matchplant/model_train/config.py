@@ -118,7 +118,13 @@ class ModelTrainConfig:
     )
     val_every: int = param(1, "validate every N epochs (and always after the last)", min=1)
     best_metric: str = param("AP50", "validation metric that picks best.pt", choices=("AP50", "AP"))
-    save_every: int = param(5, "also keep checkpoints/epoch_NNN.pt every N epochs (0 = only last and best)", min=0)
+    save_every: int | Literal["auto"] = param(
+        "auto",
+        "also keep checkpoints/epoch_NNN.pt every N epochs, all of them (0 = only last and best); auto: every 5 "
+        "epochs, and only the last 3 of them when max_minutes sets the run's length (a budget of epochs: 1000 "
+        "would fill the disk)",
+        min=0,
+    )
     device: str = param("auto", "auto picks CUDA, then Apple MPS, then CPU; or cpu, cuda, cuda:N, mps")
     amp: bool = param(True, "mixed precision on CUDA GPUs (faster, less memory); ignored elsewhere")
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
