@@ -134,3 +134,24 @@ class ModelTrainConfig:
             raise ConfigError(
                 f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto"
             )
+        self.check_crop()
+
+    def check_crop(self) -> None:
+        """A setting never silently changes another: a crop larger than the detector's input would raise the
+        input itself (each window padded with black up to crop x crop), and crop_on_plant without crops does
+        nothing."""
+        crop, side = self.augment.crop, self.model.min_size
+        if crop and crop > side:
+            raise ConfigError(
+                f"augment.crop ({crop}) is larger than the detector's input (model.min_size = {side} px on the "
+                f"short side): every training window would be padded with black to {crop} x {crop} px, "
+                f"{(crop / side) ** 2:.0f}x the pixels of a {side} px input (as much slower, as much more memory), "
+                "while detection sees the tiles at their own size",
+                fix=f"set augment.crop to at most {side} (or 0 to train on whole tiles), or raise model.min_size",
+            )
+        if crop == 0 and self.augment.crop_on_plant > 0:
+            raise ConfigError(
+                f"augment.crop_on_plant ({self.augment.crop_on_plant:g}) has no effect with augment.crop: 0 "
+                "(training on whole tiles)",
+                fix="set augment.crop (e.g. 256, or null for auto) to train on crops, or augment.crop_on_plant: 0",
+            )
