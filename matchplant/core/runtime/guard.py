@@ -136,7 +136,8 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
             break
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
-        what = "is a file" if probe == folder else f"cannot be created: {probe} is a file"
+        kind = "a file" if probe.is_file() else "not a folder (a device, FIFO or socket)"
+        what = f"is {kind}" if probe == folder else f"cannot be created: {probe} is {kind}"
         raise OutputError(
             f"output folder '{key}' ({folder}) {what}",
             path=probe,
