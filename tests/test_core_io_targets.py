@@ -27,8 +27,10 @@ def _is_chr(path) -> bool:
 def test_regular_file_is_replaced_whole(tmp_path):
     p = tmp_path / "a.txt"
     p.write_text("old")
+    os.chmod(p, 0o640)
     write_text(p, "new")
     assert p.read_text() == "new" and not p.is_symlink()
+    assert os.name != "posix" or stat.S_IMODE(os.stat(p).st_mode) == 0o640  # its permissions kept
     assert sorted(f.name for f in tmp_path.iterdir()) == ["a.txt"]  # no temporary left
 
 

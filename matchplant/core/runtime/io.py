@@ -171,6 +171,8 @@ def place(tmp: str | Path, path: str | Path) -> Path:
         finally:
             tmp.unlink(missing_ok=True)
         return target
+    with contextlib.suppress(OSError):  # the replaced file's permissions stay (a private config stays private)
+        os.chmod(tmp, stat.S_IMODE(os.stat(target).st_mode))
     try:
         os.replace(tmp, target)
     except OSError as exc:
