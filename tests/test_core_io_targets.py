@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import os
 import stat
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import pytest
 import yaml
@@ -198,3 +201,21 @@ def test_staged_outputs_refuse_what_they_do_not_own(tmp_path):
         assert (out / "a.txt").read_text() == "old a" and elsewhere.read_text() == "user"
     assert (out / "b.txt").is_symlink() and stat.S_ISFIFO(os.stat(out / "c.txt").st_mode)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file_out", "link_out", "out", "user.txt"]
+
+
+@needs_posix
+@pytest.mark.skipif(not os.path.exists("/dev/stdout"), reason="no /dev/stdout")
+def test_dev_stdout_appended_to_a_redirected_file(tmp_path):
+    """``... --write-config /dev/stdout >> log``: the text follows what was printed, the log is not truncated."""
+    log = tmp_path / "log.txt"
+    log.write_text("before\n")
+    code = "from matchplant.core.runtime.io import write_text; print('first', flush=True); "
+    code += "write_text('/dev/stdout', 'config\\n'); print('after')"
+    with open(log, "a") as fh:
+        subprocess.run([sys.executable, "-c", code], stdout=fh, check=True, timeout=60, env=_env())
+    assert log.read_text() == "before\nfirst\nconfig\nafter\n"
+    assert os.path.islink("/dev/stdout") or _is_chr("/dev/stdout")
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}

@@ -109,9 +109,16 @@ def is_stream(path: str | Path) -> bool:
         return False
 
 
+def _is_own_stdout(path: Path) -> bool:
+    try:
+        return os.path.samestat(os.stat(path), os.fstat(sys.stdout.fileno()))
+    except (OSError, ValueError, AttributeError):  # no file behind stdout (a test's capture): not it
+        return False
+
+
 def _open_stream(path: Path):
     """A binary file object for a stream target; a FIFO waits up to FIFO_WAIT_S for a reader."""
-    if str(path) == STDOUT:
+    if str(path) == STDOUT or _is_own_stdout(path):  # /dev/stdout: after what was printed, not over it
         sys.stdout.flush()
         return contextlib.nullcontext(getattr(sys.stdout, "buffer", None) or sys.stdout)
     if not stat.S_ISFIFO(os.stat(path).st_mode):
