@@ -17,7 +17,7 @@ import yaml
 import matchplant.cli as cli
 import matchplant.core.runtime.io as io_mod
 from matchplant.core.runtime.errors import OutputError
-from matchplant.core.runtime.guard import staged_outputs
+from matchplant.core.runtime.guard import check_writable, staged_outputs
 from matchplant.core.runtime.io import BatchedWrites, atomic_path, write_json, write_text
 
 needs_posix = pytest.mark.skipif(os.name != "posix", reason="symlinks, FIFOs and /dev/null as on Linux and macOS")
@@ -167,11 +167,15 @@ def test_staged_outputs_write_through_a_link_to_a_folder(tmp_path):
     with staged_outputs(link) as stage:
         (stage / "new.txt").write_text("new")
     assert link.is_symlink() and (real / "new.txt").read_text() == "new" and (real / "old.txt").exists()
-    dangling = tmp_path / "out2"
-    dangling.symlink_to(tmp_path / "made_by_run")
-    with staged_outputs(dangling) as stage:
-        (stage / "a.txt").write_text("a")
-    assert dangling.is_symlink() and (tmp_path / "made_by_run" / "a.txt").read_text() == "a"
+    dangling = tmp_path / "out2"  # a folder no step can make (os.makedirs fails there): refused, link kept
+    dangling.symlink_to(tmp_path / "not_made")
+    refused = "is a symlink to .*not_made, which does not exist"
+    with pytest.raises(OutputError, match=refused):
+        check_writable(dangling / "sub")  # what the command line checks before a step runs
+    with pytest.raises(OutputError, match=refused):
+        with staged_outputs(dangling):
+            pass
+    assert dangling.is_symlink() and not (tmp_path / "not_made").exists()
 
 
 @needs_posix

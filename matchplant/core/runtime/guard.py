@@ -132,6 +132,13 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
     folder = Path(folder)
     probe = folder
     while not probe.exists():
+        if probe.is_symlink():  # a dangling link: no step can make a folder there, and none replaces the link
+            raise OutputError(
+                f"output folder '{key}' ({folder}) cannot be created: {probe} is a symlink to "
+                f"{os.path.realpath(probe)}, which does not exist",
+                path=probe,
+                fix=f"create {os.path.realpath(probe)} (or remove the link), or set '{key}' to another folder",
+            )
         if probe.parent == probe:
             break
         probe = probe.parent
@@ -196,8 +203,9 @@ def _check_replaceable(dst: Path, rel: Path) -> None:
 
 
 def _output_folder(out_dir: Path) -> Path:
-    """The folder a step writes: ``out_dir``, or the target of a symlink (written through, the link kept).
-    Refuses a path that is, or links to, something other than a folder."""
+    """The folder a step writes: ``out_dir``, or the target of a symlink to a folder (written through, the link
+    kept). Refuses a path that is, or links to, something other than a folder (a dangling link:
+    :func:`check_writable`)."""
     target = Path(os.path.realpath(out_dir)) if out_dir.is_symlink() else out_dir
     if target.exists() and not target.is_dir():
         via = f" (a symlink to {target})" if target != out_dir else ""
@@ -205,12 +213,6 @@ def _output_folder(out_dir: Path) -> Path:
             f"the output folder {out_dir}{via} is not a folder",
             path=out_dir,
             fix="give a folder as the output (or move the file away)",
-        )
-    if target != out_dir and not target.parent.is_dir():
-        raise OutputError(
-            f"the output folder {out_dir} is a symlink to {target}, whose parent folder does not exist",
-            path=out_dir,
-            fix=f"create {target.parent}, or remove the link",
         )
     return target
 
