@@ -4,6 +4,7 @@ Every case runs the same as root (CI): /dev/null is only ever opened, and the ch
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 import subprocess
@@ -19,6 +20,7 @@ import matchplant.core.runtime.io as io_mod
 from matchplant.core.runtime.errors import OutputError
 from matchplant.core.runtime.guard import check_writable, staged_outputs
 from matchplant.core.runtime.io import BatchedWrites, atomic_path, write_json, write_text
+from matchplant.detection.synth import make_tiles
 
 needs_posix = pytest.mark.skipif(os.name != "posix", reason="symlinks, FIFOs and /dev/null as on Linux and macOS")
 
@@ -223,3 +225,22 @@ def test_dev_stdout_appended_to_a_redirected_file(tmp_path):
 
 def _env() -> dict:
     return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+
+
+def test_an_output_file_key_is_rewritten_on_a_rerun_and_may_be_stdout(tmp_path, capsys, monkeypatch):
+    """``inspect``'s ``report`` (an output file, not a folder): an earlier report is replaced on a rerun, "-" is
+    standard output (also from a config file, not a file named '-' beside it), a folder is refused."""
+    coco = make_tiles(tmp_path / "tiles", n_images=3, size=64, plants=(1, 2), radius=(5, 8), negatives=0, name="t.json")
+    monkeypatch.chdir(tmp_path)
+    report = tmp_path / "report.json"
+    report.write_text("{}")
+    run = ["inspect", "--set", f"annotations={coco}", "--set"]
+    assert cli.main([*run, f"report={report}"]) == 0
+    assert json.loads(report.read_text())  # the earlier report replaced, not refused as "a file"
+    capsys.readouterr()
+    config = tmp_path / "inspect.yaml"
+    config.write_text(f"annotations: {coco}\nreport: '-'\n")
+    assert cli.main(["inspect", "--config", str(config)]) == 0
+    assert '"' in capsys.readouterr().out and not (tmp_path / "-").exists()
+    assert cli.main([*run, f"report={tmp_path}"]) == 2
+    assert "it is a folder" in capsys.readouterr().err

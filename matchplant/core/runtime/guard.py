@@ -34,8 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError, OutputError
+from matchplant.core.runtime.io import output_target
 
 INPUT_KINDS = ("file", "dir", "exists")
+OUTPUT_KINDS = ("out", "out_file")  # an output folder, an output file
 
 
 def path_fields(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Path, str]]:
@@ -58,7 +60,7 @@ def inputs_and_outputs(cfg: Any) -> tuple[list[tuple[str, Path, str]], list[tupl
     items = list(path_fields(cfg))
     return (
         [(k, p, kind) for k, p, kind in items if kind in INPUT_KINDS],
-        [(k, p) for k, p, kind in items if kind == "out"],
+        [(k, p) for k, p, kind in items if kind in OUTPUT_KINDS],
     )
 
 
@@ -164,8 +166,11 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
 
 
 def check_outputs_writable(cfg: Any) -> None:
-    for key, path in inputs_and_outputs(cfg)[1]:
-        check_writable(path, key=key)
+    for key, path, kind in path_fields(cfg):
+        if kind == "out":
+            check_writable(path, key=key)
+        elif kind == "out_file" and output_target(path)[0] == "file":  # a folder, a socket: refused here
+            check_writable(output_target(path)[1].parent, key=key)
 
 
 def check_outputs(cfg: Any, *, source: str = "config") -> None:
