@@ -21,9 +21,9 @@ from matchplant.core.runtime.log import get_logger
 log = get_logger("distributed")
 
 TIMEOUT_VAR = "MATCHPLANT_JOIN_TIMEOUT"  # seconds a process waits for the others to join
-# torchrun starts the processes together: they meet within seconds, so a minute without them is an error (a
-# variable left in the shell, a process that died), not a reason to wait 10 minutes
-DEFAULT_TIMEOUT_S = 60.0
+# torchrun starts the processes together: they meet within seconds (their imports differ by a few), so half a
+# minute without them is an error (a variable left in the shell, a process that died), not a reason to wait
+DEFAULT_TIMEOUT_S = 30.0
 # once joined, one process may wait for another in a collective while that one validates or reads a big
 # image: that wait is bounded apart, and longer
 COLLECTIVE_TIMEOUT_S = 1800.0
@@ -83,7 +83,7 @@ def world_size() -> int:
 
 
 def join_timeout() -> float:
-    """Seconds to wait for the other processes (``MATCHPLANT_JOIN_TIMEOUT``, default 60)."""
+    """Seconds to wait for the other processes (``MATCHPLANT_JOIN_TIMEOUT``, default 30)."""
     value = os.environ.get(TIMEOUT_VAR, str(DEFAULT_TIMEOUT_S))
     try:
         seconds = float(value)
@@ -200,10 +200,11 @@ def join(device):
         torch.cuda.set_device(device)
     if not dist.is_initialized():
         seconds = join_timeout()
+        end = time.monotonic() + seconds  # one bound for the whole join
         if _int_var("RANK", "0") != 0:  # a plain wait first: c10d's own timeout prints pages of C++ frames
             _wait_for_master(os.environ["MASTER_ADDR"], _int_var("MASTER_PORT", "0"), seconds)
         try:  # nccl's gather: device set above
-            store = _meet(seconds)
+            store = _meet(max(end - time.monotonic(), 1.0))
             dist.init_process_group(
                 "nccl" if device.type == "cuda" else "gloo",
                 store=store,
