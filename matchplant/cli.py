@@ -20,6 +20,7 @@ from matchplant.core.runtime.config import load_config, save_config
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.guard import check_outputs
 from matchplant.core.runtime.gui import require_display
+from matchplant.core.runtime.io import is_stream
 from matchplant.core.runtime.log import setup_console, start_run_log, stop_run_log
 from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
@@ -142,8 +143,9 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
             if config_path or overrides
             else spec.config()
         )
+        stream = is_stream(args.write_config)  # '-', /dev/stdout: the config alone on that stream
         path = save_config(cfg, args.write_config, header=config_header(spec))
-        print(f"wrote {path}")
+        print(f"wrote {path}", file=sys.stderr if stream else sys.stdout)
         return 0
     gui = getattr(args, "gui", False)
     if gui:

@@ -1068,3 +1068,32 @@ def test_unreadable_tile_in_a_loader_worker_is_one_clear_error(tiles, tmp_path):
         list(loader)
     assert "Traceback" not in str(err.value) and err.value.path == broken and err.value.fix
     assert "data-loading worker" in err.value.problem
+
+
+# -- settings a resume would silently change, or that silently change others (issue 39) ------------------------
+
+
+def test_resume_with_other_data_settings_says_which(tiles, trained, caplog):
+    """The run trained on whole tiles; resumed with crops (or another batch size) it says so, naming the checkpoint
+    and each key with both values; resumed as it was (crop null: auto takes the run's) it says nothing."""
+    from matchplant.model_train.resume import open_resume
+
+    out = trained[0]
+    names = trained[1]["class_names"]
+    with caplog.at_level("WARNING", logger="matchplant"):
+        open_resume(fast_config(tiles, out, "resume=true"), out / "checkpoints", names)
+        assert "training data settings other than the run's" not in caplog.text
+        open_resume(
+            fast_config(tiles, out, "resume=true", "augment.crop=32", "batch_size=2"), out / "checkpoints", names
+        )
+    assert str(out / "checkpoints" / "last.pt") in caplog.text
+    assert "augment.crop: 0 -> 32" in caplog.text and "batch_size: 4 -> 2" in caplog.text
+
+
+def test_crop_larger_than_the_detector_input_is_refused_before_work(tiles, tmp_path):
+    with pytest.raises(ConfigError, match=r"augment.crop \(1024\) is larger than .*model.min_size = 64") as err:
+        fast_config(tiles, tmp_path, "augment.crop=1024")
+    assert "256x the pixels" in str(err.value) and "at most 64" in err.value.fix
+    with pytest.raises(ConfigError, match="augment.crop_on_plant"):
+        fast_config(tiles, tmp_path, "augment.crop=0", "augment.crop_on_plant=0.5")
+    assert fast_config(tiles, tmp_path, "augment.crop=64").augment.crop == 64  # the input's own size: fine

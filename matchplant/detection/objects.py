@@ -164,7 +164,9 @@ class InspectConfig:
         path="file",
         required=True,
     )
-    report: Path | None = param(None, "optional JSON file for the statistics and recommendations", path="out")
+    report: Path | None = param(
+        None, 'optional JSON file for the statistics and recommendations ("-": standard output)', path="out_file"
+    )
 
 
 def check_structure(ds: dict, path: Path) -> None:

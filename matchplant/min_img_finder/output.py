@@ -29,7 +29,7 @@ from matchplant.core.formats.owned_areas import write_owned_areas
 from matchplant.core.formats.vectors import write_formats
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.gui import figure
-from matchplant.core.runtime.io import atomic_open, atomic_path, write_json
+from matchplant.core.runtime.io import atomic_open, atomic_path, output_target, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 
@@ -182,7 +182,7 @@ def place_image(src: Path, dst: Path, mode: str) -> None:
     """Copy or hard-link an image into place (a hard link falls back to a copy across drives)."""
     if dst.exists() and dst.stat().st_size == src.stat().st_size and mode == "link" and os.path.samefile(src, dst):
         return
-    if mode == "link":
+    if mode == "link" and output_target(dst) == ("file", dst):  # a link or a device at dst: written through
         tmp = dst.with_name(f".{dst.name}.link")
         try:
             if tmp.exists():

@@ -282,8 +282,22 @@ class Budget:
         where = f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
         if interrupted:
             return "interrupted", f"interrupted (Ctrl-C) {where}; --resume continues exactly there"
+        over = self.limited and self.elapsed() > self.seconds
+        if done_iters >= total and over:  # the one iteration every run makes already took longer than the budget
+            return (
+                "finished_over_max_minutes",
+                f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations) in "
+                f"{self.elapsed():.1f} s, past max_minutes = {self.minutes:g} ({self.seconds:.1f} s): the budget is "
+                "shorter than the run's least work (one iteration, validation and checkpoints); raise max_minutes "
+                "or set it to 0",
+            )
         if done_iters >= total:
             return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
+        if over:
+            where += (
+                f", in {self.elapsed():.1f} s: past max_minutes ({self.seconds:.1f} s), which is shorter than one "
+                "iteration"
+            )
         if done_iters >= planned:
             return (
                 "stopped_by_max_minutes",

@@ -1,8 +1,12 @@
 """Module 6's checkpoints: :func:`save` writes one (self-contained: the detector, the optimisation's state, the
-history, the plan, and inside an epoch its progress and random state); :func:`restore` puts a resumed run's
-state back (:mod:`~matchplant.model_train.resume` finds and checks the checkpoint)."""
+history, the plan, and inside an epoch its progress and random state); :func:`save_numbered` keeps the
+``epoch_NNN.pt`` that ``save_every`` asks for (bounded when the budget sets the run's length) and logs the disk they
+use; :func:`restore` puts a resumed run's state back (:mod:`~matchplant.model_train.resume` finds and checks the
+checkpoint)."""
 
 from __future__ import annotations
+
+import re
 
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError
@@ -11,6 +15,10 @@ from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.model_train.state import Job, TrainState
 
 log = get_logger("model_train")
+
+AUTO_EVERY = 5  # save_every: auto keeps epoch_NNN.pt every AUTO_EVERY epochs ...
+AUTO_KEEP = 3  # ... and, when max_minutes sets the run's length, only the last AUTO_KEEP of them
+NUMBERED = re.compile(r"epoch_(\d+)\.pt")
 
 
 def save(job: Job, state: TrainState, name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
@@ -32,6 +40,36 @@ def save(job: Job, state: TrainState, name: str, epoch_done: int, record: dict |
         random_state=state.stop_rng if partial else None,
     )
     save_checkpoint(job.ck_dir / name, job.core, job.model_cfg, job.class_names, job.train_ds.category_ids, **content)
+
+
+def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None:
+    """``epoch_NNN.pt`` after whole epoch ``epoch`` when ``save_every`` asks for it. With ``save_every: auto`` and a
+    budget that sets the length (``max_minutes``: the epochs are a ceiling, 1000 for a CPU recipe) only the last
+    AUTO_KEEP are kept; a number set by the user keeps them all. The checkpoints' disk use is logged and kept in the
+    summary (``checkpoint_disk``)."""
+    every = AUTO_EVERY if job.cfg.save_every == "auto" else job.cfg.save_every
+    if not every or epoch % every:
+        return
+    save(job, state, f"epoch_{epoch:03d}.pt", epoch, record, None)
+    numbered = sorted((int(m[1]), p) for p in job.ck_dir.iterdir() if (m := NUMBERED.fullmatch(p.name)))
+    removed = []
+    if job.cfg.save_every == "auto" and job.budget.limited:
+        for _, p in numbered[:-AUTO_KEEP]:
+            p.unlink(missing_ok=True)
+            removed.append(p.name)
+    files = [p for p in job.ck_dir.iterdir() if p.suffix == ".pt" and p.is_file()]
+    size = sum(p.stat().st_size for p in files)
+    job.extras["checkpoint_disk"] = {"files": len(files), "bytes": size, "folder": str(job.ck_dir)}
+    log.info(
+        "checkpoints: %d file(s), %.1f MB in %s%s",
+        len(files),
+        size / 1e6,
+        job.ck_dir,
+        f" (removed {', '.join(removed)}: save_every: auto keeps the last {AUTO_KEEP} epoch_NNN.pt when "
+        "max_minutes sets the run's length; set save_every: N to keep every N-th)"
+        if removed
+        else "",
+    )
 
 
 def restore(job: Job, resume: dict | None) -> TrainState:

@@ -118,7 +118,13 @@ class ModelTrainConfig:
     )
     val_every: int = param(1, "validate every N epochs (and always after the last)", min=1)
     best_metric: str = param("AP50", "validation metric that picks best.pt", choices=("AP50", "AP"))
-    save_every: int = param(5, "also keep checkpoints/epoch_NNN.pt every N epochs (0 = only last and best)", min=0)
+    save_every: int | Literal["auto"] = param(
+        "auto",
+        "also keep checkpoints/epoch_NNN.pt every N epochs, all of them (0 = only last and best); auto: every 5 "
+        "epochs, and only the last 3 of them when max_minutes sets the run's length (a budget of epochs: 1000 "
+        "would fill the disk)",
+        min=0,
+    )
     device: str = param("auto", "auto picks CUDA, then Apple MPS, then CPU; or cpu, cuda, cuda:N, mps")
     amp: bool = param(True, "mixed precision on CUDA GPUs (faster, less memory); ignored elsewhere")
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
@@ -127,4 +133,25 @@ class ModelTrainConfig:
         if self.device.split(":")[0] not in DEVICE_CHOICES:
             raise ConfigError(
                 f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto"
+            )
+        self.check_crop()
+
+    def check_crop(self) -> None:
+        """A setting never silently changes another: a crop larger than the detector's input would raise the
+        input itself (each window padded with black up to crop x crop), and crop_on_plant without crops does
+        nothing."""
+        crop, side = self.augment.crop, self.model.min_size
+        if crop and crop > side:
+            raise ConfigError(
+                f"augment.crop ({crop}) is larger than the detector's input (model.min_size = {side} px on the "
+                f"short side): every training window would be padded with black to {crop} x {crop} px, "
+                f"{(crop / side) ** 2:.0f}x the pixels of a {side} px input (as much slower, as much more memory), "
+                "while detection sees the tiles at their own size",
+                fix=f"set augment.crop to at most {side} (or 0 to train on whole tiles), or raise model.min_size",
+            )
+        if crop == 0 and self.augment.crop_on_plant > 0:
+            raise ConfigError(
+                f"augment.crop_on_plant ({self.augment.crop_on_plant:g}) has no effect with augment.crop: 0 "
+                "(training on whole tiles)",
+                fix="set augment.crop (e.g. 256, or null for auto) to train on crops, or augment.crop_on_plant: 0",
             )

@@ -24,7 +24,7 @@ from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
 from matchplant.detection.model import ModelConfig, keep_frozen_norms_fixed
-from matchplant.model_train.checkpoint import save
+from matchplant.model_train.checkpoint import save, save_numbered
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.probe import HEARTBEAT_S, heartbeat
 from matchplant.model_train.report import plot_curves, write_summary
@@ -276,13 +276,13 @@ def end_epoch(
 
 
 def save_epoch(job: Job, state: TrainState, record: dict, partial: dict | None, improved: bool) -> None:
-    """last.pt, best.pt when the epoch improved, epoch_NNN.pt every ``save_every`` epochs; the summary, the curves."""
+    """last.pt, best.pt when the epoch improved, epoch_NNN.pt as ``save_every`` asks; the summary, the curves."""
     epoch, complete = record["epoch"] - 1, partial is None
     save(job, state, "last.pt", epoch + complete, record, partial)
     if improved:
         save(job, state, "best.pt", epoch + complete, record, partial)
-    if complete and job.cfg.save_every and (epoch + 1) % job.cfg.save_every == 0:
-        save(job, state, f"epoch_{epoch + 1:03d}.pt", epoch + 1, record, None)
+    if complete:
+        save_numbered(job, state, epoch + 1, record)
     write_summary(
         job.out,
         job.cfg,
@@ -330,7 +330,8 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
             message=message,
             extras=job.extras,
         )
-        log.info("training %s (%s)", message, clock_words(budget.elapsed()))
+        over = "past max_minutes" in message  # a budget shorter than one iteration: said, not buried
+        (log.warning if over else log.info)("training %s (%s)", message, clock_words(budget.elapsed()))
     if main and state.best["epoch"] is not None:
         log.info(
             "best epoch %d (%s %.4f); model: %s",

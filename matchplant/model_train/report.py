@@ -27,7 +27,8 @@ def write_summary(
     message: str | None = None,
     extras: dict | None = None,
 ) -> dict:
-    """training_summary.json. ``status``: running, finished, interrupted or stopped_by_max_minutes (``message``
+    """training_summary.json. ``status``: running, finished, finished_over_max_minutes (all of it, but the budget
+    was shorter than one iteration), interrupted or stopped_by_max_minutes (``message``
     says after how many of how many iterations); ``validation``: tiles, boxes and distinct plants, with a warning
     when too few; ``extras``: threads, the probe's estimate, the architecture chosen and why; metrics are
     fractions 0..1. ``budget``: its plan and minutes, and the session's seconds so far."""

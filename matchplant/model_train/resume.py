@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.checkpoint import read_checkpoint
@@ -29,6 +30,9 @@ from matchplant.detection.model import AUTO
 log = get_logger("model_train")
 
 CHECKED = ("architecture", "min_size", "max_size")  # model settings a resumed run cannot change
+# settings that change what the next epochs train on (the data, its order, the augmentation): a resumed run with
+# another value trains on something else than the run did, which the resume says (they may be changed on purpose)
+DATA_KEYS = ("train_json", "train_images", "batch_size", "seed")
 
 
 def open_resume(cfg, ck_dir: Path, class_names: list[str]) -> dict | None:
@@ -88,10 +92,37 @@ def check_resumable(cfg, ck: dict, class_names: list[str], path: Path) -> None:
                 path=path,
                 fix=f"set model.{key}: {saved.get(key)} to continue it, or {ways}",
             )
+    changed = changed_data_settings(cfg, ck.get("train_config") or {})
+    if changed:
+        log.warning(
+            "resuming %s with training data settings other than the run's: %s; the next epochs train on that, "
+            "after %s iteration(s) on the run's settings (set the run's values to continue it exactly as it was, "
+            "or resume: fresh to start over)",
+            path,
+            "; ".join(changed),
+            ck.get("iteration", "its"),
+        )
     if ck.get("epoch", 0) >= cfg.epochs and not ck.get("epoch_progress"):
         log.warning(
             "the run in %s already finished its %d epochs; raise 'epochs' to train longer", cfg.output_dir, ck["epoch"]
         )
+
+
+def changed_data_settings(cfg, saved: dict) -> list[str]:
+    """``key: run's value -> this config's`` for each setting of :data:`DATA_KEYS` and ``augment`` that this config
+    sets to another value than the checkpoint's run had (an auto value, null, takes the run's and is no change)."""
+    now = to_dict(cfg)
+    pairs = [(k, saved.get(k), now.get(k)) for k in DATA_KEYS]
+    pairs += [(f"augment.{k}", v, now["augment"].get(k)) for k, v in (saved.get("augment") or {}).items()]
+    out = []
+    for key, was, new in pairs:
+        if was is None or new is None:
+            continue
+        if key in ("train_json", "train_images"):
+            was, new = str(Path(was).resolve()), str(Path(new).resolve())
+        if was != new:
+            out.append(f"{key}: {was} -> {new}")
+    return out
 
 
 def random_state(device) -> dict:

@@ -16,7 +16,7 @@ from matchplant.detection.checkpoint import load_matching_weights
 from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.data import CocoDetection, EpochSampler, check_disjoint, collate
 from matchplant.detection.device import configure_threads, select_device
-from matchplant.detection.distributed import Shard, join, world_size
+from matchplant.detection.distributed import Shard, check_environment, join
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.geometry import training_geometry
 from matchplant.detection.model import (
@@ -67,7 +67,7 @@ def init_distributed(cfg: ModelTrainConfig):
     """Join a torchrun job (WORLD_SIZE > 1) and pick this process's device."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
-    if world_size() <= 1:
+    if check_environment() <= 1:  # the torchrun variables checked against each other first, job or not
         return Shard(), select_device(cfg.device)
     if torch.cuda.is_available() and cfg.device in ("auto", "cuda"):
         return join(torch.device("cuda"))  # join makes it this process's GPU

@@ -8,7 +8,6 @@ Upload with a progress bar, processing progress, download into the project. The 
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import shutil
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ from pyodm.exceptions import NodeConnectionError, NodeResponseError, OdmError
 from pyodm.types import TaskStatus
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError, MatchPlantError
-from matchplant.core.runtime.io import read_json, write_json
+from matchplant.core.runtime.io import place, read_json, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.odm_runner.config import NodeODMSettings, ODMRunError, OdmRunnerConfig
@@ -197,6 +196,6 @@ def _download(task, project: Path) -> None:
             if item.is_file():
                 target = project / item.relative_to(tmp)
                 target.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(item, target)
+                place(item, target)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -47,7 +47,7 @@ def _fingerprint(cfg: Any) -> str:
     def paths(obj: Any):
         if is_dataclass(obj):
             for f in fields(obj):
-                if f.metadata.get("path") == "out":
+                if f.metadata.get("path") in ("out", "out_file"):
                     continue
                 yield from paths(getattr(obj, f.name))
         elif isinstance(obj, Path):

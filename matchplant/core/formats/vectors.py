@@ -11,7 +11,6 @@ written in a temporary folder and each moved into place, the columns get the sho
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
@@ -20,7 +19,7 @@ from pathlib import Path
 from pandas.api.types import is_bool_dtype
 
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.core.runtime.io import atomic_path
+from matchplant.core.runtime.io import atomic_path, place
 
 VECTOR_FORMATS = ("gpkg", "shp", "geojson")
 DRIVERS = {".gpkg": "GPKG", ".shp": "ESRI Shapefile", ".geojson": "GeoJSON"}
@@ -105,7 +104,7 @@ def _write_shapefile(gdf, path: Path, columns: Sequence[str] | None) -> Path:
     try:
         g.to_file(tmp / path.name, driver="ESRI Shapefile")
         for f in tmp.iterdir():
-            os.replace(f, path.parent / f.name)
+            place(f, path.parent / f.name)  # a rename over a regular file only (io.place)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return path

@@ -34,7 +34,7 @@ import yaml
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.io import write_text
 
-PATH_KINDS = (None, "file", "dir", "exists", "out")
+PATH_KINDS = (None, "file", "dir", "exists", "out", "out_file")
 
 
 def param(
@@ -52,7 +52,8 @@ def param(
 
     ``min``/``max`` bound numbers (and every item of a list of numbers); ``choices`` lists the allowed
     values; ``path`` is ``"file"``, ``"dir"`` or ``"exists"`` for inputs that must exist, ``"out"``
-    for outputs (their folder is created when the module runs). ``required`` fields default to None
+    for output folders (created when the module runs), ``"out_file"`` for an output file (``-`` is standard
+    output). ``required`` fields default to None
     and must be given.
     """
     if path not in PATH_KINDS:
@@ -319,8 +320,8 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
     if typ is Path:
         if isinstance(value, (str, Path)) and str(value) != "":
             p = Path(value).expanduser()
-            # normalised: a config written beside its inputs refers to them with '..'
-            return p if p.is_absolute() else Path(os.path.normpath(base / p))
+            # normalised: a config written beside its inputs refers to them with '..'; '-' (standard output) stays
+            return p if p.is_absolute() or str(p) == "-" else Path(os.path.normpath(base / p))
         raise bad("a path")
     if origin in (list, tuple, typing.Sequence) or typ in (list, tuple):
         args = get_args(typ)

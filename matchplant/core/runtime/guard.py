@@ -34,8 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError, OutputError
+from matchplant.core.runtime.io import output_target
 
 INPUT_KINDS = ("file", "dir", "exists")
+OUTPUT_KINDS = ("out", "out_file")  # an output folder, an output file
 
 
 def path_fields(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Path, str]]:
@@ -58,7 +60,7 @@ def inputs_and_outputs(cfg: Any) -> tuple[list[tuple[str, Path, str]], list[tupl
     items = list(path_fields(cfg))
     return (
         [(k, p, kind) for k, p, kind in items if kind in INPUT_KINDS],
-        [(k, p) for k, p, kind in items if kind == "out"],
+        [(k, p) for k, p, kind in items if kind in OUTPUT_KINDS],
     )
 
 
@@ -132,11 +134,19 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
     folder = Path(folder)
     probe = folder
     while not probe.exists():
+        if probe.is_symlink():  # a dangling link: no step can make a folder there, and none replaces the link
+            raise OutputError(
+                f"output folder '{key}' ({folder}) cannot be created: {probe} is a symlink to "
+                f"{os.path.realpath(probe)}, which does not exist",
+                path=probe,
+                fix=f"create {os.path.realpath(probe)} (or remove the link), or set '{key}' to another folder",
+            )
         if probe.parent == probe:
             break
         probe = probe.parent
     if probe.exists() and not probe.is_dir():
-        what = "is a file" if probe == folder else f"cannot be created: {probe} is a file"
+        kind = "a file" if probe.is_file() else "not a folder (a device, FIFO or socket)"
+        what = f"is {kind}" if probe == folder else f"cannot be created: {probe} is {kind}"
         raise OutputError(
             f"output folder '{key}' ({folder}) {what}",
             path=probe,
@@ -156,8 +166,11 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
 
 
 def check_outputs_writable(cfg: Any) -> None:
-    for key, path in inputs_and_outputs(cfg)[1]:
-        check_writable(path, key=key)
+    for key, path, kind in path_fields(cfg):
+        if kind == "out":
+            check_writable(path, key=key)
+        elif kind == "out_file" and output_target(path)[0] == "file":  # a folder, a socket: refused here
+            check_writable(output_target(path)[1].parent, key=key)
 
 
 def check_outputs(cfg: Any, *, source: str = "config") -> None:
@@ -170,24 +183,60 @@ def check_outputs(cfg: Any, *, source: str = "config") -> None:
 # whole or nothing
 
 
+def _check_replaceable(dst: Path, rel: Path) -> None:
+    """Refuse (OutputError) to put a staged file at ``dst / rel`` where something other than a regular file is,
+    or where a folder on the way is a file: a staged run replaces only files of its own kind."""
+    p = dst
+    for i, part in enumerate(rel.parts):
+        p = p / part
+        last = i == len(rel.parts) - 1
+        if p.is_symlink() and last:
+            what = f"a symlink (to {os.path.realpath(p)})"
+        elif not p.exists():
+            return
+        elif last and not p.is_file():
+            what = "a folder" if p.is_dir() else "not a regular file (a device, FIFO or socket)"
+        elif not last and not p.is_dir():
+            what = "a file where the output needs a folder"
+        else:
+            continue
+        raise OutputError(
+            f"cannot write {dst / rel}: {p} is {what}, which a run never replaces",
+            path=p,
+            fix="move it away (or write the outputs to another folder), then run again",
+        )
+
+
+def _output_folder(out_dir: Path) -> Path:
+    """The folder a step writes: ``out_dir``, or the target of a symlink to a folder (written through, the link
+    kept). Refuses a path that is, or links to, something other than a folder (a dangling link:
+    :func:`check_writable`)."""
+    target = Path(os.path.realpath(out_dir)) if out_dir.is_symlink() else out_dir
+    if target.exists() and not target.is_dir():
+        via = f" (a symlink to {target})" if target != out_dir else ""
+        raise OutputError(
+            f"the output folder {out_dir}{via} is not a folder",
+            path=out_dir,
+            fix="give a folder as the output (or move the file away)",
+        )
+    return target
+
+
 def _move_tree(src: Path, dst: Path) -> None:
     """Move every file of ``src`` to the same place under ``dst``, replacing files there and keeping the
     others; on a failure half-way, undo the moves already made."""
+    staged = sorted(p for p in src.rglob("*") if p.is_file() or p.is_symlink())
+    for f in staged:  # before any move: nothing but regular files (and folders) is ever replaced
+        _check_replaceable(dst, f.relative_to(src))
     backup = Path(tempfile.mkdtemp(prefix=f".{dst.name}.replaced-", dir=dst.parent))
     done: list[tuple[Path, Path, bool]] = []  # (staged file, its destination, an old file was put aside)
     try:
-        for f in sorted(p for p in src.rglob("*") if p.is_file() or p.is_symlink()):
+        for f in staged:
             rel = f.relative_to(src)
             target = dst / rel
             target.parent.mkdir(parents=True, exist_ok=True)
-            had = target.exists() or target.is_symlink()
+            had = target.exists()
             if had:
-                if target.is_dir() and not target.is_symlink():
-                    raise OutputError(
-                        f"cannot write {target}: a folder of that name is in the way",
-                        path=target,
-                        fix="move that folder away, then run again",
-                    )
                 (backup / rel).parent.mkdir(parents=True, exist_ok=True)
                 os.replace(target, backup / rel)
             done.append((f, target, had))
@@ -217,8 +266,8 @@ def staged_outputs(out_dir: str | Path) -> Iterator[Path]:
     Read earlier results (resume) from ``out_dir`` itself; paths written *into* files should name
     ``out_dir``, not the temporary folder. The run log goes to ``out_dir/logs`` directly.
     """
-    out_dir = Path(out_dir)
     check_writable(out_dir)
+    out_dir = _output_folder(Path(out_dir))  # a link to a folder is written through, never replaced
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = out_dir.parent / f".{out_dir.name}.partial-{uuid.uuid4().hex[:12]}"
     stage.mkdir()  # not mkdtemp: a new output folder gets the usual permissions, not 0700
