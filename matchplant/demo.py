@@ -53,10 +53,11 @@ import yaml
 from PIL import Image
 
 from matchplant.core.runtime.config import load_config
-from matchplant.core.runtime.errors import MatchPlantError
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path, write_text
 from matchplant.core.runtime.log import get_logger, setup_console
+from matchplant.core.runtime.validate import did_you_mean
 from matchplant.demo_report import demo_table, write_report
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.simfield import generate_field
@@ -497,15 +498,64 @@ def update_docs(out: Path, root: Path = REPO) -> None:
     log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's own errors (a value that is not a number, an unknown option) in the project's style: the
+    problem and the fix, exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message}\n  fix:  see the options with: {self.prog} --help\n")
+
+
+CHOICES = {
+    "preset": ("tiny", "small", "large"),
+    "noise": ("exact", "realistic"),
+    "pretrained": ("none", "imagenet", "coco"),
+}
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every option checked before the field is generated: its choices and ranges, and ``--from`` (a step of the
+    demo whose earlier steps have finished in ``--out``)."""
+    for key, allowed in CHOICES.items():
+        value = getattr(args, key)
+        if value not in allowed:
+            hint = did_you_mean(value, allowed)
+            raise ConfigError(
+                f"--{key} {value!r} is not one of {', '.join(allowed)}{'; ' + hint if hint else ''}",
+                fix=f"give --{key} one of: {', '.join(allowed)}",
+            )
+    for key, low in (("epochs", 1), ("minutes", 0), ("threads", 0)):
+        if getattr(args, key) < low:
+            raise ConfigError(f"--{key} {getattr(args, key)} is below {low}", fix=f"give --{key} {low} or more")
+    if not args.from_step:
+        return
+    names = [
+        s["name"] for s in pipeline_spec(Path("field"), "", epochs=1, minutes=0, pretrained="none", tile=128)["steps"]
+    ]
+    if args.from_step not in names:
+        hint = did_you_mean(args.from_step, names)
+        raise ConfigError(
+            f"--from {args.from_step!r}: the demo has no such step{'; ' + hint if hint else ''}",
+            fix=f"give --from one of: {', '.join(names)}",
+        )
+    stamps = Path(args.out).resolve() / ".pipeline"
+    missing = [n for n in names[: names.index(args.from_step)] if not (stamps / f"{n}.json").is_file()]
+    if missing:
+        raise ConfigError(
+            f"--from {args.from_step}: the steps before it have not finished in {args.out} ({', '.join(missing)})",
+            fix=f"run the demo without --from first (python -m matchplant.demo --out {args.out}); --from re-runs a "
+            "finished demo from a step on",
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
+    p = _Parser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
-    p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
+    p.add_argument("--preset", default="small", help="synthetic field size: " + ", ".join(CHOICES["preset"]))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--noise",
         default="exact",
-        choices=("exact", "realistic"),
         help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
         "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
         "and report both (a second field folder: about 600 MB more for the small field, and minutes)",
@@ -525,8 +575,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--pretrained",
         default="none",
-        choices=("none", "imagenet", "coco"),
-        help="starting weights (coco needs internet once; none trains from scratch)",
+        help="starting weights: none, imagenet or coco (coco needs internet once; none trains from scratch)",
     )
     p.add_argument(
         "--threads",
@@ -545,6 +594,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     signal.signal(signal.SIGINT, signal.default_int_handler)  # from here on Ctrl-C lets the steps clean up
     try:
+        check_args(args)  # before any work: a wrong option costs no field and no step
         setup_console()
         run_demo(
             args.out,
