@@ -548,6 +548,19 @@ def check_args(args: argparse.Namespace) -> None:
         )
 
 
+def kept(out: Path) -> str:
+    """What an interrupted demo keeps: the finished steps and, when training was stopped, where it stopped (the
+    pipeline continues it from there: matchplant/pipeline/run.py)."""
+    summary = out / "6_train" / "training_summary.json"
+    try:
+        trained = json.loads(summary.read_text()) if (out / ".pipeline" / "6_train.started.json").is_file() else {}
+    except (OSError, ValueError):
+        trained = {}
+    if trained.get("status") != "interrupted":
+        return "the finished steps are kept"
+    return f"the finished steps and training's checkpoint ({trained['message'].split(';')[0]}) are kept"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = _Parser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
@@ -614,7 +627,8 @@ def main(argv: list[str] | None = None) -> int:
         # worker pools still close while Python shuts down, and an interrupt there prints a traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         print(
-            "interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there", file=sys.stderr
+            f"interrupted (Ctrl-C); {kept(Path(args.out).resolve())}: run the demo again to go on from there",
+            file=sys.stderr,
         )
         return 130
     except MatchPlantError as exc:

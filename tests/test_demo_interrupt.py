@@ -110,3 +110,42 @@ def test_make_demo_adds_no_line_of_its_own(tmp_path):
     assert rc in (-signal.SIGINT, 130), after  # make ends by the signal: the shell reports 130
     assert not any(ln.startswith("make") for ln in after), after
     assert after[-1].startswith("interrupted (Ctrl-C)") and not any("Traceback" in ln for ln in after), after
+
+
+def _training_summary(out: Path) -> dict:
+    import json
+
+    return json.loads((out / "6_train" / "training_summary.json").read_text())
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_training_then_the_demo_again_continues_the_training(tmp_path):
+    """Issue 40: Ctrl-C in [6_train] keeps a mid-epoch checkpoint and says so in its one line; running the demo
+    again continues that training from the interrupted iteration instead of starting at iteration 1."""
+    out = tmp_path / "demo"
+    # training's first progress line (every ~10 s): it is under way, iterations done
+    rc, after = _interrupt_when(
+        _start(out), lambda lines: any(ln.startswith("epoch 1/") and " batch " in ln for ln in lines), timeout=600
+    )
+    _one_line(rc, after)
+    assert [ln for ln in after if not ln.startswith(("epoch ", "["))] == [after[-1]], after
+    first = _training_summary(out)
+    assert first["status"] == "interrupted", first
+    assert "training's checkpoint (interrupted (Ctrl-C) after" in after[-1], after
+    done = int(first["message"].split(" after ")[1].split()[0])
+    assert done >= 1
+    # the re-run: interrupt it again once training has resumed (one of its own batches done)
+    before: list[str] = []
+
+    def resumed(lines: list[str]) -> bool:
+        before[:] = lines
+        at = next((i for i, ln in enumerate(lines) if "resuming" in ln), None)
+        return at is not None and any(ln.startswith("epoch ") for ln in lines[at + 1 :])
+
+    rc, _ = _interrupt_when(_start(out), resumed, timeout=600)
+    assert rc == 130
+    text = "".join(before)
+    assert "[6_train] continuing its interrupted run" in text, text
+    assert f"after {done} iteration(s)" in text and "replaces them" not in text, text
+    second = _training_summary(out)
+    assert int(second["message"].split(" after ")[1].split()[0]) > done, (first, second)

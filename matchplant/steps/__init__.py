@@ -63,6 +63,11 @@ class StepSpec:
     # when set, the positional argument fills this key instead of naming a config file
     # (``matchplant run pipeline.yaml``)
     positional_key: str | None = None
+    # a step that continues an interrupted run (module 6): the key that asks for it (``resume``) and what says
+    # there is one to continue (its checkpoint, given the config); ``matchplant run`` sets the key when the
+    # step's previous run stopped unfinished with the same settings (matchplant/pipeline/run.py)
+    resume_key: str | None = None
+    resume_file: Callable[[Any], Path] | None = None
 
     def load_gui(self) -> Callable[[Any, Path | None], Any]:
         """The step's window function, imported now."""
