@@ -65,7 +65,9 @@ class InitConfig:
         None, "a trained detector (module 6's checkpoints/best.pt): the pipeline detects with it", path="file"
     )
     output: Path = param(Path("pipeline.yaml"), "the pipeline file to write (its folder is created)")
-    max_minutes: float = param(60.0, "module 6's time budget for training, in minutes", min=0)
+    max_minutes: float = param(
+        60.0, "module 6's time budget for training, in minutes (0 = none: module 6's 30 epochs)", min=0
+    )
     force: bool = param(False, "replace an existing pipeline file")
 
     def check(self) -> None:
