@@ -86,9 +86,13 @@ def test_changed_settings_or_no_checkpoint_start_anew(pipe):
     assert STARTS == [(False, 1), (False, 1)]
 
 
-def test_from_step_starts_anew(pipe):
+def test_from_step_starts_anew_and_its_interruption_is_continued(pipe):
     STOP_AT.append(4)
     with pytest.raises(KeyboardInterrupt):
         _run(pipe)
-    _run(pipe, from_step="train")
-    assert STARTS == [(False, 1), (False, 1)]
+    assert _run(pipe, from_step="train") == {"train": "ran"}
+    STOP_AT.append(3)  # a finished step re-run with --from and interrupted: no longer up to date
+    with pytest.raises(KeyboardInterrupt):
+        _run(pipe, from_step="train")
+    assert _run(pipe) == {"train": "ran"}
+    assert STARTS == [(False, 1), (False, 1), (False, 1), (True, 3)]

@@ -132,6 +132,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         if not resumed:
             log.info("[%s] running %s ...", step.name, step.module)
         write_json(started, {"fingerprint": fp, "started": t0})  # removed when it finishes
+        stamp.unlink(missing_ok=True)  # an interrupted re-run (--from) is not the earlier finished one
         try:
             spec.run(step_cfg)
         except MatchPlantError as exc:
