@@ -8,6 +8,7 @@ The GUIs open on the same config classes (tests/test_core_gui_setup.py)."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import runpy
 import sys
 from pathlib import Path
@@ -107,3 +108,13 @@ def test_a_module_without_a_window_says_so_for_gui(capsys):
     assert cli.run_module("plant_projection", ["--gui"]) == 2
     err = capsys.readouterr().err
     assert "plant_projection has no window" in err and "fix:" in err and "without --gui" in err, err
+
+
+def test_every_gui_example_names_a_module_with_a_window():
+    """The README examples with --gui are not run (they open windows): each must at least name a module that has
+    one (module 8's example once gave an argparse error)."""
+    docs = [ROOT / "README.md", *sorted(ROOT.glob("[0-9]_*/README.md"))]
+    named = re.compile(r"(?:python [0-9]_\w+/(\w+)\.py|matchplant (\w+))[^`\n]*--gui")
+    found = [(doc.name, m.group(1) or m.group(2)) for doc in docs for m in named.finditer(doc.read_text())]
+    assert found
+    assert [(doc, name) for doc, name in found if resolve_step(name).gui is None] == []
