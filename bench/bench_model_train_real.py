@@ -10,9 +10,9 @@ client (nothing is downloaded at run time)::
 
 Settings: ``model.min_size``/``max_size`` and ``model.aspect_ratios`` as ``matchplant inspect`` advises for the
 training boxes, ``model.anchor_sizes: auto``, ``model.architecture: auto``, ``model.pretrained: none`` (no
-download), ``max_minutes`` as given, ``device: cpu`` (``--device``), ``num_workers: 0`` (one core); everything
-else the default. ``--set KEY=VALUE`` adds settings (to explore; the issue's run uses none). ``python -m bench``
-runs it as the row ``train-real`` (15 minutes; ``--quick``: 2).
+download), ``max_minutes`` as given, ``device: cpu`` (``--device``); everything else the default (``num_workers``
+among them: 0 on one core, where it is sized to the cores). ``--set KEY=VALUE`` adds settings (to explore; the
+issue's run uses none). ``python -m bench`` runs it as the row ``train-real`` (15 minutes; ``--quick``: 2).
 
     taskset -c 1 nice -n -5 python -m bench.bench_model_train_real --data ~/deepforest-wheel --minutes 15
     python -m bench.bench_model_train_real --data ~/deepforest-wheel --minutes 2      # a short check
@@ -108,7 +108,6 @@ def run_on(
         "model.pretrained=none",
         *advised,
         f"max_minutes={minutes:g}",
-        "num_workers=0",
         f"device={device}",
         *extra,
     ]

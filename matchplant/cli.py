@@ -61,6 +61,8 @@ def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
     )
     if spec.gui is not None:
         p.add_argument("--gui", action="store_true", help="open the graphical interface")
+    else:  # accepted, so that it ends in the project's message (no window; the command) instead of argparse's
+        p.add_argument("--gui", action="store_true", help=argparse.SUPPRESS)
     p.add_argument(
         "--write-config",
         type=Path,
@@ -91,6 +93,7 @@ def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
 def run_module(name: str, argv: Sequence[str], default_config: Path | None = None) -> int:
     """Parse ``argv`` for module ``name`` and run it; return the exit code. Never raises for user errors."""
     debug = "--debug" in argv
+    spec = None
     try:
         spec = resolve_module(name)
         args = build_parser(spec).parse_args(list(argv))
@@ -101,7 +104,9 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted; outputs written so far are complete and kept", file=sys.stderr)
+        # a step that resumes (module 6) says how; `matchplant run` continues it by itself when re-run
+        goes_on = f"; add --{spec.resume_key} to continue from there" if spec is not None and spec.resume_key else ""
+        print(f"interrupted (Ctrl-C); outputs written so far are complete and kept{goes_on}", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - last resort: a short message, the traceback with --debug
         if debug:
@@ -148,6 +153,12 @@ def _run(spec: StepSpec, args: argparse.Namespace, default_config: Path | None) 
         print(f"wrote {path}", file=sys.stderr if stream else sys.stdout)
         return 0
     gui = getattr(args, "gui", False)
+    if gui and spec.gui is None:
+        raise ConfigError(
+            f"module {spec.name} has no window (--gui)",
+            fix=f"run it without --gui: matchplant {spec.name} --config FILE --set KEY=VALUE "
+            f"(its options: matchplant {spec.name} --help)",
+        )
     if gui:
         # no window possible: exit 2 with the headless command, instead of a GUI that silently does nothing
         require_display(f"matchplant {spec.name} --config FILE --set KEY=VALUE")

@@ -49,16 +49,18 @@ from pathlib import Path
 import geopandas as gpd
 import numpy as np
 import pandas as pd
-import yaml
 from PIL import Image
 
 from matchplant.core.runtime.config import load_config
-from matchplant.core.runtime.errors import MatchPlantError
+from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path, write_text
 from matchplant.core.runtime.log import get_logger, setup_console
+from matchplant.core.runtime.validate import did_you_mean
+from matchplant.demo_pipeline import HELD_OUT, NOISY, STEP_NOTES, noisy_spec, pipeline_spec
 from matchplant.demo_report import demo_table, write_report
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
+from matchplant.pipeline.write import write_pipeline
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.scoring import (
@@ -80,144 +82,7 @@ REPO = Path(__file__).resolve().parents[1]
 # the README's demo table lies between these lines (python -m matchplant.demo --update-docs rewrites it)
 TABLE_START = "<!-- demo table: written by python -m matchplant.demo --update-docs -->"
 TABLE_END = "<!-- end of demo table -->"
-HELD_OUT = "heldout_images"  # the photos the detector never saw, linked for module 7
 FIRST_STEPS = 6  # steps 0-5 run first: module 5's split decides which photos are held out
-NOISY = "noisy"  # modules 8 and 9 on the realistic field, under <out>/noisy
-
-
-def _step(name: str, module: str, **config) -> dict:
-    return {"name": name, "module": module, "config": config}
-
-
-def pipeline_spec(
-    field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int, threads: int = 0
-) -> dict:
-    """The demo's pipeline: every module, each reading the files the one before wrote."""
-    net = int(round(tile * 2.5))
-    cpu = {"threads": threads} if threads else {}  # absent when automatic, so earlier runs' steps stay finished
-    # small plants (about 20 px) need the tiles enlarged 2.5x for MobileNet's coarse feature maps; anchors
-    # are in the enlarged pixels. A 128 px tile holds at most ~40 plants: far fewer proposals than
-    # torchvision's defaults (2000/1000) keep the box head cheap on a CPU
-    model = {
-        "architecture": "fasterrcnn_mobilenet_v3_large_fpn",
-        "pretrained": pretrained,
-        "min_size": net,
-        "max_size": net,
-        "anchor_sizes": [[net // 8, net // 4, net // 2]] * 3,
-        "rpn": {
-            "pre_nms_top_n_train": 1000,
-            "post_nms_top_n_train": 400,
-            "pre_nms_top_n_test": 300,
-            "post_nms_top_n_test": 100,
-        },
-        "roi": {"batch_size_per_image": 64},
-    }
-    steps = [
-        _step(
-            "0_gps",
-            "gps_embeder",
-            images="${field}/images_nogps",
-            gnss_log="${field}/gnss/events.txt",
-            log_crs="${crs}",
-        ),
-        _step(
-            "1_gcp",
-            "gcp_finder",
-            images="${0_gps.output_dir}/images",
-            survey="${field}/gcp/gcp_survey.csv",
-            survey_crs="${crs}",
-            auto=True,
-        ),
-        _step("2_odm", "odm_runner", project_dir="${field}", check_only=True),
-        _step("3_select", "min_img_finder", project_dir="${field}"),
-        _step(
-            "4_annotate",
-            "bbox_drawer",
-            images="${3_select.output_dir}/images",
-            import_coco="${field}/truth/boxes_undistorted.json",
-            min_score=0.0,
-        ),
-        _step(
-            "5_tiles",
-            "img_splitter",
-            images="${3_select.output_dir}/images",
-            annotations="${4_annotate.output_dir}/annotations.json",
-            tile_size=tile,
-            overlap=tile // 4,
-            negative_share=0.2,
-            split=[0.55, 0.15, 0.3],
-        ),
-        _step(
-            "6_train",
-            "model_train",
-            train_json="${5_tiles.output_dir}/train.json",
-            val_json="${5_tiles.output_dir}/val.json",
-            model=model,
-            epochs=epochs,
-            max_minutes=minutes,
-            batch_size=4,
-            num_workers=0,
-            warmup_iters=20,
-            step_size=20,
-            save_every=0,
-            **cpu,
-            lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02},
-        ),
-        # detection on the photos the detector never saw (module 5's test split and module 3's unselected
-        # photos): only they are projected and scored
-        _step(
-            "7_detect",
-            "model_test",
-            checkpoint="${6_train.output_dir}/checkpoints/best.pt",
-            evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
-            **cpu,
-            detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4},
-        ),
-        *map_steps(field, "${7_detect.output_dir}/predictions.json"),
-    ]
-    return {"output_dir": ".", "field": str(field), "crs": crs, "held_out_images": HELD_OUT, "steps": steps}
-
-
-def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
-    """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics. ``bands``: red and
-    NIR band numbers of the multispectral raster (None: the exact field's, 1 and 2)."""
-    rasters = {
-        "dsm": "${field}/odm_dem/dsm.tif",
-        "dtm": "${field}/odm_dem/dtm.tif",
-        "multispectral": "${field}/multispectral/multispectral.tif",
-        "rgb": "${field}/odm_orthophoto/odm_orthophoto.tif",
-    }
-    if bands:
-        rasters.update(red_band=bands[0], nir_band=bands[1])
-    return [
-        _step(
-            "8_plants",
-            "plant_projection",
-            project="${field}",
-            predictions=predictions,
-            mode="both",
-            evaluate={"reference": "${field}/truth/map_boxes.csv"},
-        ),
-        _step(
-            "9_stats",
-            "spatial_stat_extractor",
-            polygons="${8_plants.output_dir}/plants.gpkg",
-            rasters=rasters,
-            plots=_plots_section(field),
-        ),
-    ]
-
-
-def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:
-    """Modules 8 and 9 on the realistic field with the exact run's detections (the photos are the same);
-    its 5-band raster holds red in band 3 and NIR in band 5 (simfield/noise.py)."""
-    return {
-        "output_dir": NOISY,
-        "field": str(field),
-        "crs": crs,
-        "predictions": str(predictions),
-        "steps": map_steps(field, "${predictions}", bands=(3, 5)),
-    }
 
 
 def held_out_photos(tiles_summary: dict, photos: list[str]) -> tuple[list[str], dict]:
@@ -242,25 +107,6 @@ def link_photos(src: Path, names: list[str], dst: Path) -> None:
             os.link(src / name, target)
         except OSError:
             shutil.copy2(src / name, target)
-
-
-def _plots_section(field: Path) -> dict:
-    """Module 9's plot grid: the field's corners, columns, ranges and spacing (as a breeder measures them),
-    and the field book; read from the generator's plot layout."""
-    grid = (
-        json.loads((field / "truth" / "plots.json").read_text()) if (field / "truth" / "plots.json").is_file() else {}
-    )
-    if not grid:
-        return {}
-    return {
-        "corners": grid["corners"],
-        "columns": grid["columns"],
-        "ranges": grid["ranges"],
-        "rows_per_plot": grid["rows_per_plot"],
-        "plant_spacing": grid["plant_spacing"],
-        "field_book": "${field}/truth/field_book.csv",
-        "figure_trait": "ndvi_canopy_mean",
-    }
 
 
 def compare_with_truth(out: Path, field: Path) -> dict:
@@ -361,15 +207,12 @@ def run_demo(
     t_field = time.time() - t0
     crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
     pipe = out / "pipeline.yaml"
-    write_text(
+    write_pipeline(
         pipe,
-        "# written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
-        + yaml.safe_dump(
-            pipeline_spec(
-                field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile, threads=threads
-            ),
-            sort_keys=False,
-        ),
+        pipeline_spec(field, crs, epochs=epochs, minutes=minutes, pretrained=pretrained, tile=tile, threads=threads),
+        STEP_NOTES,
+        "written by `make demo` (matchplant/demo.py); run again with: matchplant run pipeline.yaml\n"
+        "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
     )
     (out / HELD_OUT).mkdir(exist_ok=True)
     names = [st.name for st in read_pipeline(pipe)[1]]
@@ -457,10 +300,11 @@ def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timin
     _field(field, preset, seed, "realistic")
     timings["realistic field"] = ("generated" if time.time() - t0 > 1 else "reused", time.time() - t0)
     pipe = out / "pipeline_noisy.yaml"
-    write_text(
+    write_pipeline(
         pipe,
-        "# written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic "
-        "field\n" + yaml.safe_dump(noisy_spec(field, crs, out / "7_detect" / "predictions.json"), sort_keys=False),
+        noisy_spec(field, crs, out / "7_detect" / "predictions.json"),
+        STEP_NOTES,
+        "written by `python -m matchplant.demo --noise realistic`: modules 8 and 9 on the realistic field",
     )
     names = [st.name for st in read_pipeline(pipe)[1]]
     try:
@@ -497,15 +341,77 @@ def update_docs(out: Path, root: Path = REPO) -> None:
     log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's own errors (a value that is not a number, an unknown option) in the project's style: the
+    problem and the fix, exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {message}\n  fix:  see the options with: {self.prog} --help\n")
+
+
+CHOICES = {
+    "preset": ("tiny", "small", "large"),
+    "noise": ("exact", "realistic"),
+    "pretrained": ("none", "imagenet", "coco"),
+}
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """Every option checked before the field is generated: its choices and ranges, and ``--from`` (a step of the
+    demo whose earlier steps have finished in ``--out``)."""
+    for key, allowed in CHOICES.items():
+        value = getattr(args, key)
+        if value not in allowed:
+            hint = did_you_mean(value, allowed)
+            raise ConfigError(
+                f"--{key} {value!r} is not one of {', '.join(allowed)}{'; ' + hint if hint else ''}",
+                fix=f"give --{key} one of: {', '.join(allowed)}",
+            )
+    for key, low in (("epochs", 1), ("minutes", 0), ("threads", 0)):
+        if getattr(args, key) < low:
+            raise ConfigError(f"--{key} {getattr(args, key)} is below {low}", fix=f"give --{key} {low} or more")
+    if not args.from_step:
+        return
+    names = [
+        s["name"] for s in pipeline_spec(Path("field"), "", epochs=1, minutes=0, pretrained="none", tile=128)["steps"]
+    ]
+    if args.from_step not in names:
+        hint = did_you_mean(args.from_step, names)
+        raise ConfigError(
+            f"--from {args.from_step!r}: the demo has no such step{'; ' + hint if hint else ''}",
+            fix=f"give --from one of: {', '.join(names)}",
+        )
+    stamps = Path(args.out).resolve() / ".pipeline"
+    missing = [n for n in names[: names.index(args.from_step)] if not (stamps / f"{n}.json").is_file()]
+    if missing:
+        raise ConfigError(
+            f"--from {args.from_step}: the steps before it have not finished in {args.out} ({', '.join(missing)})",
+            fix=f"run the demo without --from first (python -m matchplant.demo --out {args.out}); --from re-runs a "
+            "finished demo from a step on",
+        )
+
+
+def kept(out: Path) -> str:
+    """What an interrupted demo keeps: the finished steps and, when training was stopped, where it stopped (the
+    pipeline continues it from there: matchplant/pipeline/run.py)."""
+    summary = out / "6_train" / "training_summary.json"
+    try:
+        trained = json.loads(summary.read_text()) if (out / ".pipeline" / "6_train.started.json").is_file() else {}
+    except (OSError, ValueError):
+        trained = {}
+    if trained.get("status") != "interrupted":
+        return "the finished steps are kept"
+    return f"the finished steps and training's checkpoint ({trained['message'].split(';')[0]}) are kept"
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
+    p = _Parser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
-    p.add_argument("--preset", default="small", choices=("tiny", "small", "large"), help="synthetic field size")
+    p.add_argument("--preset", default="small", help="synthetic field size: " + ", ".join(CHOICES["preset"]))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--noise",
         default="exact",
-        choices=("exact", "realistic"),
         help="exact (default): the field's DSM, DTM and rasters are exact; realistic: also run modules 8 "
         "and 9 on the same field with a photogrammetric DSM/DTM and a 5-band multispectral raster "
         "and report both (a second field folder: about 600 MB more for the small field, and minutes)",
@@ -525,8 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--pretrained",
         default="none",
-        choices=("none", "imagenet", "coco"),
-        help="starting weights (coco needs internet once; none trains from scratch)",
+        help="starting weights: none, imagenet or coco (coco needs internet once; none trains from scratch)",
     )
     p.add_argument(
         "--threads",
@@ -545,6 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     signal.signal(signal.SIGINT, signal.default_int_handler)  # from here on Ctrl-C lets the steps clean up
     try:
+        check_args(args)  # before any work: a wrong option costs no field and no step
         setup_console()
         run_demo(
             args.out,
@@ -564,7 +470,8 @@ def main(argv: list[str] | None = None) -> int:
         # worker pools still close while Python shuts down, and an interrupt there prints a traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         print(
-            "interrupted (Ctrl-C); the finished steps are kept: run the demo again to go on from there", file=sys.stderr
+            f"interrupted (Ctrl-C); {kept(Path(args.out).resolve())}: run the demo again to go on from there",
+            file=sys.stderr,
         )
         return 130
     except MatchPlantError as exc:

@@ -79,9 +79,7 @@ def test_ctrl_c_during_a_step_gives_one_line_and_130(tmp_path):
     assert [ln for ln in after if not ln.startswith(("rendering", "generating", "["))] == [after[-1]], after
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
-def test_make_demo_adds_no_line_of_its_own(tmp_path):
+def _make_demo(tmp_path: Path, preexec) -> subprocess.Popen:
     """The Makefile's demo recipe, run by make with a stand-in for the venv's python."""
     bin_dir = tmp_path / "venv" / "bin"
     bin_dir.mkdir(parents=True)
@@ -89,7 +87,7 @@ def test_make_demo_adds_no_line_of_its_own(tmp_path):
     (bin_dir / "python").chmod(0o755)
     (tmp_path / "venv" / ".installed").touch()  # newer than the requirements: make installs nothing
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    proc = subprocess.Popen(
+    return subprocess.Popen(
         [
             "make",
             "-s",
@@ -104,9 +102,70 @@ def test_make_demo_adds_no_line_of_its_own(tmp_path):
         text=True,
         env=env,
         start_new_session=True,
-        preexec_fn=_terminal_sigint,
+        preexec_fn=preexec,
     )
-    rc, after = _interrupt_when(proc, lambda lines: any("rendering images" in ln or "running" in ln for ln in lines))
+
+
+def _step_running(lines: list[str]) -> bool:
+    return any("rendering images" in ln or "running" in ln for ln in lines)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make")
+def test_make_demo_adds_no_line_of_its_own(tmp_path):
+    rc, after = _interrupt_when(_make_demo(tmp_path, _terminal_sigint), _step_running)
     assert rc in (-signal.SIGINT, 130), after  # make ends by the signal: the shell reports 130
     assert not any(ln.startswith("make") for ln in after), after
     assert after[-1].startswith("interrupted (Ctrl-C)") and not any("Traceback" in ln for ln in after), after
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("make") is None or not Path("/proc/self/status").is_file(), reason="no make/proc")
+def test_make_demo_started_with_sigint_ignored_does_not_exit_0(tmp_path):
+    """`make demo &` from a script: make (and the shell) ignore SIGINT, the demo does not (it re-enables it). make
+    cannot end by the signal, so the demo's 130 is passed on: make exits 2 after its line naming the 130."""
+    rc, after = _interrupt_when(
+        _make_demo(tmp_path, lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)), _step_running
+    )
+    assert rc == 2, after
+    assert any(ln.startswith("interrupted (Ctrl-C)") for ln in after), after
+    assert "Error 130" in after[-1] and not any("Traceback" in ln for ln in after), after
+
+
+def _training_summary(out: Path) -> dict:
+    import json
+
+    return json.loads((out / "6_train" / "training_summary.json").read_text())
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_training_then_the_demo_again_continues_the_training(tmp_path):
+    """Issue 40: Ctrl-C in [6_train] keeps a mid-epoch checkpoint and says so in its one line; running the demo
+    again continues that training from the interrupted iteration instead of starting at iteration 1."""
+    out = tmp_path / "demo"
+    # training's first progress line (every ~10 s): it is under way, iterations done
+    rc, after = _interrupt_when(
+        _start(out), lambda lines: any(ln.startswith("epoch 1/") and " batch " in ln for ln in lines), timeout=600
+    )
+    _one_line(rc, after)
+    assert [ln for ln in after if not ln.startswith(("epoch ", "["))] == [after[-1]], after
+    first = _training_summary(out)
+    assert first["status"] == "interrupted", first
+    assert "training's checkpoint (interrupted (Ctrl-C) after" in after[-1], after
+    done = int(first["message"].split(" after ")[1].split()[0])
+    assert done >= 1
+    # the re-run: interrupt it again once training has resumed (one of its own batches done)
+    before: list[str] = []
+
+    def resumed(lines: list[str]) -> bool:
+        before[:] = lines
+        at = next((i for i, ln in enumerate(lines) if "resuming" in ln), None)
+        return at is not None and any(ln.startswith("epoch ") for ln in lines[at + 1 :])
+
+    rc, _ = _interrupt_when(_start(out), resumed, timeout=600)
+    assert rc == 130
+    text = "".join(before)
+    assert "[6_train] continuing its interrupted run" in text, text
+    assert f"after {done} iteration(s)" in text and "replaces them" not in text, text
+    second = _training_summary(out)
+    assert int(second["message"].split(" after ")[1].split()[0]) > done, (first, second)

@@ -18,8 +18,8 @@ from matchplant.demo import (
     environment,
     held_out_photos,
     held_out_record,
-    map_steps,
 )
+from matchplant.demo_pipeline import map_steps
 from matchplant.pipeline import PipelineConfig, run_pipeline
 
 

@@ -98,7 +98,8 @@ def test_paper_defaults():
     assert (cfg.optimizer, cfg.momentum, cfg.weight_decay) == ("sgd", 0.9, 5e-4)
     assert (cfg.schedule, cfg.step_size, cfg.gamma) == ("step", 10, 0.1)
     assert cfg.val_score_threshold == 0.05 and cfg.model.roi.detections_per_img > 100
-    assert cfg.model.architecture == "auto" and cfg.model.pretrained == "coco"  # auto: ResNet-50 FPN on a GPU
+    # auto: ResNet-50 FPN on a GPU; pretrained auto: COCO weights where they can be had (test_pretrained_auto.py)
+    assert cfg.model.architecture == "auto" and cfg.model.pretrained == "auto"
 
 
 # -- every model setting takes effect -----------------------------------------------------------------

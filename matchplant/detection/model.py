@@ -22,8 +22,11 @@ scheduler and scaler state, random states, history and metrics. :func:`load_dete
 from __future__ import annotations
 
 import dataclasses
+import socket
+import threading
 import types
 import urllib.error
+import urllib.parse
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -41,7 +44,8 @@ from matchplant.detection.objects import auto_anchor_sizes, box_sizes
 
 log = get_logger("detector")
 
-PRETRAINED = ("coco", "imagenet", "none")
+PRETRAINED = ("auto", "coco", "imagenet", "none")
+WEIGHTS_HOST_TIMEOUT = 3.0  # seconds to wait for the weights' download host before counting it unreachable
 AUTO = "auto"  # model.architecture chosen by module 6 (matchplant.model_train.choose)
 PARTS = ("backbone", "fpn", "rpn", "roi_heads")
 
@@ -106,8 +110,10 @@ class ModelConfig:
         choices=(AUTO, *ARCHITECTURES),
     )
     pretrained: str = param(
-        "coco",
-        "starting weights: coco (whole detector, downloaded once), imagenet (backbone only), none (random)",
+        AUTO,
+        "starting weights: auto (module 6: coco when the COCO weights are in the torch cache or downloadable now, "
+        "else none and the from-scratch recipe; logged with the reason), coco (whole detector, downloaded "
+        "once), imagenet (backbone only), none (random)",
         choices=PRETRAINED,
     )
     checkpoint: Path | None = param(
@@ -215,6 +221,11 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             "model.architecture is 'auto', which module 6 resolves before it builds a model",
             fix="set model.architecture to one of " + ", ".join(ARCHITECTURES),
         )
+    if cfg.pretrained == AUTO and load_weights:
+        raise ConfigError(
+            "model.pretrained is 'auto', which module 6 resolves before it builds a model",
+            fix="set model.pretrained to one of " + ", ".join(p for p in PRETRAINED if p != AUTO),
+        )
     arch = get_architecture(cfg.architecture)
     weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
     kwargs = (
@@ -280,6 +291,42 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             if weights is not None:
                 log.info("the RPN head was re-initialised for %d anchors per position", n)
     return model
+
+
+def coco_weights_at_hand(architectures: list[str], timeout: float = WEIGHTS_HOST_TIMEOUT) -> tuple[bool, str]:
+    """Whether the COCO weights of every one of ``architectures`` can be loaded now, and why: in torch's cache, or
+    else their download host answers within ``timeout`` seconds. Costs milliseconds offline (no model is built,
+    nothing is downloaded here)."""
+    from torch.hub import get_dir  # lazy: PyTorch is heavy; configs load without it
+    from torchvision.models import get_weight
+
+    cache = Path(get_dir()) / "checkpoints"
+    urls = []
+    for name in architectures:
+        arch = get_architecture(name)
+        if arch.coco_weights is None:
+            return False, f"{name} has no COCO weights"
+        url = get_weight(arch.coco_weights).url
+        if not (cache / url.rsplit("/", 1)[-1]).is_file():
+            urls.append(url)
+    if not urls:
+        return True, f"the COCO weights are in the torch cache ({cache})"
+    host = urllib.parse.urlparse(urls[0]).hostname
+    answered: list[bool] = []
+
+    def connect() -> None:  # in a thread: a name lookup can outlast any socket timeout
+        try:
+            socket.create_connection((host, 443), timeout=timeout).close()
+            answered.append(True)
+        except OSError:
+            pass
+
+    worker = threading.Thread(target=connect, daemon=True)
+    worker.start()
+    worker.join(timeout)
+    if answered:
+        return True, f"the COCO weights are not in the torch cache ({cache}) but {host} answers: downloaded once"
+    return False, f"the COCO weights are not in the torch cache ({cache}) and {host} does not answer (offline?)"
 
 
 def _download_failed(cfg: ModelConfig, weights, exc: Exception):

@@ -32,11 +32,13 @@ from matchplant.detection.architectures import get_architecture
 from matchplant.detection.crops import skip_training_resize
 from matchplant.detection.model import (
     AUTO,
+    PRETRAINED,
     ROIConfig,
     RPNConfig,
     apply_freezing,
     backbone_stages,
     build_detector,
+    coco_weights_at_hand,
     resolve_auto_anchors,
 )
 from matchplant.model_train.budget import Budget
@@ -72,6 +74,27 @@ LITE_WHY = (
     "random weights on a CPU: the light ResNet-18 FPN (matchplant/detection/lite.py) learns from scratch "
     "in the iterations a CPU budget allows, where MobileNetV3-Large FPN does not"
 )
+
+
+def resolve_pretrained(cfg, resume: dict | None) -> object:
+    """``model.pretrained: auto`` made concrete, logged with the reason: a resumed run keeps its weights' kind (the
+    detector's structure depends on it); from a checkpoint, none (the weights come from it); else coco when the
+    COCO weights of the architecture (for ``architecture: auto``, of both the paper's and MobileNetV3) are in the
+    torch cache or downloadable now, none otherwise, which on a CPU picks the from-scratch recipe. Checked
+    before any model is built, so an offline run does not time MobileNetV3 only to fail on the download."""
+    model = cfg.model
+    if model.pretrained != AUTO:
+        return cfg
+    saved = ((resume or {}).get("model_config") or {}).get("pretrained")
+    if saved in PRETRAINED and saved != AUTO:
+        choice, why = saved, "the resumed run's"
+    elif model.checkpoint is not None:
+        choice, why = "none", f"the weights come from model.checkpoint ({model.checkpoint})"
+    else:
+        at_hand, why = coco_weights_at_hand([PAPER, MOBILE] if model.architecture == AUTO else [model.architecture])
+        choice = "coco" if at_hand else "none"
+    log.info("model.pretrained: auto -> %s (%s)", choice, why)
+    return dataclasses.replace(cfg, model=dataclasses.replace(model, pretrained=choice))
 
 
 def from_scratch_on_cpu(cfg, device) -> bool:

@@ -7,10 +7,14 @@ from pathlib import Path
 from typing import Literal
 
 from matchplant.core.runtime.config import param, section
+from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.log import get_logger
 from matchplant.detection.data import AugmentConfig
 from matchplant.detection.device import DEVICE_CHOICES
 from matchplant.detection.model import PARTS, ModelConfig
+
+log = get_logger("model_train")
 
 SCHEDULES = ("step", "multistep", "cosine", "constant")
 
@@ -111,7 +115,12 @@ class ModelTrainConfig:
         min=0,
     )
     batch_size: int = param(4, "tiles per batch (per GPU under torchrun)", min=1)
-    num_workers: int = param(2, "processes loading tiles (0 = in the main process)", min=0)
+    num_workers: int = param(
+        2,
+        "processes loading tiles (0 = in the main process); at most the usable cores less one (the main process "
+        "trains on one), so 0 on one core",
+        min=0,
+    )
     augment: AugmentConfig = section(AugmentConfig)
     val_score_threshold: float = param(
         0.05, "boxes below this score are dropped during validation (the paper's 0.05)", min=0, max=1
@@ -130,6 +139,10 @@ class ModelTrainConfig:
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
 
     def check(self) -> None:
+        cores, source = usable_cores()
+        if self.num_workers > cores - 1:  # more loaders than free cores only compete (PyTorch: "might freeze")
+            log.info("num_workers %d -> %d: %d usable core(s) (%s)", self.num_workers, cores - 1, cores, source)
+            self.num_workers = cores - 1
         if self.device.split(":")[0] not in DEVICE_CHOICES:
             raise ConfigError(
                 f"device '{self.device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto"

@@ -192,7 +192,7 @@ def stop_interrupted(job: Job, state: TrainState, epoch: int, record: dict, sums
             extras=job.extras,
             message=job.budget.status(state.done, interrupted=True)[1],
         )
-    log.warning(
+    log.debug(  # the command's own line says it (one line on Ctrl-C)
         "interrupted after %d of %d planned iterations: %s written; --resume continues there",
         state.done,
         job.budget.plan.iters,

@@ -162,7 +162,7 @@ class StopOnInterrupt:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        log.warning(
+        log.debug(  # the command's own line says it (one line on Ctrl-C)
             "Ctrl-C: stopping after this iteration and writing a checkpoint that --resume continues "
             "from (Ctrl-C again stops at once, without it)"
         )

@@ -32,6 +32,7 @@ from matchplant.model_train.budget import Budget, Plan, validation_report
 from matchplant.model_train.choose import (
     choose_architecture,
     cpu_proposals,
+    resolve_pretrained,
     resumed_recipe,
     scratch_recipe,
     scratch_settings,
@@ -126,6 +127,7 @@ def settle_config(cfg: ModelTrainConfig, device, train_ds, iters: int, resume: d
     """``cfg`` with what auto chooses (or, resumed, what the run chose): the CPU recipe, the crops, the detector.
     Returns ``(cfg, the architecture probe or None, the reason or None, whether to size val_every)``."""
     probe, reason, size_validation, scratch = None, None, False, []
+    cfg = resolve_pretrained(cfg, resume)  # model.pretrained: auto -> coco or none, before anything depends on it
     if resume is not None:
         cfg = resumed_recipe(cfg, resume.get("train_config") or {})
     else:  # random weights on a CPU: training crops and a run as long as the budget

@@ -80,6 +80,24 @@ def _check_names(cfg: PipelineConfig, steps: list[Step], path: Path) -> None:
             )
 
 
+def continue_interrupted(step: Step, spec, step_cfg, started: Path, fp: str) -> bool:
+    """Set the step's resume key when its previous run stopped unfinished (Ctrl-C, a crash, a time limit) with
+    these settings and inputs, and left a checkpoint newer than its start: re-running the pipeline then
+    continues that run instead of replacing it. A key the user set is left as it is."""
+    if not spec.resume_key or getattr(step_cfg, spec.resume_key) or not started.is_file():
+        return False
+    record = json.loads(started.read_text())
+    checkpoint = spec.resume_file(step_cfg)
+    if record.get("fingerprint") != fp:
+        log.info("[%s] its interrupted run had other settings or inputs: a new run", step.name)
+        return False
+    if not checkpoint.is_file() or checkpoint.stat().st_mtime < record.get("started", 0):
+        return False  # stopped before its first checkpoint: nothing of it to continue
+    setattr(step_cfg, spec.resume_key, True)
+    log.info("[%s] continuing its interrupted run (same settings) from %s", step.name, checkpoint)
+    return True
+
+
 def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
     """Check every step, then run them; returns ``{step: "ran" | "up to date" | "skipped"}``."""
     path = Path(cfg.pipeline)
@@ -105,11 +123,16 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
             log.info("[%s] up to date, skipped", step.name)
             results[step.name] = "up to date"
             continue
-        log.info("[%s] running %s ...", step.name, step.module)
         t0 = time.time()
         out = getattr(step_cfg, spec.output_key, None) if spec.output_key else None
         if out is not None:
             Path(out).mkdir(parents=True, exist_ok=True)
+        started = state_dir / f"{step.name}.started.json"
+        resumed = not forced and continue_interrupted(step, spec, step_cfg, started, fp)
+        if not resumed:
+            log.info("[%s] running %s ...", step.name, step.module)
+        write_json(started, {"fingerprint": fp, "started": t0})  # removed when it finishes
+        stamp.unlink(missing_ok=True)  # an interrupted re-run (--from) is not the earlier finished one
         try:
             spec.run(step_cfg)
         except MatchPlantError as exc:
@@ -124,6 +147,8 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
                 fix=f"see the log; earlier steps' outputs are kept; re-run with --debug "
                 f"for the traceback, or with --set from_step={step.name}",
             ) from exc
+        if resumed:  # the stamp holds the step's own settings: the next run finds it up to date
+            setattr(step_cfg, spec.resume_key, False)
         # a step that finished after a later input changed must not count as up to date: fingerprint again
         write_json(
             stamp,
@@ -134,6 +159,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
                 "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
             },
         )
+        started.unlink(missing_ok=True)
         log.info("[%s] done in %.1f s", step.name, time.time() - t0)
         results[step.name] = "ran"  # later steps see its new files: their fingerprints change by mtime
     return results

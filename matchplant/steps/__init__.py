@@ -32,6 +32,7 @@ STEPS: dict[str, tuple[str, str]] = {
     "spatial_stat_extractor": ("9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
     "simfield": ("", "generate a synthetic ODM project with exact ground truth"),
     "inspect": ("", "object sizes of a COCO file; recommended tile size, overlap, min_size, anchors"),
+    "init": ("", "write a commented pipeline.yaml for a season from an ODM project folder"),
     "run": ("", "run several steps in order from one pipeline.yaml"),
 }
 
@@ -63,6 +64,11 @@ class StepSpec:
     # when set, the positional argument fills this key instead of naming a config file
     # (``matchplant run pipeline.yaml``)
     positional_key: str | None = None
+    # a step that continues an interrupted run (module 6): the key that asks for it (``resume``) and what says
+    # there is one to continue (its checkpoint, given the config); ``matchplant run`` sets the key when the
+    # step's previous run stopped unfinished with the same settings (matchplant/pipeline/run.py)
+    resume_key: str | None = None
+    resume_file: Callable[[Any], Path] | None = None
 
     def load_gui(self) -> Callable[[Any, Path | None], Any]:
         """The step's window function, imported now."""

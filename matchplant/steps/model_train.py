@@ -1,5 +1,7 @@
 """Step 6 (6_model_train): train a plant detector, with transfer learning, from YAML."""
 
+from pathlib import Path
+
 from matchplant.model_train import ModelTrainConfig, run
 from matchplant.steps import StepSpec
 
@@ -17,4 +19,6 @@ SPEC = StepSpec(
         ),
         "--epochs": ("epochs", "number of epochs (shortcut for --set epochs=N)"),
     },
+    resume_key="resume",
+    resume_file=lambda cfg: Path(cfg.output_dir) / "checkpoints" / "last.pt",
 )
