@@ -18,12 +18,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import shapely
 
 from matchplant.core.formats.images import image_size, read_rgb8
 from matchplant.core.formats.odm import SUBMODELS_DIR
 from matchplant.core.formats.predictions import write_predictions
-from matchplant.core.geometry.boxes import nms
+from matchplant.core.geometry.boxes import nms, overlapping_pairs
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
@@ -209,13 +208,12 @@ def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, found through an R-tree
-    (shapely's STRtree): a photo's thousands of boxes meet only their neighbours, so the pairs are few where
-    a dense matrix would be n x m."""
+    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, in ``(i, j)`` order, found
+    through the core's grid (:func:`matchplant.core.geometry.boxes.overlapping_pairs`): a photo's thousands of boxes
+    meet only their neighbours, so the pairs are few where a dense matrix would be n x m."""
     if not len(a) or not len(b):
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
-    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
+    i, j, _ = overlapping_pairs(a, b)
     wh = np.clip(np.minimum(a[i, 2:], b[j, 2:]) - np.maximum(a[i, :2], b[j, :2]), 0, None)
     inter = wh[:, 0] * wh[:, 1]
     ok = inter > 0
