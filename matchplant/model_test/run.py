@@ -49,6 +49,7 @@ from matchplant.detection.model import set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.estimate import estimate
+from matchplant.model_test.gpu_feed import DevicePredictor, decoded, detect_batch, device_predictor
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
@@ -408,7 +409,7 @@ def detect(
     shard, device = join(device or select_device(cfg.device))  # one share of the images per torchrun process
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
-    predictor = model_predictor(model, device, cfg.amp)
+    predictor = device_predictor(model, device, cfg.amp) or model_predictor(model, device, cfg.amp)
     # before hours of work: the actual tiles and network input of every photo, timed on this device
     plan = estimate(
         predictor,
@@ -428,7 +429,7 @@ def detect(
     tiling = dict(
         tile_size=dcfg.tile_size,
         overlap=dcfg.overlap,
-        batch_size=cfg.batch_size,
+        batch_size=detect_batch(cfg.batch_size, device, dcfg.tile_size, ck["model_config"]),  # CUDA: free memory
         merge_iou=dcfg.merge_iou,
         edge_margin=dcfg.edge_margin,
         merge_containment=dcfg.merge_containment,
@@ -436,9 +437,11 @@ def detect(
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
     counts: dict = {}
     drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
-    for i in progress(shard.take(files), desc="detecting", unit="image"):
+    mine_idx = shard.take(files)
+    for i, img in progress(decoded(mine_idx, files, device), desc="detecting", unit="image", total=len(mine_idx)):
         path = files[i]
-        img = read_rgb8(path)
+        if isinstance(predictor, DevicePredictor):
+            predictor.use(img)  # the photo on the GPU once; its tiles cut there
         boxes, scores, labels = detect_image(
             img, predictor, score_threshold=dcfg.score_threshold, counts=counts, **tiling
         )
