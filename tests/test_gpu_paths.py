@@ -61,6 +61,26 @@ def test_tiles_cut_from_the_photo_on_the_device_are_the_tiles_of_the_cpu_path():
     np.testing.assert_array_equal(on_device._tensor(copy).permute(1, 2, 0).numpy(), copy)
 
 
+def test_two_photos_in_flight_give_each_photo_its_own_boxes_in_order(tmp_path):
+    """The CUDA path's threads (here on the CPU): each thread's photo stays its own (the predictor keeps one per
+    thread), the results come in order and equal the one-after-another path's, counts included."""
+    rng = np.random.default_rng(2)
+    photos = [rng.integers(0, 255, (200 + 37 * k, 260, 3), dtype=np.uint8) for k in range(7)]
+    files = list(range(len(photos)))
+    model = TileModel()
+
+    def detect(img, pred, counts):
+        return detect_image(img, pred, tile_size=96, overlap=16, batch_size=2, score_threshold=0.0, counts=counts)
+
+    def run(predictor, threads):
+        found = gpu_feed.detections(files, photos, CPU, predictor, detect, threads=threads, read=lambda photo: photo)
+        return [(i, boxes.tolist(), scores.tolist(), counts) for i, _, (boxes, scores, _), counts in found]
+
+    sequential = run(model_predictor(model, CPU), 0)  # the "files" are the arrays themselves
+    threaded = run(DevicePredictor(model, CPU, amp=False, dtype=None), 3)
+    assert [r[0] for r in threaded] == files and threaded == sequential
+
+
 def test_photos_decoded_ahead_come_in_order_and_each_once():
     files = [f"photo_{i}" for i in range(11)]
     threads = set()

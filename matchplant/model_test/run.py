@@ -49,7 +49,7 @@ from matchplant.detection.model import set_score_threshold
 from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.estimate import estimate
-from matchplant.model_test.gpu_feed import DevicePredictor, decoded, detect_batch, device_predictor
+from matchplant.model_test.gpu_feed import detect_batch, detections, device_predictor
 from matchplant.model_test.inputs import check_images, list_images, nothing_found, nothing_in_test
 from matchplant.model_test.scale import check_detect_scale, check_found_scale, check_test_scale, with_detect_settings
 
@@ -438,13 +438,18 @@ def detect(
     counts: dict = {}
     drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
     mine_idx = shard.take(files)
-    for i, img in progress(decoded(mine_idx, files, device), desc="detecting", unit="image", total=len(mine_idx)):
+
+    def detect_one(img, pred, photo_counts):
+        return detect_image(img, pred, score_threshold=dcfg.score_threshold, counts=photo_counts, **tiling)
+
+    # on CUDA: photos decoded ahead, two in flight (model_test/gpu_feed.py); elsewhere one after another
+    found = detections(mine_idx, files, device, predictor, detect_one)
+    for i, img, (boxes, scores, labels), photo_counts in progress(
+        found, desc="detecting", unit="image", total=len(mine_idx)
+    ):
         path = files[i]
-        if isinstance(predictor, DevicePredictor):
-            predictor.use(img)  # the photo on the GPU once; its tiles cut there
-        boxes, scores, labels = detect_image(
-            img, predictor, score_threshold=dcfg.score_threshold, counts=counts, **tiling
-        )
+        for key, n in photo_counts.items():
+            counts[key] = counts.get(key, 0) + n
         name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
         if (root / SUBMODELS_DIR).is_dir():
             name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it
