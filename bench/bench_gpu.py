@@ -19,14 +19,14 @@ from pathlib import Path
 import cv2
 import torch
 
-from bench.bench_model_train import gpu_rates, train_settings
+from bench.bench_model_train import copied_tiles, gpu_rates, train_settings
 from bench.gpu_figures import GpuMonitor, figures_of
 from matchplant.core.runtime.config import load_config
 from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector
-from matchplant.detection.synth import make_photo, make_tiles
+from matchplant.detection.synth import make_photo
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.run import run as run_model_test
 from matchplant.model_train.config import ModelTrainConfig
@@ -46,9 +46,7 @@ def sizes(device, quick: bool) -> dict:
 
 
 def tile_set(work: Path, size: int, n: int) -> Path:
-    return make_tiles(
-        work / "tiles", n_images=n, size=size, radius=(size / 32, size / 12), negatives=1, seed=0, name="train.json"
-    )
+    return copied_tiles(work / "tiles", size, n, (size / 32, size / 12))
 
 
 def on_device_batch(ds: CocoDetection, batch: int, device) -> tuple[list, list]:
