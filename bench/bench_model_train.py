@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -29,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.gpu_figures import GpuMonitor
 from matchplant.core.formats.images import read_rgb8
 from matchplant.core.runtime.config import load_config
 from matchplant.detection.architectures import get_architecture
@@ -39,9 +41,46 @@ from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.run import detect_image, model_predictor, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.gpu import amp_dtype
 from matchplant.model_train.run import train
 
 os.environ.setdefault("MATCHPLANT_QUIET", "1")
+
+
+def gpu_rates(batch: int, iters: int) -> list[str]:
+    """On a GPU: the torchvision reference's 0.02 for 16 images scaled linearly to ``batch`` (0.02 at batch 2
+    made ResNet-50 FPN's loss nan), warmed up over half the run (at most 50 iterations) so that it fits."""
+    lr = 0.02 * batch / 16
+    return [
+        *(f"lr.{part}={lr:g}" for part in ("backbone", "fpn", "rpn", "roi_heads")),
+        f"warmup_iters={gpu_warmup(iters)}",
+    ]
+
+
+def gpu_warmup(iters: int) -> int:
+    return max(1, min(50, iters // 2))
+
+
+DISTINCT_TILES = 32  # drawn; the rest are copies under other names (drawing a 1024 px tile takes most of a second)
+
+
+def copied_tiles(folder: Path, size: int, n: int, radius: tuple[float, float]) -> Path:
+    """``n`` PNG tiles of ``size`` px with their COCO JSON (``train.json``): :data:`DISTINCT_TILES` drawn, copied
+    under new names (each file is read and decoded as its own tile: the loader's work is that of ``n`` tiles)."""
+    path = make_tiles(folder, n_images=min(n, DISTINCT_TILES), size=size, radius=radius, negatives=1, seed=0,
+                      name="train.json")  # fmt: skip
+    data = json.loads(path.read_text())
+    images, anns = list(data["images"]), list(data["annotations"])
+    for k in range(len(images), n):
+        src = images[k % len(images)]
+        name = f"images/copy_{k:05d}.png"
+        shutil.copyfile(path.parent / src["file_name"], path.parent / name)
+        data["images"].append({**src, "id": k + 1, "file_name": name})
+        copies = [a for a in anns if a["image_id"] == src["id"]]
+        start = len(data["annotations"])
+        data["annotations"] += [{**a, "id": start + j + 1, "image_id": k + 1} for j, a in enumerate(copies)]
+    path.write_text(json.dumps(data))
+    return path
 
 
 def train_settings(
@@ -76,30 +115,45 @@ def train_settings(
     ]
 
 
-def bare_step(model, opt, images, targets, device) -> int:
-    """One step of the bare torchvision training loop (module 6's peer); returns the images it used."""
+def bare_step(model, opt, images, targets, device, dtype=None, scaler=None) -> int:
+    """One step of the bare torchvision training loop (module 6's peer); returns the images it used. ``dtype``:
+    autocast at that precision (on a GPU the peer runs at ours: bf16, or fp16 with ``scaler``)."""
     images = [im.to(device) for im in images]
     targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
-    loss = sum(model(images, targets).values())
+    with torch.autocast(device_type=device.type, enabled=dtype is not None, dtype=dtype):
+        loss = sum(model(images, targets).values())
     opt.zero_grad()
-    loss.backward()
-    opt.step()
+    if scaler is not None:
+        scaler.scale(loss).backward()
+        scaler.step(opt)
+        scaler.update()
+    else:
+        loss.backward()
+        opt.step()
     return len(images)
 
 
 def bare_loop(cfg, train_json: Path, device, epochs: int) -> float:
-    """The plain torchvision loop on the same model and data: forward, backward, step. Returns the
+    """The plain torchvision loop on the same model and data: forward, backward, step (on a GPU at our precision,
+    learning rate and warm-up; its DataLoader as torchvision's reference sets it: 4 workers, pinned). Returns the
     seconds of its epoch loop (data loading included, model building excluded, as ours)."""
     torch.manual_seed(cfg.seed)
     ds = CocoDetection(train_json)
-    loader = torch.utils.data.DataLoader(ds, batch_size=cfg.batch_size, shuffle=True, collate_fn=collate)
+    gpu = device.type == "cuda"
+    feed = {"num_workers": 4, "pin_memory": True} if gpu else {}
+    loader = torch.utils.data.DataLoader(ds, batch_size=cfg.batch_size, shuffle=True, collate_fn=collate, **feed)
     model = build_detector(cfg.model, 2).to(device).train()
-    opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9, weight_decay=5e-4)
+    opt = torch.optim.SGD(model.parameters(), lr=cfg.lr.backbone if gpu else 0.01, momentum=0.9, weight_decay=5e-4)
+    warm = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: min(1.0, (it + 1) / max(cfg.warmup_iters or 1, 1)))
+    dtype = amp_dtype(device, cfg.amp)
+    scaler = torch.amp.GradScaler("cuda") if dtype == torch.float16 else None
     t0 = time.perf_counter()
     for _ in range(epochs):
         for images, targets in loader:
-            bare_step(model, opt, images, targets, device)
-    if device.type == "cuda":
+            bare_step(model, opt, images, targets, device, dtype, scaler)
+            if gpu:
+                warm.step()
+    if gpu:
         torch.cuda.synchronize()
     return time.perf_counter() - t0
 
@@ -124,17 +178,23 @@ def comparison(name: str, work: Path, quick: bool, device: str):
         n_tiles = 24 if quick else 48
         photo_w, photo_h = (4 * s, 3 * s) if quick else (8 * s, 6 * s)
     radius = (s / 16, s / 8)
-    train_json = make_tiles(
-        work / "data",
-        n_images=n_tiles,
-        size=s,
-        radius=radius,
-        negatives=max(1, n_tiles // 12),
-        seed=0,
-        name="train.json",
-    )
+    if dev.type == "cuda":  # drawing 800 px tiles takes most of a second each: a few drawn, the rest copies
+        train_json = copied_tiles(work / "data", s, n_tiles, radius)
+    else:
+        train_json = make_tiles(
+            work / "data",
+            n_images=n_tiles,
+            size=s,
+            radius=radius,
+            negatives=max(1, n_tiles // 12),
+            seed=0,
+            name="train.json",
+        )
     net = int(round(s * scale))
-    cfg = load_config(ModelTrainConfig, None, train_settings(work, train_json, arch, s, net, 1, batch, device))
+    settings = train_settings(work, train_json, arch, s, net, 1, batch, device)
+    if dev.type == "cuda":
+        settings += gpu_rates(batch, -(-n_tiles // batch))
+    cfg = load_config(ModelTrainConfig, None, settings)
     notes = {
         "architecture": arch,
         "tile": s,
@@ -143,6 +203,9 @@ def comparison(name: str, work: Path, quick: bool, device: str):
         "batch": batch,
         "device": str(dev),
         "gpu": torch.cuda.get_device_name(dev) if dev.type == "cuda" else None,
+        "precision": str(amp_dtype(dev, cfg.amp) or "fp32"),
+        "lr": cfg.lr.backbone,
+        "warmup_iters": cfg.warmup_iters,
     }
     if name == "train":
 
@@ -150,16 +213,24 @@ def comparison(name: str, work: Path, quick: bool, device: str):
             shutil.rmtree(work / "run", ignore_errors=True)
 
         def ours() -> float:
-            summary = train(cfg)
+            with GpuMonitor(dev) as m:
+                summary = train(cfg)
+            notes["ours_gpu"] = m.figures()
             return float(sum(h["train_time_s"] for h in summary["history"]))
+
+        def peer() -> float:
+            with GpuMonitor(dev) as m:
+                seconds = bare_loop(cfg, train_json, dev, 1)
+            notes["peer_gpu"] = m.figures()
+            return seconds
 
         return Comparison(
             name,
-            f"1 epoch, {n_tiles} tiles of {s} px at {net} px, {arch}, batch {batch}",
+            f"1 epoch, {n_tiles} tiles of {s} px at {net} px, {arch}, batch {batch}, {notes['precision']}",
             "matchplant train",
             "bare torchvision loop",
             ours,
-            lambda: bare_loop(cfg, train_json, dev, 1),
+            peer,
             reset=reset,
             items=n_tiles,
             unit="images",
@@ -176,18 +247,21 @@ def comparison(name: str, work: Path, quick: bool, device: str):
     predictor = model_predictor(det_model, dev, amp=True)
 
     def ours():
-        detect_image(img, predictor, tile_size=s, overlap=overlap, batch_size=batch)
+        with GpuMonitor(dev) as m:
+            detect_image(img, predictor, tile_size=s, overlap=overlap, batch_size=batch)
+        notes["ours_gpu"] = m.figures()
 
     def bare():
-        with torch.inference_mode():
+        with GpuMonitor(dev) as m, torch.inference_mode():
             for i in range(0, len(starts), batch):
                 b = [
                     torch.from_numpy(img[y : y + s, x : x + s]).to(dev).permute(2, 0, 1).float().div(255)
                     for x, y in starts[i : i + batch]
                 ]
                 out = det_model(b)
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+        notes["peer_gpu"] = m.figures()
         return out
 
     return Comparison(

@@ -17,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench.gpu_figures import TARGETS, acceptance_line, figures_of
 from bench.harness import (
     Comparison,
     alternate,
@@ -56,7 +57,18 @@ REGISTRY = {
         ),
     ),
 }
-GPU_NAMES = ("train", "detect", "train-real")  # what --device cuda measures
+REGISTRY.update(
+    {
+        "train-ceiling": (
+            "bench.bench_gpu",
+            "module 6 at 1024 px on files vs ResNet-50 FPN alone on tensors on the GPU (its ceiling); GPU options",
+        ),
+        "detect-photos": ("bench.bench_gpu", "module 7 on a folder of 20 MP JPEG photos: photos/s from disk"),
+    }
+)
+# what --device cuda measures, in this order (about 8 minutes on an H200: ../shared/gpu/README.md)
+GPU_NAMES = ("train", "detect", "train-ceiling", "detect-photos", "train-real")
+
 PACKAGES = [
     "matchplant",
     "numpy",
@@ -76,8 +88,9 @@ PACKAGES = [
 
 
 def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int:
-    """In the child: pin, set up, alternate, write the result JSON to ``out``."""
-    core = pin_one_core()
+    """In the child: pin (on a CPU: a GPU run needs its loader's cores), set up, alternate, write the result JSON to
+    ``out``."""
+    core = pin_one_core() if device == "cpu" else None
     module = importlib.import_module(REGISTRY[name][0])
     if hasattr(module, "run_row"):
         with tempfile.TemporaryDirectory(prefix=f"bench_{name}_") as tmp:
@@ -119,6 +132,18 @@ def run_child(name: str, quick: bool, device: str, pairs: int, out: Path) -> int
     return 0
 
 
+def acceptance(r: dict, device: str) -> list[dict]:
+    """A row's acceptance figures on a GPU: its own (whole runs), the speed ratio's (comparisons), or the figures it
+    should have given marked not measured when it failed."""
+    if device != "cuda":
+        return []
+    if "acceptance" in r:
+        return r["acceptance"]
+    if r["name"] == "train" and "summary" in r:  # a comparison: its median speed ratio
+        return figures_of("train", [round(r["summary"]["ratio_median"], 3)])
+    return figures_of(r["name"]) if r["name"] in TARGETS else []
+
+
 def describe(r: dict) -> str:
     if "row" in r:
         return f"{r['name']:<15} {r['row']}"
@@ -140,7 +165,7 @@ def describe(r: dict) -> str:
 
 def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool = True) -> int:
     """In the parent: each comparison in its own single-threaded child; print and record."""
-    env = single_thread_env()
+    env = single_thread_env() if device == "cpu" else dict(os.environ)  # a GPU run uses the machine's cores
     env.setdefault("MATCHPLANT_QUIET", "1")
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
     record = {
@@ -181,6 +206,12 @@ def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool =
     print("\nsummary (speed ratio = peer time / our time, per alternating pair: median (min, max))")
     for r in record["results"]:
         print("  " + describe(r))
+    figures = [a for r in record["results"] for a in acceptance(r, device)]
+    if figures:
+        print("\nacceptance (issue 38, on this GPU)")
+        for a in figures:
+            print("  " + acceptance_line(a))
+        record["acceptance"] = figures
     if save:
         RESULTS.mkdir(exist_ok=True)
         stamp = time.strftime("%Y%m%d-%H%M%S")

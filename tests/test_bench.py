@@ -117,3 +117,23 @@ def test_every_benchmark_parses_and_each_registered_one_has_its_comparison():
     for name, (module, _) in REGISTRY.items():
         defined = {node.name for node in trees[module].body if isinstance(node, ast.FunctionDef)}
         assert {"comparison", "run_row"} & defined, f"{name}: {module} has neither comparison() nor run_row()"
+
+
+def test_gpu_rows_print_every_acceptance_figure_even_when_a_row_fails():
+    """``python -m bench --device cuda`` ends with each of issue 38's figures, PASS or FAIL: a row that failed or was
+    skipped still lists its figures, as not measured (a GPU session must see what it did not get)."""
+    from bench.gpu_figures import TARGETS, acceptance_line
+    from bench.runner import GPU_NAMES, acceptance
+
+    assert set(TARGETS) <= set(GPU_NAMES) <= set(REGISTRY)
+    rows = [
+        {"name": "train", "summary": {"ratio_median": 0.97}},
+        {"name": "detect", "summary": {"ratio_median": 0.9}},  # no target: informational
+        {"name": "train-ceiling", "error": "the benchmark process exited with status 1"},
+        {"name": "detect-photos", "row": "...", "acceptance": []},
+        {"name": "train-real", "skipped": "no deepforest-*.whl"},
+    ]
+    lines = [acceptance_line(a) for r in rows for a in acceptance(r, "cuda")]
+    assert lines[0].startswith("PASS  train 800 px") and "0.97" in lines[0]
+    assert sum(line.startswith("FAIL") and "not measured" in line for line in lines) == 4
+    assert all(acceptance(r, "cpu") == [] for r in rows)  # the CPU rows have no GPU targets

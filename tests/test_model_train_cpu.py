@@ -27,6 +27,7 @@ from matchplant.model_train.choose import (
     cpu_crop,
     resumed_recipe,
     scratch_budget,
+    scratch_recipe,
     validation_interval,
 )
 from matchplant.model_train.config import ModelTrainConfig
@@ -85,7 +86,7 @@ def test_auto_picks_the_light_detector_from_random_weights_on_a_cpu_only(tiles):
     arch, why, probe = choose()
     assert arch == LITE and probe is None and "random weights on a CPU" in why
     assert choose(LITE_ANCHORS)[0] == LITE  # 3 levels: MobileNetV3 or the light one
-    assert choose(device=GPU)[0] == PAPER  # on a GPU the paper's
+    assert choose(device=GPU)[0] == PAPER  # on a GPU without a budget the paper's
     assert choose("model.pretrained=imagenet", "model.checkpoint=null", LITE_ANCHORS)[0] == MOBILE  # not from scratch
     assert choose("model.anchor_sizes=[[8],[16],[32],[64],[128]]")[0] == PAPER  # 5 levels: only ResNet-50
 
@@ -94,7 +95,7 @@ def test_training_crops_are_chosen_on_a_cpu_from_random_weights_logged_and_overr
     chosen, why = cpu_crop(config(tiles), CPU)  # min_size 800 by default
     assert chosen.augment.crop == CPU_CROP and f"augment.crop: {CPU_CROP}" in why
     for extra, device in (
-        ([], GPU),
+        ([], GPU),  # a GPU without max_minutes: whole tiles
         (["model.pretrained=coco"], CPU),
         (["model.min_size=224", "model.max_size=224"], CPU),
         ([f"model.architecture={MOBILE}"], CPU),
@@ -114,8 +115,8 @@ def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
         (["max_minutes=15", "epochs=40"], CPU),
         (["max_minutes=15", "val_every=3"], CPU),
         ([], CPU),
-        (["max_minutes=15"], GPU),
         (["max_minutes=15", "model.pretrained=coco"], CPU),
+        (["max_minutes=15", "model.pretrained=coco"], GPU),
         (["max_minutes=15", f"model.architecture={LITE}"], CPU),
     ):
         kept, size, why = scratch_budget(config(tiles, *extra), device, Budget.from_config(config(tiles, *extra)))
@@ -123,6 +124,28 @@ def test_the_budget_ends_a_from_scratch_cpu_run_and_validation_is_sized(tiles):
     # validation at most ~10 % of training: 3.8 s against 22.2 s epochs -> every 2nd epoch; cheap -> every epoch
     assert validation_interval(3.8, 22.2) == 2 and validation_interval(1.0, 100.0) == 1
     assert validation_interval(3.0, 8.0) == 4
+
+
+def test_the_budget_recipe_applies_on_a_gpu_within_max_minutes(tiles, caplog):
+    """Issue 38: from random weights with max_minutes, a GPU gets the recipe the CPU's 53 % AP50 came from (the
+    light detector, crops, AdamW, epochs ended by the budget), logged with the reason; without a budget, or from
+    pretrained weights, the paper's detector on whole tiles as configured."""
+    ds = CocoDetection(tiles[0])
+    cfg = config(tiles, "max_minutes=3")
+    budget = Budget.from_config(cfg)
+    arch, why, probe = choose_architecture(cfg, cfg.model, GPU, ds, 1, 100, tiles[0], budget)
+    assert arch == LITE and probe is None and "max_minutes = 3" in why
+    cropped, why = cpu_crop(cfg, GPU, budget)
+    assert cropped.augment.crop == CPU_CROP and "within max_minutes" in why
+    extended, size, why = scratch_budget(cfg, GPU, budget)
+    assert extended.epochs == SCRATCH_EPOCHS and size and "max_minutes = 3" in why
+    chosen, why = scratch_recipe(cfg, GPU)
+    assert (chosen.optimizer, chosen.schedule) == ("adamw", "cosine") and "within max_minutes" in why
+    for extra in ([], ["model.pretrained=coco"]):  # no budget, or pretrained: as before
+        other = config(tiles, *extra, *(["max_minutes=3"] if extra else []))
+        other_budget = Budget.from_config(other)
+        assert choose_architecture(other, other.model, GPU, ds, 1, 100, tiles[0], other_budget)[0] == PAPER
+        assert cpu_crop(other, GPU, other_budget)[0].augment.crop == 0
 
 
 def test_a_resumed_run_keeps_the_crop_epochs_and_validation_auto_chose(tiles):

@@ -538,10 +538,12 @@ class CocoDetection:
         labels = np.asarray([self.label_of[a["category_id"]] for a in anns], dtype=np.int64)
         return {"boxes": torch.from_numpy(boxes), "labels": torch.from_numpy(labels), "image_id": int(im["id"])}
 
-    def __getitem__(self, index: int):
+    def __getitem__(self, index: int | tuple[int, int]):
+        """Tile ``index``; ``(index, seed)``: augmented with that seed (:class:`EpochSampler`'s ``item_seed``)."""
         import torch  # lazy: PyTorch is heavy; configs load without it
         from torchvision import tv_tensors
 
+        index, seed = index if isinstance(index, tuple) else (index, self.seed)
         try:
             img = read_rgb8(self.paths[index])
         except InputError as exc:  # passed up from a loader worker whole (see TileReadError)
@@ -549,9 +551,9 @@ class CocoDetection:
         image = tv_tensors.Image(torch.from_numpy(img).permute(2, 0, 1))
         target = self.target(index)
         target["boxes"] = tv_tensors.BoundingBoxes(target["boxes"], format="XYXY", canvas_size=img.shape[:2])
-        if self.transform is not None and self.seed is not None:
+        if self.transform is not None and seed is not None:
             with torch.random.fork_rng(devices=[]):
-                torch.manual_seed((self.seed * 1_000_003 + index) % 2**63)
+                torch.manual_seed((seed * 1_000_003 + index) % 2**63)
                 image, target = self.transform(image, target)
         elif self.transform is not None:
             image, target = self.transform(image, target)
@@ -568,11 +570,14 @@ class EpochSampler:
     """The training order: a shuffle that depends only on ``(seed, epoch)``, split between ``world`` processes
     (padded to a multiple of it, as DistributedSampler does), and resumable: ``set_epoch(epoch, start)`` skips
     the first ``start`` indices of this process's share, so a run resumed mid-epoch sees exactly the samples
-    the interrupted one had left, in the same order (``len(loader)`` then counts the remaining batches)."""
+    the interrupted one had left, in the same order (``len(loader)`` then counts the remaining batches).
+    With ``item_seed`` it yields ``(index, item_seed)``: the epoch's augmentation seed reaches loader workers kept
+    across epochs (``persistent_workers``), which a seed set on the dataset in the main process would not."""
 
     def __init__(self, n: int, seed: int, rank: int = 0, world: int = 1):
         self.n, self.seed, self.rank, self.world = n, seed, rank, world
         self.epoch, self.start = 0, 0
+        self.item_seed: int | None = None
 
     def set_epoch(self, epoch: int, start: int = 0) -> None:
         self.epoch, self.start = epoch, start
@@ -588,7 +593,8 @@ class EpochSampler:
         return perm[self.rank :: self.world]
 
     def __iter__(self):
-        return iter(self.order()[self.start :])
+        order = self.order()[self.start :]
+        return iter(order if self.item_seed is None else [(i, self.item_seed) for i in order])
 
     def __len__(self) -> int:
         return max(-(-self.n // self.world) - self.start, 0)

@@ -5,9 +5,8 @@ better one: the higher score, then the larger (containing) box."""
 from __future__ import annotations
 
 import numpy as np
-import shapely
 
-from matchplant.core.geometry.boxes import nms
+from matchplant.core.geometry.boxes import nms, overlapping_pairs
 
 
 def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -18,13 +17,12 @@ def _box_intersections(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _touching(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, found through an R-tree
-    (shapely's STRtree): a photo's thousands of boxes meet only their neighbours, so the pairs are few where
-    a dense matrix would be n x m."""
+    """``(i, j, intersection area)`` of the box pairs ``a[i]``, ``b[j]`` that overlap, in ``(i, j)`` order, found
+    through the core's grid (:func:`matchplant.core.geometry.boxes.overlapping_pairs`): a photo's thousands of boxes
+    meet only their neighbours, so the pairs are few where a dense matrix would be n x m."""
     if not len(a) or not len(b):
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    tree = shapely.STRtree(shapely.box(b[:, 0], b[:, 1], b[:, 2], b[:, 3]))
-    i, j = tree.query(shapely.box(a[:, 0], a[:, 1], a[:, 2], a[:, 3]), predicate="intersects")
+    i, j, _ = overlapping_pairs(a, b)
     wh = np.clip(np.minimum(a[i, 2:], b[j, 2:]) - np.maximum(a[i, :2], b[j, :2]), 0, None)
     inter = wh[:, 0] * wh[:, 1]
     ok = inter > 0

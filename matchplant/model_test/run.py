@@ -49,6 +49,7 @@ from matchplant.detection.tile_objects import distinct_objects, found_objects
 from matchplant.model_test.config import EvalConfig, ModelTestConfig
 from matchplant.model_test.cover import images_to_detect
 from matchplant.model_test.estimate import estimate
+from matchplant.model_test.gpu_feed import detect_batch, detections, device_predictor
 from matchplant.model_test.inputs import nothing_found, nothing_in_test
 from matchplant.model_test.merge import merge_nested, merge_tile_boxes
 from matchplant.model_test.runtime_onnx import torch_threads, with_runtime
@@ -296,7 +297,7 @@ def detect(
     model, ck = load_detector(ck, device, source=cfg.checkpoint)
     set_score_threshold(model, dcfg.score_threshold)
     model = with_runtime(model, dcfg.runtime, device, torch_threads())
-    predictor = model_predictor(model, device, cfg.amp)
+    predictor = device_predictor(model, device, cfg.amp) or model_predictor(model, device, cfg.amp)
     # before hours of work: the actual tiles and network input of every photo, timed on this device
     plan = estimate(
         predictor,
@@ -317,7 +318,7 @@ def detect(
     tiling = dict(
         tile_size=dcfg.tile_size,
         overlap=dcfg.overlap,
-        batch_size=cfg.batch_size,
+        batch_size=detect_batch(cfg.batch_size, device, dcfg.tile_size, ck["model_config"]),  # CUDA: free memory
         merge_iou=dcfg.merge_iou,
         edge_margin=dcfg.edge_margin,
         merge_containment=dcfg.merge_containment,
@@ -325,12 +326,19 @@ def detect(
     mine = []  # (image index, image entry, boxes) of this process's share (all of them without torchrun)
     counts: dict = {}
     drawn: list[str] = []  # this process's drawn images (the manifest lists every process's)
-    for i in progress(shard.take(files), desc="detecting", unit="image"):
+    mine_idx = shard.take(files)
+
+    def detect_one(img, pred, photo_counts):
+        return detect_image(img, pred, score_threshold=dcfg.score_threshold, counts=photo_counts, **tiling)
+
+    # on CUDA: photos decoded ahead, two in flight (model_test/gpu_feed.py); elsewhere one after another
+    found = detections(mine_idx, files, device, predictor, detect_one)
+    for i, img, (boxes, scores, labels), photo_counts in progress(
+        found, desc="detecting", unit="image", total=len(mine_idx)
+    ):
         path = files[i]
-        img = read_rgb8(path)
-        boxes, scores, labels = detect_image(
-            img, predictor, score_threshold=dcfg.score_threshold, counts=counts, **tiling
-        )
+        for key, n in photo_counts.items():
+            counts[key] = counts.get(key, 0) + n
         name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
         if (root / SUBMODELS_DIR).is_dir():
             name = path.name  # <shot>.tif: one image of a split-merge project, whichever submodel holds it

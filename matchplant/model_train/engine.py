@@ -26,6 +26,7 @@ from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summar
 from matchplant.detection.model import ModelConfig, keep_frozen_norms_fixed
 from matchplant.model_train.checkpoint import save, save_numbered
 from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.gpu import READ_EVERY
 from matchplant.model_train.probe import HEARTBEAT_S, heartbeat
 from matchplant.model_train.report import plot_curves, write_summary
 from matchplant.model_train.resume import random_state, set_random_state
@@ -35,29 +36,68 @@ from matchplant.model_train.state import Job, TrainState
 log = get_logger("model_train")
 
 
-def train_step(model, images, targets, optimizer, scheduler, scaler, device, amp: bool, desc: str):
-    """One step on a batch: ``(loss names, their values and the total's, as floats)``; a loss that is not finite
-    stops training with what to change."""
+def check_loss(value: float, desc: str) -> None:
+    """A loss that is not finite stops training with what to change."""
+    if not math.isfinite(value):
+        raise MatchPlantError(
+            f"the training loss became {value} ({desc})",
+            fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes",
+        )
+
+
+def train_step(model, images, targets, optimizer, scheduler, scaler, device, amp: bool, desc: str, dtype=None):
+    """One step on a batch: ``(loss names, their values and the total's)``. On a CPU the values come as floats,
+    checked here (one transfer per step, free there); on CUDA as one tensor left on the device, read and checked by
+    :class:`LossTally` every few steps (a read waits for the GPU: model_train/gpu.py)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     images = [im.to(device, non_blocking=True) for im in images]
-    targets = [{"boxes": t["boxes"].to(device), "labels": t["labels"].to(device)} for t in targets]
-    with torch.autocast(device_type=device.type, enabled=amp):
+    targets = [
+        {"boxes": t["boxes"].to(device, non_blocking=True), "labels": t["labels"].to(device, non_blocking=True)}
+        for t in targets
+    ]
+    with torch.autocast(device_type=device.type, enabled=amp, dtype=dtype):
         loss_dict = model(images, targets)
         loss = sum(loss_dict.values())
-    # every loss to the host in one transfer: one device sync per step, not one per value
-    values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()]).tolist()
-    if not math.isfinite(values[-1]):
-        raise MatchPlantError(
-            f"the training loss became {values[-1]} ({desc})",
-            fix="lower the learning rates (lr.*) or raise warmup_iters; check the boxes",
-        )
+    values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()])
+    if device.type != "cuda":
+        values = values.tolist()
+        check_loss(values[-1], desc)
     optimizer.zero_grad(set_to_none=True)
     scaler.scale(loss).backward()
     scaler.step(optimizer)
     scaler.update()
     scheduler.step()
     return (*loss_dict, "loss"), values
+
+
+class LossTally:
+    """The epoch's loss sums: added at once from floats (a CPU), or summed on the device and read every
+    :data:`~matchplant.model_train.gpu.READ_EVERY` steps and at the end (CUDA), where the loss is checked."""
+
+    def __init__(self, sums: dict[str, float], desc: str):
+        self.sums, self.desc = sums, desc
+        self.names, self.pending, self.count = None, None, 0
+
+    def add(self, names, values) -> bool:
+        """Add a step's losses; True when the sums are up to date (the progress bar may show them)."""
+        if isinstance(values, list):
+            for k, v in zip(names, values):
+                self.sums[k] = self.sums.get(k, 0.0) + v
+            return True
+        self.names = names
+        self.pending = values if self.pending is None else self.pending + values
+        self.count += 1
+        return self.flush() if self.count >= READ_EVERY else False
+
+    def flush(self) -> bool:
+        if self.pending is not None:
+            values = self.pending.tolist()  # the one host-device sync of READ_EVERY steps
+            check_loss(values[-1], self.desc)
+            for k, v in zip(self.names, values):
+                self.sums[k] = self.sums.get(k, 0.0) + v
+        self.pending, self.count = None, 0
+        return True
 
 
 def train_one_epoch(
@@ -75,6 +115,7 @@ def train_one_epoch(
     *,
     slow: bool,
     limit: int,
+    dtype=None,
 ) -> tuple[str | None, int]:
     """Train on the loader's batches (at most ``limit``), adding the losses into ``sums``; ``after(step_s)`` after
     each iteration says whether to stop. Returns ``(why it stopped or None, batches done in this epoch)``. A
@@ -83,8 +124,7 @@ def train_one_epoch(
     keep_frozen_norms_fixed(model)
     bar = progress(loader, desc=desc, unit="batch", total=min(len(loader), limit))
     batch_iter = iter(bar)
-    reason = None
-    first = True
+    reason, first, tally = None, True, LossTally(sums, desc)
     try:
         for _ in range(limit):
             t0 = time.perf_counter()
@@ -93,16 +133,15 @@ def train_one_epoch(
                     images, targets = next(batch_iter)
                 except StopIteration:
                     break
-                names, values = train_step(model, images, targets, optimizer, scheduler, scaler, device, amp, desc)
+                step = train_step(model, images, targets, optimizer, scheduler, scaler, device, amp, desc, dtype)
             first = False
-            for k, v in zip(names, values):
-                sums[k] = sums.get(k, 0.0) + v
             batches += 1
-            if hasattr(bar, "set_postfix"):
+            if tally.add(*step) and hasattr(bar, "set_postfix"):
                 bar.set_postfix(loss=f"{sums['loss'] / batches:.3f}")
             reason = after(time.perf_counter() - t0)
             if reason is not None:
                 break
+        tally.flush()
     finally:
         if hasattr(bar, "close"):
             bar.close()
@@ -140,6 +179,8 @@ def begin_epoch(job: Job, state: TrainState, epoch: int, start: int) -> tuple[di
     if start and state.rng is not None:
         set_random_state(state.rng, job.device)
     job.train_ds.set_seed(cfg.seed * 100003 + epoch)
+    if getattr(job.loader, "persistent_workers", False):  # workers kept from the last epoch: the seed goes with
+        job.sampler.item_seed = cfg.seed * 100003 + epoch  # each index (detection/data.py EpochSampler)
     job.sampler.set_epoch(epoch, start * cfg.batch_size)
     sums = dict(state.progress["sums"]) if start and state.progress else {}
     batches = int(state.progress["batches"]) if start and state.progress else 0
@@ -222,6 +263,7 @@ def run_epoch(job: Job, state: TrainState) -> str | None:
         lambda step_s: after_iteration(job, state, step_s),
         slow=budget.costs.iteration >= HEARTBEAT_S / 2 or not budget.step_times,
         limit=min(iters, plan.iters - epoch * iters) - start,
+        dtype=job.amp_dtype,
     )
     train_time = time.perf_counter() - t0
     # the random state where training stopped (validation draws from it too; a resumed run starts here)

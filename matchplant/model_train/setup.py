@@ -30,14 +30,17 @@ from matchplant.detection.model import (
 )
 from matchplant.model_train.budget import Budget, Plan, validation_report
 from matchplant.model_train.choose import (
+    budget_recipe,
     choose_architecture,
     cpu_proposals,
     resolve_pretrained,
     resumed_recipe,
     scratch_recipe,
     scratch_settings,
+    where,
 )
 from matchplant.model_train.config import ModelTrainConfig
+from matchplant.model_train.gpu import amp_dtype, fused_ok, loader_settings, prepare_model
 from matchplant.model_train.resume import ignore_sigint, open_resume
 from matchplant.model_train.schedule import lr_factor
 from matchplant.model_train.state import Job
@@ -45,13 +48,17 @@ from matchplant.model_train.state import Job
 log = get_logger("model_train")
 
 
-def build_optimizer(cfg: ModelTrainConfig, model):
+def build_optimizer(cfg: ModelTrainConfig, model, device=None):
+    """SGD or AdamW over the per-part groups; on CUDA its step fused into one kernel (model_train/gpu.py)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     groups = parameter_groups(model, dataclasses.asdict(cfg.lr))
+    fused = {"fused": True} if fused_ok([p for g in groups for p in g["params"]], device) else {}
     if cfg.optimizer == "sgd":
-        return torch.optim.SGD(groups, lr=groups[0]["lr"], momentum=cfg.momentum, weight_decay=cfg.weight_decay)
-    return torch.optim.AdamW(groups, lr=groups[0]["lr"], weight_decay=cfg.weight_decay)
+        return torch.optim.SGD(
+            groups, lr=groups[0]["lr"], momentum=cfg.momentum, weight_decay=cfg.weight_decay, **fused
+        )
+    return torch.optim.AdamW(groups, lr=groups[0]["lr"], weight_decay=cfg.weight_decay, **fused)
 
 
 def build_scheduler(cfg: ModelTrainConfig, optimizer, iters_per_epoch: int, plan: Plan | None = None):
@@ -147,10 +154,11 @@ def choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int, bud
     model_cfg, sized = cfg.model, None
     if device.type == "cpu":
         model_cfg, sized = cpu_proposals(cfg.model, [len(train_ds.anns.get(im["id"], [])) for im in train_ds.images])
-        cfg, recipe = scratch_recipe(cfg)
+    if budget_recipe(cfg, device, budget):  # from random weights on a CPU, or on any device within max_minutes
+        cfg, recipe = scratch_recipe(cfg, device)
         sized = "; ".join(filter(None, (sized, recipe))) or None
-        if sized:
-            log.info("model.architecture: auto on the CPU -> %s", sized)
+    if sized:
+        log.info("model.architecture: auto %s -> %s", where(device), sized)
     arch, why, probe = choose_architecture(
         cfg, model_cfg, device, train_ds, len(train_ds.class_names), total, cfg.train_json, budget
     )
@@ -224,7 +232,7 @@ def build_model(cfg: ModelTrainConfig, train_ds, resume: dict | None, device, di
         trainable = n_stages
     apply_freezing(model, model_cfg.architecture, trainable, cfg.freeze)
     model.to(device)
-    core = model
+    core = prepare_model(model, device)  # channels_last, compiled backbone: where asked, on CUDA
     if dist_info.world > 1:
         model = torch.nn.parallel.DistributedDataParallel(
             model, device_ids=[device.index] if device.type == "cuda" else None
@@ -239,15 +247,15 @@ def build_loader(cfg: ModelTrainConfig, train_ds, sampler, device):
     # the loader's own generator: the workers' seeds do not draw from the process's random state
     generator = torch.Generator()
     generator.manual_seed(cfg.seed)
+    feed = loader_settings(cfg.num_workers, device)  # on CUDA: more workers, persistent, pinned, prefetching
     return DataLoader(
         train_ds,
         batch_size=cfg.batch_size,
         sampler=sampler,
-        num_workers=cfg.num_workers,
         collate_fn=collate,
         generator=generator,
-        pin_memory=device.type == "cuda",
-        worker_init_fn=ignore_sigint if cfg.num_workers else None,
+        worker_init_fn=ignore_sigint if feed["num_workers"] else None,
+        **feed,
     )
 
 
@@ -286,10 +294,11 @@ def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dic
         loader=build_loader(cfg, train_ds, sampler, device),
         iters=iters,
     )
-    job.optimizer = build_optimizer(cfg, core)
+    job.optimizer = build_optimizer(cfg, core, device)
     plan = budget.plan_for(cfg.epochs * iters, iters)
     job.scheduler = build_scheduler(cfg, job.optimizer, iters, plan)
     job.amp = cfg.amp and device.type == "cuda"
-    job.scaler = torch.amp.GradScaler("cuda", enabled=job.amp)
+    job.amp_dtype = amp_dtype(device, cfg.amp)  # bf16 where supported: no loss scaling needed
+    job.scaler = torch.amp.GradScaler("cuda", enabled=job.amp and job.amp_dtype == torch.float16)
     job.extras = {"threads": threads}
     return job, resume, {"probe": probe, "reason": reason, "size_validation": size_validation}

@@ -38,6 +38,7 @@ class Job:
     scheduler: Any = None
     scaler: Any = None
     amp: bool = False
+    amp_dtype: Any = None  # the autocast dtype on CUDA (model_train/gpu.py), None in fp32
     extras: dict = field(default_factory=dict)
     on_epoch_end: Callable[[int, dict], Any] | None = None
     on_iteration: Callable[[int], Any] | None = None

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import rasterio
 from PIL import Image
 
 from matchplant.core.runtime.errors import InputError
@@ -121,6 +120,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
             return int(im.width), int(im.height)
     except Exception:  # noqa: BLE001 - PIL cannot read every GeoTIFF layout; GDAL can
         try:
+            import rasterio  # lazy: GDAL only for the GeoTIFFs PIL cannot read (training and detection run without it)
+
             with rasterio.open(path) as src:
                 return int(src.width), int(src.height)
         except Exception as exc:  # noqa: BLE001

@@ -14,14 +14,26 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import write_text
 from matchplant.core.runtime.validate import read_text
+
+if TYPE_CHECKING:
+    from pyproj import CRS
+
+
+def _proj():
+    """pyproj, imported on first use: training and detection import this module (through core.formats.odm) and
+    must run where no GIS library is installed (a GPU node)."""
+    import pyproj
+    import pyproj.exceptions
+
+    return pyproj
+
 
 _UTM_TEXT = re.compile(r"^\s*WGS\s*84\s+UTM\s+(\d{1,2})\s*([NS])\s*$", re.IGNORECASE)
 
@@ -32,20 +44,20 @@ def parse_crs(crs, *, source: str | Path | None = None, key: str | None = None) 
 
     Text that is no CRS is an InputError naming ``source``; with ``key`` (text from that config key) a
     ConfigError naming the key."""
-    if isinstance(crs, CRS):
+    if isinstance(crs, _proj().CRS):
         return crs
     if hasattr(crs, "to_wkt"):
-        return CRS.from_user_input(crs.to_wkt())
+        return _proj().CRS.from_user_input(crs.to_wkt())
     text = str(crs).strip()
     m = _UTM_TEXT.match(text)
     try:
         if m:
             zone, hemi = int(m.group(1)), m.group(2).upper()
-            return CRS.from_epsg((32600 if hemi == "N" else 32700) + zone)
+            return _proj().CRS.from_epsg((32600 if hemi == "N" else 32700) + zone)
         if text.isdigit():
-            return CRS.from_epsg(int(text))
-        return CRS.from_user_input(text)
-    except CRSError as exc:
+            return _proj().CRS.from_epsg(int(text))
+        return _proj().CRS.from_user_input(text)
+    except _proj().exceptions.CRSError as exc:
         problem = f"unrecognised coordinate reference system {text!r}"
         fix = "use an EPSG code such as EPSG:32615, 'WGS84 UTM 15N' or a PROJ string"
         if key is not None:
@@ -55,7 +67,7 @@ def parse_crs(crs, *, source: str | Path | None = None, key: str | None = None) 
 
 def utm_crs_for(lon: float, lat: float) -> CRS:
     zone = int((lon + 180.0) // 6.0) % 60 + 1
-    return CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
+    return _proj().CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
 
 def read_coords_txt(path: str | Path) -> tuple[CRS, np.ndarray]:
@@ -152,13 +164,13 @@ class TopocentricFrame(Frame):
     def __init__(self, lat: float, lon: float, alt: float, crs: CRS | None = None):
         self.lat, self.lon, self.alt = float(lat), float(lon), float(alt)
         self.crs = crs if crs is not None else utm_crs_for(lon, lat)
-        self._enu_to_lla = Transformer.from_pipeline(
+        self._enu_to_lla = _proj().Transformer.from_pipeline(
             f"+proj=pipeline +step +inv +proj=topocentric +ellps=WGS84 +lat_0={self.lat!r} "
             f"+lon_0={self.lon!r} +h_0={self.alt!r} +step +inv +proj=cart +ellps=WGS84 "
             f"+step +proj=unitconvert +xy_in=rad +xy_out=deg"
         )
-        target = self.crs.to_3d() if not self.crs.is_geographic else CRS.from_epsg(4979)
-        self._lla_to_map = Transformer.from_crs(CRS.from_epsg(4979), target, always_xy=True)
+        target = self.crs.to_3d() if not self.crs.is_geographic else _proj().CRS.from_epsg(4979)
+        self._lla_to_map = _proj().Transformer.from_crs(_proj().CRS.from_epsg(4979), target, always_xy=True)
 
     def to_lla(self, points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -216,12 +228,12 @@ def detect_frame(
     alt = float(reference_lla.get("altitude", 0.0))
     if coords is not None:
         map_crs = coords[0]
-        e, n = Transformer.from_crs(CRS.from_epsg(4326), map_crs, always_xy=True).transform(lon, lat)
+        e, n = _proj().Transformer.from_crs(_proj().CRS.from_epsg(4326), map_crs, always_xy=True).transform(lon, lat)
         if has_topocentric_copy or (abs(e - coords[1][0]) < 0.05 and abs(n - coords[1][1]) < 0.05):
             return OffsetFrame(crs=map_crs, offset=coords[1])
         return TopocentricFrame(lat, lon, alt, crs or map_crs)
     map_crs = crs or utm_crs_for(lon, lat)
-    e, n = Transformer.from_crs(CRS.from_epsg(4326), map_crs, always_xy=True).transform(lon, lat)
+    e, n = _proj().Transformer.from_crs(_proj().CRS.from_epsg(4326), map_crs, always_xy=True).transform(lon, lat)
     if has_topocentric_copy or (abs(e - round(e)) < 1e-3 and abs(n - round(n)) < 1e-3):
         return OffsetFrame(crs=map_crs, offset=np.array([round(e), round(n), 0.0]))
     return TopocentricFrame(lat, lon, alt, map_crs)
