@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import shapely
 from scipy import sparse
 
 from matchplant.core.formats.footprints import Footprint, compute_footprints, open_dsm
@@ -79,6 +78,8 @@ def footprints(project_dir: Path) -> list[Footprint]:
 
 def incidence(polygons: list, points_across: int = POINTS_ACROSS) -> sparse.csr_matrix:
     """``A[i, p]``: polygon ``i`` holds grid point ``p`` (points over the polygons' union, only those inside one)."""
+    import shapely  # lazy: GIS, only for a cover (module 7 detects on every photo without it)
+
     sides = []
     for poly in polygons:
         rect = poly.minimum_rotated_rectangle

@@ -13,13 +13,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import rasterio
-import shapely
 from affine import Affine
-from rasterio.enums import Resampling
-from shapely.geometry import Polygon
 
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.geometry.frames import Frame
@@ -29,6 +26,9 @@ from matchplant.core.geometry.surface import HIT, Surface
 from matchplant.core.runtime.errors import GeometryError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
+
+if TYPE_CHECKING:  # GIS libraries only where footprints are made: module 7 imports this without them
+    from shapely.geometry import Polygon
 
 log = get_logger("footprints")
 
@@ -73,6 +73,9 @@ def image_footprint(
     height of the rays that hit, so an image at the field's edge still gets a sensible outline.
     Returns ``(polygon, border points (N, 3), border pixels (N, 2), hit mask (N,))``.
     """
+    import shapely  # lazy: GIS, only where footprints are made (module 7 runs without it)
+    from shapely.geometry import Polygon
+
     uv = border_pixels(shot.camera.width, shot.camera.height, per_side)
     pts, status = pixels_to_ground(shot, uv, frame, surface)
     hit = status == HIT
@@ -106,6 +109,9 @@ def open_dsm(path: Path, resolution: float = 0.0) -> Surface:
     Footprints only need the relief at the scale of an image border's sampling, so a coarser DSM makes
     them much faster on large flights at no visible cost.
     """
+    import rasterio  # lazy: GIS, only where footprints are made (module 7 runs without it)
+    from rasterio.enums import Resampling
+
     if not Path(path).is_file():
         raise InputError("DSM not found", path=path, fix="run ODM with --dsm (module 2 does)")
     with rasterio.open(path) as src:
@@ -176,6 +182,8 @@ def polygon_to_pixels(poly: Polygon, shot: Shot, frame: Frame, surface: Surface,
     Densified every ``step`` metres because a straight edge on the ground is curved in the image wherever
     the relief under it changes.
     """
+    import shapely  # lazy: GIS, only where footprints are made (module 7 runs without it)
+
     if poly.is_empty:
         return np.zeros((0, 2))
     ring = shapely.segmentize(poly.exterior, max(step, 1e-3))
