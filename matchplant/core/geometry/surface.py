@@ -16,10 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
-from rasterio.enums import MaskFlags
-from rasterio.windows import Window, from_bounds
 
 from matchplant.core.geometry.raycast import (
     HIT,
@@ -129,6 +126,10 @@ class Surface:
     @classmethod
     def open(cls, path: str | Path, bounds: tuple[float, float, float, float] | None = None, band: int = 1) -> Surface:
         """Read ``path`` (only the window covering ``bounds = (xmin, ymin, xmax, ymax)``, if given)."""
+        import rasterio  # lazy: GIS, only where a DSM is read (module 7 imports this module without it)
+        from rasterio.enums import MaskFlags
+        from rasterio.windows import Window, from_bounds
+
         path = Path(path)
         if not path.is_file():
             raise InputError(
