@@ -62,6 +62,7 @@ from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.scoring import (
+    TRAIT_STATS,
     growth_scores,
     match_to_truth,
     outline_ious,
@@ -319,11 +320,11 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     ok = m >= 0
     t, s = truth.iloc[m[ok]], table[ok]
+    # the statistics the report's table scores (one source: TRAIT_STATS), the box's left, the canopy's right
     panels = [
-        ("height", "chm_max", "height (m): CHM max over the box"),
-        ("height", "chm_canopy_p95", "height (m): CHM P95 over the canopy"),
-        ("ndvi", "ndvi_mean", "NDVI: mean over the box"),
-        ("ndvi", "ndvi_canopy_mean", "NDVI: mean over the canopy"),
+        (trait, col, f"{name} over the {where}")
+        for trait, (box_col, canopy_col, name) in TRAIT_STATS.items()
+        for col, where in ((box_col, "box"), (canopy_col, "canopy"))
     ]
     fig = figure(headless=True, figsize=(10, 9))
     for ax, (tcol, col, name) in zip(fig.subplots(2, 2).ravel(), panels):
