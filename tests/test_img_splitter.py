@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from log_records import log_records, messages
 from shapely.geometry import box as shapely_box
 
 from matchplant.core.formats.coco import make_annotation, new_dataset, validate_dataset, write_dataset
@@ -193,13 +195,18 @@ def test_dropped_csv_names_the_limit_that_dropped_each_box(tmp_path):
     cut = [96, 30, 50, 40]  # x 96..146: 32/50 in tile 0, 38/50 in tile 108, < 0.9 in both
     _dataset(tmp_path, {"a.png": (300, 100)}, {"a.png": [(tiny, 1), (cut, 1), ([150, 30, 40, 40], 1)]})
     cfg = _cfg(tmp_path, tile_size=128, overlap=20, min_visible=0.9, min_box_side=10, split="[1, 0, 0]")
-    run(cfg)
+    with log_records("matchplant.img_splitter", logging.WARNING) as records:
+        run(cfg)
     rows = list(csv.DictReader(open(cfg.output_dir / "dropped.csv", newline="")))
     assert len(rows) == 2, rows
     text = " | ".join(" ".join(r.values()) for r in rows)
     assert "6x6 px, under min_box_side 10" in text
     assert "at most 76% of it is visible in a tile (min_visible 0.9)" in text
     assert "100%" not in text
+    # the console says why, by setting, and which keys keep more (not "2 in no tile")
+    (warning,) = [m for m in messages(records) if "not in any tile" in m]
+    assert "1 smaller than min_box_side 10 px" in warning and "1 cut by tile edges below min_visible 0.9" in warning
+    assert "in no tile" not in warning and "lower min_box_side or min_visible" in warning
 
 
 def test_edge_cases_small_empty_missing_and_lossless(field, tmp_path):
