@@ -373,20 +373,22 @@ def run_demo(
         ),
     )
     (out / HELD_OUT).mkdir(exist_ok=True)
-    names = [st.name for st in read_pipeline(pipe)[1]]
-    first = names[:FIRST_STEPS]
-    # steps 0-5 first: module 5's split says which photos the detector will see; the others are held out
-    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
     photos = sorted(p.name for p in FieldPaths(field).undistorted_images.glob("*.tif"))
-    held, splits = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
-    link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
-    log.info(
-        "%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
-        len(held),
-        len(photos),
-    )
-    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
-    results.update({k: v for k, v in early.items() if v == "ran"})
+    held: list[str] = []
+    splits: dict = {}
+
+    def hold_out() -> None:  # module 5's split says which photos the detector will see; the others are held out
+        names, split = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
+        held.extend(names)
+        splits.update(split)
+        link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
+        log.info(
+            "%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
+            len(held),
+            len(photos),
+        )
+
+    results = run_in_two_parts(pipe, from_step, hold_out)
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
     timings.update(_step_times(pipe, results))
     compare = compare_with_truth(out, field)
@@ -396,6 +398,17 @@ def run_demo(
     report = write_report(out, field, timings, compare, extra)
     log.info("report: %s (%.1f min in all)", report, (time.time() - t0) / 60)
     return report
+
+
+def run_in_two_parts(pipe: Path, from_step: str, between) -> dict[str, str]:
+    """Steps 0-5, then ``between()``, then the later steps: each step run (or found up to date) and listed
+    once (the second part does not list the first part's steps again as skipped)."""
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    first, rest = names[:FIRST_STEPS], names[FIRST_STEPS:]
+    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
+    between()
+    later = run_pipeline(PipelineConfig(pipeline=pipe, only=rest, from_step=from_step if from_step in rest else ""))
+    return {n: (early if n in first else later)[n] for n in names}
 
 
 def _field(field: Path, preset: str, seed: int, noise: str) -> None:
