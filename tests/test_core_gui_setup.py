@@ -537,3 +537,50 @@ def test_a_long_path_given_at_start_shows_its_end_inside_its_field():
     assert field[long].x0 > ext[long].x0 and ext[long].x1 <= field[long].x1 + 1  # its end inside, its start cut
     assert boxes[long].text_disp.get_clip_on()
     assert field["dsm.tif"].x0 <= ext["dsm.tif"].x0 and ext["dsm.tif"].x1 < field["dsm.tif"].x1
+
+
+# -- status lines stay in their box -------------------------------------------------------------------
+
+
+@pytest.mark.gui
+def test_a_long_status_stays_left_of_the_run_button_and_inside_the_window(tmp_path):
+    """A long message (an error naming a deep path, or what a module saved after `q`) wraps inside the status
+    area: it neither runs over the Run button nor out of the window; the whole message is still the text."""
+    from dataclasses import dataclass
+
+    from matchplant.core.runtime.config import param
+    from matchplant.core.runtime.widgets import SetupField, SetupScreen
+
+    @dataclass
+    class Cfg:
+        path: str = param("", "a path")
+
+    screen = SetupScreen("4 Test step", Cfg(), [SetupField("path", "A file")], lambda cfg: "done", headless=True)
+    deep = "/home/breeder/field_trials/2026/sorghum_north/flight_07/" + "odm_project_" * 12 + "annotations.json"
+    message = f"4 boxes saved to {deep}; the window can be closed, or choose other files and run again. " * 3
+    screen.say(message, error=True)
+    fig = screen.fig
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    text_box, run_box = screen.status.get_window_extent(renderer), screen.run_button.ax.bbox
+    assert screen.status.get_text() == message
+    assert text_box.x1 <= run_box.x0 and text_box.x0 >= 0 and text_box.y0 >= 0, (text_box, run_box)
+    assert text_box.y1 <= screen.status_area.bbox.y1 + 1
+    assert "\u2026" in screen.status._get_wrapped_text()  # cut, and said to be cut
+
+
+@pytest.mark.gui
+def test_a_window_status_line_of_a_figure_stays_in_the_window():
+    from matchplant.core.runtime.gui import figure, fit_to_axes, status_text
+
+    fig = figure(headless=True, figsize=(6, 4))
+    on_axes = status_text(fig.add_axes((0.05, 0.0, 0.5, 0.05), frameon=False), "")
+    on_fig = fit_to_axes(fig.text(0.02, 0.01, "", fontsize=9))
+    long = "a message " + "/very/long/path" * 30
+    on_axes.set_text(long)
+    on_fig.set_text(long)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    assert on_axes.get_window_extent(r).x1 <= on_axes.axes.bbox.x1
+    assert 0 <= on_fig.get_window_extent(r).x0 and on_fig.get_window_extent(r).x1 <= fig.bbox.x1
+    assert on_fig._get_wrapped_text().count("\n") <= 1  # at most two lines at the bottom of the window

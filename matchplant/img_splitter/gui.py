@@ -16,7 +16,7 @@ from matplotlib.widgets import Button
 from matchplant.core.formats.images import display_rgb, read_image
 from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
+from matchplant.core.runtime.gui import close, figure, fit_to_axes, require_display, reveal, show
 from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScreen
 from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.run import load_sources, plan_all, run
@@ -78,7 +78,7 @@ class ImgSplitterGUI:
             self.buttons[label] = button
         self.ax = self.fig.add_axes([0.36, 0.22, 0.62, 0.72])
         self.summary = self.fig.text(0.36, 0.03, "", fontsize=9, family="monospace", va="bottom")
-        self.status = self.fig.text(0.02, 0.015, "", fontsize=9, color="black", wrap=True)
+        self.status = fit_to_axes(self.fig.text(0.02, 0.015, "", fontsize=9, color="black"))  # in the window
         self.sources = None
         self.index = 0
         self.result: dict | None = None

@@ -17,7 +17,7 @@ from matplotlib.widgets import Button, CheckButtons, RadioButtons
 
 from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
-from matchplant.core.runtime.gui import figure, is_headless, require_display, show
+from matchplant.core.runtime.gui import figure, fit_to_axes, is_headless, require_display, show
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
@@ -145,7 +145,7 @@ class SpatialStatExtractorGUI:
         self.bar_ax.set_xticks([])
         self.bar_ax.set_yticks([])
         self.bar = self.bar_ax.barh(0.5, 0.0, height=1.0, color="#2e7d32")[0]
-        self.status = fig.text(0.04, 0.03, "", fontsize=9, family="monospace", wrap=True)
+        self.status = fit_to_axes(fig.text(0.04, 0.03, "", fontsize=9, family="monospace"))  # in the window
         # background work: the thread writes these, the timer (main thread) draws them
         self.fraction = 0.0
         self.message = ""

@@ -19,7 +19,7 @@ from matplotlib.widgets import Button, TextBox
 
 from matchplant.core.runtime.config import set_value, validate
 from matchplant.core.runtime.errors import DependencyError, MatchPlantError
-from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.gui import figure, fit_to_axes
 
 try:  # Tk's file dialogs come with Python (and Matplotlib's TkAgg backend); some Linux Pythons lack them
     import tkinter
@@ -204,13 +204,15 @@ class SetupScreen:
         # the status line in an axes of its own, so that "working ..." is drawn alone and at once
         self.status_area = self.fig.add_axes((0.0, 0.0, 0.85, 1.8 * row))
         self.status_area.set_axis_off()
-        self.status = self.status_area.text(
-            0.02 / 0.85,
-            0.5,
-            f"Choose the files (Browse... or type a path), then {run_label}.",
-            fontsize=9,
-            family="monospace",
-            va="center",
+        self.status = fit_to_axes(  # kept left of the Run button and inside the window, however long
+            self.status_area.text(
+                0.02 / 0.85,
+                0.5,
+                f"Choose the files (Browse... or type a path), then {run_label}.",
+                fontsize=9,
+                family="monospace",
+                va="center",
+            )
         )
         self.ran = False
         self.fill_in()
