@@ -330,11 +330,22 @@ def test_gui_preview_and_run(field, tmp_path):
     ge.click(g.fig, g.buttons["Preview"].ax, 0.5, 0.5)
     assert "overlap" in g.status.get_text() and g.status.get_color() == "#c00000"
     g.boxes["overlap"].set_val("20")
+    # every yes/no setting is a check box, not a text field holding "False"; a click on it turns it on
+    from matchplant.core.runtime.widgets import BoolField
+
+    bools = [k for k, w in g.boxes.items() if isinstance(getattr(cfg, k), bool)]
+    assert "yolo" in bools and all(isinstance(g.boxes[k], BoolField) for k in bools)
+    assert g.boxes["yolo"].text == "false"
+    yolo_ax = g.boxes["yolo"].ax
+    x, y = g.boxes["yolo"].check.labels[0].get_position()  # the label's left end, in the axes' coordinates
+    ge.click(g.fig, yolo_ax, *yolo_ax.transData.inverted().transform(yolo_ax.transAxes.transform((x + 0.05, y))))
+    assert g.boxes["yolo"].value
     ge.click(g.fig, g.buttons["Run"].ax, 0.5, 0.5)
     assert g.result is not None and (tmp_path / "gui_out" / "train.json").is_file()
+    assert g.cfg.yolo is True and (tmp_path / "gui_out" / "data.yaml").is_file()
     ge.click(g.fig, g.buttons["Save config"].ax, 0.5, 0.5)
     saved = load_config(ImgSplitterConfig, tmp_path / "gui_out" / "img_splitter.yaml")
-    assert saved.tile_size == 96
+    assert saved.tile_size == 96 and saved.yolo is True
 
 
 def test_tiny_field_tiles(tiny_field, tmp_path):

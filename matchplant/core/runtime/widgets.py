@@ -15,7 +15,7 @@ from typing import Any
 
 from matplotlib.backend_tools import Cursors
 from matplotlib.figure import Figure
-from matplotlib.widgets import Button, TextBox
+from matplotlib.widgets import Button, CheckButtons, TextBox
 
 from matchplant.core.runtime.config import set_value, validate
 from matchplant.core.runtime.errors import DependencyError, MatchPlantError
@@ -82,6 +82,40 @@ class QuietTextBox(TextBox):
                 del canvas.draw
         fig.draw_artist(self.ax)
         canvas.blit(self.ax.bbox)
+
+
+class BoolField:
+    """A yes/no setting as a check box (never a text field holding ``False``), read like a text box: ``text``
+    is ``"true"``/``"false"``, so that a form reads its fields one way; ``value`` is the bool."""
+
+    def __init__(self, ax, label: str, initial: bool = False):
+        self.ax = ax
+        self.check = CheckButtons(ax, [label], [bool(initial)])
+        for t in self.check.labels:
+            t.set_fontsize(9)
+
+    @property
+    def value(self) -> bool:
+        return bool(self.check.get_status()[0])
+
+    @property
+    def text(self) -> str:
+        return "true" if self.value else "false"
+
+    def set_val(self, value) -> None:
+        wanted = str(value).strip().lower() in ("true", "1", "yes", "on")
+        if wanted != self.value:
+            self.check.set_active(0)
+
+    def on_changed(self, func: Callable[[bool], Any]) -> None:
+        self.check.on_clicked(lambda _label: func(self.value))
+
+
+def setting_field(ax, label: str, value: Any):
+    """The widget of one setting in a form: a check box for a bool, a text field for anything else."""
+    if isinstance(value, bool):
+        return BoolField(ax, label, value)
+    return QuietTextBox(ax, label + " ", initial="" if value is None else str(value), label_pad=0.02)
 
 
 @contextmanager
