@@ -171,6 +171,7 @@ class BboxDrawerGUI:
 
     def show_image(self, name: str) -> None:
         self.store.set_current(name)
+        self.message = ""  # "box added" and the like were about the previous image
         self.selected = None
         self.picked = False
         self.drag = None
