@@ -100,10 +100,20 @@ def test_gcp_setup_screen_full_run(tiny_field, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.gui
-def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
+def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path, monkeypatch):
     from matchplant.min_img_finder.config import MinImgFinderConfig
-    from matchplant.min_img_finder.gui import MinImgFinderSetup
+    from matchplant.min_img_finder.gui import MinImgFinderGUI, MinImgFinderSetup
 
+    # the map is drawn before the outputs are written (they take seconds: the map once stayed blank meanwhile)
+    save, drawn_before_saving = MinImgFinderGUI.save, []
+
+    def checked_save(self):
+        drawn_before_saving.append(not self.fig.stale and bool(self.ax.collections or self.ax.patches))
+        return save(self)
+
+    monkeypatch.setattr(MinImgFinderGUI, "save", checked_save)
+    # as in a window, an idle draw waits for the event loop (which a long action blocks): Agg's draws at once
+    monkeypatch.setattr(FigureCanvasAgg, "draw_idle", lambda self, *args, **kwargs: None)
     out = tmp_path / "sel"
     setup = MinImgFinderSetup(
         MinImgFinderConfig(), headless=True, chooser=Picker(("folder", tiny_field.root), ("folder", out))
@@ -112,6 +122,7 @@ def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
     browse(setup.screen, "output_dir")
     press(setup.screen.run_button)
     assert setup.screen.ran, setup.screen.status.get_text()
+    assert drawn_before_saving == [True]
     summary = json.loads((out / "selection.json").read_text())
     rows = list(csv.DictReader(open(out / "selected_images.csv")))
     assert summary["images_selected"] == len(rows) == len(setup.editor.result.selection.indices) > 0
