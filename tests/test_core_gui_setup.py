@@ -595,3 +595,31 @@ def test_a_window_status_line_of_a_figure_stays_in_the_window():
     assert on_axes.get_window_extent(r).x1 <= on_axes.axes.bbox.x1
     assert 0 <= on_fig.get_window_extent(r).x0 and on_fig.get_window_extent(r).x1 <= fig.bbox.x1
     assert on_fig._get_wrapped_text().count("\n") <= 1  # at most two lines at the bottom of the window
+
+
+@pytest.mark.gui
+@pytest.mark.parametrize("blit", [True, False])
+def test_a_click_into_a_long_path_puts_the_cursor_where_clicked(monkeypatch, blit):
+    """A path longer than its field shows its end; a click lands on the character under the mouse, and typed
+    text goes there (not into the hidden middle of the path), whether the canvas blits or redraws whole."""
+    from gui_events import key
+
+    from matchplant.core.runtime.gui import figure
+
+    fig = figure(headless=True, figsize=(10, 2))
+    monkeypatch.setattr(type(fig.canvas), "supports_blit", blit)
+    ax = fig.add_axes((0.2, 0.4, 0.6, 0.3))
+    long = "/home/breeder/field_trials/2026/sorghum_north/flight_07/" + "odm_project_/" * 12 + "dsm_final.tif"
+    box = QuietTextBox(ax, "DSM ", initial=long)
+    fig.canvas.draw()
+    char = ax.bbox.width / 60  # generous: a character is narrower than this at any of the fonts used
+    for frac in (0.95, 0.7, 0.4):
+        x = ax.bbox.x0 + frac * ax.bbox.width
+        click(fig, ax, *ax.transData.inverted().transform((x, ax.bbox.y0 + ax.bbox.height / 2)))
+        cursor_x = box.cursor.get_segments()[0][0][0]
+        assert abs(cursor_x - x) < char, (frac, cursor_x, x)
+    index = box.cursor_index
+    key(fig, "X")
+    assert box.text == long[:index] + "X" + long[index:]
+    cursor_x = box.cursor.get_segments()[0][0][0]
+    assert ax.bbox.x0 < cursor_x < ax.bbox.x1  # the typed character is in the part of the path shown

@@ -49,25 +49,36 @@ class QuietTextBox(TextBox):
         if self.capturekeystrokes:
             super().stop_typing()
 
-    def fit_text(self) -> None:
-        """Align the text as asked while it fits, else to the right so that its end shows."""
+    def fit_text(self) -> bool:
+        """Align the text as asked while it fits, else to the right so that its end shows; True when the
+        alignment changed."""
         fig = self.ax.get_figure(root=True)
         # before the first draw the Agg canvases (Tk, Qt, macOS, headless) can still measure text
         renderer = fig._get_renderer() or getattr(fig.canvas, "get_renderer", lambda: None)()
         if renderer is None:
-            return
+            return False
+        before = self.text_disp.get_horizontalalignment()
         self.text_disp.set_horizontalalignment(self._left_ha)
         self.text_disp.set_x(self._left_x)
         if self.text_disp.get_window_extent(renderer).width > 0.92 * self.ax.bbox.width:
             self.text_disp.set_horizontalalignment("right")
             self.text_disp.set_x(0.98)
+        return self.text_disp.get_horizontalalignment() != before
+
+    def _click(self, event):
+        # a click is placed in the text as it is shown: aligned first (a long path shows its end), so that the
+        # cursor lands where the user clicked, never in the hidden part of the path
+        self.fit_text()
+        super()._click(event)
 
     def _rendercursor(self):
         fig = self.ax.get_figure(root=True)
         canvas = fig.canvas
         if fig._get_renderer() is None or not canvas.supports_blit:
-            super()._rendercursor()  # the first draw of a figure is a whole one anyway
             self.fit_text()
+            super()._rendercursor()  # the first draw of a figure is a whole one anyway
+            if self.fit_text():  # the first draw measured the text: place the cursor in the text as shown
+                super()._rendercursor()
             return
         own = "draw" in vars(canvas)  # a headless GUI may have replaced draw on the instance
         draw = canvas.draw
