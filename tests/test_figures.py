@@ -17,6 +17,7 @@ from PIL import Image
 from shapely.geometry import box
 
 import matchplant.core.runtime.gui as gui
+import matchplant.detection.evaluate as detection_evaluate
 import matchplant.model_train.report as train_report
 import matchplant.plant_projection.evaluation as evaluation
 import matchplant.spatial_stat_extractor.compare as compare
@@ -38,7 +39,7 @@ def made(monkeypatch):
         figs.append(fig)
         return fig
 
-    for module in (train_report, evaluation, compare, plots_figure):
+    for module in (train_report, evaluation, compare, plots_figure, detection_evaluate):
         monkeypatch.setattr(module, "figure", capture)
     return figs
 
@@ -157,3 +158,10 @@ def test_demo_trait_figure_and_report_line_describe_the_same_statistic(tmp_path,
     for key in ("height_box_r", "height_r", "ndvi_box_r", "ndvi_r"):
         assert sum(f"r = {scores[key]:.3f}," in t for t in titles) == 1, (key, scores[key], titles)
     assert outside_figure(figs[-1]) == []
+
+
+def test_score_histogram_fits(tmp_path, made):
+    rng = np.random.default_rng(4)
+    scores = rng.uniform(0, 1, 200)
+    detection_evaluate.plot_score_histogram(scores, scores > 0.4, tmp_path / "scores.png", threshold=0.5)
+    assert outside_figure(made[-1]) == []
