@@ -177,9 +177,9 @@ def test_track_yaw_lawnmower():
 
 
 def test_candidates_predicted_near_truth_and_ranked(flight, tmp_path, monkeypatch):
-    import matchplant.gcp_finder.candidates as candidates
     from figure_checks import outside_figure
 
+    import matchplant.gcp_finder.candidates as candidates
     from matchplant.core.runtime import gui
 
     figs = []  # candidates.png, checked below for clipped labels
