@@ -305,7 +305,9 @@ def test_pixel_boxes_refused_with_a_reason(tmp_path):
         arr = src.read()
     with (
         pytest.warns(rasterio.errors.NotGeoreferencedWarning),  # on purpose: a PNG without georeference
-        rasterio.open(tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3, dtype="uint8") as dst,
+        rasterio.open(
+            tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3, dtype="uint8"
+        ) as dst,
     ):
         dst.write(arr)
     table.assign(image_path="OSBS_029.png").to_csv(tmp_path / "png.csv", index=False)
