@@ -559,7 +559,7 @@ def test_annotated_region_is_recorded_for_module_5(photos, tmp_path):
 
 
 def test_the_folders_picture_of_the_window_shows_its_current_help():
-    """``4_bbox_drawer/gui.png`` is drawn by docs/gui/bbox_drawer_window.py, which records the help it shows."""
+    """``4_bbox_drawer/gui.png`` is drawn by docs/gui/folder_windows.py, which records the help it shows."""
     import hashlib
 
     from PIL import Image
@@ -569,5 +569,5 @@ def test_the_folders_picture_of_the_window_shows_its_current_help():
     with Image.open(Path(__file__).resolve().parents[1] / "4_bbox_drawer" / "gui.png") as im:
         shown = im.text.get("help_sha1")
     assert shown == hashlib.sha1(HELP.encode()).hexdigest(), (
-        "4_bbox_drawer/gui.png shows an older help panel: python docs/gui/bbox_drawer_window.py <demo output>"
+        "4_bbox_drawer/gui.png shows an older help panel: python docs/gui/folder_windows.py <demo output>"
     )

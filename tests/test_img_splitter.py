@@ -509,3 +509,19 @@ def test_gui_in_a_real_window(field, tmp_path):
     assert tiles == len(json.loads((tmp_path / "xout" / "train.json").read_text())["images"]) + len(
         json.loads((tmp_path / "xout" / "val.json").read_text())["images"]
     ) + len(json.loads((tmp_path / "xout" / "test.json").read_text())["images"])
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_widgets():
+    """``5_img_splitter/gui.png`` (drawn by docs/gui/folder_windows.py) records each setting's widget: every yes/no
+    setting must show as a check box there too (the picture once showed ``yolo`` as a text field holding False)."""
+    from PIL import Image
+
+    from matchplant.img_splitter.gui import FIELDS
+
+    with Image.open(Path(__file__).resolve().parents[1] / "5_img_splitter" / "gui.png") as im:
+        shown = json.loads(im.text.get("widgets", "{}"))
+    assert set(shown) == set(FIELDS), "5_img_splitter/gui.png is older than the window: docs/gui/folder_windows.py"
+    defaults = ImgSplitterConfig()
+    for key in FIELDS:
+        want = "BoolField" if isinstance(getattr(defaults, key), bool) else "QuietTextBox"
+        assert shown[key] == want, (key, shown[key], "python docs/gui/folder_windows.py <demo output>")

@@ -101,9 +101,12 @@ class BoolField:
 
     def __init__(self, ax, label: str, initial: bool = False):
         self.ax = ax
-        self.check = CheckButtons(ax, [label], [bool(initial)])
+        self.check = CheckButtons(ax, ["yes"], [bool(initial)])
         for t in self.check.labels:
             t.set_fontsize(9)
+        # the setting's name left of the box, where a text field has its label
+        self.label = ax.text(-0.02, 0.5, label, transform=ax.transAxes, ha="right", va="center", fontsize=9)
+        ax.set_frame_on(False)
 
     @property
     def value(self) -> bool:
