@@ -97,7 +97,8 @@ class BboxDrawerGUI:
         self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
         self.help_ax = self.fig.add_axes([0.76, 0.05, 0.23, 0.90])
         self.help_ax.axis("off")
-        self.status = fit_to_axes(self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace"))  # in the window
+        # in the window, one line under the photo
+        self.status = fit_to_axes(self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace"), rows=1)
         self.category = 1
         self.selected: int | None = None
         self.picked = False  # the selected box was clicked by the user (category keys relabel it)
