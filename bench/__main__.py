@@ -32,6 +32,13 @@ def main(argv: list[str] | None = None) -> int:
         help="cuda: GPU figures for training and tiled detection (needs a CUDA GPU)",
     )
     ap.add_argument("--pairs", type=int, default=3, help="timed ours/peer pairs after the warm-up (at least 3)")
+    ap.add_argument(
+        "--runs",
+        type=int,
+        default=None,
+        help="runs of each comparison, each in a fresh process; the row's spread is the range of the runs' medians "
+        "(default 3 on the CPU; 1 with --device cuda, whose rows must fit a short GPU session)",
+    )
     ap.add_argument("--no-save", action="store_true", help="do not write the JSON record in bench/results/")
     ap.add_argument("--child", metavar="NAME", help=argparse.SUPPRESS)
     ap.add_argument("--result", type=Path, help=argparse.SUPPRESS)
@@ -53,7 +60,11 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         names = [n for n in names if n in GPU_NAMES]
-    return run_all(names, args.quick, args.device, args.pairs, save=not args.no_save)
+    if args.runs is None:
+        args.runs = 1 if args.device == "cuda" else 3
+    if args.runs < 1:
+        ap.error("--runs must be at least 1")
+    return run_all(names, args.quick, args.device, args.pairs, save=not args.no_save, runs=args.runs)
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ def main() -> None:
         help="with --preset/--quick: the field's DSM exact or photogrammetric (simfield's noise)",
     )
     ap.add_argument("--edge-points", type=int, default=4)
-    ap.add_argument("--repeat", type=int, default=3, help="runs; the fastest is reported")
+    ap.add_argument("--repeat", type=int, default=3, help="runs; their median and range are reported")
     args = ap.parse_args()
     f = field(
         args.preset or ("small" if args.quick else "large"), args.field, args.seed, args.tilt, args.slope, args.noise
@@ -112,18 +112,18 @@ def main() -> None:
     project = ODMProject(f.root)
     settings = ProjectionSettings.from_config(PlantProjectionConfig(edge_points=args.edge_points))
 
-    # the core: ray/DSM intersection of every box outline, image by image; the best of a few runs, since a
-    # shared virtual machine's speed varies by a third from run to run
-    best = None
+    # the core: ray/DSM intersection of every box outline, image by image, several runs: the figure is their
+    # median and the spread their range (one run, or the best of a few, claimed more than a later run gives)
+    runs = []
     for _ in range(args.repeat):
         t0, c0 = time.perf_counter(), time.process_time()
         views, rejected = project_predictions(project, preds, settings)
         t1 = time.perf_counter()
         plants = merge_views(views)
         t2, c2 = time.perf_counter(), time.process_time()
-        if best is None or t2 - t0 < best[2] - best[0]:
-            best = (t0, t1, t2, c2 - c0)
-    t0, t1, t2, cpu = best
+        runs.append((t0, t1, t2, c2 - c0))
+    t0, t1, t2, cpu = sorted(runs, key=lambda r: r[3])[len(runs) // 2]  # the median run by CPU time
+    per_run = sorted(n / r[3] for r in runs)
     truth = pd.read_csv(f.map_boxes)[["xmin", "ymin", "xmax", "ymax"]].to_numpy()
     m = evaluate_boxes(truth, plants[["xmin", "ymin", "xmax", "ymax"]].to_numpy())
     rays = n * 4 * (args.edge_points + 1)
@@ -133,8 +133,9 @@ def main() -> None:
     print(f"merge into plants:            {t2 - t1:.2f} s = {n / max(t2 - t1, 1e-9):,.0f} boxes/s")
     print(f"total:                        {t2 - t0:.2f} s = {n / (t2 - t0):,.0f} boxes/s")
     print(
-        f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s "
-        f"(best of {args.repeat} runs; the wall-clock figures include waiting for a shared core)"
+        f"total CPU time (one thread):  {cpu:.2f} s = {n / cpu:,.0f} boxes/s, median of {args.repeat} runs "
+        f"(range {per_run[0]:,.0f}-{per_run[-1]:,.0f}; the wall-clock figures include waiting for a shared core); "
+        f"load average {os.getloadavg()[0]:.1f}"
     )
     if not project.is_split and project.frame().is_affine:
         k_cpu, k_n = bare_kernel(project, ds, args.edge_points)

@@ -182,5 +182,37 @@ def versions(packages: list[str]) -> dict:
     return out
 
 
+def across_runs(summaries: list[dict]) -> dict:
+    """Several runs of one comparison (each a fresh process: warm-up, then its pairs) as one row.
+
+    One run's pairs are timed minutes apart at most, so their spread is narrower than what another run, later
+    or under another load, gives (module 9's row said 5.93-6.55 from one run; three runs gave medians 4.78,
+    5.18 and 5.83). The row's figure is the median of the runs' medians and its spread the smallest and largest
+    run median; the pairs' own extremes are kept as ``pair_min``/``pair_max``."""
+    if not summaries:
+        raise ValueError("need at least one run")
+    medians = [r["ratio_median"] for r in summaries]
+    ours = [r["ours_median_s"] for r in summaries]
+    peer = [r["peer_median_s"] for r in summaries]
+    return {
+        "ours_median_s": statistics.median(ours),
+        "peer_median_s": statistics.median(peer),
+        "ratio_median": statistics.median(medians),
+        "ratio_min": min(medians),
+        "ratio_max": max(medians),
+        "runs": len(summaries),
+        "run_medians": medians,
+        "pair_min": min(r["ratio_min"] for r in summaries),
+        "pair_max": max(r["ratio_max"] for r in summaries),
+        "pairs": sum(r["pairs"] for r in summaries),
+        "per_run": summaries,
+    }
+
+
 def ratio_text(s: dict) -> str:
-    return f"{s['ratio_median']:.2f}x (min {s['ratio_min']:.2f}, max {s['ratio_max']:.2f})"
+    if s.get("runs", 1) > 1:
+        return (
+            f"{s['ratio_median']:.2f}x (runs' medians {s['ratio_min']:.2f}-{s['ratio_max']:.2f} over "
+            f"{s['runs']} runs; pairs {s['pair_min']:.2f}-{s['pair_max']:.2f})"
+        )
+    return f"{s['ratio_median']:.2f}x (min {s['ratio_min']:.2f}, max {s['ratio_max']:.2f}; one run)"

@@ -20,6 +20,7 @@ from pathlib import Path
 from bench.gpu_figures import TARGETS, acceptance_line, figures_of
 from bench.harness import (
     Comparison,
+    across_runs,
     alternate,
     machine_info,
     overhead,
@@ -163,8 +164,21 @@ def describe(r: dict) -> str:
     return line
 
 
-def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool = True) -> int:
-    """In the parent: each comparison in its own single-threaded child; print and record."""
+def combine(results: list[dict]) -> dict:
+    """The runs of one comparison as one result: the first run's record with the summary over all runs."""
+    ok = [r for r in results if "summary" in r]
+    if not ok:
+        return results[0]
+    first = dict(ok[0])
+    first["summary"] = across_runs([r["summary"] for r in ok])
+    first["overhead"] = overhead(first["summary"])
+    first["checks"] = [r.get("check") for r in ok]
+    return first
+
+
+def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool = True, runs: int = 3) -> int:
+    """In the parent: each comparison ``runs`` times, each run in its own single-threaded child; print and
+    record (a row's spread is over the runs: see ``across_runs``)."""
     env = single_thread_env() if device == "cpu" else dict(os.environ)  # a GPU run uses the machine's cores
     env.setdefault("MATCHPLANT_QUIET", "1")
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE.parent), env.get("PYTHONPATH")]))
@@ -180,30 +194,20 @@ def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool =
     failed = 0
     for name in names:
         print(f"\n=== {name}: {REGISTRY[name][1]}{' (quick)' if quick else ''}", flush=True)
-        with tempfile.TemporaryDirectory() as tmp:
-            out = Path(tmp) / "result.json"
-            cmd = [
-                sys.executable,
-                "-m",
-                "bench",
-                "--child",
-                name,
-                "--device",
-                device,
-                "--pairs",
-                str(pairs),
-                "--result",
-                str(out),
-            ]
-            rc = subprocess.call(cmd + (["--quick"] if quick else []), env=env, cwd=HERE.parent)
-            if rc == 0 and out.exists():
-                r = json.loads(out.read_text())
-            else:
-                r = {"name": name, "error": f"the benchmark process exited with status {rc}"}
-                failed += 1
+        results = []
+        for run in range(runs):
+            if runs > 1:
+                print(f"  run {run + 1} of {runs} (load average {os.getloadavg()[0]:.1f})", flush=True)
+            r = _run_once(name, quick, device, pairs, env)
+            failed += "error" in r
+            results.append(r)
+            if "summary" not in r:  # a failure, or a row of its own (run_row: a long single run)
+                break
+        r = combine(results)
+        r["load_average"] = os.getloadavg()
         record["results"].append(r)
         print(describe(r), flush=True)
-    print("\nsummary (speed ratio = peer time / our time, per alternating pair: median (min, max))")
+    print("\nsummary (speed ratio = peer time / our time: the median of the runs' medians, and their range)")
     for r in record["results"]:
         print("  " + describe(r))
     figures = [a for r in record["results"] for a in acceptance(r, device)]
@@ -219,3 +223,26 @@ def run_all(names: list[str], quick: bool, device: str, pairs: int, save: bool =
         path.write_text(json.dumps(record, indent=1, default=str))
         print(f"recorded in {path}")
     return 1 if failed else 0
+
+
+def _run_once(name: str, quick: bool, device: str, pairs: int, env: dict) -> dict:
+    """One run of a comparison in a fresh child process."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "result.json"
+        cmd = [
+            sys.executable,
+            "-m",
+            "bench",
+            "--child",
+            name,
+            "--device",
+            device,
+            "--pairs",
+            str(pairs),
+            "--result",
+            str(out),
+        ]
+        rc = subprocess.call(cmd + (["--quick"] if quick else []), env=env, cwd=HERE.parent)
+        if rc == 0 and out.exists():
+            return json.loads(out.read_text())
+        return {"name": name, "error": f"the benchmark process exited with status {rc}"}

@@ -64,6 +64,7 @@ from matchplant.pipeline.write import write_pipeline
 from matchplant.simfield import generate_field
 from matchplant.simfield.layout import FieldPaths
 from matchplant.simfield.scoring import (
+    TRAIT_STATS,
     growth_scores,
     match_to_truth,
     outline_ious,
@@ -165,11 +166,11 @@ def _scatter(path: Path, table: pd.DataFrame, paths: FieldPaths) -> None:
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     ok = m >= 0
     t, s = truth.iloc[m[ok]], table[ok]
+    # the statistics the report's table scores (one source: TRAIT_STATS), the box's left, the canopy's right
     panels = [
-        ("height", "chm_max", "height (m): CHM max over the box"),
-        ("height", "chm_canopy_p95", "height (m): CHM P95 over the canopy"),
-        ("ndvi", "ndvi_mean", "NDVI: mean over the box"),
-        ("ndvi", "ndvi_canopy_mean", "NDVI: mean over the canopy"),
+        (trait, col, f"{name} over the {where}")
+        for trait, (box_col, canopy_col, name) in TRAIT_STATS.items()
+        for col, where in ((box_col, "box"), (canopy_col, "canopy"))
     ]
     fig = figure(headless=True, figsize=(10, 9))
     for ax, (tcol, col, name) in zip(fig.subplots(2, 2).ravel(), panels):
@@ -215,20 +216,22 @@ def run_demo(
         "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
     )
     (out / HELD_OUT).mkdir(exist_ok=True)
-    names = [st.name for st in read_pipeline(pipe)[1]]
-    first = names[:FIRST_STEPS]
-    # steps 0-5 first: module 5's split says which photos the detector will see; the others are held out
-    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
     photos = sorted(p.name for p in FieldPaths(field).undistorted_images.glob("*.tif"))
-    held, splits = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
-    link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
-    log.info(
-        "%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
-        len(held),
-        len(photos),
-    )
-    results = run_pipeline(PipelineConfig(pipeline=pipe, from_step="" if from_step in first else from_step))
-    results.update({k: v for k, v in early.items() if v == "ran"})
+    held: list[str] = []
+    splits: dict = {}
+
+    def hold_out() -> None:  # module 5's split says which photos the detector will see; the others are held out
+        names, split = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
+        held.extend(names)
+        splits.update(split)
+        link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
+        log.info(
+            "%d of %d photos held out for detection and scoring (not in module 5's train or val split)",
+            len(held),
+            len(photos),
+        )
+
+    results = run_in_two_parts(pipe, from_step, hold_out)
     timings = {"synthetic field": ("generated" if t_field > 1 else "reused", t_field)}
     timings.update(_step_times(pipe, results))
     compare = compare_with_truth(out, field)
@@ -238,6 +241,17 @@ def run_demo(
     report = write_report(out, field, timings, compare, extra)
     log.info("report: %s (%.1f min in all)", report, (time.time() - t0) / 60)
     return report
+
+
+def run_in_two_parts(pipe: Path, from_step: str, between) -> dict[str, str]:
+    """Steps 0-5, then ``between()``, then the later steps: each step run (or found up to date) and listed
+    once (the second part does not list the first part's steps again as skipped)."""
+    names = [st.name for st in read_pipeline(pipe)[1]]
+    first, rest = names[:FIRST_STEPS], names[FIRST_STEPS:]
+    early = run_pipeline(PipelineConfig(pipeline=pipe, only=first, from_step=from_step if from_step in first else ""))
+    between()
+    later = run_pipeline(PipelineConfig(pipeline=pipe, only=rest, from_step=from_step if from_step in rest else ""))
+    return {n: (early if n in first else later)[n] for n in names}
 
 
 def _field(field: Path, preset: str, seed: int, noise: str) -> None:

@@ -7,7 +7,10 @@ import json
 import time
 from pathlib import Path
 
+from PIL import Image
+
 from matchplant.core.runtime.io import write_text
+from matchplant.simfield.scoring import TRAIT_STATS
 
 # how far another machine's run may land from the README's figures (thread counts and CPU kernels change the
 # training arithmetic; the same machine and thread count give the same figures): issue 29's second machine, and
@@ -36,7 +39,8 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
     selection = load(out / "3_select" / "selection.json")
     gps = load(out / "0_gps" / "match_summary.json")
 
-    def fig(rel: str, caption: str) -> str:
+    def fig(rel: str, caption: str = "") -> str:
+        caption = figure_caption(out / rel) or caption
         return f"![{caption}](../{rel})\n\n*{caption}*\n" if (out / rel).is_file() else f"*({caption}: not produced)*\n"
 
     def num(d: dict, *keys, fmt="{:.3f}") -> str:
@@ -88,7 +92,7 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         f"with IoU > 0.5: {num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
         f"median IoU {num(evaluation, 'iou_median')}.",
         "",
-        fig("8_plants/evaluation.png", "projected plants (red) and true plant boxes (green) over the orthophoto"),
+        fig("8_plants/evaluation.png", "projected plants and the true plant boxes over the orthophoto"),
         "## Per-plant traits against the truth (module 9)",
         "",
         f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
@@ -98,8 +102,9 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         "",
         "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
         "|---|---|---|---|",
-        f"| height (CHM max) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} | {num(tr, 'height_mae_m')} m |",
-        f"| NDVI (mean) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |",
+        f"| height ({TRAIT_STATS['height'][2]}) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} "
+        f"| {num(tr, 'height_mae_m')} m |",
+        f"| NDVI ({TRAIT_STATS['ndvi'][2]}) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |",
         "",
         fig(
             "report/traits_vs_truth.png",
@@ -113,7 +118,7 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
         f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.",
         "",
-        fig("9_stats/plots.png", "plots coloured by their mean canopy NDVI; black dots: plants, red crosses: gaps"),
+        fig("9_stats/plots.png", "the plots, the plants and the gaps"),
         "## Growth (module 9, second date)",
         "",
         f"Boxes of the first date reused on the second: median centre error "
@@ -152,6 +157,15 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         ),
     )
     return path
+
+
+def figure_caption(path: Path) -> str:
+    """The caption a figure carries (its PNG Description, written from the colours it is drawn with); ''
+    when it carries none."""
+    if path.suffix.lower() != ".png" or not path.is_file():
+        return ""
+    with Image.open(path) as im:
+        return str(im.text.get("Description", ""))
 
 
 def _held_out_section(held: dict) -> list[str]:

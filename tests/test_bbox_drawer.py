@@ -147,8 +147,10 @@ def test_gui_events_make_exactly_the_expected_boxes(photos, tmp_path):
     assert ax.get_xlim() == (0, 200)
 
     # next and previous image
+    assert "box added" in g.status.get_text()
     ge.key(fig, "n")
     assert store.current == "b.png" and ax.get_xlim() == (0, 160)
+    assert "box added" not in g.status.get_text()  # what happened on a.png is not said on b.png
     ge.drag(fig, ax, 10, 10, 30, 40)
     assert _xyxy(store, "b.png") == [[10, 10, 30, 40]]
     ge.key(fig, "p")
@@ -554,3 +556,18 @@ def test_annotated_region_is_recorded_for_module_5(photos, tmp_path):
         load_config(
             BboxDrawerConfig, None, [f"images={photos}", f"output_dir={tmp_path / 'x'}", "annotated_region=owned"]
         )
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_help():
+    """``4_bbox_drawer/gui.png`` is drawn by docs/gui/folder_windows.py, which records the help it shows."""
+    import hashlib
+
+    from PIL import Image
+
+    from matchplant.bbox_drawer.gui import HELP
+
+    with Image.open(Path(__file__).resolve().parents[1] / "4_bbox_drawer" / "gui.png") as im:
+        shown = im.text.get("help_sha1")
+    assert shown == hashlib.sha1(HELP.encode()).hexdigest(), (
+        "4_bbox_drawer/gui.png shows an older help panel: python docs/gui/folder_windows.py <demo output>"
+    )

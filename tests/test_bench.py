@@ -11,16 +11,18 @@ import pytest
 
 from bench.harness import (
     THREAD_VARS,
+    across_runs,
     alternate,
     cpu_model,
     machine_info,
     overhead,
     pin_one_core,
+    ratio_text,
     single_thread_env,
     summarise,
     versions,
 )
-from bench.runner import REGISTRY
+from bench.runner import REGISTRY, combine
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,6 +67,23 @@ def test_summarise_ratios_pair_by_pair():
         summarise([1.0], [1.0, 2.0])
     with pytest.raises(ValueError):
         summarise([0.0], [1.0])
+
+
+def test_a_rows_spread_is_over_runs_not_the_pairs_of_one_run():
+    """Three runs whose pairs each agree closely but whose medians differ (as module 9's did: 4.78, 5.18,
+    5.83): the row states the median of the medians and their range, not one run's narrow pair range."""
+    runs = [summarise([1.0] * 3, [p] * 3) for p in (4.78, 5.18, 5.83)]
+    s = across_runs(runs)
+    assert s["ratio_median"] == pytest.approx(5.18)
+    assert (s["ratio_min"], s["ratio_max"]) == (pytest.approx(4.78), pytest.approx(5.83))
+    assert s["runs"] == 3 and s["pairs"] == 9 and s["run_medians"] == pytest.approx([4.78, 5.18, 5.83])
+    assert "over 3 runs" in ratio_text(s) and "4.78-5.83" in ratio_text(s)
+    assert "one run" in ratio_text(runs[0])  # a single run says so
+    row = combine([{"name": "x", "summary": r, "check": {"same": True}} for r in runs])
+    assert row["summary"]["runs"] == 3 and row["checks"] == [{"same": True}] * 3
+    assert row["overhead"]["overhead_median"] == pytest.approx(1 / 5.18 - 1)
+    with pytest.raises(ValueError):
+        across_runs([])
 
 
 def test_single_thread_env_and_pinning():

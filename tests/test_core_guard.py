@@ -3,6 +3,8 @@ outputs whole or not at all."""
 
 from __future__ import annotations
 
+import io
+import logging
 import os
 import sys
 from dataclasses import dataclass, field
@@ -19,6 +21,7 @@ from matchplant.core.runtime.guard import (
     path_fields,
     staged_outputs,
 )
+from matchplant.core.runtime.log import get_logger, setup_console
 
 
 @dataclass
@@ -271,3 +274,22 @@ def test_staged_outputs_refuse_an_unwritable_place(tmp_path):
     with pytest.raises(OutputError):
         with staged_outputs(tmp_path / "file" / "out"):
             pass
+
+
+def test_messages_during_a_staged_run_name_the_final_folder(tmp_path):
+    """A path printed while the step writes must exist after it: the staged ``.partial-...`` folder is gone."""
+    out = tmp_path / "8_plants"
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    setup_console()
+    get_logger().addHandler(handler)
+    try:
+        with staged_outputs(out) as stage:
+            (stage / "evaluation.png").write_bytes(b"png")
+            get_logger("plant_projection").info("figure %s", stage / "evaluation.png")
+        get_logger("plant_projection").info("after: %s", stage)  # outside the run: left as it is
+    finally:
+        get_logger().removeHandler(handler)
+    first, second = stream.getvalue().splitlines()
+    assert first == f"figure {out / 'evaluation.png'}" and (out / "evaluation.png").is_file()
+    assert ".partial-" in second

@@ -100,10 +100,20 @@ def test_gcp_setup_screen_full_run(tiny_field, tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.gui
-def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
+def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path, monkeypatch):
     from matchplant.min_img_finder.config import MinImgFinderConfig
-    from matchplant.min_img_finder.gui import MinImgFinderSetup
+    from matchplant.min_img_finder.gui import MinImgFinderGUI, MinImgFinderSetup
 
+    # the map is drawn before the outputs are written (they take seconds: the map once stayed blank meanwhile)
+    save, drawn_before_saving = MinImgFinderGUI.save, []
+
+    def checked_save(self):
+        drawn_before_saving.append(not self.fig.stale and bool(self.ax.collections or self.ax.patches))
+        return save(self)
+
+    monkeypatch.setattr(MinImgFinderGUI, "save", checked_save)
+    # as in a window, an idle draw waits for the event loop (which a long action blocks): Agg's draws at once
+    monkeypatch.setattr(FigureCanvasAgg, "draw_idle", lambda self, *args, **kwargs: None)
     out = tmp_path / "sel"
     setup = MinImgFinderSetup(
         MinImgFinderConfig(), headless=True, chooser=Picker(("folder", tiny_field.root), ("folder", out))
@@ -112,6 +122,7 @@ def test_min_images_setup_screen_full_run_and_legend(tiny_field, tmp_path):
     browse(setup.screen, "output_dir")
     press(setup.screen.run_button)
     assert setup.screen.ran, setup.screen.status.get_text()
+    assert drawn_before_saving == [True]
     summary = json.loads((out / "selection.json").read_text())
     rows = list(csv.DictReader(open(out / "selected_images.csv")))
     assert summary["images_selected"] == len(rows) == len(setup.editor.result.selection.indices) > 0
@@ -537,3 +548,78 @@ def test_a_long_path_given_at_start_shows_its_end_inside_its_field():
     assert field[long].x0 > ext[long].x0 and ext[long].x1 <= field[long].x1 + 1  # its end inside, its start cut
     assert boxes[long].text_disp.get_clip_on()
     assert field["dsm.tif"].x0 <= ext["dsm.tif"].x0 and ext["dsm.tif"].x1 < field["dsm.tif"].x1
+
+
+# -- status lines stay in their box -------------------------------------------------------------------
+
+
+@pytest.mark.gui
+def test_a_long_status_stays_left_of_the_run_button_and_inside_the_window(tmp_path):
+    """A long message (an error naming a deep path, or what a module saved after `q`) wraps inside the status
+    area: it neither runs over the Run button nor out of the window; the whole message is still the text."""
+    from dataclasses import dataclass
+
+    from matchplant.core.runtime.config import param
+    from matchplant.core.runtime.widgets import SetupField, SetupScreen
+
+    @dataclass
+    class Cfg:
+        path: str = param("", "a path")
+
+    screen = SetupScreen("4 Test step", Cfg(), [SetupField("path", "A file")], lambda cfg: "done", headless=True)
+    deep = "/home/breeder/field_trials/2026/sorghum_north/flight_07/" + "odm_project_" * 12 + "annotations.json"
+    message = f"4 boxes saved to {deep}; the window can be closed, or choose other files and run again. " * 3
+    screen.say(message, error=True)
+    fig = screen.fig
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    text_box, run_box = screen.status.get_window_extent(renderer), screen.run_button.ax.bbox
+    assert screen.status.get_text() == message
+    assert text_box.x1 <= run_box.x0 and text_box.x0 >= 0 and text_box.y0 >= 0, (text_box, run_box)
+    assert text_box.y1 <= screen.status_area.bbox.y1 + 1
+    assert "\u2026" in screen.status._get_wrapped_text()  # cut, and said to be cut
+
+
+@pytest.mark.gui
+def test_a_window_status_line_of_a_figure_stays_in_the_window():
+    from matchplant.core.runtime.gui import figure, fit_to_axes, status_text
+
+    fig = figure(headless=True, figsize=(6, 4))
+    on_axes = status_text(fig.add_axes((0.05, 0.0, 0.5, 0.05), frameon=False), "")
+    on_fig = fit_to_axes(fig.text(0.02, 0.01, "", fontsize=9))
+    long = "a message " + "/very/long/path" * 30
+    on_axes.set_text(long)
+    on_fig.set_text(long)
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    assert on_axes.get_window_extent(r).x1 <= on_axes.axes.bbox.x1
+    assert 0 <= on_fig.get_window_extent(r).x0 and on_fig.get_window_extent(r).x1 <= fig.bbox.x1
+    assert on_fig._get_wrapped_text().count("\n") <= 1  # at most two lines at the bottom of the window
+
+
+@pytest.mark.gui
+@pytest.mark.parametrize("blit", [True, False])
+def test_a_click_into_a_long_path_puts_the_cursor_where_clicked(monkeypatch, blit):
+    """A path longer than its field shows its end; a click lands on the character under the mouse, and typed
+    text goes there (not into the hidden middle of the path), whether the canvas blits or redraws whole."""
+    from gui_events import key
+
+    from matchplant.core.runtime.gui import figure
+
+    fig = figure(headless=True, figsize=(10, 2))
+    monkeypatch.setattr(type(fig.canvas), "supports_blit", blit)
+    ax = fig.add_axes((0.2, 0.4, 0.6, 0.3))
+    long = "/home/breeder/field_trials/2026/sorghum_north/flight_07/" + "odm_project_/" * 12 + "dsm_final.tif"
+    box = QuietTextBox(ax, "DSM ", initial=long)
+    fig.canvas.draw()
+    char = ax.bbox.width / 60  # generous: a character is narrower than this at any of the fonts used
+    for frac in (0.95, 0.7, 0.4):
+        x = ax.bbox.x0 + frac * ax.bbox.width
+        click(fig, ax, *ax.transData.inverted().transform((x, ax.bbox.y0 + ax.bbox.height / 2)))
+        cursor_x = box.cursor.get_segments()[0][0][0]
+        assert abs(cursor_x - x) < char, (frac, cursor_x, x)
+    index = box.cursor_index
+    key(fig, "X")
+    assert box.text == long[:index] + "X" + long[index:]
+    cursor_x = box.cursor.get_segments()[0][0][0]
+    assert ax.bbox.x0 < cursor_x < ax.bbox.x1  # the typed character is in the part of the path shown

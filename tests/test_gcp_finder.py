@@ -176,9 +176,17 @@ def test_track_yaw_lawnmower():
     assert np.allclose(yaw[:5], 0.0) and np.allclose(yaw[5:], 180.0)
 
 
-def test_candidates_predicted_near_truth_and_ranked(flight, tmp_path):
+def test_candidates_predicted_near_truth_and_ranked(flight, tmp_path, monkeypatch):
+    from figure_checks import outside_figure
+
+    import matchplant.gcp_finder.candidates as candidates
+    from matchplant.core.runtime import gui
+
+    figs = []  # candidates.png, checked below for clipped labels
+    monkeypatch.setattr(candidates, "figure", lambda *a, **k: figs.append(gui.figure(*a, **k)) or figs[-1])
     root, truth = flight
     finder = run(cfg_for(root, tmp_path / "out"))
+    assert len(figs) == 1 and outside_figure(figs[0]) == []
     got = {(c.gcp, c.image): c for lst in finder.candidates.values() for c in lst}
     assert set(got) == set(truth)  # exactly the images that see each GCP (IMG_0004 sees none)
     for k, c in got.items():

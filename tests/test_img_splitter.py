@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from log_records import log_records, messages
 from shapely.geometry import box as shapely_box
 
 from matchplant.core.formats.coco import make_annotation, new_dataset, validate_dataset, write_dataset
@@ -193,13 +195,18 @@ def test_dropped_csv_names_the_limit_that_dropped_each_box(tmp_path):
     cut = [96, 30, 50, 40]  # x 96..146: 32/50 in tile 0, 38/50 in tile 108, < 0.9 in both
     _dataset(tmp_path, {"a.png": (300, 100)}, {"a.png": [(tiny, 1), (cut, 1), ([150, 30, 40, 40], 1)]})
     cfg = _cfg(tmp_path, tile_size=128, overlap=20, min_visible=0.9, min_box_side=10, split="[1, 0, 0]")
-    run(cfg)
+    with log_records("matchplant.img_splitter", logging.WARNING) as records:
+        run(cfg)
     rows = list(csv.DictReader(open(cfg.output_dir / "dropped.csv", newline="")))
     assert len(rows) == 2, rows
     text = " | ".join(" ".join(r.values()) for r in rows)
     assert "6x6 px, under min_box_side 10" in text
     assert "at most 76% of it is visible in a tile (min_visible 0.9)" in text
     assert "100%" not in text
+    # the console says why, by setting, and which keys keep more (not "2 in no tile")
+    (warning,) = [m for m in messages(records) if "not in any tile" in m]
+    assert "1 smaller than min_box_side 10 px" in warning and "1 cut by tile edges below min_visible 0.9" in warning
+    assert "in no tile" not in warning and "lower min_box_side or min_visible" in warning
 
 
 def test_edge_cases_small_empty_missing_and_lossless(field, tmp_path):
@@ -324,11 +331,22 @@ def test_gui_preview_and_run(field, tmp_path):
     ge.click(g.fig, g.buttons["Preview"].ax, 0.5, 0.5)
     assert "overlap" in g.status.get_text() and g.status.get_color() == "#c00000"
     g.boxes["overlap"].set_val("20")
+    # every yes/no setting is a check box, not a text field holding "False"; a click on it turns it on
+    from matchplant.core.runtime.widgets import BoolField
+
+    bools = [k for k, w in g.boxes.items() if isinstance(getattr(cfg, k), bool)]
+    assert "yolo" in bools and all(isinstance(g.boxes[k], BoolField) for k in bools)
+    assert g.boxes["yolo"].text == "false"
+    yolo_ax = g.boxes["yolo"].ax
+    x, y = g.boxes["yolo"].check.labels[0].get_position()  # the label's left end, in the axes' coordinates
+    ge.click(g.fig, yolo_ax, *yolo_ax.transData.inverted().transform(yolo_ax.transAxes.transform((x + 0.05, y))))
+    assert g.boxes["yolo"].value
     ge.click(g.fig, g.buttons["Run"].ax, 0.5, 0.5)
     assert g.result is not None and (tmp_path / "gui_out" / "train.json").is_file()
+    assert g.cfg.yolo is True and (tmp_path / "gui_out" / "data.yaml").is_file()
     ge.click(g.fig, g.buttons["Save config"].ax, 0.5, 0.5)
     saved = load_config(ImgSplitterConfig, tmp_path / "gui_out" / "img_splitter.yaml")
-    assert saved.tile_size == 96
+    assert saved.tile_size == 96 and saved.yolo is True
 
 
 def test_tiny_field_tiles(tiny_field, tmp_path):
@@ -492,3 +510,19 @@ def test_gui_in_a_real_window(field, tmp_path):
     assert tiles == len(json.loads((tmp_path / "xout" / "train.json").read_text())["images"]) + len(
         json.loads((tmp_path / "xout" / "val.json").read_text())["images"]
     ) + len(json.loads((tmp_path / "xout" / "test.json").read_text())["images"])
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_widgets():
+    """``5_img_splitter/gui.png`` (drawn by docs/gui/folder_windows.py) records each setting's widget: every yes/no
+    setting must show as a check box there too (the picture once showed ``yolo`` as a text field holding False)."""
+    from PIL import Image
+
+    from matchplant.img_splitter.gui import FIELDS
+
+    with Image.open(Path(__file__).resolve().parents[1] / "5_img_splitter" / "gui.png") as im:
+        shown = json.loads(im.text.get("widgets", "{}"))
+    assert set(shown) == set(FIELDS), "5_img_splitter/gui.png is older than the window: docs/gui/folder_windows.py"
+    defaults = ImgSplitterConfig()
+    for key in FIELDS:
+        want = "BoolField" if isinstance(getattr(defaults, key), bool) else "QuietTextBox"
+        assert shown[key] == want, (key, shown[key], "python docs/gui/folder_windows.py <demo output>")

@@ -424,9 +424,13 @@ def test_each_point_of_the_field_owned_once():
 
 
 @pytest.mark.slow
-def test_run_writes_every_output(small_project, tmp_path):
+def test_run_writes_every_output(small_project, tmp_path, monkeypatch):
+    import matchplant.min_img_finder.output as output
+    from matchplant.core.runtime import gui
     from matchplant.min_img_finder.run import run
 
+    figs = []  # coverage.png, checked below as a reader sees it
+    monkeypatch.setattr(output, "figure", lambda *a, **k: figs.append(gui.figure(*a, **k)) or figs[-1])
     out = tmp_path / "out"
     result = run(cfg_for(small_project, out, "copy_images=link"))
     rows = list(csv.DictReader(open(out / "selected_images.csv")))
@@ -452,6 +456,9 @@ def test_run_writes_every_output(small_project, tmp_path):
 
     with Image.open(out / "coverage.png") as im:
         assert im.width > 400 and len(np.unique(np.asarray(im.convert("RGB")).reshape(-1, 3), axis=0)) > 20
+    from figure_checks import outside_figure
+
+    assert len(figs) == 1 and outside_figure(figs[0]) == []  # no label clipped
 
 
 def test_rerun_into_one_folder_leaves_exactly_the_selection(small_project, tmp_path):

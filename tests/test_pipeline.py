@@ -6,11 +6,14 @@ the runner on the real modules is tested end to end in test_end_to_end.py.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from log_records import log_records, messages
 
+import matchplant.demo as demo
 import matchplant.pipeline.plan as pipeline_plan
 from matchplant.cli import run_module
 from matchplant.core.runtime.config import param
@@ -329,3 +332,21 @@ def test_every_bad_key_of_one_step_is_reported(setup):
         )
     )
     assert "2 problems" in message and "did you mean 'source'" in message and "'${nope}'" in message
+
+
+def test_the_demo_lists_each_step_once_over_its_two_parts(setup, monkeypatch):
+    """The demo runs its first steps, holds photos out, then the rest: a finished step of the first part is not
+    listed again as "up to date, skipped" by the second (seen: steps 0-5 twice in the console)."""
+    tmp, pipe = setup
+    monkeypatch.setattr(demo, "FIRST_STEPS", 1)
+    between = []
+    with log_records("matchplant.pipeline", logging.INFO) as records:
+        results = demo.run_in_two_parts(pipe, "", lambda: between.append(list(CALLS)))
+    assert results == {"shout": "ran", "tally": "ran"} and between == [["upper:words.txt"]]
+    lines = messages(records)
+    for name in ("shout", "tally"):
+        assert sum(ln.startswith(f"[{name}] running") for ln in lines) == 1
+        assert not any(ln.startswith(f"[{name}]") and "skipped" in ln for ln in lines), lines
+    with log_records("matchplant.pipeline", logging.INFO) as records:  # again: each up to date, listed once
+        assert demo.run_in_two_parts(pipe, "", lambda: None) == {"shout": "up to date", "tally": "up to date"}
+    assert messages(records) == ["[shout] up to date, skipped", "[tally] up to date, skipped"]

@@ -40,7 +40,7 @@ def split_boxes(f) -> tuple[np.ndarray, np.ndarray]:
         if len(mine) < 2:
             continue
         (r1, c1), (r2, c2) = ((r[m], c[m]) for m in mine[np.argsort(-W[r[mine], c[mine]])[:2]])
-        (x1, x2), (y1, y2) = f.transform * (np.array([c1, c2]) + 0.5, np.array([r1, r2]) + 0.5)
+        (x1, x2), (y1, y2) = f.transform @ (np.array([c1, c2]) + 0.5, np.array([r1, r2]) + 0.5)
         x0, y0, xe, ye = f.boxes[k].bounds
         if abs(x2 - x1) >= abs(y2 - y1):
             xm = (x1 + x2) / 2

@@ -89,6 +89,12 @@ def test_gui_headless(small_field, tmp_path):
     assert (d / "out" / "polygons.shp").is_file() and (d / "out" / "stats.gpkg").is_file()
     assert gui.colorbar is not None and gui.colorbar.ax.get_ylabel() == "chm_max (m)"  # the map's scale, with unit
     gui.fig.savefig(tmp_path / "gui.png")
+    # the colour bar, its ticks and label stay left of the form (it once lay over the form's labels)
+    renderer = gui.fig.canvas.get_renderer()
+    bar = gui.colorbar.ax.get_tightbbox(renderer)
+    form = [box.ax.get_tightbbox(renderer) for box in gui.boxes.values()] + [gui.crs_text.get_window_extent(renderer)]
+    form_left = min(b.x0 for b in form)
+    assert bar.x1 <= form_left and bar.x0 >= gui.ax.get_window_extent().x1 - 1, (bar, form_left)
     # the window covers RGB indices, plots, the field book and a later date; every field stays in the window
     for key in ("rasters.rgb", "plots.polygons", "plots.field_book", "later_chm"):
         assert key in gui.boxes and key in gui.pickers
@@ -173,3 +179,12 @@ def test_window_opened_before_the_previous_modules_ran_shows_no_error(small_fiel
     present.polygons, present.rasters.chm, present.output_dir = d / "plants.gpkg", d / "chm.tif", d / "out"
     gui = launch(present, headless=True)
     assert len(gui.preview_polygons) == 40 and "40 plants" in gui.status.get_text()
+
+
+def test_the_map_is_coloured_by_a_height_or_a_mean_not_a_minimum():
+    from matchplant.spatial_stat_extractor.gui import colour_column
+
+    assert colour_column(["exg_min", "exg_max", "exg_mean", "red_mean"]) == "exg_mean"  # an RGB-only run
+    assert colour_column(["ndvi_min", "chm_min", "chm_max", "ndvi_mean"]) == "chm_max"
+    assert colour_column(["chm_canopy_p95", "ndvi_canopy_mean"]) == "chm_canopy_p95"
+    assert colour_column(["red_min", "red_max"]) == "red_min"  # nothing better: the first

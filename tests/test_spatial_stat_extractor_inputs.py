@@ -303,9 +303,12 @@ def test_pixel_boxes_refused_with_a_reason(tmp_path):
     assert len(read_polygons(tmp_path / "boxes.csv", images=OSBS.parent)) == 61  # the key finds it
     with rasterio.open(OSBS) as src:  # the same pixels without georeference (a PNG export)
         arr = src.read()
-    with rasterio.open(
-        tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3, dtype="uint8"
-    ) as dst:
+    with (
+        pytest.warns(rasterio.errors.NotGeoreferencedWarning),  # on purpose: a PNG without georeference
+        rasterio.open(
+            tmp_path / "OSBS_029.png", "w", driver="PNG", width=400, height=400, count=3, dtype="uint8"
+        ) as dst,
+    ):
         dst.write(arr)
     table.assign(image_path="OSBS_029.png").to_csv(tmp_path / "png.csv", index=False)
     with pytest.raises(InputError, match="no CRS"):

@@ -34,7 +34,7 @@ from matchplant.core.formats.images import display_rgb, match_name, read_image
 from matchplant.core.formats.owned_areas import read_owned_areas
 from matchplant.core.runtime.config import validate
 from matchplant.core.runtime.guard import check_outputs
-from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
+from matchplant.core.runtime.gui import close, figure, fit_to_axes, require_display, reveal, show
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.widgets import SetupField, SetupScreen
 
@@ -97,7 +97,8 @@ class BboxDrawerGUI:
         self.ax = self.fig.add_axes([0.01, 0.05, 0.74, 0.90])
         self.help_ax = self.fig.add_axes([0.76, 0.05, 0.23, 0.90])
         self.help_ax.axis("off")
-        self.status = self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace")
+        # in the window, one line under the photo
+        self.status = fit_to_axes(self.fig.text(0.01, 0.012, "", fontsize=9, family="monospace"), rows=1)
         self.category = 1
         self.selected: int | None = None
         self.picked = False  # the selected box was clicked by the user (category keys relabel it)
@@ -171,6 +172,7 @@ class BboxDrawerGUI:
 
     def show_image(self, name: str) -> None:
         self.store.set_current(name)
+        self.message = ""  # "box added" and the like were about the previous image
         self.selected = None
         self.picked = False
         self.drag = None

@@ -16,8 +16,8 @@ from matplotlib.widgets import Button
 from matchplant.core.formats.images import display_rgb, read_image
 from matchplant.core.runtime.config import parse_override, save_config, set_value, to_dict_value, validate
 from matchplant.core.runtime.errors import InputError, MatchPlantError
-from matchplant.core.runtime.gui import close, figure, require_display, reveal, show
-from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScreen
+from matchplant.core.runtime.gui import close, figure, fit_to_axes, require_display, reveal, show
+from matchplant.core.runtime.widgets import QuietTextBox, SetupField, SetupScreen, setting_field
 from matchplant.img_splitter.config import ImgSplitterConfig
 from matchplant.img_splitter.run import load_sources, plan_all, run
 
@@ -58,9 +58,10 @@ class ImgSplitterGUI:
         for i, key in enumerate(FIELDS):
             ax = self.fig.add_axes([0.13, 0.90 - i * 0.05, 0.19, 0.036])
             value = getattr(cfg, key)
-            text = "" if value is None else str(to_dict_value(value))
-            self.boxes[key] = QuietTextBox(ax, key + " ", initial=text, label_pad=0.02)
-            self.boxes[key].label.set_fontsize(9)
+            # a yes/no setting is a check box (it was a text field holding "False")
+            self.boxes[key] = setting_field(ax, key, value if isinstance(value, bool) else to_dict_value(value))
+            if isinstance(self.boxes[key], QuietTextBox):
+                self.boxes[key].label.set_fontsize(9)
         row = 0.90 - len(FIELDS) * 0.05
         self.buttons = {}
         for j, (label, action) in enumerate(
@@ -78,7 +79,7 @@ class ImgSplitterGUI:
             self.buttons[label] = button
         self.ax = self.fig.add_axes([0.36, 0.22, 0.62, 0.72])
         self.summary = self.fig.text(0.36, 0.03, "", fontsize=9, family="monospace", va="bottom")
-        self.status = self.fig.text(0.02, 0.015, "", fontsize=9, color="black", wrap=True)
+        self.status = fit_to_axes(self.fig.text(0.02, 0.015, "", fontsize=9, color="black"))  # in the window
         self.sources = None
         self.index = 0
         self.result: dict | None = None

@@ -113,15 +113,25 @@ def plan_image(
     return ImagePlan(tiles, b, keep, clipped, visible)
 
 
-def drop_reason(plan: ImagePlan, n: int, cfg: ImgSplitterConfig) -> str:
-    """Why box ``n`` is in no tile, naming only the limit that actually dropped it."""
+def drop_reason(plan: ImagePlan, n: int, cfg: ImgSplitterConfig) -> tuple[str, str]:
+    """Why box ``n`` is in no tile: a short reason naming the setting that dropped it (counted in the console's
+    warning) and the details for ``dropped.csv``; only the limit that actually dropped it is named."""
     best = float(plan.visible[:, n].max()) if plan.visible.size else 0.0
     x1, y1, x2, y2 = plan.boxes[n]
     if min(x2 - x1, y2 - y1) < cfg.min_box_side:
-        return f"the box is {x2 - x1:.0f}x{y2 - y1:.0f} px, under min_box_side {cfg.min_box_side:g} px"
+        return (
+            f"smaller than min_box_side {cfg.min_box_side:g} px",
+            f"the box is {x2 - x1:.0f}x{y2 - y1:.0f} px, under min_box_side {cfg.min_box_side:g} px",
+        )
     if best < cfg.threshold:
-        return f"at most {best:.0%} of it is visible in a tile (min_visible {cfg.threshold:g})"
-    return f"where {best:.0%} of it is visible, the part in the tile is under min_box_side {cfg.min_box_side:g} px"
+        return (
+            f"cut by tile edges below min_visible {cfg.threshold:g}",
+            f"at most {best:.0%} of it is visible in a tile (min_visible {cfg.threshold:g})",
+        )
+    return (
+        f"cut by tile edges to a part under min_box_side {cfg.min_box_side:g} px",
+        f"where {best:.0%} of it is visible, the part in the tile is under min_box_side {cfg.min_box_side:g} px",
+    )
 
 
 # -- image files --------------------------------------------------------------------------------------
@@ -397,7 +407,11 @@ def run(cfg: ImgSplitterConfig) -> dict:
         path.unlink(missing_ok=True)
     if len(drops):
         log.warning(
-            "%d box(es) are not in any tile (%s); each one and why: %s", len(drops), drops.summary(), out / DROPPED_NAME
+            "%d box(es) are not in any tile: %s; each one and why: %s (to keep more, lower min_box_side or "
+            "min_visible in the config, or raise the tile overlap)",
+            len(drops),
+            drops.summary(),
+            out / DROPPED_NAME,
         )
     log.info(
         "%d tiles from %d images: %s; %d of %d boxes kept in at least one tile -> %s",
@@ -477,8 +491,7 @@ def _write(
                 f"annotation {s.ids[n] if n < len(s.ids) else '?'}",
                 s.name,
                 [x1, y1, x2 - x1, y2 - y1],
-                "in no tile",
-                drop_reason(s.plan, n, cfg),
+                *drop_reason(s.plan, n, cfg),
             )
     _run_jobs(jobs, cfg.workers)
     summary = _summary(cfg, sources, datasets, missing)

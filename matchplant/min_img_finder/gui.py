@@ -203,6 +203,11 @@ class MinImgFinderSetup:
         reveal(self.editor.fig)
         if self.editor.result is None:  # the finder could not load the project: its message
             raise InputError(self.editor.status.get_text(), path=cfg.project_dir)
+        # the map drawn now, before the outputs are written: writing them takes seconds (the images, the figure,
+        # the GeoPackage), and a window's first draw waits for its event loop, so the map stayed blank meanwhile
+        self.editor.say("the selection is on the map; saving the images, the figure and the GeoPackage ...")
+        self.editor.fig.canvas.draw()
+        self.editor.fig.canvas.flush_events()
         if self.editor.save() is None:
             raise InputError(self.editor.status.get_text(), path=cfg.output_dir)
         return (

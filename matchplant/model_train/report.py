@@ -76,6 +76,8 @@ def write_summary(
 
 def plot_curves(history: list[dict], path: Path) -> Path:
     """Loss components and validation AP / AP50 per epoch."""
+    from matplotlib.ticker import MaxNLocator  # matplotlib on first use, as core.runtime.gui
+
     fig = figure(headless=True, figsize=(10, 4))
     ax1, ax2 = fig.subplots(1, 2)
     epochs = [h["epoch"] for h in history]
@@ -97,6 +99,7 @@ def plot_curves(history: list[dict], path: Path) -> Path:
         ax2.legend(fontsize=8)
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # epochs are whole: no tick at 1.2, 1.4
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")

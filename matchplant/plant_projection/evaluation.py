@@ -24,6 +24,19 @@ from matchplant.core.runtime.validate_gis import check_vector
 
 log = get_logger("plant_projection")
 
+# the figure's colours, named once: the figure draws with them and its caption (``evaluation_caption``, which the
+# demo's report prints) is written from them, so the two cannot disagree again
+REFERENCE_GOOD, REFERENCE_BAD, PROJECTED = "yellow", "red", "cyan"
+
+
+def evaluation_caption(iou_threshold: float = 0.5) -> str:
+    """What ``evaluation.png`` shows, in the colours it is drawn with."""
+    return (
+        f"left: projected plants (dashed {PROJECTED}) over the reference plant boxes ({REFERENCE_GOOD}: matched with "
+        f"IoU > {iou_threshold:g}; {REFERENCE_BAD}: IoU <= {iou_threshold:g} or unmatched) on the orthophoto; "
+        "right: the IoU of the matched boxes"
+    )
+
 
 def read_boxes(path: Path, *, orthophoto: Path | None = None, crs=None) -> np.ndarray:
     """Map boxes (N, 4) from a COCO JSON over the orthophoto, a vector file or a CSV (xmin,ymin,xmax,ymax)."""
@@ -146,7 +159,7 @@ def evaluation_figure(
         PolyCollection(
             rects(reference[good]),
             facecolors="none",
-            edgecolors="yellow",
+            edgecolors=REFERENCE_GOOD,
             linewidths=0.8,
             label=f"reference, IoU > {thr:g}",
         )
@@ -155,14 +168,19 @@ def evaluation_figure(
         PolyCollection(
             rects(reference[~good]),
             facecolors="none",
-            edgecolors="red",
+            edgecolors=REFERENCE_BAD,
             linewidths=1.2,
             label=f"reference, IoU <= {thr:g} or unmatched",
         )
     )
     ax.add_collection(
         PolyCollection(
-            rects(predicted), facecolors="none", edgecolors="cyan", linewidths=0.6, linestyles="--", label="projected"
+            rects(predicted),
+            facecolors="none",
+            edgecolors=PROJECTED,
+            linewidths=0.6,
+            linestyles="--",
+            label="projected",
         )
     )
     allb = np.concatenate([reference, predicted]) if len(predicted) else reference
@@ -172,7 +190,7 @@ def evaluation_figure(
         ax.set_ylim(allb[:, 1].min() - pad, allb[:, 3].max() + pad)
     ax.set_aspect("equal")
     ax.legend(loc="upper right", fontsize=8)
-    ax.set_title("projected plants (cyan) and reference boxes")
+    ax.set_title(f"projected plants ({PROJECTED}) and reference boxes")
     ax.ticklabel_format(useOffset=False, style="plain")
     matched_iou = iou[match >= 0]
     axh.hist(matched_iou, bins=np.linspace(0, 1, 21), color="tab:green", edgecolor="black")
@@ -185,7 +203,11 @@ def evaluation_figure(
     )
     fig.tight_layout()
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=120, format=Path(path).suffix.lstrip(".") or "png")
+        fmt = Path(path).suffix.lstrip(".") or "png"
+        # the caption travels in the PNG (its Description), for the demo's report to print as it is
+        fig.savefig(
+            tmp, dpi=120, format=fmt, metadata={"Description": evaluation_caption(thr)} if fmt == "png" else None
+        )
     return Path(path)
 
 

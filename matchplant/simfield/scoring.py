@@ -15,6 +15,13 @@ from scipy.spatial import cKDTree
 
 from matchplant.simfield.layout import FieldPaths
 
+# the statistic each true trait is scored with, over the box and over the canopy, and its name: the scores,
+# the demo's figure and its report line all take them from here, so they describe the same statistic
+TRAIT_STATS = {
+    "height": ("chm_max", "chm_canopy_max", "CHM max"),
+    "ndvi": ("ndvi_mean", "ndvi_canopy_mean", "NDVI mean"),
+}
+
 
 def pearson(a, b) -> float:
     a, b = np.asarray(a, float), np.asarray(b, float)
@@ -50,21 +57,22 @@ def positions(table: pd.DataFrame, top: tuple[str, str] = ("top_x", "top_y")) ->
 def trait_scores(
     table: pd.DataFrame,
     field: FieldPaths,
-    height_col: str = "chm_canopy_max",
-    ndvi_col: str = "ndvi_canopy_mean",
-    box_ndvi_col: str = "ndvi_mean",
+    height_col: str = TRAIT_STATS["height"][1],
+    ndvi_col: str = TRAIT_STATS["ndvi"][1],
+    box_ndvi_col: str = TRAIT_STATS["ndvi"][0],
 ) -> dict:
     """Height and NDVI of the plants found against each matched plant's truth."""
     truth = pd.read_csv(field.traits_csv)
     m = match_to_truth(positions(table), truth[["x", "y"]].to_numpy(float))
     ok = m >= 0
     t = truth.iloc[m[ok]]
+    box_height = TRAIT_STATS["height"][0]
     out = {
         "plants": int(len(table)),
         "matched": int(ok.sum()),
         "true_plants": int(len(truth)),
         "height_r": pearson(t["height"], table.loc[ok, height_col]),
-        "height_box_r": pearson(t["height"], table.loc[ok, "chm_max"]) if "chm_max" in table else float("nan"),
+        "height_box_r": pearson(t["height"], table.loc[ok, box_height]) if box_height in table else float("nan"),
         "height_mae_m": float(np.nanmean(np.abs(table.loc[ok, height_col].to_numpy() - t["height"].to_numpy()))),
     }
     if ndvi_col in table.columns:

@@ -8,6 +8,7 @@ raster. The work runs in a thread; a timer on the window moves the progress bar 
 
 from __future__ import annotations
 
+import re
 import threading
 from pathlib import Path
 
@@ -18,13 +19,13 @@ from matplotlib.widgets import Button, CheckButtons, RadioButtons
 
 from matchplant.core.runtime.config import save_config, set_value, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
-from matchplant.core.runtime.gui import figure, is_headless, require_display, show
+from matchplant.core.runtime.gui import figure, fit_to_axes, is_headless, require_display, show
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
 from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
 from matchplant.spatial_stat_extractor.inputs.rasters import preview_layer
-from matchplant.spatial_stat_extractor.plots.figure import unit_of
+from matchplant.spatial_stat_extractor.plots.figure import describe, unit_of
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
 
@@ -89,6 +90,25 @@ def _as_text(value) -> str:
     return str(value)
 
 
+# what the map is coloured by after a run, the first present: a height, then a vegetation index, then any mean
+COLOUR_BY = (
+    r"^chm_max",
+    r"^chm_(canopy_)?(max|p9\d|mean)",
+    r"^(ndvi|ndre|gndvi|exg|vari|gli)_(canopy_)?mean",
+    r"_mean$",
+)
+
+
+def colour_column(columns: list[str]) -> str:
+    """The statistic the map is coloured by: a plant's height, else an index's mean, else any mean (not a
+    minimum such as exg_min, which says little about a plant), else the first column."""
+    for pattern in COLOUR_BY:
+        found = next((c for c in columns if re.search(pattern, c)), None)
+        if found:
+            return found
+    return columns[0]
+
+
 class SpatialStatExtractorGUI:
     """The window over a :class:`~matchplant.spatial_stat_extractor.config.SpatialStatExtractorConfig`.
     ``headless=True``
@@ -108,7 +128,9 @@ class SpatialStatExtractorGUI:
         self.fig = fig = figure(self.headless, figsize=(13, 8), title="9 Spatial statistics")
         if self.headless:  # Agg draws at once on every widget event; nobody looks until savefig (which still draws)
             self.fig.canvas.draw_idle = self.fig.canvas.draw = lambda *args, **kwargs: None
-        self.ax = fig.add_axes([0.08, 0.13, 0.50, 0.80])
+        self.ax = fig.add_axes([0.06, 0.13, 0.46, 0.80])
+        self.cbar_ax = fig.add_axes([0.535, 0.13, 0.012, 0.80])  # the map's colour bar, shown with a result
+        self.cbar_ax.set_visible(False)
         self.ax.set_title("Preview: load the files and press Preview", fontsize=10)
         self.ax.set_aspect("equal")
         self.boxes: dict = {}
@@ -147,7 +169,7 @@ class SpatialStatExtractorGUI:
         self.bar_ax.set_xticks([])
         self.bar_ax.set_yticks([])
         self.bar = self.bar_ax.barh(0.5, 0.0, height=1.0, color="#2e7d32")[0]
-        self.status = fig.text(0.04, 0.03, "", fontsize=9, family="monospace", wrap=True)
+        self.status = fit_to_axes(fig.text(0.04, 0.03, "", fontsize=9, family="monospace"))  # in the window
         # background work: the thread writes these, the timer (main thread) draws them
         self.fraction = 0.0
         self.message = ""
@@ -340,7 +362,7 @@ class SpatialStatExtractorGUI:
         cols = [c for c in table.columns if c not in ("plant_id", "date", "x", "y") and not c.endswith("_count")]
         if not cols or self.poly_artist is None or len(table) != len(polygons):
             return
-        col = next((c for c in cols if c.startswith("chm_max")), cols[0])
+        col = colour_column(cols)
         values = table[col].to_numpy(float)
         _, owner = shapely.get_parts(self.preview_polygons.geometry.values, return_index=True)
         self.poly_artist.remove()
@@ -348,10 +370,14 @@ class SpatialStatExtractorGUI:
         self.ax.add_collection(self.poly_artist)
         if self.colorbar is not None:
             self.colorbar.remove()
-        self.colorbar = self.fig.colorbar(self.poly_artist, ax=self.ax, fraction=0.04, pad=0.02)
+        # the colour bar in the map's own column, left of the form (given the map's axes, Matplotlib put it over
+        # the form's labels)
+        self.colorbar = self.fig.colorbar(self.poly_artist, cax=self.cbar_ax)
+        self.cbar_ax.set_visible(True)
         self.colorbar.set_label(f"{col} ({unit_of(col)})", fontsize=9)
+        self.colorbar.ax.tick_params(labelsize=8)
         self.ax.set_title(
-            f"plant outlines coloured by {col} ({np.nanmin(values):.3g} .. {np.nanmax(values):.3g} {unit_of(col)})",
+            f"plants coloured by {describe(col)} ({np.nanmin(values):.3g} .. {np.nanmax(values):.3g} {unit_of(col)})",
             fontsize=10,
         )
 

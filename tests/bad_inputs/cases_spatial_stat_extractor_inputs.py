@@ -210,8 +210,8 @@ def centre_values(path: Path, boxes, bands):
     out = []
     for g in boxes:
         x0, y0, x1, y1 = g.bounds
-        c0, r0 = ~t * (x0, y1)
-        c1, r1 = ~t * (x1, y0)
+        c0, r0 = ~t @ (x0, y1)
+        c1, r1 = ~t @ (x1, y0)
         ca, cb = sorted((c0, c1))
         ra, rb = sorted((r0, r1))
         ca, ra = max(int(np.floor(ca)) - 1, 0), max(int(np.floor(ra)) - 1, 0)

@@ -35,6 +35,7 @@ from typing import Any
 
 from matchplant.core.runtime.errors import ConfigError, OutputError
 from matchplant.core.runtime.io import output_target
+from matchplant.core.runtime.log import naming_final
 
 INPUT_KINDS = ("file", "dir", "exists")
 OUTPUT_KINDS = ("out", "out_file")  # an output folder, an output file
@@ -272,7 +273,8 @@ def staged_outputs(out_dir: str | Path) -> Iterator[Path]:
     stage = out_dir.parent / f".{out_dir.name}.partial-{uuid.uuid4().hex[:12]}"
     stage.mkdir()  # not mkdtemp: a new output folder gets the usual permissions, not 0700
     try:
-        yield stage
+        with naming_final(stage, out_dir):  # the console names the folder the files end up in
+            yield stage
         if not out_dir.exists():
             os.replace(stage, out_dir)  # a new folder appears in one rename
         else:

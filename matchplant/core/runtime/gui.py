@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import sys
+import textwrap
 from typing import TYPE_CHECKING
 
 from matchplant.core.runtime.errors import DependencyError
@@ -110,5 +111,48 @@ def close(fig: Figure) -> None:
 
 
 def status_text(ax, text: str = ""):
-    """A one-line status area at the bottom of an axes: messages and errors for the user."""
-    return ax.text(0.0, 0.0, text, transform=ax.transAxes, fontsize=9, va="bottom", ha="left", family="monospace")
+    """A status area at the bottom of an axes: messages and errors for the user, kept inside the axes."""
+    return fit_to_axes(
+        ax.text(0.0, 0.0, text, transform=ax.transAxes, fontsize=9, va="bottom", ha="left", family="monospace")
+    )
+
+
+def fit_to_axes(text, rows: int | None = None):
+    """Keep a status text inside its axes, however long the message and whatever the window's size: wrapped at
+    the axes' right edge (a long path is broken too), as many lines as the axes holds, the last cut with an
+    ellipsis, and clipped there. ``get_text()`` still gives the whole message (the console logs it whole).
+    A figure's text (no axes) is kept inside the window, in at most ``rows`` lines (default: 2).
+
+    (Matplotlib's own ``wrap=True`` wraps at the figure's edge, over the buttons beside the status line, and
+    never breaks a path: its wrapping step is replaced on this one artist.)"""
+    text.set_wrap(True)
+    text.set_clip_on(True)
+    box = text.axes.bbox if text.axes is not None else text.get_figure(root=True).bbox
+    text.set_clip_box(box)
+    text._get_wrapped_text = lambda: _fitted(text, box, rows if rows or text.axes is not None else 2)
+    return text
+
+
+def _fitted(text, box, max_rows: int | None) -> str:
+    message = text.get_text()
+    if text._renderer is None or not message:
+        return message
+    x0 = text.get_transform().transform(text.get_position())[0]
+    width = box.x1 - max(x0, box.x0) - 2
+    char = max(text._get_rendered_text_width("M" * 10) / 10, 1.0)  # monospace: every character; else the widest
+    # a line's height, on the safe side: the font's own line height ("normal" spacing in newer Matplotlib) is
+    # about 1.6 times its size in points for DejaVu Sans Mono; a numeric spacing multiplies about 1.3
+    spacing = getattr(text, "_linespacing", None)
+    spacing = 1.3 * spacing if isinstance(spacing, (int, float)) else 1.6
+    line = text.get_fontsize() * text.get_figure(root=True).dpi / 72 * spacing
+    cols, rows = max(int(width / char), 4), max(int(box.height / line), 1)
+    rows = min(rows, max_rows) if max_rows else rows
+    lines = [
+        piece
+        for paragraph in message.split("\n")
+        for piece in (textwrap.wrap(paragraph, cols, break_long_words=True, break_on_hyphens=False) or [""])
+    ]
+    if len(lines) > rows:
+        lines = lines[:rows]
+        lines[-1] = lines[-1][: cols - 1] + "\u2026"
+    return "\n".join(lines)

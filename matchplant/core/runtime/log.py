@@ -6,11 +6,13 @@ settings and package versions that made it.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import logging
 import os
 import platform
 import sys
+from collections.abc import Iterator
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -116,3 +118,35 @@ def stop_run_log() -> None:
         if getattr(h, "_matchplant_run", False):
             logger.removeHandler(h)
             h.close()
+
+
+class _FinalPaths(logging.Filter):
+    """Rewrites a staged output folder's path into the folder it becomes (see ``naming_final``)."""
+
+    def __init__(self, staged: Path, final: Path):
+        super().__init__()
+        self.pairs = [(str(staged.resolve()), str(final.resolve())), (str(staged), str(final))]
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        new = msg
+        for staged, final in self.pairs:
+            new = new.replace(staged, final)
+        if new != msg:
+            record.msg, record.args = new, None
+        return True
+
+
+@contextlib.contextmanager
+def naming_final(staged: str | Path, final: str | Path) -> Iterator[None]:
+    """While a step writes into a staged folder that is renamed when it succeeds, messages name the final
+    folder: a path printed to the user must still exist after the run (a ``.partial-...`` path would not)."""
+    f = _FinalPaths(Path(staged), Path(final))
+    handlers = list(get_logger().handlers) + list(logging.getLogger().handlers)
+    for h in handlers:
+        h.addFilter(f)
+    try:
+        yield
+    finally:
+        for h in handlers:
+            h.removeFilter(f)

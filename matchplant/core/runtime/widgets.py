@@ -15,11 +15,11 @@ from typing import Any
 
 from matplotlib.backend_tools import Cursors
 from matplotlib.figure import Figure
-from matplotlib.widgets import Button, TextBox
+from matplotlib.widgets import Button, CheckButtons, TextBox
 
 from matchplant.core.runtime.config import set_value, validate
 from matchplant.core.runtime.errors import DependencyError, MatchPlantError
-from matchplant.core.runtime.gui import figure
+from matchplant.core.runtime.gui import figure, fit_to_axes
 
 try:  # Tk's file dialogs come with Python (and Matplotlib's TkAgg backend); some Linux Pythons lack them
     import tkinter
@@ -49,25 +49,36 @@ class QuietTextBox(TextBox):
         if self.capturekeystrokes:
             super().stop_typing()
 
-    def fit_text(self) -> None:
-        """Align the text as asked while it fits, else to the right so that its end shows."""
+    def fit_text(self) -> bool:
+        """Align the text as asked while it fits, else to the right so that its end shows; True when the
+        alignment changed."""
         fig = self.ax.get_figure(root=True)
         # before the first draw the Agg canvases (Tk, Qt, macOS, headless) can still measure text
         renderer = fig._get_renderer() or getattr(fig.canvas, "get_renderer", lambda: None)()
         if renderer is None:
-            return
+            return False
+        before = self.text_disp.get_horizontalalignment()
         self.text_disp.set_horizontalalignment(self._left_ha)
         self.text_disp.set_x(self._left_x)
         if self.text_disp.get_window_extent(renderer).width > 0.92 * self.ax.bbox.width:
             self.text_disp.set_horizontalalignment("right")
             self.text_disp.set_x(0.98)
+        return self.text_disp.get_horizontalalignment() != before
+
+    def _click(self, event):
+        # a click is placed in the text as it is shown: aligned first (a long path shows its end), so that the
+        # cursor lands where the user clicked, never in the hidden part of the path
+        self.fit_text()
+        super()._click(event)
 
     def _rendercursor(self):
         fig = self.ax.get_figure(root=True)
         canvas = fig.canvas
         if fig._get_renderer() is None or not canvas.supports_blit:
-            super()._rendercursor()  # the first draw of a figure is a whole one anyway
             self.fit_text()
+            super()._rendercursor()  # the first draw of a figure is a whole one anyway
+            if self.fit_text():  # the first draw measured the text: place the cursor in the text as shown
+                super()._rendercursor()
             return
         own = "draw" in vars(canvas)  # a headless GUI may have replaced draw on the instance
         draw = canvas.draw
@@ -82,6 +93,43 @@ class QuietTextBox(TextBox):
                 del canvas.draw
         fig.draw_artist(self.ax)
         canvas.blit(self.ax.bbox)
+
+
+class BoolField:
+    """A yes/no setting as a check box (never a text field holding ``False``), read like a text box: ``text``
+    is ``"true"``/``"false"``, so that a form reads its fields one way; ``value`` is the bool."""
+
+    def __init__(self, ax, label: str, initial: bool = False):
+        self.ax = ax
+        self.check = CheckButtons(ax, ["yes"], [bool(initial)])
+        for t in self.check.labels:
+            t.set_fontsize(9)
+        # the setting's name left of the box, where a text field has its label
+        self.label = ax.text(-0.02, 0.5, label, transform=ax.transAxes, ha="right", va="center", fontsize=9)
+        ax.set_frame_on(False)
+
+    @property
+    def value(self) -> bool:
+        return bool(self.check.get_status()[0])
+
+    @property
+    def text(self) -> str:
+        return "true" if self.value else "false"
+
+    def set_val(self, value) -> None:
+        wanted = str(value).strip().lower() in ("true", "1", "yes", "on")
+        if wanted != self.value:
+            self.check.set_active(0)
+
+    def on_changed(self, func: Callable[[bool], Any]) -> None:
+        self.check.on_clicked(lambda _label: func(self.value))
+
+
+def setting_field(ax, label: str, value: Any):
+    """The widget of one setting in a form: a check box for a bool, a text field for anything else."""
+    if isinstance(value, bool):
+        return BoolField(ax, label, value)
+    return QuietTextBox(ax, label + " ", initial="" if value is None else str(value), label_pad=0.02)
 
 
 @contextmanager
@@ -204,13 +252,15 @@ class SetupScreen:
         # the status line in an axes of its own, so that "working ..." is drawn alone and at once
         self.status_area = self.fig.add_axes((0.0, 0.0, 0.85, 1.8 * row))
         self.status_area.set_axis_off()
-        self.status = self.status_area.text(
-            0.02 / 0.85,
-            0.5,
-            f"Choose the files (Browse... or type a path), then {run_label}.",
-            fontsize=9,
-            family="monospace",
-            va="center",
+        self.status = fit_to_axes(  # kept left of the Run button and inside the window, however long
+            self.status_area.text(
+                0.02 / 0.85,
+                0.5,
+                f"Choose the files (Browse... or type a path), then {run_label}.",
+                fontsize=9,
+                family="monospace",
+                va="center",
+            )
         )
         self.ran = False
         self.fill_in()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from textwrap import fill
 from typing import TYPE_CHECKING
 
 import geopandas as gpd
@@ -31,6 +32,44 @@ UNITS = (
     (r"(^|_)(chm|height)|_m(_|$)", "m"),
     (r"(^|_)(ndvi|ndre|gndvi|exg|exgr|vari|gli|ngrdi|savi|evi|lai)(_|$)", "index, no unit"),
 )
+
+
+# the figure's marks, named once: drawn with these and described with them (``field_caption``, which the demo's
+# report prints under the figure)
+PLANT_COLOUR, GAP_COLOUR = "black", "red"
+# how a column's words read in a title: indices and rasters in capitals, percentiles as P95
+WORDS = {
+    **{w: w.upper() for w in ("ndvi", "ndre", "gndvi", "vari", "gli", "ngrdi", "savi", "evi", "lai", "chm", "dsm")},
+    "exg": "ExG",
+    "exgr": "ExGR",
+    "sd": "SD",
+    "cv": "CV",
+    "m2": "m²",
+    "m3": "m³",
+}
+PLOT_AGGREGATES = {"mean": "mean", "sd": "SD", "cv": "coefficient of variation"}
+PLANT_STATISTIC = r"(mean|max|min|median|sd|std|cv|sum|count|p\d+|area_m2|volume_m3|height|cover)"
+
+
+def _words(name: str) -> str:
+    return " ".join(WORDS.get(w, w.upper() if re.fullmatch(r"p\d+", w) else w) for w in name.split("_") if w)
+
+
+def describe(column: str) -> str:
+    """A plot column in words: ``ndvi_canopy_mean_mean`` -> "plot mean of the plants' NDVI canopy mean"."""
+    name = re.sub(r"^plot_", "", column)
+    m = re.fullmatch(rf"(.+_{PLANT_STATISTIC})_(mean|sd|cv)", name)
+    if m:  # a plant column summarised per plot (plots.traits)
+        return f"plot {PLOT_AGGREGATES[m[3]]} of the plants' {_words(m[1])}"
+    return _words(name)
+
+
+def field_caption(column: str) -> str:
+    """What ``plots.png`` shows, in the words and colours it is drawn with."""
+    return (
+        f"plots coloured by the {describe(column)} ({unit_of(column)}); {PLANT_COLOUR} dots: plants, "
+        f"{GAP_COLOUR} crosses: gaps"
+    )
 
 
 def unit_of(column: str) -> str:
@@ -55,11 +94,14 @@ def colour_norm(values: pd.Series) -> Normalize:
 def field_figure(
     plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, path: Path, spacing: float = 0.2
 ) -> Path:
-    fig = figure(headless=True, figsize=(8, 7), constrained_layout=True)
+    # "compressed": the constrained layout made for an equal-aspect axes beside a colour bar (the plain one
+    # placed the y label out of the figure)
+    fig = figure(headless=True, figsize=(8, 7), layout="compressed")
     try:
         draw_field(fig, plots, pts, gaps, column, spacing)
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120, format="png")
+            # the caption travels in the PNG (its Description), for the demo's report to print as it is
+            fig.savefig(tmp, dpi=120, format="png", metadata={"Description": field_caption(column)})
     finally:
         close(fig)
     return Path(path)
@@ -83,7 +125,7 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
     else:
         plots.plot(ax=ax, color="lightgrey", edgecolor="white")
     if len(pts):
-        ax.plot(pts[:, 0], pts[:, 1], ".", ms=1.5, color="black", label="plants", zorder=2)
+        ax.plot(pts[:, 0], pts[:, 1], ".", ms=1.5, color=PLANT_COLOUR, label="plants", zorder=2)
     ax.set_aspect("equal")
     ax.ticklabel_format(useOffset=False, style="plain")
     from matplotlib.ticker import MaxNLocator  # on first use (see colour_norm)
@@ -101,7 +143,7 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
         w, h = fig.get_size_inches()
         points_per_m = 72.0 * min(0.7 * w / max(x1 - x0, 1e-9), 0.7 * h / max(y1 - y0, 1e-9))
         ms = float(np.clip(0.6 * spacing * points_per_m, 1.0, 5.0))
-        ax.plot(gaps["x"], gaps["y"], "x", ms=ms, mew=0.7, alpha=0.7, color="red", label="gaps", zorder=3)
+        ax.plot(gaps["x"], gaps["y"], "x", ms=ms, mew=0.7, alpha=0.7, color=GAP_COLOUR, label="gaps", zorder=3)
     if len(plots) <= 200:
         for pid, g in zip(plots["plot_id"], plots.geometry.values):
             c = g.representative_point()
@@ -114,6 +156,6 @@ def draw_field(fig, plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame
                 color="white",
                 bbox={"boxstyle": "round,pad=0.1", "fc": "black", "alpha": 0.35, "lw": 0},
             )
-    ax.set_title(f"plots: {column}, plants and gaps")
+    ax.set_title(fill(field_caption(column)[0].upper() + field_caption(column)[1:], 70), fontsize=10)
     ax.legend(loc="upper right", fontsize=7)
     return ax
