@@ -150,7 +150,7 @@ def speed(quick: bool, folder: Path) -> dict:
                 window=Window(0, r0, size, rr.shape[0]),
             )
     gy, gx = np.divmod(np.arange(n), k)
-    x, y = t * ((gx + 0.5) * sp, (gy + 0.5) * sp)
+    x, y = t @ ((gx + 0.5) * sp, (gy + 0.5) * sp)
     half = 0.4 * sp * res
     boxes = shapely.box(x - half, y - half, x + half, y + half)
     with rasterio.open(path) as ds:

@@ -160,18 +160,16 @@ def test_torchvision_weights_in_the_hub_cache_work_offline(tmp_path, monkeypatch
     weights = get_weight(ARCHITECTURES[ARCH].coco_weights)
     torch.manual_seed(3)
     coco = tvd.fasterrcnn_mobilenet_v3_large_fpn(weights=None, weights_backbone=None, num_classes=91)
-    old = torch.hub.get_dir()
-    torch.hub.set_dir(str(tmp_path / "hub"))
-    try:
-        (tmp_path / "hub" / "checkpoints").mkdir(parents=True)
-        torch.save(coco.state_dict(), tmp_path / "hub" / "checkpoints" / weights.url.rsplit("/", 1)[-1])
+    # through TORCH_HOME, not torch.hub.set_dir: set_dir cannot be undone (restoring the old path still pins it,
+    # and later tests that set TORCH_HOME would read this machine's cache)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    (tmp_path / "hub" / "checkpoints").mkdir(parents=True)
+    torch.save(coco.state_dict(), tmp_path / "hub" / "checkpoints" / weights.url.rsplit("/", 1)[-1])
 
-        def offline(*args, **kwargs):
-            raise urllib.error.URLError("no network")
+    def offline(*args, **kwargs):
+        raise urllib.error.URLError("no network")
 
-        monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
-        model = build_detector(ModelConfig(architecture=ARCH, pretrained="coco"), 2)
-    finally:
-        torch.hub.set_dir(old)
+    monkeypatch.setattr(torch.hub, "download_url_to_file", offline)
+    model = build_detector(ModelConfig(architecture=ARCH, pretrained="coco"), 2)
     key = "backbone.body.0.0.weight"
     assert torch.equal(model.state_dict()[key], coco.state_dict()[key])

@@ -59,8 +59,8 @@ def pixel_boxes(w: Work) -> tuple[list[dict], Path]:
         inv = ~ds.transform
     out = []
     for p in rows(w.artifacts / "plants" / "plants.csv"):
-        c0, r0 = inv * (float(p["xmin"]), float(p["ymax"]))
-        c1, r1 = inv * (float(p["xmax"]), float(p["ymin"]))
+        c0, r0 = inv @ (float(p["xmin"]), float(p["ymax"]))
+        c1, r1 = inv @ (float(p["xmax"]), float(p["ymin"]))
         out.append(
             {
                 "image_path": ortho.name,
