@@ -13,14 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from small_detector import save_small, small_detector
 
 from matchplant.core.formats.coco import make_annotation, new_dataset, write_dataset
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, operating_point
-from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.merge import merge_nested, merge_tile_boxes
@@ -36,25 +35,11 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory):
     """An (untrained) small detector saved as a module 6 checkpoint: the file contract, not accuracy."""
-    cfg = load_config(
-        ModelTrainConfig,
-        None,
-        [
-            "train_json=x",
-            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-            "model.pretrained=none",
-            "model.min_size=64",
-            "model.max_size=128",
-        ],
-        check_paths=False,
-        strict=False,
-    )
-    torch.manual_seed(0)
-    model = build_detector(cfg.model, 2)
+    model, model_cfg = small_detector()
     with torch.no_grad():  # every box scores about 0.01: below the usual 0.05 cut
         model.roi_heads.box_predictor.cls_score.bias.copy_(torch.tensor([2.5, -2.5]))
     path = tmp_path_factory.mktemp("ck") / "model.pt"
-    return save_checkpoint(path, model, cfg.model, ["plant"], [1], epoch=1)
+    return save_small(path, model, model_cfg)
 
 
 def pycocotools_direct(gt_path: Path, results: list[dict], max_dets: int) -> np.ndarray:

@@ -9,21 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from scipy import sparse
+from small_detector import save_small, small_detector
 
 from matchplant.core.formats.coco import read_dataset
 from matchplant.core.formats.predictions import read_predictions
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.detection.checkpoint import save_checkpoint
-from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.cover import choose, multi_cover
 from matchplant.model_test.inputs import list_images
 from matchplant.model_test.run import run
-from matchplant.model_train.config import ModelTrainConfig
 from tests.log_records import log_records, messages
 
 
@@ -88,21 +85,7 @@ def test_cover_needs_a_project(tmp_path):
 def test_detection_on_the_cover_logs_both_estimates(tiny_field, tmp_path):
     """detect.cover: 1 on the tiny field's project: predictions for the cover's photos only, and the estimate for
     the cover and for every photo logged before detection."""
-    cfg = load_config(
-        ModelTrainConfig,
-        None,
-        [
-            "train_json=x",
-            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-            "model.pretrained=none",
-            "model.min_size=64",
-            "model.max_size=128",
-        ],
-        check_paths=False,
-        strict=False,
-    )
-    torch.manual_seed(0)
-    ck = save_checkpoint(tmp_path / "model.pt", build_detector(cfg.model, 2), cfg.model, ["plant"], [1], epoch=1)
+    ck = save_small(tmp_path / "model.pt", *small_detector())
     cfg = load_config(
         ModelTestConfig,
         None,

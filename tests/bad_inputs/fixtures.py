@@ -10,14 +10,11 @@ import shutil
 
 import pytest
 from harness import Work
+from small_detector import save_small, small_detector
 
 from matchplant.cli import run_module
 from matchplant.core.formats.coco import read_dataset
-from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.io import write_json
-from matchplant.detection.checkpoint import save_checkpoint
-from matchplant.detection.model import build_detector
-from matchplant.model_train.config import ModelTrainConfig
 
 
 @pytest.fixture(scope="session")
@@ -70,20 +67,7 @@ def artifacts(tiny_field, tmp_path_factory):
         )
         == 0
     )
-    cfg = load_config(
-        ModelTrainConfig,
-        None,
-        [
-            "train_json=x",
-            "model.architecture=fasterrcnn_mobilenet_v3_large_fpn",
-            "model.pretrained=none",
-            "model.min_size=64",
-            "model.max_size=128",
-        ],
-        check_paths=False,
-        strict=False,
-    )
-    save_checkpoint(root / "model.pt", build_detector(cfg.model, 2), cfg.model, ["plant"], [1], epoch=1)
+    save_small(root / "model.pt", *small_detector())
     (root / "README").write_text(json.dumps({"made_from": str(tiny_field.root)}))
     return root
 
