@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import socket
+import threading
 import time
 from pathlib import Path
 
@@ -96,10 +97,19 @@ def test_a_reachable_host_means_downloadable(empty_cache, monkeypatch):
 
 
 def test_a_silent_host_is_given_up_after_the_timeout(empty_cache, monkeypatch):
-    monkeypatch.setattr(socket, "create_connection", lambda *a, **k: time.sleep(30))
+    release = threading.Event()
+
+    def silent(*args, **kwargs):  # a lookup that hangs; let go (as a timeout) when the test ends, not 30 s later
+        release.wait(30)
+        raise OSError("timed out")
+
+    monkeypatch.setattr(socket, "create_connection", silent)
     t0 = time.perf_counter()
-    assert not coco_weights_at_hand([PAPER], timeout=0.5)[0]
-    assert time.perf_counter() - t0 < 2.0
+    try:
+        assert not coco_weights_at_hand([PAPER], timeout=0.5)[0]
+        assert time.perf_counter() - t0 < 2.0
+    finally:
+        release.set()
 
 
 def test_resume_keeps_the_runs_weights_and_a_checkpoint_needs_none(empty_cache, monkeypatch):
