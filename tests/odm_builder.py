@@ -32,7 +32,7 @@ class Raster:
     transform: Affine
 
 
-def _write_raster(path: Path, raster: Raster, crs: CRS, nodata: float | None = None) -> None:
+def write_raster(path: Path, raster: Raster, crs: CRS, nodata: float | None = None) -> None:
     data = raster.data if raster.data.ndim == 3 else raster.data[None]
     path.parent.mkdir(parents=True, exist_ok=True)
     with rasterio.open(
@@ -88,7 +88,7 @@ def write_odm_project(
     images.mkdir(parents=True, exist_ok=True)
     for name, shot in undistorted_shots.items():
         Image.new("RGB", (shot.camera.width, shot.camera.height), image_color).save(images / f"{name}.tif")
-    _write_raster(root / "odm_dem" / "dsm.tif", Raster(dsm.data.astype("float32"), dsm.transform), crs, nodata=-9999)
+    write_raster(root / "odm_dem" / "dsm.tif", Raster(dsm.data.astype("float32"), dsm.transform), crs, nodata=-9999)
     if orthophoto is not None:
-        _write_raster(root / "odm_orthophoto" / "odm_orthophoto.tif", orthophoto, crs)
+        write_raster(root / "odm_orthophoto" / "odm_orthophoto.tif", orthophoto, crs)
     return root

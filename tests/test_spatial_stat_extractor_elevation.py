@@ -12,6 +12,7 @@ import pytest
 import rasterio
 import rasterio.crs
 from affine import Affine
+from odm_builder import Raster, write_raster
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.spatial_stat_extractor.config import RasterSet
@@ -25,19 +26,7 @@ FT = 0.3048006096012192
 
 
 def write(path, data, crs=UTM, transform=T):
-    with rasterio.open(
-        path,
-        "w",
-        driver="GTiff",
-        width=data.shape[1],
-        height=data.shape[0],
-        count=1,
-        dtype="float32",
-        crs=crs,
-        transform=transform,
-        nodata=-9999,
-    ) as out:
-        out.write(data.astype("float32"), 1)
+    write_raster(path, Raster(data.astype("float32"), transform), crs, nodata=-9999)
     return path
 
 
