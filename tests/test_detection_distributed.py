@@ -20,6 +20,7 @@ import torch
 from matchplant.detection.distributed import join
 shard, device = join(torch.device("cpu"))
 print("gathered", shard.gather([shard.rank * 10]), flush=True)
+shard.leave()
 """
 
 

@@ -64,6 +64,19 @@ class Shard:
 
             dist.barrier()
 
+    def leave(self) -> None:
+        """Leave the job at the end of a run that succeeded: every process meets, then the process group is
+        taken down. A process that exits without it leaves gloo's worker threads to the interpreter's
+        teardown, which can abort it (SIGABRT, "terminate called without an active exception") after its
+        work is done, so that torchrun reports a failed job. Not called on an error: the others may be
+        inside a collective and would wait for this one until the collective timeout."""
+        if self.world > 1:
+            import torch.distributed as dist  # lazy: PyTorch is heavy; configs load without it
+
+            if dist.is_initialized():
+                dist.barrier()
+                dist.destroy_process_group()
+
 
 def _int_var(name: str, default: str) -> int:
     value = os.environ.get(name, default).strip()

@@ -476,4 +476,5 @@ def run(cfg: ModelTestConfig) -> dict:
         now = write_manifest(out, drawn) if shard.main else []
     if shard.main:  # only once the new outputs are in place; the other processes' drawn images are in `now`
         remove_stale(Path(cfg.output_dir), before, now)
+    shard.leave()
     return result

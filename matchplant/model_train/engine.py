@@ -351,7 +351,6 @@ def loop(job: Job, state: TrainState) -> str | None:
 
 def finish(job: Job, state: TrainState, reason: str | None) -> dict:
     """The final summary and log lines; returns the summary (empty on other processes than rank 0)."""
-    import torch  # lazy: PyTorch is heavy; configs load without it
 
     budget, done, main = job.budget, state.done, job.dist_info.main
     if reason == "budget" or (done >= budget.plan.iters and budget.plan.iters < budget.total):
@@ -382,8 +381,7 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
             state.best["value"],
             job.ck_dir / "best.pt",
         )
-    if job.dist_info.world > 1:
-        torch.distributed.destroy_process_group()
+    job.dist_info.leave()
     return summary
 
 
