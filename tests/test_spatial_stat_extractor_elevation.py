@@ -90,3 +90,22 @@ def test_another_raster_in_feet_is_read_on_a_metric_grid(tmp_path):
         src = open_layer(Layer("band1", "band", (path,)), stack)
         assert not_metres(src.crs) == "" and src.crs.is_projected
         assert abs(src.transform.a) == pytest.approx(0.01, rel=1e-3)
+
+
+def test_each_raster_is_checked_once_per_version(tmp_path, monkeypatch):
+    """The units check and every later opening of a CHM (box statistics, outlines, plots) share one check of its
+    sampled blocks per file version; a file rewritten since is checked again."""
+    from matchplant.core.runtime import validate_gis
+
+    seen = []
+    real = validate_gis.check_raster
+    monkeypatch.setattr(validate_gis, "check_raster", lambda path, **kw: seen.append(path.name) or real(path, **kw))
+    dsm, dtm = write(tmp_path / "dsm.tif", 350 + field()), write(tmp_path / "dtm.tif", 350 + field() * 0)
+    check_elevation([RasterSet(dsm=dsm, dtm=dtm)])
+    for _ in range(3):
+        with contextlib.ExitStack() as stack:
+            open_layer(Layer("chm", "difference", (dsm, dtm), elevation=True), stack)
+    assert sorted(seen) == ["dsm.tif", "dtm.tif"]
+    write(dsm, 351 + field(seed=1))  # a new version of the DSM
+    check_elevation([RasterSet(dsm=dsm, dtm=dtm)])
+    assert sorted(seen) == ["dsm.tif", "dsm.tif", "dtm.tif"]

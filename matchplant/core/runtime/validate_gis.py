@@ -81,6 +81,23 @@ def check_raster(
     return info
 
 
+_checked: set = set()  # (resolved path, band, mtime, size) already checked in this process
+
+
+def check_raster_once(path: str | Path, band: int, what: str) -> None:
+    """:func:`check_raster` of one band (no CRS required) once per file version and band in a process: a step
+    that opens one raster for several purposes (module 9: the CHM's units check, box statistics, outlines,
+    plots) pays for the sampled blocks' decompression once. A file changed since (time or size) is checked
+    again."""
+    path = Path(path)
+    st = path.stat() if path.is_file() else None
+    key = (str(path.resolve()), band, st.st_mtime_ns, st.st_size) if st is not None else None
+    if key is None or key not in _checked:
+        check_raster(path, bands=[band], require_crs=False, what=what)
+        if key is not None:
+            _checked.add(key)
+
+
 def _valid(ds, block: np.ndarray) -> bool:
     data = np.ma.masked_invalid(block) if np.issubdtype(block.dtype, np.floating) else np.ma.asarray(block)
     if ds.nodata is not None and not (isinstance(ds.nodata, float) and math.isnan(ds.nodata)):

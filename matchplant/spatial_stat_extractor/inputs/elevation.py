@@ -20,7 +20,7 @@ from pyproj import CRS
 
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.validate_gis import check_raster
+from matchplant.core.runtime.validate_gis import check_raster_once
 
 ODM_NODATA = -9999.0  # ODM's DEM nodata, masked even when the file does not declare it
 DECIMATED = 512  # cells along the longer side of the quick read
@@ -72,7 +72,7 @@ def check_elevation(date_sets) -> None:
             continue
         keys = chm_keys(rs, i == 0)
         for path, key in zip(layer.paths, keys):  # opens, has data, not truncated: said before it is read here
-            check_raster(path, what=key, require_crs=False)
+            check_raster_once(path, 1, key)
         with contextlib.ExitStack() as stack:
             files = [stack.enter_context(rasterio.open(p)) for p in layer.paths]
             for ds, key, path in zip(files, keys, layer.paths):

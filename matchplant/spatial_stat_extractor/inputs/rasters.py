@@ -24,7 +24,7 @@ from rasterio.warp import transform_bounds
 from matchplant.core.geometry.frames import utm_crs_for
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.core.runtime.validate_gis import check_raster
+from matchplant.core.runtime.validate_gis import check_raster_once
 from matchplant.spatial_stat_extractor.inputs.bands import (
     band_names,
     check_bands,
@@ -93,20 +93,6 @@ def _in_metres(ds, stack: contextlib.ExitStack, metric_crs=None):
 _warned: set = set()
 
 
-_checked: set = set()
-
-
-def _check_once(path: str, band: int, name: str) -> None:
-    """:func:`check_raster` once per file version and band in a process: box statistics, outlines and plots
-    each open the layer, and each check decompresses every tile of the raster."""
-    st = Path(path).stat() if Path(path).is_file() else None
-    key = (str(Path(path).resolve()), band, st.st_mtime_ns, st.st_size) if st is not None else None
-    if key is None or key not in _checked:
-        check_raster(path, bands=[band], require_crs=False, what=f"{name} raster")
-        if key is not None:
-            _checked.add(key)
-
-
 def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band", check: bool = True) -> RasterFileSource:
     """Band ``band`` (config key ``key``) of ``ds``; with ``check``, a band of only nodata/NaN is an error."""
     if not 1 <= band <= ds.count:
@@ -117,7 +103,7 @@ def _band(ds, band: int, layer: Layer, nodata: float | None, key: str = "band", 
         )
     # a raster that is all nodata/NaN in this band is named here, not found out as "0 plants with values"
     if check:
-        _check_once(file_name(ds), band, layer.name)
+        check_raster_once(file_name(ds), band, f"{layer.name} raster")
     extra = [ODM_NODATA] if layer.elevation else []
     if nodata is not None:
         extra.append(nodata)
@@ -145,7 +131,7 @@ def open_layer(layer: Layer, stack: contextlib.ExitStack, nodata: float | None =
     dsm = _open(layer.paths[0], stack, crs, warp)
     dtm = _open(layer.paths[1], stack, warp=False)  # put on the DSM's grid below, whatever its CRS
     _check_overlap(dsm, dtm)
-    check_raster(dtm.name, bands=[1], require_crs=False, what=f"{layer.name} DTM")
+    check_raster_once(dtm.name, 1, f"{layer.name} DTM")
     if (dsm.crs and dtm.crs and dsm.crs != dtm.crs) or dsm.transform != dtm.transform or dsm.shape != dtm.shape:
         # put the DTM on the DSM's grid (ODM writes them on one grid; other tools may not)
         log.info(
