@@ -13,6 +13,7 @@ import runpy
 import sys
 from pathlib import Path
 
+import pyogrio
 import pytest
 import yaml
 
@@ -118,3 +119,39 @@ def test_every_gui_example_names_a_module_with_a_window():
     found = [(doc.name, m.group(1) or m.group(2)) for doc in docs for m in named.finditer(doc.read_text())]
     assert found
     assert [(doc, name) for doc, name in found if resolve_step(name).gui is None] == []
+
+
+def _outputs(folder: Path) -> dict[str, object]:
+    """Every output file's content: GeoPackages as their tables (the file stamps the time it was written), the
+    run report without its timings and memory, the log's name only (it is the run's console, times included)."""
+    out: dict[str, object] = {}
+    for p in sorted(folder.rglob("*")):
+        if not p.is_file() or p.parent.name == "logs":
+            continue
+        if p.suffix == ".gpkg":
+            data = pyogrio.read_dataframe(p).to_wkt().to_csv()
+        else:
+            data = p.read_bytes()
+        if p.suffix == ".json":
+            data = re.sub(rb'"(\w*(seconds|_s|time|memory|peak)\w*)": [0-9.e+-]+', rb'"\1": 0', data)
+        out[str(p.relative_to(folder))] = data
+    return out
+
+
+def test_module_9_folder_script_and_command_write_the_same_files_from_an_orthophoto_alone(
+    tiny_field, tmp_path, monkeypatch
+):
+    """The case the issue saw: an orthophoto without a DSM or DTM, through module 9's folder script (its config
+    file) and through the command: both run, and their output files are the same (run timings aside)."""
+    inputs = ["--set", f"polygons={tiny_field.map_boxes}", "--set", f"rasters.rgb={tiny_field.orthophoto}"]
+    script = ROOT / "9_spatial_stat_extractor" / "spatial_stat_extractor.py"
+    monkeypatch.setattr(sys, "argv", [str(script), *inputs, "--set", f"output_dir={tmp_path / 'script'}"])
+    with pytest.raises(SystemExit) as done:
+        runpy.run_path(str(script), run_name="__main__")
+    assert done.value.code == 0
+    assert cli.run_module("spatial_stat_extractor", [*inputs, "--set", f"output_dir={tmp_path / 'command'}"]) == 0
+    script_files, command_files = _outputs(tmp_path / "script"), _outputs(tmp_path / "command")
+    assert any(name.endswith(".csv") for name in script_files), sorted(script_files)
+    assert sorted(script_files) == sorted(command_files)
+    differ = [name for name in script_files if script_files[name] != command_files[name]]
+    assert differ == []
