@@ -129,6 +129,7 @@ def run_on(
         for p, d in ((p, json.loads(p.read_text())) for p in (train_json, val_json, test_json))
     }
     estimate = summary["estimate"]["planned_s"]
+    kept = sorted((work / "run" / "checkpoints").glob("*.pt"))  # issue 39: a budget run once kept 741 MB of them
     return {
         "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
         "load_before": [round(v, 2) for v in load],
@@ -150,6 +151,8 @@ def run_on(
         "best_val": summary["best"],
         "test_AP50": round(stats["AP50"], 4),
         "test_AP": round(stats["AP"], 4),
+        "checkpoints": [p.name for p in kept],
+        "checkpoints_MB": round(sum(p.stat().st_size for p in kept) / 1e6, 1),
     }
 
 
