@@ -6,7 +6,7 @@ before the network sees it, so its cost grows with the *input* pixels, not the p
 to 800 px cost ~39x their own pixels, and a 1000 x 750 photo cut into 128 px tiles costs about 12x the same photo
 in 1024 px tiles. :func:`plan` counts each photo's tiles (module 7's own grid) and their input pixels; one
 timed pass of the model on a real tile of the first photo gives this device's seconds per input megapixel
-(:func:`probe`), the same on a CPU under load or a GPU; the estimate is their product. A warning comes before
+(:func:`probe`; on a GPU a warm pass of the run's batch of tiles); the estimate is their product. A warning comes before
 any work that will take longer than :data:`WARN_AFTER_S`.
 """
 
@@ -57,12 +57,19 @@ def plan(sizes: list[tuple[int, int]], tile: int, overlap: int, model_config: di
     }
 
 
-def probe(predictor, image: np.ndarray, tile: int, model_config: dict) -> float:
-    """Seconds per network input megapixel on this device: one timed pass on the first tile of ``image``."""
+def probe(predictor, image: np.ndarray, tile: int, model_config: dict, batch: int = 1) -> float:
+    """Seconds per network input megapixel on this device: one timed pass on the first tile of ``image``. With
+    ``batch`` > 1 (a GPU, which detects many tiles per pass), a pass of ``batch`` copies of it after one untimed
+    pass of the same shape: a GPU at one tile per pass is mostly idle, and its first pass at a new batch pays
+    for memory and kernel choices, so one cold tile would overstate the time several-fold. On a CPU one tile's
+    pass is what every tile costs, and a second pass of a large model would add seconds to minutes."""
     th, tw = min(tile, image.shape[0]), min(tile, image.shape[1])
+    tiles = [np.ascontiguousarray(image[:th, :tw])] * max(batch, 1)
+    if batch > 1:
+        predictor(tiles)  # untimed: the first pass at this batch
     t0 = time.perf_counter()
-    predictor([np.ascontiguousarray(image[:th, :tw])])
-    seconds = time.perf_counter() - t0
+    predictor(tiles)  # returns boxes on the host: the device's work is finished when it returns
+    seconds = (time.perf_counter() - t0) / len(tiles)
     return seconds / (
         input_pixels(tw, th, int(model_config.get("min_size", 800)), int(model_config.get("max_size", 1333))) / 1e6
     )
@@ -79,12 +86,14 @@ def estimate(
     processes: int = 1,
     warn_after_s: float = WARN_AFTER_S,
     every: list[tuple[int, int]] | None = None,
+    batch: int = 1,
 ) -> dict:
     """The plan, the probe and the estimated seconds (``processes``: a torchrun job shares the photos); logged,
     and a warning before a run longer than ``warn_after_s``. ``every``: the sizes of every photo when ``sizes``
-    are a cover's (``detect.cover``): both estimates are logged side by side (``p["every_photo"]``)."""
+    are a cover's (``detect.cover``): both estimates are logged side by side (``p["every_photo"]``). ``batch``: the
+    tiles per pass the run will use where that changes the time per tile (a GPU; :func:`probe`)."""
     p = plan(sizes, tile, overlap, model_config)
-    rate = probe(predictor, first_image, tile, model_config)
+    rate = probe(predictor, first_image, tile, model_config, batch)
     seconds = rate * p["input_megapixels"] / max(processes, 1)
     p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(device))
     if every is not None:

@@ -298,6 +298,7 @@ def detect(
     set_score_threshold(model, dcfg.score_threshold)
     model = with_runtime(model, dcfg.runtime, device, torch_threads())
     predictor = device_predictor(model, device, cfg.amp) or model_predictor(model, device, cfg.amp)
+    batch = detect_batch(cfg.batch_size, device, dcfg.tile_size, ck["model_config"])  # CUDA: from free memory
     # before hours of work: the actual tiles and network input of every photo, timed on this device
     plan = estimate(
         predictor,
@@ -309,6 +310,7 @@ def detect(
         device,
         processes=shard.world,
         every=[image_size(f) for f in every] if every is not None and len(every) != len(files) else None,
+        batch=batch if device.type == "cuda" else 1,  # a CPU's time per tile does not depend on the batch
     )
     started = time.perf_counter()
     root = Path(dcfg.images) if Path(dcfg.images).is_dir() else Path(dcfg.images).parent
@@ -318,7 +320,7 @@ def detect(
     tiling = dict(
         tile_size=dcfg.tile_size,
         overlap=dcfg.overlap,
-        batch_size=detect_batch(cfg.batch_size, device, dcfg.tile_size, ck["model_config"]),  # CUDA: free memory
+        batch_size=batch,
         merge_iou=dcfg.merge_iou,
         edge_margin=dcfg.edge_margin,
         merge_containment=dcfg.merge_containment,
