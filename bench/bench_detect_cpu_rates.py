@@ -3,13 +3,14 @@
     taskset -c 1 python bench/bench_detect_cpu_rates.py                 # every measured architecture, 5 rounds
     taskset -c 1 python bench/bench_detect_cpu_rates.py --rounds 3 fasterrcnn_resnet18_fpn_lite
 
-The rates module 7's estimate uses (``cpu_seconds_per_megapixel`` in ``matchplant/detection/architectures.py``) and
-the README's "How long will it take?" rows. One thread, random weights, one 1024 px tile per pass (module 7's
-default tile, resized by each model to its ``min_size``): :func:`matchplant.detection.device.measure_cpu_rates`,
-one pass after a warm-up per measurement. The architectures alternate within each round (their order rotated
-round by round) so that a change in the machine's load reaches all of them alike; the median, the range and the
-load average before and after are printed as JSON. Pin it to one core and leave the other idle: a second busy
-core slowed these passes by up to 2x on this project's machine.
+The rates kept in ``matchplant/detection/architectures.py`` (``cpu_seconds_per_megapixel``: the README's "How
+long will it take?" rows and ``bench_detect_cover.py``'s hours; module 7's own estimate times the real model
+instead). One thread, random weights, one 1024 px tile per pass (module 7's default tile, resized by each model
+to its ``min_size``): :func:`matchplant.detection.device.measure_cpu_rates`, one pass after a warm-up per
+measurement. The architectures alternate within each round (their order rotated round by round) so that a
+change in the machine's load reaches all of them alike; the median, the range and the load average before and
+after are printed as JSON. Pin it to one core and leave the others idle: the rates stated before this bench
+(2.5 to 4x these) were measured while other jobs shared the machine.
 """
 
 from __future__ import annotations

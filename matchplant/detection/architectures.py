@@ -104,9 +104,10 @@ _RESNET_LEVELS = ((32,), (64,), (128,), (256,), (512,))
 _RETINANET_ANCHORS = tuple(_octaves(x) for x in (32, 64, 128, 256, 512))
 _ONE_PER_LEVEL, _OCTAVES = AnchorRule(5, 1), AnchorRule(5, 3)
 
-# cpu_seconds_per_megapixel: one forward pass (detection), measured on this project's 2-core machine
-# (`python -m matchplant.detection.device --measure`, README "How long will it take?") while other jobs
-# shared it: pessimistic; an idle machine is faster. RetinaNet and FCOS were not measured.
+# cpu_seconds_per_megapixel: one forward pass (detection) of a 1024 px tile on one core with one thread, median of 5
+# rounds with the architectures alternating, the other core idle (`taskset -c 1 python bench/bench_detect_cpu_rates.py`,
+# README "How long will it take?"; ranges in the comments). The figures before (15.2, 28.2, 9.2, 2.5) were measured
+# while other jobs shared the machine, with PyTorch's two threads on one pinned core. RetinaNet and FCOS: not measured.
 ARCHITECTURES: dict[str, Architecture] = {
     a.name: a
     for a in (
@@ -118,7 +119,7 @@ ARCHITECTURES: dict[str, Architecture] = {
             two_stage=True,
             anchors=_ONE_PER_LEVEL,
             default_anchors=_RESNET_LEVELS,
-            cpu_seconds_per_megapixel=15.2,
+            cpu_seconds_per_megapixel=3.69,  # 3.45-3.77
         ),
         Architecture(
             "fasterrcnn_resnet50_fpn_v2",
@@ -129,7 +130,7 @@ ARCHITECTURES: dict[str, Architecture] = {
             anchors=_ONE_PER_LEVEL,
             default_anchors=_RESNET_LEVELS,
             frozen_backbone_norms=False,
-            cpu_seconds_per_megapixel=28.2,
+            cpu_seconds_per_megapixel=6.51,  # 6.36-6.56
         ),
         Architecture(
             "fasterrcnn_mobilenet_v3_large_fpn",
@@ -139,7 +140,7 @@ ARCHITECTURES: dict[str, Architecture] = {
             two_stage=True,
             anchors=AnchorRule(3, 3, same_sizes_everywhere=True),
             default_anchors=((32, 64, 128, 256, 512),) * 3,
-            cpu_seconds_per_megapixel=9.2,
+            cpu_seconds_per_megapixel=0.72,  # 0.70-0.75
         ),
         # from random weights on a CPU (matchplant.detection.lite): ResNet-18 to stride 16, a 64-channel FPN
         Architecture(
@@ -150,7 +151,7 @@ ARCHITECTURES: dict[str, Architecture] = {
             two_stage=True,
             anchors=AnchorRule(3, 3),
             default_anchors=LITE_ANCHORS,
-            cpu_seconds_per_megapixel=2.5,  # median of 7 runs, 0.70-4.68 (load 2 to 11 on 2 cores; issue 40)
+            cpu_seconds_per_megapixel=0.60,  # 0.58-0.61
         ),
         Architecture(
             "retinanet_resnet50_fpn",

@@ -194,6 +194,7 @@ if (
     if "--measure" in sys.argv:
         import torch  # lazy: PyTorch is heavy; configs load without it
 
+        configure_threads()  # as module 7 does: PyTorch's default took every core, also under taskset -c 1
         print(f"CPU seconds per megapixel (one detection pass, {torch.get_num_threads()} threads):")
         names = [a for a in sys.argv[sys.argv.index("--measure") + 1 :] if not a.startswith("-")]  # or every one
         for name, value in measure_cpu_rates(names or None).items():
