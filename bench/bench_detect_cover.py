@@ -3,6 +3,7 @@
     python bench/bench_detect_cover.py                 # the demo's field (simfield 'small', seed 0), k = 1, 2, 3
     python bench/bench_detect_cover.py --field DIR     # an existing synthetic field
     python bench/bench_detect_cover.py --survey-only   # only the 1,000-photo 20 MP survey's estimates
+    python bench/bench_detect_cover.py --field demo_output/field --predictions demo_output/7_detect/predictions.json
 
 1. **Multi-view cost, on the demo's field.** The detector is replaced by the field's true boxes (every plant
    visible in every undistorted photo, score 1), so what is measured is the geometry's cost of fewer views, not
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import tempfile
 import time
@@ -64,28 +66,39 @@ def demo_field(given: str | None) -> FieldPaths:
     return FieldPaths(root)
 
 
-def plants_from(project: ODMProject, ds: dict, names: set[str] | None) -> pd.DataFrame:
-    """Module 8's plants from the true boxes of the photos ``names`` (None: every photo)."""
-    images = [im for im in ds["images"] if names is None or im["file_name"] in names]
-    ids = {im["id"] for im in images}
-    preds = {
-        "images": images,
+def true_boxes(f: FieldPaths) -> dict:
+    """The field's true boxes in every undistorted photo as module 7's predictions (score 1)."""
+    ds = read_dataset(f.boxes_undistorted, validate=False)
+    return {
+        "images": ds["images"],
         "categories": ds["categories"],
-        "predictions": [dict(a, score=1.0) for a in ds["annotations"] if a["image_id"] in ids],
+        "predictions": [dict(a, score=1.0) for a in ds["annotations"]],
     }
-    views, _ = project_predictions(project, preds, ProjectionSettings.from_config(PlantProjectionConfig()))
+
+
+def plants_from(project: ODMProject, preds: dict, names: set[str] | None) -> pd.DataFrame:
+    """Module 8's plants (its defaults) from the boxes of the photos ``names`` (None: every photo)."""
+    images = [im for im in preds["images"] if names is None or im["file_name"] in names]
+    ids = {im["id"] for im in images}
+    subset = dict(preds, images=images, predictions=[a for a in preds["predictions"] if a["image_id"] in ids])
+    views, _ = project_predictions(project, subset, ProjectionSettings.from_config(PlantProjectionConfig()))
     return merge_views(views)
 
 
-def multi_view_cost(f: FieldPaths, ks: list[int]) -> None:
-    ds = read_dataset(f.boxes_undistorted, validate=False)
+def multi_view_cost(f: FieldPaths, ks: list[int], predictions: Path | None = None) -> None:
+    """``predictions``: a module 7 ``predictions.json`` on some of the field's undistorted photos (a trained
+    detector's boxes, scores and misses included) in place of the true boxes; the cover is chosen among its
+    photos."""
+    preds = true_boxes(f) if predictions is None else json.loads(Path(predictions).read_text())
     project = ODMProject(f.root)
     truth = pd.read_csv(f.map_boxes)[BOX].to_numpy()
-    files = sorted(f.undistorted_images.glob("*.tif"))
+    names = {im["file_name"] for im in preds["images"]}
+    files = sorted(p for p in f.undistorted_images.glob("*.tif") if p.name in names)
     t0 = time.perf_counter()
-    every = plants_from(project, ds, None)
+    every = plants_from(project, preds, None)
     print(
-        f"field: {f.root} ({len(files)} photos, {len(truth)} true plants; module 8 in {time.perf_counter() - t0:.1f} s)"
+        f"field: {f.root} ({len(files)} photos, {len(truth)} true plants; "
+        f"{'true boxes' if predictions is None else predictions}; module 8 in {time.perf_counter() - t0:.1f} s)"
     )
     ref = evaluate_boxes(truth, every[BOX].to_numpy())
     print(
@@ -98,7 +111,7 @@ def multi_view_cost(f: FieldPaths, ks: list[int]) -> None:
     )
     for k in ks:
         cover = choose(files, k, f.root)
-        plants = plants_from(project, ds, {p.name for p in cover.files})
+        plants = plants_from(project, preds, {p.name for p in cover.files})
         kept = evaluate_boxes(every[BOX].to_numpy(), plants[BOX].to_numpy())
         true = evaluate_boxes(truth, plants[BOX].to_numpy())
         print(
@@ -171,9 +184,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--k", type=int, nargs="+", default=[1, 2, 3], help="cover multiplicities to measure")
     ap.add_argument("--photos", type=int, default=1000, help="photos of the survey-like flight")
     ap.add_argument("--survey-only", action="store_true", help="skip the demo field's module 8 runs")
+    ap.add_argument(
+        "--predictions",
+        type=Path,
+        help="module 7's predictions.json on the field's photos (a trained detector) in place of the true boxes",
+    )
     args = ap.parse_args(argv)
     if not args.survey_only:
-        multi_view_cost(demo_field(args.field), args.k)
+        multi_view_cost(demo_field(args.field), args.k, args.predictions)
     survey_estimate(args.photos, args.k)
 
 
