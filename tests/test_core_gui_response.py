@@ -1,6 +1,7 @@
 """GUIs that answer at once (issue 29): in a real TkAgg window under Xvfb, a keystroke in a text field of a
 window as heavy as module 4's (a 20 MP photo, 3,000 boxes) is drawn within 100 ms, a long action shows its
-busy message within 0.5 s of the click, and a long path stays inside its field."""
+busy message within 0.5 s of the click, and a long path stays inside its field, where a click lands on the
+character under the mouse."""
 
 from __future__ import annotations
 
@@ -70,6 +71,15 @@ screen.boxes["path"].set_val(long)
 screen.fig.canvas.draw(); screen.fig.canvas.flush_events()
 box = screen.boxes["path"]
 ext, axbb = box.text_disp.get_window_extent(), box.ax.bbox
+# a real click of the Tk widget near the field's right end (Tk counts y from the top), as a mouse gives it
+tk, fig_h = screen.fig.canvas.get_tk_widget(), screen.fig.bbox.height
+click_x, click_y = axbb.x0 + 0.9 * axbb.width, axbb.y0 + axbb.height / 2
+for what in ("<ButtonPress-1>", "<ButtonRelease-1>"):
+    tk.event_generate(what, x=int(click_x), y=int(fig_h - click_y), warp=False)
+screen.fig.canvas.flush_events(); tk.update()
+seen["click_x"], seen["cursor_x"] = click_x, float(box.cursor.get_segments()[0][0][0])
+seen["cursor_index"], seen["path_length"] = int(box.cursor_index), len(long)
+box.stop_typing()
 screen.fig.savefig(SHOT)
 seen["click"] = time.perf_counter()
 screen.run()
@@ -99,4 +109,8 @@ def test_keystrokes_busy_indicator_and_long_paths_in_a_real_window(tmp_path):
     assert r["title"] == "MatchPlant - 8 Test step" and not r["toolbar"]  # a form: no pan/zoom toolbar under it
     # the end of a long path (its file name) shows inside the field; the rest is clipped to the field
     assert r["clipped"] and r["text_x1"] <= r["box_x1"] + 1 and r["text_x0"] < r["box_x0"], r
+    # a click into that field lands on the character under the mouse, in the part shown (its end), not in the
+    # hidden middle of the path
+    assert abs(r["cursor_x"] - r["click_x"]) < (r["box_x1"] - r["box_x0"]) / 60, r
+    assert r["cursor_index"] > r["path_length"] - 60, r
     assert shot.is_file()
