@@ -532,3 +532,16 @@ def test_continued_list_drops_foreign_images_and_outside_marks(flight, tmp_path)
     )
     run(cfg_for(root, tmp_path / "out", gcp_list=earlier))
     assert [(m.gcp, m.image) for m in read_gcp_list(tmp_path / "out" / "gcp_list.txt")[2]] == [(gid, image)]
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_help():
+    """``1_gcp_finder/gui.png`` is drawn by docs/gui/folder_windows.py, which records the help line it shows."""
+    import hashlib
+
+    from matchplant.gcp_finder.gui import HELP
+
+    with Image.open(ROOT / "1_gcp_finder" / "gui.png") as im:
+        shown = im.text.get("help_sha1")
+    assert shown == hashlib.sha1(HELP.encode()).hexdigest(), (
+        "1_gcp_finder/gui.png shows an older window: python docs/gui/folder_windows.py <demo output>"
+    )

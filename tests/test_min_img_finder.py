@@ -623,3 +623,19 @@ def test_synthetic_field_selection_and_footprints(tiny_field, tmp_path):
     assert f.exact_coverage(sel.indices) >= min(0.95, reach) - 1e-4
     best = select_milp(f.grid, 0.95, f.cfg.max_overlap / 100, time_limit=30)
     assert len(sel.indices) <= 1.1 * len(best.indices)
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_form():
+    """``3_min_img_finder/gui.png`` (drawn by docs/gui/folder_windows.py) records its fields and methods: the
+    window's parameters and every method the config accepts."""
+    import typing
+
+    from PIL import Image
+
+    from matchplant.min_img_finder.gui import FIELDS
+
+    with Image.open(Path(__file__).resolve().parents[1] / "3_min_img_finder" / "gui.png") as im:
+        shown = json.loads(im.text.get("widgets", "{}"))
+    fix = "3_min_img_finder/gui.png is older than the window: python docs/gui/folder_windows.py <demo output>"
+    assert shown.get("fields") == [label for _, label in FIELDS], fix
+    assert shown.get("methods") == list(typing.get_args(typing.get_type_hints(MinImgFinderConfig)["method"])), fix

@@ -188,3 +188,23 @@ def test_the_map_is_coloured_by_a_height_or_a_mean_not_a_minimum():
     assert colour_column(["ndvi_min", "chm_min", "chm_max", "ndvi_mean"]) == "chm_max"
     assert colour_column(["chm_canopy_p95", "ndvi_canopy_mean"]) == "chm_canopy_p95"
     assert colour_column(["red_min", "red_max"]) == "red_min"  # nothing better: the first
+
+
+def test_the_folders_picture_of_the_window_shows_its_current_form():
+    """``9_spatial_stat_extractor/gui.png`` (drawn by docs/gui/folder_windows.py) records the form it shows and
+    the map's colour bar (the picture once showed ten of the fields and a map without its colour bar)."""
+    import json
+    from pathlib import Path
+
+    from PIL import Image
+
+    from matchplant.spatial_stat_extractor.gui import PICKERS, TEXT_FIELDS
+    from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
+
+    with Image.open(Path(__file__).resolve().parents[1] / "9_spatial_stat_extractor" / "gui.png") as im:
+        shown = json.loads(im.text.get("widgets", "{}"))
+    fix = "9_spatial_stat_extractor/gui.png is older than the window: python docs/gui/folder_windows.py <demo output>"
+    assert shown.get("fields") == [list(f) for f in TEXT_FIELDS], fix
+    assert shown.get("pickers") == sorted(PICKERS), fix
+    assert shown.get("stats") == list(BASIC_STATS) and shown.get("modes") == list(MODES), fix
+    assert shown.get("colour_bar"), "the picture shows the map coloured by a trait after a run, with its colour bar"
