@@ -639,3 +639,20 @@ def test_the_folders_picture_of_the_window_shows_its_current_form():
     fix = "3_min_img_finder/gui.png is older than the window: python docs/gui/folder_windows.py <demo output>"
     assert shown.get("fields") == [label for _, label in FIELDS], fix
     assert shown.get("methods") == list(typing.get_args(typing.get_type_hints(MinImgFinderConfig)["method"])), fix
+
+
+def test_the_status_line_says_when_the_asked_coverage_cannot_be_reached(finder):
+    """Module 3's window once said "overlap cap relaxed to reach the coverage" for a selection that covered 92 %
+    of 95 % asked: every image together covered no more. The line now says so; the reachable share is the union
+    of every footprint (the exact polygon coverage of all images, within the grid's cells)."""
+    from types import SimpleNamespace
+
+    from matchplant.min_img_finder.gui import selection_words
+
+    every = list(range(len(finder.footprints)))
+    assert finder.reachable == pytest.approx(finder.exact_coverage(every), abs=0.02)
+    sel = SimpleNamespace(method="greedy", indices=[1, 2], seconds=0.2, relaxed=True)
+    short = selection_words(sel, 0.92, 95)
+    assert short.endswith("cover only 92.0% (asked 95%) - overlap cap relaxed to reach that"), short
+    sel.relaxed = False
+    assert selection_words(sel, 1.0, 95) == "greedy: 2 images in 0.20 s"

@@ -37,6 +37,18 @@ FIELDS = [
 ]
 
 
+def selection_words(sel, reachable: float, asked_pct: float) -> str:
+    """The status line after a selection: what was chosen, and why the coverage asked for was not reached
+    (every image together covers less) or needed more overlap than the cap."""
+    words = f"{sel.method}: {len(sel.indices)} images in {sel.seconds:.2f} s"
+    short = 100 * reachable < asked_pct - 1e-6
+    if short:
+        words += f" - all images together cover only {100 * reachable:.1f}% (asked {asked_pct:g}%)"
+    if sel.relaxed:
+        words += " - overlap cap relaxed to reach " + ("that" if short else "the coverage")
+    return words
+
+
 class MinImgFinderGUI:
     def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None):
         self.cfg = cfg
@@ -104,10 +116,7 @@ class MinImgFinderGUI:
             self.say(str(exc).replace("\n", " | "), error=True)
             return
         self.show_result(self.finder.evaluate(sel))
-        self.say(
-            f"{sel.method}: {len(sel.indices)} images in {sel.seconds:.2f} s"
-            + (" - overlap cap relaxed to reach the coverage" if sel.relaxed else "")
-        )
+        self.say(selection_words(sel, self.finder.reachable, 100 - self.finder.cfg.uncovered_threshold))
 
     def toggle(self, index: int) -> None:
         """Add or remove one image and re-evaluate (coverage, owned areas)."""

@@ -154,13 +154,18 @@ class MinImageFinder:
         )
 
     @property
+    def reachable(self) -> float:
+        """The share of the area every image together covers: the most any selection can reach."""
+        return reachable_coverage(self.grid)
+
+    @property
     def names(self) -> list[str]:
         return [f.name for f in self.footprints]
 
     def select(self) -> Selection:
         cfg = self.cfg
         target = 1.0 - cfg.uncovered_threshold / 100.0
-        reach = reachable_coverage(self.grid)
+        reach = self.reachable
         if reach < target - 1e-9:
             log.warning("all images together cover only %.1f%% of the area; selecting for that", 100 * reach)
         if cfg.method == "milp":
