@@ -11,6 +11,8 @@ set -euo pipefail
 root=$(git rev-parse --show-toplevel)
 cd "$root"
 kit=${GPU_KIT:-$root/../shared/gpu}
+# the project's environment (`make` builds .venv) reads the benchmark's list of photos; a bare python3 lacks OpenCV
+py=${PYTHON:-$([ -x "$root/.venv/bin/python" ] && echo "$root/.venv/bin/python" || echo python3)}
 exclude=$(git rev-parse --git-path info/exclude)
 mkdir -p "$(dirname "$exclude")"
 grep -qx '/.gpu/' "$exclude" 2>/dev/null || echo '/.gpu/' >> "$exclude"
@@ -29,7 +31,7 @@ if ! ls "$wheel_dir"/deepforest-*.whl >/dev/null 2>&1; then
 fi
 wheel=$(ls "$wheel_dir"/deepforest-*.whl | tail -1)
 mkdir -p .gpu/deepforest
-python3 - "$wheel" .gpu/deepforest <<'PY'
+"$py" - "$wheel" .gpu/deepforest <<'PY'
 import sys, zipfile
 from pathlib import Path
 sys.path.insert(0, ".")
