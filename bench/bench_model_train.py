@@ -9,9 +9,9 @@ Measures, on synthetic plant tiles (matchplant.detection.synth):
 - the validation AP50 the run reaches on its held-out tiles (a learning check; random initial weights,
   since no pretrained weights are downloaded here).
 
-    python bench/bench_model_train.py --quick            # a minute or two on a CPU
-    python bench/bench_model_train.py                    # the stated CPU run (README of 6_model_train)
-    python bench/bench_model_train.py --device cuda --arch fasterrcnn_resnet50_fpn --size 512 --tiles 200
+    python -m bench.bench_model_train --quick            # a minute or two on a CPU
+    python -m bench.bench_model_train                    # the stated CPU run (README of 6_model_train)
+    python -m bench.bench_model_train --device cuda --arch fasterrcnn_resnet50_fpn --size 512 --tiles 200
 
 The alternating, pinned comparisons (the README's rows) are ``python -m bench --only train`` and
 ``--only detect`` (:func:`comparison`; ``--device cuda`` for the GPU figures).
@@ -320,33 +320,10 @@ def main() -> None:
         work / "data", n_images=max(4, args.tiles // 4), size=s, radius=radius, negatives=1, seed=1, name="val.json"
     )
     net = int(round(s * args.scale))  # anchors are in the network's (resized) pixels
-    anchors = [int(net / 8), int(net / 4), int(net / 2)]
-    levels = get_architecture(args.arch).anchors.levels
     settings = [
-        f"train_json={train_json}",
+        *train_settings(work, train_json, args.arch, s, net, args.epochs, args.batch, args.device),
         f"val_json={val_json}",
-        f"output_dir={work / 'run'}",
-        f"model.architecture={args.arch}",
-        "model.pretrained=none",
-        f"model.min_size={net}",
-        f"model.max_size={net}",
-        f"model.anchor_sizes={json.dumps([anchors] * levels)}",
-        "model.roi.batch_size_per_image=128",
-        "model.rpn.pre_nms_top_n_train=500",
-        "model.rpn.post_nms_top_n_train=500",
-        "model.rpn.pre_nms_top_n_test=500",
-        "model.rpn.post_nms_top_n_test=500",
-        f"epochs={args.epochs}",
-        f"batch_size={args.batch}",
-        "num_workers=0",
-        "warmup_iters=20",
         f"step_size={max(args.epochs - 3, 1)}",
-        "lr.backbone=0.02",
-        "lr.fpn=0.02",
-        "lr.rpn=0.02",
-        "lr.roi_heads=0.02",
-        "save_every=0",
-        f"device={args.device}",
     ]
     cfg = load_config(ModelTrainConfig, None, settings)
     t0 = time.perf_counter()

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torchvision.ops import box_iou
 
 from matchplant.core.formats.images import read_rgb8
 from matchplant.detection.checkpoint import load_detector
@@ -33,20 +34,12 @@ from matchplant.model_test.merge import _inside_pairs, merge_nested
 from matchplant.model_test.run import detect_image, model_predictor
 
 
-def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.prod(np.clip(rb - lt, 0, None), axis=2)
-    area = lambda x: np.prod(x[:, 2:] - x[:, :2], axis=1)  # noqa: E731
-    return inter / (area(a)[:, None] + area(b)[None, :] - inter)
-
-
 def matched(truth: np.ndarray, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
     """Per box, whether it is a true positive: one-to-one at IoU >= 0.5, the best-scoring boxes first."""
     hit = np.zeros(len(boxes), bool)
     if not len(truth) or not len(boxes):
         return hit
-    iou = iou_matrix(boxes, truth)
+    iou = box_iou(torch.from_numpy(boxes).float(), torch.from_numpy(truth).float()).numpy()
     free = np.ones(len(truth), bool)
     for i in np.argsort(-scores, kind="stable"):
         j = np.flatnonzero(free & (iou[i] >= 0.5))
