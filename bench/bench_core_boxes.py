@@ -1,9 +1,9 @@
 """Overlapping box pairs (``matchplant.core.geometry.boxes.overlapping_pairs``, module 8's merge) against shapely's
 STRtree.
 
-    NUMBA_NUM_THREADS=1 taskset -c 1 python bench/bench_core_boxes.py           # 21,000 plants x 25 views
-    NUMBA_NUM_THREADS=1 taskset -c 1 python bench/bench_core_boxes.py --quick   # 2,000 plants x 25 views
-    NUMBA_NUM_THREADS=1 taskset -c 1 python bench/bench_core_boxes.py --unordered   # ours without the (i, j) sort
+    NUMBA_NUM_THREADS=1 taskset -c 1 python -m bench.bench_core_boxes           # 21,000 plants x 25 views
+    NUMBA_NUM_THREADS=1 taskset -c 1 python -m bench.bench_core_boxes --quick   # 2,000 plants x 25 views
+    NUMBA_NUM_THREADS=1 taskset -c 1 python -m bench.bench_core_boxes --unordered   # ours without the (i, j) sort
 
 The boxes are shaped like the views of the large synthetic field: plants on a grid 0.3 m apart at UTM
 coordinates, 0.1-0.4 m across, each seen 25 times with a jitter of 3 cm and 10 % in size, in random order

@@ -1,7 +1,7 @@
 """Benchmark module 0 (gps_embed): match N images to a GNSS log and write their GPS EXIF.
 
-    python bench/bench_gps_embeder.py            # 1,000 images of 2000x1500 px
-    python bench/bench_gps_embeder.py --quick    # 200 images
+    python -m bench.bench_gps_embeder            # 1,000 images of 2000x1500 px
+    python -m bench.bench_gps_embeder --quick    # 200 images
 
 Prints images per second for the whole run (read EXIF, estimate the clock offset, match, write the
 copies, report) and the time of the clock-offset estimate alone.

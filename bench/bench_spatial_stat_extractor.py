@@ -5,8 +5,8 @@
 exactextract.
 Checks that the numbers agree, then prints the times and both ratios.
 
-    python bench/bench_spatial_stat_extractor.py            # full size (a few minutes: rasterstats is slow)
-    python bench/bench_spatial_stat_extractor.py --quick    # 2,000 x 2,000 raster, 1,250 boxes
+    python -m bench.bench_spatial_stat_extractor            # full size (a few minutes: rasterstats is slow)
+    python -m bench.bench_spatial_stat_extractor --quick    # 2,000 x 2,000 raster, 1,250 boxes
 
 The alternating, pinned comparison (the README's rows) is ``python -m bench --only zonal-coverage``
 (and ``zonal-center``): see :func:`comparison`; ``--only zonal-coverage-process`` times the same work as whole

@@ -3,6 +3,7 @@ benchmark file is valid Python and every registered comparison exists."""
 
 import ast
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -156,3 +157,18 @@ def test_gpu_rows_print_every_acceptance_figure_even_when_a_row_fails():
     assert lines[0].startswith("PASS  train 800 px") and "0.97" in lines[0]
     assert sum(line.startswith("FAIL") and "not measured" in line for line in lines) == 4
     assert all(acceptance(r, "cpu") == [] for r in rows)  # the CPU rows have no GPU targets
+
+
+def test_every_documented_bench_command_can_run_as_written():
+    """``python bench/x.py`` puts bench/ (not the project) first on the path, so a script that imports ``bench.``
+    fails there with ModuleNotFoundError (four documented commands did): such a script is documented as
+    ``python -m bench.x``. The commands are not run by the suite (minutes each), so this is checked from the text."""
+    docs = [ROOT / "README.md", *ROOT.glob("[0-9]_*/README.md"), *ROOT.glob("docs/**/*.md"), *ROOT.glob("bench/*.py")]
+    named = {m for doc in docs for m in re.findall(r"python bench/(\w+)\.py", doc.read_text())}
+    assert named  # the pattern still finds the commands
+    broken = sorted(
+        name
+        for name in named
+        if re.search(r"^(from bench[. ]|import bench)", (ROOT / "bench" / f"{name}.py").read_text(), re.M)
+    )
+    assert broken == [], f"document these as `python -m bench.<name>`: {broken}"
