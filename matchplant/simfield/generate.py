@@ -63,6 +63,7 @@ log = get_logger("simfield")
 
 
 def generate(cfg: SimFieldConfig) -> FieldPaths:
+    """Write the synthetic field a config describes: rasters, images, reconstruction, GNSS log, GCPs and truth."""
     t0 = time.perf_counter()
     s = resolve(cfg)
     paths = FieldPaths(Path(cfg.output_dir))
@@ -383,6 +384,8 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
 
 @dataclass
 class Scene:
+    """Everything a worker needs to render images: settings, paths, terrain, rasters, plants and ray-casting limits."""
+
     s: Settings
     paths: FieldPaths
     terrain: Terrain
@@ -397,6 +400,8 @@ class Scene:
 
 @dataclass
 class ImageJob:
+    """One exposure to render: raw and undistorted shots, their noise seeds, camera time and GPS fix."""
+
     exposure: Exposure
     ushot: Shot
     noise_raw: np.random.SeedSequence
