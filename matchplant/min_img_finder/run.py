@@ -264,8 +264,21 @@ def skipped_images(project: ODMProject, footprints: Sequence[Footprint]) -> list
 
 
 def run(cfg: MinImgFinderConfig) -> Result:
-    """Step 3 from the command line: load, select, evaluate, write (all or nothing: a failed run leaves
-    ``output_dir`` as it was)."""
+    """Step 3 from the command line: load, select, evaluate, write.
+
+    All or nothing: a failed run leaves ``output_dir`` as it was.
+
+    Parameters
+    ----------
+    cfg : MinImgFinderConfig
+        The step's settings, as loaded from its YAML config (``3_min_img_finder/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    Result
+        The selection evaluated: the selected images, the ground area each owns, the coverage and the uncovered
+        area.
+    """
     finder = MinImageFinder(cfg)
     selection = finder.select()
     if not selection.indices:
