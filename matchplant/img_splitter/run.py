@@ -89,10 +89,12 @@ class ImagePlan:
 
     @property
     def kept_anywhere(self) -> np.ndarray:
+        """Per box: whether at least one tile keeps it."""
         return self.keep.any(axis=0) if self.keep.size else np.zeros(len(self.boxes), bool)
 
     @property
     def positive(self) -> np.ndarray:
+        """Per tile: whether it keeps at least one box."""
         return self.keep.any(axis=1) if self.keep.size else np.zeros(len(self.tiles), bool)
 
 
