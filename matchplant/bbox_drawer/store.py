@@ -567,23 +567,10 @@ class AnnotationStore:
     def export(
         self, coco: bool = True, yolo: bool = False, include_unseen: bool = False, regions: dict[str, Any] | None = None
     ) -> dict[str, Path]:
-        """Write the boxes as COCO annotations.json and/or a YOLO folder in the output folder.
+        """Write the boxes as COCO annotations.json (``coco``) and/or a YOLO folder (``yolo``); the paths by kind.
 
-        Parameters
-        ----------
-        coco : bool
-            Write ``annotations.json``.
-        yolo : bool
-            Also write a YOLO dataset in ``yolo/``.
-        include_unseen : bool
-            Also list photos that were never opened and have no boxes.
-        regions : dict, optional
-            Image name -> polygon in its pixels: the part of each image that was annotated.
-
-        Returns
-        -------
-        dict
-            ``"coco"`` and/or ``"yolo"`` -> the path written.
+        ``include_unseen`` also lists the photos never opened and without boxes; ``regions`` (image name ->
+        polygon in its pixels) records the part of each image that was annotated.
         """
         ds = self.to_coco(include_unseen, regions)
         out: dict[str, Path] = {}
