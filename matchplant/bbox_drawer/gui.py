@@ -421,7 +421,7 @@ class BboxDrawerGUI:
 
     # -- keys
     def on_key(self, event) -> None:
-        """Answer a key press: category, delete, undo/redo, next/previous photo, pan, zoom, help or close."""
+        """Answer a key press: category, delete, undo, redo, next or previous photo, pan, zoom, help, export, quit."""
         k = (event.key or "").lower()
         if k in {str(i) for i in range(1, len(self.store.categories) + 1)}:
             self.category = int(k)

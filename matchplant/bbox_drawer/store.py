@@ -191,7 +191,7 @@ class AnnotationStore:
     # -- queries
     @property
     def categories(self) -> list[str]:
-        """Category names; category id i is name i - 1."""
+        """Category names in id order: category id i is ``categories[i - 1]``."""
         return list(self.state["categories"])
 
     @property

@@ -185,7 +185,7 @@ class Budget:
         return (self.costs.validation if self.validated else 0.0) + self.costs.checkpoint
 
     def iteration_s(self) -> float:
-        """Seconds per training iteration: the mean of the last 20 steps timed (not the first), else the estimate."""
+        """Seconds per training iteration: mean of the last 20 steps timed (the first left out), else the estimate."""
         recent = self.step_times[1:][-20:] or self.step_times or [self.costs.iteration]
         return float(np.mean(recent))
 
