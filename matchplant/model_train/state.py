@@ -45,6 +45,7 @@ class Job:
 
     @property
     def ck_dir(self) -> Path:
+        """Folder of the run's checkpoints (``<output_dir>/checkpoints``)."""
         return self.out / "checkpoints"
 
 
