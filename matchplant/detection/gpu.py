@@ -44,10 +44,13 @@ class Runtime:
     """
 
     device: Any  # the torch.device
-    autocast: str  # torch.autocast's device_type
+    kind: str  # "cpu", "cuda", "mps": torch.autocast's device_type, and messages (never tested by the parts)
     amp: bool  # mixed precision on (CUDA with ``amp: true``)
     amp_dtype: Any  # its dtype (bf16 where supported, else fp16), None in fp32
-    on_cpu: bool  # torch's CPU threads follow the free cores; estimates suggest a GPU
+    on_cpu: bool  # torch's CPU threads follow the free cores; the CPU recipes and advice (module 6); estimates
+    asynchronous: bool  # the device runs behind the host: synchronised before a clock is read; its peak memory
+    own_rng: bool  # the device has its own random generator, saved and restored with the host's (module 6)
+    ddp_device_ids: tuple | None  # DistributedDataParallel's device_ids (this process's GPU)
     pin_memory: bool  # host memory pinned for copies to the device (photos, loader batches)
     tiles_on_device: bool  # module 7: a photo sent once, its tiles cut on the device
     decode_ahead: int  # module 7: photos decoded ahead by threads (0: one after another)
@@ -56,7 +59,7 @@ class Runtime:
     loader_workers: bool  # module 6: loader workers raised to the free cores, persistent, prefetching
     fused: bool  # module 6: the optimizer's step fused into one kernel
     losses_on_device: bool  # module 6: losses summed on the device, read every few steps
-    options: GpuOptions  # channels_last and torch.compile (module 6), as switched
+    options: GpuOptions  # the GPU switches as set (MATCHPLANT_GPU) on CUDA; all off elsewhere
 
 
 def choose_runtime(device, amp: bool = False) -> Runtime:
@@ -75,8 +78,9 @@ def choose_runtime(device, amp: bool = False) -> Runtime:
     Runtime
         The record every part of the run reads.
     """
-    cuda = getattr(device, "type", "cpu") == "cuda"
-    opts = GpuOptions.from_env()
+    kind = str(getattr(device, "type", "cpu"))
+    cuda = kind == "cuda"
+    opts = GpuOptions.from_env() if cuda else GpuOptions(bf16=False, fused=False, channels_last=False, compile=False)
     dtype = None
     if cuda and amp:
         import torch  # lazy: PyTorch is heavy; configs load without it
@@ -84,17 +88,20 @@ def choose_runtime(device, amp: bool = False) -> Runtime:
         dtype = torch.bfloat16 if opts.bf16 and torch.cuda.is_bf16_supported() else torch.float16
     return Runtime(
         device=device,
-        autocast=getattr(device, "type", "cpu"),
+        kind=kind,
         amp=cuda and amp,
         amp_dtype=dtype,
-        on_cpu=getattr(device, "type", "cpu") == "cpu",
+        on_cpu=kind == "cpu",
+        asynchronous=cuda,
+        own_rng=cuda,
+        ddp_device_ids=(getattr(device, "index", None),) if cuda else None,
         pin_memory=cuda,
         tiles_on_device=cuda,
         decode_ahead=AHEAD if cuda else 0,
         photos_in_flight=IN_FLIGHT if cuda else 0,
         batch_from_memory=cuda,
         loader_workers=cuda,
-        fused=cuda and opts.fused,
+        fused=opts.fused,
         losses_on_device=cuda,
         options=opts,
     )

@@ -69,10 +69,9 @@ def evaluate(cfg: ModelTestConfig, runtime: Runtime, out: Path, *, ck: dict, ds:
     results = predict_dataset(
         model,
         ds,
-        runtime.device,
+        runtime,
         batch_size=cfg.batch_size,
         num_workers=cfg.num_workers,
-        amp=runtime.amp,
         desc="evaluating",
     )
     if not results:

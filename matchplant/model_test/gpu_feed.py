@@ -177,7 +177,7 @@ class DevicePredictor:
         batch = [self._tensor(t).float().div_(255.0) for t in tiles]
         with (
             torch.inference_mode(),
-            torch.autocast(device_type=self.runtime.autocast, enabled=self.amp, dtype=self.dtype),
+            torch.autocast(device_type=self.runtime.kind, enabled=self.amp, dtype=self.dtype),
         ):
             outputs = self.model(batch)
         return [

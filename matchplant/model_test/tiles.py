@@ -43,7 +43,7 @@ def model_predictor(model, device, amp: bool = False) -> Predictor:
 
     def predict(tiles: list[np.ndarray]):
         batch = [torch.from_numpy(t).to(runtime.device).permute(2, 0, 1).float().div_(255.0) for t in tiles]
-        with torch.inference_mode(), torch.autocast(device_type=runtime.autocast, enabled=runtime.amp):
+        with torch.inference_mode(), torch.autocast(device_type=runtime.kind, enabled=runtime.amp):
             outputs = model(batch)
         return [
             (o["boxes"].float().cpu().numpy(), o["scores"].float().cpu().numpy(), o["labels"].cpu().numpy())
