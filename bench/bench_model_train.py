@@ -39,7 +39,7 @@ from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo, make_tiles
-from matchplant.model_test.run import detect_image, model_predictor, tile_starts
+from matchplant.model_test.tiles import detect_image, model_predictor, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.gpu import amp_dtype
 from matchplant.model_train.run import train

@@ -31,7 +31,7 @@ from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.model import set_score_threshold
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.merge import _inside_pairs, merge_nested
-from matchplant.model_test.run import detect_image, model_predictor
+from matchplant.model_test.tiles import detect_image, model_predictor
 
 
 def matched(truth: np.ndarray, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:

@@ -247,9 +247,9 @@ def test_source_files_are_small(path):
     assert n <= MAX_LINES, f"{path.name} has {n} lines; split it along its concerns (at most {MAX_LINES})"
 
 
-# the training engine (issue 37): set up, plan, loop, finish over small parts; the next change to the loop (the GPU)
-# works on parts, not on one long function
-SHORT_FUNCTION_PACKAGES = {"model_train": 60}
+# the training engine (issue 37) and the detection engine (issue 44): named parts over small functions; the next
+# change to a loop works on parts, not on one long function
+SHORT_FUNCTION_PACKAGES = {"model_test": 60, "model_train": 60}
 
 
 def long_functions(folder: Path, limit: int) -> list[str]:
@@ -276,6 +276,39 @@ def test_the_function_length_check_sees_a_long_function(tmp_path):
     (tmp_path / "short.py").write_text("def short():\n    return 1\n")
     found = long_functions(tmp_path, 60)
     assert len(found) == 1 and "long (71 lines)" in found[0]
+
+
+# the device decided once (issue 44): modules 6 and 7 read the run's Runtime (matchplant/detection/gpu.py,
+# choose_runtime) instead of testing the device's kind again
+DEVICE_KINDS = {"cpu", "cuda", "mps"}
+
+
+def device_kind_tests(folder: Path) -> list[str]:
+    """Functions that compare a ``.type`` with a device kind, or hand ``x.type`` to ``device_type=``."""
+    found = []
+    for path in sorted(folder.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Compare):
+                parts = [node.left, *node.comparators]
+                kind = any(isinstance(x, ast.Constant) and x.value in DEVICE_KINDS for x in parts)
+                if kind and any(isinstance(x, ast.Attribute) and x.attr == "type" for x in parts):
+                    found.append(f"{path.relative_to(folder.parent)}:{node.lineno}")
+            elif isinstance(node, ast.keyword) and node.arg == "device_type":
+                if isinstance(node.value, ast.Attribute) and node.value.attr == "type":
+                    found.append(f"{path.relative_to(folder.parent)}:{node.lineno}")
+    return found
+
+
+@pytest.mark.parametrize("word", sorted(SHORT_FUNCTION_PACKAGES))
+def test_the_engines_read_the_device_from_the_runtime(word):
+    found = device_kind_tests(PACKAGE / word)
+    assert not found, "the device's kind tested again (read the run's Runtime):\n" + "\n".join(found)
+
+
+def test_the_device_kind_check_sees_a_test(tmp_path):
+    (tmp_path / "a.py").write_text('def f(device):\n    return device.type == "cuda"\n')
+    (tmp_path / "b.py").write_text("def g(rt):\n    return rt.on_cpu\n")
+    assert device_kind_tests(tmp_path) == [f"{tmp_path.name}/a.py:2"]
 
 
 def test_the_checker_sees_cycles_and_inner_imports(tmp_path):

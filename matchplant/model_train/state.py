@@ -39,6 +39,7 @@ class Job:
     scaler: Any = None
     amp: bool = False
     amp_dtype: Any = None  # the autocast dtype on CUDA (model_train/gpu.py), None in fp32
+    runtime: Any = None  # the run's device, precision and feed, chosen once (detection/gpu.py's Runtime)
     extras: dict = field(default_factory=dict)
     on_epoch_end: Callable[[int, dict], Any] | None = None
     on_iteration: Callable[[int], Any] | None = None
