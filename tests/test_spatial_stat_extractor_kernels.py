@@ -20,7 +20,7 @@ from matchplant.spatial_stat_extractor.canopy.grouping import (
     values_at,
 )
 from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
-from matchplant.spatial_stat_extractor.zonal.runs import LARGE_GROUP, quantiles
+from matchplant.spatial_stat_extractor.zonal import LARGE_GROUP, quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])

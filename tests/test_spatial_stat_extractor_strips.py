@@ -15,16 +15,20 @@ import shapely
 from affine import Affine
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError
-from matchplant.spatial_stat_extractor.canopy import strips
-from matchplant.spatial_stat_extractor.canopy.memory import memory_stage, parse_memory
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats
+from matchplant.spatial_stat_extractor.canopy import (
+    SegmentSettings,
+    canopy_stats,
+    memory_stage,
+    parse_memory,
+    segment,
+    strips,
+)
 from matchplant.spatial_stat_extractor.config import (
     Layer,
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.inputs import open_layer
 from matchplant.spatial_stat_extractor.run import run
 
 RES = 0.01

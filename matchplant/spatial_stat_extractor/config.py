@@ -13,12 +13,10 @@ from typing import Literal
 from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MAX_MEMORY, parse_memory
-from matchplant.spatial_stat_extractor.inputs.bands import check_order
-from matchplant.spatial_stat_extractor.inputs.indices import RGB_INDICES
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES
+from matchplant.spatial_stat_extractor.canopy import DEFAULT_MAX_MEMORY, parse_memory
+from matchplant.spatial_stat_extractor.inputs import RGB_INDICES, Layer, check_order
+from matchplant.spatial_stat_extractor.plots import PlotsConfig
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
 
 
 @dataclass

@@ -23,11 +23,10 @@ from matchplant.core.runtime.gui import figure, fit_to_axes, is_headless, requir
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.inputs.rasters import preview_layer
-from matchplant.spatial_stat_extractor.plots.figure import describe, unit_of
+from matchplant.spatial_stat_extractor.inputs import preview_layer, read_polygons
+from matchplant.spatial_stat_extractor.plots import describe, unit_of
 from matchplant.spatial_stat_extractor.run import extract_and_write
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
 
 log = get_logger("spatial_stat_extractor")
 

@@ -32,21 +32,23 @@ import shapely
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.canopy.dates import measure_offset, templates
-from matchplant.spatial_stat_extractor.canopy.ground import (
+from matchplant.spatial_stat_extractor.canopy import (
+    DEFAULT_MEMORY,
     GroundSample,
+    Measure,
+    Outlines,
+    SegmentSettings,
     Thresholds,
     check_chm,
     measure_ground,
+    measure_offset,
+    outline_field,
+    templates,
     thresholds,
 )
-from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MEMORY
-from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
-from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
-from matchplant.spatial_stat_extractor.inputs.elevation import chm_keys
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal.table import polygons_in
+from matchplant.spatial_stat_extractor.inputs import chm_keys, open_layer
+from matchplant.spatial_stat_extractor.zonal import polygons_in
 
 log = get_logger("spatial_stat_extractor")
 

@@ -50,7 +50,7 @@ from matchplant.spatial_stat_extractor.canopy.grouping import (
 from matchplant.spatial_stat_extractor.canopy.maxima import box_tops, local_maxima
 from matchplant.spatial_stat_extractor.canopy.peaks import one_plant_boxes
 from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
-from matchplant.spatial_stat_extractor.zonal.runs import ranges
+from matchplant.spatial_stat_extractor.zonal import ranges
 
 FLOOD_LEVELS = 24  # heights at which touching canopies are flooded apart (see _flood)
 STRIP_ROWS = 1024  # raster rows per strip read at once (plus padding for the boxes crossing its edges)

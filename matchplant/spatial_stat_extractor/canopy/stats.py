@@ -16,8 +16,7 @@ import numpy as np
 
 from matchplant.spatial_stat_extractor.canopy.grouping import pixel_window, sort_within_groups, values_at
 from matchplant.spatial_stat_extractor.canopy.outlines import STRIP_ROWS, Outlines
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
-from matchplant.spatial_stat_extractor.zonal.names import percentile_name
+from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
 
 
 def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarray:

@@ -42,9 +42,8 @@ from matchplant.spatial_stat_extractor.canopy.outlines import (
     segment,
 )
 from matchplant.spatial_stat_extractor.canopy.stats import gather, grouped_stats
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.inputs import Layer, open_layer
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 log = get_logger("spatial_stat_extractor.strips")
 

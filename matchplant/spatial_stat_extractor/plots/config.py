@@ -8,7 +8,7 @@ from pathlib import Path
 
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS
 
 
 @dataclass

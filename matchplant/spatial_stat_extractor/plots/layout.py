@@ -17,7 +17,7 @@ from pyproj import CRS, Transformer
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs import read_polygons
 from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.plots.rows import bearing_to_vector, canonical
 

@@ -30,7 +30,7 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import atomic_open
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.inputs import open_layer
 from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
 from matchplant.spatial_stat_extractor.zonal.names import DEFAULT_STATS
 
