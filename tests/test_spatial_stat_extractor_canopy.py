@@ -27,8 +27,8 @@ from matchplant.spatial_stat_extractor.canopy import (
     segment,
     thresholds,
 )
+from matchplant.spatial_stat_extractor.canopy.collect import valid_polygons  # the role's own polygon repair
 from matchplant.spatial_stat_extractor.canopy.ground import robust_sd  # the role's own robust statistics
-from matchplant.spatial_stat_extractor.canopy.outlines import valid_polygons  # the role's own polygon repair
 from matchplant.spatial_stat_extractor.config import (
     CanopyConfig,
     RasterSet,

@@ -18,7 +18,8 @@ from matchplant.spatial_stat_extractor.canopy.memory import (
     memory_stage,
     parse_memory,
 )
-from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings, segment
+from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
+from matchplant.spatial_stat_extractor.canopy.segmentation import segment
 from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats, grouped_stats
 from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 

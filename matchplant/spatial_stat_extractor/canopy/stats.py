@@ -14,8 +14,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from matchplant.spatial_stat_extractor.canopy.grid import STRIP_ROWS
 from matchplant.spatial_stat_extractor.canopy.grouping import pixel_window, sort_within_groups, values_at
-from matchplant.spatial_stat_extractor.canopy.outlines import STRIP_ROWS, Outlines
+from matchplant.spatial_stat_extractor.canopy.outlines import Outlines
 from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
 
 
