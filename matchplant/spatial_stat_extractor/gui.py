@@ -186,6 +186,7 @@ class SpatialStatExtractorGUI:
     # settings
 
     def set_status(self, text: str, error: bool = False) -> None:
+        """Show ``text`` in the status line (red for an error)."""
         self.status.set_text(text)
         self.status.set_color(ERROR_COLOR if error else "black")
         self.fig.canvas.draw_idle()
@@ -307,6 +308,7 @@ class SpatialStatExtractorGUI:
 
     @property
     def busy(self) -> bool:
+        """Whether a run is in progress."""
         return self.thread is not None and self.thread.is_alive()
 
     def run(self) -> bool:
@@ -387,6 +389,7 @@ class SpatialStatExtractorGUI:
         self.poll()
 
     def save_config(self) -> Path | None:
+        """Write the settings shown to the config file (else ``stat_extractor.yaml`` in the output); None: not saved."""
         if not self.sync():
             return None
         path = self.config_path or Path(self.cfg.output_dir) / "stat_extractor.yaml"

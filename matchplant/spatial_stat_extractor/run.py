@@ -136,6 +136,18 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
 
 
 def run(cfg: SpatialStatExtractorConfig) -> dict:
+    """Run module 9: per-plant statistics (and outlines, plots) into ``cfg.output_dir``, all files or none.
+
+    Parameters
+    ----------
+    cfg : SpatialStatExtractorConfig
+        The settings (``matchplant spatial_stat_extractor --help`` lists every key).
+
+    Returns
+    -------
+    dict
+        The report: the files written (by name) and what was measured.
+    """
     # all files or none: written in a temporary folder, moved into output_dir at the end
     before = previous_files(cfg.output_dir)
     with staged_outputs(cfg.output_dir) as stage:

@@ -190,6 +190,7 @@ def date_offset(earlier, chm, cfg: CanopyConfig, rs: RasterSet, entry: dict) -> 
 
 
 def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[str, np.ndarray]:
+    """The outline columns of the plant table: canopy size, top, tight box, flag (and shift from ``previous``)."""
     cols = {
         "canopy_pixels": o.pixels,
         "canopy_area_m2": o.area,

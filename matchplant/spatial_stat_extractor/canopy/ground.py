@@ -84,9 +84,11 @@ class GroundSample:
 
     @property
     def measured(self) -> bool:
+        """Whether enough ground was found to measure its noise."""
         return bool(np.isfinite(self.sd))
 
     def report(self) -> dict:
+        """The sample for the JSON report: pixels and windows used, and the noise's percentiles and SD."""
         r = {"ground_pixels": self.pixels, "windows": self.windows, "guarded": self.guarded}
         if self.measured:
             r.update(p50=round(self.p50, 4), p95=round(self.p95, 4), p99=round(self.p99, 4), sd=round(self.sd, 4))
@@ -113,6 +115,8 @@ class GroundSample:
 
 @dataclass
 class Thresholds:
+    """The canopy thresholds in effect (m) and where each came from (set, or auto from the ground's noise)."""
+
     min_height: float
     min_top: float
     unclaimed_min_top: float

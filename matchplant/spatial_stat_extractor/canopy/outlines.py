@@ -91,9 +91,11 @@ class Outlines:
 
     @property
     def from_box(self) -> np.ndarray:
+        """Where each plant kept its box (flagged) instead of a canopy outline."""
         return self.flag != ""
 
     def same_grid(self, source) -> bool:
+        """Whether the raster ``source`` lies on the CHM's grid (its canopy pixels can be read directly)."""
         return (source.width, source.height) == (self.width, self.height) and source.transform.almost_equals(
             self.transform
         )

@@ -108,7 +108,25 @@ def grouped_stats(
 
 
 def canopy_stats(outlines: Outlines, source, stats: Sequence[str], percentiles: Sequence[float] = ()):
-    """Per-plant statistics of ``source`` over the canopy pixels (see the module doc)."""
+    """Per-plant statistics of ``source`` over the canopy pixels (see the module doc).
+
+    Parameters
+    ----------
+    outlines : Outlines
+        From :func:`~.segmentation.segment` (with its canopy pixels).
+    source : raster source
+        On the CHM's grid its canopy pixels are read directly; on another grid, the pixels whose centre lies in
+        each outline polygon.
+    stats : sequence of str
+        Any of the engine's statistics (``mean``, ``max``, ``median``...).
+    percentiles : sequence of float
+        0..100, each a column ``p<q>``.
+
+    Returns
+    -------
+    dict
+        Column name to an array over the plants.
+    """
     if outlines.same_grid(source):
         return grouped_stats(gather(outlines, source), outlines.start, stats, percentiles)
     res = zonal_stats(outlines.geometry, source, stats, percentiles, mode="center")

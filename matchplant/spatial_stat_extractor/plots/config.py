@@ -74,6 +74,7 @@ class PlotsConfig:
     figure_trait: str = param("", "trait colouring the field figure (plot mean); '' = the first of traits")
 
     def check(self) -> None:
+        """Check the ``plots`` section's keys together (a plot file or a grid, a field book with plots)."""
         if self.field_book is not None and self.polygons is None and not self.corners:
             raise ConfigError(
                 "plots.field_book is set but there are no plots to join it to",

@@ -294,6 +294,7 @@ def check_plants_in_plots(plots: gpd.GeoDataFrame, pts: np.ndarray, plot_i: np.n
 
 
 def plants_outside(pts: np.ndarray, plant_i: np.ndarray) -> int:
+    """How many plants stand in no plot (logged)."""
     outside = len(pts) - len(np.unique(plant_i))
     if outside:
         log.info("%d of %d plants stand in no plot", outside, len(pts))

@@ -75,6 +75,7 @@ __all__ = ["default_traits", "plot_grid", "plot_table", "plots_wanted", "read_pl
 
 
 def plots_wanted(cfg: PlotsConfig) -> bool:
+    """Whether the settings ask for plots (a plot file or a grid's corners)."""
     return cfg.polygons is not None or bool(cfg.corners)
 
 

@@ -184,6 +184,7 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
 
 
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
+    """Write ``df`` to ``path`` whole or not at all (the project's CSV format); the path."""
     with atomic_open(path) as fh:
         write_table(df, fh)
     return Path(path)
