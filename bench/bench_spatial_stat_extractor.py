@@ -35,8 +35,8 @@ from affine import Affine
 
 from bench.process import matchplant_command, run_process
 from matchplant.core.formats.vectors import write_vector
-from matchplant.spatial_stat_extractor.inputs.sources import RasterFileSource
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.inputs import RasterFileSource
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]
 PERCENTILES = [95]

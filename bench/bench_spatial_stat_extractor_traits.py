@@ -41,12 +41,15 @@ from matchplant.plant_projection.merge import merge_views  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 from matchplant.simfield.scoring import growth_scores, outline_ious, plot_scores, trait_scores  # noqa: E402
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment  # noqa: E402
-from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats  # noqa: E402
+from matchplant.spatial_stat_extractor.canopy import (  # noqa: E402
+    SegmentSettings,
+    canopy_stats,  # noqa: E402
+    segment,
+)
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig  # noqa: E402
-from matchplant.spatial_stat_extractor.inputs.sources import RasterFileSource  # noqa: E402
+from matchplant.spatial_stat_extractor.inputs import RasterFileSource  # noqa: E402
 from matchplant.spatial_stat_extractor.run import extract_and_write  # noqa: E402
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats  # noqa: E402
+from matchplant.spatial_stat_extractor.zonal import zonal_stats  # noqa: E402
 
 
 def field(preset: str, given: str | None) -> FieldPaths:
