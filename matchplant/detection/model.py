@@ -1,8 +1,9 @@
 """The detector of modules 6 and 7: building it from settings, freezing parts, checkpoints.
 
-Six torchvision architectures, one target format (COCO boxes, labels 1..N) and one checkpoint format:
-the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrcnn_resnet50_fpn_v2`` and
-``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU), and the one-stage ``retinanet_resnet50_fpn``,
+Seven architectures, one target format (COCO boxes, labels 1..N) and one checkpoint format: the two-stage
+Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrcnn_resnet50_fpn_v2``,
+``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU) and ``fasterrcnn_resnet18_fpn_lite`` (MatchPlant's light
+detector for random weights on a CPU, :mod:`matchplant.detection.lite`), and the one-stage ``retinanet_resnet50_fpn``,
 ``retinanet_resnet50_fpn_v2`` and ``fcos_resnet50_fpn`` (anchor-free). Every setting of
 :class:`ModelConfig` is passed to the model (anchors, RPN and ROI sampling and thresholds, image size,
 detections per image); the RPN and ROI sampling settings concern Faster R-CNN only, ``roi.nms_thresh``

@@ -1,9 +1,11 @@
-"""Module 6: train a Faster R-CNN plant detector on COCO tiles (module 5's splits).
+"""Module 6: train a plant detector (any architecture of :mod:`matchplant.detection.architectures`) on COCO tiles
+(module 5's splits).
 
-``train(cfg)`` runs the whole job: the paper's optimisation (SGD, a learning rate per part, momentum
-0.9, weight decay 5e-4, x0.1 every 10 epochs, linear warm-up), augmentation that moves the boxes, the
-device chosen automatically, mixed precision on CUDA, several GPUs under ``torchrun``. Each epoch it
-logs the losses, scores the validation split with COCOeval (AP, AP50) and writes into ``output_dir``:
+``train(cfg)`` runs the whole job: by default the paper's optimisation (SGD, a learning rate per part, momentum
+0.9, weight decay 5e-4, x0.1 every 10 epochs, linear warm-up; ``optimizer`` and ``schedule`` choose others, and
+from random weights on a CPU ``auto`` sets its own recipe: :mod:`~matchplant.model_train.choose`), augmentation
+that moves the boxes, the device chosen automatically, mixed precision on CUDA, several GPUs under ``torchrun``.
+Each epoch it logs the losses, scores the validation split with COCOeval (AP, AP50) and writes into ``output_dir``:
 
 - ``checkpoints/last.pt`` (every epoch; ``--resume`` continues from it), ``best.pt`` (best validation
   metric) and ``epoch_NNN.pt`` every ``save_every`` epochs: self-contained (docs/DESIGN.md §2);
