@@ -57,6 +57,7 @@ def larger_kept(boxes: np.ndarray, labels: np.ndarray, containment: float) -> np
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Parse the options, detect on the photos and score no merge, score-aware and keep-the-larger against the truth."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--dataset", type=Path, required=True, help="COCO json of the photos and their true boxes")

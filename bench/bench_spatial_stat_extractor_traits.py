@@ -50,6 +50,7 @@ from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats  # noqa: 
 
 
 def field(preset: str, given: str | None) -> FieldPaths:
+    """The given field, else the preset's field with vigour and a second date (generated once in the temp folder)."""
     if given:
         return FieldPaths(Path(given))
     root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / f"{preset}_traits_seed0"
@@ -77,6 +78,7 @@ def projected_plants(f: FieldPaths, out: Path) -> Path:
 
 
 def accuracy(f: FieldPaths, out: Path) -> dict:
+    """Run module 9 on the projected plants and score its traits, outlines, plots and growth against the truth."""
     plants = projected_plants(f, out)
     grid = json.loads(f.plots_json.read_text())
     sets = [
@@ -177,6 +179,7 @@ def speed(quick: bool, folder: Path) -> dict:
 
 
 def main() -> None:
+    """Parse the options, score module 9's traits and time canopy against box statistics."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the tiny field (and a small speed test)")
     ap.add_argument("--field", help="an existing field generated with vigour and second_date")

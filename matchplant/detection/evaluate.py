@@ -229,6 +229,7 @@ def draw_boxes(
 
 
 def write_image(path: Path, rgb: np.ndarray) -> Path:
+    """Write an RGB image atomically, its format from the suffix (PNG by default); the path."""
     ok, buf = cv2.imencode(Path(path).suffix or ".png", rgb[:, :, ::-1])
     if not ok:
         raise RuntimeError(f"could not encode {path}")
@@ -238,6 +239,8 @@ def write_image(path: Path, rgb: np.ndarray) -> Path:
 
 
 def summarise_stats(stats: dict[str, Any]) -> str:
+    """AP, AP50 and AP75 of COCOeval's stats as percentages on one line for the log ("n/a" when missing)."""
+
     def fmt(v):
         return "n/a" if v is None else f"{100 * v:.1f}%"
 

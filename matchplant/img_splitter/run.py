@@ -89,10 +89,12 @@ class ImagePlan:
 
     @property
     def kept_anywhere(self) -> np.ndarray:
+        """Per box: whether at least one tile keeps it."""
         return self.keep.any(axis=0) if self.keep.size else np.zeros(len(self.boxes), bool)
 
     @property
     def positive(self) -> np.ndarray:
+        """Per tile: whether it keeps at least one box."""
         return self.keep.any(axis=1) if self.keep.size else np.zeros(len(self.tiles), bool)
 
 
@@ -395,7 +397,18 @@ def run(cfg: ImgSplitterConfig) -> dict:
     """Tile, split and write everything; returns the summary (also written to summary.json).
 
     Everything is checked before a pixel is written, and the outputs are written into a staging folder moved
-    into ``output_dir`` only at the end: a failed run leaves ``output_dir`` as it was (apart from its log)."""
+    into ``output_dir`` only at the end: a failed run leaves ``output_dir`` as it was (apart from its log).
+
+    Parameters
+    ----------
+    cfg : ImgSplitterConfig
+        The step's settings, as loaded from its YAML config (``5_img_splitter/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    dict
+        The summary: tiles and boxes per split, boxes kept and left out.
+    """
     check_outputs(cfg)
     drops = DropLog()
     sources, categories, missing = load_sources(cfg, drops)

@@ -123,6 +123,7 @@ def budget_recipe(cfg, device, budget: Budget | None) -> bool:
 
 
 def where(device) -> str:
+    """The device in words for messages: "on a CPU", or e.g. "on CUDA within max_minutes"."""
     return "on a CPU" if device.type == "cpu" else f"on {device.type.upper()} within max_minutes"
 
 

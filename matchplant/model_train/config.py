@@ -139,6 +139,7 @@ class ModelTrainConfig:
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
 
     def check(self) -> None:
+        """Lower ``num_workers`` to the free cores, reject an unknown ``device`` and check the crop settings."""
         cores, source = usable_cores()
         if self.num_workers > cores - 1:  # more loaders than free cores only compete (PyTorch: "might freeze")
             log.info("num_workers %d -> %d: %d usable core(s) (%s)", self.num_workers, cores - 1, cores, source)

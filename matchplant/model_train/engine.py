@@ -91,6 +91,7 @@ class LossTally:
         return self.flush() if self.count >= READ_EVERY else False
 
     def flush(self) -> bool:
+        """Read the losses summed on the device into the sums, checking the loss; True (the sums are up to date)."""
         if self.pending is not None:
             values = self.pending.tolist()  # the one host-device sync of READ_EVERY steps
             check_loss(values[-1], self.desc)
@@ -386,4 +387,5 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
 
 
 def clock_words(seconds: float) -> str:
+    """A duration for the log: minutes with one decimal from a minute up, whole seconds below."""
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"

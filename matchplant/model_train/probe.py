@@ -33,6 +33,8 @@ HEARTBEAT_S = 10.0
 
 @dataclass
 class Probe:
+    """One detector's speed measured on this device: an iteration, loading a batch, inference, peak memory."""
+
     first_s: float  # the first iteration (allocation, warm-up)
     iteration_s: float  # a steady iteration (median of the later ones; the first when it was alone)
     iterations: int  # timed
@@ -43,6 +45,7 @@ class Probe:
     input_px: tuple[int, int]  # the network input of the probe batch (after the model's resize)
 
     def as_dict(self) -> dict:
+        """The measurements for training_summary.json, floats rounded to 4 decimals."""
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
@@ -224,6 +227,7 @@ def advice(total_s: float, budget: Budget, device, architecture: str, fits_iters
 
 
 def log_estimate(lines: list[str], hint: str | None) -> None:
+    """Log the time estimate's lines, and the advice to train faster as a warning."""
     for line in lines:
         log.info(line)
     if hint:

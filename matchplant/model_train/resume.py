@@ -136,6 +136,7 @@ def random_state(device) -> dict:
 
 
 def set_random_state(state: dict, device) -> None:
+    """Restore the random states of torch, numpy and Python (and CUDA's) saved in a checkpoint."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     torch.set_rng_state(state["torch"])

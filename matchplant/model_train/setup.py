@@ -83,6 +83,7 @@ def init_distributed(cfg: ModelTrainConfig):
 
 
 def seed_everything(seed: int) -> None:
+    """Seed Python's, numpy's and torch's random generators with ``seed``."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     random.seed(seed)
@@ -241,6 +242,7 @@ def build_model(cfg: ModelTrainConfig, train_ds, resume: dict | None, device, di
 
 
 def build_loader(cfg: ModelTrainConfig, train_ds, sampler, device):
+    """The training DataLoader: batches from ``sampler``, seeded by ``cfg.seed``, with workers suited to the device."""
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
 

@@ -53,7 +53,7 @@ class Job:
 
     @property
     def ck_dir(self) -> Path:
-        """The run's checkpoint folder."""
+        """Folder of the run's checkpoints (``<output_dir>/checkpoints``)."""
         return self.out / "checkpoints"
 
 

@@ -72,6 +72,7 @@ class InitConfig:
     force: bool = param(False, "replace an existing pipeline file")
 
     def check(self) -> None:
+        """Refuse to overwrite an existing pipeline file without ``force``, and an output that is not .yaml."""
         if self.output is not None and Path(self.output).exists() and not self.force:
             raise ConfigError(
                 "the pipeline file exists already (it may hold your edits)",

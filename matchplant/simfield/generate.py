@@ -63,7 +63,7 @@ log = get_logger("simfield")
 
 
 def generate(cfg: SimFieldConfig) -> FieldPaths:
-    """Write the synthetic field of ``cfg`` (docs/DESIGN.md §4) and return its paths.
+    """Write the synthetic field a config describes: rasters, images, reconstruction, GNSS log, GCPs and truth.
 
     The one function of the library over 100 lines (tests/test_layers.py names it). The plan for it: cut it along
     its five sections into parts over one record of the field (settings, frame, terrain, GCPs, plants, grid,
@@ -393,6 +393,8 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
 
 @dataclass
 class Scene:
+    """Everything a worker needs to render images: settings, paths, terrain, rasters, plants and ray-casting limits."""
+
     s: Settings
     paths: FieldPaths
     terrain: Terrain
@@ -407,6 +409,8 @@ class Scene:
 
 @dataclass
 class ImageJob:
+    """One exposure to render: raw and undistorted shots, their noise seeds, camera time and GPS fix."""
+
     exposure: Exposure
     ushot: Shot
     noise_raw: np.random.SeedSequence

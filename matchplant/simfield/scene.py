@@ -40,6 +40,7 @@ class Terrain:
 
     @classmethod
     def random(cls, s: Settings, rng: np.random.Generator) -> Terrain:
+        """A random gentle slope with long waves, for a preset's slope and undulation."""
         az = rng.uniform(0, 2 * np.pi)
         grad = s.slope_pct / 100.0 * np.array([np.cos(az), np.sin(az)])
         n = 3
@@ -50,6 +51,7 @@ class Terrain:
         return cls(z0=GROUND_ALTITUDE, grad=grad, k=k, amp=amp, phase=rng.uniform(0, 2 * np.pi, n))
 
     def height(self, x, y) -> np.ndarray:
+        """Terrain height at map points."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         z = self.z0 + self.grad[0] * x + self.grad[1] * y
@@ -93,9 +95,11 @@ class Plants:
 
     @property
     def ids(self) -> np.ndarray:
+        """Plant ids, 1 to N."""
         return np.arange(1, len(self) + 1)
 
     def subset(self, keep: np.ndarray) -> Plants:
+        """The plants where ``keep`` is true."""
         return Plants(**{k: None if v is None else v[keep] for k, v in self.__dict__.items()})
 
     def outline_radius(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -186,6 +190,7 @@ def row_shift(s: Settings, row_x: np.ndarray) -> np.ndarray:
 
 
 def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: np.ndarray) -> Plants:
+    """Plants along the crop rows, with gaps, sized to stay in their half of the inter-row and clear of the GCPs."""
     row_x, slots = row_layout(s)
     shift = row_shift(s, row_x)
     n_in_row = len(slots)
@@ -283,6 +288,7 @@ class Grid:
 
     @classmethod
     def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, res: float) -> Grid:
+        """The grid of ``res`` cells, aligned to multiples of ``res``, that covers a box."""
         x0 = np.floor(xmin / res) * res
         y1 = np.ceil(ymax / res) * res
         return cls(
@@ -294,6 +300,7 @@ class Grid:
         )
 
     def centres(self, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Map x and y of the cell centres of the given rows (the whole grid by default)."""
         j = np.arange(self.height)[rows]
         xs = self.x0 + (np.arange(self.width) + 0.5) * self.res
         ys = self.y1 - (j + 0.5) * self.res
@@ -308,6 +315,8 @@ class Grid:
 
 @dataclass
 class Rasters:
+    """The field's rasters on one grid: canopy height, labels, albedo, red and NIR reflectance."""
+
     grid: Grid
     canopy: np.ndarray  # float32 height above the terrain
     label: np.ndarray  # int32: plant id, 0 soil, WEED, GCP_TARGET
