@@ -299,17 +299,8 @@ def _source(cfg: ImgSplitterConfig, im: dict, name: str, path: Path, anns: list[
                 "module 4 recorded only part of this image as annotated",
             )
         b, cats = b[inside], cats[inside]
-    return Source(
-        name,
-        path,
-        w,
-        h,
-        b,
-        cats,
-        region,
-        boxes_outside=outside,
-        ids=[a.get("id") for a, k in zip(anns, inside if region is not None else [True] * len(anns)) if k],
-    )
+    ids = [a.get("id") for a, k in zip(anns, inside if region is not None else [True] * len(anns)) if k]
+    return Source(name, path, w, h, b, cats, region, boxes_outside=outside, ids=ids)
 
 
 def check_tile_size(cfg: ImgSplitterConfig, sources: list[Source]) -> None:
