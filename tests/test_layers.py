@@ -423,15 +423,20 @@ def test_source_files_are_small(path):
 SHORT_FUNCTION_PACKAGES = {"model_test": 60, "model_train": 60}
 
 
-def long_functions(folder: Path, limit: int) -> list[str]:
+def long_functions_in(path: Path, limit: int, base: Path) -> list[str]:
+    """``file:line name (n lines)`` for every function of one file over ``limit`` lines (file relative to ``base``)."""
     found = []
-    for path in sorted(folder.rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                n = node.end_lineno - node.lineno + 1
-                if n > limit:
-                    found.append(f"{path.relative_to(folder.parent)}:{node.lineno} {node.name} ({n} lines)")
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            n = node.end_lineno - node.lineno + 1
+            if n > limit:
+                found.append(f"{path.relative_to(base).as_posix()}:{node.lineno} {node.name} ({n} lines)")
     return found
+
+
+def long_functions(folder: Path, limit: int) -> list[str]:
+    """:func:`long_functions_in` over every file under ``folder``."""
+    return [f for path in sorted(folder.rglob("*.py")) for f in long_functions_in(path, limit, folder.parent)]
 
 
 @pytest.mark.parametrize("word", sorted(SHORT_FUNCTION_PACKAGES))
@@ -439,6 +444,41 @@ def test_training_functions_are_short(word):
     limit = SHORT_FUNCTION_PACKAGES[word]
     found = long_functions(PACKAGE / word, limit)
     assert not found, f"functions over {limit} lines (split them into named parts):\n" + "\n".join(found)
+
+
+# the whole library: no function over 100 lines (issue 44), but these, each with its reason. The test-field
+# generator's is the one kept by design, its plan in its docstring (simfield/generate.py); the others are being
+# rewritten in parallel (issue 44: module 7's engine, module 9's faces and canopy) and leave the list with it.
+LIBRARY_LIMIT = 100
+LONG_FUNCTION_EXCEPTIONS = {
+    "simfield/generate.py generate": "the test-field generator: split along its sections (see its docstring)",
+    "model_test/run.py detect": "module 7's engine, rewritten into parts (issue 44)",
+    "spatial_stat_extractor/canopy/ground.py measure_ground": "module 9's canopy split (issue 44)",
+    "spatial_stat_extractor/canopy/outlines.py segment": "module 9's canopy split (issue 44)",
+    "spatial_stat_extractor/traits.py canopy_traits": "module 9's faces and canopy split (issue 44)",
+}
+
+
+def function_key(found: str) -> str:
+    """``folder/file.py name`` of a :func:`long_functions` line (the line number left out: it moves)."""
+    where, name = found.split(" ")[:2]
+    return f"{where.split(':')[0].split('/', 1)[1]} {name}"  # the path inside the package
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_library_functions_are_short(path):
+    found = [
+        f
+        for f in long_functions_in(path, LIBRARY_LIMIT, PACKAGE.parent)
+        if function_key(f) not in LONG_FUNCTION_EXCEPTIONS
+    ]
+    assert not found, f"functions over {LIBRARY_LIMIT} lines (split them into named parts):\n" + "\n".join(found)
+
+
+def test_every_long_function_exception_is_still_long():
+    found = {function_key(f) for f in long_functions(PACKAGE, LIBRARY_LIMIT)}
+    stale = sorted(set(LONG_FUNCTION_EXCEPTIONS) - found)
+    assert not stale, f"now at most {LIBRARY_LIMIT} lines: remove them from LONG_FUNCTION_EXCEPTIONS: {stale}"
 
 
 def test_the_function_length_check_sees_a_long_function(tmp_path):

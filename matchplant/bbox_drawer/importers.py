@@ -181,6 +181,16 @@ def read_cvat_boxes(path: str | Path) -> ImportedBoxes:
     return _imported(*read_cvat_xml(path))
 
 
+def _check_mask_size(mask, path: Path, name: str, size: tuple[int, int]) -> None:
+    """A mask of another size than its photo (``size``: width, height) is an error."""
+    if (mask.shape[1], mask.shape[0]) != tuple(size):
+        raise InputError(
+            f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is {size[0]}x{size[1]} px",
+            path=path,
+            fix="give masks of the same size as the photos (not resized)",
+        )
+
+
 def read_mask_boxes(
     masks_dir: str | Path,
     images: list[str],
@@ -232,13 +242,8 @@ def read_mask_boxes(
     below: dict[str, float] = {}  # masks whose every value lies under mask_threshold: file -> top value
     for name, path in found.items():
         mask = read_mask(path)
-        if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
-            raise InputError(
-                f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
-                f"{sizes[name][0]}x{sizes[name][1]} px",
-                path=path,
-                fix="give masks of the same size as the photos (not resized)",
-            )
+        if sizes and name in sizes:
+            _check_mask_size(mask, path, name, sizes[name])
         objects = mask_objects(mask, min_area, category, mode, threshold)
         log.debug(
             "%s: read as %s (%s): %d object(s), %d under mask_min_area",

@@ -202,33 +202,8 @@ def _frozen_bn_structure(arch: Architecture, pretrained: str) -> bool:
     return pretrained != "none" and arch.frozen_backbone_norms
 
 
-def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
-    """A detector with ``num_classes`` outputs (background included) built from ``cfg``.
-
-    ``load_weights=False`` builds the same structure without downloading anything (the weights then
-    come from a checkpoint).
-
-    Parameters
-    ----------
-    cfg : ModelConfig
-        The model settings, with ``architecture``, ``pretrained`` and ``anchor_sizes`` resolved (not "auto").
-    num_classes : int
-        Categories + 1 (background).
-    load_weights : bool
-        Load the ``pretrained`` weights (COCO or ImageNet, downloaded when not in the torch cache).
-
-    Returns
-    -------
-    torch.nn.Module
-        The torchvision detector (or MatchPlant's lite one) with the settings of ``cfg``, every backbone stage
-        trainable (:func:`apply_freezing` freezes parts).
-    """
-    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
-    from torchvision.models import detection as d
-    from torchvision.models.detection.anchor_utils import AnchorGenerator
-    from torchvision.models.detection.faster_rcnn import FastRCNNPredictor
-    from torchvision.models.detection.rpn import RPNHead
-
+def _check_resolved(cfg: ModelConfig, num_classes: int, load_weights: bool) -> None:
+    """Refuse to build from settings that module 6 resolves first (``auto``), or for a dataset without categories."""
     if num_classes < 2:
         raise InputError("the dataset has no categories", fix="give a COCO dataset with at least one category")
     if cfg.anchor_sizes == "auto":
@@ -246,9 +221,12 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             "model.pretrained is 'auto', which module 6 resolves before it builds a model",
             fix="set model.pretrained to one of " + ", ".join(p for p in PRETRAINED if p != AUTO),
         )
-    arch = get_architecture(cfg.architecture)
-    weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
-    kwargs = (
+
+
+def _builder_kwargs(cfg: ModelConfig, arch: Architecture) -> dict:
+    """The torchvision builder's keywords from ``cfg``: input size and box settings; the RPN's and the box head's
+    for a two-stage detector."""
+    return (
         dict(
             min_size=cfg.min_size,
             max_size=cfg.max_size,
@@ -277,6 +255,39 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             box_positive_fraction=cfg.roi.positive_fraction,
         )
     )
+
+
+def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
+    """A detector with ``num_classes`` outputs (background included) built from ``cfg``.
+
+    ``load_weights=False`` builds the same structure without downloading anything (the weights then
+    come from a checkpoint).
+
+    Parameters
+    ----------
+    cfg : ModelConfig
+        The model settings, with ``architecture``, ``pretrained`` and ``anchor_sizes`` resolved (not "auto").
+    num_classes : int
+        Categories + 1 (background).
+    load_weights : bool
+        Load the ``pretrained`` weights (COCO or ImageNet, downloaded when not in the torch cache).
+
+    Returns
+    -------
+    torch.nn.Module
+        The torchvision detector (or MatchPlant's lite one) with the settings of ``cfg``, every backbone stage
+        trainable (:func:`apply_freezing` freezes parts).
+    """
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
+    from torchvision.models import detection as d
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.faster_rcnn import FastRCNNPredictor
+    from torchvision.models.detection.rpn import RPNHead
+
+    _check_resolved(cfg, num_classes, load_weights)
+    arch = get_architecture(cfg.architecture)
+    weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
+    kwargs = _builder_kwargs(cfg, arch)
     builder = getattr(lite, arch.builder, None) or getattr(d, arch.builder)
     # all stages trainable here; train.apply_freezing decides (the same on every rebuild)
     trainable = arch.backbone.stage_count

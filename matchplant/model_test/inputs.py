@@ -11,7 +11,7 @@ from matchplant.core.formats.images import list_images as list_image_files
 from matchplant.core.formats.odm import SUBMODELS_DIR, ODMProject
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.detection.data import check_image_files, image_size
+from matchplant.detection.dataset_checks import check_image_files, image_size
 from matchplant.detection.device import DEVICE_CHOICES
 from matchplant.detection.foreign import read_any_checkpoint
 

@@ -31,7 +31,7 @@ class LearningRates:
 
 @dataclass
 class ModelTrainConfig:
-    """Module 6: train a Faster R-CNN detector on COCO tiles (train and validation splits from module 5)."""
+    """Module 6: train a plant detector (Faster R-CNN, RetinaNet or FCOS) on module 5's train and val tiles (COCO)."""
 
     train_json: Path = param(None, "COCO JSON of the training tiles (module 5)", path="file", required=True)
     train_images: Path | None = param(None, "folder of the training tiles; null = the JSON's folder", path="dir")

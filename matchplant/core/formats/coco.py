@@ -88,17 +88,22 @@ def read_dataset(path: str | Path, *, validate: bool = True) -> dict:
                 fix="give a COCO dataset (images, annotations, categories are lists of objects)",
             )
     if validate:
-        problems = validate_dataset(data)
-        if problems:
-            shown = "\n".join(f"  - {p}" for p in problems[:10])
-            more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
-            raise InputError(
-                f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}",
-                path=path,
-                fix="correct them, or import the file with module 4 (import_coco), which leaves out "
-                "and lists the boxes it cannot use, and use module 4's annotations.json",
-            )
+        raise_problems(
+            data,
+            path,
+            "correct them, or import the file with module 4 (import_coco), which leaves out "
+            "and lists the boxes it cannot use, and use module 4's annotations.json",
+        )
     return data
+
+
+def raise_problems(data: dict, path: Path, fix: str) -> None:
+    """An InputError listing the first ten problems :func:`validate_dataset` finds (and how many more), if any."""
+    problems = validate_dataset(data)
+    if problems:
+        shown = "\n".join(f"  - {p}" for p in problems[:10])
+        more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
+        raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=path, fix=fix)
 
 
 def write_dataset(path: str | Path, data: dict) -> Path:
