@@ -447,15 +447,10 @@ def test_training_functions_are_short(word):
 
 
 # the whole library: no function over 100 lines (issue 44), but these, each with its reason. The test-field
-# generator's is the one kept by design, its plan in its docstring (simfield/generate.py); the others are being
-# rewritten in parallel (issue 44: module 7's engine, module 9's faces and canopy) and leave the list with it.
+# generator's is the one kept by design, its plan in its docstring (simfield/generate.py).
 LIBRARY_LIMIT = 100
 LONG_FUNCTION_EXCEPTIONS = {
     "simfield/generate.py generate": "the test-field generator: split along its sections (see its docstring)",
-    "model_test/run.py detect": "module 7's engine, rewritten into parts (issue 44)",
-    "spatial_stat_extractor/canopy/ground.py measure_ground": "module 9's canopy split (issue 44)",
-    "spatial_stat_extractor/canopy/outlines.py segment": "module 9's canopy split (issue 44)",
-    "spatial_stat_extractor/traits.py canopy_traits": "module 9's faces and canopy split (issue 44)",
 }
 
 
