@@ -140,6 +140,9 @@ class MarkStore:
 
     def warn_few(self) -> list[str]:
         """Warn about GCPs marked in fewer images than ODM needs; their ids."""
+        unmarked = [gid for gid in self.finder.gcps if self.count(gid) == 0]
+        if unmarked:
+            log.warning("GCPs marked in no image, so in none of the written files: %s", ", ".join(unmarked))
         few = [gid for gid in self.finder.gcps if 0 < self.count(gid) < MIN_IMAGES_PER_GCP]
         if few:
             log.warning(

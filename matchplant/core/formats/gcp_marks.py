@@ -79,9 +79,9 @@ def metashape_camera_id(image: str, ids: dict[str, str], path: Path | str | None
     cid = ids.get(image, ids.get(Path(image).stem))
     if cid is None:
         raise InputError(
-            f"the photo {image} is marked but is not a camera of the Metashape chunk",
+            f"the photo {image} is not a camera of the Metashape chunk, so its marks cannot be written for it",
             path=path,
-            fix="add the photo to the chunk and export its cameras again, or delete its marks",
+            fix="add the photo to the chunk and export its cameras again, or take it out of the images folder",
         )
     return cid
 
@@ -121,6 +121,9 @@ def write_marks(
         The files written.
     """
     folder = Path(folder)
+    if "metashape" in formats and metashape_cameras is not None:
+        for m in marks:  # every photo checked before any file is written
+            metashape_camera_id(m.image, metashape_cameras, cameras_path)
     out = []
     if "odm" in formats:
         out.append(write_gcp_list(folder / "gcp_list.txt", header, marks))
