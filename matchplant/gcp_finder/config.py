@@ -25,7 +25,9 @@ class GcpFinderConfig:
         required=True,
     )
     output_dir: Path = param(
-        Path("runs/gcp_finder"), "output folder: gcp_list.txt, candidates.csv, candidates.png", path="out"
+        Path("runs/gcp_finder"),
+        "output folder: gcp_list.txt (and the files of formats), candidates.csv, candidates.png",
+        path="out",
     )
     output_crs: str | None = param(
         None, "CRS of gcp_list.txt; empty = the survey's CRS when projected, else the GCPs' UTM zone"
