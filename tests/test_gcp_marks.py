@@ -141,6 +141,12 @@ def test_names_the_formats_cannot_hold_are_refused(mark, names):
     assert names in str(e.value) and "fix" in str(e.value).lower()
 
 
+def test_commas_are_refused_only_where_a_comma_separates():
+    check_names([Mark(0, 0, 0, 1, 1, "a,b.JPG", "G,1")], formats=["odm"])  # gcp_list.txt is whitespace-separated
+    with pytest.raises(InputError, match="comma"):
+        check_names([Mark(0, 0, 0, 1, 1, "a.JPG", "G,1")], formats=["odm", "pix4d"])
+
+
 def test_a_photo_not_in_the_metashape_chunk_is_refused(tmp_path):
     ids = {"DJI_0003": "7"}
     with pytest.raises(InputError, match=r"DJI_0007\.JPG is not a camera of the Metashape chunk") as e:

@@ -186,7 +186,7 @@ def set_formats(store: MarkStore, cfg: GcpFinderConfig) -> None:
         for c in lst
     ]
     markable += store.to_marks()
-    check_names(markable, cfg.survey, cfg.images)
+    check_names(markable, cfg.survey, cfg.images, store.formats)
     if "metashape" in store.formats and cfg.metashape_cameras:
         store.cameras_path = Path(cfg.metashape_cameras)
         store.camera_ids = read_metashape_cameras(store.cameras_path)

@@ -27,20 +27,26 @@ from matchplant.core.runtime.io import atomic_open
 
 FORMATS = ("odm", "metashape", "pix4d")
 PIXEL_SHIFT = 0.5  # Pix4D's and Metashape's pixel = ours + 0.5 (their origin is the image's corner)
-FORBIDDEN = ' \t\r\n,"'  # breaks gcp_list.txt (whitespace-split) or the comma-separated files
+WHITESPACE, CSV_BREAKERS = " \t\r\n", ',"'  # gcp_list.txt is split on whitespace; the others on commas
 
 
-def check_names(marks: list[Mark], survey: Path | str | None = None, images: Path | str | None = None) -> None:
-    """Refuse labels and photo names that the formats cannot hold (empty, whitespace, commas, quotes)."""
+def check_names(
+    marks: list[Mark],
+    survey: Path | str | None = None,
+    images: Path | str | None = None,
+    formats: list[str] | tuple[str, ...] = FORMATS,
+) -> None:
+    """Refuse labels and photo names that ``formats`` cannot hold (empty, whitespace; commas and quotes but for ODM)."""
+    forbidden = WHITESPACE + (CSV_BREAKERS if set(formats) - {"odm"} else "")
     for m in marks:
-        if not m.gcp or any(c in FORBIDDEN for c in m.gcp):
+        if not m.gcp or any(c in forbidden for c in m.gcp):
             raise InputError(
                 f"the GCP label {m.gcp!r} (marked in {m.image}) is empty or holds a space, comma or quote, "
                 "which gcp_list.txt and the Pix4D and Metashape files cannot hold",
                 path=survey,
                 fix="give the GCP a one-word label in the survey, e.g. GCP01",
             )
-        if any(c in FORBIDDEN for c in m.image):
+        if any(c in forbidden for c in m.image):
             raise InputError(
                 f"the photo name {m.image!r} holds a space, comma or quote, which the GCP files cannot hold",
                 path=images,
@@ -106,8 +112,8 @@ def write_marks(
     crs : pyproj.CRS
         The CRS of the marks' coordinates (x easting, y northing).
     marks : list of Mark
-        Each GCP's pixel in one original photo (centre of the top-left pixel = 0, 0), labels checked with
-        :func:`check_names`.
+        Each GCP's pixel in one original photo (centre of the top-left pixel = 0, 0); names the formats
+        cannot hold are refused (:func:`check_names`) before anything is written.
     formats : list of str
         Any of ``odm``, ``metashape``, ``pix4d``.
     metashape_cameras : dict, optional
@@ -121,6 +127,7 @@ def write_marks(
         The files written.
     """
     folder = Path(folder)
+    check_names(marks, formats=formats)
     if "metashape" in formats and metashape_cameras is not None:
         for m in marks:  # every photo checked before any file is written
             metashape_camera_id(m.image, metashape_cameras, cameras_path)
