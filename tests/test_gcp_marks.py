@@ -14,6 +14,7 @@ from pathlib import Path
 from xml.etree import ElementTree
 
 import pytest
+from gui_events import click, key
 from pyproj import CRS
 from test_gcp_finder import GCPS, GROUND, cfg_for, flight  # noqa: F401  (flight: the module's synthetic flight)
 
@@ -21,6 +22,9 @@ from matchplant.cli import run_module
 from matchplant.core.formats.gcp_list import Mark, read_gcp_list
 from matchplant.core.formats.gcp_marks import check_names, read_metashape_cameras, write_marks
 from matchplant.core.runtime.errors import InputError
+from matchplant.gcp_finder.candidates import find_candidates
+from matchplant.gcp_finder.gui import GcpFinderGUI
+from matchplant.gcp_finder.marks import store_for
 from matchplant.gcp_finder.run import run
 
 REAL = Path(__file__).parent / "data" / "metashape-markers-easyidp"
@@ -224,3 +228,25 @@ def test_a_gcp_with_no_mark_is_left_out_of_every_file(tmp_path):
     assert [r[0] for r in plain_rows(tmp_path / "metashape_reference.csv")] == ["G2"]
     assert list(parse_metashape_markers(tmp_path / "metashape_markers.xml")) == ["G2"]
     assert {m.gcp for m in read_gcp_list(tmp_path / "gcp_list.txt")[2]} == {"G2"}
+
+
+@pytest.mark.gui
+def test_gui_saves_every_format_after_each_change(flight, tmp_path):  # noqa: F811
+    root, truth = flight
+    cfg = cfg_for(
+        root, tmp_path, formats=["pix4d", "metashape"], metashape_cameras=flight_cameras(root, tmp_path / "c.xml")
+    )
+    finder = find_candidates(cfg)
+    gui = GcpFinderGUI(finder, store_for(cfg, finder, autosave=True), zoom_px=cfg.zoom_px, headless=True)
+    gcp, image = gui.gcp, gui.candidate.image
+    u, v = truth[(gcp, image)]
+    key(gui.fig, "f")  # whole image
+    click(gui.fig, gui.ax, u, v)
+    (row,) = plain_rows(tmp_path / "pix4d_marks.csv")  # saved at once, no explicit save
+    assert row[:2] == [image, gcp] and [float(x) for x in row[2:]] == pytest.approx([u + 0.5, v + 0.5], abs=2e-3)
+    cid = read_metashape_cameras(tmp_path / "c.xml")[Path(image).stem]
+    assert parse_metashape_markers(tmp_path / "metashape_markers.xml")[gcp][cid] == pytest.approx(
+        (u + 0.5, v + 0.5), abs=2e-3
+    )
+    key(gui.fig, "d")
+    assert plain_rows(tmp_path / "pix4d_marks.csv") == []
