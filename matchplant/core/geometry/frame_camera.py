@@ -1,0 +1,106 @@
+"""The frame camera of Agisoft Metashape and Pix4D: Brown's model with k4, affinity and skew (docs/DESIGN.md §3).
+
+In our normalised units (docs/DESIGN.md §3) a camera-frame point ``(X, Y, Z)`` goes to
+
+    x = X / Z,  y = Y / Z,  r² = x² + y²
+    x' = x (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) + 2 p1 x y + p2 (r² + 2 x²)
+    y' = y (1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸) + p1 (r² + 2 y²) + 2 p2 x y
+    x_n = focal_x x' + skew y' + c_x,   y_n = focal_y y' + c_y
+
+which is :class:`~matchplant.core.geometry.camera.PinholeCamera` (OpenCV's order of p1 and p2) plus ``k4`` and
+``skew``. The readers convert each program's parameters to these exactly (Metashape's P1 is our p2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from matchplant.core.geometry.camera import _NEWTON_ITERATIONS, PinholeCamera
+from matchplant.core.runtime.errors import GeometryError
+
+
+@dataclass(frozen=True)
+class FrameCamera(PinholeCamera):
+    """A pinhole camera with radial k1..k4, tangential p1/p2 (OpenCV order) and skew, all normalised."""
+
+    k4: float = 0.0
+    skew: float = 0.0
+
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The radial factor and its derivative with respect to r²."""
+        k1, k2, k3, k4 = self.k1, self.k2, self.k3, self.k4
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+        d_radial = k1 + r2 * (2.0 * k2 + r2 * (3.0 * k3 + r2 * 4.0 * k4))
+        return radial, d_radial
+
+    def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r2 = x * x + y * y
+        radial, _ = self._radial(r2)
+        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        return xd, yd
+
+    def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Invert :meth:`_distort` with Newton's method on the 2x2 Jacobian."""
+        if not any((self.k1, self.k2, self.k3, self.k4, self.p1, self.p2)):
+            return xd, yd
+        x, y = xd.copy(), yd.copy()
+        p1, p2 = self.p1, self.p2
+        for _ in range(_NEWTON_ITERATIONS):
+            r2 = x * x + y * y
+            radial, d_radial = self._radial(r2)
+            fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+            fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+            j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
+            j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
+            j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
+            det = j11 * j22 - j12 * j12
+            dx = (j22 * fx - j12 * fy) / det
+            dy = (j11 * fy - j12 * fx) / det
+            x = x - dx
+            y = y - dy
+            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < 1e-15:
+                break
+        return x, y
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) to pixels (N, 2); points at or behind the camera give NaN."""
+        p = np.asarray(points_cam, dtype=float)
+        z = p[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.where(z > 0, p[..., 0] / z, np.nan)
+            y = np.where(z > 0, p[..., 1] / z, np.nan)
+        xd, yd = self._distort(x, y)
+        n = np.stack([self.focal_x * xd + self.skew * yd + self.c_x, self.focal_y * yd + self.c_y], axis=-1)
+        return self.normalized_to_pixel(n)
+
+    def bearings(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
+        n = self.pixel_to_normalized(uv)
+        yd = (n[..., 1] - self.c_y) / self.focal_y
+        xd = (n[..., 0] - self.c_x - self.skew * yd) / self.focal_x
+        x, y = self._undistort(xd, yd)
+        inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+        b = np.empty(x.shape + (3,))
+        b[..., 0], b[..., 1], b[..., 2] = x * inv, y * inv, inv
+        return b
+
+    def undistorted_project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points to pixels of the same camera without distortion (a pure pinhole: K·X/Z)."""
+        p = np.asarray(points_cam, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.where(p[..., 2] > 0, p[..., 0] / p[..., 2], np.nan)
+            y = np.where(p[..., 2] > 0, p[..., 1] / p[..., 2], np.nan)
+        n = np.stack([self.focal_x * x + self.skew * y + self.c_x, self.focal_y * y + self.c_y], axis=-1)
+        return self.normalized_to_pixel(n)
+
+    def to_opensfm(self) -> dict:
+        """OpenSfM's ``brown`` camera, which has no k4 or skew: refused when either is used."""
+        if self.k4 or self.skew:
+            raise GeometryError(
+                f"camera '{self.id}' uses k4 or skew, which an OpenSfM reconstruction cannot hold",
+                fix="keep this camera in its Metashape or Pix4D project; it is read from there",
+            )
+        return super().to_opensfm()  # projection_type "brown": every parameter OpenSfM has
