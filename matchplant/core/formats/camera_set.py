@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from matchplant.core.geometry.camera import Camera
 from matchplant.core.geometry.frames import Frame
@@ -77,6 +78,16 @@ def file_name(path_or_label: str) -> str:
     """The last part of a path written on any platform (``C:\\a\\b.JPG`` and ``a/b.JPG`` give ``b.JPG``)."""
     name = PureWindowsPath(path_or_label).name if "\\" in path_or_label else PurePosixPath(path_or_label).name
     return name or path_or_label
+
+
+def make_shots(ids: list[str], cameras: list[Camera], R: np.ndarray, centres: np.ndarray) -> list[Shot]:
+    """Shots from world->camera rotations (N, 3, 3) and camera centres (N, 3), converted in one call."""
+    if not ids:
+        return []
+    R = np.asarray(R, dtype=float)
+    rotvecs = Rotation.from_matrix(R).as_rotvec()
+    t = -np.einsum("nij,nj->ni", R, np.asarray(centres, dtype=float))
+    return [Shot(id=i, camera=c, rotation=rv, translation=tt) for i, c, rv, tt in zip(ids, cameras, rotvecs, t)]
 
 
 def check_rotation(R: np.ndarray, *, tol: float = 1e-6) -> bool:

@@ -22,11 +22,10 @@ from xml.etree import ElementTree
 
 import numpy as np
 
-from matchplant.core.formats.camera_set import CameraSet, Marker, Photo, check_rotation, file_name
+from matchplant.core.formats.camera_set import CameraSet, Marker, Photo, check_rotation, file_name, make_shots
 from matchplant.core.geometry.frame_camera import FrameCamera
-from matchplant.core.geometry.frames import _proj, parse_crs
+from matchplant.core.geometry.frames import _proj, parse_crs, utm_crs_for
 from matchplant.core.geometry.geodetic import DatumTopocentricFrame, geocentric_to_geodetic
-from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 
@@ -222,6 +221,10 @@ def _map_crs(crs, lon: float, lat: float):
     """The map CRS: the chunk's when projected, else the UTM zone of (lon, lat) on the chunk's datum."""
     if crs.is_projected or (crs.is_compound and crs.sub_crs_list[0].is_projected):
         return crs
+    if crs.ellipsoid is not None and crs.ellipsoid.name == "WGS 84" and not crs.is_compound:
+        utm = utm_crs_for(lon, lat)
+        log.info("the chunk's CRS %s is geographic: the map is %s", crs.name, utm.name)
+        return utm
     pyproj = _proj()  # pyproj on first use (docs: frames._proj); its submodules with it
     from pyproj.aoi import AreaOfInterest
     from pyproj.database import query_utm_crs_info
@@ -306,11 +309,11 @@ def _read_chunk(element, frame_doc, path: Path, files: list[Path]) -> CameraSet:
     lon, lat, _ = geocentric_to_geodetic(c_geo.mean(axis=0), crs)[0]
     frame = DatumTopocentricFrame(lat, lon, 0.0, crs.geodetic_crs or crs, _map_crs(crs, lon, lat))
     centres = frame.from_geocentric(c_geo)
+    cams = [sensors[sensor_of[r[0]]] for r in rows]
+    shots = make_shots([r[1] for r in rows], cams, np.transpose(frame.Q @ R_geo, (0, 2, 1)), centres)
     photos = {}
-    for (cid, label, _, _), Rg, c in zip(rows, R_geo, centres):
-        camera = sensors[sensor_of[cid]]
+    for (cid, label, _, _), camera, shot in zip(rows, cams, shots):
         name = file_name(paths.get(cid) or label)
-        shot = Shot.from_center(label, camera, (frame.Q @ Rg).T, c)
         photos[label] = Photo(label=label, name=name, sensor=camera.id, camera=camera, shot=shot, path=paths.get(cid))
     for cid, label in unposed:
         camera = sensors[sensor_of[cid]]

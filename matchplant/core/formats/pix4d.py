@@ -15,14 +15,14 @@ in it as a Cartesian frame.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from matchplant.core.formats.camera_set import CameraSet, Photo, check_rotation
+from matchplant.core.formats.camera_set import CameraSet, Photo, check_rotation, make_shots
 from matchplant.core.geometry.frame_camera import FrameCamera
 from matchplant.core.geometry.frames import OffsetFrame, parse_crs
-from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import read_text
@@ -124,6 +124,7 @@ def _photos(ccp: Path) -> dict[str, Photo]:
         raise InputError(f"{ccp.name} has a photo block that is not 26 numbers", path=ccp, fix=EXPORT) from None
     photos: dict[str, Photo] = {}
     cameras: dict[tuple, FrameCamera] = {}
+    rows = []
     for head, v in zip(heads, values):
         parts = head.rsplit(maxsplit=2)
         try:
@@ -144,8 +145,12 @@ def _photos(ccp: Path) -> dict[str, Photo]:
         cam = cameras[key]
         if name in photos:
             raise InputError(f"photo {name!r} appears twice", path=ccp, fix=EXPORT)
-        photos[name] = Photo(name, name, cam.id, cam, Shot.from_center(name, cam, R, t))
-    return photos
+        photos[name] = Photo(name, name, cam.id, cam, None)
+        rows.append((cam, R, t))
+    shots = make_shots(
+        list(photos), [r[0] for r in rows], np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
+    )
+    return {k: replace(p, shot=s) for (k, p), s in zip(photos.items(), shots)}
 
 
 def read_pmatrix(path: str | Path) -> dict[str, np.ndarray]:
