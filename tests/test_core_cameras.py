@@ -163,8 +163,8 @@ def test_pix4d_principal_point_is_measured_from_the_image_corner():
     i = next(k for k, ln in enumerate(lines) if "offset xpoff ypoff in pixel" in ln.lower())
     xpoff, ypoff = (float(lines[i + j].split()[1]) for j in (1, 2))
     s = max(cam.width, cam.height)
-    # ours: c = (cx - w/2)/S, so the .cam's offsets are -c*S and +c*S
-    assert abs(-cam.c_x * s - xpoff) < 1e-6 and abs(cam.c_y * s - ypoff) < 1e-6
+    # ours: c = (cx - w/2)/S, so the .cam's offsets are -c*S (with pixel centres as origin they would differ by 0.5)
+    assert abs(-cam.c_x * s - xpoff) < 1e-6 and abs(-cam.c_y * s - ypoff) < 1e-6
 
 
 def test_datum_topocentric_frame_is_the_geocentric_frame_moved():
