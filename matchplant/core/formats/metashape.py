@@ -19,14 +19,17 @@ from __future__ import annotations
 import zipfile
 from pathlib import Path
 from xml.etree import ElementTree
+from xml.sax.saxutils import escape
 
 import numpy as np
 
 from matchplant.core.formats.camera_set import CameraSet, Marker, Photo, check_rotation, file_name, make_shots
 from matchplant.core.geometry.frame_camera import FrameCamera
-from matchplant.core.geometry.frames import _proj, parse_crs, utm_crs_for
-from matchplant.core.geometry.geodetic import DatumTopocentricFrame, geocentric_to_geodetic
+from matchplant.core.geometry.frames import Frame, _proj, parse_crs, utm_crs_for
+from matchplant.core.geometry.geodetic import DatumTopocentricFrame, geocentric_to_geodetic, map_transformer
+from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.io import write_text
 from matchplant.core.runtime.log import get_logger
 
 log = get_logger("cameras")
@@ -360,3 +363,85 @@ def _markers(element, frame_doc, labels: dict, crs, path: Path) -> list[Marker]:
             xyz = np.array([float(ref.get(k, "nan")) for k in "xyz"])
         out.append(Marker(m.get("label", m.get("id")), xyz, mcrs, marks.get(m.get("id"), {})))
     return out
+
+
+def write_metashape(path: str | Path, shots: dict[str, Shot], frame: Frame) -> Path:
+    """Write shots (any of our cameras without fisheye; poses in ``frame``) as a Metashape camera export.
+
+    The chunk is an east-north-up frame around the cameras on ``frame``'s datum (chunk transform to geocentric:
+    rotation Qᵀ, the origin, scale 1) with ``frame``'s CRS as reference; each pose moves exactly through the
+    camera centre, its rotation turned by the rotation nearest to the frames' Jacobian there (a real
+    Metashape chunk is rigid in geocentric space, a map projection is not: docs/DESIGN.md §3)."""
+    crs = frame.crs
+    ids = sorted(shots)
+    centres = frame.to_map(np.array([shots[k].center for k in ids]))
+    lon, lat, _ = geocentric_to_geodetic_from_map(centres.mean(axis=0), crs)
+    enu = DatumTopocentricFrame(lat, lon, 0.0, crs.geodetic_crs or crs, crs)
+    local = enu.from_map(centres)
+    sensors: dict[str, int] = {}
+    cams, sensor_xml = [], []
+    for k, c in zip(ids, local):
+        shot = shots[k]
+        M = enu.rotation_from_map(c)  # map (= frame, up to a shift) <- ENU, for an OffsetFrame
+        if not frame.is_affine:
+            M = _frame_rotation(frame, shot.center).T @ M  # frame <- map <- ENU
+        R = shot.R @ M  # ENU -> camera
+        cam = shot.camera
+        if cam.id not in sensors:
+            sensors[cam.id] = len(sensors)
+            sensor_xml.append(_sensor_xml(sensors[cam.id], cam))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R.T, c
+        cams.append(
+            f'<camera id="{len(cams)}" sensor_id="{sensors[cam.id]}" label="{escape(k)}"><transform>'
+            + " ".join(repr(float(v)) for v in T.ravel())
+            + "</transform></camera>"
+        )
+    chunk_tf = (
+        "<transform><rotation>" + " ".join(repr(float(v)) for v in enu.Q.T.ravel()) + "</rotation><translation>"
+        + " ".join(repr(float(v)) for v in enu.origin) + "</translation><scale>1</scale></transform>"
+    )  # fmt: skip
+    text = (
+        '<?xml version="1.0" encoding="UTF-8"?>\n<document version="1.5.0">\n<chunk label="MatchPlant" enabled="true">'
+        f'<sensors next_id="{len(sensors)}">{"".join(sensor_xml)}</sensors><cameras next_id="{len(cams)}">'
+        + "\n".join(cams)
+        + f"</cameras>{chunk_tf}<reference>{escape(crs.to_wkt('WKT1_GDAL'))}</reference></chunk>\n</document>\n"
+    )
+    return write_text(path, text)
+
+
+def _frame_rotation(frame: Frame, point: np.ndarray, h: float = 1.0) -> np.ndarray:
+    """The rotation nearest to d(map)/d(frame) at ``point`` (polar decomposition of the Jacobian)."""
+    pts = np.asarray(point, dtype=float)[None, :] + np.concatenate([np.eye(3) * h, -np.eye(3) * h])
+    m = frame.to_map(pts)
+    u, _, vt = np.linalg.svd(((m[:3] - m[3:]) / (2 * h)).T)
+    return u @ vt
+
+
+def geocentric_to_geodetic_from_map(point: np.ndarray, crs) -> tuple[float, float, float]:
+    """(lon, lat, h) on ``crs``'s datum of a map point."""
+    geo = (crs.geodetic_crs or crs).to_3d()
+    lon, lat, h = map_transformer(crs, geo, what="the cameras' CRS").transform(*np.asarray(point, dtype=float))
+    return float(lon), float(lat), float(h)
+
+
+def _sensor_xml(sid: int, cam) -> str:
+    """A ``<sensor>`` with its calibration in Metashape's convention (the reader's conversion, inverted)."""
+    if cam.projection_type not in ("perspective", "brown", "radial", "simple_radial"):
+        raise InputError(
+            f"camera '{cam.id}' is a {cam.projection_type} camera, which Metashape's frame model cannot hold",
+            fix="export frame (pinhole) cameras only",
+        )
+    s = float(max(cam.width, cam.height))
+    cal = {
+        "f": cam.focal_y * s, "cx": cam.c_x * s, "cy": cam.c_y * s, "b1": (cam.focal_x - cam.focal_y) * s,
+        "b2": getattr(cam, "skew", 0.0) * s, "k1": cam.k1, "k2": cam.k2, "k3": cam.k3,
+        "k4": getattr(cam, "k4", 0.0), "p1": cam.p2, "p2": cam.p1,
+    }  # fmt: skip
+    res = f'<resolution width="{cam.width}" height="{cam.height}"/>'
+    return (
+        f'<sensor id="{sid}" label="{escape(cam.id)}" type="frame">{res}<calibration type="frame" class="adjusted">'
+        + res
+        + "".join(f"<{k}>{float(v)!r}</{k}>" for k, v in cal.items())
+        + "</calibration></sensor>"
+    )

@@ -23,7 +23,9 @@ import numpy as np
 from matchplant.core.formats.camera_set import CameraSet, Photo, check_rotation, make_shots
 from matchplant.core.geometry.frame_camera import FrameCamera
 from matchplant.core.geometry.frames import OffsetFrame, parse_crs
+from matchplant.core.geometry.shot import Shot
 from matchplant.core.runtime.errors import InputError
+from matchplant.core.runtime.io import write_text
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import read_text
 
@@ -165,3 +167,56 @@ def read_pmatrix(path: str | Path) -> dict[str, np.ndarray]:
             raise InputError(f"line {ln[:60]!r} is not a name and 12 numbers", path=path, fix=EXPORT)
         out[" ".join(parts[:-12])] = _numbers(" ".join(parts[-12:]), path).reshape(3, 4)
     return out
+
+
+def write_pix4d(folder: str | Path, name: str, shots: dict[str, Shot], frame: OffsetFrame) -> Path:
+    """Write shots (pinhole cameras; poses in an offset frame) as a Pix4D ``params/`` folder: camera parameters,
+    offset, .prj and P matrices, inverting the reader's conversion (module docstring)."""
+    if not isinstance(frame, OffsetFrame):
+        raise InputError(
+            "Pix4D's parameters are in a projected CRS minus an offset; these poses are in another frame",
+            fix="export from a project whose reconstruction is in map coordinates minus an offset (modern ODM)",
+        )
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    head = (
+        "fileName imageWidth imageHeight \ncamera matrix K [3x3]\nradial distortion [3x1]\ntangential distortion "
+        "[2x1]\ncamera position t [3x1]\ncamera rotation R [3x3]\ncamera model m = K [R|-Rt] X\n\n"
+    )
+    blocks, pm = [], []
+    for k in sorted(shots):
+        shot = shots[k]
+        cam = shot.camera
+        if cam.projection_type not in ("perspective", "brown", "radial", "simple_radial"):
+            raise InputError(
+                f"camera '{cam.id}' ({cam.projection_type}) is not a pinhole camera", fix="export pinhole cameras"
+            )
+        K = _pixel_matrix(cam)
+        rows = [
+            f"{k} {cam.width} {cam.height}",
+            *(" ".join(repr(float(v)) for v in r) for r in K),
+            " ".join(repr(float(v)) for v in (cam.k1, cam.k2, cam.k3)),
+            " ".join(repr(float(v)) for v in (cam.p1, cam.p2)),
+            " ".join(repr(float(v)) for v in shot.center),
+            *(" ".join(repr(float(v)) for v in r) for r in shot.R),
+        ]
+        blocks.append("\n".join(rows))
+        P = K @ np.c_[shot.R, -shot.R @ shot.center]
+        pm.append(f"{k} " + " ".join(f"{v:.6f}" for v in P.ravel()))
+    write_text(folder / f"{name}{SUFFIX}", head + "\n".join(blocks) + "\n")
+    write_text(folder / f"{name}_offset.xyz", " ".join(f"{v:.3f}" for v in frame.offset) + "\n")
+    write_text(folder / f"{name}_wkt.prj", frame.crs.to_wkt("WKT1_ESRI") + "\n")
+    write_text(folder / f"{name}_pmatrix.txt", "\n".join(pm) + "\n")
+    return folder
+
+
+def _pixel_matrix(cam) -> np.ndarray:
+    """Pix4D's K (pixels, origin at the image's corner) of one of our cameras."""
+    s = float(max(cam.width, cam.height))
+    return np.array(
+        [
+            [cam.focal_x * s, getattr(cam, "skew", 0.0) * s, cam.c_x * s + cam.width / 2],
+            [0.0, cam.focal_y * s, cam.c_y * s + cam.height / 2],
+            [0.0, 0.0, 1.0],
+        ]
+    )

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from matchplant.core.geometry.frames import TopocentricFrame, _proj
+from matchplant.core.geometry.frames import Frame, TopocentricFrame, _proj
 from matchplant.core.runtime.errors import GeometryError
 
 if TYPE_CHECKING:
@@ -102,3 +102,31 @@ class DatumTopocentricFrame(TopocentricFrame):
             f"east-north-up around lat {self.lat:.7f}, lon {self.lon:.7f} on {self.geodetic_crs.name} "
             f"-> {self.crs.name}"
         )
+
+
+class ReprojectedFrame(Frame):
+    """Another frame whose map coordinates are converted to ``crs`` with PROJ (exact; rays become slightly
+    curved in the new map, which the ray walk follows: not affine)."""
+
+    kind = "reprojected"
+
+    def __init__(self, base: Frame, crs: CRS):
+        self.base, self.crs = base, crs
+        self._to = map_transformer(base.crs, crs, what="the cameras' map CRS to the DSM's")
+
+    def to_map(self, points: np.ndarray) -> np.ndarray:
+        """Frame points (N, 3) to ``crs``."""
+        shape = np.shape(points)
+        p = self.base.to_map(np.asarray(points, dtype=float).reshape(-1, 3))
+        return np.stack(self._to.transform(p[:, 0], p[:, 1], p[:, 2]), axis=-1).reshape(shape)
+
+    def from_map(self, points: np.ndarray) -> np.ndarray:
+        """Points (N, 3) in ``crs`` to the frame."""
+        shape = np.shape(points)
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        q = np.stack(self._to.transform(p[:, 0], p[:, 1], p[:, 2], direction="INVERSE"), axis=-1)
+        return self.base.from_map(q).reshape(shape)
+
+    def describe(self) -> str:
+        """One line for the log."""
+        return f"{getattr(self.base, 'describe', lambda: self.base.kind)()} -> {self.crs.name}"
