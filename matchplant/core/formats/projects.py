@@ -18,6 +18,8 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
+import numpy as np
+
 from matchplant.core.formats.camera_set import CameraSet
 from matchplant.core.formats.images import image_size
 from matchplant.core.formats.metashape import read_metashape
@@ -257,7 +259,26 @@ class PhotoProject:
 
         with rasterio.open(dsm) as src:
             crs = parse_crs(src.crs, source=dsm) if src.crs else None
-        return frame if crs is None else self.frame(crs)
+            bounds = src.bounds
+        if crs is None:
+            raise InputError(
+                "the DSM has no CRS, so it cannot be placed under the cameras",
+                path=dsm,
+                fix="export the DSM as a GeoTIFF with its coordinate system",
+            )
+        frame = self.frame(crs)
+        centres = np.vstack([frame.to_map(s.center[None, :]) for s in self._shots.values()])
+        reach = max(50.0, float(np.ptp(centres[:, 2])) + 100.0)  # a camera sees about its height around it
+        lo, hi = centres[:, :2].min(axis=0) - reach, centres[:, :2].max(axis=0) + reach
+        if bounds.left > hi[0] or bounds.right < lo[0] or bounds.bottom > hi[1] or bounds.top < lo[1]:
+            raise InputError(
+                f"the DSM ({bounds.left:.1f}..{bounds.right:.1f}, {bounds.bottom:.1f}..{bounds.top:.1f} in "
+                f"{crs.name}) does not overlap the cameras ({lo[0] + reach:.1f}..{hi[0] - reach:.1f}, "
+                f"{lo[1] + reach:.1f}..{hi[1] - reach:.1f})",
+                path=dsm,
+                fix="give the DSM exported from this project (config key dsm)",
+            )
+        return frame
 
     def frame(self, crs=None) -> Frame:
         """The frame of every shot, converted to ``crs`` (default: the DSM's CRS, else the project's)."""
