@@ -13,6 +13,8 @@ import numpy as np
 import pyproj
 import pytest
 
+from matchplant.core.formats.gcp_list import Mark
+from matchplant.core.formats.gcp_marks import write_metashape_markers, write_pix4d_marks
 from matchplant.core.formats.metashape import read_metashape
 from matchplant.core.formats.pix4d import read_pix4d, read_pmatrix
 from matchplant.core.geometry.frame_camera import FrameCamera
@@ -282,3 +284,38 @@ def test_reading_2000_photos_takes_under_two_seconds(tmp_path):
         cs = reader(src)
         took = time.perf_counter() - t0
         assert len(cs.posed) == 2000 and took < 2.0, (reader.__name__, took)
+
+
+def test_gcp_marks_are_written_as_metashape_and_pix4d_import_them(tmp_path):
+    """The wheat project's real markers and marks, written in Metashape's marker XML and Pix4D's marks file: the
+    pixels come out as Metashape stored them (both programs count from the image's corner), the coordinates as
+    surveyed, and our reader reads the Metashape file's markers back."""
+    cs = read_metashape(WHEAT)
+    marks = [
+        Mark(*m.xyz, u, v, cs.photos[label].name, m.label) for m in cs.markers for label, (u, v) in m.marks.items()
+    ]
+    write_metashape_markers(tmp_path, marks, cs.markers[0].crs)
+    write_pix4d_marks(tmp_path, marks)
+    frame = zipfile.ZipFile(WHEAT.with_suffix(".files") / "0" / "0" / "frame.zip").read("doc.xml")
+    stored = {
+        (m.get("marker_id"), loc.get("camera_id")): (float(loc.get("x")), float(loc.get("y")))
+        for m in ElementTree.fromstring(frame).findall("markers/marker")
+        for loc in m.findall("location")
+    }
+    chunk = ElementTree.fromstring(zipfile.ZipFile(WHEAT.with_suffix(".files") / "0" / "chunk.zip").read("doc.xml"))
+    cam_id = {c.get("label"): c.get("id") for c in chunk.findall("cameras/camera")}
+    marker_id = {m.get("label"): m.get("id") for m in chunk.findall("markers/marker")}
+    rows = [ln.split(",") for ln in (tmp_path / "pix4d_marks.csv").read_text().splitlines()]
+    assert len(rows) == len(stored) == 23
+    for image, gcp, x, y, _ in rows:
+        want = stored[(marker_id[gcp], cam_id[image.rsplit(".", 1)[0]])]
+        assert abs(float(x) - want[0]) < 1e-9 and abs(float(y) - want[1]) < 1e-9
+    doc = ElementTree.parse(tmp_path / "metashape_markers.xml").getroot().find("chunk")
+    labels = {c.get("id"): c.get("label") for c in doc.findall("cameras/camera")}
+    names = {m.get("id"): m.get("label") for m in doc.findall("markers/marker")}
+    for m in doc.findall("frames/frame/markers/marker"):
+        for loc in m.findall("location"):
+            key = (marker_id[names[m.get("marker_id")]], cam_id[labels[loc.get("camera_id")].rsplit(".", 1)[0]])
+            assert (float(loc.get("x")), float(loc.get("y"))) == pytest.approx(stored[key], abs=1e-9)
+    coords = (tmp_path / "pix4d_gcps.csv").read_text().splitlines()
+    assert len(coords) == 6 and coords[0].startswith("7,139.5403358,35.73756338,96.849")
