@@ -29,7 +29,10 @@ class CamerasConfig:
     """Summarise a photogrammetry project's cameras; optionally find map points in its original photos."""
 
     project: Path | None = param(
-        None, "the project: an ODM folder, a Metashape .xml export or .psx, a Pix4D project folder", required=True
+        None,
+        "the project: an ODM folder, a Metashape .xml export or .psx, a Pix4D project folder",
+        path="exists",
+        required=True,
     )
     project_type: str = param("auto", "which program made the project (auto: from its files)", choices=PROJECT_TYPES)
     points: Path | None = param(None, "a CSV of map points (columns x, y, z) to find in the photos", path="file")
