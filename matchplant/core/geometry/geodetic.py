@@ -130,3 +130,45 @@ class ReprojectedFrame(Frame):
     def describe(self) -> str:
         """One line for the log."""
         return f"{getattr(self.base, 'describe', lambda: self.base.kind)()} -> {self.crs.name}"
+
+
+class TangentFrame(Frame):
+    """The tangent (first-order) map of another frame at one point: ``map = m0 + J (p - p0)``.
+
+    Module 8 walks straight map rays (docs/DESIGN.md §3); through a photo's tangent frame at its camera centre a
+    ray of a geocentric-rigid project (Metashape) stays straight, and departs from the exact conversion only by
+    the earth's curvature over the ray's horizontal run r: r²/2R, 0.06 mm at 30 m and 0.25 mm at 60 m
+    (tests/test_core_cameras.py). ``J`` maps frame directions to map directions (:meth:`map_directions`)."""
+
+    kind = "tangent"
+
+    def __init__(self, base: Frame, point: np.ndarray, h: float = 1.0):
+        self.base, self.crs = base, base.crs
+        self.p0 = np.asarray(point, dtype=float)
+        pts = self.p0[None, :] + np.concatenate([np.eye(3) * h, -np.eye(3) * h, np.zeros((1, 3))])
+        m = base.to_map(pts)
+        self.m0 = m[6]
+        self.J = ((m[:3] - m[3:6]) / (2 * h)).T  # central differences: F is smooth, the error is ~h² F'''
+        self.J_inv = np.linalg.inv(self.J)
+
+    @property
+    def is_affine(self) -> bool:
+        """Straight lines stay straight (with :meth:`map_directions` for their directions)."""
+        return True
+
+    def to_map(self, points: np.ndarray) -> np.ndarray:
+        """Frame points (..., 3) to the map."""
+        return (np.asarray(points, dtype=float) - self.p0) @ self.J.T + self.m0
+
+    def from_map(self, points: np.ndarray) -> np.ndarray:
+        """Map points (..., 3) to the frame."""
+        return (np.asarray(points, dtype=float) - self.m0) @ self.J_inv.T + self.p0
+
+    def map_directions(self, dirs: np.ndarray) -> np.ndarray:
+        """Unit frame directions (N, 3) as unit map directions."""
+        d = np.asarray(dirs, dtype=float) @ self.J.T
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def describe(self) -> str:
+        """One line for the log."""
+        return f"tangent map of ({getattr(self.base, 'describe', lambda: self.base.kind)()}) at a camera"
