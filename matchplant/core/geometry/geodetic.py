@@ -138,7 +138,8 @@ class TangentFrame(Frame):
     Module 8 walks straight map rays (docs/DESIGN.md §3); through a photo's tangent frame at its camera centre a
     ray of a geocentric-rigid project (Metashape) stays straight, and departs from the exact conversion by the
     earth's curvature over the ray's horizontal run r (r²/2R) and the turn of the map's grid: 0.06 mm for 30 m
-    rays, at most 0.33 mm for 60 m rays within 60° of nadir (tests/test_core_cameras.py). ``J`` maps frame directions to map directions (:meth:`map_directions`)."""
+    rays, at most 0.33 mm for 60 m rays within 60° of nadir (tests/test_core_cameras.py). ``J`` maps frame
+    directions to map directions (:meth:`map_directions`)."""
 
     kind = "tangent"
 
