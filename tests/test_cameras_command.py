@@ -27,7 +27,7 @@ def test_points_are_found_in_the_photos_they_were_marked_on(tmp_path, capsys):
     marker on is listed for it, at a pixel within the marker test's 12 px (tests/test_core_cameras.py)."""
     cs = read_metashape(WHEAT)
     pts = tmp_path / "markers.csv"
-    pts.write_text("x,y,z\n" + "".join(f"{m.xyz[0]!r},{m.xyz[1]!r},{m.xyz[2]!r}\n" for m in cs.markers))
+    pts.write_text("x,y,z\n" + "".join(",".join(repr(float(v)) for v in m.xyz) + "\n" for m in cs.markers))
     out = tmp_path / "pixels.csv"
     code = main(["cameras", str(WHEAT), "--points", str(pts), "--points-crs", "EPSG:4979", "--output", str(out)])
     assert code == 0
