@@ -40,8 +40,16 @@ LOOKED_FOR = (
 )
 # a Metashape export or Pix4D project's rasters: where each program puts them, else one file so named beside it
 RASTERS = {
-    "pix4d": {"dsm": ("3_dsm_ortho/1_dsm/*_dsm.tif",), "orthophoto": ("3_dsm_ortho/2_mosaic/*_mosaic*.tif",)},
-    "metashape": {"dsm": ("*dsm*.tif", "*dem*.tif", "*DSM*.tif", "*DEM*.tif"), "orthophoto": ("*ortho*.tif",)},
+    "pix4d": {
+        "dsm": ("3_dsm_ortho/1_dsm/*_dsm.tif",),
+        "dtm": ("3_dsm_ortho/extras/dtm/*_dtm.tif",),
+        "orthophoto": ("3_dsm_ortho/2_mosaic/*_mosaic*.tif",),
+    },
+    "metashape": {
+        "dsm": ("*dsm*.tif", "*dem*.tif", "*DSM*.tif", "*DEM*.tif"),
+        "dtm": ("*dtm*.tif", "*DTM*.tif"),
+        "orthophoto": ("*ortho*.tif",),
+    },
 }
 
 
@@ -130,12 +138,12 @@ class PhotoProject:
     is_split = False
     submodels: list = []
 
-    def __init__(self, cameras: CameraSet, *, dsm=None, orthophoto=None, images=None):
+    def __init__(self, cameras: CameraSet, *, dsm=None, orthophoto=None, images=None, dtm=None):
         self.cameras = cameras
         self.program = cameras.program
         src = Path(cameras.source)
         self.root = src if src.is_dir() else src.parent
-        self._rasters = {"dsm": dsm, "orthophoto": orthophoto, "dtm": None}
+        self._rasters = {"dsm": dsm, "orthophoto": orthophoto, "dtm": dtm}
         self.images_dir = Path(images) if images is not None else None
         # shot id: the photo's file name where every name is unique, else the program's label (subfolders)
         names = [p.name for p in cameras.photos.values()]
