@@ -179,7 +179,8 @@ def _sensor(el, path: Path) -> FrameCamera:
             path=path,
             fix="export the cameras of the band you detect on from a chunk holding that band alone",
         )
-    cal = el.find("calibration")
+    cals = el.findall("calibration")  # the adjusted one where the project also keeps the initial one
+    cal = next((c for c in cals if c.get("class") == "adjusted"), cals[0] if cals else None)
     if cal is None:
         raise InputError(f"{where} has no <calibration>", path=path, fix=f"align the photos, then export {EXPORT}")
     res = cal.find("resolution") if cal.find("resolution") is not None else el.find("resolution")
