@@ -339,3 +339,15 @@ def test_tangent_frame_departs_from_the_exact_conversion_by_the_earths_curvature
     np.testing.assert_allclose(tangent.from_map(tangent.to_map(p)), p, atol=1e-9)
     md = tangent.map_directions(d)
     np.testing.assert_allclose(np.linalg.norm(md, axis=1), 1.0)
+
+
+def test_a_project_of_several_chunks_is_refused_by_name(tmp_path):
+    """Two chunks in one file: both named, and the fix; a chosen one is read."""
+    text = GEOGRAYPHER.read_text()
+    a, b = text.index("<chunk "), text.index("</chunk>") + len("</chunk>")
+    chunk = text[a:b]
+    (tmp_path / "two.xml").write_text(text[:b] + chunk.replace('label="Chunk 1"', 'label="Chunk 2"', 1) + text[b:])
+    with pytest.raises(InputError, match="2 chunks \\(Chunk 1, Chunk 2\\)") as err:
+        read_metashape(tmp_path / "two.xml")
+    assert "Export Cameras exports the active chunk" in str(err.value)
+    assert len(read_metashape(tmp_path / "two.xml", chunk="Chunk 2").photos) == 47

@@ -91,7 +91,7 @@ def _one_chunk(chunks: list, path: Path, label: str | None):
         raise InputError(
             f"the project holds {len(chunks)} chunks ({', '.join(labels)}); MatchPlant reads one",
             path=path,
-            fix="export the cameras of one chunk (Export Cameras exports the active chunk), or set 'chunk'",
+            fix="export the cameras of one chunk (Export Cameras exports the active chunk) and point at that file",
         )
     return chunks[0]
 
