@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import piexif
@@ -21,6 +22,7 @@ from pyproj import Transformer
 
 from matchplant.core.formats.exif import gps_ifd, jpeg_segments
 from matchplant.core.formats.gcp_list import read_gcp_list, write_gcp_list
+from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.gcp_finder.candidates import find_candidates
@@ -232,6 +234,15 @@ def test_auto_finds_targets_subpixel(flight, tmp_path):
     for k, m in found.items():
         assert math.dist((m.u, m.v), truth[k]) < 0.5, k
         assert (m.x, m.y, m.z) == pytest.approx((*GCPS[m.gcp], GROUND))
+    # the same marks in Metashape's and Pix4D's import formats (their pixels count from the image's corner)
+    rows = [ln.split(",") for ln in (tmp_path / "out" / "pix4d_marks.csv").read_text().splitlines()]
+    pix4d = {(g, im): (float(x) - 0.5, float(y) - 0.5) for im, g, x, y, _ in rows}
+    assert set(pix4d) == set(found)
+    for k, m in found.items():  # gcp_list.txt keeps 3 decimals
+        assert pix4d[k] == pytest.approx((m.u, m.v), abs=6e-4)
+    doc = ElementTree.parse(tmp_path / "out" / "metashape_markers.xml").getroot().find("chunk")
+    assert len(doc.findall("frames/frame/markers/marker/location")) == len(marks)
+    assert parse_crs(doc.findtext("reference")).equals(crs)
 
 
 def test_detect_target_none_on_flat():

@@ -12,6 +12,7 @@ import numpy as np
 from pyproj import Transformer
 
 from matchplant.core.formats.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
+from matchplant.core.formats.gcp_marks import write_metashape_markers, write_pix4d_marks
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
 from matchplant.gcp_finder.candidates import Finder
@@ -118,7 +119,11 @@ class MarkStore:
 
     def save(self) -> Path:
         """Write every mark to the store's gcp_list.txt; its path."""
-        return write_gcp_list(self.path, crs_header(self.finder.crs), self.to_marks())
+        marks = self.to_marks()
+        # the same marks for Metashape and Pix4D (their import formats: core/formats/gcp_marks.py)
+        write_metashape_markers(self.path.parent, marks, self.finder.crs)
+        write_pix4d_marks(self.path.parent, marks)
+        return write_gcp_list(self.path, crs_header(self.finder.crs), marks)
 
     def _changed(self) -> None:
         if self.autosave:

@@ -108,23 +108,31 @@ class PinholeCamera(Camera):
     p1: float = 0.0
     p2: float = 0.0
 
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The radial factor 1 + k1 r² + k2 r⁴ + k3 r⁶ and its derivative with respect to r²."""
+        k1, k2, k3 = self.k1, self.k2, self.k3
+        return 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+
+    def _coefficients(self) -> tuple[float, ...]:
+        """Every distortion coefficient (all zero: no distortion)."""
+        return (self.k1, self.k2, self.k3, self.p1, self.p2)
+
     def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        radial, _ = self._radial(r2)
         xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return xd, yd
 
     def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert :meth:`_distort` with Newton's method on the 2x2 Jacobian."""
-        if not any((self.k1, self.k2, self.k3, self.p1, self.p2)):
+        if not any(self._coefficients()):
             return xd, yd
         x, y = xd.copy(), yd.copy()
-        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+        p1, p2 = self.p1, self.p2
         for _ in range(_NEWTON_ITERATIONS):
             r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            radial, d_radial = self._radial(r2)
             fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
             fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
             j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matchplant.core.geometry.camera import _NEWTON_ITERATIONS, PinholeCamera
+from matchplant.core.geometry.camera import PinholeCamera
 from matchplant.core.runtime.errors import GeometryError
 
 
@@ -35,35 +35,9 @@ class FrameCamera(PinholeCamera):
         d_radial = k1 + r2 * (2.0 * k2 + r2 * (3.0 * k3 + r2 * 4.0 * k4))
         return radial, d_radial
 
-    def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r2 = x * x + y * y
-        radial, _ = self._radial(r2)
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
-        return xd, yd
-
-    def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Invert :meth:`_distort` with Newton's method on the 2x2 Jacobian."""
-        if not any((self.k1, self.k2, self.k3, self.k4, self.p1, self.p2)):
-            return xd, yd
-        x, y = xd.copy(), yd.copy()
-        p1, p2 = self.p1, self.p2
-        for _ in range(_NEWTON_ITERATIONS):
-            r2 = x * x + y * y
-            radial, d_radial = self._radial(r2)
-            fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
-            fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-            j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = 2.0 * x * y * d_radial + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = radial + 2.0 * y * y * d_radial + 6.0 * p1 * y + 2.0 * p2 * x
-            det = j11 * j22 - j12 * j12
-            dx = (j22 * fx - j12 * fy) / det
-            dy = (j11 * fy - j12 * fx) / det
-            x = x - dx
-            y = y - dy
-            if np.nanmax(np.abs(dx) + np.abs(dy), initial=0.0) < 1e-15:
-                break
-        return x, y
+    def _coefficients(self) -> tuple[float, ...]:
+        """Every distortion coefficient, k4 included."""
+        return (self.k1, self.k2, self.k3, self.k4, self.p1, self.p2)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3) to pixels (N, 2); points at or behind the camera give NaN."""
