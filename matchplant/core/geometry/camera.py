@@ -155,13 +155,19 @@ class PinholeCamera(Camera):
             x = np.where(z > 0, p[..., 0] / z, np.nan)
             y = np.where(z > 0, p[..., 1] / z, np.nan)
         xd, yd = self._distort(x, y)
-        return self.normalized_to_pixel(np.stack([self.focal_x * xd + self.c_x, self.focal_y * yd + self.c_y], axis=-1))
+        return self.normalized_to_pixel(self._affine(xd, yd))
+
+    def _affine(self, xd: np.ndarray, yd: np.ndarray) -> np.ndarray:
+        """Distorted coordinates to normalised image coordinates: the focal lengths and the principal point."""
+        return np.stack([self.focal_x * xd + self.c_x, self.focal_y * yd + self.c_y], axis=-1)
+
+    def _affine_inverse(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised image coordinates back to distorted coordinates (the inverse of :meth:`_affine`)."""
+        return (n[..., 0] - self.c_x) / self.focal_x, (n[..., 1] - self.c_y) / self.focal_y
 
     def bearings(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
-        n = self.pixel_to_normalized(uv)
-        xd = (n[..., 0] - self.c_x) / self.focal_x
-        yd = (n[..., 1] - self.c_y) / self.focal_y
+        xd, yd = self._affine_inverse(self.pixel_to_normalized(uv))
         x, y = self._undistort(xd, yd)
         inv = 1.0 / np.sqrt(x * x + y * y + 1.0)  # (x, y, 1) scaled to unit length, without temporaries
         b = np.empty(x.shape + (3,))

@@ -39,27 +39,14 @@ class FrameCamera(PinholeCamera):
         """Every distortion coefficient, k4 included."""
         return (self.k1, self.k2, self.k3, self.k4, self.p1, self.p2)
 
-    def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Camera-frame points (N, 3) to pixels (N, 2); points at or behind the camera give NaN."""
-        p = np.asarray(points_cam, dtype=float)
-        z = p[..., 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = np.where(z > 0, p[..., 0] / z, np.nan)
-            y = np.where(z > 0, p[..., 1] / z, np.nan)
-        xd, yd = self._distort(x, y)
-        n = np.stack([self.focal_x * xd + self.skew * yd + self.c_x, self.focal_y * yd + self.c_y], axis=-1)
-        return self.normalized_to_pixel(n)
+    def _affine(self, xd: np.ndarray, yd: np.ndarray) -> np.ndarray:
+        """Distorted coordinates to normalised image coordinates, with the skew."""
+        return np.stack([self.focal_x * xd + self.skew * yd + self.c_x, self.focal_y * yd + self.c_y], axis=-1)
 
-    def bearings(self, uv: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
-        n = self.pixel_to_normalized(uv)
+    def _affine_inverse(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised image coordinates back to distorted coordinates."""
         yd = (n[..., 1] - self.c_y) / self.focal_y
-        xd = (n[..., 0] - self.c_x - self.skew * yd) / self.focal_x
-        x, y = self._undistort(xd, yd)
-        inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
-        b = np.empty(x.shape + (3,))
-        b[..., 0], b[..., 1], b[..., 2] = x * inv, y * inv, inv
-        return b
+        return (n[..., 0] - self.c_x - self.skew * yd) / self.focal_x, yd
 
     def undistorted_project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points to pixels of the same camera without distortion (a pure pinhole: K·X/Z)."""
@@ -67,8 +54,7 @@ class FrameCamera(PinholeCamera):
         with np.errstate(divide="ignore", invalid="ignore"):
             x = np.where(p[..., 2] > 0, p[..., 0] / p[..., 2], np.nan)
             y = np.where(p[..., 2] > 0, p[..., 1] / p[..., 2], np.nan)
-        n = np.stack([self.focal_x * x + self.skew * y + self.c_x, self.focal_y * y + self.c_y], axis=-1)
-        return self.normalized_to_pixel(n)
+        return self.normalized_to_pixel(self._affine(x, y))
 
     def to_opensfm(self) -> dict:
         """OpenSfM's ``brown`` camera, which has no k4 or skew: refused when either is used."""
