@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.projects import PhotoProject, open_project
 from matchplant.core.runtime.config import param
-from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.pipeline.chain import season_chain
 from matchplant.pipeline.write import write_pipeline
@@ -54,7 +55,14 @@ class InitConfig:
     """Write a commented pipeline.yaml for a season from an ODM project folder (matchplant run then runs it)."""
 
     project: Path | None = param(
-        None, "the ODM project folder (opensfm/, odm_dem/, odm_orthophoto/)", path="dir", required=True
+        None,
+        "the project: an ODM folder (opensfm/, odm_dem/, odm_orthophoto/), a Metashape camera export (.xml) or "
+        "project (.psx), or a Pix4D project folder",
+        path="exists",
+        required=True,
+    )
+    project_type: str = param(
+        "auto", "which program made the project (auto: from its files)", choices=("auto", "odm", "metashape", "pix4d")
     )
     annotations: Path | None = param(
         None,
@@ -90,9 +98,14 @@ def _rel(path: Path, base: Path) -> str:
 def season_spec(cfg: InitConfig, advice: dict) -> dict:
     """The pipeline's content: the top-level keys and the steps that the inputs allow."""
     base = Path(cfg.output).resolve().parent
-    project = ODMProject(cfg.project)
-    top = {"output_dir": ".", "project": _rel(project.root, base)}
-    photos = "${project}/" + _rel(project.path("undistorted_images"), project.root.resolve())
+    project = open_project(cfg.project, cfg.project_type)
+    odm = isinstance(project, ODMProject)
+    top = {"output_dir": ".", "project": _rel(project.root if odm else Path(cfg.project), base)}
+    photos = (
+        "${project}/" + _rel(project.path("undistorted_images"), project.root.resolve())
+        if odm
+        else _rel(photo_folder(project, cfg.project), base)
+    )
     tile = {k: advice[k] for k in ("tile_size", "overlap") if k in advice}
     chain: dict = {}
     if cfg.annotations is not None:
@@ -114,20 +127,38 @@ def season_spec(cfg: InitConfig, advice: dict) -> dict:
         chain, evaluate = {"checkpoint": "${checkpoint}"}, {}
     if chain:  # module 7 on every photo of the project, then modules 8 and 9
         chain["detect"] = {"detect": {"images": photos, **tile}, "evaluate": evaluate}
-        chain["stats"] = {
-            "rasters": {
-                key: "${project}/" + _rel(project.path(name), project.root.resolve())
-                for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
-                if project.has(name)
-            }
+        rasters = {
+            key: "${project}/" + _rel(project.path(name), project.root.resolve())
+            if odm
+            else _rel(project.path(name), base)
+            for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
+            if project.has(name)
         }
-    return {**top, "steps": season_chain("${project}", photos, **chain)}
+        if not odm and "dtm" not in rasters:
+            rasters.pop("dsm", None)  # module 9's heights need both (a CHM); the DSM alone serves modules 3 and 8
+        chain["stats"] = {"rasters": rasters}
+    if not odm:  # Metashape, Pix4D: the program named; they pose the original photos
+        chain["select"] = {"project_type": project.program}
+        chain["plants"] = {"project_type": project.program, "image_type": "original"}
+    return {**top, "steps": season_chain("${project}", photos, odm=odm, **chain)}
+
+
+def photo_folder(project: PhotoProject, source: Path) -> Path:
+    """The one folder of a Metashape or Pix4D project's original photos (every posed photo on disk)."""
+    folders = sorted({p.parent for p in project.image_paths().values()})
+    if len(folders) != 1:
+        raise InputError(
+            f"the {project.program} project's photos lie in {len(folders)} folders; the pipeline needs one",
+            path=source,
+            fix="put the photos in one folder (modules 3 and 7 read it)",
+        )
+    return folders[0]
 
 
 def header(cfg: InitConfig, spec: dict) -> str:
     """The file's first comment: how it was made, how to run it, what is missing."""
     lines = [
-        "A season's pipeline, written by `matchplant init` from the ODM project "
+        "A season's pipeline, written by `matchplant init` from the project "
         f"{spec['project']}; run it with: matchplant run {Path(cfg.output).name}",
         "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
         "Each step writes to <output_dir>/<step name>; a finished step with unchanged settings is skipped.",

@@ -145,7 +145,8 @@ def parse_override(item: str) -> tuple[str, Any]:
         )
     key, text = item.split("=", 1)
     try:
-        value = yaml.safe_load(text) if text.strip() else ""
+        # a bare '-' is standard output (docs/DESIGN.md §1), not YAML's list of one null
+        value = "-" if text.strip() == "-" else yaml.safe_load(text) if text.strip() else ""
     except yaml.YAMLError:
         value = text
     return key.strip(), value
