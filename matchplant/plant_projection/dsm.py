@@ -15,6 +15,7 @@ from matchplant.core.geometry.frames import Frame, parse_crs
 from matchplant.core.geometry.raycast import ODM_NODATA
 from matchplant.core.geometry.shot import Shot
 from matchplant.core.geometry.surface import Surface
+from matchplant.core.geometry.units import height_unit, metric_heights
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.plant_projection.dsm_noise import Holes, SoilSurface, ground_noise, soil_surface
@@ -38,15 +39,17 @@ def _padded(lo: float, hi: float) -> tuple[float, float]:
 
 
 def approx_heights(path: Path) -> tuple[float, float]:
-    """DSM height range from a decimated read (for the window of the rays), with a margin."""
+    """DSM height range (metres) from a decimated read (for the window of the rays)."""
     with rasterio.open(path) as src:
         f = max(1, int(max(src.width, src.height) // DECIMATED))
         arr = src.read(1, out_shape=(max(1, src.height // f), max(1, src.width // f)), masked=True)
+        factor, _ = height_unit(src.crs, src.units[0], path)
     data = arr.astype(float).filled(np.nan)
     data[data <= ODM_NODATA] = np.nan
+    data *= factor  # metres, as the surfaces read (Surface.open)
     if not np.isfinite(data).any():
         raise InputError("the DSM holds no valid heights", path=path, fix="check the DSM (re-run ODM with --dsm)")
-    return _padded(float(np.nanmin(data)), float(np.nanmax(data)))
+    return float(np.nanmin(data)), float(np.nanmax(data))
 
 
 def ray_bounds(shot: Shot, frame: Frame, boxes: np.ndarray, z_lo: float, z_hi: float) -> np.ndarray | None:
@@ -78,11 +81,27 @@ class DsmSurfaces:
         self._read: list[tuple[SoilSurface, int]] = []  # every surface read, with its cells filled
         with rasterio.open(path) as src:
             small = src.width * src.height <= MAX_SURFACE_CELLS
+            self.unit = height_unit(src.crs, src.units[0], path)[1]  # "": the file names none (metres assumed)
         if small:  # the whole DSM fits: read it once, its heights bound the rays
             self._whole = self._surface()
-            self.z_lo, self.z_hi = _padded(self._whole.zmin, self._whole.zmax)
+            self.z_min, z_max = self._whole.zmin, self._whole.zmax
         else:
-            self.z_lo, self.z_hi = approx_heights(path)
+            self.z_min, z_max = approx_heights(path)
+        self.z_lo, self.z_hi = _padded(self.z_min, z_max)
+
+    def check_below(self, cameras: np.ndarray) -> None:
+        """A DSM whose lowest height lies above every camera (map heights ``cameras``) is refused: no ray meets it.
+        With no unit in the file, that is a DSM in feet read as metres (heights 3.28 times too high)."""
+        if not self.z_min > np.max(cameras):
+            return
+        feet = "" if self.unit else " (the file names no height unit: heights in feet, read as metres?)"
+        raise InputError(
+            f"the DSM's lowest height ({self.z_min:.1f} m) lies above every camera (highest {np.max(cameras):.1f} m), "
+            f"so no ray can meet it{feet}",
+            path=self.path,
+            fix="give heights in metres: set the DSM's unit (gdal_edit.py -units ft, or a CRS with its vertical unit) "
+            "and it is converted, or convert it (gdal_calc.py --calc=\"A*0.3048\"); else give this field's DSM",
+        )
 
     def prepare(self, all_bounds: list[np.ndarray | None]) -> None:
         """Once every image's ray bounds are known: refuse a DSM in another CRS, and read the union of
@@ -90,7 +109,7 @@ class DsmSurfaces:
         with rasterio.open(self.path) as src:
             res = min(abs(src.transform.a), abs(src.transform.e))
             dsm_crs = src.crs
-        if dsm_crs is not None and self.crs is not None and not parse_crs(dsm_crs).equals(self.crs):
+        if dsm_crs is not None and self.crs is not None and not metric_heights(parse_crs(dsm_crs)).equals(self.crs):
             raise InputError(
                 f"the DSM is in {dsm_crs} but the reconstruction in {self.crs.name}",
                 path=self.path,

@@ -422,6 +422,7 @@ class _Projection:
             k: ray_bounds(shots[k], frames[k], self.xyxy[idx], surfaces.z_lo, surfaces.z_hi)
             for k, idx in groups.items()
         }
+        surfaces.check_below(np.array([frames[k].to_map(shots[k].center[None, :])[0, 2] for k in groups]))
         surfaces.prepare(list(bounds.values()))
         for k in progress(list(groups), desc=desc, unit="image"):
             idx = groups[k]

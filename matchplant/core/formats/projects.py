@@ -28,6 +28,7 @@ from matchplant.core.formats.pix4d import SUFFIX, params_folder, read_pix4d
 from matchplant.core.geometry.frames import Frame, parse_crs
 from matchplant.core.geometry.geodetic import DatumTopocentricFrame, ReprojectedFrame, TangentFrame
 from matchplant.core.geometry.shot import Shot
+from matchplant.core.geometry.units import metric_heights
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 
@@ -293,6 +294,7 @@ class PhotoProject:
         base = self.cameras.frame
         if crs is None:
             return self._frame
+        crs = metric_heights(crs)  # a DSM's heights in feet are read as metres (Surface.open): so are the rays'
         if base.crs.equals(crs):
             return base
         log.info("the %s cameras are in %s; the map is %s (converted exactly)", self.program, base.crs.name, crs.name)

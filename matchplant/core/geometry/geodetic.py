@@ -9,6 +9,7 @@ the map CRS; a vertical datum needs its geoid grid, refused by name when PROJ la
 
 from __future__ import annotations
 
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -63,14 +64,30 @@ def map_transformer(source: CRS, target: CRS, *, what: str):
     pyproj = _proj()
     src = source if source.is_compound or len(source.axis_info) == 3 else source.to_3d()
     dst = target if target.is_compound or len(target.axis_info) == 3 else target.to_3d()
+    fix = (
+        "install the PROJ grid it names (projsync --file <grid>, or PROJ_NETWORK=ON), "
+        "or export the project in a CRS without that datum or geoid"
+    )
     try:
-        return pyproj.Transformer.from_crs(src, dst, always_xy=True, only_best=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # pyproj's "best transformation is not available": below
+            t = pyproj.Transformer.from_crs(src, dst, always_xy=True, only_best=True)
     except pyproj.exceptions.ProjError as exc:
         raise GeometryError(
-            f"{what}: PROJ cannot convert {source.name!r} to {target.name!r} exactly here ({exc})",
-            fix="install the PROJ grid it names (projsync --file <grid>, or PROJ_NETWORK=ON), "
-            "or export the project in a CRS without that datum or geoid",
+            f"{what}: PROJ cannot convert {source.name!r} to {target.name!r} exactly here ({exc})", fix=fix
         ) from exc
+    if "ballpark" in t.description:  # PROJ fell back to ignoring a datum or geoid shift (metres off): refused
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            group = pyproj.transformer.TransformerGroup(src, dst, always_xy=True)
+        missing = [g.short_name for op in group.unavailable_operations[:1] for g in op.grids if not g.available]
+        raise GeometryError(
+            f"{what}: PROJ can convert {source.name!r} to {target.name!r} here only by a ballpark shift "
+            f"({t.description}); "
+            + (f"it lacks the grid {', '.join(missing)}" if missing else "no exact one is known"),
+            fix=fix,
+        )
+    return t
 
 
 class DatumTopocentricFrame(TopocentricFrame):

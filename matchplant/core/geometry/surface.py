@@ -36,6 +36,7 @@ from matchplant.core.geometry.raycast import (
     ray_points,
     sample_many,
 )
+from matchplant.core.geometry.units import height_unit
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 
@@ -54,6 +55,7 @@ ROTATION = 1e-12  # affine rotation terms above this: a rotated raster
 WINDOW_RAISED = 1.5  # the ground's window, raised above ground_window by more than this factor, is said in the log
 GENTLE = 0.8  # max_slope x the rays' steepest tangent below this: each ray crosses the surface once (fixed point)
 MAX_STEPS = 200_000  # patches a ray walks at most
+_CONVERTED: set[Path] = set()  # rasters whose height unit the log has named
 
 
 @dataclass
@@ -158,6 +160,7 @@ class Surface:
                 # the nodata value alone marks holes: no mask to read (GDAL would build one, at 3x the cost)
                 nodata = src.nodata if MaskFlags.nodata in flags and src.nodata is not None else math.nan
                 crs = src.crs
+                factor, unit = height_unit(crs, src.units[band - 1], path)
         except rasterio.errors.WindowError as exc:
             raise InputError(
                 "the area of interest does not overlap the raster",
@@ -167,6 +170,11 @@ class Surface:
         except rasterio.errors.RasterioIOError as exc:
             raise InputError(f"cannot read the raster: {exc}", path=path, fix="check that it is a GeoTIFF") from exc
         holes_to_nan(data, np.float32(nodata))  # and ODM's -9999 even when the file does not declare it
+        if factor != 1.0:  # heights in feet (the file says so): metres, as every distance here
+            data = (data * np.float64(factor)).astype(np.float32)
+            if path not in _CONVERTED:
+                _CONVERTED.add(path)
+                log.info("%s: heights in %s, converted to metres (x %.12g)", path, unit, factor)
         return cls(data=data, transform=transform, crs=crs, path=path)
 
     @property

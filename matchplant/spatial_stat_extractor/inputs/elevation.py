@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import rasterio
 import rasterio.windows
-from pyproj import CRS
 
 from matchplant.core.geometry.frames import parse_crs
+from matchplant.core.geometry.units import not_metres
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.validate_gis import check_raster_once
 
@@ -32,25 +32,6 @@ def chm_keys(rs, first: bool) -> tuple[str, ...]:
     """The config keys of a date's CHM, for messages."""
     where = "rasters" if first else f"more_dates (date '{rs.date}')"
     return (f"{where}.chm",) if rs.chm is not None else (f"{where}.dsm", f"{where}.dtm")
-
-
-def not_metres(crs) -> str:
-    """The CRS's linear axes that are not in metres, as text ("US survey foot (easting, northing, up)"), or "":
-    degrees (a geographic CRS, warped onto a metric grid where read) and metres are fine."""
-    if crs is None:
-        return ""
-    c = parse_crs(crs) if not isinstance(crs, CRS) else crs
-    units: dict[str, list[str]] = {}
-    for crs_part in c.sub_crs_list or [c]:
-        for axis in crs_part.axis_info:
-            if axis.unit_name in ("metre", "meter") or axis.unit_name.startswith("degree"):
-                continue
-            if axis.unit_auth_code == "9001" or abs(axis.unit_conversion_factor - 1.0) < 1e-12:
-                continue
-            if crs_part.is_geographic and axis.direction not in ("up", "down"):
-                continue  # angles (grads, arc-seconds): warped like degrees
-            units.setdefault(axis.unit_name, []).append(axis.name or axis.direction)
-    return "; ".join(f"{u} ({', '.join(names)})" for u, names in units.items())
 
 
 def _units_fix(unit: str) -> str:

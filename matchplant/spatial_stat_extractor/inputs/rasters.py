@@ -22,6 +22,7 @@ from rasterio.vrt import WarpedVRT
 from rasterio.warp import transform_bounds
 
 from matchplant.core.geometry.frames import utm_crs_for
+from matchplant.core.geometry.units import not_metres
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate_gis import check_raster_once
@@ -31,7 +32,6 @@ from matchplant.spatial_stat_extractor.inputs.bands import (
     file_name,
     pick_band,
 )
-from matchplant.spatial_stat_extractor.inputs.elevation import not_metres
 from matchplant.spatial_stat_extractor.inputs.indices import FormulaSource, parse_formula
 from matchplant.spatial_stat_extractor.inputs.layer import Layer
 from matchplant.spatial_stat_extractor.inputs.sources import (
