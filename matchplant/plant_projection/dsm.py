@@ -100,7 +100,7 @@ class DsmSurfaces:
             f"so no ray can meet it{feet}",
             path=self.path,
             fix="give heights in metres: set the DSM's unit (gdal_edit.py -units ft, or a CRS with its vertical unit) "
-            "and it is converted, or convert it (gdal_calc.py --calc=\"A*0.3048\"); else give this field's DSM",
+            'and it is converted, or convert it (gdal_calc.py --calc="A*0.3048"); else give this field\'s DSM',
         )
 
     def prepare(self, all_bounds: list[np.ndarray | None]) -> None:
