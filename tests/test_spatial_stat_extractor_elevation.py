@@ -76,6 +76,12 @@ def test_a_chm_in_feet_is_named_with_its_unit(tmp_path):
         assert "0.3048" in text and "gdalwarp" in text
     in_metres = write(tmp_path / "chm_m.tif", chm, rasterio.crs.CRS.from_user_input(f"EPSG:{epsg}+5703"))
     check_elevation([RasterSet(chm=in_metres)])  # NAVD88 height in metres: fine
+    band_ft = write(tmp_path / "chm_band_ft.tif", chm / 0.3048)
+    with rasterio.open(band_ft, "r+") as dst:
+        dst.set_band_unit(1, "ft")  # a metric CRS, heights in feet by the band's unit type (gdal_edit.py -units ft)
+    with pytest.raises(InputError, match="heights are in foot .its band unit type.") as e:
+        check_elevation([RasterSet(chm=band_ft)])
+    assert band_ft.name in str(e.value) and "A*0.3048" in str(e.value)
     assert not_metres(rasterio.crs.CRS.from_user_input("EPSG:4326")) == ""  # degrees: warped where read
 
 

@@ -460,3 +460,31 @@ def test_real_lai_in_degrees_under_utm_plants(tmp_path):
     assert np.array_equal(t["lai_count"], n)
     assert np.allclose(t["lai_mean"], [np.mean(v[1]) for v in vals], rtol=1e-9)
     assert np.allclose(t["lai_max"], [np.max(v[1]) for v in vals], rtol=1e-9)
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32615", "EPSG:3857"])
+def test_multispectral_in_another_crs(tiny_field, tmp_path, crs):
+    """The demo's multispectral raster warped to the next UTM zone or Web Mercator (nearest neighbour, 2 mm cells):
+    the plants' boxes (EPSG:32614) are reprojected to it, said in the report; each box keeps its leaf's NDVI as its
+    maximum, and its mean moves only by the cells along its edge that the warp turns from leaf to soil or back: at
+    most (0.8 - 0.15) x perimeter x one 4 mm cell / area."""
+    with rasterio.open(tiny_field.multispectral) as src:
+        t, w, h = calculate_default_transform(
+            src.crs, crs, src.width, src.height, *src.bounds, resolution=src.res[0] / 2
+        )
+        a = np.full((src.count, h, w), -9999.0, np.float32)
+        for b in range(src.count):
+            reproject(rasterio.band(src, b + 1), a[b], dst_transform=t, dst_crs=crs, resampling=Resampling.nearest)
+        profile, names, cell = dict(src.profile, crs=crs, transform=t, width=w, height=h), src.descriptions, src.res[0]
+    warped = tmp_path / "multispectral_warped.tif"
+    with rasterio.open(warped, "w", **profile) as dst:
+        dst.write(a)
+        dst.descriptions = names
+    polys = read_polygons(tiny_field.map_boxes, crs=json.loads(tiny_field.field_json.read_text())["crs"])
+    ref, _ = extract_stats(polys, [RasterSet(multispectral=tiny_field.multispectral)], ["max", "mean"], [])
+    got, report = extract_stats(polys, [RasterSet(multispectral=warped)], ["max", "mean"], [])
+    assert report["layers"][0]["reprojected_from"] == "EPSG:32614" and report["layers"][0]["outside"] == 0
+    np.testing.assert_array_equal(got["ndvi_max"], ref["ndvi_max"])
+    edge = (0.8 - 0.15) * polys.geometry.length.to_numpy() * cell / polys.geometry.area.to_numpy()
+    moved = np.abs(got["ndvi_mean"] - ref["ndvi_mean"]).to_numpy()
+    assert np.all(moved <= edge) and np.median(moved) < 0.01, (np.median(moved), (moved / edge).max())

@@ -18,7 +18,7 @@ import rasterio
 import rasterio.windows
 
 from matchplant.core.geometry.frames import parse_crs
-from matchplant.core.geometry.units import not_metres
+from matchplant.core.geometry.units import height_unit, not_metres
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.validate_gis import check_raster_once
 
@@ -64,6 +64,14 @@ def check_elevation(date_sets) -> None:
                         "distances and areas in metres, so a CHM in feet makes every plant 3.28 times too tall",
                         path=path,
                         fix=_units_fix(units),
+                    )
+                factor, unit = height_unit(None, ds.units[0], path)  # the band's unit type (gdal_edit.py -units)
+                if factor != 1.0:
+                    raise InputError(
+                        f"{key}: the raster's heights are in {unit} (its band unit type); module 9 reads heights in "
+                        "metres, so a CHM in feet makes every plant 3.28 times too tall",
+                        path=path,
+                        fix=_units_fix(unit) + ", then gdal_edit.py -units m out_m.tif",
                     )
             _check_not_constant(files, keys, layer.paths)
 
