@@ -36,6 +36,23 @@ def tiny_field(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def camera_exports(tiny_field, tmp_path_factory):
+    """The tiny field's ODM poses written as a Metashape camera export (meta/cameras.xml) and a Pix4D params
+    folder (p4d/); returns their folder."""
+    from matchplant.core.formats.metashape import write_metashape
+    from matchplant.core.formats.odm import ODMProject
+    from matchplant.core.formats.pix4d import write_pix4d
+
+    out = tmp_path_factory.mktemp("exports")
+    odm = ODMProject(tiny_field.root)
+    shots = odm.reconstruction().shots
+    (out / "meta").mkdir()
+    write_metashape(out / "meta" / "cameras.xml", shots, odm.frame())
+    write_pix4d(out / "p4d" / "1_initial" / "params", "demo", shots, odm.frame())
+    return out
+
+
+@pytest.fixture(scope="module")
 def train_tiles(tmp_path_factory):
     """Module 6's small training set: 8 training and 4 validation tiles of 64 px with 1-3 plants each."""
     d = tmp_path_factory.mktemp("tiles")

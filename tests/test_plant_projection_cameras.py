@@ -11,9 +11,8 @@ import rasterio
 from rasterio.transform import Affine
 
 from matchplant.core.formats.coco import read_dataset
-from matchplant.core.formats.metashape import read_metashape, write_metashape
+from matchplant.core.formats.metashape import read_metashape
 from matchplant.core.formats.odm import ODMProject
-from matchplant.core.formats.pix4d import write_pix4d
 from matchplant.core.formats.projects import PhotoProject, detect_project, open_project
 from matchplant.core.runtime.errors import InputError
 from matchplant.plant_projection.merge import merge_views
@@ -21,15 +20,9 @@ from matchplant.plant_projection.views import project_predictions
 
 
 @pytest.fixture(scope="module")
-def exports(tiny_field, tmp_path_factory):
+def exports(camera_exports):
     """The tiny field's ODM poses written as a Metashape camera export and a Pix4D params folder."""
-    out = tmp_path_factory.mktemp("exports")
-    odm = ODMProject(tiny_field.root)
-    shots = odm.reconstruction().shots
-    (out / "meta").mkdir()
-    write_metashape(out / "meta" / "cameras.xml", shots, odm.frame())
-    write_pix4d(out / "p4d" / "1_initial" / "params", "demo", shots, odm.frame())
-    return out
+    return camera_exports
 
 
 def _raw_predictions(field) -> dict:

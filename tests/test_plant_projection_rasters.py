@@ -14,9 +14,7 @@ from pyproj import CRS, Transformer
 from rasterio.warp import Resampling, calculate_default_transform, reproject
 
 from matchplant.core.formats.coco import read_dataset
-from matchplant.core.formats.metashape import write_metashape
 from matchplant.core.formats.odm import ODMProject
-from matchplant.core.formats.pix4d import write_pix4d
 from matchplant.core.formats.projects import open_project
 from matchplant.core.geometry.units import height_unit, metric_heights
 from matchplant.core.runtime.errors import GeometryError, InputError
@@ -28,14 +26,9 @@ FT = 0.3048  # metres per international foot (exact by definition)
 
 
 @pytest.fixture(scope="module")
-def exports(tiny_field, tmp_path_factory):
+def exports(tiny_field, camera_exports):
     """The tiny field's ODM poses as a Metashape camera export and a Pix4D params folder, and the raw boxes."""
-    out = tmp_path_factory.mktemp("raster_exports")
-    odm = ODMProject(tiny_field.root)
-    shots = odm.reconstruction().shots
-    (out / "meta").mkdir()
-    write_metashape(out / "meta" / "cameras.xml", shots, odm.frame())
-    write_pix4d(out / "p4d" / "1_initial" / "params", "demo", shots, odm.frame())
+    out = camera_exports
     ds = read_dataset(tiny_field.boxes_raw, validate=False)
     preds = {
         "images": ds["images"],
