@@ -1,0 +1,44 @@
+"""The synthetic field's plants rebuilt from its seed: their exact outlines on the map and in any photo.
+
+The generator (``matchplant.simfield.generate``) draws the terrain, the GCPs and the plants from the first three
+streams of its seed, in that order; this rebuilds them the same way (a test of the crops checks against the
+generator's own geometry, never against the DSM the crops read).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import shapely
+
+from matchplant.simfield.config import SimFieldConfig, resolve
+from matchplant.simfield.scene import Terrain, make_gcps, make_plants
+from matchplant.simfield.truth import RING
+
+
+def field_plants(preset: str, seed: int, **overrides):
+    """``(plants, terrain)`` of the field ``generate_field(preset, seed, **overrides)`` wrote (local frame)."""
+    s = resolve(SimFieldConfig(preset=preset, seed=seed, **overrides))
+    streams = np.random.SeedSequence(seed).spawn(6)
+    rng_terrain, rng_gcp, rng_plants = (np.random.default_rng(x) for x in streams[:3])
+    terrain = Terrain.random(s, rng_terrain)
+    gcps = make_gcps(s, terrain, rng_gcp)
+    return make_plants(s, terrain, rng_plants, gcps), terrain
+
+
+def map_outlines(plants, terrain, offset) -> list:
+    """Each plant's true outline on the map (its outermost canopy ring, leaf tips included), map CRS."""
+    pts = plants.surface_points(np.arange(len(plants)), terrain)
+    outer = pts.reshape(len(plants), -1, RING, 3)[:, -1, :, :2] + np.asarray(offset)[:2]
+    return [shapely.make_valid(shapely.Polygon(ring)) for ring in outer]
+
+
+def photo_outline(plants, terrain, p: int, shot):
+    """Plant ``p``'s true outline in ``shot``'s pixels (centres at integers), with nothing in front of it (shot
+    in the field's local frame): its canopy surface, a mesh of triangles between consecutive rings, projected
+    and united (a projected ring folds over itself in an oblique view; triangles stay triangles)."""
+    pts = plants.surface_points(np.array([p]), terrain)[0]
+    uv = shot.project(pts).reshape(-1, RING, 2)
+    a, b = uv[:-1], uv[1:]  # ring k and ring k + 1, point for point
+    a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
+    tris = np.concatenate([np.stack([a, a1, b1], axis=2), np.stack([a, b1, b], axis=2)]).reshape(-1, 3, 2)
+    return shapely.union_all(shapely.polygons(tris), grid_size=1e-6)
