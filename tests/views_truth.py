@@ -7,6 +7,7 @@ generator's own geometry, never against the DSM the crops read).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import shapely
 
@@ -32,13 +33,30 @@ def map_outlines(plants, terrain, offset) -> list:
     return [shapely.make_valid(shapely.Polygon(ring)) for ring in outer]
 
 
-def photo_outline(plants, terrain, p: int, shot):
-    """Plant ``p``'s true outline in ``shot``'s pixels (centres at integers), with nothing in front of it (shot
-    in the field's local frame): its canopy surface, a mesh of triangles between consecutive rings, projected
-    and united (a projected ring folds over itself in an oblique view; triangles stay triangles)."""
+def photo_points(plants, terrain, p: int, shot) -> np.ndarray:
+    """Plant ``p``'s canopy surface points in ``shot``'s pixels (centres at integers), ring by ring (n, RING, 2);
+    shot in the field's local frame."""
     pts = plants.surface_points(np.array([p]), terrain)[0]
-    uv = shot.project(pts).reshape(-1, RING, 2)
+    return shot.project(pts).reshape(-1, RING, 2)
+
+
+def photo_mask(plants, terrain, p: int, shot, window: tuple[int, int, int, int], scale: int = 8) -> np.ndarray:
+    """Plant ``p``'s true silhouette in ``shot`` with nothing in front of it, on the pixels of ``window`` (x0, y0,
+    width, height) refined ``scale`` times: its canopy surface, a mesh of triangles between consecutive rings,
+    each projected and filled (a projected ring folds over itself in an oblique view; a triangle stays one)."""
+    uv = photo_points(plants, terrain, p, shot)
     a, b = uv[:-1], uv[1:]  # ring k and ring k + 1, point for point
     a1, b1 = np.roll(a, -1, axis=1), np.roll(b, -1, axis=1)
     tris = np.concatenate([np.stack([a, a1, b1], axis=2), np.stack([a, b1, b], axis=2)]).reshape(-1, 3, 2)
-    return shapely.union_all(shapely.polygons(tris), grid_size=1e-6)
+    return fill(tris, window, scale)
+
+
+def fill(polygons, window: tuple[int, int, int, int], scale: int = 8) -> np.ndarray:
+    """Polygons (each (k, 2), photo pixels) filled one by one (their union) on ``window``'s refined grid: a
+    sample is in when its centre is."""
+    x0, y0, w, h = window
+    mask = np.zeros((h * scale, w * scale), np.uint8)
+    for poly in polygons:
+        pts = np.round(((np.asarray(poly) - [x0, y0] + 0.5) * scale - 0.5) * 256).astype(np.int32)
+        cv2.fillPoly(mask, [pts], 1, lineType=cv2.LINE_8, shift=8)
+    return mask.astype(bool)

@@ -117,7 +117,9 @@ def cut_crops(plants, survey: Survey, out: str | Path, settings: CropSettings = 
             }
             for i, p in zip(sel, views.plant[sel])
         ]
-        cut_photo(cam, views.plant[sel], boxes, rows, outlines, [names[p] for p in views.plant[sel]], target, settings.quality)
+        cut_photo(
+            cam, views.plant[sel], boxes, rows, outlines, [names[p] for p in views.plant[sel]], target, settings.quality
+        )
     return _write_index(out, plants, [survey.cameras[k].name for k in todo], len(np.unique(views.plant)))
 
 

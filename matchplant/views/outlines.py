@@ -95,7 +95,7 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
     xy = np.concatenate(outlines)
     z_edge = surface.sample(xy[:, 0], xy[:, 1])
     # the cells inside the polygon: drawn into the DSM grid (cell centres at integers)
-    col, row = ~t * (xy[:, 0], xy[:, 1])
+    col, row = _to_cells(t, xy[:, 0], xy[:, 1])
     c0, r0 = int(np.floor(col.min())) - 1, int(np.floor(row.min())) - 1
     c1, r1 = int(np.ceil(col.max())) + 2, int(np.ceil(row.max())) + 2
     h, w = surface.data.shape
@@ -103,7 +103,7 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
     inside = np.zeros((max(r1 - r0, 1), max(c1 - c0, 1)), np.uint8)
     scale = float(1 << SUBPIXEL)
     for ring in outlines:
-        cc, rr = ~t * (ring[:, 0], ring[:, 1])
+        cc, rr = _to_cells(t, ring[:, 0], ring[:, 1])
         pts = np.round(np.column_stack([cc - 0.5 - c0, rr - 0.5 - r0]) * scale).astype(np.int32)
         cv2.fillPoly(inside, [pts], 1, shift=SUBPIXEL)
     z = surface.data[r0:r1, c0:c1]
@@ -117,7 +117,7 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
         edge = z_edge[start : start + len(ring)]
         out.append(np.column_stack([ring, edge, edge]))
         start += len(ring)
-    base = float(np.median(z_edge))
+    base = float(np.percentile(z_edge, 10))  # the ground: neighbours may overhang parts of the outline
     if heights.size == 0:
         return out, base
     low, top = float(np.min(z_edge)), float(heights.max())
@@ -127,9 +127,19 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
         contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         for c in contours:
             cr = c[:, 0, :].astype(float)
-            mx, my = t * (cr[:, 0] + c0 + 0.5, cr[:, 1] + r0 + 0.5)
+            mx, my = _to_map(t, cr[:, 0] + c0 + 0.5, cr[:, 1] + r0 + 0.5)
             out.append(np.column_stack([mx, my, np.full(len(cr), level), np.full(len(cr), below)]))
     peak = np.unravel_index(np.argmax(np.where(valid, z, -np.inf)), z.shape)
-    px, py = t * (peak[1] + c0 + 0.5, peak[0] + r0 + 0.5)
+    px, py = _to_map(t, peak[1] + c0 + 0.5, peak[0] + r0 + 0.5)
     out.append(np.array([[px, py, top, steps[-2]]]))
     return out, base
+
+
+def _to_cells(t, x, y):
+    """Map coordinates to (column, row) cell coordinates of a north-up grid (cell edges at integers)."""
+    return (np.asarray(x) - t.c) / t.a, (np.asarray(y) - t.f) / t.e
+
+
+def _to_map(t, col, row):
+    """(column, row) cell coordinates of a north-up grid to map coordinates."""
+    return t.c + np.asarray(col) * t.a, t.f + np.asarray(row) * t.e
