@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import shapely
 
+from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import write_text
 from matchplant.core.runtime.log import get_logger
@@ -82,9 +83,10 @@ def _rings(geoms, origin: np.ndarray) -> tuple[list[int], list[int]]:
 def _orthophoto(path: Path, crs, bounds: np.ndarray, origin: np.ndarray) -> dict:
     """The orthophoto over ``bounds`` (xmin, ymin, xmax, ymax in ``crs``), downsampled, as a WebP data URL."""
     import rasterio  # lazy: GIS
-    from rasterio.enums import Resampling
+    from rasterio.enums import ColorInterp, Resampling
     from rasterio.warp import transform_bounds
-    from rasterio.windows import from_bounds
+    from rasterio.windows import Window, from_bounds
+    from rasterio.windows import bounds as window_bounds
 
     if not Path(path).is_file():
         raise InputError(
@@ -93,20 +95,20 @@ def _orthophoto(path: Path, crs, bounds: np.ndarray, origin: np.ndarray) -> dict
     with rasterio.open(path) as src:
         if src.crs is None:
             raise InputError("the orthophoto has no CRS", path=path, fix="give a georeferenced GeoTIFF")
-        b = transform_bounds(crs, src.crs, *bounds) if not src.crs.equals(crs) else tuple(bounds)
-        win = from_bounds(*b, transform=src.transform).intersection(
-            rasterio.windows.Window(0, 0, src.width, src.height)
-        )
-        scale = max(win.width, win.height) / ORTHO_PX
-        shape = (max(1, round(win.height / max(scale, 1))), max(1, round(win.width / max(scale, 1))))
+        same = parse_crs(src.crs).equals(crs)
+        b = tuple(bounds) if same else transform_bounds(crs.to_wkt(), src.crs, *bounds)
+        win = from_bounds(*b, transform=src.transform).intersection(Window(0, 0, src.width, src.height))
+        scale = max(max(win.width, win.height) / ORTHO_PX, 1.0)
+        shape = (max(1, round(win.height / scale)), max(1, round(win.width / scale)))
         bands = [1, 2, 3] if src.count >= 3 else [1, 1, 1]
         rgb = src.read(bands, window=win, out_shape=(3, *shape), resampling=Resampling.average)
-        alpha = src.read_masks(1, window=win, out_shape=shape, resampling=Resampling.nearest)
-        wb = rasterio.windows.bounds(win, src.transform)
-        if not src.crs.equals(crs):
-            from rasterio.warp import transform_bounds as tb
-
-            wb = tb(src.crs, crs, *wb)
+        if src.count >= 4 and src.colorinterp[3] == ColorInterp.alpha:  # ODM's RGBA orthophoto
+            alpha = src.read(4, window=win, out_shape=shape, resampling=Resampling.nearest)
+        else:
+            alpha = src.dataset_mask(window=win, out_shape=shape, resampling=Resampling.nearest)
+        wb = window_bounds(win, src.transform)
+        if not same:  # shown on the plants' grid by its box: fine for the CRSs of one field
+            wb = transform_bounds(src.crs, crs.to_wkt(), *wb)
     if rgb.dtype != np.uint8:
         hi = float(np.nanpercentile(rgb, 99.5)) or 1.0
         rgb = np.clip(rgb.astype(float) / hi * 255, 0, 255).astype(np.uint8)
