@@ -17,7 +17,6 @@ import numpy as np
 
 from matchplant.core.geometry.ground import ground_to_pixels
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.io import BatchedWrites
 from matchplant.views.cameras import CameraView
 from matchplant.views.outlines import Outlines
 
@@ -69,7 +68,7 @@ def silhouette(rings: list[np.ndarray], size: tuple[int, int]) -> np.ndarray:
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return np.zeros((0, 2))
-    c = max(contours, key=cv2.contourArea)[:, 0, :].astype(float)
+    c = cv2.approxPolyDP(max(contours, key=cv2.contourArea), s / 16, True)[:, 0, :].astype(float)  # 1/16 px
     return (c + 0.5) / s - 0.5
 
 
@@ -77,8 +76,8 @@ def outline_wkt(xy: np.ndarray) -> str:
     """A polygon's WKT with two decimals (an empty polygon for fewer than three points)."""
     if len(xy) < 3:
         return "POLYGON EMPTY"
-    ring = np.vstack([xy, xy[:1]])
-    return "POLYGON ((" + ", ".join(f"{x:.2f} {y:.2f}" for x, y in ring) + "))"
+    ring = np.round(np.vstack([xy, xy[:1]]), 2)
+    return "POLYGON ((" + ", ".join(f"{x:g} {y:g}" for x, y in ring.tolist()) + "))"
 
 
 def cut_photo(
@@ -112,16 +111,17 @@ def cut_photo(
     table = io.StringIO()
     writer = csv.DictWriter(table, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
-    with BatchedWrites(partial, batch=1 << 16) as out:
-        for j, p in enumerate(plants):
-            x0, y0, x1, y1 = (int(v) for v in boxes[j])
-            ok, jpg = cv2.imencode(".jpg", img[y0:y1, x0:x1], encode)
-            out.write(f"{names[j]}.jpg", jpg.tobytes())
-            ring_uv = (uv[2 * offsets[j] : 2 * offsets[j + 1]] - [x0, y0]).reshape(-1, 2, 2)
-            rings = np.split(ring_uv, outlines.ring_cuts(p))
-            row = dict(rows[j], x0=x0, y0=y0, width=x1 - x0, height=y1 - y0)
-            row["outline_px"] = outline_wkt(silhouette(rings, (x1 - x0, y1 - y0)))
-            writer.writerow(row)
-        out.write(ROWS_FILE, table.getvalue().encode("utf-8"))
+    # plain writes: the folder's rename below is what makes the photo's crops appear, all at once
+    partial.mkdir(parents=True)
+    for j, p in enumerate(plants):
+        x0, y0, x1, y1 = (int(v) for v in boxes[j])
+        ok, jpg = cv2.imencode(".jpg", img[y0:y1, x0:x1], encode)
+        (partial / f"{names[j]}.jpg").write_bytes(jpg.tobytes())
+        ring_uv = (uv[2 * offsets[j] : 2 * offsets[j + 1]] - [x0, y0]).reshape(-1, 2, 2)
+        rings = np.split(ring_uv, outlines.ring_cuts(p))
+        row = dict(rows[j], x0=x0, y0=y0, width=x1 - x0, height=y1 - y0)
+        row["outline_px"] = outline_wkt(silhouette(rings, (x1 - x0, y1 - y0)))
+        writer.writerow(row)
+    (partial / ROWS_FILE).write_text(table.getvalue(), encoding="utf-8")
     os.replace(partial, folder)
     return folder

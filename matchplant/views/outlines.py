@@ -91,7 +91,11 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
     t = surface.transform
     cell = abs(t.a)
     parts = [p for p in shapely.get_parts(geom) if not p.is_empty]
-    outlines = [np.asarray(shapely.segmentize(p.exterior, 2 * cell).coords)[:-1, :2] for p in parts]
+    # simplified to half a cell (the DSM knows no finer), sampled at least every few centimetres (the relief under it)
+    outlines = [
+        np.asarray(shapely.segmentize(shapely.simplify(p.exterior, cell / 2), max(4 * cell, 0.03)).coords)[:-1, :2]
+        for p in parts
+    ]
     xy = np.concatenate(outlines)
     z_edge = surface.sample(xy[:, 0], xy[:, 1])
     # the cells inside the polygon: drawn into the DSM grid (cell centres at integers)
@@ -126,7 +130,7 @@ def _plant_rings(geom, surface: Surface, levels: int) -> tuple[list[np.ndarray],
         above = (valid & (z >= level)).astype(np.uint8)
         contours, _ = cv2.findContours(above, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         for c in contours:
-            cr = c[:, 0, :].astype(float)
+            cr = cv2.approxPolyDP(c, 0.5, True)[:, 0, :].astype(float)  # within half a cell
             mx, my = _to_map(t, cr[:, 0] + c0 + 0.5, cr[:, 1] + r0 + 0.5)
             out.append(np.column_stack([mx, my, np.full(len(cr), level), np.full(len(cr), below)]))
     peak = np.unravel_index(np.argmax(np.where(valid, z, -np.inf)), z.shape)
