@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -27,7 +28,7 @@ from matchplant.core.runtime.io import atomic_open, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.views.cameras import Survey
-from matchplant.views.cut import COLUMNS, PARTIAL, ROWS_FILE, crop_box, cut_photo
+from matchplant.views.cut import COLUMNS, PARTIAL, ROWS_FILE, crop_box, cut_photo, decode
 from matchplant.views.outlines import LEVELS, drape
 from matchplant.views.plan import all_views, best_views
 
@@ -97,30 +98,58 @@ def cut_crops(plants, survey: Survey, out: str | Path, settings: CropSettings = 
         len(todo),
         f"best {settings.best} views" if settings.best else "every whole view",
     )
-    for k in progress(todo, desc="crops", unit="photo"):
-        cam = survey.cameras[k]
-        target = folder / cam.name
-        if target.is_dir():
-            continue
-        sel = np.flatnonzero(views.camera == k)
-        w, h = cam.shot.camera.width, cam.shot.camera.height
-        boxes = crop_box(views.box[sel], w, h, settings.margin, settings.margin_px)
-        rows = [
-            {
-                "plant_id": ids[p],
-                "photo": cam.name,
-                "crop": f"{CROPS_DIR}/{cam.name}/{names[p]}.jpg",
-                "rank": int(rank[i]),
-                "off_nadir_deg": round(float(views.off_nadir[i]), 3),
-                "distance_m": round(float(views.distance[i]), 4),
-                "gsd_cm": round(100 * float(views.gsd[i]), 4),
-            }
-            for i, p in zip(sel, views.plant[sel])
-        ]
-        cut_photo(
-            cam, views.plant[sel], boxes, rows, outlines, [names[p] for p in views.plant[sel]], target, settings.quality
-        )
+    pending = [k for k in todo if not (folder / survey.cameras[k].name).is_dir()]
+    if len(pending) < len(todo):
+        log.info("%d of %d photos were cut by an earlier run", len(todo) - len(pending), len(todo))
+    plan = _Plan(views, rank, ids, names, outlines, settings)
+    by_camera = np.argsort(views.camera, kind="stable")  # each photo's views, in plant order
+    bounds = np.searchsorted(views.camera[by_camera], [todo, todo + 1])
+    # the next photo is decoded in a thread while this one is cut (OpenCV lets go of the GIL): two photos in memory
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        ahead = pool.submit(decode, survey.cameras[pending[0]]) if pending else None
+        for n, k in enumerate(progress(pending, desc="crops", unit="photo")):
+            img = ahead.result()
+            ahead = pool.submit(decode, survey.cameras[pending[n + 1]]) if n + 1 < len(pending) else None
+            j = int(np.searchsorted(todo, k))
+            _cut(survey.cameras[k], img, by_camera[bounds[0, j] : bounds[1, j]], plan, folder)
+            del img
     return _write_index(out, plants, [survey.cameras[k].name for k in todo], len(np.unique(views.plant)))
+
+
+@dataclass
+class _Plan:
+    """Everything the cutting of each photo reads: the views chosen, their ranks, the plants' ids, file names
+    and rings, the settings."""
+
+    views: object
+    rank: np.ndarray
+    ids: list
+    names: list
+    outlines: object
+    settings: CropSettings
+
+
+def _cut(cam, img, sel, plan: _Plan, folder: Path) -> None:
+    """Cut the views ``sel`` (all of camera ``cam``) from its decoded photo into ``folder/<photo>``."""
+    views, rank, ids, names, settings = plan.views, plan.rank, plan.ids, plan.names, plan.settings
+    w, h = cam.shot.camera.width, cam.shot.camera.height
+    boxes = crop_box(views.box[sel], w, h, settings.margin, settings.margin_px)
+    rows = [
+        {
+            "plant_id": ids[p],
+            "photo": cam.name,
+            "crop": f"{CROPS_DIR}/{cam.name}/{names[p]}.jpg",
+            "rank": int(rank[i]),
+            "off_nadir_deg": round(float(views.off_nadir[i]), 3),
+            "distance_m": round(float(views.distance[i]), 4),
+            "gsd_cm": round(100 * float(views.gsd[i]), 4),
+        }
+        for i, p in zip(sel, views.plant[sel])
+    ]
+    plants = views.plant[sel]
+    cut_photo(
+        cam, img, plants, boxes, rows, plan.outlines, [names[p] for p in plants], folder / cam.name, settings.quality
+    )
 
 
 def _check_settings(out: Path, plants, survey: Survey, settings: CropSettings) -> None:

@@ -68,31 +68,20 @@ def silhouette(rings: list[np.ndarray], size: tuple[int, int]) -> np.ndarray:
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return np.zeros((0, 2))
-    c = cv2.approxPolyDP(max(contours, key=cv2.contourArea), s / 16, True)[:, 0, :].astype(float)  # 1/16 px
+    c = cv2.approxPolyDP(max(contours, key=cv2.contourArea), s / 8, True)[:, 0, :].astype(float)  # 1/8 px
     return (c + 0.5) / s - 0.5
 
 
 def outline_wkt(xy: np.ndarray) -> str:
-    """A polygon's WKT with two decimals (an empty polygon for fewer than three points)."""
+    """A polygon's WKT to a tenth of a pixel (an empty polygon for fewer than three points)."""
     if len(xy) < 3:
         return "POLYGON EMPTY"
-    ring = np.round(np.vstack([xy, xy[:1]]), 2)
+    ring = np.round(np.vstack([xy, xy[:1]]), 1)
     return "POLYGON ((" + ", ".join(f"{x:g} {y:g}" for x, y in ring.tolist()) + "))"
 
 
-def cut_photo(
-    cam: CameraView,
-    plants: np.ndarray,
-    boxes: np.ndarray,
-    rows: list[dict],
-    outlines: Outlines,
-    names: list[str],
-    folder: Path,
-    quality: int,
-) -> Path:
-    """Decode ``cam``'s photo once and write the crops of ``plants`` (windows ``boxes``: x0, y0, x1, y1), named
-    ``names`` (``<name>.jpg``), with ``rows`` (the index's view columns) completed and written as ``views.csv``,
-    into ``folder``, which appears whole."""
+def decode(cam: CameraView) -> np.ndarray:
+    """The photo's pixels as stored (BGR, no EXIF rotation: the camera model is of the sensor's grid)."""
     img = cv2.imread(str(cam.photo), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise InputError("cannot decode the photo", path=cam.photo, fix="replace the file with a complete copy")
@@ -103,6 +92,23 @@ def cut_photo(
             path=cam.photo,
             fix="use the original photos the reconstruction was made from",
         )
+    return img
+
+
+def cut_photo(
+    cam: CameraView,
+    img: np.ndarray,
+    plants: np.ndarray,
+    boxes: np.ndarray,
+    rows: list[dict],
+    outlines: Outlines,
+    names: list[str],
+    folder: Path,
+    quality: int,
+) -> Path:
+    """Write the crops of ``plants`` from ``cam``'s decoded photo ``img`` (windows ``boxes``: x0, y0, x1, y1),
+    named ``names`` (``<name>.jpg``), with ``rows`` (the index's view columns) completed and written as
+    ``views.csv``, into ``folder``, which appears whole."""
     partial = folder.with_name(PARTIAL + folder.name)
     shutil.rmtree(partial, ignore_errors=True)
     pts, offsets = outlines.plant_points(plants)
