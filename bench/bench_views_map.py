@@ -98,7 +98,8 @@ def main() -> None:
             med = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
             spread = f"{min(r['load'] for r in runs):.2f}-{max(r['load'] for r in runs):.2f}"
             print(f"{n} plants: file {html.stat().st_size / 1e6:.1f} MB written in {written:.1f} s;"
-                  f" load {med['load']:.2f} s ({spread}), click to popup {1000 * med['click']:.0f} ms, pan redraw {med['redraw_ms']:.0f} ms"
+                  f" load {med['load']:.2f} s ({spread}), click to popup {1000 * med['click']:.0f} ms,"
+                  f" pan redraw {med['redraw_ms']:.0f} ms"
                   f" ({med['drawn']:.0f} plants in view)")  # fmt: skip
     finally:
         shutil.rmtree(work, ignore_errors=True)
