@@ -213,3 +213,25 @@ def write_field_map(
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_text(path, page)
+
+
+def read_plots(path: str | Path, id_column: str = "plot_id"):
+    """Plot polygons with their statistics from a vector file, the id column renamed ``plot_id``."""
+    import geopandas as gpd  # lazy: GIS
+
+    path = Path(path)
+    try:
+        plots = gpd.read_file(path)
+    except Exception as exc:  # pyogrio raises several kinds; all mean the file can't be used
+        raise InputError(
+            f"cannot read the plots: {exc}", path=path, fix="give a GeoPackage, shapefile or GeoJSON"
+        ) from exc
+    if id_column not in plots.columns:
+        raise InputError(
+            f"the plots have no column '{id_column}' (columns: {', '.join(map(str, plots.columns))})",
+            path=path,
+            fix="set plot_id_column to the column holding the plot id",
+        )
+    if plots.crs is None:
+        raise InputError("the plots have no CRS", path=path, fix="give a plot file with a CRS (module 9 writes one)")
+    return plots.rename(columns={id_column: "plot_id"})
