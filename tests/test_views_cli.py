@@ -1,0 +1,60 @@
+"""``matchplant crops`` and ``matchplant map`` from the command line, and their bad inputs."""
+
+from __future__ import annotations
+
+import json
+
+import geopandas as gpd
+import pandas as pd
+import pytest
+from views_truth import field_plants, map_outlines
+
+from matchplant import cli
+
+
+@pytest.fixture(scope="module")
+def plants_file(tiny_field, tmp_path_factory):
+    """The tiny field's true plant outlines with their traits, as a GeoJSON in WGS 84 (any CRS will do)."""
+    meta = json.loads(tiny_field.field_json.read_text())
+    plants, terrain = field_plants("tiny", 0)
+    traits = pd.read_csv(tiny_field.traits_csv)
+    gdf = gpd.GeoDataFrame(
+        {"plant_id": plants.ids, "height": traits["height"], "ndvi": traits["ndvi"]},
+        geometry=map_outlines(plants, terrain, meta["offset"]),
+        crs=meta["crs"],
+    ).to_crs("EPSG:4326")
+    path = tmp_path_factory.mktemp("plants") / "plants.geojson"
+    gdf.to_file(path)
+    return path
+
+
+def test_crops_then_map_from_the_command_line(tiny_field, plants_file, tmp_path):
+    out = tmp_path / "field"
+    assert cli.main(["crops", "--polygons", str(plants_file), "--project", str(tiny_field.root), "--best", "2",
+                     "--out", str(out / "crops")]) == 0  # fmt: skip
+    index = pd.read_csv(out / "crops" / "index.csv")
+    assert index.groupby("plant_id").size().max() == 2 and index.plant_id.nunique() == 46
+    assert all((out / "crops" / c).is_file() for c in index.crop)
+    html = out / "map.html"
+    assert cli.main(["map", "--plants", str(plants_file), "--crops", str(out / "crops" / "index.csv"),
+                     "--orthophoto", str(tiny_field.orthophoto), "--out", str(html)]) == 0  # fmt: skip
+    text = html.read_text(encoding="utf-8")
+    assert "const DATA = " in text and '"height"' in text and "crops/crops/" in text
+
+
+def test_bad_inputs_name_the_file_and_the_fix(tiny_field, plants_file, tmp_path, capsys):
+    missing = tmp_path / "nope.gpkg"
+    assert cli.main(["crops", "--polygons", str(missing), "--project", str(tiny_field.root),
+                     "--out", str(tmp_path / "a")]) == 2  # fmt: skip
+    assert "nope.gpkg" in capsys.readouterr().err
+    empty = tmp_path / "empty_project"
+    empty.mkdir()
+    assert cli.main(["crops", "--polygons", str(plants_file), "--project", str(empty),
+                     "--out", str(tmp_path / "b")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "reconstruction.json" in err and "Traceback" not in err
+    no_photos = tmp_path / "photos"
+    no_photos.mkdir()
+    assert cli.main(["crops", "--polygons", str(plants_file), "--project", str(tiny_field.root),
+                     "--set", f"photos={no_photos}", "--out", str(tmp_path / "c")]) == 2  # fmt: skip
+    assert "photos" in capsys.readouterr().err
