@@ -28,8 +28,9 @@ ALLOWED = {
     "core": set(),
     "detection": {"core"},
     "simfield": {"core"},
-    **{step: {"core", "detection"} for step in STEP_PACKAGES},
-    "steps": {"core", "detection", "simfield", "pipeline", *STEP_PACKAGES},
+    "views": {"core"},  # the plants' crops from the raw photos and the field map (commands and module 9)
+    **{step: {"core", "detection", "views"} for step in STEP_PACKAGES},
+    "steps": {"core", "detection", "simfield", "views", "pipeline", *STEP_PACKAGES},
     "pipeline": {"core", "steps"},
     "cli": {"core", "steps", ""},  # "" is the package's own __init__ (the version)
 }

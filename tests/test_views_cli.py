@@ -37,7 +37,7 @@ def test_crops_then_map_from_the_command_line(tiny_field, plants_file, tmp_path)
     assert all((out / "crops" / c).is_file() for c in index.crop)
     html = out / "map.html"
     assert cli.main(["map", "--plants", str(plants_file), "--crops", str(out / "crops" / "index.csv"),
-                     "--orthophoto", str(tiny_field.orthophoto), "--out", str(html)]) == 0  # fmt: skip
+                     "--orthophoto", str(tiny_field.orthophoto), "--out", str(out)]) == 0  # fmt: skip
     text = html.read_text(encoding="utf-8")
     assert "const DATA = " in text and '"height"' in text and "crops/crops/" in text
 

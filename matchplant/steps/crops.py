@@ -1,7 +1,7 @@
 """Crops of every plant from the raw photos as a command: polygons (any file, any CRS) and an ODM project in,
 ``crops/<photo>/<plant>.jpg``, ``index.csv`` and ``index.gpkg`` out."""
 
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs import read_polygons
 from matchplant.steps import StepSpec
 from matchplant.views import CropResult, cut_crops, survey_cameras
 from matchplant.views.config import CropsConfig

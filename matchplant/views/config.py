@@ -7,7 +7,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from matchplant.core.runtime.config import param
-from matchplant.views.crops import CropSettings
+
+LEVELS = 8  # flat rings of a draped polygon (outlines.py): the silhouette's error shrinks with their spacing
+
+
+@dataclass(frozen=True)
+class CropSettings:
+    """How crops are chosen and cut."""
+
+    best: int = 0  # each plant's best N views by off-nadir angle; 0: every view that sees it whole
+    margin: float = 0.25  # added on each side, as a share of the plant's larger side in the photo
+    margin_px: int = 8  # at least this many pixels on each side
+    quality: int = 92  # JPEG quality of the crops
+    levels: int = LEVELS  # flat rings of the draped polygon (see outlines.py)
+
 
 _DEFAULT = CropSettings()
 
@@ -85,4 +98,8 @@ class FieldMapConfig:
     )
     trait: str = param("", "the trait the map opens with ('' = the first numeric column)")
     title: str = param("MatchPlant field map", "the page's title")
-    output: Path = param(Path("runs/map/map.html"), "the HTML file to write", path="out_file")
+    output_dir: Path = param(
+        Path("runs/map"),
+        "output folder: map.html (keep the crops inside it: the page reads only its folder)",
+        path="out",
+    )

@@ -28,8 +28,9 @@ from matchplant.core.runtime.io import atomic_open, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.views.cameras import Survey
+from matchplant.views.config import CropSettings
 from matchplant.views.cut import COLUMNS, PARTIAL, ROWS_FILE, crop_box, cut_photo, decode
-from matchplant.views.outlines import LEVELS, drape
+from matchplant.views.outlines import drape
 from matchplant.views.plan import all_views, best_views
 
 log = get_logger("views")
@@ -38,17 +39,6 @@ CROPS_DIR = "crops"
 INDEX_CSV = "index.csv"
 INDEX_GPKG = "index.gpkg"
 SETTINGS_FILE = "crops.json"
-
-
-@dataclass(frozen=True)
-class CropSettings:
-    """How crops are chosen and cut."""
-
-    best: int = 0  # each plant's best N views by off-nadir angle; 0: every view that sees it whole
-    margin: float = 0.25  # added on each side, as a share of the plant's larger side in the photo
-    margin_px: int = 8  # at least this many pixels on each side
-    quality: int = 92  # JPEG quality of the crops
-    levels: int = LEVELS  # flat rings of the draped polygon (see outlines.py)
 
 
 @dataclass
@@ -71,9 +61,10 @@ def file_names(ids) -> list[str]:
     return names
 
 
-def cut_crops(plants, survey: Survey, out: str | Path, settings: CropSettings = CropSettings()) -> CropResult:
+def cut_crops(plants, survey: Survey, out: str | Path, settings: CropSettings | None = None) -> CropResult:
     """Cut every plant of ``plants`` (GeoDataFrame with ``plant_id``) from the survey's photos into ``out``."""
     out = Path(out)
+    settings = settings or CropSettings()
     if plants.crs is None:
         raise InputError(
             "the plant polygons have no CRS", path=plants.attrs.get("source"), fix="give polygons_crs (e.g. EPSG:32614)"

@@ -21,7 +21,6 @@ import shapely
 
 from matchplant.core.geometry.surface import Surface
 
-LEVELS = 8  # flat rings above the outline: the silhouette's error shrinks with the square of their spacing
 TILE = 20.0  # metres: plants are draped a tile of the DSM at a time
 SUBPIXEL = 4  # bits of sub-cell precision when a polygon is drawn into the DSM grid
 
@@ -62,7 +61,7 @@ class Outlines:
         return np.stack([top, bottom], axis=1).reshape(-1, 3), offsets
 
 
-def drape(polygons, dsm_path, levels: int = LEVELS) -> Outlines:
+def drape(polygons, dsm_path, levels: int) -> Outlines:
     """The rings of every polygon (shapely geometries in the DSM's CRS), in order.
 
     A polygon over DSM holes keeps its outline at the median height of its valid cells (or, with none, of the
