@@ -10,6 +10,9 @@ import pytest
 from views_truth import field_plants, map_outlines
 
 from matchplant import cli
+from matchplant.core.runtime.config import load_config
+from matchplant.spatial_stat_extractor import SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.run import extract_and_write
 
 
 @pytest.fixture(scope="module")
@@ -58,3 +61,34 @@ def test_bad_inputs_name_the_file_and_the_fix(tiny_field, plants_file, tmp_path,
     assert cli.main(["crops", "--polygons", str(plants_file), "--project", str(tiny_field.root),
                      "--set", f"photos={no_photos}", "--out", str(tmp_path / "c")]) == 2  # fmt: skip
     assert "photos" in capsys.readouterr().err
+
+
+def test_module_9_writes_the_crops_and_the_map(tiny_field, tmp_path):
+    """Module 9 with ``views.project``: the crops of its plants beside its statistics, and map.html with the
+    plots, reading only its own folder (the crops' relative paths)."""
+    grid = json.loads(tiny_field.plots_json.read_text())
+    cfg = load_config(
+        SpatialStatExtractorConfig,
+        None,
+        [
+            f"polygons={tiny_field.map_boxes}",
+            f"polygons_crs={grid['crs']}",
+            f"output_dir={tmp_path}",
+            f"rasters.dsm={tiny_field.dsm}",
+            f"rasters.dtm={tiny_field.dtm}",
+            f"plots.corners={json.dumps(grid['corners'])}",
+            f"plots.columns={grid['columns']}",
+            f"plots.ranges={grid['ranges']}",
+            f"plots.plant_spacing={grid['plant_spacing']}",
+            f"views.project={tiny_field.root}",
+            "views.best=2",
+        ],
+    )
+    _, table, _, written = extract_and_write(cfg)
+    index = pd.read_csv(written["crops_index"])
+    assert set(index.plant_id) <= set(table.plant_id) and index.groupby("plant_id").size().max() == 2
+    assert all((tmp_path / "crops" / c).is_file() for c in index.crop)
+    text = written["map"].read_text(encoding="utf-8")
+    data = json.loads(text.split("const DATA = ", 1)[1].split(";</script>", 1)[0].replace("<\\/", "</"))
+    assert len(data["plants"]["ids"]) == len(table) and len(data["plots"]["ids"]) == grid["columns"] * grid["ranges"]
+    assert data["ortho"] is not None and all(c[0].startswith("crops/crops/") for v in data["crops"].values() for c in v)
