@@ -32,6 +32,7 @@ ORTHO_PX = 2048  # the orthophoto's longer side in the file, pixels
 SIMPLIFY = 0.005  # metres: plant and plot outlines are simplified this much (the map shows centimetres)
 CROPS_SHOWN = 8  # thumbnails per plant popup, best first
 SKIPPED = {"plant_id", "plot_id", "crs", "geometry"}
+COORDINATES = {"x", "y", "z", "xmin", "ymin", "xmax", "ymax", "lon", "lat", "longitude", "latitude"}
 
 PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{title}</title>
@@ -139,6 +140,15 @@ def _crops(index_csv: Path, html: Path) -> dict:
     return out
 
 
+def _default_trait(asked: str | None, numeric: list[str]) -> str | None:
+    """The trait the map opens with: the one asked for, else the first about height, else the first that is not
+    a coordinate."""
+    if asked in numeric:
+        return asked
+    traits = [c for c in numeric if c.lower() not in COORDINATES]
+    return next((c for c in traits if "height" in c.lower()), traits[0] if traits else None)
+
+
 def write_field_map(
     path: str | Path,
     plants,
@@ -180,7 +190,7 @@ def write_field_map(
         "crs": crs.to_string(),
         "extent": [0, 0, float(bounds[2] - origin[0]), float(bounds[3] - origin[1])],
         "cell": float(max(2 * size, 0.5)),
-        "default_trait": trait if trait in numeric else (numeric[0] if numeric else None),
+        "default_trait": _default_trait(trait, numeric),
         "plants": {
             "ids": [str(i) for i in plants["plant_id"]],
             "offsets": offsets,
