@@ -1,6 +1,6 @@
 """The package's layers and the face of a step, enforced on its source (docs/DESIGN.md §1).
 
-core  <-  detection, simfield  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
+core  <-  detection, simfield, views  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
 inside core:  runtime  <-  geometry  <-  formats
 inside spatial_stat_extractor:  inputs  <-  zonal  <-  canopy, plots  <-  the face (config, run, gui, stages)
 
