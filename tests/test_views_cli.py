@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import json
 
-import geopandas as gpd
 import pandas as pd
 import pytest
-from views_truth import field_plants, map_outlines
+from views_truth import true_plants
 
 from matchplant import cli
 from matchplant.core.runtime.config import load_config
@@ -18,14 +17,7 @@ from matchplant.spatial_stat_extractor.run import extract_and_write
 @pytest.fixture(scope="module")
 def plants_file(tiny_field, tmp_path_factory):
     """The tiny field's true plant outlines with their traits, as a GeoJSON in WGS 84 (any CRS will do)."""
-    meta = json.loads(tiny_field.field_json.read_text())
-    plants, terrain = field_plants("tiny", 0)
-    traits = pd.read_csv(tiny_field.traits_csv)
-    gdf = gpd.GeoDataFrame(
-        {"plant_id": plants.ids, "height": traits["height"], "ndvi": traits["ndvi"]},
-        geometry=map_outlines(plants, terrain, meta["offset"]),
-        crs=meta["crs"],
-    ).to_crs("EPSG:4326")
+    gdf = true_plants(tiny_field).to_crs("EPSG:4326")
     path = tmp_path_factory.mktemp("plants") / "plants.geojson"
     gdf.to_file(path)
     return path

@@ -3,8 +3,6 @@ opens the right plant's popup with its crops, a screenshot shows each plant in i
 
 from __future__ import annotations
 
-import json
-
 import cv2
 import geopandas as gpd
 import numpy as np
@@ -12,7 +10,7 @@ import pandas as pd
 import pytest
 import shapely
 from browser import open_page, why_not
-from views_truth import field_plants, map_outlines
+from views_truth import true_plants
 
 from matchplant.views import CropSettings, cut_crops, survey_cameras
 from matchplant.views.fieldmap import write_field_map
@@ -33,16 +31,9 @@ def ramp(t: float) -> np.ndarray:
 def field_map(tiny_field, tmp_path_factory):
     """The tiny field's map, with its crops beside it: (html, plants GeoDataFrame, plots)."""
     folder = tmp_path_factory.mktemp("map")
-    meta = json.loads(tiny_field.field_json.read_text())
-    plants, terrain = field_plants("tiny", 0)
-    traits = pd.read_csv(tiny_field.traits_csv)
-    gdf = gpd.GeoDataFrame(
-        {"plant_id": plants.ids, "height": traits["height"], "canopy_area_m2": traits["canopy_area_m2"]},
-        geometry=map_outlines(plants, terrain, meta["offset"]),
-        crs=meta["crs"],
-    )
+    gdf = true_plants(tiny_field).drop(columns="ndvi")
     table = pd.read_csv(tiny_field.plots_csv)
-    plots = gpd.GeoDataFrame(table.drop(columns="geometry"), geometry=shapely.from_wkt(table.geometry), crs=meta["crs"])
+    plots = gpd.GeoDataFrame(table.drop(columns="geometry"), geometry=shapely.from_wkt(table.geometry), crs=gdf.crs)
     crops = cut_crops(gdf, survey_cameras(tiny_field.root), folder / "crops", CropSettings(best=3))
     html = write_field_map(
         folder / "map.html", gdf, plots=plots, orthophoto=tiny_field.orthophoto, crops=crops.index_csv, trait="height"

@@ -7,6 +7,8 @@ generator's own geometry, never against the DSM the crops read).
 
 from __future__ import annotations
 
+import json
+
 import cv2
 import numpy as np
 import shapely
@@ -31,6 +33,22 @@ def map_outlines(plants, terrain, offset) -> list:
     pts = plants.surface_points(np.arange(len(plants)), terrain)
     outer = pts.reshape(len(plants), -1, RING, 3)[:, -1, :, :2] + np.asarray(offset)[:2]
     return [shapely.make_valid(shapely.Polygon(ring)) for ring in outer]
+
+
+def true_plants(paths, preset: str = "tiny", seed: int = 0):
+    """The field's plants as a GeoDataFrame in its CRS: ``plant_id``, the traits of ``truth/traits.csv``
+    (height, ndvi, canopy_area_m2) and each plant's true outline."""
+    import geopandas as gpd
+    import pandas as pd
+
+    meta = json.loads(paths.field_json.read_text())
+    plants, terrain = field_plants(preset, seed)
+    traits = pd.read_csv(paths.traits_csv)
+    return gpd.GeoDataFrame(
+        {"plant_id": plants.ids, **{c: traits[c] for c in ("height", "ndvi", "canopy_area_m2")}},
+        geometry=map_outlines(plants, terrain, meta["offset"]),
+        crs=meta["crs"],
+    )
 
 
 def photo_points(plants, terrain, p: int, shot) -> np.ndarray:

@@ -55,7 +55,7 @@
   }
 
   // -- the map (CRS.Simple: one unit a metre; lat is north) -------------------------------------------
-  const map = L.map("map", { crs: L.CRS.Simple, minZoom: -6, maxZoom: 12, zoomSnap: 0.25, zoomAnimation: false, preferCanvas: true });
+  const map = L.map("map", { crs: L.CRS.Simple, minZoom: -6, maxZoom: 12, zoomSnap: 0.25, zoomAnimation: false, fadeAnimation: false, preferCanvas: true });
   const W = D.extent[2], H = D.extent[3];
   if (D.ortho) L.imageOverlay(D.ortho.src, [[D.ortho.bounds[1], D.ortho.bounds[0]], [D.ortho.bounds[3], D.ortho.bounds[2]]]).addTo(map);
   map.fitBounds([[0, 0], [H, W]]);
