@@ -14,12 +14,12 @@ import geopandas as gpd
 import numpy as np
 import pandas as pd
 import pytest
-import shapely
-from views_truth import field_plants, fill, map_outlines, photo_mask, photo_points
+from views_truth import crop_ious, field_plants, map_outlines, photo_points
 
 import matchplant.views.crops as crops_module
 from matchplant.core.formats.reconstruction import read_reconstruction
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.simfield import generate_field
 from matchplant.views import CropSettings, cut_crops, survey_cameras
 
 
@@ -45,16 +45,7 @@ def test_crops_cover_each_plants_true_outline(tiny_field, truth, all_views):
     plants, terrain, _, _ = truth
     result, index = all_views
     shots = read_reconstruction(tiny_field.reconstruction).shots
-    ious = []
-    for r in index.itertuples():
-        window = (r.x0, r.y0, r.width, r.height)
-        true = photo_mask(plants, terrain, int(r.plant_id) - 1, shots[r.photo], window)
-        outline = np.asarray(shapely.from_wkt(r.outline_px).exterior.coords) + [r.x0, r.y0]
-        mine = fill([outline], window)
-        ious.append((true & mine).sum() / (true | mine).sum())
-        uv = photo_points(plants, terrain, int(r.plant_id) - 1, shots[r.photo]).reshape(-1, 2) - [r.x0, r.y0]
-        assert uv.min() >= -0.5 and (uv.max(axis=0) <= [r.width - 0.5, r.height - 0.5]).all()  # inside the crop
-    ious = np.array(ious)
+    ious = crop_ious(index, plants, terrain, shots)
     assert len(ious) > 200 and result.plants_seen == len(plants)
     assert ious.min() >= 0.8, f"IoU min {ious.min():.3f}, median {np.median(ious):.3f}"
     assert np.median(ious) >= 0.9
@@ -147,3 +138,18 @@ def test_interrupted_run_resumes_to_the_same_index(tiny_field, truth, all_views,
     pd.testing.assert_frame_equal(again, every)
     with pytest.raises(ConfigError, match="another run"):
         cut_crops(truth[2], survey, tmp_path, CropSettings(best=1))
+
+
+@pytest.mark.slow
+def test_demo_field_crops_cover_each_plants_true_outline(tmp_path):
+    """The demo's field (``small``: 40 photos, 1,292 plants, every whole view): IoU >= 0.8 in every crop."""
+    paths = generate_field(preset="small", seed=0, out=tmp_path / "field")
+    meta = json.loads(paths.field_json.read_text())
+    plants, terrain = field_plants("small", 0)
+    gdf = gpd.GeoDataFrame(
+        {"plant_id": plants.ids}, geometry=map_outlines(plants, terrain, meta["offset"]), crs=meta["crs"]
+    )
+    result = cut_crops(gdf, survey_cameras(paths.root), tmp_path / "crops", CropSettings())
+    ious = crop_ious(pd.read_csv(result.index_csv), plants, terrain, read_reconstruction(paths.reconstruction).shots)
+    assert len(ious) > 15000 and result.plants_seen == len(plants)
+    assert ious.min() >= 0.8 and np.median(ious) >= 0.9, (ious.min(), np.median(ious))
