@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import geopandas as gpd
 import pandas as pd
 import pytest
 from views_truth import true_plants
@@ -53,6 +54,13 @@ def test_bad_inputs_name_the_file_and_the_fix(tiny_field, plants_file, tmp_path,
     assert cli.main(["crops", "--polygons", str(plants_file), "--project", str(tiny_field.root),
                      "--set", f"photos={no_photos}", "--out", str(tmp_path / "c")]) == 2  # fmt: skip
     assert "photos" in capsys.readouterr().err
+    elsewhere = gpd.read_file(plants_file)
+    elsewhere.geometry = elsewhere.translate(0.01, 0.01)  # about a kilometre away: another field
+    elsewhere.to_file(tmp_path / "elsewhere.geojson")
+    assert cli.main(["crops", "--polygons", str(tmp_path / "elsewhere.geojson"), "--project", str(tiny_field.root),
+                     "--out", str(tmp_path / "d")]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "does not overlap" in err and "dsm.tif" in err and "Traceback" not in err
 
 
 def test_module_9_writes_the_crops_and_the_map(tiny_field, tmp_path):

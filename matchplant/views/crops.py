@@ -73,6 +73,12 @@ def cut_crops(plants, survey: Survey, out: str | Path, settings: CropSettings | 
     _check_settings(out, plants, survey, settings)
     outlines = drape(plants.geometry.values, survey.dsm, settings.levels)
     views = best_views(all_views(survey.cameras, outlines), settings.best)
+    if len(views.plant) == 0:
+        raise InputError(
+            f"no photo sees any of the {len(plants)} polygons whole",
+            path=plants.attrs.get("source"),
+            fix="check that the polygons are of this project's field (their CRS, or polygons_crs for a CSV)",
+        )
     first = np.r_[True, views.plant[1:] != views.plant[:-1]]
     rank = np.arange(len(views.plant)) - np.maximum.accumulate(np.where(first, np.arange(len(views.plant)), 0)) + 1
     ids = plants["plant_id"].astype(str).tolist()
