@@ -1,6 +1,6 @@
 """The package's layers and the face of a step, enforced on its source (docs/DESIGN.md §1).
 
-core  <-  detection, simfield  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
+core  <-  detection, simfield, views  <-  one subpackage per step  <-  steps (command layer)  <-  cli, pipeline, demo
 inside core:  runtime  <-  geometry  <-  formats
 inside spatial_stat_extractor:  inputs  <-  zonal  <-  canopy, plots  <-  the face (config, run, gui, stages)
 
@@ -28,8 +28,9 @@ ALLOWED = {
     "core": set(),
     "detection": {"core"},
     "simfield": {"core"},
-    **{step: {"core", "detection"} for step in STEP_PACKAGES},
-    "steps": {"core", "detection", "simfield", "pipeline", *STEP_PACKAGES},
+    "views": {"core"},  # the plants' crops from the raw photos and the field map (commands and module 9)
+    **{step: {"core", "detection", "views"} for step in STEP_PACKAGES},
+    "steps": {"core", "detection", "simfield", "views", "pipeline", *STEP_PACKAGES},
     "pipeline": {"core", "steps"},
     "cli": {"core", "steps", ""},  # "" is the package's own __init__ (the version)
 }

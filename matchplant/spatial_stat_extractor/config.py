@@ -17,6 +17,7 @@ from matchplant.spatial_stat_extractor.canopy import DEFAULT_MAX_MEMORY, parse_m
 from matchplant.spatial_stat_extractor.inputs import RGB_INDICES, Layer, check_order
 from matchplant.spatial_stat_extractor.plots import PlotsConfig
 from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
+from matchplant.views.config import ViewsSection
 
 
 @dataclass
@@ -350,6 +351,7 @@ class SpatialStatExtractorConfig:
     compare: CompareConfig = section(CompareConfig)
     canopy: CanopyConfig = section(CanopyConfig)
     plots: PlotsConfig = section(PlotsConfig)
+    views: ViewsSection = section(ViewsSection)
     max_memory: str = param(
         DEFAULT_MAX_MEMORY,
         "memory module 9 may use (e.g. 3GB, 512MB): the rasters are read in strips "

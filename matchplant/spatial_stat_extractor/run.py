@@ -27,6 +27,7 @@ from matchplant.core.runtime.manifest import previous_files, remove_stale, write
 from matchplant.spatial_stat_extractor.canopy import gdal_cache_bytes, memory_report, memory_stage
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
+from matchplant.spatial_stat_extractor.field_views import write_views
 from matchplant.spatial_stat_extractor.inputs import check_elevation, raster_crs, read_polygons, with_crs
 from matchplant.spatial_stat_extractor.plots import check_plot_file, plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
@@ -125,6 +126,11 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
     if cfg.compare.polygons is not None:
         with memory_stage("the comparison", budget):
             written.update(run_comparison(cfg, polygons, table, sets, out))
+    if cfg.views.project is not None or cfg.views.field_map:
+        t0, c0 = time.perf_counter(), time.process_time()
+        with memory_stage("the crops and the field map", budget):
+            written.update(write_views(cfg.views, polygons, table, out, written))
+        done("crops and field map", t0, c0)
     report["memory"] = {**memory_report(budget), "stages": stages}
     log.info(
         "peak memory %s MB (largest worker process %s MB; max_memory %s)",

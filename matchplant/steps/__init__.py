@@ -31,6 +31,8 @@ STEPS: dict[str, tuple[str, str]] = {
     "plant_projection": ("8_plant_projection", "put detected plants on the map"),
     "spatial_stat_extractor": ("9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
     "simfield": ("", "generate a synthetic ODM project with exact ground truth"),
+    "crops": ("", "crops of every plant polygon from the raw photos that see it, with an index"),
+    "map": ("", "an interactive field map in one HTML file: plants by trait, plots, crops"),
     "inspect": ("", "object sizes of a COCO file; recommended tile size, overlap, min_size, anchors"),
     "init": ("", "write a commented pipeline.yaml for a season from an ODM, Metashape or Pix4D project"),
     "cameras": ("", "what an ODM, Metashape or Pix4D project holds; map points found in its photos"),
