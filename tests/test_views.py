@@ -159,3 +159,26 @@ def test_demo_field_crops_cover_each_plants_true_outline(tmp_path):
     ious = crop_ious(pd.read_csv(result.index_csv), plants, terrain, read_reconstruction(paths.reconstruction).shots)
     assert len(ious) > 15000 and result.plants_seen == len(plants)
     assert ious.min() >= 0.8 and np.median(ious) >= 0.9, (ious.min(), np.median(ious))
+
+
+@pytest.mark.parametrize("program", ["metashape", "pix4d"])
+def test_crops_through_metashape_and_pix4d_cover_the_same_views(
+    tiny_field, truth, all_views, camera_exports, program, tmp_path
+):
+    """The tiny field's poses exported as Metashape and Pix4D write them (conftest's ``camera_exports``): the
+    crops are cut from the same original photos, through each program's distortion model, for the same
+    (plant, photo) views as through ODM, and cover the true outline as well. The truth is the generator's own
+    cameras (its reconstruction.json), never what our Metashape/Pix4D readers make of the export."""
+    plants, terrain, gdf, _ = truth
+    _, odm_index = all_views
+    project = camera_exports / ("meta/cameras.xml" if program == "metashape" else "p4d")
+    survey = survey_cameras(project, tiny_field.images, tiny_field.dsm)  # project_type auto: told from the files
+    assert survey.source == program and survey.crs.to_epsg() == 32614
+    assert {c.shot.camera.projection_type for c in survey.cameras} == {"brown"}  # original photos, distorted
+    result = cut_crops(gdf, survey, tmp_path, CropSettings())
+    index = pd.read_csv(result.index_csv)
+    assert set(zip(index.plant_id, index.photo)) == set(zip(odm_index.plant_id, odm_index.photo))
+    ious = crop_ious(index, plants, terrain, read_reconstruction(tiny_field.reconstruction).shots)
+    print(f"{program}: {len(ious)} crops, IoU min {ious.min():.4f}, median {np.median(ious):.4f}")
+    assert ious.min() >= 0.8, f"IoU min {ious.min():.3f}, median {np.median(ious):.3f}"
+    assert np.median(ious) >= 0.9

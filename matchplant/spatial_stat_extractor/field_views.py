@@ -1,8 +1,8 @@
 """The plants seen: each plant's crops from the raw photos and the field map (``views`` in the config).
 
-Crops come from the ODM project's original photos (``views.project``), cut by :mod:`matchplant.views` into
-``crops/`` with ``crops/index.csv``; ``map.html`` shows the plants coloured by any statistic, the plots with
-theirs, the orthophoto and the crops, and opens with no network.
+Crops come from the original photos of the project (``views.project``: ODM, Metashape or Pix4D), cut by
+:mod:`matchplant.views` into ``crops/`` with ``crops/index.csv``; ``map.html`` shows the plants coloured by any
+statistic, the plots with theirs, the orthophoto and the crops, and opens with no network.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import geopandas as gpd
 
-from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.projects import open_project
 from matchplant.core.runtime.log import get_logger
 from matchplant.views import CropSettings, cut_crops, survey_cameras
 from matchplant.views.config import ViewsSection
@@ -24,7 +24,7 @@ def write_views(views: ViewsSection, plants, table, out: Path, written: dict) ->
     """Crops (when ``views.project`` is set) and ``map.html`` (when ``views.field_map``) in ``out``."""
     new: dict[str, Path] = {}
     if views.project is not None:
-        survey = survey_cameras(views.project, views.photos)
+        survey = survey_cameras(views.project, views.photos, project_type=views.project_type)
         result = cut_crops(plants, survey, out / "crops", CropSettings(best=views.best))
         log.info("%d crops of %d plants from %d photos", result.crops, result.plants_seen, result.photos)
         new["crops_index"] = result.index_csv
@@ -43,5 +43,5 @@ def _orthophoto(views: ViewsSection) -> Path | None:
     """The orthophoto the map shows: the configured one, else the project's (when it has one)."""
     if views.orthophoto is not None or views.project is None:
         return views.orthophoto
-    path = ODMProject(views.project).path("orthophoto")
+    path = open_project(views.project, views.project_type).path("orthophoto")
     return path if path.is_file() else None

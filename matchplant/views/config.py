@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
+from matchplant.core.formats.projects import PROJECT_TYPES
 from matchplant.core.runtime.config import param
 
 LEVELS = 8  # flat rings of a draped polygon (outlines.py): the silhouette's error shrinks with their spacing
@@ -23,19 +25,21 @@ class CropSettings:
 
 
 _DEFAULT = CropSettings()
+PROJECT = (
+    "the project whose original photos and poses give the crops: an ODM folder (opensfm/reconstruction.json, "
+    "images/, odm_dem/dsm.tif), a Metashape camera export (.xml) or project (.psx), or a Pix4D project folder"
+)
+PHOTOS = "folder of the original photos (null: ODM's images/; the paths a Metashape/Pix4D project stores)"
+PROJECT_TYPE = "which program made the project (auto: from its files, named in the log)"
 
 
 @dataclass
 class ViewsSection:
     """Module 9's crops of every plant from the raw photos and its interactive field map (map.html)."""
 
-    project: Path | None = param(
-        None,
-        "the ODM project whose raw photos and poses give each plant's crops (opensfm/reconstruction.json, "
-        "images/, odm_dem/dsm.tif); null = no crops",
-        path="dir",
-    )
-    photos: Path | None = param(None, "folder of the original photos (null: the project's images/)", path="dir")
+    project: Path | None = param(None, PROJECT + "; null = no crops", path="exists")
+    project_type: Literal["auto", "odm", "metashape", "pix4d"] = param("auto", PROJECT_TYPE, choices=PROJECT_TYPES)
+    photos: Path | None = param(None, PHOTOS, path="dir")
     best: int = param(3, "each plant's best N views by off-nadir angle; 0 = every photo that sees it whole", min=0)
     field_map: bool = param(True, "write map.html: the plants coloured by any statistic, the plots, the crops")
     orthophoto: Path | None = param(
@@ -57,11 +61,15 @@ class CropsConfig:
     id_column: str = param("auto", "column holding the id ('auto': plant_id, id or fid; 'number': 1..n)")
     layer: str = param("", "layer of a GeoPackage ('' = the first)")
     polygons_crs: str = param("", "CRS of the polygons when the file has none (a CSV), e.g. EPSG:32615")
-    project: Path = param(
-        None, "the ODM project (opensfm/reconstruction.json, images/, odm_dem/dsm.tif)", path="dir", required=True
+    project: Path = param(None, PROJECT, path="exists", required=True)
+    project_type: Literal["auto", "odm", "metashape", "pix4d"] = param("auto", PROJECT_TYPE, choices=PROJECT_TYPES)
+    photos: Path | None = param(None, PHOTOS, path="dir")
+    dsm: Path | None = param(
+        None,
+        "DSM the polygons are draped on (null: the project's: ODM's odm_dem/dsm.tif, the DSM GeoTIFF beside a "
+        "Metashape export, Pix4D's 3_dsm_ortho/1_dsm/)",
+        path="file",
     )
-    photos: Path | None = param(None, "folder of the original photos (null: the project's images/)", path="dir")
-    dsm: Path | None = param(None, "DSM the polygons are draped on (null: the project's odm_dem/dsm.tif)", path="file")
     best: int = param(0, "each plant's best N views by off-nadir angle; 0 = every photo that sees it whole", min=0)
     margin: float = param(_DEFAULT.margin, "margin around the plant, as a share of its larger side", min=0, max=5)
     margin_px: int = param(_DEFAULT.margin_px, "margin of at least this many pixels", min=0, max=10000)
