@@ -3,16 +3,13 @@ the pipeline's own checks; a folder of none of the three programs is refused, na
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import pytest
 import yaml
+from project_exports import write_exports
 
 from matchplant import cli
-from matchplant.core.formats.metashape import write_metashape
-from matchplant.core.formats.odm import ODMProject
-from matchplant.core.formats.pix4d import write_pix4d
 from matchplant.pipeline import read_pipeline
 from matchplant.pipeline.plan import plan_pipeline
 
@@ -20,27 +17,7 @@ from matchplant.pipeline.plan import plan_pipeline
 @pytest.fixture(scope="module")
 def exports(tiny_field, tmp_path_factory) -> dict[str, Path]:
     """The tiny field as a Metashape export and a Pix4D project folder, with photos, DSM and orthophoto."""
-    out = tmp_path_factory.mktemp("init_exports")
-    odm = ODMProject(tiny_field.root)
-    shots = odm.reconstruction().shots
-    dsm, ortho = tiny_field.root / "odm_dem" / "dsm.tif", tiny_field.root / "odm_orthophoto" / "odm_orthophoto.tif"
-    dtm = tiny_field.root / "odm_dem" / "dtm.tif"
-    meta, p4d = out / "meta", out / "p4d"
-    for folder in (meta, p4d):
-        shutil.copytree(tiny_field.root / "images", folder / "images")
-    write_metashape(meta / "cameras.xml", shots, odm.frame())
-    shutil.copy(dsm, meta / "field_dsm.tif")
-    shutil.copy(ortho, meta / "field_orthomosaic.tif")
-    shutil.copy(dtm, meta / "field_dtm.tif")
-    write_pix4d(p4d / "1_initial" / "params", "field", shots, odm.frame())
-    for sub, src, name in (
-        ("1_dsm", dsm, "field_dsm.tif"),
-        ("extras/dtm", dtm, "field_dtm.tif"),
-        ("2_mosaic", ortho, "field_transparent_mosaic_group1.tif"),
-    ):
-        (p4d / "3_dsm_ortho" / sub).mkdir(parents=True)
-        shutil.copy(src, p4d / "3_dsm_ortho" / sub / name)
-    return {"metashape": meta / "cameras.xml", "pix4d": p4d}
+    return write_exports(tiny_field.root, tmp_path_factory.mktemp("init_exports"))
 
 
 @pytest.mark.parametrize("program", ["metashape", "pix4d"])

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from project_exports import write_exports
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md"] + sorted(ROOT.glob("[0-9]_*/README.md")) + sorted(ROOT.glob("docs/**/*.md"))
@@ -45,10 +46,6 @@ SKIPS = [
         r"^make (demo|test|docs)\b",
         "make demo is the demo itself (minutes; its report is checked by the demo); make test runs this suite; "
         "make docs builds the site (CI runs it: .ci/run)",
-    ),
-    (
-        r"^matchplant (cameras|crops|map)\b|project_type=",
-        "a command of issues 45/46 made on another branch (h45-cameras, h46-see): drop this skip when it is merged",
     ),
     (
         r"^make install-cpu\b",
@@ -85,9 +82,17 @@ SUBSTITUTIONS = {
     "detections/predictions.json": "{W}/runs/test/predictions.json",
     "field/plants": "{U}/plants",
     "orthophoto_boxes.json": "{F}/truth/map_boxes.csv",
+    "gcps.csv": "{F}/gcp/gcp_survey.csv",  # id, x, y, z in the map CRS
 }
 # the user's ODM project, wherever the README puts it: the tiny field's copy in odm_project/
-PREFIXES = {"/data/my_field": "{W}/odm_project", "/data/odm/field3": "{W}/odm_project"}
+# the user's Metashape project: the tiny field exported as Metashape writes it (tests/project_exports.py), its
+# camera export standing in for the .psx (the .psx itself is read in tests/test_cameras_command.py)
+PREFIXES = {
+    "/data/my_field": "{W}/odm_project",
+    "/data/odm/field3": "{W}/odm_project",
+    "/data/field_metashape/field.psx": "{U}/exports/meta/cameras.xml",
+    "/data/field_metashape": "{U}/exports/meta",
+}
 # 'my.yaml' is the user's own config: the keys it holds for each module
 MY_YAML = {
     "gcp_finder": {
@@ -214,6 +219,7 @@ def workspace(tiny_field, tmp_path_factory):
     shutil.copy(tiny_field.gcp_survey, w / "my_flight" / "gcp_survey.csv")
     names = {"F": str(F), "W": str(w), "U": str(u), "CRS": json.loads(tiny_field.field_json.read_text())["crs"]}
     true_predictions(F, u / "true_predictions.json")
+    write_exports(F, u / "exports")
     git = shutil.which("git")
     if git:
         subprocess.run([git, "init", "-q", str(w)], check=True)

@@ -52,7 +52,7 @@ NOTES = {
 
 @dataclass
 class InitConfig:
-    """Write a commented pipeline.yaml for a season from an ODM project folder (matchplant run then runs it)."""
+    """Write a commented pipeline.yaml for a season from an ODM, Metashape or Pix4D project (matchplant run runs it)."""
 
     project: Path | None = param(
         None,

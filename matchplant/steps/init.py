@@ -25,5 +25,6 @@ SPEC = StepSpec(
         "--annotations": ("annotations", "plant boxes on the project's photos (COCO JSON): train a detector"),
         "--checkpoint": ("checkpoint", "a trained detector (best.pt): detect with it"),
         "--output": ("output", "the pipeline file to write (default pipeline.yaml)"),
+        "--project-type": ("project_type", "auto, odm, metashape or pix4d"),
     },
 )
