@@ -9,10 +9,11 @@ what the missing file would give), decided per case:
 problem                                      kind      why
 ===========================================  ========  ==========================================================
 no photogrammetry outputs (raw photos)       error     modules 3, 7 and 8 need the cameras: run ODM first
-no camera reconstruction / undistorted       error     modules 3, 7 and 8 place every plant with them
-photos
-no DSM, or no DTM                            warning   module 9 gives no plant height (CHM = DSM - DTM); the
-                                                       pipeline is written without them
+no camera reconstruction / undistorted       error     modules 3, 7 and 8 place every photo and plant with them
+photos and their cameras
+no DSM                                       error     modules 3 and 8 meet the cameras' rays on it
+no DTM                                       warning   module 9 gives no plant height (CHM = DSM - DTM); the
+                                                       pipeline's module 9 is written without the DSM
 no orthophoto                                warning   module 9 gives no colour statistics from it
 no georeferencing (coords.txt)               warning   positions stay in the reconstruction's local frame
 annotations unreadable / not COCO            error     modules 4 to 6 read them
@@ -113,18 +114,25 @@ ODM_EXPECTED = (
         f"re-run ODM with {OUTPUTS['undistorted_images'].produced_by}",
     ),
     Expected(
+        "undistorted_reconstruction",
+        f"{OUTPUTS['undistorted_reconstruction'].relpath} (cameras of the undistorted photos)",
+        ERROR,
+        "modules 3 and 8 place the undistorted photos with them",
+        f"re-run ODM with {OUTPUTS['undistorted_reconstruction'].produced_by}",
+    ),
+    Expected(
         "dsm",
         f"{OUTPUTS['dsm'].relpath} (surface model)",
-        WARNING,
-        "module 9 gives no plant height (CHM = DSM - DTM)",
-        "re-run ODM with --dsm",
+        ERROR,
+        "modules 3 and 8 meet the cameras' rays on it",
+        "re-run ODM with --dsm (module 2's odm.dsm: true)",
     ),
     Expected(
         "dtm",
         f"{OUTPUTS['dtm'].relpath} (terrain model)",
         WARNING,
         "module 9 gives no plant height (CHM = DSM - DTM)",
-        "re-run ODM with --dtm",
+        "re-run ODM with --dtm (module 2's odm.dtm: true)",
     ),
     Expected(
         "orthophoto",
