@@ -117,7 +117,7 @@ def yolo_best(path: Path) -> Path:
     class DetectionModel:
         pass
 
-    DetectionModel.__module__ = module.__name__
+    DetectionModel.__module__, DetectionModel.__qualname__ = module.__name__, "DetectionModel"
     module.DetectionModel = DetectionModel
     import torch
 
