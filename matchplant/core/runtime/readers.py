@@ -163,7 +163,7 @@ def read_yaml(
     if data is None and allow_empty:
         return {}
     if expect is not None and not isinstance(data, expect):
-        expected = "a mapping" if expect is dict else _kind_of(expect)
+        expected = "an object {...} (a mapping)" if expect is dict else _kind_of(expect)
         raise error(
             f"{what} holds {_kind(data)}, expected {expected} of 'key: value' lines",
             path=path,
