@@ -126,6 +126,15 @@ def init_text_as_checkpoint(w: Work) -> list[str]:
     return [str(w.artifacts / "field"), "--checkpoint", str(best), "--output", str(w.out / "pipeline.yaml")]
 
 
+def init_output_folder(w: Work) -> list[str]:
+    w.out.mkdir(parents=True, exist_ok=True)
+    return [str(w.artifacts / "field"), "--output", str(w.out)]
+
+
+def config_from_stdin(w: Work) -> list[str]:
+    return ["--config", "-"]
+
+
 def set_input_to_dash(w: Work) -> list[str]:
     return ["--set", "images=-", "--set", f"output_dir={w.out}"]
 
@@ -138,6 +147,8 @@ CASES = [
     Case("r-inspect-report-to-stdout", "inspect", inspect_to_stdout, "ok"),
     Case("r-output-folder-dash", "img_splitter", output_folder_dash, mentions=("output_dir", "standard output")),
     Case("r-input-dash", "gps_embeder", set_input_to_dash, mentions=("images", "standard output")),
+    Case("r-config-dash", "img_splitter", config_from_stdin, mentions=("standard input",)),
+    Case("r-init-output-folder", "init", init_output_folder, mentions=("folder", "pipeline.yaml")),
     Case("r-write-config-full-disk", "model_train", write_config_full_disk, mentions=("/dev/full",), marks=LINUX_ONLY),
     Case("r-init-link-to-full-disk", "init", init_link_to_full_disk, mentions=("pipeline.yaml",), marks=LINUX_ONLY),
     Case("r-pipeline-damaged-record", "run", pipeline_with_damaged_record, mentions=("sizes.json", "delete")),
