@@ -129,6 +129,13 @@ def load_yaml(text: str, *, path: Path | None = None, what: str = "YAML file", e
                 fix="indent with spaces only (YAML does not allow tabs)",
             ) from exc
         problem = getattr(exc, "problem", None) or str(exc)
+        lines = text.splitlines()
+        if line is not None and 0 < line <= len(lines) and re.search(r":\s+-\s*(#.*)?$", lines[line - 1]):
+            raise error(
+                f"{what} is not valid YAML at line {line}: a bare '-' there starts a list",
+                path=path,
+                fix="write '-' (standard output) in quotes: key: \"-\"",
+            ) from exc
         raise error(
             f"{what} is not valid YAML{f' at line {line}' if line else ''}: {problem}",
             path=path,
