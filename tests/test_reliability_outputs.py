@@ -130,6 +130,25 @@ def test_inspect_report_dash_is_json_on_standard_output(tmp_path, capsys):
     assert report["recommended"]["tile_size"] > 0 and report["recommended"]["max_minutes"] > 0
 
 
+def test_a_bare_dash_in_a_yaml_file_says_to_quote_it(tmp_path, capsys):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"annotations: {coco(tmp_path)}\nreport: -\n")
+    assert run_module("inspect", ["--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "line 2" in err and 'key: "-"' in err and str(cfg) in err, err
+    cfg.write_text(f'annotations: {coco(tmp_path)}\nreport: "-"\n')
+    assert run_module("inspect", ["--config", str(cfg), "--quiet"]) == 0
+    assert json.loads(capsys.readouterr().out)["images"] == 1
+
+
+def test_a_pipelines_output_folder_is_no_standard_output(tmp_path, capsys):
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(f'output_dir: "-"\nsteps:\n  - module: inspect\n    config: {{annotations: {coco(tmp_path)}}}\n')
+    assert run_module("run", [str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "output_dir" in err and "standard output" in err and not (tmp_path / "-").exists(), err
+
+
 # --------------------------------------------------------------------------------------------------
 # write errors
 
