@@ -16,6 +16,7 @@ from bench.runner import GPU_NAMES, REGISTRY, run_all, run_child
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m bench``: run the chosen comparisons and print each one's speed ratio; the exit status."""
     ap = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes: a short run")
     ap.add_argument(

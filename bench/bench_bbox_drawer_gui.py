@@ -144,6 +144,7 @@ def drag(g, x0, y0, x1, y1, steps: int, button=MouseButton.LEFT) -> dict[str, li
 
 
 def run_bench(photo: Path, boxes: list[list[float]], work: Path, steps: int = 20) -> dict:
+    """Time module 4's window on one photo: importing its boxes, opening, dragging, panning, zooming and editing."""
     t0 = time.perf_counter()
     store = AnnotationStore(photo.parent, work / "session", ["plant"])
     store.import_boxes({photo.name: [ImportedBox(b, "plant") for b in boxes]}, "bench")
@@ -228,6 +229,7 @@ def _free_spot(boxes: list[dict], w: int, h: int) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Parse the options, time the window on a real-size (or synthesised) photo; 1 when a target is missed."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a synthesised photo instead of the realistic field")
     ap.add_argument("--field", type=Path, help="folder of the realistic field (generated there if missing)")

@@ -38,6 +38,7 @@ from matchplant.spatial_stat_extractor.run import run as run_stats
 
 
 def noisy_field(given: str | None) -> Path:
+    """The given field, else the small realistic field with vigour (generated once in the temp folder)."""
     if given:
         return Path(given)
     root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / "small_realistic_seed0"
@@ -58,6 +59,7 @@ SETTINGS = {
 
 
 def module9(field: Path, out: Path, sets: list[str]) -> pd.DataFrame:
+    """Run module 9 on the field's true map boxes with extra ``KEY=VALUE`` settings; its plant table."""
     ms = field / "multispectral" / "multispectral.tif"
     with rasterio.open(ms) as ds:
         red, nir = (3, 5) if ds.count == 5 else (1, 2)  # the realistic field's 5 bands, else red + NIR
@@ -84,6 +86,7 @@ def module9(field: Path, out: Path, sets: list[str]) -> pd.DataFrame:
 
 
 def scores(field: Path, out: Path, table: pd.DataFrame) -> dict:
+    """Score one module 9 run against the truth: outline IoU, NDVI and height r, canopy/box ratios, flags."""
     paths = FieldPaths(field)
     traits = trait_scores(table, paths)
     outlines = gpd.read_file(out / "outlines.gpkg").set_index("plant_id").reindex(table["plant_id"])
@@ -111,6 +114,7 @@ def scores(field: Path, out: Path, table: pd.DataFrame) -> dict:
 
 
 def main() -> None:
+    """Parse the options and print the scores of each ``canopy.ndvi_threshold`` setting."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--field", help="a synthetic field generated with vigour (default: small, noise realistic)")
     args = ap.parse_args()

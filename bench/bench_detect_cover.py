@@ -55,6 +55,7 @@ LITE = "fasterrcnn_resnet18_fpn_lite"
 
 
 def demo_field(given: str | None) -> FieldPaths:
+    """The given field, else the demo's small field (generated once in the temp folder)."""
     if given:
         return FieldPaths(Path(given))
     root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / "small_seed0"
@@ -146,6 +147,7 @@ def survey_footprints(photos: int, seed: int = 0) -> tuple[list, tuple[int, int]
 
 
 def survey_estimate(photos: int, ks: list[int], tile: int = 1024, overlap: int = 128) -> None:
+    """Print the tiles, network input and estimated CPU hours of detecting on every photo and on each k-cover."""
     polygons, size = survey_footprints(photos)
     model = {"min_size": 800, "max_size": 1333}
     # the light model's CPU rate is per photo megapixel on a 1024 px tile: per network input megapixel here
@@ -179,6 +181,7 @@ def survey_estimate(photos: int, ks: list[int], tile: int = 1024, overlap: int =
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Parse the options, measure the multi-view cost on the field and print the survey's estimates."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--field", help="an existing synthetic field folder (default: the demo's, generated once)")
     ap.add_argument("--k", type=int, nargs="+", default=[1, 2, 3], help="cover multiplicities to measure")

@@ -27,6 +27,7 @@ from matchplant.detection.device import measure_cpu_rates
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Parse the options, time detection passes per architecture on one core in rounds; the s/MP and their spread."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("architectures", nargs="*", help="default: every architecture with a measured rate")
     ap.add_argument("--rounds", type=int, default=5)

@@ -47,6 +47,7 @@ def same_boxes(a: dict, b: dict) -> tuple[bool, float, float]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Parse the options, time the light detector in PyTorch and ONNX Runtime on one thread, compare the boxes."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tiles", type=int, default=3)
     ap.add_argument("--rounds", type=int, default=5)

@@ -64,6 +64,7 @@ def demo_settings(net: int, seed: int) -> list[str]:
 
 
 def run_one(name: str, anchors: str, data: Path, epochs: int, net: int, seed: int, out: Path) -> dict:
+    """Train one detector with the given anchors and score it on the test tiles: anchors, AP50, AP, training time."""
     cfg = load_config(
         ModelTrainConfig,
         None,
@@ -113,6 +114,7 @@ def anchors_for_40px_on_512px() -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Parse the options, train with auto and with the demo's anchors per seed, and print both APs."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="48 training tiles, 4 epochs")
     ap.add_argument("--tiles", type=int, default=None, help="training tiles (120; --quick 48)")

@@ -46,10 +46,12 @@ def sizes(device, quick: bool) -> dict:
 
 
 def tile_set(work: Path, size: int, n: int) -> Path:
+    """A folder of ``n`` synthetic PNG training tiles of ``size`` px with their train.json."""
     return copied_tiles(work / "tiles", size, n, (size / 32, size / 12))
 
 
 def on_device_batch(ds: CocoDetection, batch: int, device) -> tuple[list, list]:
+    """One batch of the dataset (cycled) moved to the device: images and targets."""
     images, targets = collate([ds[i % len(ds)] for i in range(batch)])
     return (
         [im.to(device) for im in images],
@@ -131,6 +133,7 @@ def our_loop(work: Path, train_json: Path, batch: int, n_tiles: int, tile: int, 
 
 
 def train_ceiling_row(name: str, work: Path, quick: bool, device) -> dict:
+    """The ``train-ceiling`` row: the model's fastest training speed beside module 6's loop on files, and its share."""
     z = sizes(device, quick)
     train_json = tile_set(work, z["tile"], z["tiles"])
     probe_batch = z["batches"][0]
@@ -184,6 +187,7 @@ def random_checkpoint(work: Path, tile: int) -> Path:
 
 
 def detect_photos_row(name: str, work: Path, quick: bool, device) -> dict:
+    """The ``detect-photos`` row: module 7 on a folder of 20 MP photos, photos per second and the time of 1,000."""
     z = sizes(device, quick)
     folder = photo_folder(work, z["photo"], z["photos"])
     settings = [

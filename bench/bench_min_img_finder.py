@@ -27,6 +27,7 @@ from matchplant.min_img_finder.setcover import select_milp  # noqa: E402
 
 
 def main() -> None:
+    """Parse the options, time module 3's footprints and selection on a generated flight and print them."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="200 images instead of 1,000")
     ap.add_argument("--milp", action="store_true", help="also solve the integer program (60 s limit)")

@@ -39,7 +39,7 @@ from matchplant.detection.data import CocoDetection, collate
 from matchplant.detection.device import select_device
 from matchplant.detection.model import build_detector
 from matchplant.detection.synth import make_photo, make_tiles
-from matchplant.model_test.run import detect_image, model_predictor, tile_starts
+from matchplant.model_test.tiles import detect_image, model_predictor, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.gpu import amp_dtype
 from matchplant.model_train.run import train
@@ -58,6 +58,7 @@ def gpu_rates(batch: int, iters: int) -> list[str]:
 
 
 def gpu_warmup(iters: int) -> int:
+    """Warm-up iterations of a GPU run: half the timed iterations, 1 to 50."""
     return max(1, min(50, iters // 2))
 
 
@@ -278,6 +279,7 @@ def comparison(name: str, work: Path, quick: bool, device: str):
 
 
 def main() -> None:
+    """Parse the options, time module 6's training and module 7's detection against bare torchvision loops; print."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes, a short run")
     ap.add_argument("--arch", default="fasterrcnn_mobilenet_v3_large_fpn")

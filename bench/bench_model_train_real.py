@@ -79,6 +79,7 @@ def inspect_settings(train_json: Path) -> tuple[dict, list[str]]:
 
 
 def test_ap(checkpoint: Path, test_json: Path) -> dict:
+    """COCO AP figures of a checkpoint on the test photos (score threshold 0.05)."""
     model, _ = load_detector(checkpoint)
     model.roi_heads.score_thresh = 0.05
     test = CocoDetection(test_json)
@@ -179,6 +180,7 @@ def run_row(name: str, work: Path, quick: bool, device: str) -> dict:
 
 
 def main() -> None:
+    """Parse the options, train on the DeepForest photos for the time asked and print the result."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--minutes", type=float, default=15.0, help="max_minutes of the training run (0 = none)")
     ap.add_argument(

@@ -20,6 +20,7 @@ from matchplant.detection.synth import make_tiles
 
 
 def main() -> None:
+    """Parse the options, train at each ``crop_on_plant`` setting on sparse photos; print cost and test AP50."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=int, default=1024, help="photo side in pixels")
     ap.add_argument(

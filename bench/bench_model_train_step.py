@@ -37,6 +37,7 @@ SETTINGS = (
 
 
 def step_seconds(train_json: Path, setting: str, steps: int = 4) -> tuple[list[float], float]:
+    """CPU seconds of each training step at one setting, and the inference seconds per image."""
     cfg = load_config(
         ModelTrainConfig,
         None,
@@ -68,6 +69,7 @@ def step_seconds(train_json: Path, setting: str, steps: int = 4) -> tuple[list[f
 
 
 def main() -> None:
+    """Parse the settings and print each one's training-step and inference cost on the DeepForest photos."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("settings", nargs="*", default=list(SETTINGS), help="comma-separated KEY=VALUE settings")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="as bench_model_train_real's --data")

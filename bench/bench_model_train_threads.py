@@ -48,6 +48,7 @@ def step_seconds(model, opt, batches, iters: int) -> float:
 
 
 def main() -> None:
+    """Parse the options, time training steps at MatchPlant's thread choice and at every fixed count, print them."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--iters", type=int, default=6, help="timed iterations per setting and round")

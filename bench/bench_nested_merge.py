@@ -31,7 +31,7 @@ from matchplant.detection.checkpoint import load_detector
 from matchplant.detection.model import set_score_threshold
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.merge import _inside_pairs, merge_nested
-from matchplant.model_test.run import detect_image, model_predictor
+from matchplant.model_test.tiles import detect_image, model_predictor
 
 
 def matched(truth: np.ndarray, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -57,6 +57,7 @@ def larger_kept(boxes: np.ndarray, labels: np.ndarray, containment: float) -> np
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Parse the options, detect on the photos and score no merge, score-aware and keep-the-larger against the truth."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--dataset", type=Path, required=True, help="COCO json of the photos and their true boxes")

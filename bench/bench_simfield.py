@@ -46,6 +46,7 @@ print(json.dumps({"preset": sys.argv[1], "images": field["flight"]["images"], "p
 
 
 def run(preset: str, out: Path, workers: int, noise: str = "exact") -> dict:
+    """Generate one preset in a child process; its sizes, wall and CPU time and peak memory."""
     env = dict(os.environ, MATCHPLANT_QUIET="1")
     res = subprocess.run(
         [sys.executable, "-c", CHILD, preset, str(out), str(workers), noise], capture_output=True, text=True, env=env
@@ -56,6 +57,7 @@ def run(preset: str, out: Path, workers: int, noise: str = "exact") -> dict:
 
 
 def main() -> None:
+    """Parse the options, generate each preset and print its size and time."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="tiny and small only")
     ap.add_argument("--presets", nargs="+", default=None, help="presets to run (default: all)")

@@ -35,8 +35,8 @@ from affine import Affine
 
 from bench.process import matchplant_command, run_process
 from matchplant.core.formats.vectors import write_vector
-from matchplant.spatial_stat_extractor.inputs.sources import RasterFileSource
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.inputs import RasterFileSource
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 STATS = ["count", "min", "max", "mean", "median", "std", "sum"]
 PERCENTILES = [95]
@@ -81,6 +81,7 @@ def make_field(folder: Path, size: int, n_plants: int, seed: int = 0):
 
 
 def timed(fn):
+    """Call ``fn``; its result and the seconds it took."""
     t = time.perf_counter()
     out = fn()
     return out, time.perf_counter() - t
@@ -100,6 +101,7 @@ def worst_difference(ours: dict, ref: dict) -> float:
 
 
 def compare(name: str, ours: dict, ref: dict, rtol: float) -> float:
+    """The largest relative difference between two sets of statistics; stop with an error above ``rtol``."""
     worst = worst_difference(ours, ref)
     if worst > rtol:
         raise SystemExit(f"{name}: numbers differ (largest relative difference {worst:.2e})")
@@ -131,12 +133,14 @@ RS_MAP = {
 
 
 def run_ours(path: Path, boxes, mode: str) -> dict:
+    """Our zonal statistics of the boxes on the raster, by column."""
     with rasterio.open(path) as ds:
         r = zonal_stats(boxes, RasterFileSource(ds), STATS, PERCENTILES, mode=mode)
     return {k: r.stats[k] for k in r.columns}
 
 
 def run_exactextract(path: Path, gdf):
+    """exactextract's statistics of the boxes on the raster, as a table."""
     return exactextract.exact_extract(str(path), gdf, EE_OPS, output="pandas", include_cols=["plant_id"])
 
 
@@ -153,6 +157,7 @@ def exactextract_numbers(ee) -> dict:
 
 
 def run_rasterstats(path: Path, boxes) -> dict:
+    """rasterstats' statistics of the boxes on the raster, in our columns."""
     rs = rasterstats.zonal_stats(boxes, str(path), stats=RS_STATS)
     ref = {k: np.array([np.nan if r[c] is None else r[c] for r in rs], float) for k, c in RS_MAP.items()}
     ref["count"] = np.nan_to_num(ref["count"])
@@ -263,6 +268,7 @@ def comparison(name: str, work: Path, quick: bool, device: str):
 
 
 def main(argv=None) -> int:
+    """Parse the options, time our zonal statistics against rasterstats and exactextract, check they agree, print."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small run (2,000 px raster, 1,250 boxes)")
     ap.add_argument("--size", type=int, help="raster side in pixels (default 8000, quick 2000)")

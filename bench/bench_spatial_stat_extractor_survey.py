@@ -135,6 +135,7 @@ def make_field(root: Path, scale: float, seed: int = 0, length: float = 1.0) -> 
 
 
 def config(meta: dict, out: Path, chm: str, plants: str, canopy: bool, plots: bool, args) -> Path:
+    """Write module 9's YAML config for one survey run (CHM, plants, canopy, plots); its path."""
     side, rows, per_row = meta["side"], meta.get("rows", meta["side"]), meta["per_row"]
     cfg = {
         "polygons": plants,
@@ -235,6 +236,7 @@ def crop_check(meta: dict, work: Path, full_out: Path, args) -> dict:
 
 
 def main(argv=None) -> int:
+    """Parse the options, build the survey-scale CHM and boxes, run module 9 on them and print its figures."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scale", type=float, default=1.0, help="side as a share of 30,000 px (plants: its square)")
     ap.add_argument(

@@ -41,15 +41,19 @@ from matchplant.plant_projection.merge import merge_views  # noqa: E402
 from matchplant.plant_projection.views import project_predictions  # noqa: E402
 from matchplant.simfield.layout import FieldPaths  # noqa: E402
 from matchplant.simfield.scoring import growth_scores, outline_ious, plot_scores, trait_scores  # noqa: E402
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment  # noqa: E402
-from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats  # noqa: E402
+from matchplant.spatial_stat_extractor.canopy import (  # noqa: E402
+    SegmentSettings,
+    canopy_stats,  # noqa: E402
+    segment,
+)
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig  # noqa: E402
-from matchplant.spatial_stat_extractor.inputs.sources import RasterFileSource  # noqa: E402
+from matchplant.spatial_stat_extractor.inputs import RasterFileSource  # noqa: E402
 from matchplant.spatial_stat_extractor.run import extract_and_write  # noqa: E402
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats  # noqa: E402
+from matchplant.spatial_stat_extractor.zonal import zonal_stats  # noqa: E402
 
 
 def field(preset: str, given: str | None) -> FieldPaths:
+    """The given field, else the preset's field with vigour and a second date (generated once in the temp folder)."""
     if given:
         return FieldPaths(Path(given))
     root = Path(tempfile.gettempdir()) / "matchplant_bench_fields" / f"{preset}_traits_seed0"
@@ -77,6 +81,7 @@ def projected_plants(f: FieldPaths, out: Path) -> Path:
 
 
 def accuracy(f: FieldPaths, out: Path) -> dict:
+    """Run module 9 on the projected plants and score its traits, outlines, plots and growth against the truth."""
     plants = projected_plants(f, out)
     grid = json.loads(f.plots_json.read_text())
     sets = [
@@ -177,6 +182,7 @@ def speed(quick: bool, folder: Path) -> dict:
 
 
 def main() -> None:
+    """Parse the options, score module 9's traits and time canopy against box statistics."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the tiny field (and a small speed test)")
     ap.add_argument("--field", help="an existing field generated with vigour and second_date")

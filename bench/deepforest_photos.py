@@ -48,12 +48,14 @@ class Source:
         self.zip = zipfile.ZipFile(self.path) if self.path.is_file() else None
 
     def read(self, name: str) -> bytes:
+        """Bytes of one of DeepForest's data files."""
         if self.zip is not None:
             return self.zip.read(f"deepforest/data/{name}")
         folder = self.path / "deepforest" / "data" if (self.path / "deepforest").is_dir() else self.path
         return (folder / name).read_bytes()
 
     def missing(self) -> list[str]:
+        """The data files this benchmark needs that the source lacks."""
         names = [n for img, xml, _ in SOURCES for n in (img, xml)]
         out = []
         for n in names:

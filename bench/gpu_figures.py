@@ -81,6 +81,7 @@ class GpuMonitor:
         return False
 
     def figures(self) -> dict:
+        """Mean, min and max GPU utilisation over the samples and the peak memory in GiB."""
         s = self.samples
         util = {"mean": round(statistics.mean(s), 1), "min": min(s), "max": max(s), "samples": len(s)} if s else None
         return {"gpu_utilisation_pct": util, "peak_memory_gib": self.peak_gib}
@@ -115,6 +116,7 @@ def accept(figure: str, value: float | None, target: float, unit: str = "", *, a
 
 
 def acceptance_line(a: dict) -> str:
+    """One acceptance figure as a PASS/FAIL line with its value and target."""
     value = "not measured" if a["value"] is None else f"{a['value']:.3g}{a['unit']}"
     sign = "<=" if a["at_most"] else ">="
     return f"{'PASS' if a['pass'] else 'FAIL'}  {a['figure']}: {value} (target {sign} {a['target']:.3g}{a['unit']})"

@@ -210,6 +210,7 @@ def across_runs(summaries: list[dict]) -> dict:
 
 
 def ratio_text(s: dict) -> str:
+    """A comparison's speed ratio in words: median, spread over runs and pairs."""
     if s.get("runs", 1) > 1:
         return (
             f"{s['ratio_median']:.2f}x (runs' medians {s['ratio_min']:.2f}-{s['ratio_max']:.2f} over "

@@ -146,6 +146,7 @@ def acceptance(r: dict, device: str) -> list[dict]:
 
 
 def describe(r: dict) -> str:
+    """One comparison's result as a line: both timings and the speed ratio, its row, or why it was skipped."""
     if "row" in r:
         return f"{r['name']:<15} {r['row']}"
     if "summary" not in r:

@@ -41,6 +41,7 @@ def help_example(spec: StepSpec) -> str:
 
 
 def build_parser(spec: StepSpec) -> argparse.ArgumentParser:
+    """The argument parser of one module: its config file, ``--set KEY=VALUE``, ``--gui`` and the other options."""
     p = argparse.ArgumentParser(
         prog=f"matchplant {spec.name}", description=(spec.config.__doc__ or "").strip().split("\n")[0]
     )
@@ -196,6 +197,7 @@ def folder_main(script: str | Path, config_name: str = "config.yaml") -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """``matchplant <module> ...``: list the modules, or run one; the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print("usage: matchplant <module> [--config FILE] [--set KEY=VALUE ...] [--gui] [--debug]\n")

@@ -200,6 +200,36 @@ def run_demo(
     noise: str = "exact",
     threads: int = 0,
 ) -> Path:
+    """Run the whole demo into ``out``: generate the field, run modules 0 to 9 on it, write the report.
+
+    Parameters
+    ----------
+    out : Path
+        Output folder (created; a re-run skips the finished steps).
+    preset : str
+        Size of the synthetic field (``tiny``, ``small``, ...).
+    seed : int
+        Random seed of the field.
+    epochs : int
+        Training epochs of the detector (a fixed number, so every machine trains the same model).
+    minutes : float
+        Optional time budget for training (0: none; the results then depend on the machine).
+    pretrained : str
+        Starting weights of the detector: ``none``, ``imagenet`` or ``coco``.
+    tile : int
+        Side of module 5's training tiles, in pixels.
+    from_step : str
+        Re-run from this pipeline step on (e.g. ``6_train``); empty: only what is not up to date.
+    noise : str
+        ``exact``, or ``realistic`` to run modules 8 and 9 again on a photogrammetric DSM/DTM.
+    threads : int
+        CPU threads for training and detection (0: the cores free now).
+
+    Returns
+    -------
+    Path
+        The report (``report.md``).
+    """
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
@@ -419,6 +449,7 @@ def kept(out: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m matchplant.demo``: parse the options and run the demo; the exit status (130 on Ctrl-C)."""
     p = _Parser(prog="python -m matchplant.demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default demo_output)")
     p.add_argument("--preset", default="small", help="synthetic field size: " + ", ".join(CHOICES["preset"]))

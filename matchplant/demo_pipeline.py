@@ -1,11 +1,15 @@
 """The demo's pipeline: every module, each reading the files the one before wrote (``pipeline_spec``), and
 modules 8 and 9 again on the realistic field (``noisy_spec``); written with the comments of ``STEP_NOTES`` by
-:func:`matchplant.pipeline.write.write_pipeline`."""
+:func:`matchplant.pipeline.write.write_pipeline`. The chain itself, shared with ``matchplant init``, is
+:func:`matchplant.pipeline.chain.season_chain`."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+
+from matchplant.pipeline.chain import geotag_steps, season_chain
+from matchplant.pipeline.chain import map_steps as chain_map_steps
 
 HELD_OUT = "heldout_images"  # the photos the detector never saw, linked for module 7
 NOISY = "noisy"  # modules 8 and 9 on the realistic field, under <out>/noisy
@@ -31,10 +35,6 @@ STEP_NOTES = {
 }
 
 
-def _step(name: str, module: str, **config) -> dict:
-    return {"name": name, "module": module, "config": config}
-
-
 def pipeline_spec(
     field: Path, crs: str, *, epochs: int, minutes: float, pretrained: str, tile: int, threads: int = 0
 ) -> dict:
@@ -58,75 +58,51 @@ def pipeline_spec(
         },
         "roi": {"batch_size_per_image": 64},
     }
+    train = {
+        "model": model,
+        "epochs": epochs,
+        "max_minutes": minutes,
+        "batch_size": 4,
+        "num_workers": 0,
+        "warmup_iters": 20,
+        "step_size": 20,
+        "save_every": 0,
+        **cpu,
+        "lr": {"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02},
+    }
     steps = [
-        _step(
-            "0_gps",
-            "gps_embeder",
-            images="${field}/images_nogps",
-            gnss_log="${field}/gnss/events.txt",
-            log_crs="${crs}",
-        ),
-        _step(
-            "1_gcp",
-            "gcp_finder",
-            images="${0_gps.output_dir}/images",
-            survey="${field}/gcp/gcp_survey.csv",
-            survey_crs="${crs}",
+        *geotag_steps(
+            "${field}/images_nogps",
+            "${field}/gnss/events.txt",
+            "${crs}",
+            "${field}/gcp/gcp_survey.csv",
+            "${crs}",
             auto=True,
         ),
-        _step("2_odm", "odm_runner", project_dir="${field}", check_only=True),
-        _step("3_select", "min_img_finder", project_dir="${field}"),
-        _step(
-            "4_annotate",
-            "bbox_drawer",
-            images="${3_select.output_dir}/images",
-            import_coco="${field}/truth/boxes_undistorted.json",
-            min_score=0.0,
+        *season_chain(
+            "${field}",
+            "${3_select.output_dir}/images",
+            annotations="${field}/truth/boxes_undistorted.json",
+            annotate={"min_score": 0.0},
+            tiles={"tile_size": tile, "overlap": tile // 4, "negative_share": 0.2, "split": [0.55, 0.15, 0.3]},
+            train=train,
+            # detection on the photos the detector never saw (module 5's test split and module 3's unselected
+            # photos): only they are projected and scored
+            detect={
+                "evaluate": {"dataset_json": "${5_tiles.output_dir}/test.json"},
+                **cpu,
+                "detect": {"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4},
+            },
+            **map_settings(field),
         ),
-        _step(
-            "5_tiles",
-            "img_splitter",
-            images="${3_select.output_dir}/images",
-            annotations="${4_annotate.output_dir}/annotations.json",
-            tile_size=tile,
-            overlap=tile // 4,
-            negative_share=0.2,
-            split=[0.55, 0.15, 0.3],
-        ),
-        _step(
-            "6_train",
-            "model_train",
-            train_json="${5_tiles.output_dir}/train.json",
-            val_json="${5_tiles.output_dir}/val.json",
-            model=model,
-            epochs=epochs,
-            max_minutes=minutes,
-            batch_size=4,
-            num_workers=0,
-            warmup_iters=20,
-            step_size=20,
-            save_every=0,
-            **cpu,
-            lr={"backbone": 0.02, "fpn": 0.02, "rpn": 0.02, "roi_heads": 0.02},
-        ),
-        # detection on the photos the detector never saw (module 5's test split and module 3's unselected
-        # photos): only they are projected and scored
-        _step(
-            "7_detect",
-            "model_test",
-            checkpoint="${6_train.output_dir}/checkpoints/best.pt",
-            evaluate={"dataset_json": "${5_tiles.output_dir}/test.json"},
-            **cpu,
-            detect={"images": "${held_out_images}", "tile_size": tile, "overlap": tile // 4},
-        ),
-        *map_steps(field, "${7_detect.output_dir}/predictions.json"),
     ]
     return {"output_dir": ".", "field": field.name, "crs": crs, "held_out_images": HELD_OUT, "steps": steps}
 
 
-def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
-    """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics. ``bands``: red and
-    NIR band numbers of the multispectral raster (None: the exact field's, 1 and 2)."""
+def map_settings(field: Path, bands: tuple[int, int] | None = None) -> dict[str, dict]:
+    """Modules 8 and 9's other keys on the demo's field: both projection modes scored against the truth, the
+    rasters and the plot grid. ``bands``: red and NIR band numbers of the multispectral raster (None: the exact
+    field's, 1 and 2)."""
     rasters = {
         "dsm": "${field}/odm_dem/dsm.tif",
         "dtm": "${field}/odm_dem/dtm.tif",
@@ -135,23 +111,15 @@ def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = Non
     }
     if bands:
         rasters.update(red_band=bands[0], nir_band=bands[1])
-    return [
-        _step(
-            "8_plants",
-            "plant_projection",
-            project="${field}",
-            predictions=predictions,
-            mode="both",
-            evaluate={"reference": "${field}/truth/map_boxes.csv"},
-        ),
-        _step(
-            "9_stats",
-            "spatial_stat_extractor",
-            polygons="${8_plants.output_dir}/plants.gpkg",
-            rasters=rasters,
-            plots=_plots_section(field),
-        ),
-    ]
+    return {
+        "plants": {"mode": "both", "evaluate": {"reference": "${field}/truth/map_boxes.csv"}},
+        "stats": {"rasters": rasters, "plots": _plots_section(field)},
+    }
+
+
+def map_steps(field: Path, predictions: str, bands: tuple[int, int] | None = None) -> list[dict]:
+    """Modules 8 and 9: the detections on the map, then per-plant and per-plot statistics (:func:`map_settings`)."""
+    return chain_map_steps("${field}", predictions, **map_settings(field, bands))
 
 
 def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:

@@ -28,31 +28,9 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
     """``report.md`` and ``summary.json``; ``extra``: ``held_out`` (the photos scored), ``noisy`` (the
     realistic field's figures), ``environment`` (what the figures depend on)."""
     extra = extra or {}
-
-    def load(p: Path) -> dict:
-        return json.loads(p.read_text()) if p.is_file() else {}
-
-    tr, pl, gr = compare.get("traits", {}), compare.get("plots", {}), compare.get("growth", {})
-    metrics = load(out / "7_detect" / "metrics.json")
-    evaluation = load(out / "8_plants" / "evaluation.json")
-    summary = load(out / "6_train" / "training_summary.json")
-    selection = load(out / "3_select" / "selection.json")
-    gps = load(out / "0_gps" / "match_summary.json")
-
-    def fig(rel: str, caption: str = "") -> str:
-        caption = figure_caption(out / rel) or caption
-        return f"![{caption}](../{rel})\n\n*{caption}*\n" if (out / rel).is_file() else f"*({caption}: not produced)*\n"
-
-    def num(d: dict, *keys, fmt="{:.3f}") -> str:
-        for k in keys:
-            v = d.get(k) if isinstance(d, dict) else None
-            if isinstance(v, dict):
-                d = v
-                continue
-            if isinstance(v, (int, float)):
-                return fmt.format(v)
-        return "n/a"
-
+    metrics = _load(out / "7_detect" / "metrics.json")
+    evaluation = _load(out / "8_plants" / "evaluation.json")
+    summary = _load(out / "6_train" / "training_summary.json")
     lines = [
         "# MatchPlant demo report",
         "",
@@ -65,67 +43,7 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
     ]
     for name, (status, secs) in timings.items():
         lines.append(f"| {name} | {status} | {secs:.1f} |")
-    lines += [
-        "",
-        "## Georeferencing (module 0)",
-        "",
-        f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
-        f"estimated clock offset {num(gps, 'clock_offset_s', fmt='{:.2f}')} s.",
-        "",
-        "## Coverage (module 3)",
-        "",
-        f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
-        f"covering {num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.",
-        "",
-        fig("3_select/coverage.png", "footprints of the selected undistorted images over the field"),
-        "## Detector (modules 6 and 7)",
-        "",
-        f"Test AP50 = {num(metrics.get('coco', {}), 'AP50', fmt='{:.1%}')}, "
-        f"AP = {num(metrics.get('coco', {}), 'AP', fmt='{:.1%}')} "
-        f"(trained {summary.get('epochs_done', 'n/a')} epochs in {summary.get('train_time_s', 0) / 60:.1f} min "
-        f"on {summary.get('device', 'the CPU')}).",
-        "",
-        fig("6_train/training_curves.png", "training loss and validation AP"),
-        "## Plants on the map (module 8)",
-        "",
-        f"Reference plants matched: {num(evaluation, 'share_matched', fmt='{:.1%}')}; "
-        f"with IoU > 0.5: {num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
-        f"median IoU {num(evaluation, 'iou_median')}.",
-        "",
-        fig("8_plants/evaluation.png", "projected plants and the true plant boxes over the orthophoto"),
-        "## Per-plant traits against the truth (module 9)",
-        "",
-        f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
-        f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
-        f"median IoU {num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
-        "over the box (as the paper does) and over the canopy pixels.",
-        "",
-        "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
-        "|---|---|---|---|",
-        f"| height ({TRAIT_STATS['height'][2]}) | {num(tr, 'height_box_r')} | {num(tr, 'height_r')} "
-        f"| {num(tr, 'height_mae_m')} m |",
-        f"| NDVI ({TRAIT_STATS['ndvi'][2]}) | {num(tr, 'ndvi_box_r')} | {num(tr, 'ndvi_r')} | {num(tr, 'ndvi_mae')} |",
-        "",
-        fig(
-            "report/traits_vs_truth.png",
-            "per-plant height and NDVI against the truth (the paper's Figure 10): "
-            "left, over the box (the paper's way); right, over the canopy "
-            "outlined on the CHM",
-        ),
-        "## Plots (module 9)",
-        "",
-        f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
-        f"; true gaps found: {num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
-        f"false gaps: {num(pl, 'false_gap_share', fmt='{:.1%}')}.",
-        "",
-        fig("9_stats/plots.png", "the plots, the plants and the gaps"),
-        "## Growth (module 9, second date)",
-        "",
-        f"Boxes of the first date reused on the second: median centre error "
-        f"{num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
-        f"date's CHM: {num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.",
-        "",
-    ]
+    lines += _step_sections(out, metrics, evaluation, summary) + _field_sections(out, compare)
     lines += _held_out_section(extra.get("held_out", {})) + _noisy_section(
         {**compare, "projection": evaluation}, extra.get("noisy")
     )
@@ -157,6 +75,104 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
         ),
     )
     return path
+
+
+def _load(p: Path) -> dict:
+    """A JSON file's content, or {} where the step did not write it."""
+    return json.loads(p.read_text()) if p.is_file() else {}
+
+
+def _figure(out: Path, rel: str, caption: str = "") -> str:
+    """A figure of the run with its caption (the figure's own where it has one), or a line saying it is missing."""
+    caption = figure_caption(out / rel) or caption
+    return f"![{caption}](../{rel})\n\n*{caption}*\n" if (out / rel).is_file() else f"*({caption}: not produced)*\n"
+
+
+def _num(d: dict, *keys, fmt="{:.3f}") -> str:
+    """The number at ``keys`` (a path into nested dicts, or alternatives at one level), formatted; n/a if none."""
+    for k in keys:
+        v = d.get(k) if isinstance(d, dict) else None
+        if isinstance(v, dict):
+            d = v
+            continue
+        if isinstance(v, (int, float)):
+            return fmt.format(v)
+    return "n/a"
+
+
+def _step_sections(out: Path, metrics: dict, evaluation: dict, summary: dict) -> list[str]:
+    """The report's sections on modules 0, 3, 6-7 and 8."""
+    selection = _load(out / "3_select" / "selection.json")
+    gps = _load(out / "0_gps" / "match_summary.json")
+    return [
+        "## Georeferencing (module 0)",
+        "",
+        f"Images matched to GNSS events: {gps.get('matched', 'n/a')} of {gps.get('images', 'n/a')}; "
+        f"estimated clock offset {_num(gps, 'clock_offset_s', fmt='{:.2f}')} s.",
+        "",
+        "## Coverage (module 3)",
+        "",
+        f"Selected images: {selection.get('images_selected', 'n/a')} of {selection.get('images_total', 'n/a')}, "
+        f"covering {_num(selection, 'coverage_pct', fmt='{:.1f}')} % of the field.",
+        "",
+        _figure(out, "3_select/coverage.png", "footprints of the selected undistorted images over the field"),
+        "## Detector (modules 6 and 7)",
+        "",
+        f"Test AP50 = {_num(metrics.get('coco', {}), 'AP50', fmt='{:.1%}')}, "
+        f"AP = {_num(metrics.get('coco', {}), 'AP', fmt='{:.1%}')} "
+        f"(trained {summary.get('epochs_done', 'n/a')} epochs in {summary.get('train_time_s', 0) / 60:.1f} min "
+        f"on {summary.get('device', 'the CPU')}).",
+        "",
+        _figure(out, "6_train/training_curves.png", "training loss and validation AP"),
+        "## Plants on the map (module 8)",
+        "",
+        f"Reference plants matched: {_num(evaluation, 'share_matched', fmt='{:.1%}')}; "
+        f"with IoU > 0.5: {_num(evaluation, 'share_iou_above_0.5', fmt='{:.1%}')}; "
+        f"median IoU {_num(evaluation, 'iou_median')}.",
+        "",
+        _figure(out, "8_plants/evaluation.png", "projected plants and the true plant boxes over the orthophoto"),
+    ]
+
+
+def _field_sections(out: Path, compare: dict) -> list[str]:
+    """The report's sections on module 9: per-plant traits, plots and growth against the truth."""
+    tr, pl, gr = compare.get("traits", {}), compare.get("plots", {}), compare.get("growth", {})
+    return [
+        "## Per-plant traits against the truth (module 9)",
+        "",
+        f"Plants projected: {tr.get('plants')}, true plants: {tr.get('true_plants')}, "
+        f"matched by position: {tr.get('matched')}. Each plant is outlined on the CHM (its canopy: "
+        f"median IoU {_num(tr, 'outline_iou_median')} with the true canopy) and its traits are measured "
+        "over the box (as the paper does) and over the canopy pixels.",
+        "",
+        "| trait | over the box: Pearson r | over the canopy: Pearson r | canopy: mean absolute error |",
+        "|---|---|---|---|",
+        f"| height ({TRAIT_STATS['height'][2]}) | {_num(tr, 'height_box_r')} | {_num(tr, 'height_r')} "
+        f"| {_num(tr, 'height_mae_m')} m |",
+        f"| NDVI ({TRAIT_STATS['ndvi'][2]}) | {_num(tr, 'ndvi_box_r')} | {_num(tr, 'ndvi_r')} "
+        f"| {_num(tr, 'ndvi_mae')} |",
+        "",
+        _figure(
+            out,
+            "report/traits_vs_truth.png",
+            "per-plant height and NDVI against the truth (the paper's Figure 10): "
+            "left, over the box (the paper's way); right, over the canopy "
+            "outlined on the CHM",
+        ),
+        "## Plots (module 9)",
+        "",
+        f"Plots: {pl.get('plots', 'n/a')}; stand count exact on {_num(pl, 'stand_count_exact_share', fmt='{:.1%}')}"
+        f"; true gaps found: {_num(pl, 'gaps_found_share', fmt='{:.1%}')} of {pl.get('true_gaps', 'n/a')}, "
+        f"false gaps: {_num(pl, 'false_gap_share', fmt='{:.1%}')}.",
+        "",
+        _figure(out, "9_stats/plots.png", "the plots, the plants and the gaps"),
+        "## Growth (module 9, second date)",
+        "",
+        f"Boxes of the first date reused on the second: median centre error "
+        f"{_num(gr, 'reused_box_centre_error_median_m', fmt='{:.3f}')} m; plants re-centred on the second "
+        f"date's CHM: {_num(gr, 'recentred_error_median_m', fmt='{:.3f}')} m.",
+        "",
+    ]
 
 
 def figure_caption(path: Path) -> str:

@@ -23,7 +23,8 @@ from matchplant.detection.evaluate import coco_evaluate, matches_at_iou50, opera
 from matchplant.detection.synth import make_photo, make_tiles
 from matchplant.model_test.config import ModelTestConfig
 from matchplant.model_test.merge import merge_nested, merge_tile_boxes
-from matchplant.model_test.run import detect_image, run, tile_starts
+from matchplant.model_test.run import run
+from matchplant.model_test.tiles import detect_image, tile_starts
 from matchplant.model_train.config import ModelTrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -968,7 +968,7 @@ def test_auto_from_random_weights_on_a_cpu_sets_the_optimisation_and_resume_keep
 def test_image_size_reads_headers_and_names_truncated_files(tmp_path):
     import cv2
 
-    from matchplant.detection.data import image_size
+    from matchplant.detection.dataset_checks import image_size
 
     img = np.random.default_rng(0).integers(0, 255, (37, 53, 3), dtype=np.uint8)
     for ext in (".png", ".jpg", ".tif"):

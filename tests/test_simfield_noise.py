@@ -156,8 +156,7 @@ def test_skewed_plot_grid_truth_agrees_with_module_9s_grid_and_the_plants(tmp_pa
     """A parallelogram grid: module 9's plot_grid from truth/plots.json's corners gives truth/plots.csv's
     outlines; every plant of a plot stands inside it, every gap lies inside its plot and on its row, and no
     plant grows at a gap."""
-    from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
-    from matchplant.spatial_stat_extractor.plots.table import plot_grid
+    from matchplant.spatial_stat_extractor.plots import PlotsConfig, plot_grid
 
     field = generate_field("tiny", seed=1, out=tmp_path / "skew", plot_skew_deg=skew, image_width=200)
     grid = read_json(field.plots_json)

@@ -14,8 +14,8 @@ import shapely
 from affine import Affine
 
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.inputs import ArraySource
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDER = ROOT / "9_spatial_stat_extractor"
@@ -403,9 +403,9 @@ def test_chm_ndvi_outputs_and_crs(field):
     import pyogrio
 
     from matchplant.spatial_stat_extractor.config import RasterSet
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
     from matchplant.spatial_stat_extractor.run import write_outputs
-    from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+    from matchplant.spatial_stat_extractor.zonal import extract_stats
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -446,8 +446,8 @@ def test_chm_ndvi_outputs_and_crs(field):
 
 def test_dates_wide_and_long(field):
     from matchplant.spatial_stat_extractor.config import RasterSet
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-    from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
+    from matchplant.spatial_stat_extractor.zonal import extract_stats
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -464,7 +464,7 @@ def test_dates_wide_and_long(field):
 
 
 def test_csv_inputs(field, tmp_path):
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
 
     b = shapely.bounds(field["boxes"])
     pd.DataFrame({"id": field["ids"], "xmin": b[:, 0], "ymin": b[:, 1], "xmax": b[:, 2], "ymax": b[:, 3]}).to_csv(
@@ -488,8 +488,8 @@ def test_csv_inputs(field, tmp_path):
 
 def test_bad_inputs_are_explained(field, tmp_path):
     from matchplant.spatial_stat_extractor.config import RasterSet
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-    from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
+    from matchplant.spatial_stat_extractor.zonal import extract_stats
 
     d = field["dir"]
     pd.DataFrame({"a": [1], "b": [2]}).to_csv(tmp_path / "nogeom.csv", index=False)
@@ -515,8 +515,8 @@ def test_bad_inputs_are_explained(field, tmp_path):
 
 def test_outside_and_nodata_reported(field, caplog):
     from matchplant.spatial_stat_extractor.config import RasterSet
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-    from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
+    from matchplant.spatial_stat_extractor.zonal import extract_stats
 
     d = field["dir"]
     polys = read_polygons(d / "plants.gpkg")
@@ -635,8 +635,8 @@ def test_synthetic_field_heights_and_ndvi(tiny_field, tmp_path):
     import rasterio.features
 
     from matchplant.spatial_stat_extractor.config import RasterSet
-    from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-    from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+    from matchplant.spatial_stat_extractor.inputs import read_polygons
+    from matchplant.spatial_stat_extractor.zonal import extract_stats
 
     truth = pd.read_csv(tiny_field.plants_csv).set_index("id")
     res = json.loads(tiny_field.field_json.read_text())["raster_res"]

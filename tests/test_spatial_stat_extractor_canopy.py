@@ -19,25 +19,22 @@ from scipy import ndimage as ndi
 
 from matchplant.core.runtime.config import load_config
 from matchplant.core.runtime.errors import ConfigError, InputError
-from matchplant.spatial_stat_extractor.canopy.ground import (
+from matchplant.spatial_stat_extractor.canopy import (
     GroundSample,
+    SegmentSettings,
     check_chm,
     measure_ground,
-    robust_sd,
+    segment,
     thresholds,
 )
-from matchplant.spatial_stat_extractor.canopy.outlines import (
-    SegmentSettings,
-    segment,
-    valid_polygons,
-)
+from matchplant.spatial_stat_extractor.canopy.collect import valid_polygons  # the role's own polygon repair
+from matchplant.spatial_stat_extractor.canopy.ground import robust_sd  # the role's own robust statistics
 from matchplant.spatial_stat_extractor.config import (
     CanopyConfig,
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
+from matchplant.spatial_stat_extractor.inputs import ArraySource, read_polygons
 from matchplant.spatial_stat_extractor.run import extract_and_write
 from matchplant.spatial_stat_extractor.traits import canopy_traits
 

@@ -10,10 +10,9 @@ import shapely
 from noisy_chm import noisy_chm
 from scipy import ndimage as ndi
 
-from matchplant.spatial_stat_extractor.canopy.ground import measure_ground, thresholds
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
+from matchplant.spatial_stat_extractor.canopy import SegmentSettings, measure_ground, segment, thresholds
 from matchplant.spatial_stat_extractor.canopy.peaks import _saddle, keepers, one_plant_boxes
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
+from matchplant.spatial_stat_extractor.inputs import ArraySource
 
 
 def touching_pairs(truth: np.ndarray) -> set[tuple[int, int]]:

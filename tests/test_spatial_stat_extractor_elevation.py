@@ -16,9 +16,7 @@ from odm_builder import Raster, write_raster
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.spatial_stat_extractor.config import RasterSet
-from matchplant.spatial_stat_extractor.inputs.elevation import check_elevation, not_metres
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.inputs import Layer, check_elevation, not_metres, open_layer
 
 UTM = "EPSG:32614"
 T = Affine(0.01, 0, 500000.0, 0, -0.01, 4500000.0)

@@ -19,10 +19,10 @@ from noisy_chm import noisy_chm
 from scipy import ndimage as ndi
 
 from matchplant.simfield import generate_field
-from matchplant.spatial_stat_extractor.canopy.ground import half_sample_mode, measure_ground, robust_sd, thresholds
+from matchplant.spatial_stat_extractor.canopy import measure_ground, thresholds
+from matchplant.spatial_stat_extractor.canopy.ground import half_sample_mode, robust_sd  # the role's own statistics
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
+from matchplant.spatial_stat_extractor.inputs import ArraySource, open_layer
 from matchplant.spatial_stat_extractor.traits import resolve_thresholds
 
 CRS = "EPSG:32614"

@@ -199,7 +199,7 @@ def test_the_folders_picture_of_the_window_shows_its_current_form():
     from PIL import Image
 
     from matchplant.spatial_stat_extractor.gui import PICKERS, TEXT_FIELDS
-    from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
+    from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
 
     with Image.open(Path(__file__).resolve().parents[1] / "9_spatial_stat_extractor" / "gui.png") as im:
         shown = json.loads(im.text.get("widgets", "{}"))

@@ -23,8 +23,8 @@ from rasterio.warp import calculate_default_transform, reproject
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.spatial_stat_extractor.config import BandFile, Formula, RasterSet
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+from matchplant.spatial_stat_extractor.inputs import read_polygons
+from matchplant.spatial_stat_extractor.zonal import extract_stats
 
 DATA = Path(__file__).parent / "data"
 MS = DATA / "plantcv-geospatial" / "615.tif"  # blue, green, red, red edge, NIR; GDAL labels 1-3 red/green/blue

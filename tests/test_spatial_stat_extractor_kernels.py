@@ -11,6 +11,8 @@ from scipy import ndimage as ndi
 
 import matchplant.spatial_stat_extractor as m9
 from matchplant.spatial_stat_extractor.canopy.grouping import (
+    LabelRules,
+    Placement,
     gather_ranges,
     label_boxes,
     labelled_pixels,
@@ -20,7 +22,7 @@ from matchplant.spatial_stat_extractor.canopy.grouping import (
     values_at,
 )
 from matchplant.spatial_stat_extractor.canopy.maxima import line_saddles, local_maxima
-from matchplant.spatial_stat_extractor.zonal.runs import LARGE_GROUP, quantiles
+from matchplant.spatial_stat_extractor.zonal import LARGE_GROUP, quantiles
 
 
 @pytest.mark.parametrize("size", [3, 5])
@@ -73,7 +75,9 @@ def test_labelled_pixels_keep_the_pixels_in_window_reaching_their_height():
     home = np.array([True, True, True, True, False])
     ids = np.array([11, 12, 13, 14, 15])
     width, row0, col0 = 1000, 7, 300
-    pix, start, total, extent, image = labelled_pixels(L, W, windows, reach, home, ids, width, row0, col0)
+    pix, start, total, extent, image = labelled_pixels(
+        L, W, LabelRules(windows, reach, home, ids), Placement(width, row0, col0)
+    )
     r, c = np.nonzero(L)
     kk = L[r, c] - 1
     keep = (
@@ -181,7 +185,7 @@ def test_traced_outlines_are_gdals_polygonize():
     from affine import Affine
     from rasterio.features import shapes
 
-    from matchplant.spatial_stat_extractor.canopy.outlines import valid_polygons
+    from matchplant.spatial_stat_extractor.canopy.collect import valid_polygons
     from matchplant.spatial_stat_extractor.canopy.trace import outline_pieces
 
     rng = np.random.default_rng(5)

@@ -26,9 +26,9 @@ from matchplant.spatial_stat_extractor.config import (
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
-from matchplant.spatial_stat_extractor.plots.fieldbook import join_field_book
-from matchplant.spatial_stat_extractor.plots.table import (
+from matchplant.spatial_stat_extractor.plots import (
+    PlotsConfig,
+    join_field_book,
     plot_grid,
     plot_table,
     read_plots,
@@ -353,8 +353,7 @@ def test_row_direction_from_the_plants_is_accurate():
     plots = plot_grid(cfg).drop(columns=["row_dir_x", "row_dir_y"])
     pts = table[["x", "y"]].to_numpy()
 
-    from matchplant.spatial_stat_extractor.plots.layout import join_plants
-    from matchplant.spatial_stat_extractor.plots.table import row_directions
+    from matchplant.spatial_stat_extractor.plots import join_plants, row_directions
 
     plant_i, plot_i = join_plants(plots, pts)
     v = row_directions(plots, pts, plant_i, plot_i, cfg)
@@ -486,7 +485,7 @@ def numpy_plot_means(plots, path):
 
 
 def test_plot_statistics_over_plot_polygons_on_real_lai_in_another_crs(tmp_path):
-    from matchplant.spatial_stat_extractor.plots.table import plot_raster_stats
+    from matchplant.spatial_stat_extractor.plots import plot_raster_stats
 
     cfg = lai_plots()
     plots = plot_grid(cfg, "EPSG:32632")
@@ -541,7 +540,7 @@ def test_field_figure_readable_on_one_small_plot(tmp_path):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from matchplant.spatial_stat_extractor.plots.figure import (
+    from matchplant.spatial_stat_extractor.plots import (
         colour_norm,
         draw_field,
         unit_of,

@@ -15,16 +15,20 @@ import shapely
 from affine import Affine
 
 from matchplant.core.runtime.errors import ConfigError, DependencyError
-from matchplant.spatial_stat_extractor.canopy import strips
-from matchplant.spatial_stat_extractor.canopy.memory import memory_stage, parse_memory
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats
+from matchplant.spatial_stat_extractor.canopy import (
+    SegmentSettings,
+    canopy_stats,
+    memory_stage,
+    parse_memory,
+    segment,
+    strips,
+)
 from matchplant.spatial_stat_extractor.config import (
     Layer,
     RasterSet,
     SpatialStatExtractorConfig,
 )
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.inputs import open_layer
 from matchplant.spatial_stat_extractor.run import run
 
 RES = 0.01
@@ -100,8 +104,8 @@ def thin_strips(monkeypatch):
     """Strips of 64 rows (a field needing seven of them), whatever the budget."""
     real = strips.plan_strips
 
-    def plan(geoms, transform, width, height, margin, budget, workers):
-        real(geoms, transform, width, height, margin, budget, workers)
+    def plan(geoms, transform, width, height, margin, *, budget, workers):
+        real(geoms, transform, width, height, margin, budget=budget, workers=workers)
         return 64, -(-height // 64)
 
     monkeypatch.setattr(strips, "plan_strips", plan)
@@ -178,13 +182,13 @@ def test_strip_height_follows_max_memory(field):
     _, geoms = field
     rows = {}
     for width in (3000, 30000, 60000):
-        r, n = strips.plan_strips(geoms, T, width, 30000, 0.05, parse_memory("3GB"), 1)
+        r, n = strips.plan_strips(geoms, T, width, 30000, 0.05, budget=parse_memory("3GB"), workers=1)
         rows[width] = r
         # the strip's window (its rows and a box height above and below) within the budget's share
         assert strips.BYTES_PER_PIXEL * width * r <= strips.STRIP_SHARE * parse_memory("3GB") and n == -(-30000 // r)
     assert rows[3000] == strips.MAX_STRIP_ROWS and rows[30000] > rows[60000] >= strips.MIN_STRIP_ROWS
-    r1, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, parse_memory("3GB"), 1)
-    r2, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, parse_memory("3GB"), 2)
+    r1, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, budget=parse_memory("3GB"), workers=1)
+    r2, _ = strips.plan_strips(geoms, T, 30000, 30000, 0.05, budget=parse_memory("3GB"), workers=2)
     assert r2 < r1  # two workers share the budget
 
 

@@ -17,16 +17,11 @@ from rasterio.features import geometry_mask, rasterize
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.simfield import generate_field
 from matchplant.simfield.scoring import growth_scores, outline_ious, trait_scores
-from matchplant.spatial_stat_extractor.canopy.outlines import SegmentSettings, segment
-from matchplant.spatial_stat_extractor.canopy.stats import canopy_stats, grouped_stats
+from matchplant.spatial_stat_extractor.canopy import SegmentSettings, canopy_stats, grouped_stats, segment
 from matchplant.spatial_stat_extractor.config import CanopyConfig, Formula, RasterSet
-from matchplant.spatial_stat_extractor.inputs.indices import parse_formula
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.inputs.sources import ArraySource
+from matchplant.spatial_stat_extractor.inputs import ArraySource, Layer, open_layer, parse_formula, read_polygons
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats
+from matchplant.spatial_stat_extractor.zonal import extract_stats
 
 
 @pytest.fixture(scope="module")

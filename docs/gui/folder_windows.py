@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def help_sha1(text: str = HELP) -> str:
+    """SHA-1 of a window's help text (module 4's by default), recorded in its picture so a test sees it change."""
     return hashlib.sha1(text.encode()).hexdigest()
 
 
@@ -145,6 +146,7 @@ def spatial_stat_extractor(demo: Path, tmp: Path) -> Path:
 
 
 def bbox_drawer(demo: Path, tmp: Path) -> Path:
+    """Draw module 4's window on the demo's selected photos and boxes; the PNG's path."""
     store = AnnotationStore(
         demo / "3_select" / "images", tmp / "4", ["plant", "weed"], resume_from=demo / "4_annotate" / "session.json"
     )
@@ -155,6 +157,7 @@ def bbox_drawer(demo: Path, tmp: Path) -> Path:
 
 
 def img_splitter(demo: Path, tmp: Path) -> Path:
+    """Draw module 5's window with its tiling preview of the demo's photos; the PNG's path."""
     cfg = ImgSplitterConfig(
         images=Path("demo_output/3_select/images"),
         annotations=Path("demo_output/4_annotate/annotations.json"),
@@ -171,6 +174,7 @@ def img_splitter(demo: Path, tmp: Path) -> Path:
 
 
 def main(demo: Path) -> list[Path]:
+    """Draw every module window from the demo run in ``demo``; the PNGs' paths."""
     with tempfile.TemporaryDirectory(prefix="matchplant-") as tmp:
         tmp = Path(tmp)
         return [

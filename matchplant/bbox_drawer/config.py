@@ -98,6 +98,7 @@ class BboxDrawerConfig:
     include_unseen: bool = param(False, "export images never opened and without boxes too (as negatives)")
 
     def check(self) -> None:
+        """Reject settings that contradict each other: mask options, owned areas, the category list and label_map."""
         if self.mask_mode == "instance" and self.mask_threshold is not None:
             raise ConfigError(
                 "mask_threshold applies to binary masks, but mask_mode is 'instance'",

@@ -168,9 +168,11 @@ class BboxDrawerGUI:
 
     @property
     def name(self) -> str:
+        """Name of the photo on screen."""
         return self.store.current
 
     def show_image(self, name: str) -> None:
+        """Open photo ``name`` with its boxes and owned area, the whole photo in view and nothing selected."""
         self.store.set_current(name)
         self.message = ""  # "box added" and the like were about the previous image
         self.selected = None
@@ -202,6 +204,7 @@ class BboxDrawerGUI:
         self.redraw()
 
     def reset_view(self) -> None:
+        """Show the whole photo (keys 0 and home)."""
         w, h = self.store.size(self.name)
         self.ax.set_xlim(0, w)
         self.ax.set_ylim(h, 0)
@@ -245,6 +248,7 @@ class BboxDrawerGUI:
         return (float(round(x)), float(round(y))) if snap else (float(x), float(y))
 
     def px_per_unit(self) -> float:
+        """Screen pixels per photo pixel at the current zoom."""
         x0, x1 = self.ax.get_xlim()
         return self.ax.bbox.width / abs(x1 - x0)
 
@@ -278,6 +282,7 @@ class BboxDrawerGUI:
 
     # -- mouse
     def on_press(self, event) -> None:
+        """Answer a mouse press: start drawing a box, moving or resizing the box under the cursor, or panning."""
         if event.inaxes is not self.ax:
             return
         x, y = self.data_xy(event)
@@ -352,6 +357,7 @@ class BboxDrawerGUI:
         return abs(event.x - px0) < CLICK_PX and abs(event.y - py0) < CLICK_PX
 
     def on_motion(self, event) -> None:
+        """Answer a mouse move: pan, or preview the box being drawn, moved or resized."""
         if not self.drag:
             return
         if self.drag["mode"] == "pan":
@@ -367,6 +373,7 @@ class BboxDrawerGUI:
         self._blit_preview(*self._dragged_box(self.drag, *self.data_xy(event, snap=True)))
 
     def on_release(self, event) -> None:
+        """Answer a mouse release: add, move or resize the box in the store, or select the box clicked."""
         d, self.drag = self.drag, None
         self.preview.set_visible(False)
         self.background = None
@@ -391,11 +398,13 @@ class BboxDrawerGUI:
         self.redraw()
 
     def on_scroll(self, event) -> None:
+        """Answer the scroll wheel: zoom about the cursor."""
         if event.inaxes is not self.ax:
             return
         self.zoom(ZOOM_STEP ** (event.step if event.step else (1 if event.button == "up" else -1)), self.data_xy(event))
 
     def zoom(self, factor: float, center: tuple[float, float] | None = None) -> None:
+        """Zoom in by ``factor`` (out when below 1) about ``center``, the view's centre by default."""
         (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
         cx, cy = center if center else ((x0 + x1) / 2, (y0 + y1) / 2)
         self.ax.set_xlim(cx + (x0 - cx) / factor, cx + (x1 - cx) / factor)
@@ -403,6 +412,7 @@ class BboxDrawerGUI:
         self.fig.canvas.draw_idle()
 
     def pan(self, fx: float, fy: float) -> None:
+        """Move the view by fractions ``fx``, ``fy`` of its width and height (arrow keys)."""
         (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
         dx, dy = fx * (x1 - x0), fy * (y0 - y1)  # y axis is inverted (image rows grow downwards)
         self.ax.set_xlim(x0 + dx, x1 + dx)
@@ -411,6 +421,7 @@ class BboxDrawerGUI:
 
     # -- keys
     def on_key(self, event) -> None:
+        """Answer a key press: category, delete, undo, redo, next or previous photo, pan, zoom, help, export, quit."""
         k = (event.key or "").lower()
         if k in {str(i) for i in range(1, len(self.store.categories) + 1)}:
             self.category = int(k)
@@ -472,9 +483,11 @@ class BboxDrawerGUI:
 
     # -- saving
     def export(self) -> dict:
+        """Write the session's boxes as COCO annotations.json (and what else the config asks for); the paths written."""
         return self.store.export(coco=True, **self.export_options)
 
     def on_close(self, event=None) -> None:
+        """Answer the window closing: export the annotations, once."""
         if self.closed:
             return
         self.closed = True

@@ -40,15 +40,42 @@ log = get_logger("bbox_drawer")
 
 def read_coco_boxes(path: str | Path) -> ImportedBoxes:
     """Boxes of a COCO dataset by source image name; tiles (``source_image``, ``x0``, ``y0``) are put back.
+
     Boxes that cannot be used (unknown image or category id, no finite bbox, size <= 0, a repeated box) are
     left out and listed in the result's ``drops``; ambiguous files (an image or category id used twice) are
-    errors."""
+    errors.
+
+    Parameters
+    ----------
+    path : str or Path
+        The COCO ``.json`` file (CVAT and Label Studio COCO exports included).
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     ds = read_dataset(path, validate=False)
     return _collect(Path(path), ds["images"], ds["categories"], ds["annotations"])
 
 
 def read_yolo_boxes(labels_dir: str | Path, sizes: dict[str, tuple[int, int]]) -> ImportedBoxes:
-    """Boxes of YOLO labels by image name; ``sizes`` (name -> (width, height)) are the session's images."""
+    """Boxes of YOLO labels by image name; ``sizes`` (name -> (width, height)) are the session's images.
+
+    Parameters
+    ----------
+    labels_dir : str or Path
+        The folder of YOLO ``.txt`` label files.
+    sizes : dict
+        Image name -> (width, height) in pixels of the session's photos: YOLO boxes are fractions of them.
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     drops = DropLog()
     _, boxes = read_yolo(labels_dir, sizes, drops)
     return ImportedBoxes(
@@ -59,8 +86,28 @@ def read_yolo_boxes(labels_dir: str | Path, sizes: dict[str, tuple[int, int]]) -
 def read_prediction_boxes(
     path: str | Path, min_score: float = 0.5, nms_iou: float = 0.5, images_from: str | Path | None = None
 ) -> ImportedBoxes:
-    """Module 7 predictions above ``min_score``, in source-image pixels; duplicates from overlapping
-    tiles are merged by non-maximum suppression (IoU ``nms_iou``)."""
+    """Module 7 predictions above ``min_score``, in source-image pixels, to correct by hand.
+
+    Duplicates from overlapping tiles are merged by non-maximum suppression (IoU ``nms_iou``); no
+    prediction at or above ``min_score`` is an error that names the highest score.
+
+    Parameters
+    ----------
+    path : str or Path
+        Module 7's predictions file, or a plain COCO results list (then give ``images_from``).
+    min_score : float
+        Predictions scoring less are left out.
+    nms_iou : float
+        Overlap (IoU) above which two boxes of one photo count as the same plant.
+    images_from : str or Path, optional
+        A COCO dataset giving the image entries of a plain COCO results list.
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     path = Path(path)
     data = read_predictions(path, images_from)
     scores = []
@@ -84,18 +131,64 @@ def read_prediction_boxes(
 
 
 def read_deepforest_boxes(path: str | Path) -> ImportedBoxes:
-    """A DeepForest CSV (``image_path,xmin,ymin,xmax,ymax,label``, optional ``score``)."""
+    """Boxes of a DeepForest CSV (``image_path,xmin,ymin,xmax,ymax,label``, optional ``score``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The CSV file.
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     return _imported(read_deepforest_csv(path))
 
 
 def read_voc_boxes(path: str | Path) -> ImportedBoxes:
-    """Pascal VOC XML: one file, or a folder of them (one per image)."""
+    """Boxes of Pascal VOC XML: one file, or a folder of them (one per image).
+
+    Parameters
+    ----------
+    path : str or Path
+        An ``.xml`` file or a folder of them.
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     return _imported(*read_voc(path))
 
 
 def read_cvat_boxes(path: str | Path) -> ImportedBoxes:
-    """A 'CVAT for images 1.1' XML export (boxes; other shapes are skipped)."""
+    """Boxes of a 'CVAT for images 1.1' XML export (other shapes are skipped).
+
+    Parameters
+    ----------
+    path : str or Path
+        The exported ``annotations.xml``.
+
+    Returns
+    -------
+    ImportedBoxes
+        Source image name -> its boxes in source-image pixels, with the sizes the file declares and the
+        boxes left out (``drops``).
+    """
     return _imported(*read_cvat_xml(path))
+
+
+def _check_mask_size(mask, path: Path, name: str, size: tuple[int, int]) -> None:
+    """A mask of another size than its photo (``size``: width, height) is an error."""
+    if (mask.shape[1], mask.shape[0]) != tuple(size):
+        raise InputError(
+            f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is {size[0]}x{size[1]} px",
+            path=path,
+            fix="give masks of the same size as the photos (not resized)",
+        )
 
 
 def read_mask_boxes(
@@ -113,7 +206,31 @@ def read_mask_boxes(
     Each mask is read as instances or as a binary mask (``mode`` "auto": decided from its pixels and said in
     the log, :func:`matchplant.core.formats.masks.decide_mode`); objects under ``min_area`` pixels are
     dropped and counted. With ``sizes`` (image name -> (width, height)), a mask of another size than its
-    photo is an error."""
+    photo is an error.
+
+    Parameters
+    ----------
+    masks_dir : str or Path
+        The folder of label images.
+    images : list of str
+        The session's photo names, to match masks to.
+    min_area : int
+        Objects of fewer pixels are dropped (specks).
+    category : str
+        Category name given to every object found.
+    sizes : dict, optional
+        Image name -> (width, height) of the photos, to check each mask's size.
+    mode : str
+        "auto", "binary" or "instance": how to read each mask.
+    threshold : float, optional
+        Pixel value at or above which a binary mask is foreground; with ``mode`` "auto", masks are then read
+        as binary.
+
+    Returns
+    -------
+    ImportedBoxes
+        Image name -> the boxes of its mask's objects, in pixels.
+    """
     masks_dir = Path(masks_dir)
     if not masks_dir.is_dir():
         raise InputError("mask folder not found", path=masks_dir, fix="set import_masks to the folder of label images")
@@ -125,13 +242,8 @@ def read_mask_boxes(
     below: dict[str, float] = {}  # masks whose every value lies under mask_threshold: file -> top value
     for name, path in found.items():
         mask = read_mask(path)
-        if sizes and name in sizes and (mask.shape[1], mask.shape[0]) != tuple(sizes[name]):
-            raise InputError(
-                f"the mask is {mask.shape[1]}x{mask.shape[0]} px but its photo {name} is "
-                f"{sizes[name][0]}x{sizes[name][1]} px",
-                path=path,
-                fix="give masks of the same size as the photos (not resized)",
-            )
+        if sizes and name in sizes:
+            _check_mask_size(mask, path, name, sizes[name])
         objects = mask_objects(mask, min_area, category, mode, threshold)
         log.debug(
             "%s: read as %s (%s): %d object(s), %d under mask_min_area",

@@ -216,10 +216,21 @@ def annotated_regions(cfg: BboxDrawerConfig, store: AnnotationStore) -> dict[str
 
 
 def run(cfg: BboxDrawerConfig) -> dict[str, Path]:
-    """Without the GUI: open or resume the session, apply imports, write the exports.
+    """Module 4 without the GUI: open or resume the session, apply imports, write the exports.
 
     Everything is written into a staging folder moved into ``output_dir`` only at the end: a failed run
-    leaves ``output_dir`` as it was (apart from its log and, when an import failed, import_dropped.csv)."""
+    leaves ``output_dir`` as it was (apart from its log and, when an import failed, import_dropped.csv).
+
+    Parameters
+    ----------
+    cfg : BboxDrawerConfig
+        The step's settings, as loaded from its YAML config (``4_bbox_drawer/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    dict
+        ``"coco"`` -> the annotations.json written, and ``"yolo"`` -> the YOLO folder with ``export_yolo``.
+    """
     check_outputs(cfg)
     final = Path(cfg.output_dir)
     with staged_outputs(final) as stage:

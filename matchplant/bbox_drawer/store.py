@@ -170,6 +170,7 @@ class AnnotationStore:
         return data
 
     def save(self) -> None:
+        """Write the session file now, with the time of saving."""
         self.state["saved"] = _dt.datetime.now().isoformat(timespec="seconds")
         # one C-encoded string (json.dump streams thousands of small writes: slow with 3,000 boxes)
         write_text(self.path, json.dumps(self.state, separators=(",", ":")) + "\n")
@@ -190,17 +191,21 @@ class AnnotationStore:
     # -- queries
     @property
     def categories(self) -> list[str]:
+        """Category names in id order: category id i is ``categories[i - 1]``."""
         return list(self.state["categories"])
 
     @property
     def images(self) -> list[str]:
+        """Names of the session's photos, in the order they are shown."""
         return list(self.files)
 
     @property
     def current(self) -> str:
+        """Name of the photo being annotated."""
         return self.state["current"]
 
     def size(self, name: str) -> tuple[int, int]:
+        """Width and height in pixels of photo ``name`` (read once from the file, then kept in the session)."""
         entry = self.state["images"][name]
         if "width" not in entry:
             entry["width"], entry["height"] = image_size(self.files[name])
@@ -211,16 +216,19 @@ class AnnotationStore:
         return [dict(b) for b in self.state["images"][name]["boxes"]]
 
     def box(self, name: str, box_id: int) -> dict:
+        """A copy of box ``box_id`` of photo ``name``; KeyError when there is no such box."""
         for b in self.state["images"][name]["boxes"]:
             if b["id"] == box_id:
                 return dict(b)
         raise KeyError(f"no box {box_id} in {name}")
 
     def count(self) -> int:
+        """Number of boxes on all photos."""
         return sum(len(self.state["images"][n]["boxes"]) for n in self.files)
 
     # -- navigation
     def set_current(self, name: str) -> None:
+        """Make ``name`` the photo being annotated and record it as seen."""
         if name not in self.files:
             raise KeyError(name)
         self.state["current"] = name
@@ -228,6 +236,7 @@ class AnnotationStore:
         self.save()
 
     def step(self, delta: int) -> str:
+        """Move ``delta`` photos on (wrapping round) and return the new photo's name."""
         names = self.images
         i = (names.index(self.current) + delta) % len(names)
         self.set_current(names[i])
@@ -259,9 +268,11 @@ class AnnotationStore:
         return self._replace(name, self.box(name, box_id), xyxy)
 
     def delete(self, name: str, box_id: int) -> None:
+        """Delete box ``box_id`` of photo ``name`` (undoable)."""
         self._apply(name, self.box(name, box_id), None)
 
     def set_category(self, name: str, box_id: int, category_id: int) -> dict:
+        """Give box ``box_id`` category ``category_id``, making a prediction a human label (undoable); the new box."""
         self._check_category(category_id)
         old = self.box(name, box_id)
         new = dict(old, category_id=int(category_id))
@@ -274,6 +285,7 @@ class AnnotationStore:
         return self._history("undo", "redo")
 
     def redo(self) -> str | None:
+        """Redo the last undone edit; returns the image it touched (None when there is nothing to redo)."""
         return self._history("redo", "undo")
 
     # -- internals
@@ -555,6 +567,11 @@ class AnnotationStore:
     def export(
         self, coco: bool = True, yolo: bool = False, include_unseen: bool = False, regions: dict[str, Any] | None = None
     ) -> dict[str, Path]:
+        """Write the boxes as COCO annotations.json (``coco``) and/or a YOLO folder (``yolo``); the paths by kind.
+
+        ``include_unseen`` also lists the photos never opened and without boxes; ``regions`` (image name ->
+        polygon in its pixels) records the part of each image that was annotated.
+        """
         ds = self.to_coco(include_unseen, regions)
         out: dict[str, Path] = {}
         if coco:

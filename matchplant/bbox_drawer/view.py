@@ -57,6 +57,7 @@ class PyramidImage(AxesImage):
         return int(min(max(math.floor(math.log2(max(px_per_screen, 1e-9))), 0), len(self.levels) - 1))
 
     def make_image(self, renderer, magnification=1.0, unsampled=False):
+        """Resample the visible part of the best pyramid level to the screen pixels (Matplotlib's draw hook)."""
         ax = self.axes
         (vx0, vx1), (vy0, vy1) = sorted(ax.get_xlim()), sorted(ax.get_ylim())
         x0, x1 = max(vx0, 0.0), min(vx1, float(self.full_w))
@@ -111,6 +112,7 @@ class PanelImage(AxesImage):
         self.set_transform(ax.transAxes)
 
     def make_image(self, renderer, magnification=1.0, unsampled=False):
+        """The panel's pixels at the axes' size, rescaled only when that size changed (Matplotlib's draw hook)."""
         box = self.axes.bbox
         w, h = int(round(box.width * magnification)), int(round(box.height * magnification))
         if w <= 0 or h <= 0:
@@ -148,6 +150,7 @@ class BoxLayer:
         ax.add_collection(self.collection, autolim=False)
 
     def set_boxes(self, boxes: list[dict], hidden: int | None = None) -> None:
+        """Show ``boxes`` by category, predictions dashed and drawn boxes solid, leaving out box ``hidden``."""
         groups: dict[tuple[int, bool], list] = {}
         for b in boxes:
             if b["id"] != hidden:

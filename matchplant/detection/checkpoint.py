@@ -22,7 +22,26 @@ CHECKPOINT_VERSION = 1
 def save_checkpoint(
     path: str | Path, model, model_cfg: ModelConfig, class_names: list[str], category_ids: list[int], **extra
 ) -> Path:
-    """Write a self-contained checkpoint atomically (``extra``: epoch, optimizer state, metrics, ...)."""
+    """Write a self-contained checkpoint atomically (``extra``: epoch, optimizer state, metrics, ...).
+
+    Parameters
+    ----------
+    path : str or Path
+        The ``.pt`` file to write.
+    model : torch.nn.Module
+        The detector (a DistributedDataParallel wrapper is unwrapped).
+    model_cfg : ModelConfig
+        The settings it was built from (stored without ``checkpoint``).
+    class_names, category_ids : list
+        The dataset's category names and COCO ids, in label order (label i + 1 is ``class_names[i]``).
+    **extra
+        Further entries stored as they are.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     model = getattr(model, "module", model)  # DistributedDataParallel
@@ -44,10 +63,23 @@ CHECKPOINT_FIX = "give a checkpoint written by module 6 (its output_dir/checkpoi
 
 
 def read_checkpoint(path: str | Path) -> dict:
-    """Load a checkpoint's contents (on the CPU), with a clear error for anything else: a missing, empty or
-    truncated file, another program's model (YOLO, a bare state_dict, a pickled model), damaged contents.
-    Checkpoints from outside MatchPlant (the paper's layout, bare torchvision weights):
-    :func:`matchplant.detection.foreign.read_any_checkpoint`."""
+    """Load a MatchPlant checkpoint's contents (on the CPU), with a clear error for anything else.
+
+    Anything else is a missing, empty or truncated file, another program's model (YOLO, a bare state_dict, a
+    pickled model), damaged contents. Checkpoints from outside MatchPlant (the paper's layout, bare torchvision
+    weights): :func:`matchplant.detection.foreign.read_any_checkpoint`.
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``.pt`` file written by module 6.
+
+    Returns
+    -------
+    dict
+        The checkpoint: ``model_config``, ``class_names``, ``category_ids``, ``model_state`` and what training
+        added (epoch, optimizer state, history, metrics, ...).
+    """
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     path = Path(path)
@@ -171,11 +203,26 @@ def load_detector(
     overrides: dict | None = None,
     source: str | Path | None = None,
 ):
-    """Rebuild a detector from a checkpoint; returns ``(model, checkpoint_dict)``.
+    """Rebuild a detector from a checkpoint, in eval mode on ``device``; returns ``(model, checkpoint_dict)``.
 
-    ``overrides`` replaces settings, e.g. ``{"roi": {"detections_per_img": 500}}``; the score threshold
-    is ``model.roi_heads.score_thresh`` (set it before predicting). ``source``: the file a given dict came from
-    (for the messages).
+    The score threshold is ``model.roi_heads.score_thresh`` (set it before predicting, or use
+    :func:`~matchplant.detection.model.set_score_threshold`).
+
+    Parameters
+    ----------
+    path_or_data : str, Path or dict
+        A checkpoint file written by module 6, or its contents as :func:`read_checkpoint` returns them.
+    device : str or torch.device
+        Where to put the model.
+    overrides : dict, optional
+        Model settings to replace, e.g. ``{"roi": {"detections_per_img": 500}}``.
+    source : str or Path, optional
+        The file a given dict came from (for the messages).
+
+    Returns
+    -------
+    tuple
+        ``(model, checkpoint)``: the detector with the checkpoint's weights, and the checkpoint dict.
     """
     data = path_or_data if isinstance(path_or_data, dict) else read_checkpoint(path_or_data)
     source = source if source is not None or isinstance(path_or_data, dict) else path_or_data

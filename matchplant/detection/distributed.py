@@ -42,6 +42,7 @@ class Shard:
 
     @property
     def main(self) -> bool:
+        """Whether this is the main process (rank 0), the one that validates and writes checkpoints."""
         return self.rank == 0
 
     def take(self, items: list) -> list[int]:
@@ -59,6 +60,7 @@ class Shard:
         return [x for p in parts for x in p] if self.main else []
 
     def barrier(self) -> None:
+        """Wait until every process of the job reaches this point (nothing to wait for in a single process)."""
         if self.world > 1:
             import torch.distributed as dist  # lazy: PyTorch is heavy; configs load without it
 

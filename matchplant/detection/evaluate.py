@@ -23,6 +23,7 @@ from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import collate
+from matchplant.detection.gpu import as_runtime
 
 STAT_NAMES = (
     "AP",
@@ -43,18 +44,20 @@ STAT_NAMES = (
 def predict_dataset(
     model, dataset, device, *, batch_size: int = 4, num_workers: int = 0, amp: bool = False, desc: str = "detecting"
 ) -> list[dict]:
-    """COCO results (``image_id, category_id, bbox [x,y,w,h], score``) of ``model`` on every image."""
+    """COCO results (``image_id, category_id, bbox [x,y,w,h], score``) of ``model`` on every image. ``device``: the
+    run's :class:`~matchplant.detection.gpu.Runtime` (its ``amp``), or a bare device with ``amp``."""
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
 
+    runtime = as_runtime(device, amp)
     model.eval()
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, num_workers=num_workers, collate_fn=collate)
     results: list[dict] = []
     cat_of_label = np.asarray([0] + list(dataset.category_ids))
     with torch.inference_mode():
         for images, targets in progress(loader, desc=desc, unit="batch"):
-            images = [im.to(device, non_blocking=True) for im in images]
-            with torch.autocast(device_type=device.type, enabled=amp and device.type == "cuda"):
+            images = [im.to(runtime.device, non_blocking=True) for im in images]
+            with torch.autocast(device_type=runtime.kind, enabled=runtime.amp):
                 outputs = model(images)
             for out, target in zip(outputs, targets):
                 boxes = out["boxes"].float().cpu().numpy()
@@ -229,6 +232,7 @@ def draw_boxes(
 
 
 def write_image(path: Path, rgb: np.ndarray) -> Path:
+    """Write an RGB image atomically, its format from the suffix (PNG by default); the path."""
     ok, buf = cv2.imencode(Path(path).suffix or ".png", rgb[:, :, ::-1])
     if not ok:
         raise RuntimeError(f"could not encode {path}")
@@ -238,6 +242,8 @@ def write_image(path: Path, rgb: np.ndarray) -> Path:
 
 
 def summarise_stats(stats: dict[str, Any]) -> str:
+    """AP, AP50 and AP75 of COCOeval's stats as percentages on one line for the log ("n/a" when missing)."""
+
     def fmt(v):
         return "n/a" if v is None else f"{100 * v:.1f}%"
 

@@ -87,6 +87,7 @@ def scale_ratio(geometry: dict | None, tile_width: int, tile_height: int, model_
 
 
 def off_scale(ratio: float | None) -> bool:
+    """Whether plants would be more than ``SCALE_TOLERANCE`` times larger or smaller than in training."""
     return ratio is not None and not (1 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE)
 
 

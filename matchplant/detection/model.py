@@ -1,8 +1,10 @@
 """The detector of modules 6 and 7: building it from settings, freezing parts, checkpoints.
 
-Six torchvision architectures, one target format (COCO boxes, labels 1..N) and one checkpoint format:
-the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the paper's), ``fasterrcnn_resnet50_fpn_v2`` and
-``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU), and the one-stage ``retinanet_resnet50_fpn``,
+Seven architectures (:data:`~matchplant.detection.architectures.ARCHITECTURES`), one target format (COCO
+boxes, labels 1..N) and one checkpoint format: the two-stage Faster R-CNN ``fasterrcnn_resnet50_fpn`` (the
+paper's), ``fasterrcnn_resnet50_fpn_v2``, ``fasterrcnn_mobilenet_v3_large_fpn`` (fast on a CPU) and MatchPlant's
+own ``fasterrcnn_resnet18_fpn_lite`` (learns from random weights in a CPU's minutes,
+:mod:`matchplant.detection.lite`), and torchvision's one-stage ``retinanet_resnet50_fpn``,
 ``retinanet_resnet50_fpn_v2`` and ``fcos_resnet50_fpn`` (anchor-free). Every setting of
 :class:`ModelConfig` is passed to the model (anchors, RPN and ROI sampling and thresholds, image size,
 detections per image); the RPN and ROI sampling settings concern Faster R-CNN only, ``roi.nms_thresh``
@@ -66,6 +68,7 @@ class RPNConfig:
     score_thresh: float = param(0.0, "drop proposals with an objectness below this", min=0, max=1)
 
     def check(self) -> None:
+        """Reject a background IoU threshold above the foreground one."""
         if self.bg_iou_thresh > self.fg_iou_thresh:
             raise ConfigError(
                 f"model.rpn.bg_iou_thresh ({self.bg_iou_thresh}) is above model.rpn.fg_iou_thresh "
@@ -88,6 +91,7 @@ class ROIConfig:
     )
 
     def check(self) -> None:
+        """Reject a background IoU threshold above the foreground one."""
         if self.bg_iou_thresh > self.fg_iou_thresh:
             raise ConfigError(
                 f"model.roi.bg_iou_thresh ({self.bg_iou_thresh}) is above model.roi.fg_iou_thresh "
@@ -138,6 +142,7 @@ class ModelConfig:
     roi: ROIConfig = section(ROIConfig)
 
     def check(self) -> None:
+        """Reject a max_size below min_size and anchor sizes that do not fit the architecture's FPN levels."""
         if self.max_size < self.min_size:
             raise ConfigError(
                 f"model.max_size ({self.max_size}) is below model.min_size ({self.min_size})",
@@ -197,18 +202,8 @@ def _frozen_bn_structure(arch: Architecture, pretrained: str) -> bool:
     return pretrained != "none" and arch.frozen_backbone_norms
 
 
-def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
-    """A torchvision detector with ``num_classes`` outputs (background included) built from ``cfg``.
-
-    ``load_weights=False`` builds the same structure without downloading anything (the weights then
-    come from a checkpoint).
-    """
-    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
-    from torchvision.models import detection as d
-    from torchvision.models.detection.anchor_utils import AnchorGenerator
-    from torchvision.models.detection.faster_rcnn import FastRCNNPredictor
-    from torchvision.models.detection.rpn import RPNHead
-
+def _check_resolved(cfg: ModelConfig, num_classes: int, load_weights: bool) -> None:
+    """Refuse to build from settings that module 6 resolves first (``auto``), or for a dataset without categories."""
     if num_classes < 2:
         raise InputError("the dataset has no categories", fix="give a COCO dataset with at least one category")
     if cfg.anchor_sizes == "auto":
@@ -226,9 +221,12 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             "model.pretrained is 'auto', which module 6 resolves before it builds a model",
             fix="set model.pretrained to one of " + ", ".join(p for p in PRETRAINED if p != AUTO),
         )
-    arch = get_architecture(cfg.architecture)
-    weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
-    kwargs = (
+
+
+def _builder_kwargs(cfg: ModelConfig, arch: Architecture) -> dict:
+    """The torchvision builder's keywords from ``cfg``: input size and box settings; the RPN's and the box head's
+    for a two-stage detector."""
+    return (
         dict(
             min_size=cfg.min_size,
             max_size=cfg.max_size,
@@ -257,6 +255,39 @@ def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = T
             box_positive_fraction=cfg.roi.positive_fraction,
         )
     )
+
+
+def build_detector(cfg: ModelConfig, num_classes: int, *, load_weights: bool = True):
+    """A detector with ``num_classes`` outputs (background included) built from ``cfg``.
+
+    ``load_weights=False`` builds the same structure without downloading anything (the weights then
+    come from a checkpoint).
+
+    Parameters
+    ----------
+    cfg : ModelConfig
+        The model settings, with ``architecture``, ``pretrained`` and ``anchor_sizes`` resolved (not "auto").
+    num_classes : int
+        Categories + 1 (background).
+    load_weights : bool
+        Load the ``pretrained`` weights (COCO or ImageNet, downloaded when not in the torch cache).
+
+    Returns
+    -------
+    torch.nn.Module
+        The torchvision detector (or MatchPlant's lite one) with the settings of ``cfg``, every backbone stage
+        trainable (:func:`apply_freezing` freezes parts).
+    """
+    import torch.nn as nn  # lazy: PyTorch is heavy; configs load without it
+    from torchvision.models import detection as d
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.faster_rcnn import FastRCNNPredictor
+    from torchvision.models.detection.rpn import RPNHead
+
+    _check_resolved(cfg, num_classes, load_weights)
+    arch = get_architecture(cfg.architecture)
+    weights, weights_backbone = _weights(arch, cfg.pretrained) if load_weights else (None, None)
+    kwargs = _builder_kwargs(cfg, arch)
     builder = getattr(lite, arch.builder, None) or getattr(d, arch.builder)
     # all stages trainable here; train.apply_freezing decides (the same on every rebuild)
     trainable = arch.backbone.stage_count
@@ -402,6 +433,7 @@ class ScoreThreshold:
 
     @property
     def score_thresh(self) -> float:
+        """The one-stage model's score threshold: boxes scoring below it are dropped."""
         return self._model.score_thresh
 
     @score_thresh.setter

@@ -64,6 +64,67 @@ class Finder:
 def find_candidates(cfg: GcpFinderConfig) -> Finder:
     """Read the survey and every image's metadata; predict each GCP's pixel in each image; rank."""
     gcps, crs = read_survey(cfg.survey, cfg.survey_crs, cfg.output_crs)
+    files, infos, notes = _read_flight(cfg)
+    camera_positions(infos, crs)
+    infos.sort(key=lambda i: (i.time if i.time is not None else 0.0, i.name))
+    track = track_yaw(np.array([i.xyz[:2] for i in infos]))
+    pts = np.array([[g.x, g.y, g.z] for g in gcps])
+    ground = float(np.median(pts[:, 2]))
+    cands: dict[str, list[Candidate]] = {g.id: [] for g in gcps}
+    ratio, yaw, pitch, height = {}, {}, {}, {}
+    for k, info in enumerate(infos):
+        ratio[info.name] = focal_ratio(info, cfg.sensor_width_mm, cfg.focal_length_mm)
+        yaw[info.name] = image_yaw(info, cfg, track[k])
+        pitch[info.name] = info.pitch if info.pitch is not None else -90.0
+        cam_z, hs = camera_heights(info, cfg, pts, ground)
+        for g, z in zip(gcps, cam_z):
+            height[(g.id, info.name)] = float(z - g.z)
+        if not 0 < float(np.median(cam_z - pts[:, 2])) < 2000:
+            notes.append(
+                f"{info.name}: the camera is {float(np.median(cam_z - pts[:, 2])):.0f} m above the GCPs "
+                f"({hs} height); check 'height_source' and 'altitude_offset_m'"
+            )
+        uv = predict_pixels(info, ratio[info.name], yaw[info.name], pitch[info.name], cam_z, pts)
+        ok, dist = _in_view(info, uv, cam_z - pts[:, 2], cfg)
+        for gi in np.flatnonzero(ok):
+            cands[gcps[gi].id].append(
+                Candidate(gcps[gi].id, info.name, float(uv[gi, 0]), float(uv[gi, 1]), float(dist[gi]))
+            )
+    _rank(cands, cfg.max_images_per_gcp)
+    unseen = [gid for gid, lst in cands.items() if not lst]
+    if len(unseen) == len(gcps):
+        heights = next((f"; {n}" for n in notes if "above the GCPs" in n), "")
+        raise InputError(
+            f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images{heights}",
+            path=cfg.survey,
+            fix="check 'survey_crs' (x = easting/longitude, y = northing/latitude) and that the survey "
+            "belongs to this flight; or raise 'max_center_distance'",
+        )
+    for note in notes:
+        log.warning("%s", note)
+    if unseen:
+        log.warning(
+            "%d of %d GCPs fall outside every image and get no candidates (check their coordinates): %s",
+            len(unseen),
+            len(gcps),
+            ", ".join(unseen),
+        )
+    return Finder(
+        {g.id: g for g in gcps},
+        crs,
+        {i.name: i for i in infos},
+        cands,
+        ratio,
+        yaw,
+        pitch,
+        height,
+        {p.name for p in files},
+    )
+
+
+def _read_flight(cfg: GcpFinderConfig) -> tuple[list[Path], list[ImageInfo], list[str]]:
+    """``(every image file, the images with a GPS position, notes)``: each image's EXIF read; damaged images or
+    none with a position are an error."""
     infos, skipped, damaged = [], [], []
     files = list_images(
         cfg.images, EXIF_SUFFIXES, key="images", fix="point 'images' at the folder of the flight's images"
@@ -95,76 +156,35 @@ def find_candidates(cfg: GcpFinderConfig) -> Finder:
             f"{len(skipped)} of {len(files)} images have no GPS position in EXIF and are skipped "
             f"(e.g. {skipped[0].name}); module 0 writes it"
         )
-    camera_positions(infos, crs)
-    infos.sort(key=lambda i: (i.time if i.time is not None else 0.0, i.name))
-    track = track_yaw(np.array([i.xyz[:2] for i in infos]))
-    pts = np.array([[g.x, g.y, g.z] for g in gcps])
-    ground = float(np.median(pts[:, 2]))
-    cands: dict[str, list[Candidate]] = {g.id: [] for g in gcps}
-    ratio, yaw, pitch, height = {}, {}, {}, {}
-    for k, info in enumerate(infos):
-        ratio[info.name] = focal_ratio(info, cfg.sensor_width_mm, cfg.focal_length_mm)
-        yaw[info.name] = image_yaw(info, cfg, track[k])
-        pitch[info.name] = info.pitch if info.pitch is not None else -90.0
-        cam_z, hs = camera_heights(info, cfg, pts, ground)
-        for g, z in zip(gcps, cam_z):
-            height[(g.id, info.name)] = float(z - g.z)
-        if not 0 < float(np.median(cam_z - pts[:, 2])) < 2000:
-            notes.append(
-                f"{info.name}: the camera is {float(np.median(cam_z - pts[:, 2])):.0f} m above the GCPs "
-                f"({hs} height); check 'height_source' and 'altitude_offset_m'"
-            )
-        uv = predict_pixels(info, ratio[info.name], yaw[info.name], pitch[info.name], cam_z, pts)
-        m = cfg.edge_margin_px
-        cx, cy = (info.width - 1) / 2.0, (info.height - 1) / 2.0
-        dist = np.hypot(uv[:, 0] - cx, uv[:, 1] - cy) / math.hypot(cx, cy)
-        ok = (
-            (uv[:, 0] >= m)
-            & (uv[:, 0] <= info.width - 1 - m)
-            & (uv[:, 1] >= m)
-            & (uv[:, 1] <= info.height - 1 - m)
-            & (dist <= cfg.max_center_distance)
-            & (cam_z - pts[:, 2] > 0)
-        )
-        for gi in np.flatnonzero(ok):
-            cands[gcps[gi].id].append(
-                Candidate(gcps[gi].id, info.name, float(uv[gi, 0]), float(uv[gi, 1]), float(dist[gi]))
-            )
+    return files, infos, notes
+
+
+def _in_view(info: ImageInfo, uv: np.ndarray, above: np.ndarray, cfg: GcpFinderConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(whether each GCP's predicted pixel is a usable candidate, its distance from the image centre as a share of
+    the half-diagonal)``: inside the edge margin, near enough the centre, and below the camera (``above``: the
+    camera's height above each GCP)."""
+    m = cfg.edge_margin_px
+    cx, cy = (info.width - 1) / 2.0, (info.height - 1) / 2.0
+    dist = np.hypot(uv[:, 0] - cx, uv[:, 1] - cy) / math.hypot(cx, cy)
+    ok = (
+        (uv[:, 0] >= m)
+        & (uv[:, 0] <= info.width - 1 - m)
+        & (uv[:, 1] >= m)
+        & (uv[:, 1] <= info.height - 1 - m)
+        & (dist <= cfg.max_center_distance)
+        & (above > 0)
+    )
+    return ok, dist
+
+
+def _rank(cands: dict[str, list[Candidate]], cap: int) -> None:
+    """Each GCP's candidates nearest the image centre first, ranked from 1, at most ``cap`` of them (0: all)."""
     for lst in cands.values():
         lst.sort(key=lambda c: c.center_distance)
-        if cfg.max_images_per_gcp:
-            del lst[cfg.max_images_per_gcp :]
+        if cap:
+            del lst[cap:]
         for r, c in enumerate(lst, start=1):
             c.rank = r
-    unseen = [gid for gid, lst in cands.items() if not lst]
-    if len(unseen) == len(gcps):
-        heights = next((f"; {n}" for n in notes if "above the GCPs" in n), "")
-        raise InputError(
-            f"none of the {len(gcps)} GCPs falls inside any of the {len(infos)} images{heights}",
-            path=cfg.survey,
-            fix="check 'survey_crs' (x = easting/longitude, y = northing/latitude) and that the survey "
-            "belongs to this flight; or raise 'max_center_distance'",
-        )
-    for note in notes:
-        log.warning("%s", note)
-    if unseen:
-        log.warning(
-            "%d of %d GCPs fall outside every image and get no candidates (check their coordinates): %s",
-            len(unseen),
-            len(gcps),
-            ", ".join(unseen),
-        )
-    return Finder(
-        {g.id: g for g in gcps},
-        crs,
-        {i.name: i for i in infos},
-        cands,
-        ratio,
-        yaw,
-        pitch,
-        height,
-        {p.name for p in files},
-    )
 
 
 def write_candidates(path: Path, finder: Finder) -> Path:

@@ -35,6 +35,8 @@ CLICK_PX = 5  # a press-release that moves less than this is a click
 
 
 class GcpFinderGUI:
+    """The marking window: one GCP's candidate images, the user's marks on them and the list of GCPs."""
+
     def __init__(
         self,
         finder: Finder,
@@ -79,14 +81,17 @@ class GcpFinderGUI:
     # -- state -------------------------------------------------------------------------------------
     @property
     def gcp(self) -> str:
+        """Id of the GCP being marked."""
         return self.gcp_ids[self.gi]
 
     @property
     def candidates(self):
+        """Candidate images of the current GCP, best first."""
         return self.finder.candidates[self.gcp]
 
     @property
     def candidate(self):
+        """The candidate image on screen, or None when the GCP lies in no image."""
         c = self.candidates
         return c[self.ci] if c else None
 
@@ -132,10 +137,12 @@ class GcpFinderGUI:
         self.fig.canvas.draw_idle()
 
     def zoom_to(self, u: float, v: float, half: float) -> None:
+        """Show the square of half-side ``half`` pixels around image point (u, v)."""
         self.ax.set_xlim(u - half, u + half)
         self.ax.set_ylim(v + half, v - half)  # image rows grow downwards
 
     def fit(self) -> None:
+        """Show the whole image (keys f and 0)."""
         info = self.finder.images[self.candidate.image] if self.candidate else None
         if info:
             self.ax.set_xlim(-0.5, info.width - 0.5)
@@ -143,6 +150,7 @@ class GcpFinderGUI:
             self.fig.canvas.draw_idle()
 
     def draw_mark(self) -> None:
+        """Draw the user's mark on the image on screen, or no mark when it has none."""
         c = self.candidate
         if c is None or self.mark_artist is None:
             return
@@ -152,6 +160,7 @@ class GcpFinderGUI:
         self.centre_artist.set_data(*data)
 
     def draw_side(self) -> None:
+        """Redraw the side list: each GCP's marked and candidate image counts, coloured by whether it has enough."""
         s = self.side
         s.cla()
         s.set_axis_off()
@@ -178,11 +187,13 @@ class GcpFinderGUI:
         s.text(0, 0.02, f"saved to {Path(self.store.path).name} after every change", fontsize=8, color="0.4")
 
     def message(self, text: str) -> None:
+        """Show ``text`` in the status line."""
         self.status.set_text(text)
         self.fig.canvas.draw_idle()
 
     # -- actions -----------------------------------------------------------------------------------
     def mark(self, u: float, v: float) -> None:
+        """Mark the current GCP at pixel (u, v) of the image on screen; the store saves it."""
         c = self.candidate
         if c is None:
             return
@@ -194,20 +205,24 @@ class GcpFinderGUI:
         )
 
     def next_image(self, step: int = 1) -> None:
+        """Open the GCP's next (or, with a negative step, previous) candidate image, wrapping round (keys n/p)."""
         if self.candidates:
             self.ci = (self.ci + step) % len(self.candidates)
             self.open()
 
     def next_gcp(self, step: int = 1) -> None:
+        """Go to the next (or, with a negative step, previous) GCP, wrapping round (keys ]/[)."""
         self.select_gcp((self.gi + step) % len(self.gcp_ids))
 
     def select_gcp(self, index: int) -> None:
+        """Open the first candidate image of GCP number ``index``."""
         self.gi, self.ci = index, 0
         self.open()
         if not self.candidates:
             self.message(f"GCP {self.gcp} lies in no image: check its coordinates")
 
     def undo(self) -> None:
+        """Undo the last mark change and show the image it was in (keys u and ctrl+z)."""
         key = self.store.undo()
         if key is None:
             self.message("nothing to undo")
@@ -223,6 +238,7 @@ class GcpFinderGUI:
         self.message(f"undone: {gid} in {image}")
 
     def delete(self) -> None:
+        """Delete the current GCP's mark in the image on screen (key d)."""
         c = self.candidate
         if c is not None and self.store.delete(self.gcp, c.image):
             self.draw_mark()
@@ -230,6 +246,7 @@ class GcpFinderGUI:
             self.message(f"deleted the mark of {self.gcp} in {c.image}")
 
     def auto_find(self) -> None:
+        """Look for the target around the mark or the prediction and mark its centre if found (key a)."""
         c = self.candidate
         if c is None:
             return
@@ -248,6 +265,7 @@ class GcpFinderGUI:
         self.mark(*uv)
 
     def zoom(self, factor: float, x: float | None = None, y: float | None = None) -> None:
+        """Zoom in by ``factor`` (out when below 1) about (x, y), the view's centre by default."""
         (x0, x1), (y0, y1) = self.ax.get_xlim(), self.ax.get_ylim()
         x = (x0 + x1) / 2 if x is None else x
         y = (y0 + y1) / 2 if y is None else y
@@ -261,6 +279,7 @@ class GcpFinderGUI:
         return getattr(getattr(tb, "mode", None), "name", "NONE") != "NONE"
 
     def on_press(self, ev) -> None:
+        """Answer a mouse press on the image: start a drag of the mark, a click, or a pan (right or middle button)."""
         if ev.inaxes is not self.ax or self._toolbar_busy() or self.candidate is None:
             return
         lims = (self.ax.get_xlim(), self.ax.get_ylim())
@@ -276,6 +295,7 @@ class GcpFinderGUI:
             self._press = ("pan", (ev.x, ev.y), (ev.xdata, ev.ydata), lims)
 
     def on_motion(self, ev) -> None:
+        """Answer a mouse move: follow the cursor with the dragged mark, or pan the image."""
         if self._press is None:
             return
         kind, (px, py), _, ((x0, x1), (y0, y1)) = self._press
@@ -294,6 +314,7 @@ class GcpFinderGUI:
             self.fig.canvas.draw_idle()
 
     def on_release(self, ev) -> None:
+        """Answer a mouse release: place the dragged mark, or mark the GCP where the user clicked."""
         press, self._press = self._press, None
         if press is None:
             return
@@ -309,15 +330,18 @@ class GcpFinderGUI:
             self.mark(ev.xdata, ev.ydata)
 
     def on_scroll(self, ev) -> None:
+        """Answer the scroll wheel: zoom about the cursor."""
         if ev.inaxes is self.ax:
             self.zoom(1.25 if ev.button == "up" else 1 / 1.25, ev.xdata, ev.ydata)
 
     def on_pick(self, ev) -> None:
+        """Answer a click on a GCP in the side list: open that GCP."""
         index = getattr(ev.artist, "gcp_index", None)
         if index is not None:
             self.select_gcp(index)
 
     def on_key(self, ev) -> None:
+        """Answer a key press with its action (the keys listed by h)."""
         k = ev.key
         actions = {
             "right": self.next_image,
@@ -350,18 +374,22 @@ class GcpFinderGUI:
             actions[k]()
 
     def toggle_help(self) -> None:
+        """Switch the help line between the short and the full list of keys (key h)."""
         self.help.set_text(KEYS if self.help.get_text() == HELP else HELP)
         self.fig.canvas.draw_idle()
 
     def save(self) -> None:
+        """Write gcp_list.txt now (key s)."""
         path = self.store.save()
         self.message(f"saved {path}")
 
     def close(self) -> None:
+        """Save gcp_list.txt and close the window (keys q and escape)."""
         self.store.save()
         close_figure(self.fig)
 
     def show(self) -> None:
+        """Open the window and wait until the user closes it (nothing when headless)."""
         show(self.fig)
 
 

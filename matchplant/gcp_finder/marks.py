@@ -77,12 +77,14 @@ class MarkStore:
         return -0.5 <= m.u <= info.width - 0.5 and -0.5 <= m.v <= info.height - 0.5
 
     def set(self, gcp: str, image: str, u: float, v: float, record: bool = True) -> None:
+        """Mark ``gcp`` at pixel (u, v) of ``image``, recorded for undo unless ``record`` is False."""
         if record:
             self.undo_stack.append(((gcp, image), self.marks.get((gcp, image))))
         self.marks[(gcp, image)] = (float(u), float(v))
         self._changed()
 
     def delete(self, gcp: str, image: str) -> bool:
+        """Remove the mark of ``gcp`` in ``image``; False when there was none."""
         if (gcp, image) not in self.marks:
             return False
         self.undo_stack.append(((gcp, image), self.marks.pop((gcp, image))))
@@ -90,6 +92,7 @@ class MarkStore:
         return True
 
     def undo(self) -> tuple[str, str] | None:
+        """Undo the last set or delete; the (GCP, image) it changed, or None when there is nothing to undo."""
         if not self.undo_stack:
             return None
         key, previous = self.undo_stack.pop()
@@ -101,9 +104,11 @@ class MarkStore:
         return key
 
     def count(self, gcp: str) -> int:
+        """Number of images ``gcp`` is marked in."""
         return sum(1 for g, _ in self.marks if g == gcp)
 
     def to_marks(self) -> list[Mark]:
+        """The marks as gcp_list lines, in survey order of the GCPs, then by image name."""
         order = {gid: i for i, gid in enumerate(self.finder.gcps)}
         out = []
         for (gid, image), (u, v) in sorted(self.marks.items(), key=lambda kv: (order.get(kv[0][0], 1e9), kv[0][1])):
@@ -112,6 +117,7 @@ class MarkStore:
         return out
 
     def save(self) -> Path:
+        """Write every mark to the store's gcp_list.txt; its path."""
         return write_gcp_list(self.path, crs_header(self.finder.crs), self.to_marks())
 
     def _changed(self) -> None:
@@ -119,6 +125,7 @@ class MarkStore:
             self.save()
 
     def warn_few(self) -> list[str]:
+        """Warn about GCPs marked in fewer images than ODM needs; their ids."""
         few = [gid for gid in self.finder.gcps if 0 < self.count(gid) < MIN_IMAGES_PER_GCP]
         if few:
             log.warning(

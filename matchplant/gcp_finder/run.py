@@ -57,10 +57,22 @@ def auto_mark(finder: Finder, store: MarkStore, cfg: GcpFinderConfig) -> int:
 
 
 def run(cfg: GcpFinderConfig) -> Finder:
-    """Candidates (CSV and figure); with ``auto`` also the marks and gcp_list.txt.
+    """Module 1 without the GUI: each GCP's candidate images (CSV and figure); with ``auto``, gcp_list.txt too.
 
-    Everything is computed before anything is written, and the files are written into a temporary folder
-    moved into ``output_dir`` at the end, so a failed run leaves no half set of outputs."""
+    ``auto`` detects each GCP's target near its predicted pixel in every candidate image. Everything is computed
+    before anything is written, and the files are written into a temporary folder moved into ``output_dir`` at
+    the end, so a failed run leaves no half set of outputs.
+
+    Parameters
+    ----------
+    cfg : GcpFinderConfig
+        The step's settings, as loaded from its YAML config (``1_gcp_finder/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    Finder
+        The GCPs, the images' metadata and each GCP's ranked candidate images (what the GUI opens).
+    """
     out = Path(cfg.output_dir)
     check_outputs(cfg)
     finder = find_candidates(cfg)

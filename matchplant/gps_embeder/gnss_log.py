@@ -253,6 +253,7 @@ def _read_mrk(path: Path, leap: float):
 
 
 def detect_format(path: Path) -> str:
+    """Format of a GNSS log from its name and first line: "mrk", "pos", "csv" (a lat column) or "events"."""
     name = path.name.lower()
     if name.endswith(".mrk"):
         return "mrk"

@@ -29,6 +29,7 @@ UNITS = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
 
 
 def date_text(t: float) -> str:
+    """UTC date and time of POSIX seconds ``t``, for messages ("no valid date" when out of range)."""
     try:
         return _dt.datetime.fromtimestamp(float(t), _dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
     except (OverflowError, ValueError, OSError):
@@ -124,6 +125,7 @@ def duplicate_events(times: np.ndarray, xyz: np.ndarray, lines: list[int], path:
 
 
 def check_finite(values: np.ndarray, lines: list[int], path: Path, what: str) -> None:
+    """Raise an error naming the log lines whose ``what`` (timestamp, position) is NaN or infinite."""
     bad = np.flatnonzero(~np.isfinite(values).all(axis=-1) if values.ndim > 1 else ~np.isfinite(values))
     if bad.size:
         raise InputError(

@@ -73,7 +73,18 @@ def warnings_after_success(logger: logging.Logger):
 
 
 def run(cfg: GpsEmbederConfig) -> list[dict]:
-    """Run module 0; returns the match report rows (one per image); warnings are printed at the end."""
+    """Run module 0: write each photo's GNSS position into a copy of it; warnings are printed at the end.
+
+    Parameters
+    ----------
+    cfg : GpsEmbederConfig
+        The step's settings, as loaded from its YAML config (``0_gps_embeder/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    list of dict
+        The match report rows (match_report.csv), one per image.
+    """
     with warnings_after_success(log):
         return _run(cfg)
 

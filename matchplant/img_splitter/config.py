@@ -73,6 +73,7 @@ class ImgSplitterConfig:
     workers: int = param(0, "parallel processes (0 = one per CPU core, up to 8)", min=0)
 
     def check(self) -> None:
+        """Reject an overlap too large for the tiles and split shares that are not three fractions summing to 1."""
         if self.overlap >= self.tile_size:
             raise ConfigError(
                 f"'overlap' ({self.overlap}) must be smaller than 'tile_size' ({self.tile_size})",
@@ -100,4 +101,5 @@ class ImgSplitterConfig:
 
     @property
     def threshold(self) -> float:
+        """Smallest visible share of a box for a tile to keep it: ``iou`` when set, else ``min_visible``."""
         return self.min_visible if self.iou is None else self.iou

@@ -95,6 +95,7 @@ class ImgSplitterGUI:
         self.fig.canvas.draw_idle()
 
     def say(self, text: str, error: bool = False) -> None:
+        """Show ``text`` in the status line, in red for an error."""
         self.status.set_text(text)
         self.status.set_color("#c00000" if error else "black")
 
@@ -112,6 +113,7 @@ class ImgSplitterGUI:
         validate(self.cfg, source="GUI")
 
     def refresh(self) -> None:
+        """Re-plan every image's tiles with the settings in the fields and redraw (the Preview button)."""
         self.apply_fields()
         self.sources, _, self.missing = load_sources(self.cfg)
         plan_all(self.cfg, self.sources)
@@ -120,12 +122,14 @@ class ImgSplitterGUI:
         self.say("preview updated; press Run to write the tiles")
 
     def step(self, delta: int) -> None:
+        """Show the next (or, with a negative ``delta``, previous) image, wrapping round (the image buttons)."""
         if self.sources is None:
             self.refresh()
         self.index = (self.index + delta) % len(self.sources)
         self.draw()
 
     def run(self) -> None:
+        """Write the tiles and splits with the settings in the fields (the Run button)."""
         self.apply_fields()
         self.say("running... (progress in the terminal)")
         self.fig.canvas.draw()
@@ -135,6 +139,7 @@ class ImgSplitterGUI:
         self.say(f"done: {self.result['tiles']} tiles written to {self.cfg.output_dir}")
 
     def save(self) -> None:
+        """Save the settings in the fields to the config file, or to output_dir (the Save config button)."""
         self.apply_fields()
         path = self.config_path or Path(self.cfg.output_dir) / "img_splitter.yaml"
         save_config(self.cfg, path)
@@ -142,6 +147,7 @@ class ImgSplitterGUI:
 
     # -- drawing
     def draw(self) -> None:
+        """Draw the current image with its tiles (written or dropped) and its boxes (kept or lost)."""
         s = self.sources[self.index]
         plan = s.plan
         ax = self.ax
@@ -180,6 +186,7 @@ class ImgSplitterGUI:
         self.summary.set_text(self.summary_text())
 
     def summary_text(self) -> str:
+        """Tile and box counts of the current image and of all images, for the summary under the preview."""
         s = self.sources[self.index]
         plan = s.plan
         n_pos = int(plan.positive.sum())

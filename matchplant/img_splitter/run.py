@@ -89,10 +89,12 @@ class ImagePlan:
 
     @property
     def kept_anywhere(self) -> np.ndarray:
+        """Per box: whether at least one tile keeps it."""
         return self.keep.any(axis=0) if self.keep.size else np.zeros(len(self.boxes), bool)
 
     @property
     def positive(self) -> np.ndarray:
+        """Per tile: whether it keeps at least one box."""
         return self.keep.any(axis=1) if self.keep.size else np.zeros(len(self.tiles), bool)
 
 
@@ -194,28 +196,7 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
     file are errors."""
     drops = DropLog() if drops is None else drops
     files = {p.name: p for p in list_images(cfg.images, min_count=0)}
-    if cfg.annotations.is_dir():
-        stems = {p.stem for p in label_files(cfg.annotations)}
-        ds = yolo_to_coco(
-            cfg.annotations, {n: whole_image_size(p) for n, p in files.items() if Path(n).stem in stems}, drops
-        )
-    else:
-        ds = read_dataset(cfg.annotations)
-    if not ds["images"]:
-        raise InputError(
-            "the annotations list no images",
-            path=cfg.annotations,
-            fix="give module 4's annotations.json (or a YOLO labels folder) of the photos in 'images'",
-        )
-    if not ds["annotations"]:
-        what = " (this looks like module 7's predictions)" if "predictions" in ds else ""
-        raise InputError(
-            f"the annotations hold no box (on {len(ds['images'])} image(s)){what}: every tile would be "
-            "a negative and the detector would learn nothing",
-            path=cfg.annotations,
-            fix="draw or import the plant boxes with module 4 first (or point 'annotations' at the "
-            "file that holds them)",
-        )
+    ds = _read_annotations(cfg, files, drops)
     by_image: dict[int, list[dict]] = {im["id"]: [] for im in ds["images"]}
     for a in ds["annotations"]:
         by_image[a["image_id"]].append(a)
@@ -235,45 +216,7 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
                     unmatched[im["file_name"]],
                 )
             continue
-        w, h = whole_image_size(files[name])
-        if (w, h) != (im["width"], im["height"]):
-            raise InputError(
-                f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
-                path=cfg.annotations,
-                fix="annotate the same (unresized) images that you tile",
-            )
-        anns = by_image[im["id"]]
-        b = np.array([a["bbox"] for a in anns], float).reshape(-1, 4)
-        b[:, 2:] += b[:, :2]
-        cats = np.array([a["category_id"] for a in anns], int)
-        region = annotated_region(im)
-        outside = 0
-        if region is not None:  # only the region was annotated: boxes clipped to it
-            b, inside = clip_boxes(b, region)
-            outside = int((~inside).sum())
-            for i in np.flatnonzero(~inside):
-                drops.add(
-                    cfg.annotations,
-                    f"annotation {anns[i].get('id')}",
-                    name,
-                    anns[i]["bbox"],
-                    "outside the annotated region",
-                    "module 4 recorded only part of this image as annotated",
-                )
-            b, cats = b[inside], cats[inside]
-        sources.append(
-            Source(
-                name,
-                files[name],
-                w,
-                h,
-                b,
-                cats,
-                region,
-                boxes_outside=outside,
-                ids=[a.get("id") for a, k in zip(anns, inside if region is not None else [True] * len(anns)) if k],
-            )
-        )
+        sources.append(_source(cfg, im, name, files[name], by_image[im["id"]], drops))
     if missing and sources:
         example = missing[0] + (f" ({unmatched[missing[0]]})" if unmatched[missing[0]] else "")
         log.warning(
@@ -298,6 +241,66 @@ def load_sources(cfg: ImgSplitterConfig, drops: DropLog | None = None) -> tuple[
             fix="rename one of them",
         )
     return sources, ds["categories"], missing
+
+
+def _read_annotations(cfg: ImgSplitterConfig, files: dict[str, Path], drops: DropLog) -> dict:
+    """The annotations as a COCO dataset (a YOLO folder converted with the sizes of ``files``): at least one
+    image and one box, else an error."""
+    if cfg.annotations.is_dir():
+        stems = {p.stem for p in label_files(cfg.annotations)}
+        ds = yolo_to_coco(
+            cfg.annotations, {n: whole_image_size(p) for n, p in files.items() if Path(n).stem in stems}, drops
+        )
+    else:
+        ds = read_dataset(cfg.annotations)
+    if not ds["images"]:
+        raise InputError(
+            "the annotations list no images",
+            path=cfg.annotations,
+            fix="give module 4's annotations.json (or a YOLO labels folder) of the photos in 'images'",
+        )
+    if not ds["annotations"]:
+        what = " (this looks like module 7's predictions)" if "predictions" in ds else ""
+        raise InputError(
+            f"the annotations hold no box (on {len(ds['images'])} image(s)){what}: every tile would be "
+            "a negative and the detector would learn nothing",
+            path=cfg.annotations,
+            fix="draw or import the plant boxes with module 4 first (or point 'annotations' at the "
+            "file that holds them)",
+        )
+    return ds
+
+
+def _source(cfg: ImgSplitterConfig, im: dict, name: str, path: Path, anns: list[dict], drops: DropLog) -> Source:
+    """One annotated image found on disk (``name`` at ``path``): its size checked against the annotations, its
+    boxes as corners, clipped to the annotated region where module 4 recorded one (the rest to ``drops``)."""
+    w, h = whole_image_size(path)
+    if (w, h) != (im["width"], im["height"]):
+        raise InputError(
+            f"'{name}' is {w}x{h} px on disk but {im['width']}x{im['height']} in the annotations",
+            path=cfg.annotations,
+            fix="annotate the same (unresized) images that you tile",
+        )
+    b = np.array([a["bbox"] for a in anns], float).reshape(-1, 4)
+    b[:, 2:] += b[:, :2]
+    cats = np.array([a["category_id"] for a in anns], int)
+    region = annotated_region(im)
+    outside = 0
+    if region is not None:  # only the region was annotated: boxes clipped to it
+        b, inside = clip_boxes(b, region)
+        outside = int((~inside).sum())
+        for i in np.flatnonzero(~inside):
+            drops.add(
+                cfg.annotations,
+                f"annotation {anns[i].get('id')}",
+                name,
+                anns[i]["bbox"],
+                "outside the annotated region",
+                "module 4 recorded only part of this image as annotated",
+            )
+        b, cats = b[inside], cats[inside]
+    ids = [a.get("id") for a, k in zip(anns, inside if region is not None else [True] * len(anns)) if k]
+    return Source(name, path, w, h, b, cats, region, boxes_outside=outside, ids=ids)
 
 
 def check_tile_size(cfg: ImgSplitterConfig, sources: list[Source]) -> None:
@@ -385,7 +388,18 @@ def run(cfg: ImgSplitterConfig) -> dict:
     """Tile, split and write everything; returns the summary (also written to summary.json).
 
     Everything is checked before a pixel is written, and the outputs are written into a staging folder moved
-    into ``output_dir`` only at the end: a failed run leaves ``output_dir`` as it was (apart from its log)."""
+    into ``output_dir`` only at the end: a failed run leaves ``output_dir`` as it was (apart from its log).
+
+    Parameters
+    ----------
+    cfg : ImgSplitterConfig
+        The step's settings, as loaded from its YAML config (``5_img_splitter/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    dict
+        The summary: tiles and boxes per split, boxes kept and left out.
+    """
     check_outputs(cfg)
     drops = DropLog()
     sources, categories, missing = load_sources(cfg, drops)

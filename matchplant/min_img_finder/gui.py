@@ -50,6 +50,8 @@ def selection_words(sel, reachable: float, asked_pct: float) -> str:
 
 
 class MinImgFinderGUI:
+    """The selection window: coverage map, parameter boxes, Select and Save buttons and a status line."""
+
     def __init__(self, cfg: MinImgFinderConfig, config_path: Path | None = None, headless: bool | None = None):
         self.cfg = cfg
         self.config_path = config_path
@@ -81,11 +83,13 @@ class MinImgFinderGUI:
 
     # -- actions ---------------------------------------------------------------------------------
     def say(self, text: str, error: bool = False) -> None:
+        """Show ``text`` in the status line, in red for an error."""
         self.status.set_text(text)
         self.status.set_color("red" if error else "black")
         self.fig.canvas.draw_idle()
 
     def read_params(self) -> bool:
+        """Copy the parameter boxes into the config and check it; False (and the error shown) when a value is wrong."""
         try:
             for key, box in self.boxes.items():
                 setattr(self.cfg, key, float(box.text))
@@ -97,6 +101,7 @@ class MinImgFinderGUI:
             return False
 
     def load(self) -> None:
+        """Load the ODM project of the config and run a first selection; a load error goes to the status line."""
         if self.cfg.project_dir is None:
             self.say("set project_dir in the config (or --set project_dir=...) and reopen", error=True)
             return
@@ -108,6 +113,7 @@ class MinImgFinderGUI:
         self.run_selection()
 
     def run_selection(self) -> None:
+        """Select images with the parameters in the boxes and show the result (the Select button)."""
         if self.finder is None or not self.read_params():
             return
         try:
@@ -127,6 +133,7 @@ class MinImgFinderGUI:
         self.say(f"{'added' if index in chosen else 'removed'} {name}")
 
     def on_click(self, event) -> None:
+        """Answer a click on the map: add or remove the image under the pointer (not while zooming or panning)."""
         if event.inaxes is not self.ax or self.finder is None or event.xdata is None:
             return
         if getattr(self.fig.canvas, "toolbar", None) is not None and getattr(self.fig.canvas.toolbar, "mode", ""):
@@ -136,6 +143,7 @@ class MinImgFinderGUI:
             self.toggle(index)
 
     def image_at(self, x: float, y: float) -> int | None:
+        """Index of the image a click at ground point (x, y) toggles, or None when no footprint is there."""
         p = shapely.Point(x, y)
         if self.result is not None:  # inside a selected image's owned area: that image
             for i in self.result.selection.indices:
@@ -150,6 +158,7 @@ class MinImgFinderGUI:
         return min(hits)[1] if hits else None
 
     def show_result(self, result: Result) -> None:
+        """Draw an evaluated selection on the map and its figures in the info box."""
         self.result = result
         draw_coverage(self.ax, self.finder, result)
         s = result.selection
@@ -164,6 +173,7 @@ class MinImgFinderGUI:
         self.fig.canvas.draw_idle()
 
     def save(self) -> dict | None:
+        """Write the shown selection's outputs and the config beside them (the Save button); the paths, or None."""
         if self.result is None:
             self.say("nothing to save yet", error=True)
             return None

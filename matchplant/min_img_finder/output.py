@@ -330,6 +330,7 @@ def _palette(n: int):
 
 
 def coverage_figure(finder, result, path: Path) -> Path:
+    """Save the coverage map of a selection as a PNG at ``path``; the path."""
     fig = figure(headless=True, figsize=(9, 8), dpi=110)
     ax = fig.add_subplot(111)
     draw_coverage(ax, finder, result)

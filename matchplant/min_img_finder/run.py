@@ -77,6 +77,7 @@ class Result:
 
     @property
     def selected(self) -> list[Footprint]:
+        """Footprints of the selected images, in selection order."""
         return [self.footprints[i] for i in self.selection.indices]
 
 
@@ -160,9 +161,11 @@ class MinImageFinder:
 
     @property
     def names(self) -> list[str]:
+        """Image names of all footprints, in footprint order."""
         return [f.name for f in self.footprints]
 
     def select(self) -> Selection:
+        """Choose few images covering the AOI up to the configured uncovered threshold, with the configured method."""
         cfg = self.cfg
         target = 1.0 - cfg.uncovered_threshold / 100.0
         reach = self.reachable
@@ -199,6 +202,7 @@ class MinImageFinder:
         return int(np.argmax(gain)) if gain.max() > 0 else None
 
     def exact_coverage(self, indices: Sequence[int]) -> float:
+        """Fraction of the AOI the union of these images' footprint polygons covers."""
         if not indices:
             return 0.0
         union = shapely.union_all([self.footprints[i].polygon for i in indices])
@@ -232,6 +236,7 @@ class MinImageFinder:
         )
 
     def with_indices(self, indices: Sequence[int], method: str = "manual") -> Selection:
+        """A selection of the given images, e.g. one picked by hand in the GUI."""
         target = 1.0 - self.cfg.uncovered_threshold / 100.0
         return Selection(indices=list(indices), coverage=self.grid.coverage(indices), target=target, method=method)
 
@@ -259,8 +264,21 @@ def skipped_images(project: ODMProject, footprints: Sequence[Footprint]) -> list
 
 
 def run(cfg: MinImgFinderConfig) -> Result:
-    """Step 3 from the command line: load, select, evaluate, write (all or nothing: a failed run leaves
-    ``output_dir`` as it was)."""
+    """Step 3 from the command line: load, select, evaluate, write.
+
+    All or nothing: a failed run leaves ``output_dir`` as it was.
+
+    Parameters
+    ----------
+    cfg : MinImgFinderConfig
+        The step's settings, as loaded from its YAML config (``3_min_img_finder/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    Result
+        The selection evaluated: the selected images, the ground area each owns, the coverage and the uncovered
+        area.
+    """
     finder = MinImageFinder(cfg)
     selection = finder.select()
     if not selection.indices:

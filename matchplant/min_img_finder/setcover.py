@@ -38,6 +38,7 @@ class CoverageGrid:
 
     @property
     def total(self) -> float:
+        """Area of the AOI's cells, m^2."""
         return float(self.weights.sum())
 
     def overlap_fraction(self) -> sparse.csr_matrix:
@@ -52,6 +53,7 @@ class CoverageGrid:
         return sparse.csr_matrix((frac[keep], (inter.row[keep], inter.col[keep])), shape=(self.A.shape[0],) * 2)
 
     def coverage(self, selected: Sequence[int]) -> float:
+        """Fraction of the cells' area that the ``selected`` images cover."""
         if len(selected) == 0:
             return 0.0
         covered = np.asarray(self.A[list(selected)].sum(axis=0)).ravel() > 0
@@ -73,6 +75,7 @@ class Selection:
 
 
 def reachable_coverage(grid: CoverageGrid) -> float:
+    """Fraction of the cells' area that all images together cover: the most any selection can reach."""
     covered = np.asarray(grid.A.sum(axis=0)).ravel() > 0
     return float(grid.weights[covered].sum() / grid.total)
 

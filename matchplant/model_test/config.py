@@ -117,6 +117,7 @@ class ModelTestConfig:
     amp: bool = param(True, "mixed precision on CUDA GPUs")
 
     def check(self) -> None:
+        """Clear errors for what no single key's check sees: the device, overlap vs tile, nothing to do, onnx, cover."""
         check_device(self.device)
         if None not in (self.detect.overlap, self.detect.tile_size) and self.detect.overlap >= self.detect.tile_size:
             raise ConfigError(

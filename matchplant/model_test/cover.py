@@ -49,6 +49,7 @@ class Cover:
 
 
 def is_project(path: Path | None) -> bool:
+    """Whether ``path`` is an ODM project folder (``opensfm/``, or the submodels of a split-merge project)."""
     p = Path(path) if path is not None else None
     return p is not None and ((p / "opensfm").is_dir() or (p / SUBMODELS_DIR).is_dir())
 

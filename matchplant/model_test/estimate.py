@@ -19,6 +19,7 @@ import numpy as np
 
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import duration
+from matchplant.detection.gpu import as_runtime
 from matchplant.detection.objects import input_scale
 
 log = get_logger("model_test")
@@ -28,7 +29,7 @@ PAD = 32  # torchvision batches images padded to a multiple of 32 px
 
 
 def _starts(length: int, tile: int, overlap: int) -> int:
-    """How many tile origins module 7's grid has along one axis (``run.tile_starts``)."""
+    """How many tile origins module 7's grid has along one axis (``tiles.tile_starts``)."""
     return 1 if length <= tile else math.ceil((length - tile) / (tile - overlap)) + 1
 
 
@@ -95,7 +96,8 @@ def estimate(
     p = plan(sizes, tile, overlap, model_config)
     rate = probe(predictor, first_image, tile, model_config, batch)
     seconds = rate * p["input_megapixels"] / max(processes, 1)
-    p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(device))
+    runtime = as_runtime(device)
+    p.update(seconds_per_input_megapixel=rate, seconds=seconds, device=str(runtime.device))
     if every is not None:
         whole = plan(every, tile, overlap, model_config)
         whole["seconds"] = rate * whole["input_megapixels"] / max(processes, 1)
@@ -113,7 +115,7 @@ def estimate(
         f"{p['photos']} photo(s), {p['tiles']} tiles of {tile} px ({p['tiles_per_photo'][0]}"
         f"{'-' + str(p['tiles_per_photo'][1]) if p['tiles_per_photo'][1] != p['tiles_per_photo'][0] else ''} "
         f"per photo), each resized to the network's {lo} px input: {p['input_megapixels']:.1f} MP for the network, "
-        f"{p['input_per_photo_pixel']:.1f}x the photos' own pixels; {rate:.2f} s per MP measured on {device}"
+        f"{p['input_per_photo_pixel']:.1f}x the photos' own pixels; {rate:.2f} s per MP measured on {runtime.device}"
     )
     if seconds >= warn_after_s:
         hint = (
@@ -122,7 +124,7 @@ def estimate(
             if p["input_per_photo_pixel"] > 4
             else ""
         )
-        gpu = " A CUDA GPU (device: auto picks it) is much faster." if getattr(device, "type", "") == "cpu" else ""
+        gpu = " A CUDA GPU (device: auto picks it) is much faster." if runtime.on_cpu else ""
         log.warning("detection will take about %s: %s.%s%s", duration(seconds), what, hint, gpu)
     else:
         log.info("detection estimate: about %s (%s)", duration(seconds), what)

@@ -1,5 +1,6 @@
-"""Module 7's input checks: the images to detect on (listed, whole, their size against the tile), and why a run
-found nothing (the score threshold, the scale, the model) instead of an empty predictions file."""
+"""Module 7's input checks: the checkpoint (:func:`read_model`), the images to detect on (listed, whole, their
+size against the tile), and why a run found nothing (the score threshold, the scale, the model) instead of an empty
+predictions file."""
 
 from __future__ import annotations
 
@@ -10,13 +11,28 @@ from matchplant.core.formats.images import list_images as list_image_files
 from matchplant.core.formats.odm import SUBMODELS_DIR, ODMProject
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.detection.data import check_image_files, image_size
+from matchplant.detection.dataset_checks import check_image_files, image_size
 from matchplant.detection.device import DEVICE_CHOICES
+from matchplant.detection.foreign import read_any_checkpoint
 
 log = get_logger("model_test")
 
 SYSTEM_JUNK = ("thumbs.db", "desktop.ini", ".ds_store")
 CHECKPOINT_FIX = "use the trained checkpoint (module 6's checkpoints/best.pt, not an untrained or early one)"
+
+
+def read_model(cfg) -> dict:
+    """The checkpoint of ``cfg`` (a :class:`~matchplant.model_test.config.ModelTestConfig`): module 6's, the
+    paper's layout or bare torchvision weights (their classes from ``class_names``)."""
+    ck = read_any_checkpoint(cfg.checkpoint, class_names=list(cfg.class_names) or None)
+    if cfg.class_names and "foreign" not in ck and list(cfg.class_names) != ck["class_names"]:
+        log.warning(
+            "class_names %s ignored: the module 6 checkpoint %s holds its own classes %s",
+            list(cfg.class_names),
+            cfg.checkpoint,
+            ck["class_names"],
+        )
+    return ck
 
 
 def list_images(path: Path) -> list[Path]:
@@ -84,6 +100,7 @@ def check_images(files: list[Path], tile_size: int) -> list[tuple[int, int]]:
 
 
 def check_device(device: str) -> None:
+    """A clear error for a ``device`` key that is none of auto, cpu, cuda, cuda:N, mps."""
     if str(device).lower().split(":")[0] not in DEVICE_CHOICES:
         raise ConfigError(f"device '{device}' is not one of auto, cpu, cuda, cuda:N, mps", fix="set device: auto")
 

@@ -14,6 +14,7 @@ import warnings
 from collections import OrderedDict
 
 from matchplant.core.runtime.log import get_logger
+from matchplant.detection.gpu import as_runtime
 
 log = get_logger("model_test")
 
@@ -25,12 +26,13 @@ MISSING_FIX = "pip install onnxruntime onnx (requirements.txt), or set detect.ru
 def with_runtime(model, runtime: str, device, threads: int):
     """The detector as ``detect.runtime`` asks: ``onnx`` (or ``auto`` on a CPU with ONNX Runtime installed) runs
     its convolutions in ONNX Runtime (:func:`onnx_detector`), else PyTorch runs it all. ``auto`` falls back to
-    PyTorch, with the reason logged, for a GPU, a missing package or a model that is not a Faster R-CNN."""
+    PyTorch, with the reason logged, for a GPU, a missing package or a model that is not a Faster R-CNN.
+    ``device``: the run's :class:`~matchplant.detection.gpu.Runtime` (or a bare device)."""
     if runtime == "torch":
         return model
     why = (
         "it runs on the CPU only"
-        if getattr(device, "type", "cpu") != "cpu"
+        if not as_runtime(device).on_cpu
         else "onnxruntime is not installed"
         if not available()
         else "only Faster R-CNN detectors are exported"
@@ -51,6 +53,7 @@ def torch_threads() -> int:
 
 
 def available() -> bool:
+    """Whether ONNX Runtime can be imported."""
     try:
         import onnxruntime  # noqa: F401
     except ImportError:
@@ -61,6 +64,17 @@ def available() -> bool:
 def onnx_detector(model, threads: int = 1):
     """``model`` (a torchvision Faster R-CNN in eval mode, on the CPU) with its backbone and RPN head run by
     ONNX Runtime (``threads`` intra-op threads); the model is changed in place and returned."""
+    import onnxruntime as ort  # lazy: optional
+
+    session, keys = _exported(model, threads)
+    model.backbone, model.rpn.head = _session_parts(session, keys, model.backbone.out_channels)
+    log.info("detect.runtime: onnx (backbone, feature pyramid and RPN head in ONNX Runtime %s)", ort.__version__)
+    return model
+
+
+def _exported(model, threads: int):
+    """``(ONNX Runtime session, feature names)``: the backbone, feature pyramid and RPN head exported (any batch
+    and tile size) and opened with ``threads`` intra-op threads."""
     import onnxruntime as ort  # lazy: optional
     import torch  # lazy: PyTorch is heavy; configs load without it
 
@@ -93,7 +107,15 @@ def onnx_detector(model, threads: int = 1):
         )
     so = ort.SessionOptions()
     so.intra_op_num_threads, so.inter_op_num_threads = max(threads, 1), 1
-    session = ort.InferenceSession(buf.getvalue(), so, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(buf.getvalue(), so, providers=["CPUExecutionProvider"]), keys
+
+
+def _session_parts(session, keys: list, out_channels: int):
+    """``(backbone, RPN head)`` modules in the model's places: the backbone runs the session, the head returns the
+    RPN head's outputs computed with it."""
+    import torch  # lazy: PyTorch is heavy; configs load without it
+
+    n = len(keys)
 
     class OrtBackbone(torch.nn.Module):
         """The backbone's place: runs the exported part, keeps the RPN head's outputs for :class:`Stashed`."""
@@ -117,8 +139,5 @@ def onnx_detector(model, threads: int = 1):
         def forward(self, features):
             return self.owner[0].stash
 
-    backbone = OrtBackbone(model.backbone.out_channels)
-    model.backbone = backbone
-    model.rpn.head = Stashed(backbone)
-    log.info("detect.runtime: onnx (backbone, feature pyramid and RPN head in ONNX Runtime %s)", ort.__version__)
-    return model
+    backbone = OrtBackbone(out_channels)
+    return backbone, Stashed(backbone)

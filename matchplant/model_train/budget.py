@@ -61,6 +61,7 @@ class Plan:
 
     @property
     def epochs(self) -> int:
+        """Epochs the planned iterations reach, the last one possibly partial."""
         return math.ceil(self.iters / max(self.iters_per_epoch, 1))
 
 
@@ -152,6 +153,7 @@ class Budget:
     # -- the limit -------------------------------------------------------------------------------------------------
     @property
     def limited(self) -> bool:
+        """Whether ``max_minutes`` limits the session (0: no budget)."""
         return bool(self.minutes)
 
     @property
@@ -166,10 +168,12 @@ class Budget:
         return self.seconds if self.limited else LONG_RUN_S
 
     def horizon_words(self) -> str:
+        """The time the run must fit in, for messages: ``max_minutes = N``, or a few hours without a budget."""
         return f"max_minutes = {self.minutes:g}" if self.limited else f"{duration(LONG_RUN_S)} (no max_minutes)"
 
     # -- the clock -------------------------------------------------------------------------------------------------
     def elapsed(self) -> float:
+        """Seconds since the session started (set-up and probe included)."""
         return time.perf_counter() - self.start
 
     def left(self) -> float:
@@ -181,6 +185,7 @@ class Budget:
         return (self.costs.validation if self.validated else 0.0) + self.costs.checkpoint
 
     def iteration_s(self) -> float:
+        """Seconds per training iteration: mean of the last 20 steps timed (the first left out), else the estimate."""
         recent = self.step_times[1:][-20:] or self.step_times or [self.costs.iteration]
         return float(np.mean(recent))
 

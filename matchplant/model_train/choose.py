@@ -32,6 +32,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import duration
 from matchplant.detection.architectures import get_architecture
 from matchplant.detection.crops import skip_training_resize
+from matchplant.detection.gpu import as_runtime
 from matchplant.detection.model import (
     AUTO,
     PRETRAINED,
@@ -107,7 +108,7 @@ def resolve_pretrained(cfg, resume: dict | None) -> object:
 def from_scratch_on_cpu(cfg, device) -> bool:
     """``model.architecture: auto`` from random weights (no checkpoint) on a CPU: the case the CPU recipe is for (a
     config naming its architecture, as the demo's, keeps its own training as set)."""
-    return device.type == "cpu" and from_scratch(cfg)
+    return as_runtime(device).on_cpu and from_scratch(cfg)
 
 
 def from_scratch(cfg) -> bool:
@@ -119,11 +120,13 @@ def budget_recipe(cfg, device, budget: Budget | None) -> bool:
     """Whether the recipe for random weights applies (the light detector, crops, AdamW, epochs ended by the
     budget): from scratch on a CPU, or on any device with ``max_minutes`` (a GPU without a budget has the hours
     the paper's detector needs)."""
-    return from_scratch(cfg) and (device.type == "cpu" or (budget is not None and budget.limited))
+    return from_scratch(cfg) and (as_runtime(device).on_cpu or (budget is not None and budget.limited))
 
 
 def where(device) -> str:
-    return "on a CPU" if device.type == "cpu" else f"on {device.type.upper()} within max_minutes"
+    """Where the recipe for random weights applies, in words (``device``: the run's Runtime or a bare device)."""
+    runtime = as_runtime(device)
+    return "on a CPU" if runtime.on_cpu else f"on {runtime.kind.upper()} within max_minutes"
 
 
 def cpu_crop(cfg, device, budget: Budget | None = None) -> tuple[object, str | None]:
@@ -284,15 +287,16 @@ def choose_architecture(
     candidates = [a for a in (PAPER, MOBILE, LITE) if levels is None or get_architecture(a).anchors.levels == levels]
     if not candidates:
         candidates = [PAPER]  # the anchors' check then names the mismatch
-    light = model_cfg.pretrained == "none" and (device.type == "cpu" or budget.limited)  # the budget recipe's
+    runtime = as_runtime(device)
+    light = model_cfg.pretrained == "none" and (runtime.on_cpu or budget.limited)  # the budget recipe's
     if not light:
         candidates = [a for a in candidates if a != LITE] or [PAPER]
     if len(candidates) == 1:
         return candidates[0], f"model.anchor_sizes lists {levels} FPN levels, which only {candidates[0]} has", None
     if light and LITE in candidates:
-        return LITE, LITE_WHY if device.type == "cpu" else LITE_WHY_GPU.format(budget.horizon_words()), None
-    if device.type != "cpu":
-        return PAPER, f"the paper's detector, on a GPU ({device})", None
+        return LITE, LITE_WHY if runtime.on_cpu else LITE_WHY_GPU.format(budget.horizon_words()), None
+    if not runtime.on_cpu:
+        return PAPER, f"the paper's detector, on a GPU ({runtime.device})", None
     mcfg = resolve_auto_anchors(dataclasses.replace(model_cfg, architecture=MOBILE, checkpoint=None), train_json)
     model = build_detector(mcfg, n_classes + 1, load_weights=False)
     stages = len(backbone_stages(model, MOBILE))
@@ -303,7 +307,7 @@ def choose_architecture(
     log.info("model.architecture: auto on the CPU: timing %s at the config's input size and batch", MOBILE)
     with heartbeat("timing MobileNetV3 for model.architecture: auto"):
         probe = probe_speed(
-            model, train_ds, cfg.batch_size, device, amp=False, num_workers=cfg.num_workers, run_iters=total_iters
+            model, train_ds, cfg.batch_size, runtime, amp=False, num_workers=cfg.num_workers, run_iters=total_iters
         )
     mobile_s = total_iters * probe.iteration_s
     resnet_s = mobile_s * RESNET_TRAIN_COST

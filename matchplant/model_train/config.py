@@ -31,7 +31,7 @@ class LearningRates:
 
 @dataclass
 class ModelTrainConfig:
-    """Module 6: train a Faster R-CNN detector on COCO tiles (train and validation splits from module 5)."""
+    """Module 6: train a plant detector (Faster R-CNN, RetinaNet or FCOS) on module 5's train and val tiles (COCO)."""
 
     train_json: Path = param(None, "COCO JSON of the training tiles (module 5)", path="file", required=True)
     train_images: Path | None = param(None, "folder of the training tiles; null = the JSON's folder", path="dir")
@@ -139,6 +139,7 @@ class ModelTrainConfig:
     seed: int = param(0, "random seed (data order, augmentation, new layers)")
 
     def check(self) -> None:
+        """Lower ``num_workers`` to the free cores, reject an unknown ``device`` and check the crop settings."""
         cores, source = usable_cores()
         if self.num_workers > cores - 1:  # more loaders than free cores only compete (PyTorch: "might freeze")
             log.info("num_workers %d -> %d: %d usable core(s) (%s)", self.num_workers, cores - 1, cores, source)

@@ -23,6 +23,7 @@ from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
 from matchplant.detection.data import CocoDetection
 from matchplant.detection.evaluate import coco_evaluate, predict_dataset, summarise_stats
+from matchplant.detection.gpu import as_runtime
 from matchplant.detection.model import ModelConfig, keep_frozen_norms_fixed
 from matchplant.model_train.checkpoint import save, save_numbered
 from matchplant.model_train.config import ModelTrainConfig
@@ -51,16 +52,18 @@ def train_step(model, images, targets, optimizer, scheduler, scaler, device, amp
     :class:`LossTally` every few steps (a read waits for the GPU: model_train/gpu.py)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
+    runtime = as_runtime(device)
+    device = runtime.device
     images = [im.to(device, non_blocking=True) for im in images]
     targets = [
         {"boxes": t["boxes"].to(device, non_blocking=True), "labels": t["labels"].to(device, non_blocking=True)}
         for t in targets
     ]
-    with torch.autocast(device_type=device.type, enabled=amp, dtype=dtype):
+    with torch.autocast(device_type=runtime.kind, enabled=amp, dtype=dtype):
         loss_dict = model(images, targets)
         loss = sum(loss_dict.values())
     values = torch.stack([*(v.detach().float() for v in loss_dict.values()), loss.detach().float()])
-    if device.type != "cuda":
+    if not runtime.losses_on_device:
         values = values.tolist()
         check_loss(values[-1], desc)
     optimizer.zero_grad(set_to_none=True)
@@ -91,6 +94,7 @@ class LossTally:
         return self.flush() if self.count >= READ_EVERY else False
 
     def flush(self) -> bool:
+        """Read the losses summed on the device into the sums, checking the loss; True (the sums are up to date)."""
         if self.pending is not None:
             values = self.pending.tolist()  # the one host-device sync of READ_EVERY steps
             check_loss(values[-1], self.desc)
@@ -177,7 +181,7 @@ def begin_epoch(job: Job, state: TrainState, epoch: int, start: int) -> tuple[di
     cfg = job.cfg
     seed_everything(cfg.seed * 100003 + epoch)
     if start and state.rng is not None:
-        set_random_state(state.rng, job.device)
+        set_random_state(state.rng, job.runtime)
     job.train_ds.set_seed(cfg.seed * 100003 + epoch)
     if getattr(job.loader, "persistent_workers", False):  # workers kept from the last epoch: the seed goes with
         job.sampler.item_seed = cfg.seed * 100003 + epoch  # each index (detection/data.py EpochSampler)
@@ -255,7 +259,7 @@ def run_epoch(job: Job, state: TrainState) -> str | None:
         job.optimizer,
         job.scheduler,
         job.scaler,
-        job.device,
+        job.runtime,
         job.amp,
         f"epoch {epoch + 1}/{plan.epochs}",
         sums,
@@ -267,7 +271,7 @@ def run_epoch(job: Job, state: TrainState) -> str | None:
     )
     train_time = time.perf_counter() - t0
     # the random state where training stopped (validation draws from it too; a resumed run starts here)
-    state.stop_rng = random_state(job.device) if batches < iters else None
+    state.stop_rng = random_state(job.runtime) if batches < iters else None
     record = epoch_record(job, state, epoch, start, sums, batches, train_time)
     if reason == "interrupt":
         stop_interrupted(job, state, epoch, record, sums, batches)
@@ -386,4 +390,5 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
 
 
 def clock_words(seconds: float) -> str:
+    """A duration for the log: minutes with one decimal from a minute up, whole seconds below."""
     return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"

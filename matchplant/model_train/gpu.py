@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import os
 
-from matchplant.detection.gpu import GpuOptions, amp_dtype
+from matchplant.detection.gpu import GpuOptions, amp_dtype, as_runtime
 
 __all__ = ["READ_EVERY", "GpuOptions", "amp_dtype", "fused_ok", "loader_settings", "prepare_model"]
 
@@ -27,23 +27,23 @@ MAX_WORKERS = 8  # loader processes on a GPU machine: decoding PNG tiles keeps u
 
 
 def loader_settings(num_workers: int, device) -> dict:
-    """DataLoader keywords: on CUDA at least as many workers as the free cores allow (up to :data:`MAX_WORKERS`;
-    the config's ``num_workers`` when larger), persistent, pinned, prefetching; on a CPU the config's as they are."""
-    if device.type != "cuda":
+    """DataLoader keywords: where the run's runtime raises the loader's workers (CUDA) at least as many workers as
+    the free cores allow (up to :data:`MAX_WORKERS`; the config's ``num_workers`` when larger), persistent, pinned,
+    prefetching; on a CPU the config's as they are. ``device``: the run's Runtime (or a bare device)."""
+    runtime = as_runtime(device)
+    if not runtime.loader_workers:
         return {"num_workers": num_workers, "pin_memory": False}
     free = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     workers = max(num_workers, min(MAX_WORKERS, free - 1))
     extra = {"persistent_workers": True, "prefetch_factor": 4} if workers else {}
-    return {"num_workers": workers, "pin_memory": True, **extra}
+    return {"num_workers": workers, "pin_memory": runtime.pin_memory, **extra}
 
 
 def prepare_model(model, device):
     """channels_last and ``torch.compile`` of the backbone where asked, on CUDA; the model unchanged elsewhere."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
-    if device.type != "cuda":
-        return model
-    opts = GpuOptions.from_env()
+    opts = as_runtime(device).options  # all off on a CPU
     if opts.channels_last:
         model.to(memory_format=torch.channels_last)
     if opts.compile and hasattr(model, "backbone"):
@@ -52,7 +52,6 @@ def prepare_model(model, device):
 
 
 def fused_ok(params, device) -> bool:
-    """Whether the optimizer's step may be fused: on CUDA, every parameter on it, not switched off."""
-    return (
-        device is not None and device.type == "cuda" and GpuOptions.from_env().fused and all(p.is_cuda for p in params)
-    )
+    """Whether the optimizer's step may be fused: the runtime fuses it (CUDA, not switched off) and every parameter
+    is on the GPU."""
+    return device is not None and as_runtime(device).fused and all(p.is_cuda for p in params)

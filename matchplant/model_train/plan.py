@@ -37,7 +37,7 @@ def measure(job: Job, state: TrainState, probe=None):
                 job.core,
                 job.train_ds,
                 cfg.batch_size,
-                job.device,
+                job.runtime,
                 job.amp,
                 cap_s=cap,
                 num_workers=cfg.num_workers,
@@ -74,7 +74,7 @@ def probe_and_plan(job: Job, state: TrainState, resumed_plan: bool, probe=None, 
         budget.fit(done, costs, budget.seconds - spent - 2.0, "measured by the probe")
     # a from-scratch CPU run's epochs are set for the budget to end it (choose.scratch_budget): no advice then
     hint = (
-        None if size_validation else advice(total_s, budget, job.device, job.model_cfg.architecture, plan.iters, total)
+        None if size_validation else advice(total_s, budget, job.runtime, job.model_cfg.architecture, plan.iters, total)
     )
     planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, budget.validated) - run_seconds(
         done, plan.iters_per_epoch, costs, cfg.val_every, budget.validated

@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import duration
 from matchplant.detection.data import collate
+from matchplant.detection.gpu import as_runtime
 from matchplant.detection.model import keep_frozen_norms_fixed
 from matchplant.model_train.budget import Budget, Costs
 
@@ -33,6 +34,8 @@ HEARTBEAT_S = 10.0
 
 @dataclass
 class Probe:
+    """One detector's speed measured on this device: an iteration, loading a batch, inference, peak memory."""
+
     first_s: float  # the first iteration (allocation, warm-up)
     iteration_s: float  # a steady iteration (median of the later ones; the first when it was alone)
     iterations: int  # timed
@@ -43,6 +46,7 @@ class Probe:
     input_px: tuple[int, int]  # the network input of the probe batch (after the model's resize)
 
     def as_dict(self) -> dict:
+        """The measurements for training_summary.json, floats rounded to 4 decimals."""
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in asdict(self).items()}
 
 
@@ -65,11 +69,12 @@ def heartbeat(what: str, every: float = HEARTBEAT_S):
         thread.join(timeout=1.0)
 
 
-def _peak_memory_mb(device) -> float:
-    if device.type == "cuda":
+def _peak_memory_mb(runtime) -> float:
+    """The peak memory of the probe: the GPU's (CUDA), else the process's."""
+    if runtime.asynchronous:
         import torch  # lazy: PyTorch is heavy; configs load without it
 
-        return torch.cuda.max_memory_allocated(device) / 2**20
+        return torch.cuda.max_memory_allocated(runtime.device) / 2**20
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
     return peak / 2**20 if sys.platform == "darwin" else peak / 2**10
 
@@ -90,7 +95,9 @@ def probe_speed(
     the probe stays under ``cap_s`` and 5 % of the run (``run_iters`` iterations as long as the first)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
-    if device.type == "cuda":
+    runtime = as_runtime(device)
+    device = runtime.device
+    if runtime.asynchronous:
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     with torch.random.fork_rng(devices=[]):  # the run's random state is not consumed by the probe
@@ -101,15 +108,15 @@ def probe_speed(
         twin = copy.deepcopy(model).to(device).train()
         keep_frozen_norms_fixed(twin)
         input_px = tuple(twin.transform(images[:1])[0].tensors.shape[-2:])
-        times = _time_iterations(twin, images, targets, device, amp, cap_s, run_iters)
+        times = _time_iterations(twin, images, targets, runtime, amp, cap_s, run_iters)
         if getattr(dataset, "crop", None):  # training on crops: detection (validation) sees whole tiles
             images = [dataset.plain_image(i % len(dataset)).to(device) for i in range(batch_size)]
-        inference = _time_inference(twin, images, device, amp)
+        inference = _time_inference(twin, images, runtime, amp)
     later = sorted(times[1:])
     steady = later[len(later) // 2] if later else times[0]
     if num_workers == 0:  # loading happens between the steps, in this process
         steady += load_s
-    peak = _peak_memory_mb(device)
+    peak = _peak_memory_mb(runtime)
     del twin
     return Probe(
         first_s=times[0],
@@ -123,7 +130,7 @@ def probe_speed(
     )
 
 
-def _time_iterations(twin, images, targets, device, amp: bool, cap_s: float, run_iters: int | None) -> list[float]:
+def _time_iterations(twin, images, targets, runtime, amp: bool, cap_s: float, run_iters: int | None) -> list[float]:
     """Seconds of each timed training iteration of ``twin`` (a copy of the model, at learning rate 0)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
@@ -138,27 +145,27 @@ def _time_iterations(twin, images, targets, device, amp: bool, cap_s: float, run
         or time.perf_counter() - started + times[-1] <= min(cap_s, 0.05 * times[0] * (run_iters or 10**9))
     ):
         t = time.perf_counter()
-        with torch.autocast(device_type=device.type, enabled=amp):
+        with torch.autocast(device_type=runtime.kind, enabled=amp):
             loss = sum(twin(images, targets).values())
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        if runtime.asynchronous:
+            torch.cuda.synchronize(runtime.device)
         times.append(time.perf_counter() - t)
     return times
 
 
-def _time_inference(twin, images, device, amp: bool) -> float:
+def _time_inference(twin, images, runtime, amp: bool) -> float:
     """Seconds per image of one detection pass of ``twin`` over ``images`` (validation's cost)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     twin.eval()
     t = time.perf_counter()
-    with torch.inference_mode(), torch.autocast(device_type=device.type, enabled=amp):
+    with torch.inference_mode(), torch.autocast(device_type=runtime.kind, enabled=amp):
         twin(images)
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    if runtime.asynchronous:
+        torch.cuda.synchronize(runtime.device)
     return (time.perf_counter() - t) / len(images)
 
 
@@ -203,7 +210,7 @@ def advice(total_s: float, budget: Budget, device, architecture: str, fits_iters
     if total_s <= budget.horizon_s:
         return None
     ways = []
-    if device.type == "cpu":
+    if as_runtime(device).on_cpu:
         ways.append("use a CUDA GPU (device: auto picks it; often 20-50x faster)")
         if architecture not in ("fasterrcnn_mobilenet_v3_large_fpn", "fasterrcnn_resnet18_fpn_lite"):
             ways.append(
@@ -224,6 +231,7 @@ def advice(total_s: float, budget: Budget, device, architecture: str, fits_iters
 
 
 def log_estimate(lines: list[str], hint: str | None) -> None:
+    """Log the time estimate's lines, and the advice to train faster as a warning."""
     for line in lines:
         log.info(line)
     if hint:

@@ -25,6 +25,7 @@ from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.checkpoint import read_checkpoint
+from matchplant.detection.gpu import as_runtime
 from matchplant.detection.model import AUTO
 
 log = get_logger("model_train")
@@ -129,20 +130,23 @@ def random_state(device) -> dict:
     """Every random state training draws from (torch's CPU and CUDA generators, NumPy, Python)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
+    runtime = as_runtime(device)
     state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
-    if device.type == "cuda":
-        state["cuda"] = torch.cuda.get_rng_state(device)
+    if runtime.own_rng:
+        state["cuda"] = torch.cuda.get_rng_state(runtime.device)
     return state
 
 
 def set_random_state(state: dict, device) -> None:
+    """Restore :func:`random_state`'s generators (``device``: the run's Runtime, or a bare device)."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
+    runtime = as_runtime(device)
     torch.set_rng_state(state["torch"])
     np.random.set_state(state["numpy"])
     random.setstate(state["python"])
-    if device.type == "cuda" and state.get("cuda") is not None:
-        torch.cuda.set_rng_state(state["cuda"], device)
+    if runtime.own_rng and state.get("cuda") is not None:
+        torch.cuda.set_rng_state(state["cuda"], runtime.device)
 
 
 def ignore_sigint(_worker_id: int) -> None:

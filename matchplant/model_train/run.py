@@ -1,8 +1,11 @@
-"""Module 6: train a Faster R-CNN plant detector on COCO tiles (module 5's splits).
+"""Module 6: train a plant detector (Faster R-CNN, RetinaNet or FCOS) on COCO tiles (module 5's splits).
 
-``train(cfg)`` runs the whole job: the paper's optimisation (SGD, a learning rate per part, momentum
-0.9, weight decay 5e-4, x0.1 every 10 epochs, linear warm-up), augmentation that moves the boxes, the
-device chosen automatically, mixed precision on CUDA, several GPUs under ``torchrun``. Each epoch it
+``train(cfg)`` runs the whole job: by default the paper's optimisation (SGD, a learning rate per part,
+momentum 0.9, weight decay 5e-4, x0.1 every 10 epochs, linear warm-up), which ``optimizer`` and ``schedule``
+change (AdamW; step, multistep, cosine or constant decay); from random weights with ``model.architecture: auto``
+on a CPU or within ``max_minutes``, the light ResNet-18 FPN with AdamW at 1e-3 and cosine decay instead
+(:mod:`~matchplant.model_train.choose`). Augmentation that moves the boxes, the device chosen automatically,
+mixed precision on CUDA, several GPUs under ``torchrun``. Each epoch it
 logs the losses, scores the validation split with COCOeval (AP, AP50) and writes into ``output_dir``:
 
 - ``checkpoints/last.pt`` (every epoch; ``--resume`` continues from it), ``best.pt`` (best validation
@@ -76,4 +79,16 @@ def train(
 
 
 def run(cfg: ModelTrainConfig) -> dict:
+    """Train the detector as configured: module 6's entry point (``matchplant model_train``).
+
+    Parameters
+    ----------
+    cfg : ModelTrainConfig
+        The step's settings (``6_model_train/config.yaml``, checked).
+
+    Returns
+    -------
+    dict
+        The training summary, also written as ``training_summary.json`` in ``output_dir``.
+    """
     return train(cfg)

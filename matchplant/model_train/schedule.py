@@ -30,6 +30,7 @@ def warmup_length(cfg, planned: int) -> int:
 
 
 def planned_iterations(cfg, iters_per_epoch: int, planned: int | None) -> int:
+    """Iterations the schedule spans: ``planned`` when given, else ``epochs`` x ``iters_per_epoch`` (at least 1)."""
     return max(int(planned if planned is not None else cfg.epochs * iters_per_epoch), 1)
 
 

@@ -19,6 +19,7 @@ from matchplant.detection.device import configure_threads, select_device
 from matchplant.detection.distributed import Shard, check_environment, join
 from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.geometry import training_geometry
+from matchplant.detection.gpu import as_runtime, choose_runtime
 from matchplant.detection.model import (
     AUTO,
     apply_freezing,
@@ -40,7 +41,7 @@ from matchplant.model_train.choose import (
     where,
 )
 from matchplant.model_train.config import ModelTrainConfig
-from matchplant.model_train.gpu import amp_dtype, fused_ok, loader_settings, prepare_model
+from matchplant.model_train.gpu import fused_ok, loader_settings, prepare_model
 from matchplant.model_train.resume import ignore_sigint, open_resume
 from matchplant.model_train.schedule import lr_factor
 from matchplant.model_train.state import Job
@@ -83,6 +84,7 @@ def init_distributed(cfg: ModelTrainConfig):
 
 
 def seed_everything(seed: int) -> None:
+    """Seed Python's, numpy's and torch's random generators with ``seed``."""
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     random.seed(seed)
@@ -152,7 +154,7 @@ def choose_model_config(cfg: ModelTrainConfig, device, train_ds, total: int, bud
     if cfg.model.architecture != AUTO or cfg.model.checkpoint is not None:
         return cfg, None, None
     model_cfg, sized = cfg.model, None
-    if device.type == "cpu":
+    if as_runtime(device).on_cpu:
         model_cfg, sized = cpu_proposals(cfg.model, [len(train_ds.anns.get(im["id"], [])) for im in train_ds.images])
     if budget_recipe(cfg, device, budget):  # from random weights on a CPU, or on any device within max_minutes
         cfg, recipe = scratch_recipe(cfg, device)
@@ -231,16 +233,17 @@ def build_model(cfg: ModelTrainConfig, train_ds, resume: dict | None, device, di
         )
         trainable = n_stages
     apply_freezing(model, model_cfg.architecture, trainable, cfg.freeze)
-    model.to(device)
-    core = prepare_model(model, device)  # channels_last, compiled backbone: where asked, on CUDA
+    runtime = as_runtime(device)
+    model.to(runtime.device)
+    core = prepare_model(model, runtime)  # channels_last, compiled backbone: where asked, on CUDA
     if dist_info.world > 1:
-        model = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None
-        )
+        ids = runtime.ddp_device_ids
+        model = torch.nn.parallel.DistributedDataParallel(model, device_ids=list(ids) if ids else None)
     return model, core, model_cfg, geometry
 
 
 def build_loader(cfg: ModelTrainConfig, train_ds, sampler, device):
+    """The training DataLoader: batches from ``sampler``, seeded by ``cfg.seed``, with workers suited to the device."""
     import torch  # lazy: PyTorch is heavy; configs load without it
     from torch.utils.data import DataLoader
 
@@ -266,6 +269,7 @@ def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dic
     import torch  # lazy: PyTorch is heavy; configs load without it
 
     dist_info, device = init_distributed(cfg)
+    runtime = choose_runtime(device, cfg.amp)  # the device's kind is tested here, once
     budget.dist_info, budget.device = dist_info, device
     threads = configure_threads(cfg.threads or None)
     out = Path(cfg.output_dir)
@@ -274,8 +278,8 @@ def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dic
     sampler = EpochSampler(len(train_ds), cfg.seed, dist_info.rank, dist_info.world)
     iters = math.ceil(len(sampler) / cfg.batch_size)
     resume = open_run(cfg, out / "checkpoints", train_ds.class_names, iters)
-    cfg, probe, reason, size_validation = settle_config(cfg, device, train_ds, iters, resume, budget)
-    model, core, model_cfg, geometry = build_model(cfg, train_ds, resume, device, dist_info)
+    cfg, probe, reason, size_validation = settle_config(cfg, runtime, train_ds, iters, resume, budget)
+    model, core, model_cfg, geometry = build_model(cfg, train_ds, resume, runtime, dist_info)
     job = Job(
         cfg=cfg,
         budget=budget,
@@ -291,14 +295,14 @@ def set_up(cfg: ModelTrainConfig, budget: Budget) -> tuple[Job, dict | None, dic
         model_cfg=model_cfg,
         geometry=geometry,
         sampler=sampler,
-        loader=build_loader(cfg, train_ds, sampler, device),
+        loader=build_loader(cfg, train_ds, sampler, runtime),
         iters=iters,
+        runtime=runtime,
     )
-    job.optimizer = build_optimizer(cfg, core, device)
+    job.optimizer = build_optimizer(cfg, core, runtime)
     plan = budget.plan_for(cfg.epochs * iters, iters)
     job.scheduler = build_scheduler(cfg, job.optimizer, iters, plan)
-    job.amp = cfg.amp and device.type == "cuda"
-    job.amp_dtype = amp_dtype(device, cfg.amp)  # bf16 where supported: no loss scaling needed
+    job.amp, job.amp_dtype = runtime.amp, runtime.amp_dtype  # bf16 where supported: no loss scaling needed
     job.scaler = torch.amp.GradScaler("cuda", enabled=job.amp and job.amp_dtype == torch.float16)
     job.extras = {"threads": threads}
     return job, resume, {"probe": probe, "reason": reason, "size_validation": size_validation}

@@ -8,10 +8,19 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from matchplant.model_train.budget import Budget
 from matchplant.model_train.config import ModelTrainConfig
+
+if TYPE_CHECKING:  # names for the annotations only: loading the record loads neither PyTorch nor the data code
+    import torch
+    from torch.utils.data import DataLoader
+
+    from matchplant.detection.data import CocoDetection, EpochSampler
+    from matchplant.detection.distributed import Shard
+    from matchplant.detection.gpu import Runtime
+    from matchplant.detection.model import ModelConfig
 
 
 @dataclass
@@ -21,30 +30,32 @@ class Job:
     cfg: ModelTrainConfig
     budget: Budget
     out: Path
-    device: Any
-    dist_info: Any
-    train_ds: Any
-    val_ds: Any
+    device: torch.device
+    dist_info: Shard  # this process's place in a torchrun job (one process: rank 0 of 1)
+    train_ds: CocoDetection
+    val_ds: CocoDetection | None
     class_names: list[str]
     validation: dict
-    model: Any  # what trains (DistributedDataParallel under torchrun)
-    core: Any  # the detector itself (saved, validated)
-    model_cfg: Any
+    model: torch.nn.Module  # what trains (DistributedDataParallel under torchrun)
+    core: torch.nn.Module  # the detector itself (saved, validated)
+    model_cfg: ModelConfig
     geometry: dict
-    sampler: Any
-    loader: Any
+    sampler: EpochSampler
+    loader: DataLoader
     iters: int  # iterations per epoch
-    optimizer: Any = None
-    scheduler: Any = None
-    scaler: Any = None
+    optimizer: torch.optim.Optimizer | None = None
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None
+    scaler: torch.amp.GradScaler | None = None
     amp: bool = False
-    amp_dtype: Any = None  # the autocast dtype on CUDA (model_train/gpu.py), None in fp32
+    amp_dtype: torch.dtype | None = None  # the autocast dtype on CUDA (model_train/gpu.py), None in fp32
+    runtime: Runtime | None = None  # the run's device, precision and feed, chosen once (detection/gpu.py)
     extras: dict = field(default_factory=dict)
-    on_epoch_end: Callable[[int, dict], Any] | None = None
-    on_iteration: Callable[[int], Any] | None = None
+    on_epoch_end: Callable[[int, dict], object] | None = None
+    on_iteration: Callable[[int], object] | None = None
 
     @property
     def ck_dir(self) -> Path:
+        """Folder of the run's checkpoints (``<output_dir>/checkpoints``)."""
         return self.out / "checkpoints"
 
 

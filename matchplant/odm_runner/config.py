@@ -105,6 +105,7 @@ class OdmRunnerConfig:
     )
 
     def check(self) -> None:
+        """Reject ODM options in ``odm.extra`` that MatchPlant sets itself or that break later steps."""
         for name in self.odm.extra:
             key = str(name).lstrip("-")
             if key in FORBIDDEN_OPTIONS:

@@ -48,6 +48,7 @@ class OutputReport:
 
     @property
     def ok(self) -> bool:
+        """Whether later steps can use the project (no problems)."""
         return not self.problems
 
 

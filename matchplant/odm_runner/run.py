@@ -32,7 +32,21 @@ log = get_logger("odm_runner")
 
 
 def run(cfg: OdmRunnerConfig) -> OutputReport:
-    """Run ODM with the chosen backend (unless ``check_only``), check its outputs, write the manifest."""
+    """Run ODM with the chosen backend (unless ``check_only``), check its outputs, write the manifest.
+
+    A project that modules 3, 8 and 9 cannot use is an error listing every problem (a missing output names
+    the ODM option that makes it).
+
+    Parameters
+    ----------
+    cfg : OdmRunnerConfig
+        The step's settings, as loaded from its YAML config (``2_odm_runner/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    OutputReport
+        What the ODM project holds (no problems: every step after can use it).
+    """
     Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     run_info = None
     if not cfg.check_only:

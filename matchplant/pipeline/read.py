@@ -19,6 +19,8 @@ STEP_KEYS = ("name", "module", "config", "config_file")
 
 @dataclass
 class Step:
+    """One step of a pipeline file: its name, module, optional config file and settings, and where it is written."""
+
     name: str
     module: str
     config_file: Path | None
@@ -28,6 +30,7 @@ class Step:
 
     @property
     def label(self) -> str:
+        """How messages name the step: number, name, module and line."""
         return f"step {self.number} '{self.name}' ({self.module})" + (f", line {self.line}" if self.line else "")
 
 
@@ -43,9 +46,11 @@ class Problems:
         self.items: list[tuple[str, MatchPlantError]] = []
 
     def add(self, where: str, exc: MatchPlantError) -> None:
+        """Record a problem found at ``where`` (a step's label)."""
         self.items.append((where, exc))
 
     def raise_if_any(self) -> None:
+        """Raise one error listing every problem recorded (the problem itself when there is one); nothing when none."""
         if not self.items:
             return
         if len(self.items) == 1:

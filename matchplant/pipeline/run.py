@@ -32,6 +32,7 @@ class PipelineConfig:
     force: bool = param(False, "re-run every step, even when up to date")
 
     def check(self) -> None:
+        """Take ``output_dir`` from the pipeline file when it is not set."""
         if self.output_dir is None and self.pipeline is not None and Path(self.pipeline).is_file():
             self.output_dir = Path(read_pipeline(Path(self.pipeline))[0]["output_dir"])
 

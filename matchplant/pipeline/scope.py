@@ -40,6 +40,8 @@ class Unresolved(Exception):
 
 @dataclass
 class Scope:
+    """What ``${...}`` references can name: the file's top-level keys and each step's config keys and values."""
+
     top: dict
     steps: list[Step]
     keys: dict[str, set[str]]  # step name -> its config's keys

@@ -21,6 +21,7 @@ from matchplant.core.formats.odm import ODMProject
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
+from matchplant.pipeline.chain import season_chain
 from matchplant.pipeline.write import write_pipeline
 
 log = get_logger("init")
@@ -71,6 +72,7 @@ class InitConfig:
     force: bool = param(False, "replace an existing pipeline file")
 
     def check(self) -> None:
+        """Refuse to overwrite an existing pipeline file without ``force``, and an output that is not .yaml."""
         if self.output is not None and Path(self.output).exists() and not self.force:
             raise ConfigError(
                 "the pipeline file exists already (it may hold your edits)",
@@ -85,21 +87,14 @@ def _rel(path: Path, base: Path) -> str:
     return Path(os.path.relpath(Path(path).resolve(), base)).as_posix()
 
 
-def _step(name: str, module: str, **config) -> dict:
-    return {"name": name, "module": module, "config": config}
-
-
 def season_spec(cfg: InitConfig, advice: dict) -> dict:
     """The pipeline's content: the top-level keys and the steps that the inputs allow."""
     base = Path(cfg.output).resolve().parent
     project = ODMProject(cfg.project)
     top = {"output_dir": ".", "project": _rel(project.root, base)}
     photos = "${project}/" + _rel(project.path("undistorted_images"), project.root.resolve())
-    steps = [
-        _step("2_odm", "odm_runner", project_dir="${project}", check_only=True),
-        _step("3_select", "min_img_finder", project_dir="${project}"),
-    ]
     tile = {k: advice[k] for k in ("tile_size", "overlap") if k in advice}
+    chain: dict = {}
     if cfg.annotations is not None:
         top["annotations"] = _rel(cfg.annotations, base)
         model = {"architecture": "auto", "pretrained": "auto"}
@@ -108,45 +103,25 @@ def season_spec(cfg: InitConfig, advice: dict) -> dict:
             model = {"checkpoint": "${checkpoint}"}
         if "min_size" in advice:  # the detector input that keeps the median plant >= 24 px (matchplant inspect)
             model.update(min_size=advice["min_size"], max_size=advice["max_size"], anchor_sizes="auto")
-        steps += [
-            _step("4_annotate", "bbox_drawer", images=photos, import_coco="${annotations}"),
-            _step(
-                "5_tiles",
-                "img_splitter",
-                images=photos,
-                annotations="${4_annotate.output_dir}/annotations.json",
-                **tile,
-            ),
-            _step(
-                "6_train",
-                "model_train",
-                train_json="${5_tiles.output_dir}/train.json",
-                val_json="${5_tiles.output_dir}/val.json",
-                model=model,
-                max_minutes=cfg.max_minutes,
-            ),
-        ]
-        checkpoint = "${6_train.output_dir}/checkpoints/best.pt"
-        evaluate = {"dataset_json": "${5_tiles.output_dir}/test.json"}
+        chain = {
+            "annotations": "${annotations}",
+            "tiles": tile,
+            "train": {"model": model, "max_minutes": cfg.max_minutes},
+        }
+        evaluate = {"dataset_json": "${5_tiles.output_dir}/test.json"}  # module 5's test split
     elif cfg.checkpoint is not None:
         top["checkpoint"] = _rel(cfg.checkpoint, base)
-        checkpoint, evaluate = "${checkpoint}", {}
-    else:
-        return {**top, "steps": steps}
-    detect = {"images": photos, **tile}
-    steps.append(_step("7_detect", "model_test", checkpoint=checkpoint, detect=detect, **({"evaluate": evaluate})))
-    rasters = {
-        key: "${project}/" + _rel(project.path(name), project.root.resolve())
-        for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
-        if project.has(name)
-    }
-    steps += [
-        _step(
-            "8_plants", "plant_projection", project="${project}", predictions="${7_detect.output_dir}/predictions.json"
-        ),
-        _step("9_stats", "spatial_stat_extractor", polygons="${8_plants.output_dir}/plants.gpkg", rasters=rasters),
-    ]
-    return {**top, "steps": steps}
+        chain, evaluate = {"checkpoint": "${checkpoint}"}, {}
+    if chain:  # module 7 on every photo of the project, then modules 8 and 9
+        chain["detect"] = {"detect": {"images": photos, **tile}, "evaluate": evaluate}
+        chain["stats"] = {
+            "rasters": {
+                key: "${project}/" + _rel(project.path(name), project.root.resolve())
+                for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
+                if project.has(name)
+            }
+        }
+    return {**top, "steps": season_chain("${project}", photos, **chain)}
 
 
 def header(cfg: InitConfig, spec: dict) -> str:

@@ -144,6 +144,7 @@ class PlantProjectionConfig:
         return {"predictions", "images_from"} if self.mode == "evaluate" else set()
 
     def check(self) -> None:
+        """Require the inputs ``mode`` needs: the project and predictions, the reference boxes, the plants."""
         if self.mode in ("project", "both"):
             for key in ("project", "predictions"):
                 if getattr(self, key) is None:

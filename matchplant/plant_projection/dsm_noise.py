@@ -152,6 +152,7 @@ class SoilSurface(Surface):
         self.holes = Holes()  # the holes left unfilled (soil_surface)
 
     def ground(self, window: float) -> Surface:
+        """The ground for an opening ``window`` (metres), lifted to the soil's level; measured once per window."""
         if window not in self._lifted:
             opened = super().ground(window)
             noise = soil_level(self, opened)
@@ -164,6 +165,7 @@ class SoilSurface(Surface):
         return self._lifted[window][0]
 
     def noise(self, window: float) -> SoilLevel:
+        """The soil's level and spread measured for the ground of ``window``."""
         self.ground(window)
         return self._lifted[window][1]
 

@@ -84,48 +84,9 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     tol = max(MERGE_TOLERANCE, TOLERANCE_SPREADS * views.soil_spread)
     t = views.table
     n = len(t)
-    box = t[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
-    rep = np.arange(n)
-    iou_to_rep = np.ones(n)
+    rep, iou_to_rep = np.arange(n), np.ones(n)
     if merge != "none" and n:
-        order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
-        # pairs of views that overlap, or come within the tolerance (a sliver beside its plant's box)
-        i, j, _ = overlapping_pairs(box + [-tol, -tol, tol, tol], ordered=False)  # their order does not matter here
-        cat = t["category_id"].to_numpy()
-        cut = t["cut"].to_numpy()
-        partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
-        guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
-        unseen = (
-            t[list(UNSEEN_COLUMNS)].to_numpy(bool)
-            if all(c in t for c in UNSEEN_COLUMNS)
-            else np.zeros((n, 4), dtype=bool)
-        )
-        # boxes of one detector image (photo or tile) went through its non-maximum suppression together
-        image = pd.factorize(t["image_id"])[0] if "image_id" in t else np.arange(n)
-        iou, strong = _pair_rules(
-            np.ascontiguousarray(box),
-            i,
-            j,
-            np.ascontiguousarray(cat, dtype=np.int64),
-            np.ascontiguousarray(image, dtype=np.int64),
-            cut.astype(np.bool_),
-            guessed.astype(np.bool_),
-            np.ascontiguousarray(unseen),
-            float(merge_iou),
-            MERGE_CONTAINED,
-            MERGE_CUT_INSIDE,
-            tol,
-        )
-        seed, rep, iou_to_rep = _claims(order, i, j, iou, strong, n)
-        # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
-        rank = np.empty(n, dtype=np.int64)
-        rank[order] = np.arange(n)
-        ti, tj = _tile_duplicates(t)
-        for a, b in zip(np.r_[ti, tj], np.r_[tj, ti]):
-            if cut[a] and rank[b] < rank[a] and rep[a] != rep[b]:
-                members = (rep == rep[a]) if seed[a] else (np.arange(n) == a)
-                rep[members] = rep[b]
-        _join_slivers(rep, box, cut, cat)
+        rep, iou_to_rep = _representatives(t, merge_iou, tol)
     # number plants in map order (north to south, then west to east) so ids are stable and readable
     reps = np.unique(rep)
     ry = t["cy"].to_numpy()[reps]
@@ -136,7 +97,56 @@ def merge_views(views: ProjectedViews, *, merge: str = "nadir", merge_iou: float
     t["plant_id"] = pid_of_rep[rep]
     t["representative"] = rep == np.arange(n)
     t["iou_to_representative"] = iou_to_rep
+    return _plant_table(t, ranked, merge)
 
+
+def _representatives(t: pd.DataFrame, merge_iou: float, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(each view's representative, its IoU with it)``: the claims of :func:`merge_views`' rules, then boxes cut
+    by a tile border that repeat a neighbouring tile's box, then slivers."""
+    n = len(t)
+    box = t[["xmin", "ymin", "xmax", "ymax"]].to_numpy(float)
+    order = np.lexsort((t["off_nadir_deg"].to_numpy(), t["cut"].to_numpy()))
+    # pairs of views that overlap, or come within the tolerance (a sliver beside its plant's box)
+    i, j, _ = overlapping_pairs(box + [-tol, -tol, tol, tol], ordered=False)  # their order does not matter here
+    cat = t["category_id"].to_numpy()
+    cut = t["cut"].to_numpy()
+    partial = [c for c in UNSEEN_COLUMNS + BESIDE_CUT_COLUMNS if c in t]
+    guessed = t[partial].to_numpy().any(axis=1) if partial else np.zeros(n, dtype=bool)
+    unseen = (
+        t[list(UNSEEN_COLUMNS)].to_numpy(bool) if all(c in t for c in UNSEEN_COLUMNS) else np.zeros((n, 4), dtype=bool)
+    )
+    # boxes of one detector image (photo or tile) went through its non-maximum suppression together
+    image = pd.factorize(t["image_id"])[0] if "image_id" in t else np.arange(n)
+    iou, strong = _pair_rules(
+        np.ascontiguousarray(box),
+        i,
+        j,
+        np.ascontiguousarray(cat, dtype=np.int64),
+        np.ascontiguousarray(image, dtype=np.int64),
+        cut.astype(np.bool_),
+        guessed.astype(np.bool_),
+        np.ascontiguousarray(unseen),
+        float(merge_iou),
+        MERGE_CONTAINED,
+        MERGE_CUT_INSIDE,
+        tol,
+    )
+    seed, rep, iou_to_rep = _claims(order, i, j, iou, strong, n)
+    # a box cut by its tile border that repeats a box of a neighbouring tile follows that box's plant
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n)
+    ti, tj = _tile_duplicates(t)
+    for a, b in zip(np.r_[ti, tj], np.r_[tj, ti]):
+        if cut[a] and rank[b] < rank[a] and rep[a] != rep[b]:
+            members = (rep == rep[a]) if seed[a] else (np.arange(n) == a)
+            rep[members] = rep[b]
+    _join_slivers(rep, box, cut, cat)
+    return rep, iou_to_rep
+
+
+def _plant_table(t: pd.DataFrame, ranked: np.ndarray, merge: str) -> pd.DataFrame:
+    """One row per plant, in plant id order (``ranked``: the positions of the plants' representative views): its
+    box (the representative's, or fused from its whole views), views, spread and the representative's values."""
     reps_pos = ranked  # position of each plant's representative view, in plant id order
     reps_t = t.iloc[reps_pos]
     groups = _Groups(t["plant_id"].to_numpy(), len(reps_pos))

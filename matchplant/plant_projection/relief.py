@@ -38,6 +38,7 @@ class Scene(NamedTuple):
 
     @classmethod
     def of(cls, surface: Surface, cam: np.ndarray, settings: ProjectionSettings) -> Scene:
+        """The scene of one image: the DSM, its ground, the camera centre and the heights the rays are judged by."""
         window = settings.ground_window
         # soil hits scatter about the ground by the DSM's noise: only a hit standing out of it lay behind a plant
         hidden = settings.hidden_height + HIDDEN_SIGMAS * ground_noise(surface, window).spread

@@ -254,8 +254,22 @@ def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
 
 
 def run(cfg: PlantProjectionConfig) -> dict:
-    """The step's entry point (``mode``: project, evaluate or both); all or nothing: a failed run leaves
-    ``output_dir`` as it was (apart from its log and, when no box could be projected, the report why)."""
+    """Module 8's entry point: project the detections to plants on the map, evaluate them, or both (``mode``).
+
+    All or nothing: a failed run leaves ``output_dir`` as it was (apart from its log and, when no box could be
+    projected, the report why).
+
+    Parameters
+    ----------
+    cfg : PlantProjectionConfig
+        The step's settings, as loaded from its YAML config (``8_plant_projection/config.yaml``) or built in Python.
+
+    Returns
+    -------
+    dict
+        ``"projection"`` -> the projection summary (projection_summary.json) and/or ``"evaluation"`` -> the
+        scores against the reference boxes (evaluation.json), as ``mode`` asks.
+    """
     result = {}
     with staged_outputs(cfg.output_dir) as stage:
         if cfg.mode in ("project", "both"):

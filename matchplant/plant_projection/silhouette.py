@@ -43,6 +43,7 @@ class Silhouette(NamedTuple):
 
     @classmethod
     def empty(cls, m: int) -> Silhouette:
+        """Uninitialised results for ``m`` boxes, to be filled in."""
         sides = lambda: np.empty((m, 4), dtype=np.bool_)  # noqa: E731
         return cls(np.empty((m, 4)), np.empty((m, 2)), np.empty(m), np.empty(m), np.empty(m), sides(), sides(), sides())
 

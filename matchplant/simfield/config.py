@@ -45,6 +45,7 @@ class Settings:
 
     @property
     def image_height(self) -> int:
+        """Image height in pixels, from the width and the aspect ratio."""
         return int(round(self.image_width * self.aspect))
 
     @property
@@ -185,6 +186,7 @@ def resolve(cfg: SimFieldConfig) -> Settings:
 
 
 def config_from(preset: str = "tiny", seed: int = 0, out: str | Path = "simfield_out", **overrides) -> SimFieldConfig:
+    """A validated :class:`SimFieldConfig` from a preset, a seed, an output folder and named overrides."""
     names = {f.name for f in fields(SimFieldConfig)}
     unknown = sorted(set(overrides) - names)
     if unknown:

@@ -23,6 +23,7 @@ NODATA = -9999.0
 
 
 def write_csv(path: Path, header: list[str], rows: list) -> None:
+    """Write a CSV file whole (header, then rows), or nothing if it fails."""
     with atomic_open(path, "w") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(header)
@@ -30,6 +31,7 @@ def write_csv(path: Path, header: list[str], rows: list) -> None:
 
 
 def write_plants(paths: FieldPaths, plants: Plants, rasters: Rasters, res: float, offset: np.ndarray) -> None:
+    """Write the true plants (plants.csv) and their true traits (traits.csv) in map coordinates."""
     radius = plants.radius()
     write_csv(
         paths.plants_csv,
@@ -49,6 +51,7 @@ def write_plants(paths: FieldPaths, plants: Plants, rasters: Rasters, res: float
 
 
 def write_plot_truth(paths: FieldPaths, s, plants: Plants, offset: np.ndarray, crs: str) -> None:
+    """Write the plot grid, the plots, the seed gaps and the field book of the truth."""
     t = plot_truth(s, plants, offset, crs)
     write_json(paths.plots_json, t["grid"])
     write_csv(
@@ -131,6 +134,7 @@ def write_rasters(
 
 
 def raster_profile(grid: Grid, count: int, dtype: str, crs: CRS, transform: Affine, nodata) -> dict:
+    """Rasterio profile of a tiled, deflate-compressed GeoTIFF on the grid."""
     return dict(
         driver="GTiff",
         width=grid.width,

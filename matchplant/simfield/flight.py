@@ -62,6 +62,8 @@ def nadir_rotation(heading: np.ndarray, tilt_deg: float) -> np.ndarray:
 
 @dataclass
 class Exposure:
+    """One photo of the flight: image name, raw camera pose, flight line and true UTC time."""
+
     name: str
     shot: Shot  # raw camera, local frame
     line: int
@@ -103,6 +105,7 @@ def plan_flight(s: Settings, terrain: Terrain, camera: PinholeCamera, rng: np.ra
 
 
 def gps_time_of_week(utc: dt.datetime) -> tuple[int, float]:
+    """GPS week and seconds of week of a UTC time (GPS runs ahead of UTC by the leap seconds)."""
     sec = (utc - GPS_EPOCH).total_seconds() + GPS_LEAP_S
     week = int(sec // 604800)
     return week, sec - week * 604800

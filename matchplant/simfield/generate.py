@@ -63,6 +63,16 @@ log = get_logger("simfield")
 
 
 def generate(cfg: SimFieldConfig) -> FieldPaths:
+    """Write the synthetic field a config describes: rasters, images, reconstruction, GNSS log, GCPs and truth.
+
+    The one function of the library over 100 lines (tests/test_layers.py names it). The plan for it: cut it along
+    its five sections into parts over one record of the field (settings, frame, terrain, GCPs, plants, grid,
+    rasters and the six random streams, drawn here in this order): the field; the images with their per-image
+    truth; the ODM outputs; modules 0 and 1's inputs; the truth. Each part takes the record and the streams it
+    uses, so no part draws from another's stream; the check is that a field of every preset and seed stays the
+    same file for file (only ``elapsed_s`` in truth/field.json differs), as the split of :func:`rasterize` was
+    checked.
+    """
     t0 = time.perf_counter()
     s = resolve(cfg)
     paths = FieldPaths(Path(cfg.output_dir))
@@ -383,6 +393,8 @@ def generate(cfg: SimFieldConfig) -> FieldPaths:
 
 @dataclass
 class Scene:
+    """Everything a worker needs to render images: settings, paths, terrain, rasters, plants and ray-casting limits."""
+
     s: Settings
     paths: FieldPaths
     terrain: Terrain
@@ -397,6 +409,8 @@ class Scene:
 
 @dataclass
 class ImageJob:
+    """One exposure to render: raw and undistorted shots, their noise seeds, camera time and GPS fix."""
+
     exposure: Exposure
     ushot: Shot
     noise_raw: np.random.SeedSequence

@@ -34,6 +34,8 @@ BAND_ORDER = ("blue", "green", "red", "rededge", "nir")
 
 @dataclass(frozen=True)
 class NoiseModel:
+    """Parameters of the realistic noise: DEM smoothing, ground noise, holes, multispectral and mask blur."""
+
     chm_p50: float = 0.016  # m, median of the bare-ground CHM
     chm_p95: float = 0.070  # m, its 95th percentile (a Gaussian: sigma = (p95 - p50) / 1.645)
     grain_m: float = 0.02  # feature size of the fine ground noise, m
@@ -66,6 +68,8 @@ def _odd(m: float, res: float, least: int = 3) -> int:
 
 @dataclass
 class NoisyDEM:
+    """The DSM and DTM as offsets from the true terrain, and the DSM's nodata holes."""
+
     dsm: np.ndarray  # float32, DSM minus the true terrain (smoothed canopy + ground noise + DTM error)
     dtm: np.ndarray  # float32, DTM minus the true terrain
     holes: np.ndarray  # bool, DSM cells written as nodata
@@ -134,6 +138,7 @@ def bare_ground_chm(chm: np.ndarray, label: np.ndarray, valid: np.ndarray, res: 
 
 
 def noise_summary(m: NoiseModel, dem: NoisyDEM, rasters: Rasters) -> dict:
+    """The noise model and what the written DEMs measure: bare-ground CHM quantiles and the share of holes."""
     chm = dem.dsm - dem.dtm
     ground = bare_ground_chm(chm, rasters.label, ~dem.holes, rasters.grid.res)
     q = np.percentile(ground, [5, 50, 95]) if len(ground) else [np.nan] * 3

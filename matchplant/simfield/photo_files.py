@@ -19,10 +19,12 @@ CAMERA_MAKE, CAMERA_MODEL = "MatchPlant", "SimCam"
 
 
 def camera_model(s: Settings) -> str:
+    """EXIF camera model: the simulated camera's model name plus the image width."""
     return f"{CAMERA_MODEL} {s.image_width}"
 
 
 def encode(rgb: np.ndarray, ext: str, quality: int = 95) -> bytes:
+    """An RGB image encoded as the format of ``ext`` (OpenCV writes BGR)."""
     params = [cv2.IMWRITE_JPEG_QUALITY, int(quality)] if ext == ".jpg" else []
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(rgb[..., ::-1]), params)
     if not ok:  # pragma: no cover - OpenCV always encodes these
@@ -31,15 +33,18 @@ def encode(rgb: np.ndarray, ext: str, quality: int = 95) -> bytes:
 
 
 def write_bytes(path: Path, data: bytes) -> None:
+    """Write bytes to a file whole, or nothing if it fails."""
     with atomic_open(path, "wb") as fh:
         fh.write(data)
 
 
 def write_image(path: Path, rgb: np.ndarray, ext: str) -> None:
+    """Write an RGB image in the format of ``ext``."""
     write_bytes(path, encode(rgb, ext))
 
 
 def write_mask(path: Path, ids: np.ndarray) -> None:
+    """Write a mask of plant ids as a 16-bit PNG."""
     if ids.max(initial=0) > 65535:  # pragma: no cover - presets stay below
         raise ValueError("more than 65535 plants: the masks cannot be written as 16-bit PNG")
     ok, buf = cv2.imencode(".png", ids.astype(np.uint16))
@@ -47,6 +52,7 @@ def write_mask(path: Path, ids: np.ndarray) -> None:
 
 
 def rational_dms(value: float) -> tuple:
+    """EXIF rational degrees, minutes, seconds of an angle (sign dropped)."""
     micro = int(round(abs(value) * 3600e6))  # micro-arcseconds: exact to ~3e-11 degree
     deg, rest = divmod(micro, 3600 * 10**6)
     minutes, sec = divmod(rest, 60 * 10**6)
@@ -54,6 +60,7 @@ def rational_dms(value: float) -> tuple:
 
 
 def with_exif(jpeg: bytes, s: Settings, cam_time: dt.datetime, gps: tuple | None) -> bytes:
+    """The JPEG with the drone's EXIF: camera, time, focal length and, when ``gps`` is given, the GPS fix."""
     stamp = cam_time.strftime("%Y:%m:%d %H:%M:%S")
     sub = f"{cam_time.microsecond // 1000:03d}"
     focal_mm = s.focal * SENSOR_WIDTH_MM

@@ -40,6 +40,7 @@ class Terrain:
 
     @classmethod
     def random(cls, s: Settings, rng: np.random.Generator) -> Terrain:
+        """A random gentle slope with long waves, for a preset's slope and undulation."""
         az = rng.uniform(0, 2 * np.pi)
         grad = s.slope_pct / 100.0 * np.array([np.cos(az), np.sin(az)])
         n = 3
@@ -50,6 +51,7 @@ class Terrain:
         return cls(z0=GROUND_ALTITUDE, grad=grad, k=k, amp=amp, phase=rng.uniform(0, 2 * np.pi, n))
 
     def height(self, x, y) -> np.ndarray:
+        """Terrain height at map points."""
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)
         z = self.z0 + self.grad[0] * x + self.grad[1] * y
@@ -93,9 +95,11 @@ class Plants:
 
     @property
     def ids(self) -> np.ndarray:
+        """Plant ids, 1 to N."""
         return np.arange(1, len(self) + 1)
 
     def subset(self, keep: np.ndarray) -> Plants:
+        """The plants where ``keep`` is true."""
         return Plants(**{k: None if v is None else v[keep] for k, v in self.__dict__.items()})
 
     def outline_radius(self, idx: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -186,6 +190,7 @@ def row_shift(s: Settings, row_x: np.ndarray) -> np.ndarray:
 
 
 def make_plants(s: Settings, terrain: Terrain, rng: np.random.Generator, gcps: np.ndarray) -> Plants:
+    """Plants along the crop rows, with gaps, sized to stay in their half of the inter-row and clear of the GCPs."""
     row_x, slots = row_layout(s)
     shift = row_shift(s, row_x)
     n_in_row = len(slots)
@@ -283,6 +288,7 @@ class Grid:
 
     @classmethod
     def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float, res: float) -> Grid:
+        """The grid of ``res`` cells, aligned to multiples of ``res``, that covers a box."""
         x0 = np.floor(xmin / res) * res
         y1 = np.ceil(ymax / res) * res
         return cls(
@@ -294,6 +300,7 @@ class Grid:
         )
 
     def centres(self, rows: slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Map x and y of the cell centres of the given rows (the whole grid by default)."""
         j = np.arange(self.height)[rows]
         xs = self.x0 + (np.arange(self.width) + 0.5) * self.res
         ys = self.y1 - (j + 0.5) * self.res
@@ -308,6 +315,8 @@ class Grid:
 
 @dataclass
 class Rasters:
+    """The field's rasters on one grid: canopy height, labels, albedo, red and NIR reflectance."""
+
     grid: Grid
     canopy: np.ndarray  # float32 height above the terrain
     label: np.ndarray  # int32: plant id, 0 soil, WEED, GCP_TARGET
@@ -347,13 +356,67 @@ def rasterize(
     sun_az_deg: float = 135.0,
     sun_elev_deg: float = 55.0,
 ) -> Rasters:
+    """The field's rasters at ``grid``: canopy height, labels (plant ids, GCP targets, weeds), the albedo
+    orthophoto, red and NIR (``rng`` draws the weeds and the soil's texture, in that order)."""
     shape = (grid.height, grid.width)
     canopy = np.zeros(shape, np.float32)
     label = np.zeros(shape, np.int32)
     shade = np.ones(shape, np.float32)  # plant leaf brightness pattern
     res = grid.res
 
-    # -- plants: every cell inside a canopy outline, chunks of plants sharing one window size -----
+    # -- plants: every cell inside a canopy outline ----------------------------------------------
+    _paint_plants(grid, plants, canopy, label, shade)
+
+    # -- GCP targets: flat 2x2 checkerboards -----------------------------------------------------
+    white = _paint_targets(grid, gcps, canopy, label)
+
+    # -- weeds: small low rosettes on bare soil ----------------------------------------------------
+    weed = _paint_weeds(grid, rng, canopy, label) if s.weeds else np.zeros(shape, bool)
+
+    # -- colours ---------------------------------------------------------------------------------
+    fine = _noise(shape, 0.004 / res, rng)
+    mid = _noise(shape, 0.03 / res, rng)
+    coarse = _noise(shape, 0.5 / res, rng)
+    soil_b = np.clip(1.0 + 0.10 * fine + 0.08 * mid + 0.06 * coarse, 0.6, 1.4)
+    rgb = np.empty(shape + (3,), np.float32)
+    rgb[:] = np.array([0.46, 0.37, 0.28], np.float32)
+    rgb *= soil_b[..., None]
+    is_plant = label > 0
+    pid = label[is_plant] - 1
+    green = np.array([0.20, 0.46, 0.11], np.float32) * plants.tint[pid].astype(np.float32)
+    leaf_b = shade[is_plant] * (1.0 + 0.05 * fine[is_plant])
+    rgb[is_plant] = green * leaf_b[:, None]
+    rgb[weed] = np.array([0.30, 0.50, 0.16], np.float32) * (1 + 0.08 * fine[weed])[:, None]
+    target = label == GCP_TARGET
+    rgb[target] = 0.06
+    rgb[white] = 0.92
+    red = (0.20 * soil_b).astype(np.float32)
+    nir = (0.27 * soil_b).astype(np.float32)
+    if plants.ndvi is None:
+        red[is_plant] = 0.05 * leaf_b
+        nir[is_plant] = 0.45 * leaf_b
+    else:  # NIR + red as before (0.5 x brightness), split to give each plant its own NDVI
+        v = plants.ndvi[pid].astype(np.float32)
+        red[is_plant] = 0.25 * (1 - v) * leaf_b
+        nir[is_plant] = 0.25 * (1 + v) * leaf_b
+    red[weed], nir[weed] = 0.06, 0.40
+    red[target], nir[target] = 0.04, 0.05
+    red[white], nir[white] = 0.80, 0.82
+
+    # -- shadows: splat each canopy cell onto the ground along the sun's direction -----------------
+    if s.shadows and s.height_max > 0:
+        shadow = _shadows(canopy, label, grid, sun_az_deg, sun_elev_deg)
+        rgb[shadow] *= 0.55
+        red[shadow] *= 0.55
+        nir[shadow] *= 0.55
+    albedo = np.clip(np.round(rgb * 255), 1, 255).astype(np.uint8)
+    return Rasters(grid=grid, canopy=canopy, label=label, albedo=albedo, red=red, nir=nir)
+
+
+def _paint_plants(grid: Grid, plants: Plants, canopy: np.ndarray, label: np.ndarray, shade: np.ndarray) -> None:
+    """Every cell inside a plant's canopy outline gets its height, id and leaf brightness (in place), in chunks of
+    plants sharing one window size; the highest canopy wins where two overlap."""
+    res = grid.res
     ext = plants.extents()
     half_x = np.ceil(np.abs(ext[:, [0, 2]] - plants.x[:, None]).max(1) / res).astype(int) + 1
     half_y = np.ceil(np.abs(ext[:, [1, 3]] - plants.y[:, None]).max(1) / res).astype(int) + 1
@@ -400,8 +463,11 @@ def rasterize(
         label.ravel()[flat[o]] = ids[o]
         shade.ravel()[flat[o]] = bright[o]
 
-    # -- GCP targets: flat 2x2 checkerboards -----------------------------------------------------
-    white = np.zeros(shape, bool)
+
+def _paint_targets(grid: Grid, gcps: np.ndarray, canopy: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """The GCP targets, flat 2x2 checkerboards, into ``label`` and ``canopy`` (in place); returns their white
+    squares."""
+    white = np.zeros(label.shape, bool)
     for gx, gy, _ in gcps:
         r0, c0 = grid.cell(np.array([gx - GCP_SIZE / 2]), np.array([gy + GCP_SIZE / 2]))
         r1, c1 = grid.cell(np.array([gx + GCP_SIZE / 2]), np.array([gy - GCP_SIZE / 2]))
@@ -413,73 +479,39 @@ def rasterize(
         label[win][inside] = GCP_TARGET
         canopy[win][inside] = 0.0
         white[win] |= inside & ((xs - gx) * (ys - gy) > 0)
+    return white
 
-    # -- weeds: small low rosettes on bare soil ----------------------------------------------------
-    weed = np.zeros(shape, bool)
-    if s.weeds:
-        area = grid.width * grid.height * res * res
-        n = rng.poisson(1.5 * area)
-        wx = grid.x0 + rng.uniform(0, grid.width * res, n)
-        wy = grid.y1 - rng.uniform(0, grid.height * res, n)
-        wr = rng.uniform(0.015, 0.045, n)
-        wh = rng.uniform(0.01, 0.04, n)
-        hw = int(np.ceil(0.045 / res)) + 1
-        off = np.arange(-hw, hw + 1)
-        r0, c0 = grid.cell(wx, wy)
-        rr = np.clip(r0[:, None, None] + off[None, :, None], 0, grid.height - 1)
-        cc = np.clip(c0[:, None, None] + off[None, None, :], 0, grid.width - 1)
-        rr, cc = np.broadcast_arrays(rr, cc)
-        dx = grid.x0 + (cc + 0.5) * res - wx[:, None, None]
-        dy = grid.y1 - (rr + 0.5) * res - wy[:, None, None]
-        ang = np.arctan2(dy, dx)
-        lobes = 0.7 + 0.3 * np.cos(5 * ang + rng.uniform(0, 2 * np.pi, n)[:, None, None])
-        rho = np.hypot(dx, dy) / (wr[:, None, None] * lobes)
-        # keep only weeds that lie entirely on bare soil (no plant or target under them)
-        clear = ~((rho < 1.3) & (label[rr, cc] != 0)).reshape(n, -1).any(axis=1)
-        m = (rho < 1.0) & clear[:, None, None]
-        hh = (wh[:, None, None] * (1 - rho**2))[m]
-        canopy[rr[m], cc[m]] = np.maximum(canopy[rr[m], cc[m]], hh)
-        label[rr[m], cc[m]] = WEED
-        weed[rr[m], cc[m]] = True
 
-    # -- colours ---------------------------------------------------------------------------------
-    fine = _noise(shape, 0.004 / res, rng)
-    mid = _noise(shape, 0.03 / res, rng)
-    coarse = _noise(shape, 0.5 / res, rng)
-    soil_b = np.clip(1.0 + 0.10 * fine + 0.08 * mid + 0.06 * coarse, 0.6, 1.4)
-    rgb = np.empty(shape + (3,), np.float32)
-    rgb[:] = np.array([0.46, 0.37, 0.28], np.float32)
-    rgb *= soil_b[..., None]
-    is_plant = label > 0
-    pid = label[is_plant] - 1
-    green = np.array([0.20, 0.46, 0.11], np.float32) * plants.tint[pid].astype(np.float32)
-    leaf_b = shade[is_plant] * (1.0 + 0.05 * fine[is_plant])
-    rgb[is_plant] = green * leaf_b[:, None]
-    rgb[weed] = np.array([0.30, 0.50, 0.16], np.float32) * (1 + 0.08 * fine[weed])[:, None]
-    target = label == GCP_TARGET
-    rgb[target] = 0.06
-    rgb[white] = 0.92
-    red = (0.20 * soil_b).astype(np.float32)
-    nir = (0.27 * soil_b).astype(np.float32)
-    if plants.ndvi is None:
-        red[is_plant] = 0.05 * leaf_b
-        nir[is_plant] = 0.45 * leaf_b
-    else:  # NIR + red as before (0.5 x brightness), split to give each plant its own NDVI
-        v = plants.ndvi[pid].astype(np.float32)
-        red[is_plant] = 0.25 * (1 - v) * leaf_b
-        nir[is_plant] = 0.25 * (1 + v) * leaf_b
-    red[weed], nir[weed] = 0.06, 0.40
-    red[target], nir[target] = 0.04, 0.05
-    red[white], nir[white] = 0.80, 0.82
-
-    # -- shadows: splat each canopy cell onto the ground along the sun's direction -----------------
-    if s.shadows and s.height_max > 0:
-        shadow = _shadows(canopy, label, grid, sun_az_deg, sun_elev_deg)
-        rgb[shadow] *= 0.55
-        red[shadow] *= 0.55
-        nir[shadow] *= 0.55
-    albedo = np.clip(np.round(rgb * 255), 1, 255).astype(np.uint8)
-    return Rasters(grid=grid, canopy=canopy, label=label, albedo=albedo, red=red, nir=nir)
+def _paint_weeds(grid: Grid, rng: np.random.Generator, canopy: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """Small low rosettes on bare soil (none over a plant or a target) into ``canopy`` and ``label`` (in place);
+    returns where they are."""
+    res = grid.res
+    weed = np.zeros(label.shape, bool)
+    area = grid.width * grid.height * res * res
+    n = rng.poisson(1.5 * area)
+    wx = grid.x0 + rng.uniform(0, grid.width * res, n)
+    wy = grid.y1 - rng.uniform(0, grid.height * res, n)
+    wr = rng.uniform(0.015, 0.045, n)
+    wh = rng.uniform(0.01, 0.04, n)
+    hw = int(np.ceil(0.045 / res)) + 1
+    off = np.arange(-hw, hw + 1)
+    r0, c0 = grid.cell(wx, wy)
+    rr = np.clip(r0[:, None, None] + off[None, :, None], 0, grid.height - 1)
+    cc = np.clip(c0[:, None, None] + off[None, None, :], 0, grid.width - 1)
+    rr, cc = np.broadcast_arrays(rr, cc)
+    dx = grid.x0 + (cc + 0.5) * res - wx[:, None, None]
+    dy = grid.y1 - (rr + 0.5) * res - wy[:, None, None]
+    ang = np.arctan2(dy, dx)
+    lobes = 0.7 + 0.3 * np.cos(5 * ang + rng.uniform(0, 2 * np.pi, n)[:, None, None])
+    rho = np.hypot(dx, dy) / (wr[:, None, None] * lobes)
+    # keep only weeds that lie entirely on bare soil (no plant or target under them)
+    clear = ~((rho < 1.3) & (label[rr, cc] != 0)).reshape(n, -1).any(axis=1)
+    m = (rho < 1.0) & clear[:, None, None]
+    hh = (wh[:, None, None] * (1 - rho**2))[m]
+    canopy[rr[m], cc[m]] = np.maximum(canopy[rr[m], cc[m]], hh)
+    label[rr[m], cc[m]] = WEED
+    weed[rr[m], cc[m]] = True
+    return weed
 
 
 def _shadows(canopy: np.ndarray, label: np.ndarray, grid: Grid, az_deg: float, elev_deg: float) -> np.ndarray:

@@ -24,6 +24,7 @@ TRAIT_STATS = {
 
 
 def pearson(a, b) -> float:
+    """Pearson correlation over the finite pairs; NaN with fewer than 3 pairs or a constant side."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 3 or np.std(a[ok]) == 0 or np.std(b[ok]) == 0:

@@ -20,8 +20,8 @@ from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.inputs import read_polygons
+from matchplant.spatial_stat_extractor.zonal import extract_stats, write_csv
 
 log = get_logger("spatial_stat_extractor")
 

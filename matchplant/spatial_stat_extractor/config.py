@@ -13,12 +13,10 @@ from typing import Literal
 from matchplant.core.formats.vectors import VECTOR_FORMATS
 from matchplant.core.runtime.config import param, section
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MAX_MEMORY, parse_memory
-from matchplant.spatial_stat_extractor.inputs.bands import check_order
-from matchplant.spatial_stat_extractor.inputs.indices import RGB_INDICES
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, DEFAULT_STATS, MODES
+from matchplant.spatial_stat_extractor.canopy import DEFAULT_MAX_MEMORY, parse_memory
+from matchplant.spatial_stat_extractor.inputs import RGB_INDICES, Layer, check_order
+from matchplant.spatial_stat_extractor.plots import PlotsConfig
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, DEFAULT_STATS, MODES
 
 
 @dataclass
@@ -191,6 +189,7 @@ class RasterSet:
         return out
 
     def empty(self) -> bool:
+        """Whether no raster at all is set for this date."""
         return not (self.chm or self.dsm or self.dtm or self.multispectral or self.bands or self.rgb or self.formulas)
 
 
@@ -360,9 +359,11 @@ class SpatialStatExtractorConfig:
     output_dir: Path = param(Path("runs/spatial_stat_extractor"), "output folder", path="out")
 
     def memory_bytes(self) -> int:
+        """``max_memory`` in bytes (a clear error naming the key when it cannot be read)."""
         return parse_memory(self.max_memory)
 
     def date_sets(self) -> list[RasterSet]:
+        """The raster sets of every date, in order (the main one first); labels must be unique."""
         sets = ([] if self.rasters.empty() else [self.rasters]) + list(self.more_dates)
         labels = [s.date for s in sets]
         if len(sets) > 1 and (len(set(labels)) != len(labels) or "" in labels):
@@ -373,6 +374,7 @@ class SpatialStatExtractorConfig:
         return sets
 
     def check(self) -> None:
+        """Check the settings together (memory, dates, layers, band and formula files) before any work."""
         self.memory_bytes()
         sets = self.date_sets()
         if not sets:

@@ -23,11 +23,10 @@ from matchplant.core.runtime.gui import figure, fit_to_axes, is_headless, requir
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.widgets import QuietTextBox, ask_path
 from matchplant.spatial_stat_extractor.config import RasterSet, SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
-from matchplant.spatial_stat_extractor.inputs.rasters import preview_layer
-from matchplant.spatial_stat_extractor.plots.figure import describe, unit_of
+from matchplant.spatial_stat_extractor.inputs import preview_layer, read_polygons
+from matchplant.spatial_stat_extractor.plots import describe, unit_of
 from matchplant.spatial_stat_extractor.run import extract_and_write
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS, MODES
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS, MODES
 
 log = get_logger("spatial_stat_extractor")
 
@@ -187,6 +186,7 @@ class SpatialStatExtractorGUI:
     # settings
 
     def set_status(self, text: str, error: bool = False) -> None:
+        """Show ``text`` in the status line (red for an error)."""
         self.status.set_text(text)
         self.status.set_color(ERROR_COLOR if error else "black")
         self.fig.canvas.draw_idle()
@@ -308,6 +308,7 @@ class SpatialStatExtractorGUI:
 
     @property
     def busy(self) -> bool:
+        """Whether a run is in progress."""
         return self.thread is not None and self.thread.is_alive()
 
     def run(self) -> bool:
@@ -388,6 +389,7 @@ class SpatialStatExtractorGUI:
         self.poll()
 
     def save_config(self) -> Path | None:
+        """Write the settings shown to the config file (else ``stat_extractor.yaml`` in the output); None: not saved."""
         if not self.sync():
             return None
         path = self.config_path or Path(self.cfg.output_dir) / "stat_extractor.yaml"

@@ -24,16 +24,13 @@ from matchplant.core.runtime.guard import staged_outputs
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.manifest import previous_files, remove_stale, write_manifest
-from matchplant.spatial_stat_extractor.canopy.memory import gdal_cache_bytes, memory_report, memory_stage
+from matchplant.spatial_stat_extractor.canopy import gdal_cache_bytes, memory_report, memory_stage
 from matchplant.spatial_stat_extractor.compare import run_comparison
 from matchplant.spatial_stat_extractor.config import SpatialStatExtractorConfig
-from matchplant.spatial_stat_extractor.inputs.elevation import check_elevation
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons, with_crs
-from matchplant.spatial_stat_extractor.inputs.rasters import raster_crs
-from matchplant.spatial_stat_extractor.plots.layout import check_plot_file
-from matchplant.spatial_stat_extractor.plots.table import plots_wanted, run_plots
+from matchplant.spatial_stat_extractor.inputs import check_elevation, raster_crs, read_polygons, with_crs
+from matchplant.spatial_stat_extractor.plots import check_plot_file, plots_wanted, run_plots
 from matchplant.spatial_stat_extractor.traits import canopy_traits, merge_columns
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.zonal import extract_stats, write_csv
 
 log = get_logger("spatial_stat_extractor")
 
@@ -139,6 +136,18 @@ def _extract_and_write(cfg: SpatialStatExtractorConfig, budget: int, on_progress
 
 
 def run(cfg: SpatialStatExtractorConfig) -> dict:
+    """Run module 9: per-plant statistics (and outlines, plots) into ``cfg.output_dir``, all files or none.
+
+    Parameters
+    ----------
+    cfg : SpatialStatExtractorConfig
+        The settings (``matchplant spatial_stat_extractor --help`` lists every key).
+
+    Returns
+    -------
+    dict
+        The report: the files written (by name) and what was measured.
+    """
     # all files or none: written in a temporary folder, moved into output_dir at the end
     before = previous_files(cfg.output_dir)
     with staged_outputs(cfg.output_dir) as stage:

@@ -32,21 +32,23 @@ import shapely
 
 from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.canopy.dates import measure_offset, templates
-from matchplant.spatial_stat_extractor.canopy.ground import (
+from matchplant.spatial_stat_extractor.canopy import (
+    DEFAULT_MEMORY,
     GroundSample,
+    Measure,
+    Outlines,
+    SegmentSettings,
     Thresholds,
     check_chm,
     measure_ground,
+    measure_offset,
+    outline_field,
+    templates,
     thresholds,
 )
-from matchplant.spatial_stat_extractor.canopy.memory import DEFAULT_MEMORY
-from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
-from matchplant.spatial_stat_extractor.canopy.strips import Measure, outline_field
 from matchplant.spatial_stat_extractor.config import CanopyConfig, RasterSet
-from matchplant.spatial_stat_extractor.inputs.elevation import chm_keys
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal.table import polygons_in
+from matchplant.spatial_stat_extractor.inputs import chm_keys, open_layer
+from matchplant.spatial_stat_extractor.zonal import polygons_in
 
 log = get_logger("spatial_stat_extractor")
 
@@ -188,6 +190,7 @@ def date_offset(earlier, chm, cfg: CanopyConfig, rs: RasterSet, entry: dict) -> 
 
 
 def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[str, np.ndarray]:
+    """The outline columns of the plant table: canopy size, top, tight box, flag (and shift from ``previous``)."""
     cols = {
         "canopy_pixels": o.pixels,
         "canopy_area_m2": o.area,
@@ -210,6 +213,61 @@ def outline_columns(o: Outlines, previous: Outlines | None, geoms=None) -> dict[
         d = o.top[:, :2] - previous.top[:, :2]
         cols.update(shift_x=d[:, 0], shift_y=d[:, 1], shift_m=np.hypot(d[:, 0], d[:, 1]))
     return cols
+
+
+def _ndvi_mask(layers, chm, cfg: CanopyConfig, date: str, stack: contextlib.ExitStack, nodata):
+    """The NDVI layer that masks the canopy (opened) and its layer, or ``None, None`` without
+    ``canopy.ndvi_threshold`` or an NDVI on the CHM's grid."""
+    mask = mask_layer = None
+    if cfg.ndvi_threshold is not None:
+        mask_layer = next((la for la in layers if la.kind == "ndvi"), None)
+        mask = open_layer(mask_layer, stack, nodata) if mask_layer is not None else None
+        if mask is None or (mask.width, mask.height) != (chm.width, chm.height):
+            (log.info if cfg.ndvi_threshold == "auto" else log.warning)(
+                "canopy.ndvi_threshold not used on date '%s': no multispectral raster on the CHM's grid "
+                "(outlines from the CHM alone)",
+                date,
+            )
+            mask = mask_layer = None
+    return mask, mask_layer
+
+
+def _report_date(o: Outlines, cols: dict, entry: dict, date: str) -> None:
+    """Into the date's report ``entry``: the plants outlined, those that kept their box (by flag), the canopies no
+    box claims; a warning when outlines fill their box, a line on the noise bumps."""
+    flags = pd.Series(o.flag[o.flag != ""]).value_counts().to_dict()
+    entry.update(
+        outlined=int((o.flag == "").sum()),
+        kept_box={str(k): int(v) for k, v in flags.items()},
+        unclaimed_canopies=int(len(o.unclaimed)),
+        unclaimed_below_noise=o.noise_bumps,
+        fills_box=int(cols["fills_box"].sum()),
+    )
+    if entry["fills_box"]:
+        log.warning(
+            "date '%s': %d of %d outlines fill their box (canopy >= %d %% of the box, column fills_box): "
+            "the CHM's soil may reach canopy.min_height (%.3f m; raise it if these plants are smaller "
+            "than their boxes), or the plants outgrew boxes drawn on an earlier date",
+            date,
+            entry["fills_box"],
+            entry["outlined"],
+            FILLS_BOX * 100,
+            entry["min_height"],
+        )
+    if o.noise_bumps:
+        log.info(
+            "date '%s': %d canopies no box claims are ground-noise bumps (top below %.3f m), not plants; "
+            "%d look like plants",
+            date,
+            o.noise_bumps,
+            entry["unclaimed_min_top"],
+            len(o.unclaimed),
+        )
+
+
+def _faint(o: Outlines) -> pd.DataFrame:
+    """The canopies no box claims below the ground noise's highest bumps whose pixels are leaves by NDVI."""
+    return pd.DataFrame(o.faint, columns=UNCLAIMED).assign(faint=True)
 
 
 def canopy_traits(
@@ -244,17 +302,7 @@ def canopy_traits(
             chm = open_layer(chm_layer, stack, nodata)
             entry: dict = {"date": rs.date}
             geoms = polygons_in(polygons, chm.crs, f"CHM {Path(chm_layer.paths[0]).name}", entry)
-            mask = mask_layer = None
-            if cfg.ndvi_threshold is not None:
-                mask_layer = next((la for la in layers if la.kind == "ndvi"), None)
-                mask = open_layer(mask_layer, stack, nodata) if mask_layer is not None else None
-                if mask is None or (mask.width, mask.height) != (chm.width, chm.height):
-                    (log.info if cfg.ndvi_threshold == "auto" else log.warning)(
-                        "canopy.ndvi_threshold not used on date '%s': no multispectral raster on the CHM's grid "
-                        "(outlines from the CHM alone)",
-                        rs.date,
-                    )
-                    mask = mask_layer = None
+            mask, mask_layer = _ndvi_mask(layers, chm, cfg, rs.date, stack, nodata)
             step = np.zeros(2)
             if earlier is not None:
                 step = date_offset(earlier, chm, cfg, rs, entry)
@@ -292,43 +340,12 @@ def canopy_traits(
                 earlier = (rs.date, chm.crs, templates(chm, geoms, cfg.max_shift))
             cols = outline_columns(o, previous if seeds is not None else None, geoms)
             cols.update(measured)
-        flags = pd.Series(o.flag[o.flag != ""]).value_counts().to_dict()
-        entry.update(
-            outlined=int((o.flag == "").sum()),
-            kept_box={str(k): int(v) for k, v in flags.items()},
-            unclaimed_canopies=int(len(o.unclaimed)),
-            unclaimed_below_noise=o.noise_bumps,
-            fills_box=int(cols["fills_box"].sum()),
-        )
-        if entry["fills_box"]:
-            log.warning(
-                "date '%s': %d of %d outlines fill their box (canopy >= %d %% of the box, column fills_box): "
-                "the CHM's soil may reach canopy.min_height (%.3f m; raise it if these plants are smaller "
-                "than their boxes), or the plants outgrew boxes drawn on an earlier date",
-                rs.date,
-                entry["fills_box"],
-                entry["outlined"],
-                FILLS_BOX * 100,
-                entry["min_height"],
-            )
-        if o.noise_bumps:
-            log.info(
-                "date '%s': %d canopies no box claims are ground-noise bumps (top below %.3f m), not plants; "
-                "%d look like plants",
-                rs.date,
-                o.noise_bumps,
-                entry["unclaimed_min_top"],
-                len(o.unclaimed),
-            )
+        _report_date(o, cols, entry, rs.date)
         if previous is None:
             # the faint ones too (below the ground noise's highest bumps): plots count them only at an empty
             # seed position, where the detector missed a plant too small to rise above the noise (plots/table.py)
             unclaimed = pd.concat(
-                [
-                    pd.DataFrame(o.unclaimed, columns=UNCLAIMED).assign(faint=False),
-                    pd.DataFrame(o.faint, columns=UNCLAIMED).assign(faint=True),
-                ],
-                ignore_index=True,
+                [pd.DataFrame(o.unclaimed, columns=UNCLAIMED).assign(faint=False), _faint(o)], ignore_index=True
             )
         if seeds is not None:
             entry["median_shift_m"] = float(np.nanmedian(cols["shift_m"]))

@@ -123,6 +123,7 @@ def _closest(name: str, files: list[str]) -> str:
 
 
 def read_deepforest_csv(path: str | Path) -> dict[str, list[LabelledBox]]:
+    """Boxes of a DeepForest CSV (image_path,xmin,ymin,xmax,ymax; label and score optional), by image path."""
     path = Path(path)
     fix = "give a CSV with the header image_path,xmin,ymin,xmax,ymax,label (DeepForest's format)"
     out: dict[str, list[LabelledBox]] = {}

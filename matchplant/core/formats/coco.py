@@ -43,6 +43,7 @@ class LabelledBox(NamedTuple):
 
 
 def new_dataset(categories: Iterable[str], info: dict | None = None) -> dict:
+    """An empty COCO dataset with the given category names (ids from 1)."""
     return {
         "info": info or {"description": "MatchPlant dataset"},
         "licenses": [],
@@ -53,6 +54,7 @@ def new_dataset(categories: Iterable[str], info: dict | None = None) -> dict:
 
 
 def make_annotation(ann_id: int, image_id: int, bbox: Iterable[float], category_id: int = 1, **extra) -> dict:
+    """A COCO annotation of one box ``[x, y, w, h]``, with any extra keys given."""
     x, y, w, h = (float(v) for v in bbox)
     ann = {
         "id": int(ann_id),
@@ -86,20 +88,26 @@ def read_dataset(path: str | Path, *, validate: bool = True) -> dict:
                 fix="give a COCO dataset (images, annotations, categories are lists of objects)",
             )
     if validate:
-        problems = validate_dataset(data)
-        if problems:
-            shown = "\n".join(f"  - {p}" for p in problems[:10])
-            more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
-            raise InputError(
-                f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}",
-                path=path,
-                fix="correct them, or import the file with module 4 (import_coco), which leaves out "
-                "and lists the boxes it cannot use, and use module 4's annotations.json",
-            )
+        raise_problems(
+            data,
+            path,
+            "correct them, or import the file with module 4 (import_coco), which leaves out "
+            "and lists the boxes it cannot use, and use module 4's annotations.json",
+        )
     return data
 
 
+def raise_problems(data: dict, path: Path, fix: str) -> None:
+    """An InputError listing the first ten problems :func:`validate_dataset` finds (and how many more), if any."""
+    problems = validate_dataset(data)
+    if problems:
+        shown = "\n".join(f"  - {p}" for p in problems[:10])
+        more = f"\n  ... and {len(problems) - 10} more" if len(problems) > 10 else ""
+        raise InputError(f"the COCO dataset has {len(problems)} problem(s):\n{shown}{more}", path=path, fix=fix)
+
+
 def write_dataset(path: str | Path, data: dict) -> Path:
+    """Write a COCO dataset as compact JSON, whole or not at all."""
     return write_json(path, data, indent=None)
 
 
@@ -180,6 +188,7 @@ class DropLog:
     rows: list[dict] = field(default_factory=list)
 
     def add(self, source: Any, where: Any, image: Any, box: Any, reason: str, detail: str = "") -> None:
+        """Record one box (or image) left out and why."""
         shown = box if isinstance(box, str) else ("" if box is None else "[" + ", ".join(_short(v) for v in box) + "]")
         self.rows.append(
             {
@@ -196,6 +205,7 @@ class DropLog:
         return len(self.rows)
 
     def count(self, source: Any = None) -> int:
+        """Number of rows left out, from one source or from all."""
         return sum(1 for r in self.rows if source is None or r["source"] == str(source))
 
     def summary(self, source: Any = None) -> str:
@@ -204,9 +214,11 @@ class DropLog:
         return ", ".join(f"{n} {reason}" for reason, n in counts.most_common())
 
     def first(self, source: Any = None) -> dict | None:
+        """The first row left out, from one source or from all; None when there is none."""
         return next((r for r in self.rows if source is None or r["source"] == str(source)), None)
 
     def write_csv(self, path: str | Path) -> Path:
+        """Write the rows as CSV (the columns of ``DROP_COLUMNS``)."""
         buf = io.StringIO()
         writer = csv.DictWriter(buf, fieldnames=DROP_COLUMNS, lineterminator="\n")
         writer.writeheader()
@@ -222,6 +234,7 @@ def _short(v: Any) -> str:
 
 
 def annotations_by_image(data: dict) -> dict[int, list[dict]]:
+    """Each image id's annotations (an empty list for an image without any)."""
     out: dict[int, list[dict]] = {im["id"]: [] for im in data.get("images", [])}
     for a in data.get("annotations", []):
         out.setdefault(a["image_id"], []).append(a)
@@ -265,4 +278,5 @@ def region_entry(polygon) -> list[list[float]]:
 
 
 def source_name(image: dict) -> str:
+    """Name of the photo a COCO image was cut from (``source_image``), else its own file name."""
     return image.get("source_image") or image["file_name"]

@@ -48,6 +48,7 @@ class Footprint:
 
     @property
     def centroid(self) -> tuple[float, float]:
+        """Centroid (x, y) of the footprint on the map."""
         c = self.polygon.centroid
         return float(c.x), float(c.y)
 

@@ -36,6 +36,8 @@ log = get_logger("odm")
 
 @dataclass(frozen=True)
 class Output:
+    """One ODM output: its path in the project, what it holds and which ODM option or step writes it."""
+
     relpath: str
     what: str
     produced_by: str  # the ODM option or step that writes it
@@ -94,6 +96,14 @@ def submodel_dirs(root: Path) -> list[Path]:
 
 
 class ODMProject:
+    """An ODM project folder (single or split-merge): which outputs it has, and its shots, frames and rasters.
+
+    Parameters
+    ----------
+    root : str or Path
+        The project folder (the one that holds opensfm/, odm_dem/ and odm_orthophoto/, or submodels/).
+    """
+
     def __init__(self, root: str | Path):
         self.root = Path(root)
         if not self.root.is_dir():
@@ -110,10 +120,12 @@ class ODMProject:
 
     @property
     def is_split(self) -> bool:
+        """True for a split-merge project (it has submodels)."""
         return bool(self.submodels)
 
     @property
     def name(self) -> str:
+        """The project folder's name."""
         return self.root.name
 
     def _raster_source(self, name: str) -> ODMProject:
@@ -134,11 +146,13 @@ class ODMProject:
         return self
 
     def path(self, name: str) -> Path:
+        """Path of an output by name (of the first submodel for a per-submodel output)."""
         if self.is_split and name in PER_SUBMODEL:
             return self.submodels[0].path(name)  # one of them (messages); see sub_paths()
         return self._raster_source(name).root / OUTPUTS[name].relpath
 
     def has(self, name: str) -> bool:
+        """True when the output exists (in every submodel for a per-submodel output)."""
         if self.is_split and name in PER_SUBMODEL:
             return all(sub.has(name) for sub in self.submodels)
         p = self.path(name)
@@ -147,6 +161,7 @@ class ODMProject:
         return p.is_file()
 
     def missing(self, *names: str) -> list[str]:
+        """Names of the outputs (all by default) that are missing."""
         return [n for n in (names or OUTPUTS) if not self.has(n)]
 
     def missing_paths(self, names) -> list[tuple[str, str]]:
@@ -177,6 +192,7 @@ class ODMProject:
     # -- reading --------------------------------------------------------------------------------
     @cached_property
     def coords(self):
+        """The CRS and integer offset of odm_georeferencing/coords.txt; None when the file is missing."""
         return read_coords_txt(self.path("coords")) if self.has("coords") else None
 
     def reconstruction(self, undistorted: bool = False) -> Reconstruction:

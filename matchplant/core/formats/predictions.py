@@ -185,6 +185,7 @@ def _check_prediction(i: int, p: dict, image: str, path: Path) -> None:
 def write_predictions(
     path: str | Path, images: list[dict], categories: list[dict], predictions: list[dict], info: dict | None = None
 ) -> Path:
+    """Write a predictions file (images, categories, predictions) as compact JSON, whole or not at all."""
     data = {
         "info": info or {"description": "MatchPlant predictions"},
         "images": images,

@@ -22,6 +22,8 @@ from matchplant.core.runtime.validate import did_you_mean, read_json
 
 @dataclass
 class Reconstruction:
+    """An OpenSfM reconstruction: cameras, shots, points and the geographic reference."""
+
     cameras: dict[str, Camera]
     shots: dict[str, Shot]
     point_ids: list[str] = field(default_factory=list)
@@ -30,6 +32,7 @@ class Reconstruction:
     path: Path | None = None
 
     def shot(self, shot_id: str) -> Shot:
+        """The shot of an image; an error naming the file when ODM did not place it."""
         try:
             return self.shots[shot_id]
         except KeyError:
@@ -40,6 +43,7 @@ class Reconstruction:
             ) from None
 
     def to_opensfm(self) -> list:
+        """The reconstruction as OpenSfM's JSON structure (a list of one reconstruction)."""
         rec = {
             "cameras": {cid: cam.to_opensfm() for cid, cam in self.cameras.items()},
             "shots": {sid: shot.to_opensfm() for sid, shot in self.shots.items()},
@@ -183,4 +187,5 @@ def _shot(sid: str, sd, cameras: dict[str, Camera], key: str, path: Path) -> Sho
 
 
 def write_reconstruction(path: str | Path, recon: Reconstruction) -> Path:
+    """Write a reconstruction as OpenSfM's reconstruction.json, whole or not at all."""
     return write_json(path, recon.to_opensfm(), indent=None)

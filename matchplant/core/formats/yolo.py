@@ -26,6 +26,8 @@ LINE_FORMAT = "'class cx cy w h' (five values: a class index, then the box centr
 
 
 class YoloBox(NamedTuple):
+    """One YOLO label line as a box in image pixels and its class name."""
+
     xyxy: list[float]  # [x1, y1, x2, y2] in pixels of the image
     category: str  # class name from classes.txt
 
@@ -55,6 +57,7 @@ def coco_to_yolo(dataset: dict, out_dir: str | Path, labels_subdir: str = "") ->
 
 
 def find_classes_file(labels_dir: Path) -> Path:
+    """The classes.txt of a YOLO labels folder (in it or its parent); an error when there is none."""
     for candidate in (labels_dir / CLASSES_NAME, labels_dir.parent / CLASSES_NAME):
         if candidate.is_file():
             return candidate

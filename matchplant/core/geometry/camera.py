@@ -42,15 +42,18 @@ class Camera:
 
     @property
     def scale(self) -> float:
+        """Pixels per normalised unit: the larger image side."""
         return float(max(self.width, self.height))
 
     # -- normalised <-> pixel -------------------------------------------------------------------
     def normalized_to_pixel(self, xy: np.ndarray) -> np.ndarray:
+        """Normalised image coordinates to pixels (pixel centres at integers, origin top-left)."""
         xy = np.asarray(xy, dtype=float)
         s = self.scale
         return np.stack([xy[..., 0] * s + (self.width - 1) / 2.0, xy[..., 1] * s + (self.height - 1) / 2.0], axis=-1)
 
     def pixel_to_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels to normalised image coordinates (centred, divided by the larger side)."""
         uv = np.asarray(uv, dtype=float)
         s = self.scale
         return np.stack(
@@ -72,6 +75,7 @@ class Camera:
         return replace(self, width=int(width), height=int(height))
 
     def in_image(self, uv: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """True for pixels inside the image (its outer pixel edges), widened by ``margin`` pixels."""
         uv = np.asarray(uv, dtype=float)
         return (
             (uv[..., 0] >= -0.5 - margin)
@@ -82,12 +86,15 @@ class Camera:
 
     # -- to be provided by each family ----------------------------------------------------------
     def project(self, points_cam: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        """Camera-frame points (N, 3) to pixels (N, 2)."""
         raise NotImplementedError
 
     def bearings(self, uv: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
         raise NotImplementedError
 
     def to_opensfm(self) -> dict:  # pragma: no cover - abstract
+        """The camera as an OpenSfM reconstruction's camera entry."""
         raise NotImplementedError
 
 
@@ -154,6 +161,7 @@ class PinholeCamera(Camera):
         return b
 
     def to_opensfm(self) -> dict:
+        """The camera as an OpenSfM reconstruction's camera entry (the parameters of its projection type)."""
         d = {"projection_type": self.projection_type, "width": self.width, "height": self.height}
         if self.projection_type == "perspective":
             d.update(focal=self.focal_x, k1=self.k1, k2=self.k2)
@@ -197,6 +205,7 @@ class FisheyeCamera(Camera):
         return th * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) to pixels (N, 2) through the fisheye model."""
         p = np.asarray(points_cam, dtype=float)
         r = np.hypot(p[..., 0], p[..., 1])
         theta = np.arctan2(r, p[..., 2])
@@ -208,6 +217,7 @@ class FisheyeCamera(Camera):
         return self.normalized_to_pixel(np.stack([self.focal_x * x + self.c_x, self.focal_y * y + self.c_y], axis=-1))
 
     def bearings(self, uv: np.ndarray) -> np.ndarray:
+        """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame (Newton inversion of the fisheye model)."""
         n = self.pixel_to_normalized(uv)
         xd = (n[..., 0] - self.c_x) / self.focal_x
         yd = (n[..., 1] - self.c_y) / self.focal_y
@@ -226,6 +236,7 @@ class FisheyeCamera(Camera):
         return np.stack([xd * scale, yd * scale, np.cos(th)], axis=-1)
 
     def to_opensfm(self) -> dict:
+        """The camera as an OpenSfM reconstruction's camera entry (the parameters of its projection type)."""
         d = {"projection_type": self.projection_type, "width": self.width, "height": self.height}
         if self.projection_type == "fisheye":
             d.update(focal=self.focal_x, k1=self.k1, k2=self.k2)

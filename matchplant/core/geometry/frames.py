@@ -66,6 +66,7 @@ def parse_crs(crs, *, source: str | Path | None = None, key: str | None = None) 
 
 
 def utm_crs_for(lon: float, lat: float) -> CRS:
+    """The WGS 84 UTM CRS of the zone holding a longitude and latitude."""
     zone = int((lon + 180.0) // 6.0) % 60 + 1
     return _proj().CRS.from_epsg((32600 if lat >= 0 else 32700) + zone)
 
@@ -111,6 +112,7 @@ def read_coords_txt(path: str | Path) -> tuple[CRS, np.ndarray]:
 
 
 def write_coords_txt(path: str | Path, crs: CRS, offset: np.ndarray) -> Path:
+    """Write ODM's coords.txt: the CRS (``WGS84 UTM 14N`` style for UTM) and the integer offset."""
     epsg = crs.to_epsg()
     utm = crs.utm_zone if hasattr(crs, "utm_zone") else None
     if utm and epsg and 32601 <= epsg <= 32760:
@@ -127,9 +129,11 @@ class Frame:
     kind: str
 
     def to_map(self, points: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        """Points (N, 3) in the reconstruction frame to the map CRS."""
         raise NotImplementedError
 
     def from_map(self, points: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        """Points (N, 3) in the map CRS to the reconstruction frame."""
         raise NotImplementedError
 
     @property
@@ -140,25 +144,33 @@ class Frame:
 
 @dataclass
 class OffsetFrame(Frame):
+    """A reconstruction frame that is the map CRS minus an offset (ODM's coords.txt)."""
+
     crs: CRS
     offset: np.ndarray  # (3,)
     kind: str = "utm_offset"
 
     def to_map(self, points: np.ndarray) -> np.ndarray:
+        """Points (N, 3) in the reconstruction frame to the map CRS (plus the offset)."""
         return np.asarray(points, dtype=float) + self.offset
 
     def from_map(self, points: np.ndarray) -> np.ndarray:
+        """Points (N, 3) in the map CRS to the reconstruction frame (minus the offset)."""
         return np.asarray(points, dtype=float) - self.offset
 
     @property
     def is_affine(self) -> bool:
+        """True: a shift keeps straight lines straight."""
         return True
 
     def describe(self) -> str:
+        """The frame in words, for logs and messages."""
         return f"{self.crs.name} minus offset ({self.offset[0]:.0f}, {self.offset[1]:.0f})"
 
 
 class TopocentricFrame(Frame):
+    """OpenSfM's topocentric frame (east, north, up around a reference latitude, longitude, altitude) and a map CRS."""
+
     kind = "topocentric"
 
     def __init__(self, lat: float, lon: float, alt: float, crs: CRS | None = None):
@@ -173,17 +185,20 @@ class TopocentricFrame(Frame):
         self._lla_to_map = _proj().Transformer.from_crs(_proj().CRS.from_epsg(4979), target, always_xy=True)
 
     def to_lla(self, points: np.ndarray) -> np.ndarray:
+        """Topocentric points (N, 3) to longitude, latitude and ellipsoidal height (N, 3)."""
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         lon, lat, h = self._enu_to_lla.transform(p[:, 0], p[:, 1], p[:, 2])
         return np.stack([lon, lat, h], axis=-1)
 
     def to_map(self, points: np.ndarray) -> np.ndarray:
+        """Topocentric points (N, 3) to the map CRS."""
         shape = np.shape(points)
         lla = self.to_lla(points)
         x, y, z = self._lla_to_map.transform(lla[:, 0], lla[:, 1], lla[:, 2])
         return np.stack([x, y, z], axis=-1).reshape(shape)
 
     def from_map(self, points: np.ndarray) -> np.ndarray:
+        """Points (N, 3) in the map CRS to topocentric coordinates."""
         shape = np.shape(points)
         p = np.asarray(points, dtype=float).reshape(-1, 3)
         lon, lat, h = self._lla_to_map.transform(p[:, 0], p[:, 1], p[:, 2], direction="INVERSE")
@@ -200,6 +215,7 @@ class TopocentricFrame(Frame):
         return u @ vt
 
     def describe(self) -> str:
+        """The frame in words, for logs and messages."""
         return f"topocentric around lat {self.lat:.7f}, lon {self.lon:.7f} -> {self.crs.name}"
 
 

@@ -193,6 +193,7 @@ def bilinear_batch(data, inv, xs, ys, n, scratch, out):
 
 @numba.njit(cache=True, nogil=True)
 def sample_many(data, inv, x, y, out):
+    """Bilinear heights at many map points into ``out`` (NaN outside the raster or where all four are holes)."""
     for i in range(x.size):
         out[i] = bilinear(data, inv, x[i], y[i])
 

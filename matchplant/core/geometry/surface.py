@@ -58,6 +58,8 @@ MAX_STEPS = 200_000  # patches a ray walks at most
 
 @dataclass
 class Surface:
+    """An elevation raster in memory (NaN for holes) with its north-up transform and CRS."""
+
     data: np.ndarray  # float32 (as ODM writes it), NaN for holes
     transform: object  # affine.Affine, north-up
     crs: object = None
@@ -180,10 +182,12 @@ class Surface:
 
     @property
     def pixel_size(self) -> float:
+        """Pixel size in map units (the smaller of the two axes)."""
         return float(min(abs(self.transform.a), abs(self.transform.e)))
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
+        """Map extent ``(xmin, ymin, xmax, ymax)`` of the raster."""
         t = self.transform
         h, w = self.data.shape
         xs = (t.c, t.c + w * t.a)
@@ -200,6 +204,7 @@ class Surface:
         return out
 
     def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """True for map points inside the raster's extent."""
         i = self._inv
         x = np.asarray(x, dtype=float)
         y = np.asarray(y, dtype=float)

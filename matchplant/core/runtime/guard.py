@@ -58,6 +58,7 @@ def path_fields(cfg: Any, prefix: str = "") -> Iterator[tuple[str, Path, str]]:
 
 
 def inputs_and_outputs(cfg: Any) -> tuple[list[tuple[str, Path, str]], list[tuple[str, Path]]]:
+    """A config's input paths ``(key, path, kind)`` and output paths ``(key, path)``."""
     items = list(path_fields(cfg))
     return (
         [(k, p, kind) for k, p, kind in items if kind in INPUT_KINDS],
@@ -167,6 +168,7 @@ def check_writable(folder: str | Path, *, key: str = "output_dir") -> None:
 
 
 def check_outputs_writable(cfg: Any) -> None:
+    """Check that every output folder (and the folder of every output file) can be written; an error naming the key."""
     for key, path, kind in path_fields(cfg):
         if kind == "out":
             check_writable(path, key=key)

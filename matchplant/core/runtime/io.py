@@ -237,12 +237,14 @@ def atomic_open(path: str | Path, mode: str = "w", **kwargs: Any):
 
 
 def write_text(path: str | Path, text: str) -> Path:
+    """Write a text file whole, or nothing if it fails."""
     with atomic_open(path, "w") as fh:
         fh.write(text)
     return Path(path)
 
 
 def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:
+    """Write JSON whole, or nothing if it fails (``indent=None``: compact)."""
     with atomic_open(path, "w") as fh:
         json.dump(data, fh, indent=indent)
         fh.write("\n")
@@ -302,6 +304,7 @@ class BatchedWrites:
         self.syncs = 0
 
     def write(self, name: str, data: bytes) -> Path:
+        """Write one file of the batch under a temporary name; it is renamed into place with its batch."""
         dst = self.folder / name
         fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".partial", dir=self.folder)
         try:
@@ -316,6 +319,7 @@ class BatchedWrites:
         return dst
 
     def flush(self) -> None:
+        """Sync the pending files, rename them into place and sync the folder once."""
         if not self.pending:
             return
         for tmp, _ in self.pending:
@@ -327,11 +331,13 @@ class BatchedWrites:
         self.syncs += 1
 
     def discard(self) -> None:
+        """Remove the pending temporaries without placing them."""
         for tmp, _ in self.pending:
             tmp.unlink(missing_ok=True)
         self.pending = []
 
     def close(self) -> None:
+        """Place the last pending files."""
         self.flush()
 
     def __enter__(self) -> BatchedWrites:

@@ -41,10 +41,12 @@ VERSIONED = (
 
 
 def get_logger(name: str | None = None) -> logging.Logger:
+    """The package's logger, or its child ``name``."""
     return logging.getLogger(LOGGER_NAME if not name else f"{LOGGER_NAME}.{name}")
 
 
 def package_versions() -> dict[str, str]:
+    """Versions of Python, the platform and the main packages, for the run log."""
     # not platform.platform(): it runs 'uname -p' in a child process, a fork of this one, whose resident memory
     # (the parent's at the fork) module 9 would report as its worker processes' peak
     out = {
@@ -113,6 +115,7 @@ def start_run_log(output_dir: str | Path, module: str, config: Any = None) -> Pa
 
 
 def stop_run_log() -> None:
+    """Detach and close the run log's file handler."""
     logger = get_logger()
     for h in list(logger.handlers):
         if getattr(h, "_matchplant_run", False):

@@ -82,6 +82,7 @@ class LogProgress(std_tqdm):
         super().__init__(*args, **kwargs)
 
     def display(self, msg=None, pos=None):
+        """Log a progress line instead of drawing, at most once per interval (always at the end)."""
         n = self.n
         if n == 0 or msg == "":  # the opening call, and the one close() makes to erase a bar
             return True
@@ -94,6 +95,7 @@ class LogProgress(std_tqdm):
         return True
 
     def close(self):
+        """Log the final count unless already logged (a run shorter than one interval logs none), then close."""
         if self.disable:
             return
         elapsed = self._time() - self.start_t

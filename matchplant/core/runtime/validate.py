@@ -290,6 +290,7 @@ class Table:
         return len(self.rows)
 
     def column(self, name: str) -> list[str]:
+        """Every row's text in one column."""
         return [r[name] for r in self.rows]
 
 

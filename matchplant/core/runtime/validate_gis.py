@@ -25,6 +25,8 @@ from matchplant.core.runtime.validate import did_you_mean
 
 @dataclass
 class RasterInfo:
+    """What :func:`check_raster` found: path, CRS, band count, size and nodata value."""
+
     path: Path
     crs: Any
     count: int

@@ -46,6 +46,7 @@ class QuietTextBox(TextBox):
         self.fit_text()  # a long initial path shows its end from the first draw, not only once typed into
 
     def stop_typing(self):
+        """Stop typing only when the field was typing (Matplotlib redraws everything otherwise)."""
         if self.capturekeystrokes:
             super().stop_typing()
 
@@ -110,18 +111,22 @@ class BoolField:
 
     @property
     def value(self) -> bool:
+        """True when the box is ticked."""
         return bool(self.check.get_status()[0])
 
     @property
     def text(self) -> str:
+        """``"true"`` or ``"false"``, as a text box would hold it."""
         return "true" if self.value else "false"
 
     def set_val(self, value) -> None:
+        """Tick or untick the box from a text ("true", "1", "yes", "on" tick it)."""
         wanted = str(value).strip().lower() in ("true", "1", "yes", "on")
         if wanted != self.value:
             self.check.set_active(0)
 
     def on_changed(self, func: Callable[[bool], Any]) -> None:
+        """Call ``func`` with the new value each time the box is clicked."""
         self.check.on_clicked(lambda _label: func(self.value))
 
 
@@ -276,6 +281,7 @@ class SetupScreen:
         return filled
 
     def say(self, text: str, error: bool = False) -> None:
+        """Show a status line under the form (red for an error)."""
         self.status.set_text(text)
         self.status.set_color("#c62828" if error else "black")
         self.fig.canvas.draw_idle()

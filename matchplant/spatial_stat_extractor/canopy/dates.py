@@ -50,9 +50,11 @@ class Offset:
 
     @property
     def distance(self) -> float:
+        """The offset's length (m)."""
         return float(np.hypot(self.dx, self.dy))
 
     def report(self) -> dict:
+        """The offset for the JSON report: dx, dy and distance in m, rounded to the mm."""
         return {
             "dx": round(self.dx, 3),
             "dy": round(self.dy, 3),

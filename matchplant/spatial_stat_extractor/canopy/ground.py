@@ -40,6 +40,7 @@ DSM given as the CHM, DSM and DTM in different units or datums), plants taller t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import shapely
@@ -84,9 +85,11 @@ class GroundSample:
 
     @property
     def measured(self) -> bool:
+        """Whether enough ground was found to measure its noise."""
         return bool(np.isfinite(self.sd))
 
     def report(self) -> dict:
+        """The sample for the JSON report: pixels and windows used, and the noise's percentiles and SD."""
         r = {"ground_pixels": self.pixels, "windows": self.windows, "guarded": self.guarded}
         if self.measured:
             r.update(p50=round(self.p50, 4), p95=round(self.p95, 4), p99=round(self.p99, 4), sd=round(self.sd, 4))
@@ -113,6 +116,8 @@ class GroundSample:
 
 @dataclass
 class Thresholds:
+    """The canopy thresholds in effect (m) and where each came from (set, or auto from the ground's noise)."""
+
     min_height: float
     min_top: float
     unclaimed_min_top: float
@@ -138,17 +143,25 @@ def _covered(shape: tuple[int, int], rects: np.ndarray) -> np.ndarray:
     return d.cumsum(0).cumsum(1)[:h, :w] > 0
 
 
-def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, ndvi=None) -> GroundSample:
-    """The ground sample (see the module doc) from up to ``max_windows`` windows around plants spread
-    over the field, and the highest / lowest CHM value in each box wholly inside a window; ``ndvi``: a
-    layer on the CHM's grid, sampled on the same pixels and at each box's top."""
-    t = chm.transform
+class _Boxes(NamedTuple):
+    """The plant boxes in pixels of the CHM: pixel centres inside, plus the guard, pixel edges around; their
+    centres (row, col) and the half side of a sample window."""
+
+    inner: np.ndarray
+    guarded: np.ndarray
+    outer: np.ndarray
+    centre: np.ndarray
+    half: int
+
+
+def _boxes(t, geoms, guard_m: float) -> _Boxes | None:
+    """The boxes of ``geoms`` on the grid ``t`` (None when no geometry has bounds)."""
     res = float(np.sqrt(abs(t.a * t.e - t.b * t.d)))
     geoms = np.asarray(geoms, dtype=object)
     b = shapely.bounds(geoms)
     ok = np.isfinite(b).all(axis=1)
     if not ok.any():
-        return GroundSample()
+        return None
     inv = ~t
     c0, r0 = inv @ (b[ok, 0], b[ok, 3])
     c1, r1 = inv @ (b[ok, 2], b[ok, 1])
@@ -164,6 +177,71 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     size = np.median(np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]))
     half = int(np.clip(3 * size + 2 * g, 32, MAX_HALF))
     centre = np.stack([(box[:, 1] + box[:, 3]) / 2, (box[:, 0] + box[:, 2]) / 2], axis=1)
+    outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])], axis=1).astype(
+        np.int64
+    )
+    return _Boxes(inner, guarded, outer, centre, half)
+
+
+class _Gathered(NamedTuple):
+    """What the windows gave: the ground pixels a guard from every box and those just outside the boxes, their
+    NDVI, what was left out of each, and each whole box's highest and lowest CHM value and NDVI at its top."""
+
+    ground: list
+    near_ground: list
+    soil_ndvi: list
+    near_ndvi: list
+    tall_seen: dict
+    tops: list
+    lows: list
+    top_ndvi: list
+
+
+def _sample(found: _Gathered, windows: int) -> GroundSample:
+    """The ground sample from what the windows gave: the guarded pixels where there are enough, else those
+    just outside the boxes; a window's roof (far above the whole sample's ground) left out."""
+    ground, near_ground, soil_ndvi, near_ndvi, tall_seen, tops, lows, top_ndvi = found
+    v = np.concatenate(ground) if ground else np.zeros(0)
+    guarded = v.size >= MIN_GROUND
+    if not guarded:
+        v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
+    left = tall_seen[guarded]
+    soil = np.concatenate(soil_ndvi) if soil_ndvi else np.zeros(0)
+    if v.size >= MIN_GROUND:  # a window whose mode was a roof: far above the whole sample's ground
+        m, spread = ground_mode(v)
+        high = v > m + K_TALL * spread
+        if high.any():
+            left.add(v[high], 1, m + K_TALL * spread)
+            v = v[~high]
+            soil = soil[~high] if soil.size == high.size else soil
+    out = GroundSample(
+        pixels=int(v.size),
+        windows=windows,
+        box_max=np.array(tops),
+        box_min=np.array(lows),
+        ndvi_soil=_finite([soil]),
+        ndvi_tops=_finite([np.array(top_ndvi)]),
+        guarded=guarded,
+    )
+    if left.count:
+        out.excluded = left.count / (left.count + v.size)
+        out.excluded_above = left.above
+        out.excluded_heights = np.concatenate(left.heights)
+    if v.size >= MIN_GROUND:
+        p50, p95, p99 = np.percentile(v, [50, 95, 99])
+        out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
+        out.sd = robust_sd(v, p50)
+    return out
+
+
+def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, ndvi=None) -> GroundSample:
+    """The ground sample (see the module doc) from up to ``max_windows`` windows around plants spread
+    over the field, and the highest / lowest CHM value in each box wholly inside a window; ``ndvi``: a
+    layer on the CHM's grid, sampled on the same pixels and at each box's top."""
+    bx = _boxes(chm.transform, geoms, guard_m)
+    if bx is None:
+        return GroundSample()
+    inner, guarded, outer, centre, half = bx
     inside = (centre[:, 0] >= 0) & (centre[:, 0] < chm.height) & (centre[:, 1] >= 0) & (centre[:, 1] < chm.width)
     order = np.flatnonzero(inside)[np.lexsort((centre[inside, 1], centre[inside, 0]))]  # by row, then column
     if not len(order):
@@ -171,16 +249,13 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
     # no more windows than it takes to cover the raster once (a small field is read about once)
     k_max = int(np.clip(np.ceil(chm.height * chm.width / (2 * half) ** 2), MIN_WINDOWS, max_windows))
     picks = order[np.unique(np.linspace(0, len(order) - 1, k_max).round().astype(int))]
-    ground, tops, lows, seen = [], [], [], np.zeros(len(box), bool)
+    ground, tops, lows, seen = [], [], [], np.zeros(len(inner), bool)
     soil_ndvi, top_ndvi = [], []
     # a close-planted field (boxes a guard apart or less) has no pixel a guard from every box: there the
     # pixels outside every box are the sample (a few leaf edges a box cut short widen its tail, which
     # robust_sd caps), better than no measurement and the fixed thresholds of an exact CHM
     near_ground, near_ndvi = [], []
     tall_seen = {True: _Tall(), False: _Tall()}  # what was left out of each sample (guarded, just outside)
-    outer = np.stack([np.floor(box[:, 0]), np.floor(box[:, 1]), np.ceil(box[:, 2]), np.ceil(box[:, 3])], axis=1).astype(
-        np.int64
-    )
     for k in picks:
         R0 = int(max(0, centre[k, 0] - half))
         R1 = int(min(chm.height, centre[k, 0] + half))
@@ -226,37 +301,9 @@ def measure_ground(chm, geoms, guard_m: float, max_windows: int = MAX_WINDOWS, n
                         ]
                     )
         seen |= whole
-    v = np.concatenate(ground) if ground else np.zeros(0)
-    guarded = v.size >= MIN_GROUND
-    if not guarded:
-        v, soil_ndvi = (np.concatenate(near_ground) if near_ground else np.zeros(0)), near_ndvi
-    left = tall_seen[guarded]
-    soil = np.concatenate(soil_ndvi) if soil_ndvi else np.zeros(0)
-    if v.size >= MIN_GROUND:  # a window whose mode was a roof: far above the whole sample's ground
-        m, spread = ground_mode(v)
-        high = v > m + K_TALL * spread
-        if high.any():
-            left.add(v[high], 1, m + K_TALL * spread)
-            v = v[~high]
-            soil = soil[~high] if soil.size == high.size else soil
-    out = GroundSample(
-        pixels=int(v.size),
-        windows=len(picks),
-        box_max=np.array(tops),
-        box_min=np.array(lows),
-        ndvi_soil=_finite([soil]),
-        ndvi_tops=_finite([np.array(top_ndvi)]),
-        guarded=guarded,
+    return _sample(
+        _Gathered(ground, near_ground, soil_ndvi, near_ndvi, tall_seen, tops, lows, top_ndvi), windows=len(picks)
     )
-    if left.count:
-        out.excluded = left.count / (left.count + v.size)
-        out.excluded_above = left.above
-        out.excluded_heights = np.concatenate(left.heights)
-    if v.size >= MIN_GROUND:
-        p50, p95, p99 = np.percentile(v, [50, 95, 99])
-        out.p50, out.p95, out.p99 = float(p50), float(p95), float(p99)
-        out.sd = robust_sd(v, p50)
-    return out
 
 
 class _Tall:

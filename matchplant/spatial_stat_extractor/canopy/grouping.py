@@ -161,35 +161,24 @@ def _labelled_pixels(labels, values, rules, at):
     return pix, start, total, extent, image
 
 
-def labelled_pixels(
-    labels: np.ndarray,
-    values: np.ndarray,
-    windows: np.ndarray,
-    reach: np.ndarray,
-    home: np.ndarray,
-    ids: np.ndarray,
-    width: int,
-    row0: int = 0,
-    col0: int = 0,
-):
-    """The pixels of a label image (1 + an index ``k`` into the other arguments, 0: none) that lie in their
+def labelled_pixels(labels: np.ndarray, values: np.ndarray, rules: LabelRules, at: Placement):
+    """The pixels of a label image (1 + an index ``k`` into the arrays of ``rules``, 0: none) that lie in their
     label's window (``windows[k]``: col0, row0, col1, row1 in the image's pixels, end excluded), whose value
     reaches ``reach[k]`` (NaN never does) and whose ``home[k]`` is set, grouped by ``k`` (raster order within
     one): their flat indices ``(row + row0) * width + col + col0`` on the raster the image was cut from at
-    ``row0, col0`` and ``start`` (``k``'s pixels: ``[start[k]:start[k + 1]]``); per ``k`` the sum of their
+    ``row0, col0`` (``at``) and ``start`` (``k``'s pixels: ``[start[k]:start[k + 1]]``); per ``k`` the sum of their
     values (each rounded to float32, as the canopy's volume always was), and their extent (row min, row max, col min,
     col max in the image;
     min > max where none); and the image of these pixels holding ``ids[k]`` (0 elsewhere). Two passes over the
     image instead of a dozen over millions of pixels and a sort by plant."""
     rules = LabelRules(
-        np.ascontiguousarray(windows, dtype=np.int64),
-        np.ascontiguousarray(reach, dtype=float),
-        np.ascontiguousarray(home, dtype=np.bool_),
-        np.ascontiguousarray(ids, dtype=np.int32),
+        np.ascontiguousarray(rules.windows, dtype=np.int64),
+        np.ascontiguousarray(rules.reach, dtype=float),
+        np.ascontiguousarray(rules.home, dtype=np.bool_),
+        np.ascontiguousarray(rules.ids, dtype=np.int32),
     )
-    return _labelled_pixels(
-        np.ascontiguousarray(labels), np.ascontiguousarray(values), rules, Placement(int(width), int(row0), int(col0))
-    )
+    at = Placement(int(at.width), int(at.row0), int(at.col0))
+    return _labelled_pixels(np.ascontiguousarray(labels), np.ascontiguousarray(values), rules, at)
 
 
 def sort_within_groups(values: np.ndarray, first: np.ndarray) -> np.ndarray:

@@ -60,6 +60,7 @@ def gdal_cache_bytes(max_memory: int) -> int:
 
 
 def format_memory(size: float) -> str:
+    """A byte count for a log line: GB from 1 GB on, else MB."""
     return f"{size / 1024**3:.2f} GB" if size >= 1024**3 else f"{size / 1024**2:.0f} MB"
 
 

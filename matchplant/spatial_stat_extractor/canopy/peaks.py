@@ -49,6 +49,7 @@ def one_plant_boxes(
     ok: np.ndarray,
     windows: np.ndarray,
     boxes: np.ndarray,
+    *,
     noise_sd: float,
     min_top: float,
     leaf: np.ndarray | None = None,
@@ -57,7 +58,7 @@ def one_plant_boxes(
     each box's plant (see the module doc; ``windows``/``boxes``: integer ``c0, r0, c1, r1`` of each box
     plus margin / of each box; ``leaf``: the canopy pixels, where a second top must lie)."""
     first = keepers(W, tops, ok, windows, noise_sd)
-    moved = second_tops(W, tops, first, boxes, noise_sd, min_top, leaf)
+    moved = second_tops(W, tops, first, boxes, noise_sd=noise_sd, min_top=min_top, leaf=leaf)
     keep = keepers(W, moved, ok, windows, noise_sd)
     own = np.arange(len(keep))
     still = (first != own) & (keep != own)
@@ -126,6 +127,7 @@ def second_tops(
     tops: np.ndarray,
     keep: np.ndarray,
     boxes: np.ndarray,
+    *,
     noise_sd: float,
     min_top: float,
     leaf: np.ndarray | None = None,
@@ -144,7 +146,7 @@ def second_tops(
         win = np.fmax(W[R0 : r1 + 2, C0 : c1 + 2], -np.inf)  # holes lower than any height
         if win.size == 0:
             continue
-        pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (outlines._tops)
+        pr, pc = np.nonzero(local_maxima(win, 5, min_top))  # the tops' own rule (claims.tops_in_boxes)
         pr, pc = pr + R0, pc + C0
         inside = (pr >= r0) & (pr < r1) & (pc >= c0) & (pc < c1)
         if leaf is not None:  # a second top must be canopy: with NDVI, a ground bump beside the plant is soil

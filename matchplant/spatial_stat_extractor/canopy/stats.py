@@ -14,10 +14,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from matchplant.spatial_stat_extractor.canopy.grid import STRIP_ROWS
 from matchplant.spatial_stat_extractor.canopy.grouping import pixel_window, sort_within_groups, values_at
-from matchplant.spatial_stat_extractor.canopy.outlines import STRIP_ROWS, Outlines
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
-from matchplant.spatial_stat_extractor.zonal.names import percentile_name
+from matchplant.spatial_stat_extractor.canopy.outlines import Outlines
+from matchplant.spatial_stat_extractor.zonal import percentile_name, zonal_stats
 
 
 def gather(outlines: Outlines, source, strip_rows: int = STRIP_ROWS) -> np.ndarray:
@@ -108,7 +108,25 @@ def grouped_stats(
 
 
 def canopy_stats(outlines: Outlines, source, stats: Sequence[str], percentiles: Sequence[float] = ()):
-    """Per-plant statistics of ``source`` over the canopy pixels (see the module doc)."""
+    """Per-plant statistics of ``source`` over the canopy pixels (see the module doc).
+
+    Parameters
+    ----------
+    outlines : Outlines
+        From :func:`~.segmentation.segment` (with its canopy pixels).
+    source : raster source
+        On the CHM's grid its canopy pixels are read directly; on another grid, the pixels whose centre lies in
+        each outline polygon.
+    stats : sequence of str
+        Any of the engine's statistics (``mean``, ``max``, ``median``...).
+    percentiles : sequence of float
+        0..100, each a column ``p<q>``.
+
+    Returns
+    -------
+    dict
+        Column name to an array over the plants.
+    """
     if outlines.same_grid(source):
         return grouped_stats(gather(outlines, source), outlines.start, stats, percentiles)
     res = zonal_stats(outlines.geometry, source, stats, percentiles, mode="center")

@@ -1,6 +1,6 @@
 """Outlines and canopy statistics of a whole field in bounded memory: strip by strip, in parallel.
 
-:func:`~matchplant.spatial_stat_extractor.canopy.outlines.segment` reads the CHM in strips of rows across the
+:func:`~matchplant.spatial_stat_extractor.canopy.segmentation.segment` reads the CHM in strips of rows across the
 whole field; each strip's window costs about :data:`BYTES_PER_PIXEL` bytes per pixel while it is
 outlined (the CHM as float64, its filtered copies, label images) and each canopy pixel then costs as much
 again while its statistics are gathered. Here the strip height comes from the memory budget (``max_memory``
@@ -23,7 +23,7 @@ from __future__ import annotations
 import contextlib
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import rasterio
@@ -32,19 +32,13 @@ import shapely
 from matchplant.core.runtime.cores import usable_cores
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
+from matchplant.spatial_stat_extractor.canopy.grid import STRIP_ROWS, home_strip, plant_windows
 from matchplant.spatial_stat_extractor.canopy.memory import format_memory, gdal_cache_bytes
-from matchplant.spatial_stat_extractor.canopy.outlines import (
-    STRIP_ROWS,
-    Outlines,
-    SegmentSettings,
-    home_strip,
-    plant_windows,
-    segment,
-)
+from matchplant.spatial_stat_extractor.canopy.outlines import Outlines, SegmentSettings
+from matchplant.spatial_stat_extractor.canopy.segmentation import segment
 from matchplant.spatial_stat_extractor.canopy.stats import gather, grouped_stats
-from matchplant.spatial_stat_extractor.inputs.layer import Layer
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
-from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
+from matchplant.spatial_stat_extractor.inputs import Layer, open_layer
+from matchplant.spatial_stat_extractor.zonal import zonal_stats
 
 log = get_logger("spatial_stat_extractor.strips")
 
@@ -83,10 +77,12 @@ class _Job:
     measures: list
     strip_rows: int
     gdal_cache_bytes: int
-    windows: np.ndarray | None = None  # each plant's window (outlines.plant_windows), found once for every band
+    windows: np.ndarray | None = None  # each plant's window (grid.plant_windows), found once for every band
 
 
-def plan_strips(geoms, transform, width: int, height: int, margin: float, budget: int, workers: int) -> tuple[int, int]:
+def plan_strips(
+    geoms, transform, width: int, height: int, margin: float, *, budget: int, workers: int
+) -> tuple[int, int]:
     """Rows per strip and the number of strips for a per-process share of ``budget`` bytes."""
     res = float(np.sqrt(abs(transform.a * transform.e - transform.b * transform.d)))
     b = shapely.bounds(np.asarray(geoms, dtype=object))
@@ -221,30 +217,29 @@ def outline_field(
     pixels kept) and the columns ``<measure prefix>_<stat>``."""
     geoms = np.asarray(geoms, dtype=object)
     with contextlib.ExitStack() as stack:
-        local = _open_all(_Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, 0, 0), stack)
-        return _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, seeds, max_memory, workers)
+        base = _Job(geoms, chm_layer, mask_layer, nodata, s, seeds, measures, 0, 0)
+        return _outline_field(base, _open_all(base, stack), max_memory, workers)
 
 
-def _outline_field(geoms, local, chm_layer, mask_layer, measures, s, nodata, seeds, max_memory, workers):
+def _outline_field(base: _Job, local: tuple, max_memory: int, workers: int) -> tuple[Outlines, dict[str, np.ndarray]]:
+    """:func:`outline_field` with its rasters open (``local``): plan the strips, then run them here or in
+    worker processes."""
+    geoms, s = base.geoms, base.settings
     n = len(geoms)
     chm = local[0]
     cores = usable_cores()[0]
     want = cores if workers == 0 else workers
-    rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
+    rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, budget=max_memory, workers=want)
     want = max(1, min(want, count))
     if want > 1:  # fewer processes when each would get too thin a strip
-        rows, count = plan_strips(geoms, chm.transform, chm.width, chm.height, s.margin, max_memory, want)
-    job = _Job(
-        geoms,
-        chm_layer,
-        mask_layer,
-        nodata,
-        s,
-        seeds,
-        measures,
-        rows,
-        gdal_cache_bytes(max_memory // want),
-        plant_windows(geoms, chm.transform, s, seeds)[1],
+        rows, count = plan_strips(
+            geoms, chm.transform, chm.width, chm.height, s.margin, budget=max_memory, workers=want
+        )
+    job = replace(
+        base,
+        strip_rows=rows,
+        gdal_cache_bytes=gdal_cache_bytes(max_memory // want),
+        windows=plant_windows(geoms, chm.transform, s, base.seeds)[1],
     )
     log.info(
         "outlines: %d strip(s) of %d rows across %d columns (max_memory %s: ~%s per strip), %d worker "

@@ -69,6 +69,7 @@ def normalise_name(name: str, key: str) -> str:
 
 
 def check_order(order: Sequence[str], key: str) -> tuple[str, ...]:
+    """The band names of ``key``, normalised, each named once (else a ConfigError naming the key)."""
     names = tuple(normalise_name(n, f"{key}[{i}]") for i, n in enumerate(order))
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -87,9 +88,11 @@ class BandNames:
     source: str = ""
 
     def number(self, name: str) -> int | None:
+        """The band number holding the role ``name``, or None."""
         return next((b for b, r in self.roles.items() if r == name), None)
 
     def listing(self) -> str:
+        """The bands and their roles, for a message (``1 red, 2 green``)."""
         return ", ".join(f"{b} {r}" for b, r in sorted(self.roles.items()))
 
 

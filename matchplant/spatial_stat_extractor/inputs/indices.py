@@ -77,6 +77,7 @@ def evaluate(tree: ast.Expression, values: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def needed_names(tree: ast.Expression) -> set[str]:
+    """The names (bands) a formula uses."""
     return {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
 
 
@@ -92,6 +93,7 @@ class FormulaSource:
         self.used = needed_names(tree)
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """The formula's values over a window (rows ``row0:row1``, cols ``col0:col1``)."""
         wanted = set(self.used)
         if self.chromatic and wanted & {"r", "g", "b"}:
             wanted |= {"R", "G", "B"}

@@ -44,7 +44,26 @@ def read_polygons(
 ):
     """A GeoDataFrame with a ``plant_id`` column from a vector file or a CSV (see the module doc of
     :mod:`~matchplant.spatial_stat_extractor.zonal.table` for the formats), or from boxes in pixels of georeferenced
-    images (``images``: the image, or their folder; default: beside the file)."""
+    images (``images``: the image, or their folder; default: beside the file).
+
+    Parameters
+    ----------
+    path : str or Path
+        A vector file (GeoPackage, shapefile, GeoJSON...) or a CSV (module 8's, WKT, boxes or pixel boxes).
+    id_column : str
+        The plant id column; ``auto`` (the first of the usual names, else 1..n) or ``number`` (1..n).
+    layer : str
+        The layer of a multi-layer file (default: its only or first).
+    crs : str
+        The CRS of a CSV without a ``crs`` column (e.g. ``EPSG:32615``).
+    images : str or Path, optional
+        For boxes in image pixels: the georeferenced image or their folder.
+
+    Returns
+    -------
+    geopandas.GeoDataFrame
+        One row per plant, with ``plant_id``.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError("polygon file not found", path=path, fix="check 'polygons' in your config")

@@ -32,6 +32,7 @@ class ArraySource:
         self.height, self.width = self.data.shape
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """The array's window (rows ``row0:row1``, cols ``col0:col1``), a view."""
         return self.data[row0:row1, col0:col1]
 
 
@@ -61,6 +62,7 @@ class RasterFileSource:
         )
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """The band's window (rows ``row0:row1``, cols ``col0:col1``) as float64, NaN where no data."""
         # GDAL converts to float64 as it reads (no second pass over the window)
         arr = self.ds.read(self.band, window=Window(col0, row0, col1 - col0, row1 - row0), out_dtype="float64")
         for v in self.nodata:
@@ -78,6 +80,7 @@ class DifferenceSource:
         self.transform, self.crs, self.width, self.height = a.transform, a.crs, a.width, a.height
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """``a - b`` over a window (rows ``row0:row1``, cols ``col0:col1``)."""
         return self.a.read(row0, row1, col0, col1) - self.b.read(row0, row1, col0, col1)
 
 
@@ -89,6 +92,7 @@ class NDVISource:
         self.transform, self.crs, self.width, self.height = red.transform, red.crs, red.width, red.height
 
     def read(self, row0: int, row1: int, col0: int, col1: int) -> np.ndarray:
+        """NDVI over a window (rows ``row0:row1``, cols ``col0:col1``), NaN where NIR + red is 0."""
         r = self.red.read(row0, row1, col0, col1)
         n = self.nir.read(row0, row1, col0, col1)
         with np.errstate(invalid="ignore", divide="ignore"):

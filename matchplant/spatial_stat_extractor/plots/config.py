@@ -8,7 +8,7 @@ from pathlib import Path
 
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.spatial_stat_extractor.zonal.names import BASIC_STATS
+from matchplant.spatial_stat_extractor.zonal import BASIC_STATS
 
 
 @dataclass
@@ -74,6 +74,7 @@ class PlotsConfig:
     figure_trait: str = param("", "trait colouring the field figure (plot mean); '' = the first of traits")
 
     def check(self) -> None:
+        """Check the ``plots`` section's keys together (a plot file or a grid, a field book with plots)."""
         if self.field_book is not None and self.polygons is None and not self.corners:
             raise ConfigError(
                 "plots.field_book is set but there are no plots to join it to",

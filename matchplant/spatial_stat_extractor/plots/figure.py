@@ -94,6 +94,7 @@ def colour_norm(values: pd.Series) -> Normalize:
 def field_figure(
     plots: gpd.GeoDataFrame, pts: np.ndarray, gaps: pd.DataFrame, column: str, path: Path, spacing: float = 0.2
 ) -> Path:
+    """Draw the field's plots coloured by ``column``, with the plants and the gaps, into ``path`` (PNG)."""
     # "compressed": the constrained layout made for an equal-aspect axes beside a colour bar (the plain one
     # placed the y label out of the figure)
     fig = figure(headless=True, figsize=(8, 7), layout="compressed")

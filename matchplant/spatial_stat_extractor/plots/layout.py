@@ -17,7 +17,7 @@ from pyproj import CRS, Transformer
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
-from matchplant.spatial_stat_extractor.inputs.polygons import read_polygons
+from matchplant.spatial_stat_extractor.inputs import read_polygons
 from matchplant.spatial_stat_extractor.plots.config import PlotsConfig
 from matchplant.spatial_stat_extractor.plots.rows import bearing_to_vector, canonical
 
@@ -294,6 +294,7 @@ def check_plants_in_plots(plots: gpd.GeoDataFrame, pts: np.ndarray, plot_i: np.n
 
 
 def plants_outside(pts: np.ndarray, plant_i: np.ndarray) -> int:
+    """How many plants stand in no plot (logged)."""
     outside = len(pts) - len(np.unique(plant_i))
     if outside:
         log.info("%d of %d plants stand in no plot", outside, len(pts))

@@ -60,7 +60,7 @@ from matchplant.spatial_stat_extractor.plots.rows import (
     seed_layout,
     seed_slot,
 )
-from matchplant.spatial_stat_extractor.zonal.table import extract_stats, write_csv
+from matchplant.spatial_stat_extractor.zonal import extract_stats, write_csv
 
 log = get_logger("spatial_stat_extractor")
 DEFAULT_TRAITS = re.compile(r"^(chm_max|chm_canopy_p95|canopy_area_m2|(?!chm)\w+_canopy_mean)(_.*)?$")
@@ -75,6 +75,7 @@ __all__ = ["default_traits", "plot_grid", "plot_table", "plots_wanted", "read_pl
 
 
 def plots_wanted(cfg: PlotsConfig) -> bool:
+    """Whether the settings ask for plots (a plot file or a grid's corners)."""
     return cfg.polygons is not None or bool(cfg.corners)
 
 

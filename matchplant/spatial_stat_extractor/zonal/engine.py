@@ -45,6 +45,7 @@ class PixelPolygons:
 
     @classmethod
     def from_geometries(cls, geoms: Sequence, transform) -> PixelPolygons:
+        """The polygons' rings in pixel coordinates of ``transform``, exteriors and holes wound opposite ways."""
         geoms = np.asarray(geoms, dtype=object)
         n = len(geoms)
         parts, owner = shapely.get_parts(geoms, return_index=True)
@@ -293,6 +294,28 @@ def zonal_stats(
     centre inside, like rasterstats) or ``"coverage"`` (weighted by covered fraction, like
     exactextract: ``count`` and ``nodata`` are then sums of fractions). NaN pixels are masked.
     ``on_progress(done, total)`` is called after each batch.
+
+    Parameters
+    ----------
+    geoms : sequence of shapely polygons
+        In the raster's CRS.
+    source : raster source
+        ``transform, width, height, read(row0, row1, col0, col1)`` (an ``ArraySource``, an opened layer).
+    stats : iterable of str
+        Any of :data:`BASIC_STATS`.
+    percentiles : iterable of float
+        0..100, each a column ``p<q>``.
+    mode : str
+        ``"center"`` or ``"coverage"``.
+    max_cells, max_window : int
+        Pixels one batch of polygons may cover, and its window may span (the memory of a batch).
+    on_progress : callable, optional
+        ``on_progress(done, total)`` after each batch.
+
+    Returns
+    -------
+    ZonalResult
+        The statistics per polygon, in the order of ``geoms``, and which polygons were outside or partial.
     """
     stats = list(stats)
     percentiles = [float(q) for q in percentiles]

@@ -30,7 +30,7 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import atomic_open
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
-from matchplant.spatial_stat_extractor.inputs.rasters import open_layer
+from matchplant.spatial_stat_extractor.inputs import open_layer
 from matchplant.spatial_stat_extractor.zonal.engine import zonal_stats
 from matchplant.spatial_stat_extractor.zonal.names import DEFAULT_STATS
 
@@ -184,6 +184,7 @@ def _report_problems(entry: dict, res, ids: np.ndarray, label: str, source: str 
 
 
 def write_csv(df: pd.DataFrame, path: Path) -> Path:
+    """Write ``df`` to ``path`` whole or not at all (the project's CSV format); the path."""
     with atomic_open(path) as fh:
         write_table(df, fh)
     return Path(path)
