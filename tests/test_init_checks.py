@@ -22,8 +22,6 @@ from matchplant import cli
 from matchplant.pipeline import season_inputs
 from matchplant.pipeline.season_inputs import ERROR, Expected, ProjectKind, ProjectReport, read_project
 
-pytestmark = pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge")  # PENDING-47
-
 
 def linked_copy(field: Path, dst: Path, without: tuple[str, ...] = ()) -> Path:
     """The field as a tree of links to its files (cheap), less the files ``without`` (relative paths)."""

@@ -27,8 +27,6 @@ from matchplant.core.runtime import io
 from matchplant.core.runtime.config import load_config, save_config
 from matchplant.core.runtime.errors import ConfigError, OutputError
 
-pytestmark = pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge")  # PENDING-47
-
 LINUX = sys.platform.startswith("linux")
 OUTPUT_WORDS = ("output", "report", "write", "out", "save", "export")
 

@@ -25,8 +25,6 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.readers import parse_value, read_record
 from matchplant.pipeline.run import continue_interrupted
 
-pytestmark = pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge")  # PENDING-47
-
 YAML_LOADS = {"load", "safe_load", "full_load", "unsafe_load", "load_all", "safe_load_all", "full_load_all"}
 READERS = "core/runtime/readers.py"
 

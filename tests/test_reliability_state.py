@@ -18,8 +18,6 @@ from matchplant.pipeline.plan import plan_pipeline
 from matchplant.pipeline.read import read_pipeline
 from matchplant.pipeline.run import _fingerprint
 
-pytestmark = pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge")  # PENDING-47
-
 
 def season(root: Path) -> Path:
     """A season folder: a pipeline of one quick step (module inspect) and its annotations, all inside it."""

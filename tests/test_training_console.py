@@ -15,10 +15,7 @@ from matchplant.core.runtime.config import load_config
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.run import train
 
-pytestmark = [
-    pytest.mark.usefixtures("torch_one_thread"),
-    pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge"),  # PENDING-47
-]
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 # the words of a line about something the user set and can change; a warning line must hold one of them
 USER_SETTINGS = re.compile(r"\b(max_minutes|epochs|val_json|val|warmup_iters|trainable_backbone_layers|split)\b")

@@ -10,7 +10,9 @@ import re
 
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.readers import read_record
 from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.model_train.state import Job, TrainState
 
@@ -19,6 +21,12 @@ log = get_logger("model_train")
 AUTO_EVERY = 5  # save_every: auto keeps epoch_NNN.pt every AUTO_EVERY epochs ...
 AUTO_KEEP = 3  # ... and, when max_minutes sets the run's length, only the last AUTO_KEEP of them
 NUMBERED = re.compile(r"epoch_(\d+)\.pt")
+AUTO_RECORD = "auto_checkpoints.json"  # the epoch_NNN.pt that save_every: auto wrote and may delete
+AUTO_RECORD_TEXT = (
+    "the epoch_NNN.pt files that module 6's save_every: auto wrote and will delete (it keeps the last 3): "
+    "no other file of this folder is ever deleted"
+)
+RECORD_FIX = "delete it: then no epoch_NNN.pt is deleted by save_every: auto (each is kept)"
 
 
 def save(job: Job, state: TrainState, name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
@@ -50,13 +58,28 @@ def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None
     every = AUTO_EVERY if job.cfg.save_every == "auto" else job.cfg.save_every
     if not every or epoch % every:
         return
-    save(job, state, f"epoch_{epoch:03d}.pt", epoch, record, None)
-    numbered = sorted((int(m[1]), p) for p in job.ck_dir.iterdir() if (m := NUMBERED.fullmatch(p.name)))
+    name = f"epoch_{epoch:03d}.pt"
+    auto = job.cfg.save_every == "auto" and job.budget.limited
+    record_path = job.ck_dir / AUTO_RECORD
+    deletable = list(
+        read_record(record_path, what="module 6's list of its deletable checkpoints", fix=RECORD_FIX, default={}).get(
+            "files", []
+        )
+    )
+    save(job, state, name, epoch, record, None)
     removed = []
-    if job.cfg.save_every == "auto" and job.budget.limited:
-        for _, p in numbered[:-AUTO_KEEP]:
-            p.unlink(missing_ok=True)
-            removed.append(p.name)
+    if auto:
+        # only the files a save_every: auto session wrote (this one or an earlier one, recorded): never one that
+        # a session with save_every: N kept, nor one the user put there
+        deletable = [n for n in dict.fromkeys([*deletable, name]) if (job.ck_dir / n).is_file()]
+        order = sorted(deletable, key=lambda n: int(NUMBERED.fullmatch(n)[1]) if NUMBERED.fullmatch(n) else -1)
+        for old in order[:-AUTO_KEEP]:
+            (job.ck_dir / old).unlink(missing_ok=True)
+            removed.append(old)
+        deletable = [n for n in order if n not in removed]
+        write_json(record_path, {"description": AUTO_RECORD_TEXT, "files": deletable})
+    elif name in deletable:  # written again by a session that keeps it: no longer auto's to delete
+        write_json(record_path, {"description": AUTO_RECORD_TEXT, "files": [n for n in deletable if n != name]})
     files = [p for p in job.ck_dir.iterdir() if p.suffix == ".pt" and p.is_file()]
     size = sum(p.stat().st_size for p in files)
     job.extras["checkpoint_disk"] = {"files": len(files), "bytes": size, "folder": str(job.ck_dir)}

@@ -20,8 +20,10 @@ from pathlib import Path
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.io import STDOUT
 from matchplant.core.runtime.log import get_logger
 from matchplant.pipeline.chain import season_chain
+from matchplant.pipeline.season_inputs import check_season_inputs
 from matchplant.pipeline.write import write_pipeline
 
 log = get_logger("init")
@@ -65,14 +67,27 @@ class InitConfig:
     checkpoint: Path | None = param(
         None, "a trained detector (module 6's checkpoints/best.pt): the pipeline detects with it", path="file"
     )
-    output: Path = param(Path("pipeline.yaml"), "the pipeline file to write (its folder is created)")
+    output: Path = param(
+        Path("pipeline.yaml"),
+        'the pipeline file to write (its folder is created; "-": standard output, paths then relative to the '
+        "current folder)",
+        path="out_file",
+    )
     max_minutes: float = param(
         60.0, "module 6's time budget for training, in minutes (0 = none: module 6's 30 epochs)", min=0
     )
     force: bool = param(False, "replace an existing pipeline file")
 
     def check(self) -> None:
-        """Refuse to overwrite an existing pipeline file without ``force``, and an output that is not .yaml."""
+        """An existing pipeline file is kept unless ``force``; the output is a .yaml file (or standard output)."""
+        if self.output is not None and str(self.output) == STDOUT:
+            return
+        if self.output is not None and Path(self.output).is_dir():
+            raise ConfigError(
+                "output is a folder: init writes one pipeline file",
+                path=self.output,
+                fix=f"give a file in it, e.g. --output {Path(self.output) / 'pipeline.yaml'}",
+            )
         if self.output is not None and Path(self.output).exists() and not self.force:
             raise ConfigError(
                 "the pipeline file exists already (it may hold your edits)",
@@ -114,13 +129,14 @@ def season_spec(cfg: InitConfig, advice: dict) -> dict:
         chain, evaluate = {"checkpoint": "${checkpoint}"}, {}
     if chain:  # module 7 on every photo of the project, then modules 8 and 9
         chain["detect"] = {"detect": {"images": photos, **tile}, "evaluate": evaluate}
-        chain["stats"] = {
-            "rasters": {
-                key: "${project}/" + _rel(project.path(name), project.root.resolve())
-                for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
-                if project.has(name)
-            }
+        rasters = {
+            key: "${project}/" + _rel(project.path(name), project.root.resolve())
+            for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
+            if project.has(name)
         }
+        if "dtm" not in rasters:  # module 9 takes a DSM only with its DTM (CHM = DSM - DTM); init warned of it
+            rasters.pop("dsm", None)
+        chain["stats"] = {"rasters": rasters}
     return {**top, "steps": season_chain("${project}", photos, **chain)}
 
 
@@ -128,7 +144,8 @@ def header(cfg: InitConfig, spec: dict) -> str:
     """The file's first comment: how it was made, how to run it, what is missing."""
     lines = [
         "A season's pipeline, written by `matchplant init` from the ODM project "
-        f"{spec['project']}; run it with: matchplant run {Path(cfg.output).name}",
+        f"{spec['project']}; run it with: matchplant run "
+        f"{'<this file>' if str(cfg.output) == STDOUT else Path(cfg.output).name}",
         "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
         "Each step writes to <output_dir>/<step name>; a finished step with unchanged settings is skipped.",
         "Before ODM (GPS into the photos, ground control points): modules 0 and 1 (`matchplant --help`).",
@@ -141,8 +158,13 @@ def header(cfg: InitConfig, spec: dict) -> str:
     return "\n".join(lines)
 
 
-def init_pipeline(cfg: InitConfig, advise: Callable[[Path], dict]) -> Path:
-    """Write the pipeline file; ``advise(annotations)``: the tiling and detector input the plants call for."""
+def init_pipeline(
+    cfg: InitConfig, advise: Callable[[Path], dict], check_checkpoint: Callable[[Path], None] | None = None
+) -> Path:
+    """Check what init is given (:mod:`matchplant.pipeline.season_inputs`: an error writes nothing), then write the
+    pipeline file. ``advise(annotations)``: the tiling and detector input the plants call for;
+    ``check_checkpoint(path)``: raises when the checkpoint is no detector MatchPlant reads."""
+    check_season_inputs(cfg.project, cfg.annotations, cfg.checkpoint, check_checkpoint)
     advice = advise(cfg.annotations) if cfg.annotations is not None else {}
     spec = season_spec(cfg, advice)
     path = write_pipeline(Path(cfg.output), spec, NOTES, header(cfg, spec))

@@ -15,6 +15,7 @@ no DSM                                       error     modules 3 and 8 meet the 
 no DTM                                       warning   module 9 gives no plant height (CHM = DSM - DTM); the
                                                        pipeline's module 9 is written without the DSM
 no orthophoto                                warning   module 9 gives no colour statistics from it
+neither DTM nor orthophoto (when detecting)  error     module 9 has no raster to measure the plants on
 no georeferencing (coords.txt)               warning   positions stay in the reconstruction's local frame
 annotations unreadable / not COCO            error     modules 4 to 6 read them
 annotations naming none of the project's     error     another flight's boxes: nothing to train on
@@ -236,6 +237,11 @@ def check_season_inputs(
         log.info(line)
     errors = [f"{m.what} is missing: {m.consequence} ({m.how})" for m in report.problems(ERROR)]
     warnings = [f"no {m.what}: {m.consequence}; {m.how}" for m in report.problems(WARNING)]
+    if "dtm" not in report.found and "orthophoto" not in report.found and (annotations or checkpoint):
+        errors.append(
+            "neither a DTM nor an orthophoto: module 9 has no raster to measure the plants on (re-run ODM "
+            "with --dtm, or with its orthophoto step)"
+        )
     if annotations is not None:
         try:
             warnings += check_annotations(Path(annotations), report)

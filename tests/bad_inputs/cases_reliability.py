@@ -6,7 +6,6 @@ key and reader; these cases run one of each end to end through the harness (inpu
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -158,5 +157,3 @@ CASES = [
     Case("r-init-annotations-of-another-flight", "init", init_other_flight, mentions=("other photos", "2019_")),
     Case("r-init-text-as-checkpoint", "init", init_text_as_checkpoint, mentions=("best.pt", "checkpoint")),
 ]
-PENDING = pytest.mark.skip(reason="issue 47: the fixes land after the issue 44 merge")  # PENDING-47
-CASES = [dataclasses.replace(c, marks=(*c.marks, PENDING)) for c in CASES]  # PENDING-47
