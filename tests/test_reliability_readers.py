@@ -148,6 +148,8 @@ STATE_READERS = {
     ".pipeline/<step>.json": "pipeline/run.py",
     ".pipeline/<step>.started.json": "pipeline/run.py",
     "manifest.json": "core/runtime/manifest.py",
+    "checkpoints/auto_checkpoints.json": "model_train/checkpoint.py",
+    "the demo's records (training_summary.json, metrics, stamps)": "demo_pipeline.py",
 }
 
 

@@ -59,27 +59,20 @@ def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None
     if not every or epoch % every:
         return
     name = f"epoch_{epoch:03d}.pt"
-    auto = job.cfg.save_every == "auto" and job.budget.limited
-    record_path = job.ck_dir / AUTO_RECORD
-    deletable = list(
-        read_record(record_path, what="module 6's list of its deletable checkpoints", fix=RECORD_FIX, default={}).get(
-            "files", []
-        )
-    )
+    deletable = auto_written(job.ck_dir)
     save(job, state, name, epoch, record, None)
     removed = []
-    if auto:
+    if job.cfg.save_every == "auto" and job.budget.limited:
         # only the files a save_every: auto session wrote (this one or an earlier one, recorded): never one that
         # a session with save_every: N kept, nor one the user put there
-        deletable = [n for n in dict.fromkeys([*deletable, name]) if (job.ck_dir / n).is_file()]
-        order = sorted(deletable, key=lambda n: int(NUMBERED.fullmatch(n)[1]) if NUMBERED.fullmatch(n) else -1)
-        for old in order[:-AUTO_KEEP]:
+        mine = sorted({*deletable, name}, key=lambda n: int(NUMBERED.fullmatch(n)[1]))
+        mine = [n for n in mine if (job.ck_dir / n).is_file()]
+        for old in mine[:-AUTO_KEEP]:
             (job.ck_dir / old).unlink(missing_ok=True)
             removed.append(old)
-        deletable = [n for n in order if n not in removed]
-        write_json(record_path, {"description": AUTO_RECORD_TEXT, "files": deletable})
+        write_json(job.ck_dir / AUTO_RECORD, {"description": AUTO_RECORD_TEXT, "files": mine[-AUTO_KEEP:]})
     elif name in deletable:  # written again by a session that keeps it: no longer auto's to delete
-        write_json(record_path, {"description": AUTO_RECORD_TEXT, "files": [n for n in deletable if n != name]})
+        write_json(job.ck_dir / AUTO_RECORD, {"description": AUTO_RECORD_TEXT, "files": sorted(deletable - {name})})
     files = [p for p in job.ck_dir.iterdir() if p.suffix == ".pt" and p.is_file()]
     size = sum(p.stat().st_size for p in files)
     job.extras["checkpoint_disk"] = {"files": len(files), "bytes": size, "folder": str(job.ck_dir)}
@@ -93,6 +86,13 @@ def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None
         if removed
         else "",
     )
+
+
+def auto_written(ck_dir) -> set[str]:
+    """The ``epoch_NNN.pt`` names that ``save_every: auto`` wrote in ``ck_dir`` (its record; none without one)."""
+    record = read_record(ck_dir / AUTO_RECORD, what="module 6's list of its deletable checkpoints", fix=RECORD_FIX)
+    files = (record or {}).get("files", [])
+    return {n for n in files if isinstance(n, str) and NUMBERED.fullmatch(n)} if isinstance(files, list) else set()
 
 
 def restore(job: Job, resume: dict | None) -> TrainState:
