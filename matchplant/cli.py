@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import logging
 import sys
 import traceback
@@ -107,8 +108,8 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
     except OSError as exc:
         if exc.errno not in WRITE_ERRORS or isinstance(exc, FileNotFoundError) or debug:
             return _internal_error(exc, debug)
-        # a write that no writer of core/runtime/io.py made (a library's own file): still named, with the fix
-        print(f"error: {write_error(exc.filename or 'an output file', exc)}", file=sys.stderr)
+        # a file no reader or writer of core/runtime/ opened (a library's own): still named, with the fix
+        print(f"error: {file_error(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         # a step that resumes (module 6) says how; `matchplant run` continues it by itself when re-run
@@ -117,6 +118,20 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
         return 130
     except Exception as exc:  # noqa: BLE001 - last resort: a short message, the traceback with --debug
         return _internal_error(exc, debug)
+
+
+def file_error(exc: OSError) -> MatchPlantError:
+    """The error of a file that could not be used (a full disk, no permission, a folder in the way), named."""
+    what, fix = WRITE_ERRORS[exc.errno]
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG):  # only a write meets these
+        if exc.filename is None:
+            return MatchPlantError(f"cannot write an output: {what} ({exc.strerror or exc})", fix=fix)
+        return write_error(exc.filename, exc)
+    return MatchPlantError(
+        f"cannot use {exc.filename or 'a file'}: {what} ({exc.strerror or exc})",
+        path=exc.filename,
+        fix="check that file's permissions and that it is a file, or give another path",
+    )
 
 
 def _internal_error(exc: BaseException, debug: bool) -> int:

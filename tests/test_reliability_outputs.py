@@ -20,8 +20,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from demo_step import demo_spec
 from reliability_tables import all_keys, config_classes, flags, holds, output_flags
 
+import matchplant.cli as cli
 from matchplant.cli import run_module
 from matchplant.core.runtime import io
 from matchplant.core.runtime.config import load_config, save_config
@@ -261,6 +263,28 @@ def test_init_through_a_link_to_a_full_disk_is_a_clear_error(tiny_field, tmp_pat
     code = run_module("init", [str(tiny_field.root), "--output", str(link), "--set", "force=true", "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and "internal error" not in err and ("pipeline.yaml" in err or "/dev/full" in err), err
+
+
+@pytest.mark.parametrize(
+    "code, filename, words",
+    [
+        (errno.ENOSPC, "/data/out/plants.gpkg", ("cannot write /data/out/plants.gpkg", "disk is full")),
+        (errno.ENOSPC, None, ("cannot write an output", "disk is full")),
+        (errno.EROFS, "/mnt/ro/x.tif", ("/mnt/ro/x.tif", "read-only")),
+        (errno.EACCES, "/data/in/photo.jpg", ("cannot use /data/in/photo.jpg", "permission denied")),
+    ],
+)
+def test_a_file_error_inside_a_step_is_named_not_internal(code, filename, words, tmp_path, capsys, monkeypatch):
+    """A file a library opened itself (GDAL, OpenCV): the command line's last net still names it."""
+
+    def run(cfg):
+        raise OSError(code, os.strerror(code), *([filename] if filename else []))
+
+    monkeypatch.setattr(cli, "resolve_module", lambda name: demo_spec(run))
+    (tmp_path / "imgs").mkdir()
+    assert run_module("demo", ["--set", f"images={tmp_path / 'imgs'}", "--set", f"output_dir={tmp_path / 'o'}"]) == 2
+    err = capsys.readouterr().err
+    assert "internal error" not in err and "fix:" in err and all(w in err for w in words), err
 
 
 # --------------------------------------------------------------------------------------------------
