@@ -7,7 +7,7 @@ BIN     = $(VENV)/Scripts
 endif
 STAMP   = $(VENV)/.installed
 
-.PHONY: test test-fast lint demo install install-cpu bench clean
+.PHONY: test test-fast lint docs demo install install-cpu bench clean
 
 $(STAMP): requirements.txt requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -34,7 +34,11 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
-# the quick loop: everything but the tests marked slow (README, "Test tiers")
+# the documentation site (mkdocs.yml) into site/; strict: a broken link or a docstring mkdocstrings cannot read fails
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
+# the quick loop: everything but the tests marked slow (docs/development.md, "Test tiers")
 test-fast: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 MPLBACKEND=Agg $(BIN)/python -m pytest -q -rs --durations=15 -m "not slow" $(PYTEST_ARGS)
 
@@ -51,4 +55,4 @@ bench: $(STAMP)
 	$(BIN)/python -m bench $(BENCH_ARGS)
 
 clean:
-	rm -rf $(VENV) .pytest_cache
+	rm -rf $(VENV) .pytest_cache site

@@ -3,8 +3,8 @@
     taskset -c 1 python bench/bench_detect_cpu_rates.py                 # every measured architecture, 5 rounds
     taskset -c 1 python bench/bench_detect_cpu_rates.py --rounds 3 fasterrcnn_resnet18_fpn_lite
 
-The rates kept in ``matchplant/detection/architectures.py`` (``cpu_seconds_per_megapixel``: the README's "How
-long will it take?" rows and ``bench_detect_cover.py``'s hours; module 7's own estimate times the real model
+The rates kept in ``matchplant/detection/architectures.py`` (``cpu_seconds_per_megapixel``: docs/performance.md's
+"How long will it take?" rows and ``bench_detect_cover.py``'s hours; module 7's own estimate times the real model
 instead). One thread, random weights, one 1024 px tile per pass (module 7's default tile, resized by each model
 to its ``min_size``): :func:`matchplant.detection.device.measure_cpu_rates`, one pass after a warm-up per
 measurement. The architectures alternate within each round (their order rotated round by round) so that a

@@ -13,7 +13,7 @@ Measures, on synthetic plant tiles (matchplant.detection.synth):
     python -m bench.bench_model_train                    # the stated CPU run (README of 6_model_train)
     python -m bench.bench_model_train --device cuda --arch fasterrcnn_resnet50_fpn --size 512 --tiles 200
 
-The alternating, pinned comparisons (the README's rows) are ``python -m bench --only train`` and
+The alternating, pinned comparisons (docs/benchmarks.md's rows) are ``python -m bench --only train`` and
 ``--only detect`` (:func:`comparison`; ``--device cuda`` for the GPU figures).
 """
 

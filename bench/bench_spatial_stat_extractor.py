@@ -8,7 +8,7 @@ Checks that the numbers agree, then prints the times and both ratios.
     python -m bench.bench_spatial_stat_extractor            # full size (a few minutes: rasterstats is slow)
     python -m bench.bench_spatial_stat_extractor --quick    # 2,000 x 2,000 raster, 1,250 boxes
 
-The alternating, pinned comparison (the README's rows) is ``python -m bench --only zonal-coverage``
+The alternating, pinned comparison (docs/benchmarks.md's rows) is ``python -m bench --only zonal-coverage``
 (and ``zonal-center``): see :func:`comparison`; ``--only zonal-coverage-process`` times the same work as whole
 processes, module 9's command against a script calling exactextract (:func:`process_comparison`).
 """

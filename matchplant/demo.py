@@ -90,7 +90,8 @@ def default_epochs(preset: str, epochs: int | None = None) -> int:
 
 
 REPO = Path(__file__).resolve().parents[1]
-# the README's demo table lies between these lines (python -m matchplant.demo --update-docs rewrites it)
+# the demo table of docs/demo.md lies between these lines (python -m matchplant.demo --update-docs rewrites it)
+DEMO_PAGE = "docs/demo.md"
 TABLE_START = "<!-- demo table: written by python -m matchplant.demo --update-docs -->"
 TABLE_END = "<!-- end of demo table -->"
 FIRST_STEPS = 6  # steps 0-5 run first: module 5's split decides which photos are held out
@@ -376,8 +377,8 @@ def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timin
 
 
 def update_docs(out: Path, root: Path = REPO) -> None:
-    """Copy the run's figures into ``docs/`` and rewrite the README's demo table from ``report/summary.json``,
-    so that what the README shows is what this run measured."""
+    """Copy the run's figures into ``docs/`` and rewrite the demo table of ``docs/demo.md`` from
+    ``report/summary.json``, so that what the documentation shows is what this run measured."""
     summary = read_json(out / "report" / "summary.json")
     figures = {
         "3_select/coverage.png": "coverage.jpg",
@@ -389,11 +390,11 @@ def update_docs(out: Path, root: Path = REPO) -> None:
         if (out / src).is_file():
             with Image.open(out / src) as im, atomic_path(root / "docs" / dst) as tmp:
                 (im.convert("RGB").save(tmp, quality=85) if dst.endswith(".jpg") else im.save(tmp))
-    readme = root / "README.md"
-    text = readme.read_text(encoding="utf-8")
+    page = root / DEMO_PAGE
+    text = page.read_text(encoding="utf-8")
     start, end = text.index(TABLE_START), text.index(TABLE_END)
-    write_text(readme, text[: start + len(TABLE_START)] + "\n" + demo_table(summary) + text[end:])
-    log.info("updated %s and the figures in %s from %s", readme, root / "docs", out / "report" / "summary.json")
+    write_text(page, text[: start + len(TABLE_START)] + "\n" + demo_table(summary) + text[end:])
+    log.info("updated %s and the figures in %s from %s", page, root / "docs", out / "report" / "summary.json")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -495,13 +496,13 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         default=0,
         help="CPU threads for training and detection (default 0: the cores free now, logged); another "
-        "thread count trains a slightly different detector (README: the demo's tolerance)",
+        "thread count trains a slightly different detector (docs/demo.md: the demo's tolerance)",
     )
     p.add_argument("--from", dest="from_step", default="", help="re-run from this step on (e.g. 6_train)")
     p.add_argument(
         "--update-docs",
         action="store_true",
-        help="then copy the figures into docs/ and rewrite the README's demo table from this run",
+        help="then copy the figures into docs/ and rewrite the demo table of docs/demo.md from this run",
     )
     p.add_argument("--debug", action="store_true")
     args = p.parse_args(argv)

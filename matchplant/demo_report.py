@@ -1,4 +1,4 @@
-"""The demo's report: ``report.md``, ``summary.json`` and the README's demo table (matchplant/demo.py runs the
+"""The demo's report: ``report.md``, ``summary.json`` and the demo table of docs/demo.md (matchplant/demo.py runs the
 demo; this writes what it measured)."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from matchplant.core.runtime.io import write_text
 from matchplant.demo_pipeline import demo_record
 from matchplant.simfield.scoring import TRAIT_STATS
 
-# how far another machine's run may land from the README's figures (thread counts and CPU kernels change the
-# training arithmetic; the same machine and thread count give the same figures): issue 29's second machine, and
+# how far another machine's run may land from the figures in docs/demo.md (thread counts and CPU kernels change
+# the training arithmetic; the same machine and thread count give the same figures): issue 29's second machine, and
 # two 1-thread runs on two machines of the project's kind and a 2-thread run (canopy NDVI r 0.984, 0.960 and 1.000
 # on the exact field: a few plants matched differently move r by a few hundredths)
 TOLERANCE = (
@@ -265,7 +265,7 @@ def _trait_figures(exact: dict, noisy: dict) -> list[tuple[str, object, object, 
 
 
 def demo_table(summary: dict) -> str:
-    """The README's demo table, from a run's ``report/summary.json``: the exact field's figures, with the
+    """The demo table of docs/demo.md, from a run's ``report/summary.json``: the exact field's figures, with the
     realistic field's beside them when the run had ``--noise realistic``, then which photos were scored and
     the tolerance within which another machine reproduces the figures."""
     coco = summary.get("detector", {}).get("coco", {})

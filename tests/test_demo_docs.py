@@ -1,4 +1,4 @@
-"""The README's demo table and docs/ figures are written from a demo run's summary, not by hand."""
+"""The demo table of docs/demo.md and the docs/ figures are written from a demo run's summary, not by hand."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 from PIL import Image
 
-from matchplant.demo import TABLE_END, TABLE_START, demo_table, update_docs
+from matchplant.demo import DEMO_PAGE, TABLE_END, TABLE_START, demo_table, update_docs
 
 SUMMARY = {
     "detector": {"coco": {"AP50": 0.8812, "AP": 0.3104}},
@@ -56,9 +56,9 @@ def test_update_docs_rewrites_only_the_table_and_copies_the_figures(tmp_path):
     (out / "8_plants").mkdir()
     Image.fromarray(np.full((20, 30, 4), 200, np.uint8)).save(out / "8_plants" / "evaluation.png")
     (root / "docs").mkdir(parents=True)
-    (root / "README.md").write_text(f"before\n{TABLE_START}\nold table\n{TABLE_END}\nafter\n")
+    (root / DEMO_PAGE).write_text(f"before\n{TABLE_START}\nold table\n{TABLE_END}\nafter\n")
     update_docs(out, root)
-    text = (root / "README.md").read_text()
+    text = (root / DEMO_PAGE).read_text()
     assert text.startswith(f"before\n{TABLE_START}\n| | |") and text.endswith(f"{TABLE_END}\nafter\n")
     assert "old table" not in text and "AP50 88.1" in text
     with Image.open(root / "docs" / "evaluation.jpg") as im:

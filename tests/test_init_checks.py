@@ -144,18 +144,18 @@ def test_a_matchplant_checkpoint_is_taken(tiny_field, tmp_path, capsys):
 
 def test_another_photogrammetry_program_plugs_in(tmp_path, monkeypatch):
     """A program's kind added to PROJECT_KINDS is read, and the kind that finds most is kept."""
-    (tmp_path / "project.psx").write_text("<document/>")
+    (tmp_path / "survey.other3d").write_text("cameras")
 
-    def read_metashape(root: Path) -> ProjectReport:
-        report = ProjectReport("Metashape", root)
-        if (root / "project.psx").is_file():
-            report.found["project"] = root / "project.psx"
+    def read_other(root: Path) -> ProjectReport:
+        report = ProjectReport("Other3D", root)
+        if (root / "survey.other3d").is_file():
+            report.found["project"] = root / "survey.other3d"
         report.missing.append(Expected("dsm", "dem.tif", ERROR, "modules 3 and 8 need it", "export the DEM"))
         return report
 
     monkeypatch.setattr(
-        season_inputs, "PROJECT_KINDS", [*season_inputs.PROJECT_KINDS, ProjectKind("x", read_metashape)]
+        season_inputs, "PROJECT_KINDS", [*season_inputs.PROJECT_KINDS, ProjectKind("other3d", read_other)]
     )
     report = read_project(tmp_path)
-    assert report.program == "Metashape" and "project" in report.found
+    assert report.program == "Other3D" and "project" in report.found
     assert any("missing: dem.tif" in line for line in report.lines())

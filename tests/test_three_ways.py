@@ -114,7 +114,7 @@ def test_a_module_without_a_window_says_so_for_gui(capsys):
 def test_every_gui_example_names_a_module_with_a_window():
     """The README examples with --gui are not run (they open windows): each must at least name a module that has
     one (module 8's example once gave an argparse error)."""
-    docs = [ROOT / "README.md", *sorted(ROOT.glob("[0-9]_*/README.md"))]
+    docs = [ROOT / "README.md", *sorted(ROOT.glob("[0-9]_*/README.md")), *sorted(ROOT.glob("docs/**/*.md"))]
     named = re.compile(r"(?:python [0-9]_\w+/(\w+)\.py|matchplant (\w+))[^`\n]*--gui")
     found = [(doc.name, m.group(1) or m.group(2)) for doc in docs for m in named.finditer(doc.read_text())]
     assert found

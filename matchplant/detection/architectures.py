@@ -106,8 +106,8 @@ _ONE_PER_LEVEL, _OCTAVES = AnchorRule(5, 1), AnchorRule(5, 3)
 
 # cpu_seconds_per_megapixel: one forward pass (detection) of a 1024 px tile on one core with one thread, median of 5
 # rounds with the architectures alternating, the other core idle (`taskset -c 1 python bench/bench_detect_cpu_rates.py`,
-# README "How long will it take?"; ranges in the comments). The figures before (15.2, 28.2, 9.2, 2.5) were measured
-# while other jobs shared the machine, with PyTorch's two threads on one pinned core. RetinaNet and FCOS: not measured.
+# docs/performance.md; ranges in the comments). The figures before (15.2, 28.2, 9.2, 2.5) were measured while other
+# jobs shared the machine, with PyTorch's two threads on one pinned core. RetinaNet and FCOS: not measured.
 ARCHITECTURES: dict[str, Architecture] = {
     a.name: a
     for a in (

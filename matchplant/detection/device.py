@@ -5,8 +5,8 @@ a CPU-only PyTorch build, no NVIDIA driver, a driver too old for this build, a G
 compiled for; MPS; CPU). :func:`choose_threads` picks torch's CPU thread count from the cores this
 process may use (its affinity and cgroup quota) less those other work keeps busy (the load average), and
 :func:`configure_threads` applies and logs it (modules 6 and 7 and the demo; a ``threads`` key overrules it).
-:func:`measure_cpu_rates` measures each architecture's ``cpu_seconds_per_megapixel`` (the README's "How long
-will it take?"). Module 7 estimates a detection run from a probe of the real model on the user's machine
+:func:`measure_cpu_rates` measures each architecture's ``cpu_seconds_per_megapixel`` (docs/performance.md,
+"How long will it take?"). Module 7 estimates a detection run from a probe of the real model on the user's machine
 (:mod:`matchplant.model_test.estimate`), not from these rates.
 """
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from matchplant.core.formats.gcp_marks import FORMATS
 from matchplant.core.runtime.config import param
 
 MIN_IMAGES_PER_GCP = 3  # ODM ignores a GCP marked in fewer images
@@ -24,7 +25,9 @@ class GcpFinderConfig:
         required=True,
     )
     output_dir: Path = param(
-        Path("runs/gcp_finder"), "output folder: gcp_list.txt, candidates.csv, candidates.png", path="out"
+        Path("runs/gcp_finder"),
+        "output folder: gcp_list.txt (and the files of formats), candidates.csv, candidates.png",
+        path="out",
     )
     output_crs: str | None = param(
         None, "CRS of gcp_list.txt; empty = the survey's CRS when projected, else the GCPs' UTM zone"
@@ -86,4 +89,17 @@ class GcpFinderConfig:
     zoom_px: int = param(150, "GUI: half-size of the view around a predicted position (pixels)", min=10)
     gcp_list: Path | None = param(
         None, "existing gcp_list.txt to continue (empty = output_dir/gcp_list.txt if it exists)", path="file"
+    )
+    formats: list[str] = param(
+        ["odm"],
+        "programs to write the marks for: odm (gcp_list.txt), pix4d (pix4d_gcps.csv, pix4d_marks.csv), "
+        "metashape (metashape_reference.csv; metashape_markers.xml too with metashape_cameras); "
+        "gcp_list.txt is always written, sessions continue from it",
+        choices=FORMATS,
+    )
+    metashape_cameras: Path | None = param(
+        None,
+        "Metashape's camera ids for metashape_markers.xml: the chunk's File > Export > Export Cameras... "
+        "XML (empty = the reference CSV only)",
+        path="file",
     )

@@ -1,7 +1,8 @@
 """The marks of a session (a GCP's pixel in one image): set, move, delete, undo, saved to gcp_list.txt.
 
 Every change is saved at once in the GUI, so a crash or a closed window loses nothing; an existing
-gcp_list.txt (ours or another tool's) is continued rather than overwritten.
+gcp_list.txt (ours or another tool's) is continued rather than overwritten. The same save writes the
+Pix4D and Metashape files of ``formats`` beside it (:mod:`matchplant.core.formats.gcp_marks`).
 """
 
 from __future__ import annotations
@@ -11,7 +12,8 @@ from pathlib import Path
 import numpy as np
 from pyproj import Transformer
 
-from matchplant.core.formats.gcp_list import Mark, crs_header, read_gcp_list, write_gcp_list
+from matchplant.core.formats.gcp_list import Mark, crs_header, read_gcp_list
+from matchplant.core.formats.gcp_marks import check_names, metashape_camera_id, read_metashape_cameras, write_marks
 from matchplant.core.runtime.errors import ConfigError
 from matchplant.core.runtime.log import get_logger
 from matchplant.gcp_finder.candidates import Finder
@@ -30,6 +32,9 @@ class MarkStore:
         self.marks: dict[tuple[str, str], tuple[float, float]] = {}
         self.undo_stack: list[tuple[tuple[str, str], tuple[float, float] | None]] = []
         self.continued: Path | None = None  # the earlier gcp_list.txt this session continues
+        self.formats: tuple[str, ...] = ("odm",)  # gcp_list.txt always: sessions continue from it
+        self.camera_ids: dict[str, str] | None = None  # Metashape's camera ids by label (metashape_cameras)
+        self.cameras_path: Path | None = None
 
     def load(self, path: Path) -> int:
         """Continue from an existing gcp_list.txt; returns the number of marks taken over."""
@@ -117,8 +122,17 @@ class MarkStore:
         return out
 
     def save(self) -> Path:
-        """Write every mark to the store's gcp_list.txt; its path."""
-        return write_gcp_list(self.path, crs_header(self.finder.crs), self.to_marks())
+        """Write every mark to the store's gcp_list.txt (and the formats' files beside it); its path."""
+        write_marks(
+            self.path.parent,
+            crs_header(self.finder.crs),
+            self.finder.crs,
+            self.to_marks(),
+            self.formats,
+            self.camera_ids,
+            self.cameras_path,
+        )
+        return self.path
 
     def _changed(self) -> None:
         if self.autosave:
@@ -126,6 +140,9 @@ class MarkStore:
 
     def warn_few(self) -> list[str]:
         """Warn about GCPs marked in fewer images than ODM needs; their ids."""
+        unmarked = [gid for gid in self.finder.gcps if self.count(gid) == 0]
+        if unmarked:
+            log.warning("GCPs marked in no image, so in none of the written files: %s", ", ".join(unmarked))
         few = [gid for gid in self.finder.gcps if 0 < self.count(gid) < MIN_IMAGES_PER_GCP]
         if few:
             log.warning(
@@ -151,4 +168,32 @@ def store_for(cfg: GcpFinderConfig, finder: Finder, autosave: bool) -> MarkStore
         n = store.load(Path(existing))
         store.continued = Path(existing)
         log.info("continuing from %s (%d marks)", existing, n)
+    set_formats(store, cfg)
     return store
+
+
+def set_formats(store: MarkStore, cfg: GcpFinderConfig) -> None:
+    """The files each save writes; labels and photo names checked now, so no save fails half-way later.
+
+    Every photo a mark can land on (the candidates and the marks taken over) must be a camera of the
+    Metashape chunk when ``metashape_cameras`` is given.
+    """
+    store.formats = tuple(dict.fromkeys(["odm", *cfg.formats]))
+    g = store.finder.gcps
+    markable = [
+        Mark(g[gid].x, g[gid].y, g[gid].z, 0, 0, c.image, gid)
+        for gid, lst in store.finder.candidates.items()
+        for c in lst
+    ]
+    markable += store.to_marks()
+    check_names(markable, cfg.survey, cfg.images, store.formats)
+    if "metashape" in store.formats and cfg.metashape_cameras:
+        store.cameras_path = Path(cfg.metashape_cameras)
+        store.camera_ids = read_metashape_cameras(store.cameras_path)
+        for image in sorted({m.image for m in markable}):
+            metashape_camera_id(image, store.camera_ids, store.cameras_path)
+    elif "metashape" in store.formats:
+        log.info(
+            "metashape: writing metashape_reference.csv only; set 'metashape_cameras' (the chunk's exported "
+            "cameras XML) for metashape_markers.xml, the marks themselves"
+        )

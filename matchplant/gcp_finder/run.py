@@ -13,7 +13,8 @@
    target (a black-and-white square) near each prediction to sub-pixel precision (:mod:`.target`).
 5. Write ``gcp_list.txt`` (:mod:`matchplant.core.formats.gcp_list`): line 1 the CRS, then
    ``geo_x geo_y geo_z im_x im_y image_name gcp_name`` with pixel coordinates in the original image
-   (the centre of the first pixel is 0, 0). ODM wants every GCP in at least 3 images.
+   (the centre of the first pixel is 0, 0). ODM wants every GCP in at least 3 images. With ``formats``,
+   the same marks for Pix4D and Metashape too (:mod:`matchplant.core.formats.gcp_marks`).
 
 This module is the orchestration: the candidates' CSV and figure, and ``auto`` marking.
 """

@@ -17,7 +17,16 @@ class MinImgFinderConfig:
     outputs_inside_inputs = ("project_dir",)  # the project is read by fixed names: <project>/min_images is fine
 
     project_dir: Path = param(
-        None, "ODM project folder (opensfm/, odm_dem/dsm.tif, odm_orthophoto/)", path="dir", required=True
+        None,
+        "the project: an ODM folder (opensfm/, odm_dem/dsm.tif, odm_orthophoto/), a Metashape camera export (.xml) "
+        "or project (.psx) with its DEM and orthomosaic GeoTIFFs beside it, or a Pix4D project folder",
+        path="exists",
+        required=True,
+    )
+    project_type: Literal["auto", "odm", "metashape", "pix4d"] = param(
+        "auto",
+        "which program made the project (auto: from its files, named in the log)",
+        choices=("auto", "odm", "metashape", "pix4d"),
     )
     aoi_file: Path | None = param(
         None,

@@ -50,6 +50,7 @@ from shapely.geometry import MultiPolygon, Polygon
 
 from matchplant.core.formats.footprints import Footprint, compute_footprints, open_dsm, polygon_to_pixels
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.projects import open_project
 from matchplant.core.formats.split_check import check_split
 from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.runtime.errors import InputError
@@ -87,9 +88,12 @@ class MinImageFinder:
     def __init__(self, cfg: MinImgFinderConfig):
         self.cfg = cfg
         t0 = time.perf_counter()
-        self.project = ODMProject(cfg.project_dir)
+        self.project = open_project(cfg.project_dir, cfg.project_type)
         check_split(self.project)  # a failed or foreign submodel: named, not skipped
-        self.project.require("undistorted_reconstruction", "undistorted_images", "dsm")
+        if isinstance(self.project, ODMProject):
+            self.project.require("undistorted_reconstruction", "undistorted_images", "dsm")
+        else:  # Metashape, Pix4D: the original photos (on disk: their footprints are copied)
+            self.project.require("dsm")
         self.frame = self.project.frame()
         check_raster(self.project.path("dsm"), bands=1, what="DSM")
         self.surface = open_dsm(self.project.path("dsm"), cfg.dsm_resolution)
@@ -251,6 +255,11 @@ def _same_crs(a, b) -> bool:
 def skipped_images(project: ODMProject, footprints: Sequence[Footprint]) -> list[dict]:
     """The reconstructed images that got no footprint, each with the reason (for ``skipped_images.csv``)."""
     placed = {f.name for f in footprints}
+    if not isinstance(project, ODMProject):  # Metashape, Pix4D: every posed photo is on disk (checked on reading)
+        return [
+            {"image": sid, "reason": "its border rays miss the DSM (it does not look at the mapped ground)"}
+            for sid in sorted(project.shot_ids(undistorted=False) - placed)
+        ]
     files = project.undistorted_images()
     return [
         {

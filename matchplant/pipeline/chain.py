@@ -40,6 +40,8 @@ def season_chain(
     *,
     annotations: str | None = None,
     checkpoint: str | None = None,
+    odm: bool = True,
+    select: dict | None = None,
     annotate: dict | None = None,
     tiles: dict | None = None,
     train: dict | None = None,
@@ -49,15 +51,14 @@ def season_chain(
 ) -> list[dict]:
     """The steps from module 2 on, each reading what the one before wrote.
 
-    Modules 2 and 3 always; with ``annotations`` (plant boxes on ``photos``) modules 4 to 6 train a detector and
+    Module 2 when the project is ODM's (``odm``), module 3 always; with ``annotations`` (plant boxes on
+    ``photos``) modules 4 to 6 train a detector and
     module 7 detects with it; with only a ``checkpoint`` module 7 detects with that; with neither the chain stops
-    at module 3 (the photos to annotate). Modules 8 and 9 follow module 7. ``annotate``, ``tiles``, ``train``,
-    ``detect``, ``plants`` and ``stats`` are the other keys of modules 4 to 9.
+    at module 3 (the photos to annotate). Modules 8 and 9 follow module 7. ``select``, ``annotate``, ``tiles``,
+    ``train``, ``detect``, ``plants`` and ``stats`` are the other keys of modules 3 to 9.
     """
-    steps = [
-        step("2_odm", "odm_runner", project_dir=project, check_only=True),
-        step("3_select", "min_img_finder", project_dir=project),
-    ]
+    steps = [step("2_odm", "odm_runner", project_dir=project, check_only=True)] if odm else []
+    steps.append(step("3_select", "min_img_finder", project_dir=project, **(select or {})))
     if annotations is not None:
         steps += [
             step("4_annotate", "bbox_drawer", images=photos, import_coco=annotations, **(annotate or {})),

@@ -96,7 +96,7 @@ def read_pipeline(path: Path) -> tuple[dict, list[Step]]:
         raise ConfigError(
             f"the pipeline has no 'steps' list{hint}",
             path=path,
-            fix="add 'steps:' with one '- module: NAME' entry per step (see the README)",
+            fix="add 'steps:' with one '- module: NAME' entry per step (see docs/tutorials/season-odm.md)",
         )
     steps_data = data["steps"]
     if not isinstance(steps_data, list) or not steps_data:

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from matchplant.core.formats.odm import ODMProject
+from matchplant.core.formats.projects import PhotoProject, open_project
 from matchplant.core.runtime.config import param
-from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import STDOUT
 from matchplant.core.runtime.log import get_logger
 from matchplant.pipeline.chain import season_chain
@@ -56,7 +57,14 @@ class InitConfig:
     """Write a commented pipeline.yaml for a season from an ODM project folder (matchplant run then runs it)."""
 
     project: Path | None = param(
-        None, "the ODM project folder (opensfm/, odm_dem/, odm_orthophoto/)", path="dir", required=True
+        None,
+        "the project: an ODM folder (opensfm/, odm_dem/, odm_orthophoto/), a Metashape camera export (.xml) or "
+        "project (.psx), or a Pix4D project folder",
+        path="exists",
+        required=True,
+    )
+    project_type: str = param(
+        "auto", "which program made the project (auto: from its files)", choices=("auto", "odm", "metashape", "pix4d")
     )
     annotations: Path | None = param(
         None,
@@ -105,9 +113,14 @@ def _rel(path: Path, base: Path) -> str:
 def season_spec(cfg: InitConfig, advice: dict) -> dict:
     """The pipeline's content: the top-level keys and the steps that the inputs allow."""
     base = Path(cfg.output).resolve().parent
-    project = ODMProject(cfg.project)
-    top = {"output_dir": ".", "project": _rel(project.root, base)}
-    photos = "${project}/" + _rel(project.path("undistorted_images"), project.root.resolve())
+    project = open_project(cfg.project, cfg.project_type)
+    odm = isinstance(project, ODMProject)
+    top = {"output_dir": ".", "project": _rel(project.root if odm else Path(cfg.project), base)}
+    photos = (
+        "${project}/" + _rel(project.path("undistorted_images"), project.root.resolve())
+        if odm
+        else _rel(photo_folder(project, cfg.project), base)
+    )
     tile = {k: advice[k] for k in ("tile_size", "overlap") if k in advice}
     chain: dict = {}
     if cfg.annotations is not None:
@@ -131,19 +144,36 @@ def season_spec(cfg: InitConfig, advice: dict) -> dict:
         chain["detect"] = {"detect": {"images": photos, **tile}, "evaluate": evaluate}
         rasters = {
             key: "${project}/" + _rel(project.path(name), project.root.resolve())
+            if odm
+            else _rel(project.path(name), base)
             for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
             if project.has(name)
         }
-        if "dtm" not in rasters:  # module 9 takes a DSM only with its DTM (CHM = DSM - DTM); init warned of it
+        if "dtm" not in rasters:  # module 9's heights need both (a CHM); init warned of the missing DTM
             rasters.pop("dsm", None)
         chain["stats"] = {"rasters": rasters}
-    return {**top, "steps": season_chain("${project}", photos, **chain)}
+    if not odm:  # Metashape, Pix4D: the program named; they pose the original photos
+        chain["select"] = {"project_type": project.program}
+        chain["plants"] = {"project_type": project.program, "image_type": "original"}
+    return {**top, "steps": season_chain("${project}", photos, odm=odm, **chain)}
+
+
+def photo_folder(project: PhotoProject, source: Path) -> Path:
+    """The one folder of a Metashape or Pix4D project's original photos (every posed photo on disk)."""
+    folders = sorted({p.parent for p in project.image_paths().values()})
+    if len(folders) != 1:
+        raise InputError(
+            f"the {project.program} project's photos lie in {len(folders)} folders; the pipeline needs one",
+            path=source,
+            fix="put the photos in one folder (modules 3 and 7 read it)",
+        )
+    return folders[0]
 
 
 def header(cfg: InitConfig, spec: dict) -> str:
     """The file's first comment: how it was made, how to run it, what is missing."""
     lines = [
-        "A season's pipeline, written by `matchplant init` from the ODM project "
+        "A season's pipeline, written by `matchplant init` from the project "
         f"{spec['project']}; run it with: matchplant run "
         f"{'<this file>' if str(cfg.output) == STDOUT else Path(cfg.output).name}",
         "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
@@ -164,7 +194,7 @@ def init_pipeline(
     """Check what init is given (:mod:`matchplant.pipeline.season_inputs`: an error writes nothing), then write the
     pipeline file. ``advise(annotations)``: the tiling and detector input the plants call for;
     ``check_checkpoint(path)``: raises when the checkpoint is no detector MatchPlant reads."""
-    check_season_inputs(cfg.project, cfg.annotations, cfg.checkpoint, check_checkpoint)
+    check_season_inputs(cfg.project, cfg.annotations, cfg.checkpoint, check_checkpoint, cfg.project_type)
     advice = advise(cfg.annotations) if cfg.annotations is not None else {}
     spec = season_spec(cfg, advice)
     path = write_pipeline(Path(cfg.output), spec, NOTES, header(cfg, spec))

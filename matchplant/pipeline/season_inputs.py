@@ -25,9 +25,10 @@ checkpoint not a detector MatchPlant reads   error     module 7 (or 6, to fine-t
                                                        another program's file)
 ===========================================  ========  ==========================================================
 
-A photogrammetry program is a :class:`ProjectKind`: the files its project folder holds (:class:`Expected`), and how
-it lists the project's photos. :data:`PROJECT_KINDS` holds OpenDroneMap; another program (Metashape, Pix4D) plugs in
-by adding its kind there. :func:`read_project` reports on the folder as each kind and keeps the kind that finds most.
+A photogrammetry program is a :class:`ProjectKind`: the files its project holds (:class:`Expected`), and how it lists
+the project's photos. :data:`PROJECT_KINDS` holds OpenDroneMap, Metashape and Pix4D (read through
+:mod:`matchplant.core.formats.projects`); another program plugs in by adding its kind there. :func:`read_project`
+reports on the project as each kind and keeps the kind that finds most.
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ from pathlib import Path
 from matchplant.core.formats.coco import read_dataset
 from matchplant.core.formats.images import is_image_name
 from matchplant.core.formats.odm import OUTPUTS, ODMProject
+from matchplant.core.formats.pix4d import SUFFIX
+from matchplant.core.formats.projects import detect_project, open_project
 from matchplant.core.runtime.errors import ConfigError, InputError, MatchPlantError
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.validate import match_names
@@ -83,7 +86,7 @@ class ProjectReport:
 
 @dataclass(frozen=True)
 class ProjectKind:
-    """A photogrammetry program: ``read(root)`` reports on a folder as its project."""
+    """A photogrammetry program (its ``project_type`` name): ``read(root)`` reports on a folder as its project."""
 
     program: str
     read: Callable[[Path], ProjectReport]
@@ -154,8 +157,11 @@ ODM_EXPECTED = (
 
 def read_odm(root: Path) -> ProjectReport:
     """The folder read as an OpenDroneMap project (a split-merge one included)."""
-    project = ODMProject(root)
     report = ProjectReport("OpenDroneMap", Path(root))
+    if not Path(root).is_dir():
+        report.missing += ODM_EXPECTED
+        return report
+    project = ODMProject(root)
     for item in ODM_EXPECTED:
         if project.has(item.key):
             report.found[item.key] = project.path(item.key)
@@ -166,7 +172,64 @@ def read_odm(root: Path) -> ProjectReport:
     return report
 
 
-PROJECT_KINDS: list[ProjectKind] = [ProjectKind("OpenDroneMap", read_odm)]
+# Metashape and Pix4D pose the original photos (no undistorted ones); the rasters are the user's exports
+PHOTO_EXPECTED = (
+    Expected(
+        "dsm",
+        "the DSM export (a GeoTIFF beside the project)",
+        ERROR,
+        "modules 3 and 8 meet the cameras' rays on it",
+        "export the DEM/DSM as a GeoTIFF beside the project",
+    ),
+    Expected(
+        "dtm",
+        "the DTM export (a GeoTIFF beside the project)",
+        WARNING,
+        "module 9 gives no plant height (CHM = DSM - DTM)",
+        "export the terrain model (DTM) as a GeoTIFF beside the project",
+    ),
+    Expected(
+        "orthophoto",
+        "the orthophoto export",
+        WARNING,
+        "module 9 gives no colour statistics from it",
+        "export the orthomosaic as a GeoTIFF beside the project",
+    ),
+)
+
+
+CAMERA_FILES = {"metashape": "a camera export (.xml) or a project (.psx)", "pix4d": f"1_initial/params/<name>{SUFFIX}"}
+
+
+def photo_project_reader(program: str, name: str) -> Callable[[Path], ProjectReport]:
+    """The reader of a ``program`` (metashape, pix4d) project: its cameras, rasters and original photos."""
+
+    def read(root: Path) -> ProjectReport:
+        report = ProjectReport(name, Path(root))
+        try:
+            found = detect_project(root, program)
+        except InputError:  # not this program's project: nothing found
+            cameras = Expected("cameras", CAMERA_FILES[program], ERROR, "every module places photos with them", "")
+            report.missing.append(cameras)
+            return report
+        project = open_project(root, program)
+        report.found["cameras"] = found.evidence[0] if found.evidence else found.path
+        for item in PHOTO_EXPECTED:
+            if project.has(item.key):
+                report.found[item.key] = project.path(item.key)
+            else:
+                report.missing.append(item)
+        report.photos = sorted(project.shot_ids(undistorted=False))
+        return report
+
+    return read
+
+
+PROJECT_KINDS: list[ProjectKind] = [
+    ProjectKind("odm", read_odm),
+    ProjectKind("metashape", photo_project_reader("metashape", "Metashape")),
+    ProjectKind("pix4d", photo_project_reader("pix4d", "Pix4D")),
+]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -178,9 +241,11 @@ def _photos_in(root: Path) -> int:
     return sum(1 for folder in (root, root / "images") if folder.is_dir() for p in folder.iterdir() if is_image_name(p))
 
 
-def read_project(root: Path) -> ProjectReport:
-    """The folder read as the project of the program whose files it holds most of; an error when it holds none."""
-    reports = [kind.read(Path(root)) for kind in PROJECT_KINDS]
+def read_project(root: Path, project_type: str = "auto") -> ProjectReport:
+    """The folder read as the project of the program whose files it holds most of (or of ``project_type``); an error
+    when it holds none."""
+    kinds = [k for k in PROJECT_KINDS if project_type in ("auto", k.program)]
+    reports = [kind.read(Path(root)) for kind in kinds]
     best = max(reports, key=lambda r: len(r.found))
     if best.found:
         return best
@@ -228,11 +293,12 @@ def check_season_inputs(
     annotations: Path | None = None,
     checkpoint: Path | None = None,
     check_checkpoint: Callable[[Path], None] | None = None,
+    project_type: str = "auto",
 ) -> ProjectReport:
     """Every check of ``init``'s inputs; raises one error listing every problem found, logs each warning, and
     returns the project's report (what the pipeline may use). ``check_checkpoint(path)`` raises a
     MatchPlantError when the file is not a detector MatchPlant reads."""
-    report = read_project(project)
+    report = read_project(project, project_type)
     for line in report.lines():
         log.info(line)
     errors = [f"{m.what} is missing: {m.consequence} ({m.how})" for m in report.problems(ERROR)]

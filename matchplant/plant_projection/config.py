@@ -52,7 +52,17 @@ class PlantProjectionConfig:
         "project: boxes to map plants; evaluate: compare plants with reference boxes; both: one then the other",
         choices=("project", "evaluate", "both"),
     )
-    project: Path | None = param(None, "ODM project folder (holds opensfm/, odm_dem/, odm_orthophoto/)", path="dir")
+    project: Path | None = param(
+        None,
+        "the project: an ODM folder (opensfm/, odm_dem/, odm_orthophoto/), a Metashape camera export (.xml) or "
+        "project (.psx), or a Pix4D project folder (these pose the original photos: image_type original)",
+        path="exists",
+    )
+    project_type: Literal["auto", "odm", "metashape", "pix4d"] = param(
+        "auto",
+        "which program made the project (auto: from its files, named in the log)",
+        choices=("auto", "odm", "metashape", "pix4d"),
+    )
     predictions: Path | None = param(
         None, "detections: module 7's predictions JSON, or a COCO results list (then also set images_from)", path="file"
     )
@@ -64,7 +74,10 @@ class PlantProjectionConfig:
         choices=("auto", "undistorted", "original"),
     )
     dsm: Path | None = param(
-        None, "surface to intersect the rays with; null: the project's odm_dem/dsm.tif", path="file"
+        None,
+        "surface to intersect the rays with (any CRS); null: the project's odm_dem/dsm.tif, or the DEM GeoTIFF "
+        "beside a Metashape export, or Pix4D's 3_dsm_ortho/1_dsm/",
+        path="file",
     )
     min_score: float = param(
         0.5, "ignore detections scoring below this (they are counted in the summary)", min=0.0, max=1.0

@@ -19,6 +19,7 @@ import pandas as pd
 
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.formats.predictions import read_predictions
+from matchplant.core.formats.projects import PhotoProject, open_project
 from matchplant.core.formats.split_check import check_split
 from matchplant.core.geometry.surface import NODATA, STATUS_TEXT
 from matchplant.core.runtime.errors import ConfigError, InputError
@@ -48,7 +49,7 @@ def run_projection(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     nothing scoring ``min_score``, is an error (with ``unprojected_boxes.csv`` saying why for each box)."""
     out = Path(cfg.output_dir)
     dest = Path(dest or out)
-    project = ODMProject(cfg.project)
+    project = open_project(cfg.project, cfg.project_type, dsm=cfg.dsm)
     check_split(project)  # a failed or foreign submodel: named, not skipped
     preds = read_predictions(cfg.predictions, cfg.images_from, every_box=True)
     for path in dsm_files(project, cfg.dsm):
@@ -153,7 +154,7 @@ def unknown_images(failed: pd.DataFrame) -> str:
 
 
 def nothing_projected(
-    failed: pd.DataFrame, cfg: PlantProjectionConfig, project: ODMProject, report: Path
+    failed: pd.DataFrame, cfg: PlantProjectionConfig, project: ODMProject | PhotoProject, report: Path
 ) -> InputError:
     """Why no box at all could be projected, and what to change, by the most common reason."""
     counts = failed["reason"].value_counts()
@@ -199,7 +200,7 @@ def run_evaluation(cfg: PlantProjectionConfig, dest: Path | None = None) -> dict
     )
     ortho = e.orthophoto
     if ortho is None and cfg.project is not None:
-        p = ODMProject(cfg.project)
+        p = open_project(cfg.project, cfg.project_type, dsm=cfg.dsm)
         ortho = p.path("orthophoto") if p.has("orthophoto") else None
     predicted, crs = read_plants_boxes(plants_path)
     reference = read_boxes(e.reference, orthophoto=ortho, crs=crs)

@@ -32,7 +32,8 @@ STEPS: dict[str, tuple[str, str]] = {
     "spatial_stat_extractor": ("9_spatial_stat_extractor", "plant polygons and per-plant statistics"),
     "simfield": ("", "generate a synthetic ODM project with exact ground truth"),
     "inspect": ("", "object sizes of a COCO file; recommended tile size, overlap, min_size, anchors"),
-    "init": ("", "write a commented pipeline.yaml for a season from an ODM project folder"),
+    "init": ("", "write a commented pipeline.yaml for a season from an ODM, Metashape or Pix4D project"),
+    "cameras": ("", "what an ODM, Metashape or Pix4D project holds; map points found in its photos"),
     "run": ("", "run several steps in order from one pipeline.yaml"),
 }
 

@@ -1,6 +1,6 @@
 """The bad-input corpus: each case starts from the tiny synthetic field, breaks one thing, runs a step as a
-user would (the command line, in-process) and checks the promise of the README's "When something goes
-wrong" section:
+user would (the command line, in-process) and checks the promise of docs/troubleshooting.md ("When
+something goes wrong"):
 
 - a bad input ends with exit code 2 and one message (no traceback) that names the file or the key and
   says how to fix it (``fix:``); exit code 1 ("internal error") is a failure of ours;

@@ -136,10 +136,12 @@ def compute_footprints(
 
     An image whose border misses the DSM is skipped with a warning rather than failing the flight.
     """
-    ids = project.shot_ids(undistorted=True)
+    originals = not project.shot_ids(undistorted=True) and bool(project.shot_ids(undistorted=False))
+    originals = originals and hasattr(project, "image_paths")  # Metashape, Pix4D: they pose the original photos
+    ids = project.shot_ids(undistorted=not originals)
     if not ids:
         project.require("undistorted_reconstruction")
-    files = project.undistorted_images()
+    files = project.image_paths() if originals else project.undistorted_images()
     todo = sorted(n for n in (names or ids) if n in files and n in ids)
     if not todo:
         raise InputError(
@@ -149,7 +151,7 @@ def compute_footprints(
         )
     out = []
     for name in progress(todo, desc="footprints", unit="image"):
-        shot = project.shot(name, undistorted=True)
+        shot = project.shot(name, undistorted=not originals)
         shot_frame = project.frame_of(name)
         try:
             poly, pts, uv, hit = image_footprint(shot, shot_frame, surface, per_side)

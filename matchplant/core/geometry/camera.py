@@ -108,23 +108,31 @@ class PinholeCamera(Camera):
     p1: float = 0.0
     p2: float = 0.0
 
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The radial factor 1 + k1 r² + k2 r⁴ + k3 r⁶ and its derivative with respect to r²."""
+        k1, k2, k3 = self.k1, self.k2, self.k3
+        return 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+
+    def _coefficients(self) -> tuple[float, ...]:
+        """Every distortion coefficient (all zero: no distortion)."""
+        return (self.k1, self.k2, self.k3, self.p1, self.p2)
+
     def _distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
+        radial, _ = self._radial(r2)
         xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
         yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
         return xd, yd
 
     def _undistort(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Invert :meth:`_distort` with Newton's method on the 2x2 Jacobian."""
-        if not any((self.k1, self.k2, self.k3, self.p1, self.p2)):
+        if not any(self._coefficients()):
             return xd, yd
         x, y = xd.copy(), yd.copy()
-        k1, k2, k3, p1, p2 = self.k1, self.k2, self.k3, self.p1, self.p2
+        p1, p2 = self.p1, self.p2
         for _ in range(_NEWTON_ITERATIONS):
             r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            d_radial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+            radial, d_radial = self._radial(r2)
             fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
             fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
             j11 = radial + 2.0 * x * x * d_radial + 2.0 * p1 * y + 6.0 * p2 * x
@@ -147,13 +155,19 @@ class PinholeCamera(Camera):
             x = np.where(z > 0, p[..., 0] / z, np.nan)
             y = np.where(z > 0, p[..., 1] / z, np.nan)
         xd, yd = self._distort(x, y)
-        return self.normalized_to_pixel(np.stack([self.focal_x * xd + self.c_x, self.focal_y * yd + self.c_y], axis=-1))
+        return self.normalized_to_pixel(self._affine(xd, yd))
+
+    def _affine(self, xd: np.ndarray, yd: np.ndarray) -> np.ndarray:
+        """Distorted coordinates to normalised image coordinates: the focal lengths and the principal point."""
+        return np.stack([self.focal_x * xd + self.c_x, self.focal_y * yd + self.c_y], axis=-1)
+
+    def _affine_inverse(self, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Normalised image coordinates back to distorted coordinates (the inverse of :meth:`_affine`)."""
+        return (n[..., 0] - self.c_x) / self.focal_x, (n[..., 1] - self.c_y) / self.focal_y
 
     def bearings(self, uv: np.ndarray) -> np.ndarray:
         """Pixels (N, 2) to unit bearing vectors (N, 3) in the camera frame."""
-        n = self.pixel_to_normalized(uv)
-        xd = (n[..., 0] - self.c_x) / self.focal_x
-        yd = (n[..., 1] - self.c_y) / self.focal_y
+        xd, yd = self._affine_inverse(self.pixel_to_normalized(uv))
         x, y = self._undistort(xd, yd)
         inv = 1.0 / np.sqrt(x * x + y * y + 1.0)  # (x, y, 1) scaled to unit length, without temporaries
         b = np.empty(x.shape + (3,))

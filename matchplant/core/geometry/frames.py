@@ -141,6 +141,10 @@ class Frame:
         """True when straight lines stay straight (a shift), so rays can be intersected in map space."""
         return False
 
+    def map_directions(self, dirs: np.ndarray) -> np.ndarray:
+        """Unit directions in the frame as unit directions in the map, for an affine frame (a shift keeps them)."""
+        return np.asarray(dirs, dtype=float)
+
 
 @dataclass
 class OffsetFrame(Frame):

@@ -53,7 +53,8 @@ def rays_to_ground(
     c = shot.center
     if frame.is_affine:
         origin = frame.to_map(c[None, :])
-        points, _, status = surface.intersect(origin, dirs, clearance=clearance, settle=settle, heights=heights)
+        map_dirs = frame.map_directions(dirs)  # a shift keeps them; a photo's tangent frame turns them
+        points, _, status = surface.intersect(origin, map_dirs, clearance=clearance, settle=settle, heights=heights)
         return points, status
     # Non-affine frame: a straight map-space ray through the centre and a point near the ground...
     c_map = frame.to_map(c[None, :])[0]
