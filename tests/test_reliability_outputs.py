@@ -92,12 +92,23 @@ def test_dash_is_standard_output_for_an_output_file_and_refused_elsewhere(key):
     assert key.name in text and "standard output" in text and "[None]" not in text, text
 
 
+def gcp_rows(field: Path) -> list[str]:
+    """The tiny field's surveyed points as 'id,x,y,z' lines."""
+    lines = (field / "gcp" / "gcp_survey.csv").read_text().splitlines()
+    return [",".join(ln.split(",")[:4]) for ln in lines[1:] if ln.strip()]
+
+
 def inputs(flag, tmp_path, request) -> list[str]:
     """What a step needs besides the output flag to run (the steps whose output can be standard output)."""
     if flag.step == "inspect":
         return [str(coco(tmp_path))]
     if flag.step == "init":
         return [str(request.getfixturevalue("tiny_field").root)]
+    if flag.step == "cameras":  # the photo pixels of the field's ground control points
+        field = request.getfixturevalue("tiny_field").root
+        points = tmp_path / "points.csv"
+        points.write_text("x,y,z\n" + "".join(ln.split(",", 1)[1] + "\n" for ln in gcp_rows(field)))
+        return [str(field), "--points", str(points)]
     return []
 
 
