@@ -36,6 +36,11 @@ def test_the_tiny_demo_trains_well_past_its_warm_up():
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("MATCHPLANT_LONG_TESTS"),
+    reason="the whole tiny demo (training 20 epochs included) takes minutes, past the suite's budget: "
+    "MATCHPLANT_LONG_TESTS=1 runs it (docs/development.md, Test tiers)",
+)
 def test_the_tiny_preset_runs_end_to_end(tmp_path):
     out = tmp_path / "demo"
     env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg", OMP_NUM_THREADS="1")
