@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import logging
 import sys
 import traceback
@@ -20,7 +21,7 @@ from matchplant.core.runtime.config import load_config, save_config
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.guard import check_outputs
 from matchplant.core.runtime.gui import require_display
-from matchplant.core.runtime.io import is_stream
+from matchplant.core.runtime.io import WRITE_ERRORS, is_stream, write_error
 from matchplant.core.runtime.log import setup_console, start_run_log, stop_run_log
 from matchplant.steps import ALIASES, STEPS, StepSpec, resolve_step
 
@@ -104,21 +105,46 @@ def run_module(name: str, argv: Sequence[str], default_config: Path | None = Non
             traceback.print_exc()
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        if exc.errno not in WRITE_ERRORS or isinstance(exc, FileNotFoundError) or debug:
+            return _internal_error(exc, debug)
+        # a file no reader or writer of core/runtime/ opened (a library's own): still named, with the fix
+        print(f"error: {file_error(exc)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         # a step that resumes (module 6) says how; `matchplant run` continues it by itself when re-run
         goes_on = f"; add --{spec.resume_key} to continue from there" if spec is not None and spec.resume_key else ""
         print(f"interrupted (Ctrl-C); outputs written so far are complete and kept{goes_on}", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - last resort: a short message, the traceback with --debug
-        if debug:
-            raise
-        logging.getLogger("matchplant").debug("internal error", exc_info=True)
-        print(
-            f"internal error: {type(exc).__name__}: {exc}\n"
-            f"  rerun with --debug for the traceback and report it with the log file",
-            file=sys.stderr,
-        )
-        return 1
+        return _internal_error(exc, debug)
+
+
+def file_error(exc: OSError) -> MatchPlantError:
+    """The error of a file that could not be used (a full disk, no permission, a folder in the way), named."""
+    what, fix = WRITE_ERRORS[exc.errno]
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG):  # only a write meets these
+        if exc.filename is None:
+            return MatchPlantError(f"cannot write an output: {what} ({exc.strerror or exc})", fix=fix)
+        return write_error(exc.filename, exc)
+    return MatchPlantError(
+        f"cannot use {exc.filename or 'a file'}: {what} ({exc.strerror or exc})",
+        path=exc.filename,
+        fix="check that file's permissions and that it is a file, or give another path",
+    )
+
+
+def _internal_error(exc: BaseException, debug: bool) -> int:
+    """A failure of ours: a short message (the traceback with --debug); exit code 1."""
+    if debug:
+        raise exc
+    logging.getLogger("matchplant").debug("internal error", exc_info=True)
+    print(
+        f"internal error: {type(exc).__name__}: {exc}\n"
+        f"  rerun with --debug for the traceback and report it with the log file",
+        file=sys.stderr,
+    )
+    return 1
 
 
 def config_header(spec: StepSpec) -> list[str]:

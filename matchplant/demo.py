@@ -40,7 +40,6 @@ if __name__ == "__main__":  # installed before the slow imports below (several s
     signal.signal(signal.SIGINT, _interrupted_while_starting)
 
 import argparse  # (after the Ctrl-C handler on purpose)
-import json
 import os
 import shutil
 import time
@@ -56,8 +55,9 @@ from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.gui import figure
 from matchplant.core.runtime.io import atomic_path, write_text
 from matchplant.core.runtime.log import get_logger, setup_console
+from matchplant.core.runtime.readers import read_json
 from matchplant.core.runtime.validate import did_you_mean
-from matchplant.demo_pipeline import HELD_OUT, NOISY, STEP_NOTES, noisy_spec, pipeline_spec
+from matchplant.demo_pipeline import HELD_OUT, NOISY, STEP_NOTES, demo_record, noisy_spec, pipeline_spec
 from matchplant.demo_report import demo_table, write_report
 from matchplant.pipeline import PipelineConfig, read_pipeline, run_pipeline
 from matchplant.pipeline.write import write_pipeline
@@ -79,6 +79,16 @@ from matchplant.spatial_stat_extractor.run import run as run_stats
 log = get_logger("demo")
 
 EPOCHS = 2  # a fixed number of epochs, not a time budget: every machine trains the same model
+# ... per preset: the tiny field's 9 photos give 9 iterations an epoch, so its 2 epochs were shorter than the
+# warm-up (20 iterations) and trained no detector ("no plant found"); 20 give it 180 iterations
+PRESET_EPOCHS = {"tiny": 20, "small": EPOCHS, "large": EPOCHS}
+
+
+def default_epochs(preset: str, epochs: int | None = None) -> int:
+    """The epochs the demo trains: ``epochs`` when given (--epochs), else the preset's own."""
+    return epochs if epochs is not None else PRESET_EPOCHS.get(preset, EPOCHS)
+
+
 REPO = Path(__file__).resolve().parents[1]
 # the demo table of docs/demo.md lies between these lines (python -m matchplant.demo --update-docs rewrites it)
 DEMO_PAGE = "docs/demo.md"
@@ -127,7 +137,7 @@ def compare_with_truth(out: Path, field: Path) -> dict:
     )
     result = {"traits": traits}
     if (out / "9_stats" / "plots.csv").is_file():
-        grid = json.loads(paths.plots_json.read_text())
+        grid = read_json(paths.plots_json)
         result["plots"] = plot_scores(
             pd.read_csv(out / "9_stats" / "plots.csv"),
             pd.read_csv(out / "9_stats" / "plot_gaps.csv"),
@@ -193,7 +203,7 @@ def run_demo(
     *,
     preset: str = "small",
     seed: int = 0,
-    epochs: int = EPOCHS,
+    epochs: int | None = None,
     minutes: float = 0.0,
     pretrained: str = "none",
     tile: int = 128,
@@ -232,12 +242,13 @@ def run_demo(
         The report (``report.md``).
     """
     out = Path(out).resolve()
+    epochs = default_epochs(preset, epochs)
     out.mkdir(parents=True, exist_ok=True)
     field = out / "field"
     t0 = time.time()
     _field(field, preset, seed, "exact")
     t_field = time.time() - t0
-    crs = json.loads((field / "truth" / "field.json").read_text())["crs"]
+    crs = read_json(field / "truth" / "field.json")["crs"]
     pipe = out / "pipeline.yaml"
     write_pipeline(
         pipe,
@@ -252,7 +263,7 @@ def run_demo(
     splits: dict = {}
 
     def hold_out() -> None:  # module 5's split says which photos the detector will see; the others are held out
-        names, split = held_out_photos(json.loads((out / "5_tiles" / "summary.json").read_text()), photos)
+        names, split = held_out_photos(read_json(out / "5_tiles" / "summary.json"), photos)
         held.extend(names)
         splits.update(split)
         link_photos(FieldPaths(field).undistorted_images, held, out / HELD_OUT)
@@ -289,7 +300,7 @@ def _field(field: Path, preset: str, seed: int, noise: str) -> None:
     """Generate the demo's field unless the folder already holds it (same preset, seed and noise)."""
     meta = field / "truth" / "field.json"
     if meta.is_file() and FieldPaths(field).later.plants_csv.is_file():
-        m = json.loads(meta.read_text())
+        m = read_json(meta)
         if (m.get("preset"), m.get("seed"), m.get("noise", "exact")) == (preset, seed, noise):
             return
     log.info("generating the '%s' synthetic field (seed %d, noise %s) ...", preset, seed, noise)
@@ -302,7 +313,7 @@ def _step_times(pipe: Path, results: dict, prefix: str = "") -> dict:
     top, steps = read_pipeline(pipe)
     for st in steps:
         stamp = pipe.parent / top["output_dir"] / ".pipeline" / f"{st.name}.json"
-        secs = json.loads(stamp.read_text()).get("seconds", 0.0) if stamp.is_file() else 0.0
+        secs = demo_record(stamp).get("seconds", 0.0)
         timings[prefix + st.name] = (results.get(st.name, "?"), secs)
     return timings
 
@@ -329,7 +340,7 @@ def environment(out: Path) -> dict:
     import torch
 
     summary = out / "6_train" / "training_summary.json"
-    trained = json.loads(summary.read_text()) if summary.is_file() else {}
+    trained = demo_record(summary)
     return {
         "torch": torch.__version__,
         "torch_threads": trained.get("threads"),
@@ -360,15 +371,15 @@ def run_noisy(out: Path, preset: str, seed: int, crs: str, from_step: str, timin
     timings.update(_step_times(pipe, results, prefix="noisy "))
     result = compare_with_truth(out / NOISY, field)
     evaluation = out / NOISY / "8_plants" / "evaluation.json"
-    result["projection"] = json.loads(evaluation.read_text()) if evaluation.is_file() else {}
-    result["noise"] = json.loads(FieldPaths(field).noise_json.read_text())
+    result["projection"] = demo_record(evaluation)
+    result["noise"] = read_json(FieldPaths(field).noise_json)
     return result
 
 
 def update_docs(out: Path, root: Path = REPO) -> None:
     """Copy the run's figures into ``docs/`` and rewrite the demo table of ``docs/demo.md`` from
     ``report/summary.json``, so that what the documentation shows is what this run measured."""
-    summary = json.loads((out / "report" / "summary.json").read_text())
+    summary = read_json(out / "report" / "summary.json")
     figures = {
         "3_select/coverage.png": "coverage.jpg",
         "8_plants/evaluation.png": "evaluation.jpg",
@@ -413,7 +424,7 @@ def check_args(args: argparse.Namespace) -> None:
                 fix=f"give --{key} one of: {', '.join(allowed)}",
             )
     for key, low in (("epochs", 1), ("minutes", 0), ("threads", 0)):
-        if getattr(args, key) < low:
+        if getattr(args, key) is not None and getattr(args, key) < low:
             raise ConfigError(f"--{key} {getattr(args, key)} is below {low}", fix=f"give --{key} {low} or more")
     if not args.from_step:
         return
@@ -441,8 +452,8 @@ def kept(out: Path) -> str:
     pipeline continues it from there: matchplant/pipeline/run.py)."""
     summary = out / "6_train" / "training_summary.json"
     try:
-        trained = json.loads(summary.read_text()) if (out / ".pipeline" / "6_train.started.json").is_file() else {}
-    except (OSError, ValueError):
+        trained = demo_record(summary) if (out / ".pipeline" / "6_train.started.json").is_file() else {}
+    except MatchPlantError:
         trained = {}
     if trained.get("status") != "interrupted":
         return "the finished steps are kept"
@@ -465,8 +476,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--epochs",
         type=int,
-        default=EPOCHS,
-        help=f"training epochs (default {EPOCHS}): a fixed number, so every machine trains the same model",
+        default=None,
+        help=f"training epochs (default {EPOCHS}; {PRESET_EPOCHS['tiny']} for the tiny field, whose epochs are 9 "
+        "iterations): a fixed number, so every machine trains the same model",
     )
     p.add_argument(
         "--minutes",

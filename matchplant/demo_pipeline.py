@@ -5,9 +5,9 @@ modules 8 and 9 again on the realistic field (``noisy_spec``); written with the 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from matchplant.core.runtime.readers import read_record
 from matchplant.pipeline.chain import geotag_steps, season_chain
 from matchplant.pipeline.chain import map_steps as chain_map_steps
 
@@ -33,6 +33,14 @@ STEP_NOTES = {
     "9_stats": "module 9: per-plant height, NDVI and plot statistics. Change rasters (dsm, dtm, multispectral with "
     "red_band/nir_band) and plots.",
 }
+
+
+RECORD_FIX = "delete it; running the demo again writes it again"
+
+
+def demo_record(path: Path) -> dict:
+    """A file an earlier demo run wrote, read back (empty when there is none); a damaged one is named."""
+    return read_record(path, what="a file of an earlier demo run", fix=RECORD_FIX, default={})
 
 
 def pipeline_spec(
@@ -137,9 +145,7 @@ def noisy_spec(field: Path, crs: str, predictions: Path) -> dict:
 def _plots_section(field: Path) -> dict:
     """Module 9's plot grid: the field's corners, columns, ranges and spacing (as a breeder measures them),
     and the field book; read from the generator's plot layout."""
-    grid = (
-        json.loads((field / "truth" / "plots.json").read_text()) if (field / "truth" / "plots.json").is_file() else {}
-    )
+    grid = demo_record(field / "truth" / "plots.json")
     if not grid:
         return {}
     return {

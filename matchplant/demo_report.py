@@ -10,6 +10,7 @@ from pathlib import Path
 from PIL import Image
 
 from matchplant.core.runtime.io import write_text
+from matchplant.demo_pipeline import demo_record
 from matchplant.simfield.scoring import TRAIT_STATS
 
 # how far another machine's run may land from the figures in docs/demo.md (thread counts and CPU kernels change
@@ -78,8 +79,8 @@ def write_report(out: Path, field: Path, timings: dict, compare: dict, extra: di
 
 
 def _load(p: Path) -> dict:
-    """A JSON file's content, or {} where the step did not write it."""
-    return json.loads(p.read_text()) if p.is_file() else {}
+    """A JSON file's content, or {} where the step did not write it (a damaged one is named)."""
+    return demo_record(p)
 
 
 def _figure(out: Path, rel: str, caption: str = "") -> str:

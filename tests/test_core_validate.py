@@ -117,7 +117,7 @@ def test_read_yaml(tmp_path):
     p.write_text("a: 1\nb: [x\nc: 2\n")
     fails(lambda: read_yaml(p), "not valid YAML at line", exc=ConfigError)
     p.write_text("a: 1\nb: 2\na: 3\n")
-    fails(lambda: read_yaml(p), "key 'a' appears twice (lines 1 and 3)", exc=ConfigError)
+    fails(lambda: read_yaml(p), "the key 'a' is given twice, at lines 1 and 3", exc=ConfigError)
     p.write_text("# only a comment\n\n")
     fails(lambda: read_yaml(p), "is empty", exc=ConfigError)
     p.write_text("- a\n- b\n")

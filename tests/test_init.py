@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from small_detector import save_small, small_detector
 
 from matchplant import cli
 from matchplant.pipeline import read_pipeline
@@ -50,7 +51,7 @@ def test_with_annotations_every_step_is_written_and_checks(tiny_field, tmp_path)
 
 def test_with_a_checkpoint_it_detects_and_with_nothing_it_selects_the_photos_to_annotate(tiny_field, tmp_path):
     checkpoint = tmp_path / "best.pt"
-    checkpoint.write_bytes(b"")  # only its path is written (module 7 reads it when it runs)
+    save_small(checkpoint, *small_detector())  # init checks its kind (issue 47); module 7 reads it when it runs
     rc, path = _init(tmp_path / "a", tiny_field.root, "--checkpoint", str(checkpoint))
     assert rc == 0 and _names(path) == ["2_odm", "3_select", "7_detect", "8_plants", "9_stats"]
     assert yaml.safe_load(path.read_text())["checkpoint"] == "../../best.pt"

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 from project_exports import write_exports
+from small_detector import save_small, small_detector
 
 from matchplant import cli
 from matchplant.pipeline import read_pipeline
@@ -25,7 +26,7 @@ def test_init_writes_a_season_from_the_project(exports, tmp_path, program):
     """Module 3 and 8 read the project with its program named, module 8 the original photos; the rasters are the
     exports; every key, reference and path passes `matchplant run`'s checks."""
     checkpoint = tmp_path / "best.pt"
-    checkpoint.write_bytes(b"")
+    save_small(checkpoint, *small_detector())  # init checks its kind (issue 47)
     out = tmp_path / "season" / "pipeline.yaml"
     out.parent.mkdir()
     rc = cli.main(["init", str(exports[program]), "--output", str(out), "--checkpoint", str(checkpoint)])

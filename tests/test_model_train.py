@@ -792,7 +792,8 @@ def test_max_minutes_stops_inside_an_epoch_and_resume_continues_exactly(tiles, t
     out = tmp_path / "budget"
     summary = train(fast_config(tiles, out, "max_minutes=1"))
     assert summary["status"] == "stopped_by_max_minutes" and summary["iterations_done"] == 1
-    assert summary["iterations_planned"] == 4 and "--resume continues the planned 4 iterations" in summary["message"]
+    assert summary["iterations_planned"] == 4 and "(4 iterations at the pace measured before" in summary["message"]
+    assert "--resume trains the 3 left" in summary["message"]
     last = summary["history"][-1]
     assert last["partial"] and last["batches"] == 1 and "val" in last  # validated where it stopped
     ck = read_checkpoint(out / "checkpoints" / "last.pt")

@@ -41,7 +41,7 @@ def job(tmp_path: Path, save_every, minutes: float) -> SimpleNamespace:
 def run_epochs(j, n: int) -> list[str]:
     for epoch in range(1, n + 1):
         ck.save_numbered(j, None, epoch, {})
-    return sorted(p.name for p in j.ck_dir.iterdir())
+    return sorted(p.name for p in j.ck_dir.iterdir() if p.suffix == ".pt")
 
 
 def test_auto_under_a_budget_keeps_the_last_three(tmp_path, fake_save, caplog):
@@ -93,7 +93,11 @@ def test_a_budget_shorter_than_one_iteration_is_not_reported_finished():
     b.plan_for(4, 2)
     b.plan.iters = 1
     status, message = b.status(1)
-    assert status == "stopped_by_max_minutes" and "shorter than one iteration" in message
+    assert (
+        status == "stopped_by_max_minutes" and "past max_minutes: the iteration" in message and "never cut" in message
+    )
+    b.sets_length = True  # the recipe's ceiling of epochs: the message speaks of iterations done, not of the ceiling
+    assert "after 1 iterations (0.5 epochs)" in b.status(1)[1] and "of 4" not in b.status(1)[1]
     relaxed = Budget(minutes=60)
     relaxed.plan_for(1, 1)
     assert relaxed.status(1)[0] == "finished"

@@ -103,7 +103,8 @@ def test_status_messages(clock):
         "its course)",
     )
     assert b.status(25)[1].endswith(
-        "after 25 of 100 iterations (2.5 of 10 epochs); --resume continues the planned 40 iterations"
+        "after 25 of 100 iterations (2.5 of 10 epochs), before the end of the plan fitted to it (40 iterations at the "
+        "pace measured before: training ran slower); --resume trains the 15 left"
     )
     assert b.status(25, interrupted=True) == (
         "interrupted",

@@ -267,7 +267,7 @@ def test_a_reference_to_a_broken_step_is_not_reported_twice(setup):
         ("steps:\n  module: upper\n", "'steps' must be a list"),
         ("steps:\n  - module: upper\n    config: {source: [x\n", "not valid YAML at line"),
         ("steps:\n\t- module: upper\n", "line 2 is indented with a tab"),
-        ("steps:\n  - module: upper\n    config: {source: a.txt}\n    config: {source: b.txt}\n", "appears twice"),
+        ("steps:\n  - module: upper\n    config: {source: a.txt}\n    config: {source: b.txt}\n", "given twice"),
         ("- module: upper\n", "expected an object"),
     ],
 )

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +32,7 @@ import numpy as np
 from matchplant.core.formats.coco import bbox_values, read_dataset
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import InputError
-from matchplant.core.runtime.io import write_json
+from matchplant.core.runtime.io import is_stream, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.detection.architectures import ARCHITECTURES, AnchorRule
 from matchplant.detection.tile_objects import distinct_objects
@@ -41,6 +42,15 @@ log = get_logger("inspect")
 MIN_OBJECT_PX = 24  # objects smaller than this (in detector input pixels) are hard for FPN detectors
 TILE_MIN, TILE_MAX, TILE_STEP = 256, 1024, 64
 PERCENTILES = (1, 5, 10, 25, 50, 75, 90, 95, 99)
+
+
+# module 6's time budget: the one setting the CPU recipe needs (6_model_train/README.md: "15 minutes on a CPU")
+BUDGET_MINUTES = 15
+BUDGET_WHY = (
+    "module 6 trains for this many minutes: on a CPU from random weights its recipe (model.architecture: auto) "
+    "fits the run to the budget, and more minutes train a better detector; 0 trains the configured epochs "
+    "(30; hours on a CPU)"
+)
 
 
 def box_sizes(dataset: dict, min_size: int | None = None, max_size: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -299,6 +309,8 @@ def inspect_dataset(cfg: InspectConfig) -> dict:
             how,
         )
     advice = recommend(stats, sizes)
+    advice["max_minutes"] = BUDGET_MINUTES
+    advice["why"]["max_minutes"] = BUDGET_WHY
     note = tiling_note(advice, sizes)
     if note:
         advice["tiling"] = note
@@ -312,7 +324,8 @@ def inspect_dataset(cfg: InspectConfig) -> dict:
     }
     if tiles:
         out.update(photos=len(photos["images"]), tile_boxes=len(ds["annotations"]), photo_sizes_from=how)
-    print(format_report(out))
+    # the JSON report on standard output (--report -) stays alone there, readable by another program
+    print(format_report(out), file=sys.stderr if cfg.report is not None and is_stream(cfg.report) else sys.stdout)
     if cfg.report is not None:
         write_json(cfg.report, out)
         log.info("report -> %s", cfg.report)
@@ -345,6 +358,8 @@ def format_report(r: dict) -> str:
         f"  model.anchor_sizes: auto  (or, for these objects: {json.dumps(a['anchor_sizes'])})",
         f"  model.aspect_ratios: {a['aspect_ratios']}",
     ]
+    if "max_minutes" in a:
+        rows.append(f"  max_minutes: {a['max_minutes']}  (module 6: the training's time budget, in minutes)")
     if a.get("tiling"):
         rows.append(f"  tiling: {a['tiling']}")
     rows += [f"  why {k}: {v}" for k, v in a["why"].items()]

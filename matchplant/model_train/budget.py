@@ -144,6 +144,9 @@ class Budget:
     device: Any = None
     step_times: list[float] = field(default_factory=list)
     fitted_at: tuple[float, int] | None = None  # (elapsed s, iterations) at this session's first refit
+    # the epochs are a ceiling the recipe set (choose.scratch_budget): max_minutes, not epochs, ends the run, so the
+    # messages speak of the budget only, and its fitting the plan is information, not a warning
+    sets_length: bool = False
 
     @classmethod
     def from_config(cls, cfg) -> Budget:
@@ -207,7 +210,17 @@ class Budget:
             plan_iterations(total, done, plan.iters_per_epoch, costs, budget_s, self.val_every, self.validated), done, 1
         )
         plan.source = source
-        if plan.iters < total and plan.iters != before:
+        if plan.iters < total and plan.iters != before and self.sets_length:
+            log.info(
+                "max_minutes = %g sets the run's length: at %.2f s per iteration (%s), about %d iterations "
+                "(%.1f epochs) fit; the learning-rate schedule is laid over them",
+                self.minutes,
+                costs.iteration,
+                source,
+                plan.iters,
+                plan.iters / plan.iters_per_epoch,
+            )
+        elif plan.iters < total and plan.iters != before:
             log.warning(
                 "max_minutes = %g: at %.2f s per iteration (%s), %d of the %d iterations (%.1f of %d epochs) "
                 "fit; the learning-rate schedule is laid over %d iterations (raise max_minutes, or lower "
@@ -279,12 +292,24 @@ class Budget:
         over = self.elapsed() + seconds + self.iteration_s() + self.reserve() > self.seconds
         return bool(self._agree(1.0 if over else 0.0))
 
+    def epoch_label(self, epoch: int) -> str:
+        """``epoch N/M`` of the configured epochs, or ``epoch N`` when the budget sets the run's length (the
+        number of epochs that fit changes as the pace is measured; the user set none)."""
+        if self.sets_length:
+            return f"epoch {epoch + 1}"
+        return f"epoch {epoch + 1}/{math.ceil(self.total / max(self.plan.iters_per_epoch, 1))}"
+
     def status(self, done_iters: int, interrupted: bool = False) -> tuple[str, str]:
         """``(status, message)`` for the summary of a run that ended after ``done_iters`` iterations."""
         total, iters_per_epoch = self.total, self.plan.iters_per_epoch
         planned = None if interrupted else self.plan.iters
         epochs = f"{done_iters / iters_per_epoch:.2f}".rstrip("0").rstrip(".")
-        where = f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
+        if self.sets_length:  # the user set no epochs: the recipe's ceiling is not theirs to read
+            where = f"after {done_iters} iterations ({epochs} epochs)"
+        else:
+            where = (
+                f"after {done_iters} of {total} iterations ({epochs} of {math.ceil(total / iters_per_epoch)} epochs)"
+            )
         if interrupted:
             return "interrupted", f"interrupted (Ctrl-C) {where}; --resume continues exactly there"
         over = self.limited and self.elapsed() > self.seconds
@@ -298,10 +323,10 @@ class Budget:
             )
         if done_iters >= total:
             return "finished", f"finished all {math.ceil(total / iters_per_epoch)} epochs ({total} iterations)"
-        if over:
+        if over:  # an iteration is never cut: the last one may end a little after the budget
             where += (
-                f", in {self.elapsed():.1f} s: past max_minutes ({self.seconds:.1f} s), which is shorter than one "
-                "iteration"
+                f", in {self.elapsed():.1f} s ({self.elapsed() - self.seconds:.1f} s past max_minutes: the iteration, "
+                "validation and checkpoints under way are finished, never cut)"
             )
         if done_iters >= planned:
             return (
@@ -313,7 +338,9 @@ class Budget:
             )
         return (
             "stopped_by_max_minutes",
-            f"stopped by max_minutes ({self.minutes:g}) {where}; --resume continues the planned {planned} iterations"
+            f"stopped by max_minutes ({self.minutes:g}) {where}, before the end of the plan fitted to it "
+            f"({planned} iterations at the pace measured before: training ran slower); --resume trains the "
+            f"{planned - done_iters} left"
             if planned
             else f"stopped by max_minutes {where}",
         )

@@ -10,7 +10,9 @@ import re
 
 from matchplant.core.runtime.config import to_dict
 from matchplant.core.runtime.errors import ConfigError
+from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.readers import read_record
 from matchplant.detection.checkpoint import save_checkpoint
 from matchplant.model_train.state import Job, TrainState
 
@@ -19,6 +21,12 @@ log = get_logger("model_train")
 AUTO_EVERY = 5  # save_every: auto keeps epoch_NNN.pt every AUTO_EVERY epochs ...
 AUTO_KEEP = 3  # ... and, when max_minutes sets the run's length, only the last AUTO_KEEP of them
 NUMBERED = re.compile(r"epoch_(\d+)\.pt")
+AUTO_RECORD = "auto_checkpoints.json"  # the epoch_NNN.pt that save_every: auto wrote and may delete
+AUTO_RECORD_TEXT = (
+    "the epoch_NNN.pt files that module 6's save_every: auto wrote and will delete (it keeps the last 3): "
+    "no other file of this folder is ever deleted"
+)
+RECORD_FIX = "delete it: then no epoch_NNN.pt is deleted by save_every: auto (each is kept)"
 
 
 def save(job: Job, state: TrainState, name: str, epoch_done: int, record: dict | None, partial: dict | None) -> None:
@@ -50,13 +58,21 @@ def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None
     every = AUTO_EVERY if job.cfg.save_every == "auto" else job.cfg.save_every
     if not every or epoch % every:
         return
-    save(job, state, f"epoch_{epoch:03d}.pt", epoch, record, None)
-    numbered = sorted((int(m[1]), p) for p in job.ck_dir.iterdir() if (m := NUMBERED.fullmatch(p.name)))
+    name = f"epoch_{epoch:03d}.pt"
+    deletable = auto_written(job.ck_dir)
+    save(job, state, name, epoch, record, None)
     removed = []
     if job.cfg.save_every == "auto" and job.budget.limited:
-        for _, p in numbered[:-AUTO_KEEP]:
-            p.unlink(missing_ok=True)
-            removed.append(p.name)
+        # only the files a save_every: auto session wrote (this one or an earlier one, recorded): never one that
+        # a session with save_every: N kept, nor one the user put there
+        mine = sorted({*deletable, name}, key=lambda n: int(NUMBERED.fullmatch(n)[1]))
+        mine = [n for n in mine if (job.ck_dir / n).is_file()]
+        for old in mine[:-AUTO_KEEP]:
+            (job.ck_dir / old).unlink(missing_ok=True)
+            removed.append(old)
+        write_json(job.ck_dir / AUTO_RECORD, {"description": AUTO_RECORD_TEXT, "files": mine[-AUTO_KEEP:]})
+    elif name in deletable:  # written again by a session that keeps it: no longer auto's to delete
+        write_json(job.ck_dir / AUTO_RECORD, {"description": AUTO_RECORD_TEXT, "files": sorted(deletable - {name})})
     files = [p for p in job.ck_dir.iterdir() if p.suffix == ".pt" and p.is_file()]
     size = sum(p.stat().st_size for p in files)
     job.extras["checkpoint_disk"] = {"files": len(files), "bytes": size, "folder": str(job.ck_dir)}
@@ -70,6 +86,13 @@ def save_numbered(job: Job, state: TrainState, epoch: int, record: dict) -> None
         if removed
         else "",
     )
+
+
+def auto_written(ck_dir) -> set[str]:
+    """The ``epoch_NNN.pt`` names that ``save_every: auto`` wrote in ``ck_dir`` (its record; none without one)."""
+    record = read_record(ck_dir / AUTO_RECORD, what="module 6's list of its deletable checkpoints", fix=RECORD_FIX)
+    files = (record or {}).get("files", [])
+    return {n for n in files if isinstance(n, str) and NUMBERED.fullmatch(n)} if isinstance(files, list) else set()
 
 
 def restore(job: Job, resume: dict | None) -> TrainState:

@@ -261,7 +261,7 @@ def run_epoch(job: Job, state: TrainState) -> str | None:
         job.scaler,
         job.runtime,
         job.amp,
-        f"epoch {epoch + 1}/{plan.epochs}",
+        budget.epoch_label(epoch),
         sums,
         batches,
         lambda step_s: after_iteration(job, state, step_s),
@@ -306,9 +306,8 @@ def end_epoch(
             "metric": cfg.best_metric if job.val_ds else "last epoch",
         }
     log.info(
-        "epoch %d/%d%s: loss %.4f%s (%.1f s)",
-        epoch + 1,
-        job.budget.plan.epochs,
+        "%s%s: loss %.4f%s (%.1f s)",
+        job.budget.epoch_label(epoch),
         "" if complete else f" (stopped after {batches} of {job.iters} batches)",
         record["losses"].get("loss", math.nan),
         f"; validation {summarise_stats(record['val'])}" if "val" in record else "",
@@ -358,7 +357,8 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
 
     budget, done, main = job.budget, state.done, job.dist_info.main
     if reason == "budget" or (done >= budget.plan.iters and budget.plan.iters < budget.total):
-        log.info("stopping after %d of %d iterations: max_minutes = %g", done, budget.total, budget.minutes)
+        of = "" if budget.sets_length else f" of {budget.total}"
+        log.info("stopping after %d%s iterations: max_minutes = %g", done, of, budget.minutes)
     summary = {}
     if main:
         status, message = budget.status(done)
@@ -375,7 +375,7 @@ def finish(job: Job, state: TrainState, reason: str | None) -> dict:
             message=message,
             extras=job.extras,
         )
-        over = "past max_minutes" in message  # a budget shorter than one iteration: said, not buried
+        over = status == "finished_over_max_minutes"  # a budget shorter than the least run: said, not buried
         (log.warning if over else log.info)("training %s (%s)", message, clock_words(budget.elapsed()))
     if main and state.best["epoch"] is not None:
         log.info(

@@ -79,7 +79,13 @@ def probe_and_plan(job: Job, state: TrainState, resumed_plan: bool, probe=None, 
     planned_s = run_seconds(plan.iters, plan.iters_per_epoch, costs, cfg.val_every, budget.validated) - run_seconds(
         done, plan.iters_per_epoch, costs, cfg.val_every, budget.validated
     )
-    if plan.iters < total:
+    if plan.iters < total and budget.sets_length:
+        lines.append(
+            f"planned: about {plan.iters} iterations ({plan.iters / plan.iters_per_epoch:.1f} epochs) fit in "
+            f"max_minutes = {budget.minutes:g}: about {duration(planned_s)} of training and validation from here, "
+            f"{duration(spent + planned_s)} in all"
+        )
+    elif plan.iters < total:
         lines.append(
             f"planned: {plan.iters} of {total} iterations ({plan.iters / plan.iters_per_epoch:.1f} of "
             f"{cfg.epochs} epochs) in max_minutes = {budget.minutes:g}: about {duration(planned_s)} of "

@@ -40,6 +40,7 @@ from typing import Any
 
 from matchplant.model_train.budget import Budget
 from matchplant.model_train.checkpoint import restore
+from matchplant.model_train.choose import SCRATCH_EPOCHS
 from matchplant.model_train.config import ModelTrainConfig
 from matchplant.model_train.engine import finish, loop
 from matchplant.model_train.plan import describe, probe_and_plan
@@ -63,6 +64,8 @@ def train(
     """
     budget = Budget.from_config(cfg)  # max_minutes counts the data checks, the probe and the set-up too
     job, resume, chosen = set_up(cfg, budget)
+    # the recipe's ceiling of epochs (choose.scratch_budget, or a resumed run of it): the budget ends the run
+    budget.sets_length = budget.limited and job.cfg.epochs == SCRATCH_EPOCHS
     job.on_epoch_end, job.on_iteration = on_epoch_end, on_iteration
     state = restore(job, resume)
     estimate = probe_and_plan(

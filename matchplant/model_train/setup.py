@@ -225,8 +225,9 @@ def build_model(cfg: ModelTrainConfig, train_ds, resume: dict | None, device, di
     trainable = cfg.trainable_backbone_layers
     n_stages = len(backbone_stages(model, model_cfg.architecture))
     if model_cfg.pretrained == "none" and cfg.model.checkpoint is None and trainable < n_stages:
-        # as torchvision does: freezing random weights makes no sense
-        log.warning(
+        # as torchvision does: freezing random weights makes no sense. A warning only for a value the user set
+        default = ModelTrainConfig.__dataclass_fields__["trainable_backbone_layers"].default
+        (log.warning if trainable != default else log.info)(
             "model.pretrained is none: all %d backbone stages are trained (trainable_backbone_layers "
             "applies to pretrained weights)",
             n_stages,

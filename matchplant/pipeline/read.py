@@ -109,9 +109,12 @@ def read_pipeline(path: Path) -> tuple[dict, list[Step]]:
         )
     top = {str(k): v for k, v in data.items() if k != "steps"}
     top.setdefault("output_dir", "pipeline_output")
-    if not isinstance(top["output_dir"], (str, Path)) or not str(top["output_dir"]).strip():
+    dash = str(top["output_dir"]).strip() == "-"
+    if dash or not isinstance(top["output_dir"], (str, Path)) or not str(top["output_dir"]).strip():
         raise ConfigError(
-            f"'output_dir' must be a folder, got {top['output_dir']!r}",
+            "'output_dir' must be a folder, got '-' (standard output, which is for a file)"
+            if dash
+            else f"'output_dir' must be a folder, got {top['output_dir']!r}",
             path=path,
             fix="set output_dir: FOLDER (relative to the pipeline file)",
         )

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
@@ -14,6 +15,7 @@ from matchplant.core.runtime.config import param, to_dict, validate
 from matchplant.core.runtime.errors import ConfigError, MatchPlantError
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.readers import read_record
 from matchplant.core.runtime.validate import did_you_mean
 from matchplant.pipeline.plan import plan_pipeline
 from matchplant.pipeline.read import Step, read_pipeline
@@ -41,9 +43,30 @@ class PipelineConfig:
 # running
 
 
-def _fingerprint(cfg: Any) -> str:
-    """The settings plus size and modification time of every existing input path they name."""
-    h = hashlib.sha256(json.dumps(to_dict(cfg), sort_keys=True, default=str).encode())
+def _portable(value: Any, base: Path) -> Any:
+    """Plain settings with every path under ``base`` relative to it: a season folder that is moved or renamed
+    keeps its fingerprints (finished steps stay finished, an interrupted training continues)."""
+    if isinstance(value, dict):
+        return {k: _portable(v, base) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_portable(v, base) for v in value]
+    if isinstance(value, str) and os.path.isabs(value):
+        return _relative(Path(value), base)
+    return value
+
+
+def _relative(path: Path, base: Path) -> str:
+    """``path`` relative to ``base`` (``..`` steps allowed), as text with '/'; absolute on another drive."""
+    try:
+        return Path(os.path.relpath(path, base)).as_posix()
+    except ValueError:  # another drive (Windows): stays absolute
+        return str(path)
+
+
+def _fingerprint(cfg: Any, base: Path) -> str:
+    """The settings plus size and modification time of every existing input path they name, paths relative to
+    ``base`` (the pipeline file's folder: the season)."""
+    h = hashlib.sha256(json.dumps(_portable(to_dict(cfg), base), sort_keys=True, default=str).encode())
 
     def paths(obj: Any):
         if is_dataclass(obj):
@@ -60,12 +83,12 @@ def _fingerprint(cfg: Any) -> str:
     for p in paths(cfg):
         if p.is_file():
             st = p.stat()
-            h.update(f"{p}:{st.st_size}:{st.st_mtime_ns}".encode())
+            h.update(f"{_relative(p, base)}:{st.st_size}:{st.st_mtime_ns}".encode())
         elif p.is_dir():
             for q in sorted(p.rglob("*")):
                 if q.is_file():
                     st = q.stat()
-                    h.update(f"{q}:{st.st_size}:{st.st_mtime_ns}".encode())
+                    h.update(f"{_relative(q, base)}:{st.st_size}:{st.st_mtime_ns}".encode())
     return h.hexdigest()
 
 
@@ -81,13 +104,20 @@ def _check_names(cfg: PipelineConfig, steps: list[Step], path: Path) -> None:
             )
 
 
+def _record_fix(path: Path, step: Step) -> str:
+    return (
+        f"delete {path.name} (in {path.parent}); the step then runs again from its start (or re-run with "
+        f"--set force=true, or --from {step.name})"
+    )
+
+
 def continue_interrupted(step: Step, spec, step_cfg, started: Path, fp: str) -> bool:
     """Set the step's resume key when its previous run stopped unfinished (Ctrl-C, a crash, a time limit) with
     these settings and inputs, and left a checkpoint newer than its start: re-running the pipeline then
     continues that run instead of replacing it. A key the user set is left as it is."""
     if not spec.resume_key or getattr(step_cfg, spec.resume_key) or not started.is_file():
         return False
-    record = json.loads(started.read_text())
+    record = read_record(started, what="the record of the step's interrupted run", fix=_record_fix(started, step))
     checkpoint = spec.resume_file(step_cfg)
     if record.get("fingerprint") != fp:
         log.info("[%s] its interrupted run had other settings or inputs: a new run", step.name)
@@ -102,6 +132,7 @@ def continue_interrupted(step: Step, spec, step_cfg, started: Path, fp: str) -> 
 def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
     """Check every step, then run them; returns ``{step: "ran" | "up to date" | "skipped"}``."""
     path = Path(cfg.pipeline)
+    season = path.resolve().parent
     top, steps = read_pipeline(path)
     _check_names(cfg, steps, path)
     planned = plan_pipeline(path, top, steps)
@@ -119,8 +150,9 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         except MatchPlantError as exc:
             raise type(exc)(f"step '{step.name}' ({step.module}): {exc.problem}", path=exc.path, fix=exc.fix) from exc
         stamp = state_dir / f"{step.name}.json"
-        fp = _fingerprint(step_cfg)
-        if not forced and stamp.is_file() and json.loads(stamp.read_text()).get("fingerprint") == fp:
+        fp = _fingerprint(step_cfg, season)
+        finished = read_record(stamp, what="the record of the step's finished run", fix=_record_fix(stamp, step))
+        if not forced and finished is not None and finished.get("fingerprint") == fp:
             log.info("[%s] up to date, skipped", step.name)
             results[step.name] = "up to date"
             continue
@@ -154,7 +186,7 @@ def run_pipeline(cfg: PipelineConfig) -> dict[str, str]:
         write_json(
             stamp,
             {
-                "fingerprint": _fingerprint(step_cfg),
+                "fingerprint": _fingerprint(step_cfg, season),
                 "module": step.module,
                 "seconds": round(time.time() - t0, 2),
                 "finished": time.strftime("%Y-%m-%d %H:%M:%S"),

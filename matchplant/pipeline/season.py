@@ -21,8 +21,10 @@ from matchplant.core.formats.odm import ODMProject
 from matchplant.core.formats.projects import PhotoProject, open_project
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError, InputError
+from matchplant.core.runtime.io import STDOUT
 from matchplant.core.runtime.log import get_logger
 from matchplant.pipeline.chain import season_chain
+from matchplant.pipeline.season_inputs import check_season_inputs
 from matchplant.pipeline.write import write_pipeline
 
 log = get_logger("init")
@@ -73,14 +75,27 @@ class InitConfig:
     checkpoint: Path | None = param(
         None, "a trained detector (module 6's checkpoints/best.pt): the pipeline detects with it", path="file"
     )
-    output: Path = param(Path("pipeline.yaml"), "the pipeline file to write (its folder is created)")
+    output: Path = param(
+        Path("pipeline.yaml"),
+        'the pipeline file to write (its folder is created; "-": standard output, paths then relative to the '
+        "current folder)",
+        path="out_file",
+    )
     max_minutes: float = param(
         60.0, "module 6's time budget for training, in minutes (0 = none: module 6's 30 epochs)", min=0
     )
     force: bool = param(False, "replace an existing pipeline file")
 
     def check(self) -> None:
-        """Refuse to overwrite an existing pipeline file without ``force``, and an output that is not .yaml."""
+        """An existing pipeline file is kept unless ``force``; the output is a .yaml file (or standard output)."""
+        if self.output is not None and str(self.output) == STDOUT:
+            return
+        if self.output is not None and Path(self.output).is_dir():
+            raise ConfigError(
+                "output is a folder: init writes one pipeline file",
+                path=self.output,
+                fix=f"give a file in it, e.g. --output {Path(self.output) / 'pipeline.yaml'}",
+            )
         if self.output is not None and Path(self.output).exists() and not self.force:
             raise ConfigError(
                 "the pipeline file exists already (it may hold your edits)",
@@ -134,8 +149,8 @@ def season_spec(cfg: InitConfig, advice: dict) -> dict:
             for key, name in (("dsm", "dsm"), ("dtm", "dtm"), ("rgb", "orthophoto"))
             if project.has(name)
         }
-        if not odm and "dtm" not in rasters:
-            rasters.pop("dsm", None)  # module 9's heights need both (a CHM); the DSM alone serves modules 3 and 8
+        if "dtm" not in rasters:  # module 9's heights need both (a CHM); init warned of the missing DTM
+            rasters.pop("dsm", None)
         chain["stats"] = {"rasters": rasters}
     if not odm:  # Metashape, Pix4D: the program named; they pose the original photos
         chain["select"] = {"project_type": project.program}
@@ -159,7 +174,8 @@ def header(cfg: InitConfig, spec: dict) -> str:
     """The file's first comment: how it was made, how to run it, what is missing."""
     lines = [
         "A season's pipeline, written by `matchplant init` from the project "
-        f"{spec['project']}; run it with: matchplant run {Path(cfg.output).name}",
+        f"{spec['project']}; run it with: matchplant run "
+        f"{'<this file>' if str(cfg.output) == STDOUT else Path(cfg.output).name}",
         "Relative paths are relative to this file's folder; ${name} is a top-level key or an earlier step's key.",
         "Each step writes to <output_dir>/<step name>; a finished step with unchanged settings is skipped.",
         "Before ODM (GPS into the photos, ground control points): modules 0 and 1 (`matchplant --help`).",
@@ -172,8 +188,13 @@ def header(cfg: InitConfig, spec: dict) -> str:
     return "\n".join(lines)
 
 
-def init_pipeline(cfg: InitConfig, advise: Callable[[Path], dict]) -> Path:
-    """Write the pipeline file; ``advise(annotations)``: the tiling and detector input the plants call for."""
+def init_pipeline(
+    cfg: InitConfig, advise: Callable[[Path], dict], check_checkpoint: Callable[[Path], None] | None = None
+) -> Path:
+    """Check what init is given (:mod:`matchplant.pipeline.season_inputs`: an error writes nothing), then write the
+    pipeline file. ``advise(annotations)``: the tiling and detector input the plants call for;
+    ``check_checkpoint(path)``: raises when the checkpoint is no detector MatchPlant reads."""
+    check_season_inputs(cfg.project, cfg.annotations, cfg.checkpoint, check_checkpoint, cfg.project_type)
     advice = advise(cfg.annotations) if cfg.annotations is not None else {}
     spec = season_spec(cfg, advice)
     path = write_pipeline(Path(cfg.output), spec, NOTES, header(cfg, spec))

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 from matchplant.core.formats.coco import read_dataset
+from matchplant.detection.foreign import read_any_checkpoint
 from matchplant.detection.objects import box_sizes, recommend, size_stats
 from matchplant.pipeline.season import InitConfig, init_pipeline
 from matchplant.steps import StepSpec
@@ -15,16 +16,21 @@ def advise(annotations: Path) -> dict:
     return recommend(size_stats(*box_sizes(ds)), sizes)
 
 
+def checkpoint_kind(path: Path) -> None:
+    """Raise when ``path`` is no detector MatchPlant reads (a YOLO best.pt, another program's file, a damaged one)."""
+    read_any_checkpoint(path, fit_classes=False)
+
+
 SPEC = StepSpec(
     name="init",
     config=InitConfig,
-    run=lambda cfg: init_pipeline(cfg, advise),
+    run=lambda cfg: init_pipeline(cfg, advise, checkpoint_kind),
     output_key=None,
     positional_key="project",
     flags={
         "--annotations": ("annotations", "plant boxes on the project's photos (COCO JSON): train a detector"),
         "--checkpoint": ("checkpoint", "a trained detector (best.pt): detect with it"),
-        "--output": ("output", "the pipeline file to write (default pipeline.yaml)"),
+        "--output": ("output", 'the pipeline file to write (default pipeline.yaml; "-": standard output)'),
         "--project-type": ("project_type", "auto, odm, metashape or pix4d"),
     },
 )

@@ -20,7 +20,7 @@ from matchplant.core.geometry.frames import parse_crs
 from matchplant.core.geometry.geodetic import map_transformer
 from matchplant.core.runtime.config import param
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.core.runtime.io import write_text
+from matchplant.core.runtime.io import is_stream, write_text
 from matchplant.core.runtime.validate import read_csv
 
 
@@ -37,7 +37,7 @@ class CamerasConfig:
     project_type: str = param("auto", "which program made the project (auto: from its files)", choices=PROJECT_TYPES)
     points: Path | None = param(None, "a CSV of map points (columns x, y, z) to find in the photos", path="file")
     points_crs: str | None = param(None, "the CRS of the points' x, y, z (default: the project's CRS)")
-    output: str = param("-", "where the points' photo pixels go as CSV ('-': standard output)")
+    output: Path = param(Path("-"), "where the points' photo pixels go as CSV ('-': standard output)", path="out_file")
 
     def check(self) -> None:
         """Settings that cannot work together."""
@@ -113,7 +113,7 @@ def run_cameras(cfg: CamerasConfig) -> str:
     buf.write("point,x,y,z,photo,u,v\n")
     for k, sid, u, v in rows:
         buf.write(f"{k},{float(xyz[k, 0])!r},{float(xyz[k, 1])!r},{float(xyz[k, 2])!r},{sid},{u:.3f},{v:.3f}\n")
-    if str(cfg.output) != "-":
+    if not is_stream(cfg.output):  # the CSV alone on standard output
         print(text, end="")
     write_text(cfg.output, buf.getvalue())
     return text

@@ -32,7 +32,8 @@ from typing import Any, Literal, Union, get_args, get_origin, get_type_hints
 import yaml
 
 from matchplant.core.runtime.errors import ConfigError
-from matchplant.core.runtime.io import write_text
+from matchplant.core.runtime.io import STDOUT, write_text
+from matchplant.core.runtime.readers import parse_value, read_yaml
 
 PATH_KINDS = (None, "file", "dir", "exists", "out", "out_file")
 
@@ -109,47 +110,31 @@ def load_config(
 
 
 def read_yaml_mapping(path: Path) -> dict:
-    if not path.is_file():
+    """A config file's settings (:func:`matchplant.core.runtime.readers.read_yaml`: a key given twice, a syntax
+    error and a file that is not 'key: value' lines are errors naming the file and the line)."""
+    if str(path) == STDOUT:
         raise ConfigError(
-            "config file not found", path=path, fix="check the path, or write a template with --write-config FILE"
+            "--config -: a config is read from a file, not from standard input",
+            fix="save the config to a file and give its path (matchplant <module> --write-config FILE writes one)",
         )
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        where = ""
-        mark = getattr(exc, "problem_mark", None)
-        if mark is not None:
-            where = f" at line {mark.line + 1}, column {mark.column + 1}"
+    if not Path(path).is_file():
         raise ConfigError(
-            f"the config is not valid YAML{where}: {getattr(exc, 'problem', exc)}",
+            "config file not found" if not Path(path).exists() else "the config is a folder, not a file",
             path=path,
-            fix="check indentation and 'key: value' syntax there",
-        ) from exc
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(
-            "the config must be a mapping of 'key: value' lines",
-            path=path,
-            fix="start each setting on its own line as 'key: value'",
+            fix="check the path, or write a template with --write-config FILE",
         )
-    return data
+    return read_yaml(path, what="config file", allow_empty=True)
 
 
 def parse_override(item: str) -> tuple[str, Any]:
+    """``key=value`` from ``--set`` or a flag: the key, and the value read as in a YAML file (``-`` is itself)."""
     if "=" not in item:
         raise ConfigError(
             f"--set expects key=value, got {item!r}",
             fix="write it as --set key=value, for example --set output_dir=runs/mine",
         )
     key, text = item.split("=", 1)
-    try:
-        # a bare '-' is standard output (docs/DESIGN.md §1), not YAML's list of one null
-        value = "-" if text.strip() == "-" else yaml.safe_load(text) if text.strip() else ""
-    except yaml.YAMLError:
-        value = text
-    return key.strip(), value
+    return key.strip(), parse_value(text)
 
 
 def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", base: Path | None = None) -> None:
@@ -168,7 +153,9 @@ def set_value(cfg: Any, dotted_key: str, value: Any, *, source: str = "--set", b
                 raise ConfigError(f"'{'.'.join(parts[: i + 1])}' has no sub-keys", fix=f"use --set {part}=VALUE")
         else:
             hints = get_type_hints(type(target))
-            setattr(target, part, _coerce(value, hints[part], dotted_key, source, base or Path.cwd()))
+            value = _coerce(value, hints[part], dotted_key, source, base or Path.cwd())
+            _check_stdout(value, names[part].metadata, dotted_key, source)
+            setattr(target, part, value)
 
 
 def _unknown_key(key: str, names: typing.Iterable[str], prefix: str, source: str, cls: type) -> ConfigError:
@@ -242,6 +229,7 @@ def _build(cls: type, data: dict, *, prefix: str, source: str, base: Path) -> An
             kwargs[name] = _build(typ, value, prefix=key, source=source, base=base)
         else:
             kwargs[name] = _coerce(value, typ, key, source, base)
+            _check_stdout(kwargs[name], names[name].metadata, key, source)
     for f in fields(cls):
         # defaults go through the same conversion: a default path is relative to the config file too
         if f.name not in kwargs and f.default is not MISSING and f.default is not None:
@@ -263,6 +251,34 @@ def _type_name(typ: Any) -> str:
     return getattr(typ, "__name__", str(typ).replace("typing.", ""))
 
 
+class NotFiniteError(ConfigError):
+    """A number key given inf or nan: refused whatever else the key's type allows."""
+
+
+def _check_stdout(value: Any, metadata: Any, key: str, source: str) -> None:
+    """``-`` (standard output) only where the key is an output file; elsewhere a refusal that says why."""
+    values = value if isinstance(value, (list, tuple)) else [value]
+    if metadata.get("path") == "out_file" or not any(isinstance(v, Path) and str(v) == STDOUT for v in values):
+        return
+    kind = metadata.get("path")
+    what = {"out": "an output folder"}.get(
+        kind, "an input" if kind in ("file", "dir", "exists") else "not a file to write"
+    )
+    raise ConfigError(
+        f"config key '{key}' is {what}: '-' (standard output) is only for an output file ({source})",
+        fix=f"give '{key}' a path",
+    )
+
+
+def _finite(number: float, value: Any, key: str, source: str) -> float:
+    if not math.isfinite(number):
+        raise NotFiniteError(
+            f"config key '{key}' must be a finite number, got {value!r} ({source})",
+            fix=f"set '{key}' to a number (0 where the key's help says 0 means none)",
+        )
+    return number
+
+
 def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
     def bad(expected: str) -> ConfigError:
         return ConfigError(
@@ -280,6 +296,8 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
                 continue
             try:
                 return _coerce(value, option, key, source, base)
+            except NotFiniteError:
+                raise
             except ConfigError as exc:
                 errors.append(exc)
         raise bad(" or ".join(_type_name(o) for o in options))
@@ -307,14 +325,18 @@ def _coerce(value: Any, typ: Any, key: str, source: str, base: Path) -> Any:
         if isinstance(value, bool):
             raise bad("a number")
         if isinstance(value, (int, float)):
-            return float(value)
+            return _finite(float(value), value, key, source)
         if isinstance(value, str):
             try:
-                return float(value)  # YAML reads "1e-3" as a string
+                number = float(value)  # YAML reads "1e-3" as a string
             except ValueError:
                 pass
+            else:
+                return _finite(number, value, key, source)
         raise bad("a number")
     if typ is str:
+        if isinstance(value, float):
+            _finite(value, value, key, source)
         if isinstance(value, (str, int, float)) and not isinstance(value, bool):
             return str(value)
         raise bad("text")

@@ -28,10 +28,38 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from matchplant.core.runtime.errors import InputError, OutputError
+from matchplant.core.runtime import readers
+from matchplant.core.runtime.errors import OutputError
 
 STDOUT = "-"
 FIFO_WAIT_S = 10.0  # how long a write to a FIFO waits for a program to read it
+
+# the errors of writing a file, each with what it means and what to do
+WRITE_ERRORS = {
+    errno.ENOSPC: ("the disk is full", "free space on that disk, or write the output to another one"),
+    errno.EDQUOT: ("the disk quota is used up", "free space, or write the output elsewhere"),
+    errno.EFBIG: ("the file is too large for that file system", "write the output to another disk"),
+    errno.EROFS: ("the file system is read-only", "give an output path on a disk that can be written"),
+    errno.EACCES: ("permission denied", "give an output in a folder you can write to, or change its permissions"),
+    errno.EPERM: ("the operation is not permitted", "give an output in a folder you can write to"),
+    errno.EISDIR: ("a folder is in the way", "give the path of a file, or move the folder away"),
+    errno.ENOTDIR: ("a part of the path is a file, not a folder", "give a path whose folders are folders"),
+    errno.EIO: ("an input/output error of the disk", "check the disk, or write the output elsewhere"),
+}
+
+
+def write_error(path: str | Path, exc: OSError) -> OutputError:
+    """The OutputError for a failed write of ``path``: what happened, in words, the file and the fix."""
+    what, fix = WRITE_ERRORS.get(exc.errno, (exc.strerror or str(exc), "give an output path that can be written"))
+    return OutputError(f"cannot write {path}: {what} ({exc.strerror or exc})", path=path, fix=fix)
+
+
+def is_write_error(exc: BaseException, *paths: str | Path) -> bool:
+    """An OSError of writing one of ``paths`` (or of no named file: a write to an open file), not of reading
+    an input that happened inside the same block."""
+    if not isinstance(exc, OSError) or isinstance(exc, FileNotFoundError) or exc.errno not in WRITE_ERRORS:
+        return False
+    return exc.filename is None or str(exc.filename) in {str(p) for p in paths}
 
 
 def _kind(mode: int) -> str:
@@ -156,10 +184,14 @@ def _temp_beside(path: Path) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     except OSError as exc:
-        raise OutputError(
-            f"cannot write in {path.parent}: {exc.strerror or exc}",
-            path=path,
-            fix="give an output path in a folder you can write to",
+        raise (
+            write_error(path, exc)
+            if exc.errno in WRITE_ERRORS
+            else OutputError(
+                f"cannot write in {path.parent}: {exc.strerror or exc}",
+                path=path,
+                fix="give an output path in a folder you can write to",
+            )
         ) from exc
     os.close(fd)
     tmp_path = Path(tmp)
@@ -172,6 +204,15 @@ def place(tmp: str | Path, path: str | Path) -> Path:
     symlink's target), or copied into a stream and removed. Returns where it went."""
     tmp = Path(tmp)
     kind, target = output_target(path)
+    try:
+        return _place(tmp, path, kind, target)
+    except OSError as exc:
+        if is_write_error(exc, tmp, path, target):
+            raise write_error(path, exc) from exc
+        raise
+
+
+def _place(tmp: Path, path: Path, kind: str, target: Path) -> Path:
     if kind == "stream":
         try:
             _write_stream(tmp, target)
@@ -214,6 +255,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:
         yield tmp_path
         place(tmp_path, path)
+    except OSError as exc:  # the writer's own error (a full disk while it wrote): named, not an internal error
+        if is_write_error(exc, tmp_path, path, target):
+            raise write_error(path, exc) from exc
+        raise
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
@@ -252,23 +297,8 @@ def write_json(path: str | Path, data: Any, indent: int | None = 1) -> Path:
 
 
 def read_json(path: str | Path) -> Any:
-    """Read JSON with an error that names the file and the line of a syntax error."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path=path, fix="check the path in your config")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return json.load(fh)
-    except json.JSONDecodeError as exc:
-        raise InputError(
-            f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})",
-            path=path,
-            fix="repair or regenerate the file",
-        ) from exc
-    except UnicodeDecodeError as exc:
-        raise InputError(
-            "not a text (UTF-8) file", path=path, fix="point the config at the JSON file, not a binary file"
-        ) from exc
+    """Read JSON with an error that names the file (:func:`matchplant.core.runtime.readers.read_json`)."""
+    return readers.read_json(path)
 
 
 def _fsync_path(path: Path, directory: bool = False) -> None:
@@ -306,12 +336,18 @@ class BatchedWrites:
     def write(self, name: str, data: bytes) -> Path:
         """Write one file of the batch under a temporary name; it is renamed into place with its batch."""
         dst = self.folder / name
-        fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".partial", dir=self.folder)
+        output_target(dst)  # a folder in the way: refused now, before the batch is written
+        tmp = None
         try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{dst.name}.", suffix=".partial", dir=self.folder)
             with os.fdopen(fd, "wb") as fh:
                 fh.write(data)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
+        except BaseException as exc:
+            if tmp is not None:
+                Path(tmp).unlink(missing_ok=True)
+            if isinstance(exc, OSError) and is_write_error(exc, *([tmp] if tmp else []), dst, self.folder):
+                self.discard()
+                raise write_error(dst, exc) from exc
             raise
         self.pending.append((Path(tmp), dst))
         if len(self.pending) >= self.batch:
@@ -322,10 +358,18 @@ class BatchedWrites:
         """Sync the pending files, rename them into place and sync the folder once."""
         if not self.pending:
             return
-        for tmp, _ in self.pending:
-            _fsync_path(tmp)
         for tmp, dst in self.pending:
-            place(tmp, dst)  # a rename over a regular file; a link written through, a device written
+            try:
+                _fsync_path(tmp)
+            except OSError as exc:
+                self.discard()
+                raise write_error(dst, exc) if is_write_error(exc, tmp) else exc from exc
+        try:
+            for tmp, dst in self.pending:
+                place(tmp, dst)  # a rename over a regular file; a link written through, a device written
+        except BaseException:
+            self.discard()
+            raise
         self.pending = []
         _fsync_path(self.folder, directory=True)
         self.syncs += 1

@@ -7,11 +7,12 @@ nothing)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from matchplant.core.runtime.errors import InputError
 from matchplant.core.runtime.io import write_json
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.readers import read_record
 
 log = get_logger()
 
@@ -21,12 +22,14 @@ NOT_LISTED = ("logs",)  # the run log is kept across runs (the guard writes it d
 
 def previous_files(out_dir: Path) -> list[str]:
     """The files the previous run into ``out_dir`` listed (none when it left no readable manifest)."""
+    path = Path(out_dir) / MANIFEST
     try:
-        data = json.loads((Path(out_dir) / MANIFEST).read_text(encoding="utf-8"))
-        files = data.get("files", [])
-    except (OSError, ValueError, AttributeError):
+        data = read_record(path, what="the list of the previous run's files", fix="", default={})
+    except InputError as exc:  # nothing is removed then: a damaged list must not remove the user's files
+        log.warning("%s; no earlier output is removed (delete %s to silence this)", exc.problem, path)
         return []
-    return [f for f in files if isinstance(f, str)]
+    files = data.get("files", [])
+    return [f for f in files if isinstance(f, str)] if isinstance(files, list) else []
 
 
 def write_manifest(stage: Path, extra: list[str] = ()) -> list[str]:

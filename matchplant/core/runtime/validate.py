@@ -21,9 +21,7 @@ returns a partial result silently.
 from __future__ import annotations
 
 import csv
-import difflib
 import io
-import json
 import math
 import re
 from collections.abc import Iterable, Sequence
@@ -32,24 +30,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from PIL import Image
 
 from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.log import get_logger
+from matchplant.core.runtime.readers import did_you_mean, read_json, read_text, read_yaml
 
 log = get_logger("validate")
 
 # --------------------------------------------------------------------------------------------------
 # names
-
-
-def did_you_mean(name: str, choices: Iterable[str], *, cutoff: float = 0.6) -> str:
-    """``"did you mean 'x'?"`` for the closest of ``choices`` (case-insensitive), or ``""``."""
-    choices = [str(c) for c in choices]
-    folded = {c.casefold(): c for c in choices}
-    close = difflib.get_close_matches(str(name).casefold(), list(folded), n=1, cutoff=cutoff)
-    return f"did you mean '{folded[close[0]]}'?" if close else ""
 
 
 _EXT = re.compile(r"\.[A-Za-z][A-Za-z0-9]{0,4}$")
@@ -110,164 +100,6 @@ def match_name(
 
 # --------------------------------------------------------------------------------------------------
 # text, JSON, YAML
-
-
-def read_text(path: str | Path, *, what: str = "file") -> str:
-    """A text file as ``str`` whatever a Windows editor saved: UTF-8 (BOM or not), UTF-16 with BOM, CRLF line
-    ends (turned into ``\\n``); cp1252 as a last resort, with a warning."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(
-            f"{what} not found" if not path.exists() else f"{what} is a folder, not a file",
-            path=path,
-            fix="check the path in your config",
-        )
-    data = path.read_bytes()
-    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
-        text = data.decode("utf-16")
-    else:
-        try:
-            text = data.decode("utf-8-sig")
-        except UnicodeDecodeError as exc:
-            if b"\x00" in data[:4096]:
-                raise InputError(
-                    f"{what} is binary, not text (byte {exc.start})", path=path, fix="point the config at the text file"
-                ) from exc
-            text = data.decode("cp1252", errors="replace")
-            log.warning("%s is not UTF-8; read it as Windows-1252 (save it as UTF-8 to silence this)", path)
-    return text.replace("\r\n", "\n").replace("\r", "\n")
-
-
-def read_json(
-    path: str | Path,
-    *,
-    expect: type | tuple[type, ...] | None = None,
-    required: Sequence[str] = (),
-    what: str = "JSON file",
-) -> Any:
-    """Parse a JSON file; name a truncated file as such, a syntax error's line, a wrong top-level type and
-    missing top-level keys (``required``, with "did you mean" from the keys present)."""
-    path = Path(path)
-    text = read_text(path, what=what)
-    if not text.strip():
-        raise InputError(
-            f"{what} is empty", path=path, fix="regenerate the file (the step that wrote it may have been interrupted)"
-        )
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        tail = text.rstrip()
-        # cut off: the error is at the very end, or the text stops inside a string or before its last bracket
-        cut = exc.pos >= len(tail) - 1 or exc.msg.startswith("Unterminated string") or tail[-1:] not in "}]"
-        if cut and not exc.msg.startswith("Extra data"):
-            raise InputError(
-                f"{what} is not valid JSON: it ends early, at line {exc.lineno} ({exc.msg}), as a truncated file does",
-                path=path,
-                fix="the file was cut off (disk full, interrupted copy or run); copy or regenerate it",
-            ) from exc
-        raise InputError(
-            f"{what} is not valid JSON: line {exc.lineno}, column {exc.colno}: {exc.msg}",
-            path=path,
-            fix="repair the file there, or regenerate it",
-        ) from exc
-    if expect is not None and not isinstance(data, expect):
-        raise InputError(
-            f"{what} holds {_kind(data)}, expected {_kind_of(expect)}",
-            path=path,
-            fix="point the config at the right file",
-        )
-    if required:
-        _require_keys(data, required, what, path)
-    return data
-
-
-def _kind(value: Any) -> str:
-    return {dict: "an object {...}", list: "a list [...]", str: "a string", type(None): "null"}.get(
-        type(value), f"a {type(value).__name__}"
-    )
-
-
-def _kind_of(expect: type | tuple[type, ...]) -> str:
-    types = expect if isinstance(expect, tuple) else (expect,)
-    return " or ".join({dict: "an object {...}", list: "a list [...]"}.get(t, t.__name__) for t in types)
-
-
-def _require_keys(data: Any, required: Sequence[str], what: str, path: Path) -> None:
-    if not isinstance(data, dict):
-        raise InputError(
-            f"{what} holds {_kind(data)}, expected an object with {list(required)}",
-            path=path,
-            fix="point the config at the right file",
-        )
-    for key in required:
-        if key not in data:
-            hint = did_you_mean(key, data)
-            raise InputError(
-                f"{what} has no '{key}'{'; ' + hint if hint else ''}",
-                path=path,
-                fix=f"the file needs a top-level '{key}'; regenerate it or point the config at the right file",
-            )
-
-
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """A SafeLoader that refuses a key given twice in one mapping (YAML would keep the last silently)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen: dict[Any, int] = {}
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
-            try:
-                hash(key)
-            except TypeError:
-                continue
-            if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None,
-                    None,
-                    f"key '{key}' appears twice (lines {seen[key]} and {key_node.start_mark.line + 1})",
-                    key_node.start_mark,
-                )
-            seen[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep)
-
-
-def read_yaml(
-    path: str | Path, *, expect: type | None = dict, what: str = "YAML file", error: type = ConfigError
-) -> Any:
-    """Parse a YAML file (BOM and CRLF accepted); an empty file, a syntax error (with its line), tabs used
-    for indentation, a key given twice and a wrong top-level type are errors."""
-    path = Path(path)
-    try:
-        text = read_text(path, what=what)
-    except InputError as exc:
-        raise error(exc.problem, path=exc.path, fix=exc.fix) from exc
-    if not text.strip() or all(not ln.strip() or ln.lstrip().startswith("#") for ln in text.splitlines()):
-        raise error(f"{what} is empty", path=path, fix="write its settings as 'key: value' lines")
-    try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        tab = next((i + 1 for i, ln in enumerate(text.splitlines()) if re.match(r"^ *\t", ln)), None)
-        if tab is not None:
-            raise error(
-                f"{what}: line {tab} is indented with a tab",
-                path=path,
-                fix="indent with spaces only (YAML does not allow tabs)",
-            ) from exc
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise error(
-            f"{what} is not valid YAML{f' at line {line}' if line else ''}: {problem}",
-            path=path,
-            fix="check the indentation and the 'key: value' syntax there",
-        ) from exc
-    if expect is not None and not isinstance(data, expect):
-        raise error(
-            f"{what} holds {_kind(data)}, expected {_kind_of(expect)} of 'key: value' lines",
-            path=path,
-            fix="write one 'key: value' setting per line",
-        )
-    return data
 
 
 # --------------------------------------------------------------------------------------------------
