@@ -27,6 +27,7 @@ from matchplant.core.runtime.errors import ConfigError, InputError
 from matchplant.core.runtime.io import atomic_open, write_json
 from matchplant.core.runtime.log import get_logger
 from matchplant.core.runtime.progress import progress
+from matchplant.core.runtime.readers import read_record
 from matchplant.views.cameras import Survey
 from matchplant.views.config import CropSettings
 from matchplant.views.cut import COLUMNS, PARTIAL, ROWS_FILE, crop_box, cut_photo, decode
@@ -159,12 +160,11 @@ def _check_settings(out: Path, plants, survey: Survey, settings: CropSettings) -
         "source": survey.source,
     }
     path = out / SETTINGS_FILE
-    if path.is_file():
-        try:
-            earlier = json.loads(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            earlier = None
-        if earlier != json.loads(json.dumps(record)):
+    earlier = read_record(
+        path, what="the crops' settings record", fix="delete the output folder's crops.json, or choose another folder"
+    )
+    if earlier is not None:
+        if json.dumps(earlier, sort_keys=True) != json.dumps(record, sort_keys=True):  # tuples and lists alike
             raise ConfigError(
                 "the output folder holds crops of another run (other settings, plants or photos)",
                 path=out,

@@ -234,7 +234,7 @@ def read_plots(path: str | Path, id_column: str = "plot_id"):
         plots = gpd.read_file(path)
     except Exception as exc:  # pyogrio raises several kinds; all mean the file can't be used
         raise InputError(
-            f"cannot read the plots: {exc}", path=path, fix="give a GeoPackage, shapefile or GeoJSON"
+            f"cannot read the plots: {exc}", path=path, fix="give a GeoPackage, a shapefile or a GeoJSON file"
         ) from exc
     if id_column not in plots.columns:
         raise InputError(
