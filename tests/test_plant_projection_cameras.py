@@ -3,20 +3,26 @@ the plants the ODM project gives (the boxes on the original photos)."""
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
 
 import numpy as np
+import pandas as pd
 import pytest
 import rasterio
+from project_exports import write_exports
 from rasterio.transform import Affine
 
 from matchplant.core.formats.coco import read_dataset
 from matchplant.core.formats.metashape import read_metashape
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.formats.projects import PhotoProject, detect_project, open_project
+from matchplant.core.geometry.geodetic import TangentFrame
 from matchplant.core.runtime.errors import InputError
 from matchplant.plant_projection.merge import merge_views
 from matchplant.plant_projection.views import project_predictions
+from matchplant.simfield import generate_field
 
 
 @pytest.fixture(scope="module")
@@ -47,11 +53,10 @@ def test_auto_says_what_it_found(tiny_field, exports, tmp_path):
 @pytest.mark.parametrize("program", ["metashape", "pix4d"])
 def test_demo_field_gives_the_same_plants_through_each_program(tiny_field, exports, program):
     """Pix4D's frame is ODM's (map minus an offset): the same rays, to the bit. Metashape's chunk is rigid in
-    geocentric space while the demo's truth is straight in UTM; the writer turns each pose by the rotation
-    nearest to the projection's Jacobian at the camera (docs/DESIGN.md §3), which leaves UTM's scale (1.0001
-    here) on each ray's horizontal run: hits agree to 0.05 mm (median), and a box edge set by a ray grazing a
-    plant top may land on the other side of it, as in ODM's own topocentric reconstruction
-    (test_topocentric_reconstruction_gives_the_same_plants)."""
+    geocentric space while the demo's truth is straight in UTM; the writer gives each photo the sensor and pose
+    that carry the projection's Jacobian at the camera (its scale, 1.0001 here, included: docs/DESIGN.md §3),
+    and module 8 walks each photo's rays through the tangent frame at its camera, so the same rays come back to
+    what is left of the distortion's slope times that scale (micrometres), and every plant within 1 mm."""
     preds = _raw_predictions(tiny_field)
     ref, _ = project_predictions(ODMProject(tiny_field.root), preds)
     src = exports / ("meta/cameras.xml" if program == "metashape" else "p4d")
@@ -67,12 +72,14 @@ def test_demo_field_gives_the_same_plants_through_each_program(tiny_field, expor
     if program == "pix4d":
         assert ray.max() < 1e-6 and plants.max() < 1e-6
     else:
-        assert np.median(ray) < 1e-4 and np.percentile(ray, 99) < 1e-3 and (ray < 0.01).mean() >= 0.995
-        assert np.median(plants) < 1e-3 and (plants < 1e-3).mean() >= 0.9, np.sort(plants)[-5:]
+        assert np.percentile(ray, 99) < 1e-5 and ray.max() < 1e-4, np.sort(ray.ravel())[-5:]
+        assert plants.max() < 1e-3, np.sort(plants)[-5:]
 
 
 def test_metashape_writer_round_trips(tiny_field, exports):
-    """What the Metashape writer writes, the reader reads back: centres and rays of every photo."""
+    """What the Metashape writer writes, the reader reads back: centres and rays of every photo. Through the
+    tangent frame at the camera (what module 8 walks) the rays are the ODM ones; through the exact conversion
+    they bend away by the earth's curvature over their horizontal run r (r²/2R: under 0.1 mm for 30 m)."""
     odm = ODMProject(tiny_field.root)
     cs = read_metashape(exports / "meta" / "cameras.xml")
     for sid, shot in odm.reconstruction().shots.items():
@@ -81,8 +88,12 @@ def test_metashape_writer_round_trips(tiny_field, exports):
         assert np.linalg.norm(cs.frame.to_map(got.center[None, :])[0] - c_map) < 1e-6
         uv = np.array([[0.0, 0.0], [399.0, 299.0], [200.0, 150.0]])
         far = odm.frame().to_map(shot.center + 30 * shot.ray_directions(uv))
-        mine = cs.frame.to_map(got.center + 30 * got.ray_directions(uv))
-        assert np.abs(mine - far).max() < 0.005  # 30 m rays: UTM scale 1e-4 and convergence aside, the same
+        d_odm = (far - c_map) / 30
+        tangent = TangentFrame(cs.frame, got.center)
+        assert np.abs(tangent.map_directions(got.ray_directions(uv)) - d_odm).max() < 1e-7  # 3 µm at 30 m
+        mine = cs.frame.to_map(got.center + 30 * got.ray_directions(uv)) - c_map  # 30 m of the chunk's ray
+        off_line = np.linalg.norm(mine - np.sum(mine * d_odm, axis=1)[:, None] * d_odm, axis=1)
+        assert off_line.max() < 1e-4
 
 
 def test_bad_project_inputs(tiny_field, exports, tmp_path):
@@ -100,3 +111,52 @@ def test_bad_project_inputs(tiny_field, exports, tmp_path):
     with pytest.raises(InputError, match="does not overlap the cameras") as err:
         project.frame()
     assert str(far) in str(err.value)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("MATCHPLANT_LONG_TESTS"),
+    reason="the demo field (small: 1,292 plants) takes ~1 min to generate and project, past the suite's budget: "
+    "MATCHPLANT_LONG_TESTS=1 runs it (docs/development.md, Test tiers); the tiny field is checked the same way in "
+    "every run",
+)
+def test_demo_field_plants_through_each_program_within_a_millimetre(tmp_path):
+    """The demo's own field through our Metashape and Pix4D exports: every one of its 1,292 plants within 1 mm of
+    where the ODM project puts it (measured: 0.005 mm at most through Metashape, 0 through Pix4D)."""
+    paths = generate_field(preset="small", seed=0, out=tmp_path / "field")
+    preds = _raw_predictions(paths)
+    ref = merge_views(project_predictions(ODMProject(paths.root), preds)[0])
+    for program, src in write_exports(paths.root, tmp_path / "exports").items():
+        project = open_project(src, program, dsm=paths.dsm)
+        views, rejected = project_predictions(project, preds)
+        got = merge_views(views)
+        cols = ["xmin", "ymin", "xmax", "ymax", "cx", "cy"]
+        assert len(rejected) == 0 and len(got) == len(ref) == 1292
+        worst = np.abs(got[cols].to_numpy() - ref[cols].to_numpy()).max()
+        print(f"{program}: {len(got)} plants, worst {worst * 1e3:.4f} mm")
+        assert worst < 1e-3, (program, worst)
+
+
+def test_metashape_labels_without_extension_find_their_photos(tiny_field, exports, tmp_path):
+    """Metashape labels a camera by its photo's name without the extension (``DJI_0001``, as in the real
+    tests/data/metashape-markers-easyidp): the photo at hand of that name is the camera's, its file name the
+    shot id, and module 8 gives the plants the export with full names gives."""
+    xml = (exports / "meta" / "cameras.xml").read_text()
+    stripped = re.sub(r'label="(SIM_\d+)\.JPG"', r'label="\1"', xml)
+    assert stripped != xml
+    (tmp_path / "cameras.xml").write_text(stripped)
+    shutil.copytree(tiny_field.root / "images", tmp_path / "images")
+    project = open_project(tmp_path / "cameras.xml", "metashape", dsm=tiny_field.root / "odm_dem" / "dsm.tif")
+    full = open_project(exports / "meta" / "cameras.xml", images=tiny_field.root / "images")
+    assert project.shot_ids(False) == full.shot_ids(False) and all(s.endswith(".JPG") for s in full.shot_ids(False))
+    paths = project.image_paths()
+    assert {p.name for p in paths.values()} == set(paths) == {p.name for p in (tmp_path / "images").iterdir()}
+    preds = _raw_predictions(tiny_field)
+    a = merge_views(project_predictions(project, preds)[0])
+    b = merge_views(
+        project_predictions(open_project(exports / "meta" / "cameras.xml", dsm=project.path("dsm")), preds)[0]
+    )
+    pd.testing.assert_frame_equal(a, b)
+    (tmp_path / "images" / "SIM_0001.bmp").write_bytes(b"")  # two photos of one name: the JPEG, not the other
+    again = open_project(tmp_path / "cameras.xml", "metashape")
+    assert "SIM_0001.JPG" in again.shot_ids(False)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from matchplant.core.formats.camera_set import CameraSet
-from matchplant.core.formats.images import image_size
+from matchplant.core.formats.images import IMAGE_SUFFIXES, image_size, is_image_name
 from matchplant.core.formats.metashape import read_metashape
 from matchplant.core.formats.odm import OUTPUTS, ODMProject
 from matchplant.core.formats.pix4d import SUFFIX, params_folder, read_pix4d
@@ -147,10 +147,39 @@ class PhotoProject:
         self._rasters = {"dsm": dsm, "orthophoto": orthophoto, "dtm": dtm}
         self.images_dir = Path(images) if images is not None else None
         # shot id: the photo's file name where every name is unique, else the program's label (subfolders)
-        names = [p.name for p in cameras.photos.values()]
+        self._disk_names = {label: self._disk_name(p.name) for label, p in cameras.photos.items()}
+        names = list(self._disk_names.values())
         unique = len(set(names)) == len(names)
-        self._by_id = {(p.name if unique else p.label): p for p in cameras.photos.values()}
+        self._by_id = {(self._disk_names[p.label] if unique else p.label): p for p in cameras.photos.values()}
         self._shots = {k: replace(p.shot, id=k) for k, p in self._by_id.items() if p.shot is not None}
+
+    @cached_property
+    def _files(self) -> dict[str, Path]:
+        """File name -> file of the photos at hand: in ``images``, the project folder and its images/."""
+        folders = [f for f in (self.images_dir, self.root, self.root / "images") if f is not None and f.is_dir()]
+        index = {}
+        for folder in reversed(folders):
+            index.update({p.name: p for p in folder.iterdir() if p.is_file()})
+        return index
+
+    @cached_property
+    def _stems(self) -> dict[str, list[str]]:
+        """Photo file name without its extension -> the photos at hand of that name."""
+        stems: dict[str, list[str]] = {}
+        for name, path in self._files.items():
+            if is_image_name(path):
+                stems.setdefault(path.stem, []).append(name)
+        return stems
+
+    def _disk_name(self, name: str) -> str:
+        """The photo's file name: Metashape labels a camera by its file name without the extension by default
+        (``DJI_0001`` for ``DJI_0001.JPG``); such a label is the one photo at hand of that name."""
+        if is_image_name(Path(name)):
+            return name
+        hits = sorted(self._stems.get(name, []), key=lambda n: (IMAGE_SUFFIXES.index(Path(n).suffix.lower()), n))
+        if len(hits) > 1:  # a camera's JPEG beside a PNG or TIFF made from it: the JPEG, said
+            log.warning("photo %r: %s at hand; using %s", name, ", ".join(hits), hits[0])
+        return hits[0] if hits else name
 
     @property
     def name(self) -> str:
@@ -319,16 +348,13 @@ class PhotoProject:
         """Shot id -> the original photo's file, looked for in ``images``, the project folder and its images/."""
         cache = self.__dict__.setdefault("_paths", None)
         if cache is None:
-            folders = [f for f in (self.images_dir, self.root, self.root / "images") if f is not None and f.is_dir()]
-            index = {}
-            for folder in reversed(folders):
-                index.update({p.name: p for p in folder.iterdir() if p.is_file()})
             cache = self.__dict__["_paths"] = {}
             for sid, photo in self._by_id.items():
                 stored = Path(photo.path) if photo.path else None
                 if stored is not None and not stored.is_absolute():
                     stored = self.root / stored
-                hit = stored if stored is not None and stored.is_file() else index.get(photo.name)
+                on_disk = self._files.get(self._disk_names[photo.label])
+                hit = stored if stored is not None and stored.is_file() else on_disk
                 if hit is not None:
                     cache[sid] = hit
         if not missing_ok:
