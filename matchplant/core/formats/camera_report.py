@@ -60,6 +60,8 @@ def summary(project) -> str:
         lines.append(f"photos: {len(cameras.photos)} ({len(ids)} with a pose, {len(unposed)} without)")
         if unposed:
             lines.append("  without a pose: " + ", ".join(unposed[:10]) + (" ..." if len(unposed) > 10 else ""))
+        for why, labels in getattr(cameras, "left_out", {}).items():
+            lines.append(f"  left out: {len(labels)} photos, {why}")
     else:
         lines.append(f"photos: {len(ids)} with a pose")
     sensors = {}

@@ -55,6 +55,7 @@ class CameraSet:
     photos: dict[str, Photo]  # by label (unique in the project)
     sensors: dict[str, Camera]
     markers: list[Marker] = field(default_factory=list)
+    left_out: dict[str, list[str]] = field(default_factory=dict)  # why -> labels of photos not read (e.g. rig bands)
 
     @property
     def posed(self) -> dict[str, Photo]:
