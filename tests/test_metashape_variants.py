@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ import pytest
 
 from matchplant.core.formats.camera_report import summary
 from matchplant.core.formats.metashape import read_metashape
-from matchplant.core.formats.projects import PhotoProject
+from matchplant.core.formats.projects import PhotoProject, open_project
 from matchplant.core.runtime.errors import InputError
 
 DATA = Path(__file__).parent / "data"
@@ -284,3 +285,18 @@ def test_reference_as_compound_crs(tmp_path, base):
             read_metashape(_write(tmp_path, text, "navd.xml"))
         except Exception as exc:  # noqa: BLE001 - which error class PROJ's refusal takes is checked by its text
             assert "ballpark" in str(exc)
+
+
+def test_psx_photo_paths_are_relative_to_the_frame_document(tmp_path, data_dir):
+    """A .psx stores each photo's path relative to its frame.zip (``../../../<folder>/DJI_0001.JPG`` in EasyIDP's
+    real wheat project): the photos beside the project are found there, not by guessing a folder."""
+    shutil.copytree(data_dir / "metashape-wheat", tmp_path / "wheat")
+    psx = tmp_path / "wheat" / "wheat_tanashi.psx"
+    photos = tmp_path / "wheat" / "wheat_tanashi_kato3N_20190314_Ins1RGB_30m"
+    photos.mkdir()
+    project = open_project(psx, "metashape")
+    for sid in project.shot_ids(False):
+        (photos / sid).write_bytes(b"")
+    found = project.image_paths()
+    assert len(found) == len(project.shot_ids(False)) > 100
+    assert {p.parent for p in found.values()} == {photos} and all(p.name == sid for sid, p in found.items())

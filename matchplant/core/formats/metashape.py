@@ -20,9 +20,10 @@ Variants (docs/DESIGN.md §8, tests/test_metashape_variants.py): a multi-camera 
 
 from __future__ import annotations
 
+import os
 import re
 import zipfile
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from xml.etree import ElementTree
 from xml.sax.saxutils import escape
 
@@ -323,10 +324,12 @@ def _read_chunk(element, frame_doc, path: Path, files: list[Path]) -> CameraSet:
         )
     paths = {}
     if frame_doc is not None:
+        # a .psx writes each photo's path relative to its frame document (frame.zip), e.g. ../../../photos/x.JPG
+        base = files[-1].parent if files[-1].suffix.lower() == ".zip" else path.parent
         paths = {
-            c.get("camera_id"): c.find("photo").get("path")
+            c.get("camera_id"): _photo_path(c.find("photo").get("path"), base)
             for c in frame_doc.findall("cameras/camera")
-            if c.find("photo") is not None
+            if c.find("photo") is not None and c.find("photo").get("path")
         }
     frame, shots = _shots(rows, sensors, crs, path)
     photos = {}
@@ -355,6 +358,14 @@ def _read_chunk(element, frame_doc, path: Path, files: list[Path]) -> CameraSet:
     )  # fmt: skip
     sensor_set = {s.id: s for s in sensors.values() if s is not None}
     return CameraSet("metashape", path, files, frame, photos, sensor_set, markers, left_out)
+
+
+def _photo_path(stored: str, base: Path) -> str:
+    """A photo's path as the project stores it, made relative ones from ``base``; another machine's absolute
+    path (``C:/...``) is kept as it is (the photo is then looked for by its file name)."""
+    if PureWindowsPath(stored).is_absolute() or PurePosixPath(stored).is_absolute():
+        return stored
+    return os.path.normpath(base / stored)
 
 
 def _enabled(el) -> bool:
