@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 from bench.bench_plant_projection import field  # noqa: E402
 from matchplant.core.formats.coco import read_dataset  # noqa: E402
-from matchplant.core.formats.metashape import write_metashape  # noqa: E402
+from matchplant.core.formats.metashape_writer import write_metashape  # noqa: E402
 from matchplant.core.formats.odm import ODMProject  # noqa: E402
 from matchplant.core.formats.pix4d import write_pix4d  # noqa: E402
 from matchplant.core.formats.projects import open_project  # noqa: E402

@@ -39,7 +39,7 @@ def tiny_field(tmp_path_factory):
 def camera_exports(tiny_field, tmp_path_factory):
     """The tiny field's ODM poses written as a Metashape camera export (meta/cameras.xml) and a Pix4D params
     folder (p4d/); returns their folder."""
-    from matchplant.core.formats.metashape import write_metashape
+    from matchplant.core.formats.metashape_writer import write_metashape
     from matchplant.core.formats.odm import ODMProject
     from matchplant.core.formats.pix4d import write_pix4d
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from matchplant.core.formats.metashape import write_metashape
+from matchplant.core.formats.metashape_writer import write_metashape
 from matchplant.core.formats.odm import ODMProject
 from matchplant.core.formats.pix4d import write_pix4d
 
