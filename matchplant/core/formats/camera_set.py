@@ -8,6 +8,7 @@ align it). Both programs pose the *original* photos, so projection goes through 
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
@@ -73,6 +74,21 @@ class CameraSet:
         if not shots:
             return np.zeros((0, 3))
         return self.frame.to_map(np.array([s.center for s in shots]))
+
+
+def stored_path(stored: str, base: Path) -> str:
+    """A photo's path as a project file stores it, as this machine reads it: a relative one from ``base`` (the
+    folder of the file that stores it), an absolute one as it is; another machine's (``C:\\...`` on Linux) cannot
+    be reached here, and the photo is then looked for by its file name."""
+    if PureWindowsPath(stored).is_absolute() or PurePosixPath(stored).is_absolute() or "\\" in stored:
+        return stored
+    return os.path.normpath(base / stored)
+
+
+def only_camera(photos) -> Camera | None:
+    """The camera of every photo where there is one, else None (a photo without a pose then has no camera)."""
+    cams = {p.camera.id: p.camera for p in photos if p.camera is not None}
+    return next(iter(cams.values())) if len(cams) == 1 else None
 
 
 def file_name(path_or_label: str) -> str:

@@ -20,15 +20,22 @@ Variants (docs/DESIGN.md §8, tests/test_metashape_variants.py): a multi-camera 
 
 from __future__ import annotations
 
-import os
 import re
 import zipfile
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path
 from xml.etree import ElementTree
 
 import numpy as np
 
-from matchplant.core.formats.camera_set import CameraSet, Marker, Photo, check_rotation, file_name, make_shots
+from matchplant.core.formats.camera_set import (
+    CameraSet,
+    Marker,
+    Photo,
+    check_rotation,
+    file_name,
+    make_shots,
+    stored_path,
+)
 from matchplant.core.geometry.frame_camera import FrameCamera
 from matchplant.core.geometry.frames import _proj, parse_crs, utm_crs_for
 from matchplant.core.geometry.geodetic import (
@@ -322,7 +329,7 @@ def _read_chunk(element, frame_doc, path: Path, files: list[Path]) -> CameraSet:
         # a .psx writes each photo's path relative to its frame document (frame.zip), e.g. ../../../photos/x.JPG
         base = files[-1].parent if files[-1].suffix.lower() == ".zip" else path.parent
         paths = {
-            c.get("camera_id"): _photo_path(c.find("photo").get("path"), base)
+            c.get("camera_id"): stored_path(c.find("photo").get("path"), base)
             for c in frame_doc.findall("cameras/camera")
             if c.find("photo") is not None and c.find("photo").get("path")
         }
@@ -353,14 +360,6 @@ def _read_chunk(element, frame_doc, path: Path, files: list[Path]) -> CameraSet:
     )  # fmt: skip
     sensor_set = {s.id: s for s in sensors.values() if s is not None}
     return CameraSet("metashape", path, files, frame, photos, sensor_set, markers, left_out)
-
-
-def _photo_path(stored: str, base: Path) -> str:
-    """A photo's path as the project stores it, made relative ones from ``base``; another machine's absolute
-    path (``C:/...``) is kept as it is (the photo is then looked for by its file name)."""
-    if PureWindowsPath(stored).is_absolute() or PurePosixPath(stored).is_absolute():
-        return stored
-    return os.path.normpath(base / stored)
 
 
 def _enabled(el) -> bool:

@@ -36,7 +36,7 @@ def write_metashape(path: str | Path, shots: dict[str, Shot], frame: Frame) -> P
     cams, sensor_xml = [], []
     for k, c in zip(ids, local):
         shot = shots[k]
-        G = np.linalg.solve(_jacobian(frame, shot.center), TangentFrame(enu, c).J)  # frame <- ENU directions
+        G = np.linalg.solve(TangentFrame(frame, shot.center).J, TangentFrame(enu, c).J)  # frame <- ENU
         triangle, R = _rq(shot.R @ G)  # R: ENU -> camera
         sensor_xml.append(_sensor_xml(len(cams), _sensor_for(shot.camera, triangle, k)))
         T = np.eye(4)
@@ -57,13 +57,6 @@ def write_metashape(path: str | Path, shots: dict[str, Shot], frame: Frame) -> P
         + f"</cameras>{chunk_tf}<reference>{escape(crs.to_wkt('WKT1_GDAL'))}</reference></chunk>\n</document>\n"
     )
     return write_text(path, text)
-
-
-def _jacobian(frame: Frame, point: np.ndarray, h: float = 1.0) -> np.ndarray:
-    """d(map)/d(frame) at ``point`` (central differences, as :class:`TangentFrame` takes them)."""
-    pts = np.asarray(point, dtype=float)[None, :] + np.concatenate([np.eye(3) * h, -np.eye(3) * h])
-    m = frame.to_map(pts)
-    return ((m[:3] - m[3:]) / (2 * h)).T
 
 
 def _rq(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from matchplant.core.formats.camera_set import CameraSet, Photo, check_rotation, file_name, make_shots
+from matchplant.core.formats.camera_set import (
+    CameraSet,
+    Photo,
+    check_rotation,
+    file_name,
+    make_shots,
+    only_camera,
+    stored_path,
+)
 from matchplant.core.geometry.frame_camera import FrameCamera
 from matchplant.core.geometry.frames import OffsetFrame, parse_crs
 from matchplant.core.geometry.shot import Shot
@@ -238,7 +246,7 @@ def _with_p4d_images(photos: dict[str, Photo], p4d: Path) -> dict[str, Photo]:
                 fix="give the photos unique names and process the project again",
             )
         if stored:
-            listed[file_name(stored)] = _local_path(stored, p4d)
+            listed[file_name(stored)] = stored_path(stored, p4d.parent)
     if not listed:
         return photos
     known = {p.name for p in photos.values()}
@@ -252,8 +260,7 @@ def _with_p4d_images(photos: dict[str, Photo], p4d: Path) -> dict[str, Photo]:
     if missing:
         log.warning("%d calibrated photos are not in %s (e.g. %s)", len(missing), p4d.name, missing[0])
     out = {k: replace(p, path=listed.get(p.name) or p.path) for k, p in photos.items()}
-    cams = {p.camera.id: p.camera for p in photos.values()}
-    only = next(iter(cams.values())) if len(cams) == 1 else None  # several cameras: which one is not known
+    only = only_camera(photos.values())  # several cameras: which one is not known
     for fname, stored in listed.items():
         if fname not in known:
             out[fname] = Photo(fname, fname, only.id if only else "", only, None, stored)
@@ -289,17 +296,8 @@ def _with_external(photos: dict[str, Photo], external: Path, frame: OffsetFrame,
     if lost:
         log.warning("%d photos in %s are not in the camera parameters (e.g. %s): read without a pose",
                     len(lost), external.name, lost[0])  # fmt: skip
-    cams = {p.camera.id: p.camera for p in photos.values()}
-    only = next(iter(cams.values())) if len(cams) == 1 else None
+    only = only_camera(photos.values())
     return photos | {k: Photo(k, file_name(k), only.id if only else "", only, None) for k in lost}
-
-
-def _local_path(stored: str, p4d: Path) -> str:
-    """A .p4d image path as this machine reads it: absolute as stored, relative ones from the .p4d's folder."""
-    if "\\" in stored or (len(stored) > 1 and stored[1] == ":"):
-        return stored  # a Windows path: the file-name search finds the photo on this machine
-    p = Path(stored)
-    return str(p if p.is_absolute() else (p4d.parent / p))
 
 
 def _numbers(text: str, path: Path) -> np.ndarray:
