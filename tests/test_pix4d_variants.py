@@ -91,7 +91,7 @@ def test_image_names_with_spaces_or_folders_keep_their_label(tmp_path, original)
 
 def test_a_missing_or_extra_line_is_named_where_it_is(tmp_path):
     """A block short of a line (a hand edit, a copy cut short) is named by its line and what it should hold,
-    not read shifted; a file cut in the last block is 'truncated'; a file with no photo says so."""
+    not read shifted; a file cut in the last block is 'truncated'; a file with no photo, or an empty one, says so."""
     params = project(tmp_path)
     lines = (params / CCP).read_text().splitlines()
     (params / CCP).write_text("\n".join(lines[: 8 + 10 * 5 + 5] + lines[8 + 10 * 5 + 6 :]))  # photo 6's tangential
@@ -103,6 +103,9 @@ def test_a_missing_or_extra_line_is_named_where_it_is(tmp_path):
         read_pix4d(params)
     (params / CCP).write_text("\n".join(lines[:8]))
     with pytest.raises(InputError, match="lists no calibrated photo"):
+        read_pix4d(params)
+    (params / CCP).write_text("\n\n")  # Pix4D stopped before writing a line
+    with pytest.raises(InputError, match="is empty"):
         read_pix4d(params)
 
 

@@ -320,6 +320,8 @@ def _blocks(ccp: Path) -> list[tuple[int, str, list[str]]]:
     text = read_text(ccp, what="Pix4D camera parameters")
     lines = [(n, ln.strip()) for n, ln in enumerate(text.splitlines(), 1)]
     first = next((ln for _, ln in lines if ln), "")
+    if not first:
+        raise InputError(f"{ccp.name} is empty (Pix4D stopped while writing it?)", path=ccp, fix=EXPORT)
     if not first.lower().startswith("filename"):
         raise InputError(
             "not a Pix4D calibrated_camera_parameters file (its first line is not 'fileName imageWidth imageHeight')",
